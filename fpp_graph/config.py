@@ -1,0 +1,197 @@
+"""Configuration: pydantic models loaded from YAML, strict about keys.
+
+The documented defaults live in ``fpp_graph/default_config.yaml``; a user file overrides any
+subset of keys. Every model forbids unknown keys, and a misspelled key is reported with the
+nearest valid name (``registration.ransac_threshol_m: unknown key; did you mean
+'ransac_threshold_m'?``).
+"""
+
+from __future__ import annotations
+
+import copy
+import difflib
+import os
+from importlib import resources
+from pathlib import Path
+from typing import Any, Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from fpp_graph.errors import ConfigError
+
+
+class StrictModel(BaseModel):
+    """Base of every config section: unknown keys are errors, values are immutable."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class DecodeConfig(StrictModel):
+    """FPP decoding (phase retrieval, unwrapping, validity mask)."""
+
+    min_modulation: float = Field(4.0, ge=0, description="minimum fringe modulation b, grey levels")
+    saturation_level: float = Field(254.0, gt=0, description="grey level at or above which a pixel is saturated")
+    min_background: float = Field(2.0, ge=0, description="minimum background a; darker pixels are shadow")
+
+
+class RegistrationConfig(StrictModel):
+    """Pairwise registration: 2D features lifted to 3D, RANSAC, ICP, verification."""
+
+    feature: Literal["surf", "sift", "orb", "akaze"] = "surf"
+    max_features: int = Field(4000, gt=0)
+    ratio_test: float = Field(0.8, gt=0, le=1)
+    mutual_check: bool = True
+    ransac_threshold_m: float = Field(0.002, gt=0)
+    ransac_iterations: int = Field(2000, gt=0)
+    ransac_confidence: float = Field(0.9999, gt=0, lt=1)
+    min_inliers: int = Field(15, ge=3)
+    icp_method: Literal["gicp", "point_to_plane", "none"] = "gicp"
+    icp_voxel_m: float = Field(0.002, gt=0)
+    icp_max_correspondence_m: float = Field(0.004, gt=0)
+    icp_max_iterations: int = Field(50, gt=0)
+    min_fitness: float = Field(0.2, ge=0, le=1)
+    max_inlier_rmse_m: float = Field(0.002, gt=0)
+    min_overlap: float = Field(0.1, ge=0, le=1)
+    degeneracy_ratio: float = Field(1e-4, gt=0, description="smallest/largest Hessian eigenvalue below which a direction is unconstrained")
+
+
+class KeyframeConfig(StrictModel):
+    """Keyframe selection."""
+
+    min_translation_m: float = Field(0.0, ge=0)
+    min_rotation_deg: float = Field(0.0, ge=0)
+    max_overlap: float = Field(1.0, gt=0, le=1, description="a frame overlapping the last keyframe more than this is skipped")
+
+
+class LoopClosureConfig(StrictModel):
+    """Loop candidates (proximity and appearance) and their verification."""
+
+    enabled: bool = True
+    proximity_radius_m: float = Field(0.3, ge=0)
+    proximity_sigma: float = Field(3.0, gt=0, description="search radius grows by this many standard deviations of the pose covariance")
+    appearance_top_k: int = Field(5, ge=0)
+    min_frame_separation: int = Field(5, ge=1)
+    max_candidates_per_frame: int = Field(8, ge=1)
+
+
+class PoseGraphConfig(StrictModel):
+    """Pose-graph optimisation."""
+
+    solver: Literal["lm", "isam2"] = "lm"
+    initialization: Literal["chordal", "given"] = "chordal"
+    robust: Literal["none", "cauchy", "gnc"] = "gnc"
+    gnc_inlier_probability: float = Field(0.99, gt=0, lt=1)
+    cauchy_scale: float = Field(1.0, gt=0)
+    max_iterations: int = Field(100, gt=0)
+    relative_error_tol: float = Field(1e-10, gt=0)
+    consistency_probability: float = Field(0.999, gt=0, lt=1)
+    remove_inconsistent_loops: bool = True
+
+
+class FusionConfig(StrictModel):
+    """Global map re-fusion."""
+
+    voxel_size_m: float = Field(0.001, gt=0)
+    tsdf_voxel_m: float = Field(0.002, gt=0)
+    tsdf_truncation_m: float = Field(0.008, gt=0)
+    mesh: bool = True
+
+
+class RunConfig(StrictModel):
+    """Execution of a run."""
+
+    workers: int = Field(0, ge=0, description="0 = all cores")
+    log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = "INFO"
+
+
+class Config(StrictModel):
+    """The whole resolved configuration of a run."""
+
+    decode: DecodeConfig = DecodeConfig()
+    registration: RegistrationConfig = RegistrationConfig()
+    keyframes: KeyframeConfig = KeyframeConfig()
+    loop_closure: LoopClosureConfig = LoopClosureConfig()
+    pose_graph: PoseGraphConfig = PoseGraphConfig()
+    fusion: FusionConfig = FusionConfig()
+    run: RunConfig = RunConfig()
+
+
+DEFAULT_CONFIG_RESOURCE = "default_config.yaml"
+
+
+def default_config_text() -> str:
+    """The documented default configuration file shipped with the package."""
+    return resources.files("fpp_graph").joinpath(DEFAULT_CONFIG_RESOURCE).read_text(encoding="utf-8")
+
+
+def _deep_merge(base: dict[str, Any], override: dict[str, Any]) -> dict[str, Any]:
+    out = copy.deepcopy(base)
+    for key, value in override.items():
+        if isinstance(value, dict) and isinstance(out.get(key), dict):
+            out[key] = _deep_merge(out[key], value)
+        else:
+            out[key] = value
+    return out
+
+
+def _model_at(model: type[BaseModel], loc: tuple[Any, ...]) -> type[BaseModel] | None:
+    """The pydantic model class that holds the field at ``loc`` (the parent of the last item)."""
+    current: type[BaseModel] = model
+    for part in loc[:-1]:
+        field = current.model_fields.get(str(part))
+        if field is None or not (isinstance(field.annotation, type) and issubclass(field.annotation, BaseModel)):
+            return None
+        current = field.annotation
+    return current
+
+
+def _format_validation_error(exc: ValidationError, source: str) -> str:
+    messages = []
+    for err in exc.errors():
+        loc = tuple(err["loc"])
+        dotted = ".".join(str(p) for p in loc)
+        if err["type"] == "extra_forbidden":
+            parent = _model_at(Config, loc)
+            valid = sorted(parent.model_fields) if parent else []
+            close = difflib.get_close_matches(str(loc[-1]), valid, n=1, cutoff=0.5)
+            hint = f"; did you mean '{close[0]}'?" if close else f"; valid keys: {', '.join(valid)}"
+            messages.append(f"{dotted}: unknown key{hint}")
+        else:
+            messages.append(f"{dotted}: {err['msg']} (got {err.get('input')!r})")
+    return f"invalid config {source}: " + "; ".join(messages)
+
+
+def config_from_dict(data: dict[str, Any], source: str = "<dict>") -> Config:
+    """Validate a (partial) config dict over the packaged defaults."""
+    defaults = yaml.safe_load(default_config_text()) or {}
+    merged = _deep_merge(defaults, data)
+    try:
+        return Config.model_validate(merged)
+    except ValidationError as exc:
+        raise ConfigError(_format_validation_error(exc, source)) from None
+
+
+def load_config(path: str | os.PathLike[str] | None = None) -> Config:
+    """Load the default config, overridden by the YAML file at ``path`` if given."""
+    if path is None:
+        return config_from_dict({}, source="(defaults)")
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise ConfigError(f"cannot read config {path}: {exc.strerror}") from exc
+    try:
+        data = yaml.safe_load(text) or {}
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f"{path}:{mark.line + 1}" if mark else str(path)
+        raise ConfigError(f"{where}: not valid YAML ({getattr(exc, 'problem', exc)})") from None
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: a config file must be a mapping of sections, got {type(data).__name__}")
+    return config_from_dict(data, source=str(path))
+
+
+def dump_config(config: Config) -> str:
+    """The resolved config as YAML (what a run records in its results folder)."""
+    return yaml.safe_dump(config.model_dump(mode="json"), sort_keys=False)

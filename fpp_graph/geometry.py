@@ -1,0 +1,128 @@
+"""SE(3) helpers on 4x4 numpy matrices.
+
+Convention: ``T_a_b`` maps points expressed in frame ``b`` into frame ``a``:
+``p_a = T_a_b[:3, :3] @ p_b + T_a_b[:3, 3]``. Tangent vectors are ordered
+``[rotation (rad), translation (m)]`` as in GTSAM, so 6x6 information and covariance matrices
+share that order. Quaternions are ``quat_xyzw`` (scipy and TUM order) unless a name says
+otherwise.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.spatial.transform import Rotation
+
+Array = NDArray[np.float64]
+
+
+def make_pose(rotation: ArrayLike | None = None, translation: ArrayLike | None = None) -> Array:
+    """Build a 4x4 pose from a 3x3 rotation matrix and a 3-vector translation (metres)."""
+    T = np.eye(4)
+    if rotation is not None:
+        T[:3, :3] = np.asarray(rotation, dtype=np.float64)
+    if translation is not None:
+        T[:3, 3] = np.asarray(translation, dtype=np.float64).reshape(3)
+    return T
+
+
+def invert(T_a_b: ArrayLike) -> Array:
+    """Return ``T_b_a`` for a rigid ``T_a_b`` (exact inverse using R^T, no general inversion)."""
+    T = np.asarray(T_a_b, dtype=np.float64)
+    R = T[:3, :3]
+    out = np.eye(4)
+    out[:3, :3] = R.T
+    out[:3, 3] = -R.T @ T[:3, 3]
+    return out
+
+
+def compose(*transforms: ArrayLike) -> Array:
+    """Compose poses left to right: ``compose(T_a_b, T_b_c) == T_a_c``."""
+    out = np.eye(4)
+    for T in transforms:
+        out = out @ np.asarray(T, dtype=np.float64)
+    return out
+
+
+def transform_points(T_a_b: ArrayLike, points_b: ArrayLike) -> Array:
+    """Map N x 3 points from frame b into frame a."""
+    T = np.asarray(T_a_b, dtype=np.float64)
+    P = np.asarray(points_b, dtype=np.float64).reshape(-1, 3)
+    return P @ T[:3, :3].T + T[:3, 3]
+
+
+def pose_from_quat_xyzw(translation: ArrayLike, quat_xyzw: ArrayLike) -> Array:
+    """Pose from a translation and a unit quaternion in ``x y z w`` order."""
+    return make_pose(Rotation.from_quat(np.asarray(quat_xyzw, dtype=np.float64)).as_matrix(), translation)
+
+
+def quat_xyzw_from_pose(T: ArrayLike) -> Array:
+    """Unit quaternion ``x y z w`` of a pose's rotation, with ``w >= 0``."""
+    q = Rotation.from_matrix(np.asarray(T, dtype=np.float64)[:3, :3]).as_quat()
+    return -q if q[3] < 0 else q
+
+
+def _skew(w: Array) -> Array:
+    return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+
+
+def _left_jacobian_so3(omega: Array) -> Array:
+    theta = float(np.linalg.norm(omega))
+    K = _skew(omega)
+    if theta < 1e-8:
+        return np.eye(3) + 0.5 * K + K @ K / 6.0
+    return (
+        np.eye(3)
+        + (1.0 - np.cos(theta)) / theta**2 * K
+        + (theta - np.sin(theta)) / theta**3 * (K @ K)
+    )
+
+
+def se3_exp(xi_rot_trans: ArrayLike) -> Array:
+    """Exponential map of a twist ``[omega (rad), v (m)]`` to a 4x4 pose (GTSAM's Pose3.Expmap)."""
+    xi = np.asarray(xi_rot_trans, dtype=np.float64).reshape(6)
+    omega, v = xi[:3], xi[3:]
+    return make_pose(Rotation.from_rotvec(omega).as_matrix(), _left_jacobian_so3(omega) @ v)
+
+
+def se3_log(T: ArrayLike) -> Array:
+    """Logarithm of a 4x4 pose as a twist ``[omega (rad), v (m)]`` (GTSAM's Pose3.Logmap)."""
+    T = np.asarray(T, dtype=np.float64)
+    omega = Rotation.from_matrix(T[:3, :3]).as_rotvec()
+    v = np.linalg.solve(_left_jacobian_so3(omega), T[:3, 3])
+    return np.concatenate([omega, v])
+
+
+def rotation_angle_rad(R: ArrayLike) -> float:
+    """Angle of a rotation matrix in radians, numerically safe near 0 and pi."""
+    return float(np.linalg.norm(Rotation.from_matrix(np.asarray(R, dtype=np.float64)).as_rotvec()))
+
+
+def pose_error(T_estimate: ArrayLike, T_reference: ArrayLike) -> tuple[float, float]:
+    """Rotation error (rad) and translation error (m) of ``T_estimate`` against ``T_reference``."""
+    E = invert(T_reference) @ np.asarray(T_estimate, dtype=np.float64)
+    return rotation_angle_rad(E[:3, :3]), float(np.linalg.norm(np.asarray(T_estimate)[:3, 3] - np.asarray(T_reference)[:3, 3]))
+
+
+def is_rigid(T: ArrayLike, atol: float = 1e-6) -> bool:
+    """True when ``T`` is a finite 4x4 rigid transform (orthonormal, det +1, last row 0 0 0 1)."""
+    T = np.asarray(T, dtype=np.float64)
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        return False
+    R = T[:3, :3]
+    return bool(
+        np.allclose(R.T @ R, np.eye(3), atol=atol)
+        and abs(np.linalg.det(R) - 1.0) < atol
+        and np.allclose(T[3], [0, 0, 0, 1], atol=atol)
+    )
+
+
+def adjoint(T: ArrayLike) -> Array:
+    """6x6 adjoint of a pose in ``[rot, trans]`` tangent order (GTSAM's Pose3.AdjointMap)."""
+    T = np.asarray(T, dtype=np.float64)
+    R, t = T[:3, :3], T[:3, 3]
+    Ad = np.zeros((6, 6))
+    Ad[:3, :3] = R
+    Ad[3:, 3:] = R
+    Ad[3:, :3] = _skew(t) @ R
+    return Ad

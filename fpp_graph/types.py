@@ -1,0 +1,231 @@
+"""Core data types and plug-in protocols of the back-end.
+
+Any front-end (FPP, RGB-D, LiDAR, a g2o file) feeds the back-end through these: it makes
+:class:`Frame` objects, implements :class:`PairRegistrar` to turn two frames into a
+:class:`Constraint`, and may bring its own :class:`LoopDetector` or :class:`MapFuser`.
+Everything here is numpy arrays and frozen dataclasses, so it pickles across processes.
+"""
+
+from __future__ import annotations
+
+import enum
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any, Protocol, runtime_checkable
+
+import numpy as np
+from numpy.typing import NDArray
+
+from fpp_graph.errors import InputDataError
+from fpp_graph.geometry import is_rigid
+
+
+class ConstraintKind(str, enum.Enum):
+    """What a constraint links: consecutive keyframes (odometry) or a revisit (loop)."""
+
+    ODOMETRY = "odometry"
+    LOOP = "loop"
+
+
+def _readonly(array: NDArray | None) -> NDArray | None:
+    if array is not None:
+        array.setflags(write=False)
+    return array
+
+
+@dataclass(frozen=True, eq=False)
+class Frame:
+    """One 3D frame of a sensor.
+
+    Attributes
+    ----------
+    id : int
+        Unique, increasing frame index within a sequence.
+    timestamp : float
+        Capture time in seconds.
+    points : (N, 3) float64
+        Valid 3D points in metres, in the sensor frame.
+    colors : (N, 3) float64 or None
+        Per-point colours in [0, 1].
+    xyz_map : (H, W, 3) float64 or None
+        Organised points in metres, sensor frame, NaN where invalid; row/column are camera pixels.
+    texture : (H, W) uint8 or None
+        Grey texture image registered to ``xyz_map`` (the FPP background term ``a``).
+    keypoints_uv : (K, 2) float64 or None
+        Keypoint pixel coordinates (u = column, v = row) on ``texture``.
+    descriptors : (K, D) array or None
+        Descriptors of ``keypoints_uv`` (float32 or uint8 for binary descriptors).
+    T_world_sensor_guess : (4, 4) float64 or None
+        Prior pose (e.g. from wheel odometry or the simulator), if any.
+    """
+
+    id: int
+    timestamp: float
+    points: NDArray[np.float64]
+    colors: NDArray[np.float64] | None = None
+    xyz_map: NDArray[np.float64] | None = None
+    texture: NDArray[np.uint8] | None = None
+    keypoints_uv: NDArray[np.float64] | None = None
+    descriptors: NDArray[Any] | None = None
+    T_world_sensor_guess: NDArray[np.float64] | None = None
+    metadata: Mapping[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        where = f"frame {self.id}"
+        points = np.asarray(self.points, dtype=np.float64)
+        if points.ndim != 2 or points.shape[1] != 3:
+            raise InputDataError(f"{where}: points must be N x 3, got shape {points.shape}")
+        object.__setattr__(self, "points", _readonly(points))
+        if self.colors is not None:
+            colors = np.asarray(self.colors, dtype=np.float64)
+            if colors.shape != points.shape:
+                raise InputDataError(
+                    f"{where}: colors shape {colors.shape} does not match points {points.shape}"
+                )
+            object.__setattr__(self, "colors", _readonly(colors))
+        if self.xyz_map is not None:
+            xyz = np.asarray(self.xyz_map, dtype=np.float64)
+            if xyz.ndim != 3 or xyz.shape[2] != 3:
+                raise InputDataError(f"{where}: xyz_map must be H x W x 3, got {xyz.shape}")
+            object.__setattr__(self, "xyz_map", _readonly(xyz))
+            if self.texture is not None and np.shape(self.texture) != xyz.shape[:2]:
+                raise InputDataError(
+                    f"{where}: texture shape {np.shape(self.texture)} does not match "
+                    f"xyz_map {xyz.shape[:2]}; both must come from the same camera"
+                )
+        if self.texture is not None:
+            texture = np.asarray(self.texture)
+            if texture.ndim != 2 or texture.dtype != np.uint8:
+                raise InputDataError(
+                    f"{where}: texture must be an H x W uint8 image, got {texture.dtype} {texture.shape}"
+                )
+            object.__setattr__(self, "texture", _readonly(texture))
+        if (self.keypoints_uv is None) != (self.descriptors is None):
+            raise InputDataError(f"{where}: keypoints_uv and descriptors must be given together")
+        if self.keypoints_uv is not None:
+            kp = np.asarray(self.keypoints_uv, dtype=np.float64).reshape(-1, 2)
+            desc = np.asarray(self.descriptors)
+            if desc.shape[0] != kp.shape[0]:
+                raise InputDataError(
+                    f"{where}: {kp.shape[0]} keypoints but {desc.shape[0]} descriptors"
+                )
+            object.__setattr__(self, "keypoints_uv", _readonly(kp))
+            object.__setattr__(self, "descriptors", _readonly(desc))
+        if self.T_world_sensor_guess is not None:
+            T = np.asarray(self.T_world_sensor_guess, dtype=np.float64)
+            if not is_rigid(T, atol=1e-5):
+                raise InputDataError(f"{where}: T_world_sensor_guess is not a rigid 4x4 transform")
+            object.__setattr__(self, "T_world_sensor_guess", _readonly(T))
+
+    @property
+    def num_points(self) -> int:
+        return int(self.points.shape[0])
+
+
+@dataclass(frozen=True, eq=False)
+class Constraint:
+    """A relative-pose measurement between two frames.
+
+    ``T_target_source`` maps points of the source frame into the target frame. ``information``
+    is 6x6 in ``[rotation, translation]`` order (GTSAM's), the inverse of the covariance of the
+    error ``Log(T_target_source_true^-1 * T_target_source)``. A rejected constraint has
+    ``accepted == False`` and says why in ``rejection_reason``; its pose must not be used.
+    """
+
+    source_id: int
+    target_id: int
+    T_target_source: NDArray[np.float64]
+    information: NDArray[np.float64]
+    kind: ConstraintKind = ConstraintKind.ODOMETRY
+    fitness: float = float("nan")
+    inlier_rmse_m: float = float("nan")
+    inlier_count: int = 0
+    overlap: float = float("nan")
+    rejection_reason: str | None = None
+    metadata: Mapping[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "kind", ConstraintKind(self.kind))
+        T = np.asarray(self.T_target_source, dtype=np.float64)
+        info = np.asarray(self.information, dtype=np.float64)
+        where = f"constraint {self.source_id}->{self.target_id}"
+        if T.shape != (4, 4):
+            raise InputDataError(f"{where}: T_target_source must be 4x4, got {T.shape}")
+        if info.shape != (6, 6):
+            raise InputDataError(f"{where}: information must be 6x6 [rot, trans], got {info.shape}")
+        if self.rejection_reason is None:
+            if not is_rigid(T, atol=1e-5):
+                raise InputDataError(f"{where}: T_target_source is not a rigid transform")
+            if not np.allclose(info, info.T, rtol=1e-8, atol=1e-12 * max(1.0, np.abs(info).max())):
+                raise InputDataError(f"{where}: information matrix is not symmetric")
+            if np.linalg.eigvalsh(0.5 * (info + info.T)).min() <= 0:
+                raise InputDataError(
+                    f"{where}: information matrix is not positive definite; "
+                    "a constraint must constrain all 6 degrees of freedom (reject it instead)"
+                )
+        object.__setattr__(self, "T_target_source", _readonly(T))
+        object.__setattr__(self, "information", _readonly(info))
+
+    @property
+    def accepted(self) -> bool:
+        return self.rejection_reason is None
+
+    @classmethod
+    def rejected(
+        cls, source_id: int, target_id: int, reason: str, kind: ConstraintKind = ConstraintKind.ODOMETRY, **quality: Any
+    ) -> Constraint:
+        """A rejected constraint with identity pose, zero information and the reason."""
+        return cls(
+            source_id=source_id,
+            target_id=target_id,
+            T_target_source=np.eye(4),
+            information=np.zeros((6, 6)),
+            kind=kind,
+            rejection_reason=reason,
+            **quality,
+        )
+
+
+@runtime_checkable
+class PairRegistrar(Protocol):
+    """Estimates the relative pose of two frames (the FPP front-end implements it)."""
+
+    def register(
+        self, target: Frame, source: Frame, T_guess: NDArray[np.float64] | None = None
+    ) -> Constraint:
+        """Return a Constraint ``T_target_source``; a rejected one says why, never raises on bad overlap."""
+        ...
+
+
+@dataclass(frozen=True)
+class LoopCandidate:
+    """A proposed revisit: ``query_id`` may see the same place as ``match_id``."""
+
+    query_id: int
+    match_id: int
+    score: float
+    source: str  # which stage proposed it: "proximity" or "appearance"
+
+
+@runtime_checkable
+class LoopDetector(Protocol):
+    """Proposes revisit candidates for a new keyframe."""
+
+    def add(self, frame: Frame) -> None:
+        """Remember a keyframe so later frames can be matched against it."""
+        ...
+
+    def candidates(
+        self, frame: Frame, poses_world_sensor: Mapping[int, NDArray[np.float64]]
+    ) -> Sequence[LoopCandidate]:
+        """Candidates for ``frame`` among remembered keyframes, best first."""
+        ...
+
+
+@runtime_checkable
+class MapFuser(Protocol):
+    """Fuses frames under (optimised) poses into a global map."""
+
+    def fuse(self, frames: Sequence[Frame], poses_world_sensor: Mapping[int, NDArray[np.float64]]) -> Any:
+        """Return the fused map (point cloud and/or mesh) in the world frame."""
+        ...

@@ -1,0 +1,37 @@
+#!/usr/bin/env bash
+# Set up a fresh Debian/Ubuntu machine for fpp-graph: the system library Open3D needs, a .venv
+# with Python >= 3.11, and the package installed editable with the extras given as arguments.
+# Usage: scripts/bootstrap.sh [EXTRAS]   e.g. scripts/bootstrap.sh dev,eval
+set -euo pipefail
+cd "$(dirname "$0")/.."
+extras="${1:-dev,eval}"
+
+# Open3D's wheels link libusb-1.0 dynamically; without it `import open3d` fails.
+if ! ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; then
+  if [ "$(id -u)" = "0" ] && command -v apt-get >/dev/null; then
+    echo "bootstrap: installing libusb-1.0-0 (needed by Open3D) with apt-get"
+    DEBIAN_FRONTEND=noninteractive apt-get update -qq
+    DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libusb-1.0-0 >/dev/null
+  else
+    echo "bootstrap: Open3D needs the system library libusb-1.0-0: run 'sudo apt-get install libusb-1.0-0' and retry" >&2
+    exit 1
+  fi
+fi
+
+python_bin=""
+for candidate in python3.13 python3.12 python3.11 python3; do
+  if command -v "$candidate" >/dev/null && "$candidate" -c 'import sys; sys.exit(sys.version_info < (3, 11))'; then
+    python_bin="$candidate"; break
+  fi
+done
+if [ -z "$python_bin" ]; then
+  echo "bootstrap: fpp-graph needs Python >= 3.11; install it (e.g. 'apt-get install python3.11 python3.11-venv') and retry" >&2
+  exit 1
+fi
+
+if [ ! -x .venv/bin/python ]; then
+  "$python_bin" -m venv .venv
+fi
+.venv/bin/python -m pip install --quiet --upgrade pip
+.venv/bin/python -m pip install --quiet -e ".[${extras}]"
+echo "bootstrap: ready (.venv with fpp-graph[${extras}])"

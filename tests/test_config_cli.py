@@ -1,0 +1,82 @@
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+
+from fpp_graph.cli import main
+from fpp_graph.config import Config, dump_config, load_config
+from fpp_graph.errors import ConfigError
+
+
+def test_defaults_file_matches_models():
+    # The documented YAML and the pydantic defaults must not drift apart.
+    assert load_config() == Config()
+
+
+def test_partial_override_and_dump_round_trip(tmp_path):
+    path = tmp_path / "c.yaml"
+    path.write_text("registration:\n  feature: sift\npose_graph:\n  robust: cauchy\n")
+    cfg = load_config(path)
+    assert cfg.registration.feature == "sift"
+    assert cfg.pose_graph.robust == "cauchy"
+    assert cfg.registration.min_inliers == Config().registration.min_inliers
+    dumped = tmp_path / "dumped.yaml"
+    dumped.write_text(dump_config(cfg))
+    assert load_config(dumped) == cfg
+
+
+@pytest.mark.parametrize(
+    ("text", "expected"),
+    [
+        ("registration:\n  ransac_threshol_m: 0.1\n", "registration.ransac_threshol_m: unknown key; did you mean 'ransac_threshold_m'"),
+        ("pose_grapf:\n  solver: lm\n", "pose_grapf: unknown key; did you mean 'pose_graph'"),
+        ("pose_graph:\n  solver: newton\n", "pose_graph.solver"),
+        ("registration:\n  min_inliers: 1\n", "registration.min_inliers"),
+        ("- a list\n", "must be a mapping"),
+        ("registration: [unclosed\n", "not valid YAML"),
+    ],
+)
+def test_config_errors_name_the_key(tmp_path, text, expected):
+    path = tmp_path / "bad.yaml"
+    path.write_text(text)
+    with pytest.raises(ConfigError) as info:
+        load_config(path)
+    assert expected in str(info.value)
+    assert str(path) in str(info.value)
+
+
+def test_cli_config_dump_prints_resolved_yaml(capsys, tmp_path):
+    path = tmp_path / "c.yaml"
+    path.write_text("fusion:\n  voxel_size_m: 0.005\n")
+    assert main(["config", "dump", "--config", str(path)]) == 0
+    out = yaml.safe_load(capsys.readouterr().out)
+    assert out["fusion"]["voxel_size_m"] == 0.005
+
+
+def test_cli_user_error_is_one_line_exit_2(tmp_path):
+    path = tmp_path / "bad.yaml"
+    path.write_text("registration:\n  feature: sirf\n")
+    exe = Path(sys.executable).parent / "fpp-slam"
+    proc = subprocess.run([str(exe), "config", "dump", "--config", str(path)], capture_output=True, text=True)
+    assert proc.returncode == 2
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1, proc.stderr
+    assert lines[0].startswith("fpp-slam: error:") and "registration.feature" in lines[0]
+    assert "Traceback" not in proc.stderr
+
+
+def test_cli_help_lists_subcommands():
+    exe = Path(sys.executable).parent / "fpp-slam"
+    proc = subprocess.run([str(exe), "--help"], capture_output=True, text=True)
+    assert proc.returncode == 0
+    assert "config" in proc.stdout
+    # --help must not drag in the heavy libraries (that is what keeps it fast)
+    probe = subprocess.run(
+        [sys.executable, "-c", "import sys; from fpp_graph import cli; print(sorted(m for m in ('gtsam','open3d','cv2','numpy') if m in sys.modules))"],
+        capture_output=True, text=True, check=True,
+    )
+    assert probe.stdout.strip() == "[]"

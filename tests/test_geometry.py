@@ -1,0 +1,47 @@
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from fpp_graph import geometry as g
+
+
+def random_pose(rng: np.random.Generator) -> np.ndarray:
+    return g.make_pose(Rotation.random(random_state=int(rng.integers(1 << 30))).as_matrix(), rng.normal(size=3))
+
+
+def test_invert_and_compose(rng):
+    T_a_b, T_b_c = random_pose(rng), random_pose(rng)
+    np.testing.assert_allclose(g.compose(T_a_b, g.invert(T_a_b)), np.eye(4), atol=1e-12)
+    p_c = rng.normal(size=(4, 3))
+    np.testing.assert_allclose(
+        g.transform_points(g.compose(T_a_b, T_b_c), p_c), g.transform_points(T_a_b, g.transform_points(T_b_c, p_c)), atol=1e-12
+    )
+
+
+def test_exp_log_round_trip_and_gtsam_agreement(rng):
+    import gtsam
+
+    for scale in (1e-10, 1e-3, 0.5, 2.5):
+        xi = rng.normal(size=6) * scale
+        angle = np.linalg.norm(xi[:3])
+        if angle > 3.0:  # the log is unique only for rotation angles below pi
+            xi[:3] *= 3.0 / angle
+        T = g.se3_exp(xi)
+        np.testing.assert_allclose(g.se3_log(T), xi, atol=1e-12 + 1e-9 * scale)
+        np.testing.assert_allclose(T, gtsam.Pose3.Expmap(xi).matrix(), atol=1e-12)
+        np.testing.assert_allclose(g.adjoint(T), gtsam.Pose3(T).AdjointMap(), atol=1e-12)
+
+
+def test_is_rigid_and_pose_error(rng):
+    T = random_pose(rng)
+    assert g.is_rigid(T)
+    bad = T.copy()
+    bad[0, 0] += 0.1
+    assert not g.is_rigid(bad)
+    delta = g.make_pose(Rotation.from_rotvec([0, 0, 1e-3]).as_matrix(), [1e-4, 0, 0])
+    rot_err, trans_err = g.pose_error(T @ delta, T)
+    assert abs(rot_err - 1e-3) < 1e-12
+    assert abs(trans_err - 1e-4) < 1e-12
+    q = g.quat_xyzw_from_pose(T)
+    np.testing.assert_allclose(g.pose_from_quat_xyzw(T[:3, 3], q), T, atol=1e-12)
