@@ -102,6 +102,7 @@ class RunConfig(StrictModel):
     """Execution of a run."""
 
     workers: int = Field(0, ge=0, description="0 = all cores")
+    frames_in_memory: int = Field(8, ge=1, description="decoded keyframes kept in memory; the rest are reloaded from the results folder")
     log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = "INFO"
 
 
