@@ -20,7 +20,7 @@ from fpp_graph.errors import InputDataError
 from fpp_graph.geometry import is_rigid
 
 
-class ConstraintKind(str, enum.Enum):
+class ConstraintKind(enum.StrEnum):
     """What a constraint links: consecutive keyframes (odometry) or a revisit (loop)."""
 
     ODOMETRY = "odometry"

@@ -1,0 +1,315 @@
+"""Keyframes, odometry, loop closure and the pose graph they feed.
+
+:class:`KeyframeManager` is the back-end's middle. Per incoming frame it
+
+1. registers the frame against the last keyframe through the front-end's ``PairRegistrar``
+   (falling back to the keyframe before it; when both fail the chain breaks, and the break is
+   recorded and the run goes on as a new segment);
+2. decides whether the frame is a keyframe (motion and overlap thresholds);
+3. for a keyframe, asks the ``LoopDetector`` for revisit candidates (pose proximity with a gate
+   that widens with the drift accumulated since the last closure, and appearance), verifies each
+   through the ``PairRegistrar``, and logs every accepted and rejected candidate with its reason
+   and figures;
+4. after a loop is accepted, re-optimises the pose graph so later proximity gates use corrected
+   poses.
+
+:meth:`KeyframeManager.finish` runs the final robust optimisation (GNC by default: odometry edges
+are known inliers, loops may be false) per connected component and returns poses for every frame.
+Only keyframes are kept (bounded by the :class:`~fpp_graph.frame_store.FrameStore`).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+
+import networkx as nx
+import numpy as np
+from numpy.typing import NDArray
+
+from fpp_graph.config import Config
+from fpp_graph.frame_store import FrameStore
+from fpp_graph.geometry import compose, invert, rotation_angle_rad
+from fpp_graph.loop_closure import ProximityAppearanceLoopDetector
+from fpp_graph.types import Constraint, ConstraintKind, Frame, LoopCandidate, PairRegistrar
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class LoopRecord:
+    """What happened to one loop candidate."""
+
+    query_id: int
+    match_id: int
+    stage: str  # proximity | appearance | proximity+appearance
+    score: float
+    verified: bool
+    reason: str | None
+    fitness: float
+    inlier_rmse_m: float
+    inlier_count: int
+    rejected_by_backend: bool = False
+
+
+@dataclass(frozen=True)
+class ChainBreak:
+    """Registration failed between ``frame_id`` and every keyframe tried."""
+
+    frame_id: int
+    last_keyframe_id: int
+    reason: str
+
+
+@dataclass
+class SlamResult:
+    """Outcome of a run of the keyframe manager."""
+
+    poses_world_sensor: dict[int, NDArray[np.float64]]
+    keyframe_ids: list[int]
+    odometry: list[Constraint]
+    loops: list[Constraint]
+    loop_records: list[LoopRecord]
+    chain_breaks: list[ChainBreak]
+    components: list[list[int]]
+    rejected_loops: list[tuple[int, int]]
+    optimization: dict = field(default_factory=dict)
+
+
+class KeyframeManager:
+    """Keyframe selection, odometry and loop closure over any :class:`PairRegistrar`."""
+
+    def __init__(
+        self,
+        registrar: PairRegistrar,
+        config: Config | None = None,
+        store: FrameStore | None = None,
+        loop_detector: ProximityAppearanceLoopDetector | None = None,
+        on_loop: Callable[[LoopRecord], None] | None = None,
+    ) -> None:
+        self.registrar = registrar
+        self.config = config or Config()
+        self.store = store or FrameStore()
+        self.loop_detector = loop_detector or ProximityAppearanceLoopDetector(self.config.loop_closure)
+        self.on_loop = on_loop
+        self.keyframe_ids: list[int] = []
+        self.odometry: list[Constraint] = []
+        self.loops: list[Constraint] = []
+        self.loop_records: list[LoopRecord] = []
+        self.chain_breaks: list[ChainBreak] = []
+        self.segment_starts: list[int] = []
+        # Current estimates: keyframes in the world; non-keyframes relative to their keyframe.
+        self.T_world_keyframe: dict[int, NDArray[np.float64]] = {}
+        self.T_keyframe_frame: dict[int, tuple[int, NDArray[np.float64]]] = {}
+        self._drift_var_m2: dict[int, float] = {}
+
+    # -- per frame -------------------------------------------------------------------------
+    def process(self, frame: Frame) -> bool:
+        """Add one frame; returns whether it became a keyframe."""
+        if not self.keyframe_ids:
+            T0 = frame.T_world_sensor_guess if frame.T_world_sensor_guess is not None else np.eye(4)
+            self._add_keyframe(frame, np.array(T0), odometry=None, drift_var=0.0)
+            self.segment_starts.append(frame.id)
+            return True
+        odometry = self._register_to_recent(frame)
+        if odometry is None:
+            last = self.keyframe_ids[-1]
+            T_guess = frame.T_world_sensor_guess
+            T_start = np.array(T_guess) if T_guess is not None else self.T_world_keyframe[last].copy()
+            log.warning("chain broken at frame %d: new segment starts there (pose unknown relative to the previous segment until a loop joins them)", frame.id)
+            self._add_keyframe(frame, T_start, odometry=None, drift_var=0.0)
+            self.segment_starts.append(frame.id)
+            return True
+        kf_id = odometry.target_id
+        if self._is_keyframe(odometry):
+            T_world = compose(self.T_world_keyframe[kf_id], odometry.T_target_source)
+            step_var = _translation_variance_m2(odometry) + (
+                np.linalg.norm(odometry.T_target_source[:3, 3]) ** 2 * _rotation_variance(odometry)
+            )
+            self._add_keyframe(frame, T_world, odometry, self._drift_var_m2[kf_id] + step_var)
+            self._close_loops(frame)
+            return True
+        self.T_keyframe_frame[frame.id] = (kf_id, odometry.T_target_source.copy())
+        return False
+
+    def _register_to_recent(self, frame: Frame) -> Constraint | None:
+        reasons = []
+        for kf_id in self.keyframe_ids[-1:-3:-1]:
+            target = self.store.get(kf_id)
+            T_guess = None
+            if frame.T_world_sensor_guess is not None and target.T_world_sensor_guess is not None:
+                T_guess = invert(target.T_world_sensor_guess) @ frame.T_world_sensor_guess
+            constraint = self.registrar.register(target, frame, T_guess)
+            if constraint.accepted:
+                return replace(constraint, kind=ConstraintKind.ODOMETRY)
+            reasons.append(f"to keyframe {kf_id}: {constraint.rejection_reason}")
+            log.info("frame %d: registration %s", frame.id, reasons[-1])
+        self.chain_breaks.append(ChainBreak(frame.id, self.keyframe_ids[-1], "; ".join(reasons)))
+        return None
+
+    def _is_keyframe(self, odometry: Constraint) -> bool:
+        cfg = self.config.keyframes
+        T = odometry.T_target_source
+        moved = float(np.linalg.norm(T[:3, 3])) >= cfg.min_translation_m
+        turned = math.degrees(rotation_angle_rad(T[:3, :3])) >= cfg.min_rotation_deg
+        overlap = odometry.overlap if math.isfinite(odometry.overlap) else odometry.fitness
+        low_overlap = math.isfinite(overlap) and overlap <= cfg.max_overlap
+        no_threshold = cfg.min_translation_m == 0 and cfg.min_rotation_deg == 0 and cfg.max_overlap >= 1
+        return no_threshold or moved or turned or low_overlap
+
+    def _add_keyframe(self, frame: Frame, T_world: NDArray, odometry: Constraint | None, drift_var: float) -> None:
+        self.store.put(frame)
+        self.keyframe_ids.append(frame.id)
+        self.T_world_keyframe[frame.id] = np.asarray(T_world, dtype=np.float64)
+        self._drift_var_m2[frame.id] = drift_var
+        if odometry is not None:
+            self.odometry.append(odometry)
+
+    # -- loops -----------------------------------------------------------------------------
+    def _close_loops(self, frame: Frame) -> None:
+        sigma = math.sqrt(self._drift_var_m2[frame.id])
+        candidates: list[LoopCandidate] = list(
+            self.loop_detector.candidates(frame, self.T_world_keyframe, position_sigma_m=sigma)
+        )
+        self.loop_detector.add(frame)
+        matched: list[int] = []
+        for cand in candidates:
+            target = self.store.get(cand.match_id)
+            T_guess = invert(self.T_world_keyframe[cand.match_id]) @ self.T_world_keyframe[frame.id]
+            constraint = self.registrar.register(target, frame, T_guess if "proximity" in cand.source else None)
+            record = LoopRecord(
+                query_id=frame.id,
+                match_id=cand.match_id,
+                stage=cand.source,
+                score=cand.score,
+                verified=constraint.accepted,
+                reason=constraint.rejection_reason,
+                fitness=constraint.fitness,
+                inlier_rmse_m=constraint.inlier_rmse_m,
+                inlier_count=constraint.inlier_count,
+            )
+            self.loop_records.append(record)
+            if self.on_loop is not None:
+                self.on_loop(record)
+            if constraint.accepted:
+                log.info(
+                    "loop %d->%d (%s, score %.3f) accepted: fitness %.3f, rmse %.3f mm, %d inliers",
+                    frame.id, cand.match_id, cand.source, cand.score, constraint.fitness,
+                    constraint.inlier_rmse_m * 1e3, constraint.inlier_count,
+                )
+                self.loops.append(replace(constraint, kind=ConstraintKind.LOOP))
+                matched.append(cand.match_id)
+            else:
+                log.info("loop %d->%d (%s, score %.3f) rejected: %s", frame.id, cand.match_id, cand.source, cand.score, constraint.rejection_reason)
+        if matched:
+            self._reoptimize()
+            # The closure ties this keyframe to an older one: its drift is now that keyframe's.
+            self._drift_var_m2[frame.id] = min(self._drift_var_m2[m] for m in matched)
+
+    def _reoptimize(self) -> None:
+        """Batch-optimise the current graph so later proximity gates use corrected poses."""
+        try:
+            poses, _, _ = self._optimize_components()
+        except Exception as exc:  # keep tracking on the uncorrected chain rather than stop the run
+            log.warning("intermediate loop optimisation failed (%s); continuing with the odometry chain", exc)
+            return
+        self.T_world_keyframe.update(poses)
+
+    # -- final -----------------------------------------------------------------------------
+    def components(self) -> list[list[int]]:
+        graph = nx.Graph()
+        graph.add_nodes_from(self.keyframe_ids)
+        for c in [*self.odometry, *self.loops]:
+            graph.add_edge(c.source_id, c.target_id)
+        order = {k: i for i, k in enumerate(self.keyframe_ids)}
+        comps = [sorted(c, key=order.__getitem__) for c in nx.connected_components(graph)]
+        return sorted(comps, key=lambda c: order[c[0]])
+
+    def _optimize_components(self):
+        from fpp_graph.pose_graph import PoseGraph
+
+        poses: dict[int, NDArray[np.float64]] = {}
+        rejected: list[tuple[int, int]] = []
+        stats: dict = {"components": []}
+        for comp in self.components():
+            members = set(comp)
+            graph = PoseGraph()
+            for k in comp:
+                graph.add_pose(k, self.T_world_keyframe[k])
+            graph.fix_pose(comp[0])
+            n_edges = 0
+            for c in [*self.odometry, *self.loops]:
+                if c.source_id in members and c.target_id in members:
+                    graph.add_constraint(c)
+                    n_edges += 1
+            if n_edges == 0:
+                poses[comp[0]] = self.T_world_keyframe[comp[0]]
+                continue
+            result = graph.optimize(self.config.pose_graph)
+            poses.update(result.poses_world_sensor)
+            rejected.extend(result.rejected_loops)
+            rejected.extend(result.inconsistent_loops)
+            stats["components"].append(
+                {
+                    "first": comp[0],
+                    "size": len(comp),
+                    "initial_cost": result.initial_cost,
+                    "final_cost": result.final_cost,
+                    "iterations": result.iterations,
+                    "seconds": result.seconds,
+                    "initialization": result.initialization,
+                }
+            )
+        return poses, sorted(set(rejected)), stats
+
+    def finish(self) -> SlamResult:
+        """Final robust optimisation; poses for every processed frame."""
+        if self.keyframe_ids:
+            poses, rejected, stats = self._optimize_components()
+            self.T_world_keyframe.update(poses)
+        else:
+            rejected, stats = [], {}
+        rejected_set = set(rejected)
+        self.loop_records = [
+            replace(r, rejected_by_backend=(r.query_id, r.match_id) in rejected_set) if r.verified else r
+            for r in self.loop_records
+        ]
+        all_poses = dict(self.T_world_keyframe)
+        for fid, (kf, T_kf_frame) in self.T_keyframe_frame.items():
+            all_poses[fid] = compose(self.T_world_keyframe[kf], T_kf_frame)
+        components = self.components()
+        if len(components) > 1:
+            log.warning(
+                "the trajectory has %d disconnected parts (chain broke at frames %s): %s",
+                len(components), [b.frame_id for b in self.chain_breaks],
+                "; ".join(f"{c[0]}..{c[-1]} ({len(c)} keyframes)" for c in components),
+            )
+        return SlamResult(
+            poses_world_sensor=dict(sorted(all_poses.items())),
+            keyframe_ids=list(self.keyframe_ids),
+            odometry=list(self.odometry),
+            loops=list(self.loops),
+            loop_records=list(self.loop_records),
+            chain_breaks=list(self.chain_breaks),
+            components=components,
+            rejected_loops=rejected,
+            optimization=stats,
+        )
+
+
+def _translation_variance_m2(c: Constraint) -> float:
+    try:
+        cov = np.linalg.inv(c.information)
+    except np.linalg.LinAlgError:
+        return 0.0
+    return float(max(np.trace(cov[3:, 3:]), 0.0))
+
+
+def _rotation_variance(c: Constraint) -> float:
+    try:
+        cov = np.linalg.inv(c.information)
+    except np.linalg.LinAlgError:
+        return 0.0
+    return float(max(np.trace(cov[:3, :3]), 0.0))

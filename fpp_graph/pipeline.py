@@ -1,0 +1,392 @@
+"""The end-to-end run: a recorded sequence in, a results folder out.
+
+:meth:`Pipeline.run` reads as the table of contents of the system; each step is a public
+function usable on its own:
+
+1. :func:`prepare_results_dir` - refuse to clobber, or resume an interrupted run;
+2. :func:`prepare_frames` - decode + features per frame in worker processes, cached per frame
+   on disk (a rerun with ``resume`` reuses them; a corrupt frame is skipped and reported);
+3. :func:`track` - keyframes, odometry, loop detection/verification, robust pose graph;
+4. :func:`write_trajectory_and_graph` - ``trajectory.tum``, ``graph.g2o``;
+5. :func:`fuse_map` - re-fuse the global map under the optimised poses (``map.ply``, ``mesh.ply``);
+6. :func:`write_metrics_and_plots` - ``metrics.json`` and PNG plots.
+
+Every output file is written atomically (temp file + rename).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import shutil
+import time
+from collections.abc import Callable, Iterator
+from concurrent.futures import Executor, Future, ProcessPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from fpp_graph.atomic import atomic_write_text
+from fpp_graph.config import Config, dump_config
+from fpp_graph.errors import FppError, InputDataError, OutputError
+from fpp_graph.frame_store import FrameStore, load_frame, save_frame
+from fpp_graph.geometry import compose
+from fpp_graph.keyframes import KeyframeManager, SlamResult
+from fpp_graph.sources import FrameSource
+from fpp_graph.trajectory import Trajectory, write_tum
+from fpp_graph.types import Frame
+
+log = logging.getLogger(__name__)
+
+RESULTS_MARKER = ".fpp-slam-results"
+ProgressCallback = Callable[[str, int, int], None]  # (stage, done, total)
+
+
+@dataclass
+class RunReport:
+    """What a run did, for the CLI's summary and ``metrics.json``."""
+
+    results_dir: Path
+    frames_total: int = 0
+    frames_used: int = 0
+    skipped_frames: dict[int, str] = field(default_factory=dict)
+    seconds_by_stage: dict[str, float] = field(default_factory=dict)
+    slam: SlamResult | None = None
+    metrics: dict[str, Any] = field(default_factory=dict)
+
+
+def prepare_results_dir(out: Path, resume: bool = False, overwrite: bool = False) -> Path:
+    """Create the results folder; an existing one is refused unless resuming or overwriting.
+
+    ``overwrite`` only ever deletes a folder that an earlier run created (it holds
+    :data:`RESULTS_MARKER`), never an unrelated folder of the user's.
+    """
+    out = Path(out)
+    if out.exists() and any(out.iterdir()):
+        ours = (out / RESULTS_MARKER).exists()
+        if resume and ours:
+            log.info("resuming in %s", out)
+            return out
+        if overwrite and ours:
+            log.info("overwriting the earlier results in %s", out)
+            shutil.rmtree(out)
+        elif not ours:
+            raise OutputError(f"{out} exists and is not an fpp-slam results folder; choose another --out")
+        else:
+            raise OutputError(f"{out} already holds results; pass --resume to continue that run or --overwrite to replace it")
+    out.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(out / RESULTS_MARKER, "fpp-slam results folder\n")
+    return out
+
+
+# -- step 2: frames -------------------------------------------------------------------------
+_WORKER_SOURCE: FrameSource | None = None
+
+
+def _init_worker(source: FrameSource) -> None:
+    global _WORKER_SOURCE
+    _WORKER_SOURCE = source
+    # one worker process per core; keep each single-threaded so they do not oversubscribe
+    try:
+        import cv2
+
+        cv2.setNumThreads(1)
+    except ImportError:  # pragma: no cover - cv2 is a dependency, but the back-end does not need it
+        pass
+
+
+def _decode_to_cache(frame_id: int, cache_path: str) -> str | None:
+    """Worker: decode one frame and cache it; returns an error message instead of raising."""
+    assert _WORKER_SOURCE is not None
+    try:
+        frame = _WORKER_SOURCE.load_frame(frame_id)
+        save_frame(cache_path, frame)
+        return None
+    except FppError as exc:
+        return str(exc)
+
+
+def prepare_frames(
+    source: FrameSource,
+    cache_dir: Path,
+    executor: Executor | None = None,
+    skipped: dict[int, str] | None = None,
+    progress: ProgressCallback | None = None,
+    window: int = 4,
+) -> Iterator[Frame]:
+    """Yield decoded frames in capture order, decoding ahead in ``executor``.
+
+    Frames already in ``cache_dir`` (an interrupted earlier run) are loaded, not decoded. A frame
+    that cannot be decoded is skipped with a warning and recorded in ``skipped``.
+    """
+    cache_dir.mkdir(parents=True, exist_ok=True)
+    ids = source.frame_ids()
+    skipped = skipped if skipped is not None else {}
+    pending: dict[int, Future | None] = {}
+
+    def cache_path(fid: int) -> Path:
+        return cache_dir / f"frame_{fid:06d}.npz"
+
+    def submit(fid: int) -> None:
+        if cache_path(fid).exists():
+            pending[fid] = None
+        elif executor is None:
+            pending[fid] = None
+            message = _decode_local(source, fid, cache_path(fid))
+            if message:
+                skipped[fid] = message
+        else:
+            pending[fid] = executor.submit(_decode_to_cache, fid, str(cache_path(fid)))
+
+    next_submit = 0
+    for done, fid in enumerate(ids):
+        while next_submit < len(ids) and next_submit < done + window:
+            submit(ids[next_submit])
+            next_submit += 1
+        future = pending.pop(fid)
+        if future is not None:
+            message = future.result()
+            if message:
+                skipped[fid] = message
+        if fid in skipped:
+            log.warning("skipping frame %d: %s", fid, skipped[fid])
+        else:
+            try:
+                yield load_frame(cache_path(fid))
+            except InputDataError as exc:
+                cache_path(fid).unlink(missing_ok=True)
+                message = _decode_local(source, fid, cache_path(fid))
+                if message:
+                    skipped[fid] = message
+                    log.warning("skipping frame %d: %s (cache was unreadable: %s)", fid, message, exc)
+                else:
+                    yield load_frame(cache_path(fid))
+        if progress:
+            progress("frames", done + 1, len(ids))
+
+
+def _decode_local(source: FrameSource, fid: int, path: Path) -> str | None:
+    try:
+        save_frame(path, source.load_frame(fid))
+        return None
+    except FppError as exc:
+        return str(exc)
+
+
+# -- step 3: tracking -----------------------------------------------------------------------
+def track(
+    frames: Iterator[Frame],
+    source: FrameSource,
+    config: Config,
+    store: FrameStore,
+    progress: ProgressCallback | None = None,
+) -> SlamResult:
+    """Keyframes, odometry, loop closure and the final robust pose-graph optimisation."""
+    manager = KeyframeManager(source.make_registrar(), config, store=store)
+    for frame in frames:
+        manager.process(frame)
+    if progress:
+        progress("optimise", 0, 1)
+    result = manager.finish()
+    if progress:
+        progress("optimise", 1, 1)
+    return result
+
+
+def odometry_only_poses(result: SlamResult) -> dict[int, np.ndarray]:
+    """Keyframe poses from chaining odometry alone (the map 'before loop closure')."""
+    poses: dict[int, np.ndarray] = {}
+    by_source = {c.source_id: c for c in result.odometry}
+    for kf in result.keyframe_ids:
+        c = by_source.get(kf)
+        if c is None or c.target_id not in poses:
+            poses[kf] = result.poses_world_sensor[kf]  # segment start: keep its optimised anchor
+        else:
+            poses[kf] = compose(poses[c.target_id], c.T_target_source)
+    return poses
+
+
+# -- step 4: trajectory and graph -----------------------------------------------------------
+def write_trajectory_and_graph(out: Path, result: SlamResult, timestamps: dict[int, float]) -> None:
+    """``trajectory.tum`` (every frame) and ``graph.g2o`` (keyframes, accepted edges)."""
+    from fpp_graph.g2o import write_g2o
+    from fpp_graph.pose_graph import PoseGraph
+
+    ids = sorted(result.poses_world_sensor)
+    write_tum(out / "trajectory.tum", Trajectory.from_poses([timestamps[i] for i in ids], [result.poses_world_sensor[i] for i in ids]))
+    graph = PoseGraph()
+    for kf in result.keyframe_ids:
+        graph.add_pose(kf, result.poses_world_sensor[kf])
+    rejected = set(result.rejected_loops)
+    for c in [*result.odometry, *result.loops]:
+        if (c.source_id, c.target_id) not in rejected:
+            graph.add_constraint(c)
+    write_g2o(out / "graph.g2o", graph)
+
+
+# -- step 5: map ----------------------------------------------------------------------------
+def fuse_map(out: Path, result: SlamResult, store: FrameStore, config: Config, progress: ProgressCallback | None = None):
+    """Re-fuse keyframes under the optimised poses; writes ``map.ply`` and ``mesh.ply``."""
+    from fpp_graph.fusion import VoxelMapFuser, write_mesh_ply, write_point_cloud_ply
+
+    fuser = VoxelMapFuser(
+        voxel_size_m=config.fusion.voxel_size_m,
+        tsdf_voxel_m=config.fusion.tsdf_voxel_m,
+        tsdf_truncation_m=config.fusion.tsdf_truncation_m,
+        mesh=config.fusion.mesh,
+    )
+    for i, kf in enumerate(result.keyframe_ids):
+        fuser.integrate(store.get(kf), result.poses_world_sensor[kf])
+        if progress:
+            progress("fuse", i + 1, len(result.keyframe_ids))
+    fused = fuser.result()
+    write_point_cloud_ply(out / "map.ply", fused.points_world_m, fused.colors)
+    if fused.mesh_vertices is not None and len(fused.mesh_triangles):
+        write_mesh_ply(out / "mesh.ply", fused.mesh_vertices, fused.mesh_triangles, fused.mesh_vertex_colors)
+    return fused
+
+
+def fuse_points_only(result_poses: dict[int, np.ndarray], keyframe_ids: list[int], store: FrameStore, voxel_size_m: float):
+    """Voxel-grid map under given poses, without a mesh (for before/after comparisons)."""
+    from fpp_graph.fusion import VoxelMapFuser
+
+    fuser = VoxelMapFuser(voxel_size_m=voxel_size_m, tsdf_voxel_m=voxel_size_m, tsdf_truncation_m=4 * voxel_size_m, mesh=False)
+    for kf in keyframe_ids:
+        fuser.integrate(store.get(kf), result_poses[kf])
+    return fuser.result()
+
+
+# -- step 6: metrics and plots --------------------------------------------------------------
+def slam_summary(report: RunReport) -> dict[str, Any]:
+    """The run's own figures (no ground truth needed)."""
+    slam = report.slam
+    assert slam is not None
+    records = slam.loop_records
+    return {
+        "frames": report.frames_used,
+        "frames_total": report.frames_total,
+        "skipped_frames": {str(k): v for k, v in report.skipped_frames.items()},
+        "keyframes": len(slam.keyframe_ids),
+        "loop_candidates": len(records),
+        "loops_verified": sum(r.verified for r in records),
+        "loops_accepted": sum(r.verified and not r.rejected_by_backend for r in records),
+        "loops_rejected": sum((not r.verified) or r.rejected_by_backend for r in records),
+        "loops_rejected_by_backend": sum(r.verified and r.rejected_by_backend for r in records),
+        "chain_breaks": [{"frame": b.frame_id, "after_keyframe": b.last_keyframe_id, "reason": b.reason} for b in slam.chain_breaks],
+        "components": [[c[0], c[-1], len(c)] for c in slam.components],
+        "optimization": slam.optimization,
+        "seconds_by_stage": report.seconds_by_stage,
+        "seconds": sum(report.seconds_by_stage.values()),
+    }
+
+
+def write_loop_log(out: Path, result: SlamResult) -> None:
+    """Every loop candidate with its stage, verdict, reason and figures (``loops.json``)."""
+    rows = [
+        {
+            "query": r.query_id, "match": r.match_id, "stage": r.stage, "score": r.score,
+            "verified": r.verified, "rejected_by_backend": r.rejected_by_backend, "reason": r.reason,
+            "fitness": _finite(r.fitness), "inlier_rmse_mm": _finite(r.inlier_rmse_m * 1e3), "inliers": r.inlier_count,
+        }
+        for r in result.loop_records
+    ]
+    atomic_write_text(out / "loops.json", json.dumps(rows, indent=1))
+
+
+def _finite(x: float) -> float | None:
+    return float(x) if np.isfinite(x) else None
+
+
+def write_plots(out: Path, result: SlamResult, before_points: np.ndarray | None, after_points: np.ndarray | None, gt_poses: dict[int, np.ndarray] | None = None) -> None:
+    from fpp_graph.plots import plot_map_before_after, plot_trajectory_top_view
+
+    accepted = [(r.query_id, r.match_id) for r in result.loop_records if r.verified and not r.rejected_by_backend]
+    rejected = [(r.query_id, r.match_id) for r in result.loop_records if (not r.verified) or r.rejected_by_backend]
+    plot_trajectory_top_view(
+        out / "trajectory_top.png", result.poses_world_sensor, [(c.source_id, c.target_id) for c in result.odometry],
+        accepted, rejected, gt_poses=gt_poses, title="trajectory (top view)",
+    )
+    if before_points is not None and after_points is not None:
+        plot_map_before_after(out / "map_before_after.png", before_points, after_points)
+
+
+class Pipeline:
+    """Batch SLAM over one recorded sequence."""
+
+    def __init__(
+        self,
+        source: FrameSource,
+        config: Config,
+        out: Path,
+        resume: bool = False,
+        overwrite: bool = False,
+        executor: Executor | None = None,
+        progress: ProgressCallback | None = None,
+    ) -> None:
+        self.source = source
+        self.config = config
+        self.out = Path(out)
+        self.resume = resume
+        self.overwrite = overwrite
+        self.executor = executor
+        self.progress = progress
+
+    def run(self) -> RunReport:
+        out = prepare_results_dir(self.out, self.resume, self.overwrite)
+        report = RunReport(results_dir=out)
+        atomic_write_text(out / "config.yaml", dump_config(self.config))
+        store = FrameStore(out / "frames", max_in_memory=self.config.run.frames_in_memory)
+        ids = self.source.frame_ids()
+        report.frames_total = len(ids)
+        if not ids:
+            raise InputDataError(f"sequence {getattr(self.source, 'path', '')} has no frames")
+        timestamps: dict[int, float] = {}
+
+        def frames_with_timestamps() -> Iterator[Frame]:
+            for frame in prepare_frames(self.source, out / "frames", self._executor(), report.skipped_frames, self.progress):
+                timestamps[frame.id] = frame.timestamp
+                yield frame
+
+        with self._timed(report, "decode+track"):
+            report.slam = track(frames_with_timestamps(), self.source, self.config, store, self.progress)
+        report.frames_used = len(timestamps)
+        with self._timed(report, "write_graph"):
+            write_trajectory_and_graph(out, report.slam, timestamps)
+            write_loop_log(out, report.slam)
+        with self._timed(report, "fuse"):
+            fused = fuse_map(out, report.slam, store, self.config, self.progress)
+        with self._timed(report, "plots"):
+            before = fuse_points_only(odometry_only_poses(report.slam), report.slam.keyframe_ids, store, max(self.config.fusion.voxel_size_m, 0.002))
+            gt = self.source.ground_truth()
+            gt_poses = None
+            if gt is not None and len(gt) == report.frames_total:
+                gt_poses = {fid: T for fid, T in zip(ids, gt.poses_world_sensor, strict=True)}
+            write_plots(out, report.slam, before.points_world_m, fused.points_world_m, gt_poses)
+        report.metrics = slam_summary(report)
+        atomic_write_text(out / "metrics.json", json.dumps(report.metrics, indent=1, default=float))
+        return report
+
+    def _executor(self) -> Executor | None:
+        if self.executor is not None:
+            return self.executor
+        workers = self.config.run.workers or (os.cpu_count() or 1)
+        if workers <= 1:
+            return None
+        self.executor = ProcessPoolExecutor(max_workers=workers, initializer=_init_worker, initargs=(self.source,))
+        return self.executor
+
+    class _Timer:
+        def __init__(self, report: RunReport, stage: str) -> None:
+            self.report, self.stage = report, stage
+
+        def __enter__(self):
+            self.start = time.perf_counter()
+
+        def __exit__(self, *exc):
+            self.report.seconds_by_stage[self.stage] = self.report.seconds_by_stage.get(self.stage, 0.0) + time.perf_counter() - self.start
+
+    def _timed(self, report: RunReport, stage: str) -> Pipeline._Timer:
+        return Pipeline._Timer(report, stage)

@@ -1,0 +1,95 @@
+"""Frame sources: how a recorded sequence of any sensor reaches the back-end.
+
+A front-end plugs in by providing a :class:`FrameSource` class and registering it under the
+``fpp_graph.sources`` entry-point group of its distribution (this project registers the FPP and
+RGB-D sources of ``frontend`` in ``pyproject.toml``). ``fpp_graph`` discovers sources through the
+entry points and never imports a front-end by name.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from importlib.metadata import entry_points
+from pathlib import Path
+from typing import Any, Protocol, runtime_checkable
+
+from fpp_graph.config import Config
+from fpp_graph.errors import InputDataError
+from fpp_graph.trajectory import Trajectory
+from fpp_graph.types import Frame, PairRegistrar
+
+log = logging.getLogger(__name__)
+
+ENTRY_POINT_GROUP = "fpp_graph.sources"
+
+
+@runtime_checkable
+class FrameSource(Protocol):
+    """A recorded sequence that yields :class:`~fpp_graph.types.Frame` objects.
+
+    Implementations must pickle (they are sent to worker processes): hold paths and config,
+    and build heavy state lazily.
+    """
+
+    name: str
+
+    @classmethod
+    def detect(cls, path: Path) -> bool:
+        """True when ``path`` looks like a sequence this source reads."""
+        ...
+
+    def frame_ids(self) -> list[int]:
+        """Ids of the frames in capture order."""
+        ...
+
+    def load_frame(self, frame_id: int) -> Frame:
+        """Decode one frame (with keypoints and descriptors); InputDataError when it is unusable."""
+        ...
+
+    def make_registrar(self) -> PairRegistrar:
+        """The pairwise registration this sensor's frames need."""
+        ...
+
+    def ground_truth(self) -> Trajectory | None:
+        """Ground-truth ``T_world_sensor`` trajectory if the sequence has one."""
+        ...
+
+    def ground_truth_mesh(self) -> Path | None:
+        """Path of a ground-truth mesh in the world frame, if any."""
+        ...
+
+    def describe(self) -> dict[str, Any]:
+        """A few facts for the results (sensor, image size, frame count)."""
+        ...
+
+
+def available_sources() -> dict[str, type]:
+    """Registered source classes by name."""
+    found: dict[str, type] = {}
+    for ep in entry_points(group=ENTRY_POINT_GROUP):
+        try:
+            found[ep.name] = ep.load()
+        except Exception as exc:  # a broken plug-in must not hide the others
+            log.warning("frame source %r could not be loaded: %s", ep.name, exc)
+    return found
+
+
+def open_source(path: str | os.PathLike[str], config: Config, kind: str | None = None) -> FrameSource:
+    """Open the sequence at ``path`` with the first registered source that recognises it."""
+    path = Path(path)
+    if not path.exists():
+        raise InputDataError(f"sequence {path} does not exist")
+    sources = available_sources()
+    if kind is not None:
+        if kind not in sources:
+            raise InputDataError(f"unknown sequence kind {kind!r}; registered: {', '.join(sorted(sources)) or 'none'}")
+        return sources[kind](path, config)
+    for name, cls in sources.items():
+        if cls.detect(path):
+            log.info("reading %s as a %s sequence", path, name)
+            return cls(path, config)
+    raise InputDataError(
+        f"{path}: not a recognised sequence layout (registered: {', '.join(sorted(sources)) or 'none'}); "
+        "an FPP sequence holds sequence.yaml, an RGB-D one 7-Scenes frame-*.color.png/depth.png or TUM rgb.txt/depth.txt"
+    )

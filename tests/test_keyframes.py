@@ -1,0 +1,163 @@
+"""KeyframeManager and loop closure against a mock PairRegistrar with known ground truth."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from fpp_graph.config import Config, config_from_dict
+from fpp_graph.frame_store import FrameStore, load_frame, save_frame
+from fpp_graph.geometry import invert, make_pose, pose_error, se3_exp
+from fpp_graph.keyframes import KeyframeManager
+from fpp_graph.loop_closure import AppearanceIndex
+from fpp_graph.types import Constraint, Frame
+
+VIEWS = 13
+ROT_SIGMA = 2e-4  # rad per odometry step
+TRANS_SIGMA = 5e-5  # m per odometry step
+
+
+def turntable_poses(turns: int = 3, radius: float = 0.5) -> list[np.ndarray]:
+    poses = []
+    for i in range(turns * VIEWS):
+        theta = 2 * math.pi * (i % VIEWS) / VIEWS
+        centre = np.array([radius * math.sin(theta), 0.0, -radius * math.cos(theta)])
+        R = Rotation.from_euler("y", -theta).as_matrix()  # optical axis (+z) towards the origin
+        poses.append(make_pose(R, centre))
+    return poses
+
+
+class MockRegistrar:
+    """Returns noisy true relative poses when the views overlap, rejects otherwise.
+
+    ``bait`` pairs look alike (appearance) but do not overlap; ``broken`` pairs fail.
+    """
+
+    def __init__(self, poses, rng, max_angle_deg=40.0, broken=()):
+        self.poses = poses
+        self.rng = rng
+        self.max_angle = math.radians(max_angle_deg)
+        self.broken = {frozenset(p) for p in broken}
+        self.calls = 0
+
+    def register(self, target: Frame, source: Frame, T_guess=None) -> Constraint:
+        self.calls += 1
+        T_true = invert(self.poses[target.id]) @ self.poses[source.id]
+        angle = np.linalg.norm(Rotation.from_matrix(T_true[:3, :3]).as_rotvec())
+        if angle > self.max_angle or frozenset((target.id, source.id)) in self.broken:
+            return Constraint.rejected(source.id, target.id, "low overlap (fitness 0.01 < 0.2)", fitness=0.01)
+        sigmas = np.array([ROT_SIGMA] * 3 + [TRANS_SIGMA] * 3)
+        noise = self.rng.normal(size=6) * sigmas
+        info = np.diag(1.0 / sigmas**2)
+        return Constraint(source.id, target.id, T_true @ se3_exp(noise), info, fitness=0.9, inlier_rmse_m=5e-5, inlier_count=200, overlap=0.6)
+
+
+def make_frames(n: int, rng, place_of=lambda i: i % VIEWS) -> list[Frame]:
+    place_descriptors = {p: rng.normal(size=(300, 32)).astype(np.float32) for p in range(VIEWS)}
+    frames = []
+    for i in range(n):
+        desc = place_descriptors[place_of(i)] + rng.normal(scale=0.3, size=(300, 32)).astype(np.float32)
+        frames.append(Frame(id=i, timestamp=float(i), points=np.zeros((1, 3)), keypoints_uv=rng.uniform(0, 100, (300, 2)), descriptors=desc))
+    return frames
+
+
+def test_turntable_loops_all_found_and_drift_removed(rng):
+    poses = turntable_poses()
+    registrar = MockRegistrar(poses, rng)
+    manager = KeyframeManager(registrar, Config())
+    frames = make_frames(len(poses), rng)
+    for frame in frames:
+        manager.process(frame)
+    result = manager.finish()
+    accepted = {(r.query_id, r.match_id) for r in result.loop_records if r.verified and not r.rejected_by_backend}
+    true_revisits = {(q, m) for q in range(len(poses)) for m in range(q) if q % VIEWS == m % VIEWS}
+    assert true_revisits <= accepted, sorted(true_revisits - accepted)
+    assert len(true_revisits) == 2 * VIEWS + VIEWS  # (turn0,turn1), (turn0,turn2), (turn1,turn2)
+    # loop closure ties the turns together: the return error is small
+    # frame 0 has no pose guess, so the estimate is anchored at identity: map it onto the truth
+    errs = [pose_error(poses[0] @ result.poses_world_sensor[i], poses[i])[1] for i in range(len(poses))]
+    assert max(errs) < 10 * TRANS_SIGMA * math.sqrt(VIEWS)
+    assert result.components == [list(range(len(poses)))]
+
+
+def test_look_alike_places_do_not_become_loops(rng):
+    # Frames 0 and 20 look the same (same descriptors) but face opposite ways: the mock
+    # registrar rejects them, and the record says why.
+    poses = turntable_poses(turns=2)
+    registrar = MockRegistrar(poses, rng)
+    frames = make_frames(len(poses), rng, place_of=lambda i: 0 if i in (0, 6) else i % VIEWS)
+    manager = KeyframeManager(registrar, Config())
+    for f in frames:
+        manager.process(f)
+    result = manager.finish()
+    bait = [r for r in result.loop_records if {r.query_id, r.match_id} == {0, 6}]
+    assert all(not r.verified and "overlap" in r.reason for r in bait)
+    assert all(r.verified for r in result.loop_records if (r.query_id - r.match_id) % VIEWS == 0)
+
+
+def test_chain_break_reports_disconnected_parts(rng):
+    poses = turntable_poses(turns=1)
+    # the pair 5-6 and the fallback 4-6 both fail: a break at frame 6, no revisit to rejoin
+    registrar = MockRegistrar(poses, rng, broken=[(5, 6), (4, 6)])
+    cfg = config_from_dict({"loop_closure": {"enabled": False}})
+    manager = KeyframeManager(registrar, cfg)
+    for f in make_frames(len(poses), rng):
+        manager.process(f)
+    result = manager.finish()
+    assert [b.frame_id for b in result.chain_breaks] == [6]
+    assert "to keyframe 5" in result.chain_breaks[0].reason
+    assert result.components == [list(range(6)), list(range(6, VIEWS))]
+    assert set(result.poses_world_sensor) == set(range(VIEWS))
+
+
+def test_keyframe_thresholds_skip_small_motion(rng):
+    poses = [make_pose(np.eye(3), [0.001 * i, 0, 0]) for i in range(10)]
+    registrar = MockRegistrar(poses, rng)
+    cfg = config_from_dict({"keyframes": {"min_translation_m": 0.0035, "max_overlap": 0.0}, "loop_closure": {"enabled": False}})
+    manager = KeyframeManager(registrar, cfg)
+    for f in make_frames(10, rng):
+        manager.process(f)
+    result = manager.finish()
+    assert result.keyframe_ids == [0, 4, 8]
+    assert len(result.poses_world_sensor) == 10
+    for i in range(10):
+        assert pose_error(result.poses_world_sensor[i], poses[i])[1] < 1e-3
+
+
+def test_frame_store_bounded_and_round_trip(tmp_path, rng):
+    store = FrameStore(tmp_path, max_in_memory=2)
+    xyz = rng.normal(size=(4, 5, 3))
+    xyz[0, 0] = np.nan
+    frames = [
+        Frame(id=i, timestamp=i * 0.1, points=xyz[~np.isnan(xyz[..., 0])], colors=np.full((19, 3), 0.5), xyz_map=xyz,
+              texture=np.full((4, 5), 7, np.uint8), keypoints_uv=np.ones((3, 2)), descriptors=np.ones((3, 64), np.float32),
+              metadata={"K": np.eye(3)})
+        for i in range(5)
+    ]
+    for f in frames:
+        store.put(f)
+    assert len(store._cache) == 2 and len(store) == 5
+    back = store.get(0)
+    np.testing.assert_allclose(back.xyz_map, xyz, atol=1e-6, equal_nan=True)
+    assert back.metadata["K"] == np.eye(3).tolist()
+    assert np.array_equal(back.texture, frames[0].texture)
+    (tmp_path / "broken.npz").write_bytes(b"not a zip")
+    from fpp_graph.errors import InputDataError
+
+    with pytest.raises(InputDataError, match="delete it to recompute"):
+        load_frame(tmp_path / "broken.npz")
+    save_frame(tmp_path / "x.npz", frames[1])
+
+
+def test_appearance_index_ranks_same_place_first(rng):
+    index = AppearanceIndex(vocabulary_size=32)
+    places = [rng.normal(size=(200, 16)) for _ in range(6)]
+    for i, p in enumerate(places):
+        index.add(i, p + rng.normal(scale=0.2, size=p.shape))
+    for i, p in enumerate(places):
+        best = index.query(p + rng.normal(scale=0.2, size=p.shape), top_k=1)
+        assert best[0][0] == i
+    assert index.query(None, 3) == []
