@@ -1,0 +1,451 @@
+"""Global map fusion: frames under (optimised) poses into a coloured voxel map and a TSDF mesh.
+
+:class:`VoxelMapFuser` implements :class:`fpp_graph.types.MapFuser`. It streams: call
+:meth:`VoxelMapFuser.integrate` once per frame, then :meth:`VoxelMapFuser.result`. Memory is
+bounded by the size of the map (per-voxel sums), not by the number of frames, because each frame
+is reduced to its occupied voxels before it is merged.
+
+- Points: every voxel of edge ``voxel_size_m`` holds the weighted mean of the points (and
+  colours) that fell in it, weight = number of points (or the sum of the per-point weights the
+  caller passes). Averaging the overlapping views of a surface reduces the sensor noise by about
+  ``sqrt(weight)``.
+- Mesh: Open3D's TSDF ``VoxelBlockGrid`` (sparse, grows with the scene). Each frame's organised ``xyz_map`` is rendered into a
+  pinhole depth image (intrinsics from ``frame.metadata["K"]`` or fitted to the map), so FPP maps
+  whose pixels follow a distorted lens still land on the right rays.
+
+After a pose-graph update, :meth:`VoxelMapFuser.refuse` rebuilds the map from the frames (their
+``points``/``xyz_map``/``texture``, e.g. from the :class:`~fpp_graph.frame_store.FrameStore`);
+the raw fringe images are not needed again.
+
+Results are :class:`FusedMap`: numpy arrays only, so they pickle across processes. The PLY
+writers here are hand-written with numpy (binary little-endian, points as ``double``) because
+Open3D's legacy writer stores points as float32-or-double depending on the build and cannot be
+made atomic; the files read back in Open3D, MeshLab and CloudCompare.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from fpp_graph.atomic import atomic_open
+from fpp_graph.errors import InputDataError, OutputError
+from fpp_graph.geometry import invert
+from fpp_graph.types import Frame
+
+log = logging.getLogger(__name__)
+
+# Voxel indices are packed into one int64 key, 21 bits per axis (signed): +-2^20 voxels, i.e.
+# +-1048 m at 1 mm voxels, far beyond any indoor map.
+_KEY_BITS = 21
+_KEY_OFFSET = 1 << (_KEY_BITS - 1)
+_KEY_MASK = (1 << _KEY_BITS) - 1
+
+
+@dataclass(frozen=True, eq=False)
+class FusedMap:
+    """A fused global map in the world frame.
+
+    Attributes
+    ----------
+    points_world_m : (N, 3) float64
+        Weighted mean point of each occupied voxel, metres, world frame.
+    colors : (N, 3) float64
+        Weighted mean colour of each voxel, in [0, 1].
+    weights : (N,) float64
+        Sum of the weights (by default the number of points) that fell in each voxel.
+    mesh_vertices : (V, 3) float64 or None
+        TSDF mesh vertices, metres, world frame (None when the mesh was not asked for).
+    mesh_triangles : (F, 3) int64 or None
+        Vertex indices of each triangle.
+    mesh_vertex_colors : (V, 3) float64 or None
+        Vertex colours in [0, 1].
+    """
+
+    points_world_m: NDArray[np.float64]
+    colors: NDArray[np.float64]
+    weights: NDArray[np.float64]
+    mesh_vertices: NDArray[np.float64] | None = None
+    mesh_triangles: NDArray[np.int64] | None = None
+    mesh_vertex_colors: NDArray[np.float64] | None = None
+
+    @property
+    def num_points(self) -> int:
+        return int(self.points_world_m.shape[0])
+
+
+def voxel_keys(points_m: NDArray[np.float64], voxel_size_m: float) -> NDArray[np.int64]:
+    """Pack the voxel index ``floor(p / voxel_size_m)`` of each point into one int64 key.
+
+    Raises
+    ------
+    InputDataError
+        If a point lies beyond the +-2^20 voxel range of the key.
+    """
+    idx = np.floor(np.asarray(points_m, dtype=np.float64) / voxel_size_m).astype(np.int64)
+    if idx.size and (idx.min() < -_KEY_OFFSET or idx.max() >= _KEY_OFFSET):
+        far = float(np.abs(points_m).max())
+        raise InputDataError(
+            f"map fusion: a point lies {far:.6g} m from the world origin, beyond the "
+            f"{_KEY_OFFSET * voxel_size_m:.6g} m the voxel grid of {voxel_size_m} m covers; "
+            "check the poses or use a larger fusion.voxel_size_m"
+        )
+    idx += _KEY_OFFSET
+    return (idx[:, 0] << (2 * _KEY_BITS)) | (idx[:, 1] << _KEY_BITS) | idx[:, 2]
+
+
+def _reduce(keys: NDArray[np.int64], columns: NDArray[np.float64]) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
+    """Sum the rows of ``columns`` (M, C) that share a key; returns sorted unique keys and sums."""
+    unique, inverse = np.unique(keys, return_inverse=True)
+    sums = np.empty((unique.size, columns.shape[1]))
+    for c in range(columns.shape[1]):
+        sums[:, c] = np.bincount(inverse, weights=columns[:, c], minlength=unique.size)
+    return unique, sums
+
+
+class VoxelMapFuser:
+    """Streams frames into a voxel-averaged coloured point cloud and, optionally, a TSDF mesh.
+
+    Parameters
+    ----------
+    voxel_size_m : float
+        Edge of the voxels of the point map, metres.
+    tsdf_voxel_m : float
+        Edge of the TSDF voxels of the mesh, metres.
+    tsdf_truncation_m : float
+        TSDF truncation distance, metres (a few voxels; more than the sensor noise).
+    mesh : bool
+        Build the TSDF mesh as well (needs frames with ``xyz_map``).
+    tsdf_depth_max_m : float
+        Depths beyond this are ignored by the TSDF.
+    tsdf_min_weight : float
+        Mesh only voxels observed with at least this TSDF weight (frames).
+    tsdf_block_count : int
+        Initial capacity of the TSDF block hash map (it grows on demand).
+    """
+
+    def __init__(
+        self,
+        voxel_size_m: float,
+        tsdf_voxel_m: float,
+        tsdf_truncation_m: float,
+        mesh: bool,
+        tsdf_depth_max_m: float = 10.0,
+        tsdf_min_weight: float = 1.0,
+        tsdf_block_count: int = 1000,
+    ) -> None:
+        for name, value in (("voxel_size_m", voxel_size_m), ("tsdf_voxel_m", tsdf_voxel_m), ("tsdf_truncation_m", tsdf_truncation_m)):
+            if not (np.isfinite(value) and value > 0):
+                raise InputDataError(f"map fusion: {name} must be a positive number of metres, got {value!r}")
+        self.voxel_size_m = float(voxel_size_m)
+        self.tsdf_voxel_m = float(tsdf_voxel_m)
+        self.tsdf_truncation_m = float(tsdf_truncation_m)
+        self.mesh = bool(mesh)
+        self.tsdf_depth_max_m = float(tsdf_depth_max_m)
+        self.tsdf_min_weight = float(tsdf_min_weight)
+        self.tsdf_block_count = int(tsdf_block_count)
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget everything integrated so far."""
+        self._keys = np.zeros(0, dtype=np.int64)
+        # columns: w*x, w*y, w*z, w*r, w*g, w*b, w
+        self._sums = np.zeros((0, 7))
+        self._pending: list[tuple[NDArray[np.int64], NDArray[np.float64]]] = []
+        self._pending_rows = 0
+        self._volume = None
+        self.frames_integrated = 0
+        self.frames_meshed = 0
+
+    # -- streaming -----------------------------------------------------------------------------
+    def integrate(
+        self,
+        frame: Frame,
+        T_world_sensor: NDArray[np.float64],
+        point_weights: NDArray[np.float64] | None = None,
+    ) -> None:
+        """Add one frame seen from ``T_world_sensor`` (4x4, sensor to world).
+
+        Parameters
+        ----------
+        frame : Frame
+            Uses ``points`` and ``colors`` (grey 0.5 when absent) for the point map and
+            ``xyz_map`` plus ``texture`` (or ``colors``) for the mesh.
+        T_world_sensor : (4, 4) float64
+            Pose of the frame.
+        point_weights : (N,) float64, optional
+            Per-point weights (e.g. FPP modulation); default 1 per point.
+        """
+        T = np.asarray(T_world_sensor, dtype=np.float64)
+        if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+            raise InputDataError(f"map fusion: pose of frame {frame.id} must be a finite 4x4, got shape {T.shape}")
+        points = frame.points
+        colors = frame.colors if frame.colors is not None else np.full(points.shape, 0.5)
+        weights = np.ones(len(points)) if point_weights is None else np.asarray(point_weights, dtype=np.float64).reshape(-1)
+        if weights.shape[0] != points.shape[0]:
+            raise InputDataError(
+                f"map fusion: frame {frame.id} has {points.shape[0]} points but {weights.shape[0]} weights"
+            )
+        keep = np.all(np.isfinite(points), axis=1) & (weights > 0)
+        points_world = points[keep] @ T[:3, :3].T + T[:3, 3]
+        w = weights[keep]
+        if len(points_world):
+            columns = np.empty((len(w), 7))
+            columns[:, :3] = points_world * w[:, None]
+            columns[:, 3:6] = colors[keep] * w[:, None]
+            columns[:, 6] = w
+            keys, sums = _reduce(voxel_keys(points_world, self.voxel_size_m), columns)
+            self._pending.append((keys, sums))
+            self._pending_rows += len(keys)
+            # merge when the pending chunks outgrow the map: amortised O(map log map) per merge
+            # and peak memory about twice the map
+            if self._pending_rows > max(len(self._keys), 1_000_000):
+                self._merge()
+        if self.mesh:
+            self._integrate_tsdf(frame, T)
+        self.frames_integrated += 1
+
+    def _merge(self) -> None:
+        if not self._pending:
+            return
+        keys = np.concatenate([self._keys, *(k for k, _ in self._pending)])
+        sums = np.concatenate([self._sums, *(s for _, s in self._pending)])
+        self._keys, self._sums = _reduce(keys, sums)
+        self._pending = []
+        self._pending_rows = 0
+
+    def _integrate_tsdf(self, frame: Frame, T_world_sensor: NDArray[np.float64]) -> None:
+        import open3d as o3d
+
+        if frame.xyz_map is None:
+            log.warning("frame %d has no xyz_map; it is left out of the TSDF mesh", frame.id)
+            return
+        K = intrinsics_of(frame)
+        depth_m, rgb = render_depth(frame, K)
+        if not np.any(depth_m > 0):
+            log.warning("frame %d has no valid depth; it is left out of the TSDF mesh", frame.id)
+            return
+        # Open3D's tensor VoxelBlockGrid: the legacy ScalableTSDFVolume of open3d 0.20 returns
+        # empty meshes here (checked against UniformTSDFVolume on the same images)
+        if self._volume is None:
+            self._volume = o3d.t.geometry.VoxelBlockGrid(
+                attr_names=("tsdf", "weight", "color"),
+                attr_dtypes=(o3d.core.float32, o3d.core.float32, o3d.core.float32),
+                attr_channels=((1), (1), (3)),
+                voxel_size=self.tsdf_voxel_m,
+                block_resolution=16,
+                block_count=self.tsdf_block_count,
+                device=o3d.core.Device("CPU:0"),
+            )
+        depth = o3d.t.geometry.Image(o3d.core.Tensor(depth_m.astype(np.float32)))
+        color = o3d.t.geometry.Image(o3d.core.Tensor(rgb.astype(np.float32) / 255.0))
+        intrinsic = o3d.core.Tensor(K, dtype=o3d.core.float64)
+        # Open3D wants the extrinsic world -> camera, the inverse of our T_world_sensor
+        extrinsic = o3d.core.Tensor(invert(T_world_sensor), dtype=o3d.core.float64)
+        blocks = self._volume.compute_unique_block_coordinates(
+            depth, intrinsic, extrinsic, 1.0, self.tsdf_depth_max_m, self.tsdf_truncation_m / self.tsdf_voxel_m
+        )
+        self._volume.integrate(
+            blocks, depth, color, intrinsic, extrinsic, 1.0, self.tsdf_depth_max_m, self.tsdf_truncation_m / self.tsdf_voxel_m
+        )
+        self.frames_meshed += 1
+
+    def result(self) -> FusedMap:
+        """The map fused so far (the fuser can keep integrating afterwards)."""
+        self._merge()
+        w = self._sums[:, 6]
+        points = self._sums[:, :3] / w[:, None]
+        colors = np.clip(self._sums[:, 3:6] / w[:, None], 0.0, 1.0)
+        vertices = triangles = vertex_colors = None
+        if self.mesh:
+            vertices, triangles, vertex_colors = np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64), np.zeros((0, 3))
+            if self._volume is not None:
+                mesh = self._volume.extract_triangle_mesh(weight_threshold=self.tsdf_min_weight)
+                vertices = mesh.vertex.positions.numpy().astype(np.float64)
+                triangles = mesh.triangle.indices.numpy().astype(np.int64)
+                if "colors" in mesh.vertex:
+                    vertex_colors = np.clip(mesh.vertex.colors.numpy().astype(np.float64), 0.0, 1.0)
+                else:
+                    vertex_colors = np.full(vertices.shape, 0.5)
+        return FusedMap(points, colors, w.copy(), vertices, triangles, vertex_colors)
+
+    # -- MapFuser protocol -------------------------------------------------------------------
+    def fuse(self, frames: Sequence[Frame], poses_world_sensor: Mapping[int, NDArray[np.float64]]) -> FusedMap:
+        """Fuse ``frames`` from scratch under ``poses_world_sensor`` (frame id -> 4x4)."""
+        missing = [f.id for f in frames if f.id not in poses_world_sensor]
+        if missing:
+            raise InputDataError(
+                f"map fusion: no pose for frames {missing[:10]}{' ...' if len(missing) > 10 else ''}; "
+                "pass a pose for every frame to fuse (or leave those frames out)"
+            )
+        self.reset()
+        for frame in frames:
+            self.integrate(frame, poses_world_sensor[frame.id])
+        return self.result()
+
+    def refuse(self, frames: Sequence[Frame], new_poses_world_sensor: Mapping[int, NDArray[np.float64]]) -> FusedMap:
+        """Rebuild the map after a pose-graph update: the same frames under new poses.
+
+        The frames' ``points``/``xyz_map``/``texture`` suffice (a FrameStore holds them); the
+        raw fringe images are not decoded again.
+        """
+        return self.fuse(frames, new_poses_world_sensor)
+
+
+# -- intrinsics and depth rendering ---------------------------------------------------------
+def intrinsics_of(frame: Frame) -> NDArray[np.float64]:
+    """Pinhole ``K`` (3x3) of a frame's ``xyz_map``: ``metadata["K"]`` or a least-squares fit.
+
+    The fit solves ``u = fx x/z + cx`` and ``v = fy y/z + cy`` over the valid pixels
+    (u = column, v = row). A lens with distortion gives a K that is right on average; the
+    depth rendering then puts each point at its pinhole pixel, so the TSDF stays consistent.
+    """
+    if "K" in frame.metadata:
+        K = np.asarray(frame.metadata["K"], dtype=np.float64)
+        if K.shape != (3, 3) or not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0:
+            raise InputDataError(f"frame {frame.id}: metadata['K'] must be a 3x3 camera matrix, got {K.tolist()}")
+        return K
+    if frame.xyz_map is None:
+        raise InputDataError(f"frame {frame.id}: no metadata['K'] and no xyz_map to estimate intrinsics from")
+    xyz = frame.xyz_map
+    valid = np.all(np.isfinite(xyz), axis=2) & (xyz[..., 2] > 0)
+    v, u = np.nonzero(valid)
+    if len(u) < 10:
+        raise InputDataError(f"frame {frame.id}: only {len(u)} valid pixels, too few to estimate intrinsics")
+    pts = xyz[valid]
+    # subsample: a few thousand pixels pin down four numbers
+    if len(u) > 20000:
+        pick = np.linspace(0, len(u) - 1, 20000).astype(np.int64)
+        u, v, pts = u[pick], v[pick], pts[pick]
+    x_over_z = pts[:, 0] / pts[:, 2]
+    y_over_z = pts[:, 1] / pts[:, 2]
+    fx, cx = np.linalg.lstsq(np.column_stack([x_over_z, np.ones_like(x_over_z)]), u.astype(np.float64), rcond=None)[0]
+    fy, cy = np.linalg.lstsq(np.column_stack([y_over_z, np.ones_like(y_over_z)]), v.astype(np.float64), rcond=None)[0]
+    if not (fx > 0 and fy > 0):
+        raise InputDataError(
+            f"frame {frame.id}: the xyz_map does not look like a camera's organised map "
+            f"(fitted fx={fx:.4g}, fy={fy:.4g}); pass metadata['K']"
+        )
+    return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+
+
+def render_depth(frame: Frame, K: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.uint8]]:
+    """Project a frame's ``xyz_map`` into a pinhole depth image (z-buffered) and its RGB image.
+
+    Returns
+    -------
+    depth_m : (H, W) float64
+        Depth (z in the sensor frame) in metres, 0 where empty.
+    rgb : (H, W, 3) uint8
+        Colour from ``texture`` (grey) or ``colors`` at the same pixels.
+    """
+    xyz = frame.xyz_map
+    assert xyz is not None
+    h, w = xyz.shape[:2]
+    valid = np.all(np.isfinite(xyz), axis=2) & (xyz[..., 2] > 0)
+    pts = xyz[valid]
+    if frame.texture is not None:
+        grey = frame.texture[valid].astype(np.uint8)
+        colors = np.repeat(grey[:, None], 3, axis=1)
+    elif frame.colors is not None and len(frame.colors) == len(pts):
+        # front-ends build points as xyz_map[valid] (row-major), so colours line up
+        colors = (np.clip(frame.colors, 0, 1) * 255).round().astype(np.uint8)
+    else:
+        colors = np.full((len(pts), 3), 128, dtype=np.uint8)
+    z = pts[:, 2]
+    u = np.rint(K[0, 0] * pts[:, 0] / z + K[0, 1] * pts[:, 1] / z + K[0, 2]).astype(np.int64)
+    v = np.rint(K[1, 1] * pts[:, 1] / z + K[1, 2]).astype(np.int64)
+    inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    u, v, z, colors = u[inside], v[inside], z[inside], colors[inside]
+    # z-buffer: write far to near so the nearest point of each pixel wins
+    order = np.argsort(-z, kind="stable")
+    depth_m = np.zeros((h, w))
+    rgb = np.zeros((h, w, 3), dtype=np.uint8)
+    depth_m[v[order], u[order]] = z[order]
+    rgb[v[order], u[order]] = colors[order]
+    return depth_m, np.ascontiguousarray(rgb)
+
+
+# -- PLY writers -----------------------------------------------------------------------------
+def _color_bytes(colors: NDArray | None, n: int, what: str) -> NDArray[np.uint8]:
+    if colors is None:
+        return np.full((n, 3), 128, dtype=np.uint8)
+    c = np.asarray(colors)
+    if c.shape != (n, 3):
+        raise InputDataError(f"{what}: colors shape {c.shape} does not match {n} x 3")
+    if c.dtype == np.uint8:
+        return c
+    return (np.clip(np.nan_to_num(c.astype(np.float64)), 0.0, 1.0) * 255.0).round().astype(np.uint8)
+
+
+def write_point_cloud_ply(
+    path: str | os.PathLike[str], points: NDArray[np.float64], colors: NDArray | None = None
+) -> None:
+    """Write a coloured point cloud as binary little-endian PLY, atomically.
+
+    Points are stored as ``double`` (exact round trip); colours as ``uchar`` red/green/blue
+    (floats in [0, 1] are rounded to 1/255; uint8 colours are kept as they are).
+    """
+    pts = np.asarray(points, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise InputDataError(f"point cloud for {path}: points must be N x 3, got {pts.shape}")
+    n = len(pts)
+    record = np.dtype([("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("red", "u1"), ("green", "u1"), ("blue", "u1")])
+    data = np.empty(n, dtype=record)
+    data["x"], data["y"], data["z"] = pts[:, 0], pts[:, 1], pts[:, 2]
+    rgb = _color_bytes(colors, n, f"point cloud for {path}")
+    data["red"], data["green"], data["blue"] = rgb[:, 0], rgb[:, 1], rgb[:, 2]
+    header = (
+        "ply\nformat binary_little_endian 1.0\ncomment fpp-graph map, metres, world frame\n"
+        f"element vertex {n}\nproperty double x\nproperty double y\nproperty double z\n"
+        "property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n"
+    )
+    _write_ply(path, header, [data.tobytes()])
+
+
+def write_mesh_ply(
+    path: str | os.PathLike[str],
+    vertices: NDArray[np.float64],
+    triangles: NDArray[np.integer],
+    colors: NDArray | None = None,
+) -> None:
+    """Write a triangle mesh as binary little-endian PLY, atomically (vertices as ``double``)."""
+    verts = np.asarray(vertices, dtype=np.float64)
+    tris = np.asarray(triangles)
+    if verts.ndim != 2 or verts.shape[1] != 3:
+        raise InputDataError(f"mesh for {path}: vertices must be V x 3, got {verts.shape}")
+    if tris.ndim != 2 or tris.shape[1] != 3:
+        raise InputDataError(f"mesh for {path}: triangles must be F x 3, got {tris.shape}")
+    if tris.size and (tris.min() < 0 or tris.max() >= len(verts)):
+        raise InputDataError(f"mesh for {path}: triangle indices out of range 0..{len(verts) - 1}")
+    vrec = np.dtype([("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("red", "u1"), ("green", "u1"), ("blue", "u1")])
+    vdata = np.empty(len(verts), dtype=vrec)
+    vdata["x"], vdata["y"], vdata["z"] = verts[:, 0], verts[:, 1], verts[:, 2]
+    rgb = _color_bytes(colors, len(verts), f"mesh for {path}")
+    vdata["red"], vdata["green"], vdata["blue"] = rgb[:, 0], rgb[:, 1], rgb[:, 2]
+    frec = np.dtype([("n", "u1"), ("i", "<i4", (3,))])
+    fdata = np.empty(len(tris), dtype=frec)
+    fdata["n"] = 3
+    fdata["i"] = tris.astype(np.int32)
+    header = (
+        "ply\nformat binary_little_endian 1.0\ncomment fpp-graph TSDF mesh, metres, world frame\n"
+        f"element vertex {len(verts)}\nproperty double x\nproperty double y\nproperty double z\n"
+        "property uchar red\nproperty uchar green\nproperty uchar blue\n"
+        f"element face {len(tris)}\nproperty list uchar int vertex_indices\nend_header\n"
+    )
+    _write_ply(path, header, [vdata.tobytes(), fdata.tobytes()])
+
+
+def _write_ply(path: str | os.PathLike[str], header: str, blocks: list[bytes]) -> None:
+    try:
+        with atomic_open(path, "wb") as handle:
+            handle.write(header.encode("ascii"))
+            for block in blocks:
+                handle.write(block)
+    except OSError as exc:
+        raise OutputError(f"cannot write {path}: {exc.strerror}; check the folder and free space") from exc
