@@ -1,0 +1,234 @@
+"""Evaluation: ATE/RPE (evo, SE(3)), turntable loop return and circle fit, map accuracy."""
+
+from __future__ import annotations
+
+import builtins
+
+import numpy as np
+import open3d as o3d
+import pytest
+from scipy.spatial.transform import Rotation
+
+from fpp_graph.errors import ConfigError, FppError, InputDataError
+from fpp_graph.evaluation import (
+    ate_rpe,
+    fit_circle,
+    load_mesh,
+    loop_return_errors,
+    map_accuracy,
+)
+from fpp_graph.geometry import compose, make_pose
+from fpp_graph.trajectory import Trajectory
+
+
+def turntable_poses(n_views=36, turns=2, radius_m=0.5, tilt_rad=0.3, centre=(0.1, -0.2, 1.5)):
+    """Sensor on a circle around a tilted axis, looking at the centre, the same poses each turn."""
+    axis_R = Rotation.from_rotvec([tilt_rad, 0.2, 0.0]).as_matrix()
+    poses = []
+    for i in range(n_views * turns):
+        a = 2 * np.pi * i / n_views
+        R_local = Rotation.from_rotvec([0.0, a, 0.0]).as_matrix()
+        p_local = R_local @ np.array([0.0, 0.0, -radius_m])
+        poses.append(make_pose(axis_R @ R_local, axis_R @ p_local + np.asarray(centre)))
+    return np.array(poses)
+
+
+def helix_trajectory(n=60, rng=None):
+    t = np.arange(n) * 0.1
+    poses = []
+    for k in range(n):
+        a = 0.2 * k
+        rotation = Rotation.from_rotvec([0.05 * k, a, 0.02 * k]).as_matrix()
+        poses.append(make_pose(rotation, [np.cos(a), 0.03 * k, np.sin(a)]))
+    return t, np.array(poses)
+
+
+def test_ate_after_se3_offset_is_zero():
+    t, poses = helix_trajectory()
+    offset = make_pose(Rotation.from_rotvec([0.3, -0.5, 1.0]).as_matrix(), [2.0, -1.0, 0.5])
+    est = Trajectory.from_poses(t, [compose(offset, T) for T in poses])
+    gt = Trajectory.from_poses(t, poses)
+    err = ate_rpe(est, gt)
+    assert err.matched == len(t)
+    assert err.ate_rmse_m < 1e-9 and err.ate_max_m < 1e-9
+    assert err.rpe_trans_rmse_m < 1e-9 and err.rpe_rot_rmse_deg < 1e-6
+    np.testing.assert_allclose(err.T_gt_estimate, np.linalg.inv(offset), atol=1e-9)
+    # without alignment the offset is the error
+    raw = ate_rpe(est, gt, align="none")
+    assert raw.ate_rmse_m > 1.0
+    np.testing.assert_array_equal(raw.T_gt_estimate, np.eye(4))
+    assert raw.rpe_trans_rmse_m < 1e-9  # relative motion does not see a global offset
+
+
+def test_ate_with_known_noise():
+    rng = np.random.default_rng(5)
+    t, poses = helix_trajectory(n=2000)
+    sigma = 0.001
+    noisy = poses.copy()
+    noisy[:, :3, 3] += sigma * rng.standard_normal((len(t), 3))
+    err = ate_rpe(Trajectory.from_poses(t, noisy), Trajectory.from_poses(t, poses))
+    # 3D isotropic noise: ||e|| RMS = sigma * sqrt(3); the alignment absorbs a negligible part
+    assert err.ate_rmse_m == pytest.approx(sigma * np.sqrt(3), rel=0.03)
+    assert err.ate_mean_m < err.ate_rmse_m < err.ate_max_m
+    # relative error of two independent noises: sqrt(2) * sigma * sqrt(3)
+    assert err.rpe_trans_rmse_m == pytest.approx(sigma * np.sqrt(6), rel=0.05)
+    assert err.rpe_rot_rmse_deg < 1e-9
+    assert err.ate_per_pose_m.shape == (2000,)
+
+
+def test_ate_associates_by_timestamp():
+    t, poses = helix_trajectory()
+    gt = Trajectory.from_poses(t, poses)
+    est = Trajectory.from_poses(t[::2] + 0.004, poses[::2])  # every other pose, 4 ms late
+    err = ate_rpe(est, gt)
+    assert err.matched == 30 and err.ate_rmse_m < 1e-9
+    np.testing.assert_allclose(err.timestamps_s, t[::2] + 0.004)
+
+
+def test_ate_bad_input():
+    t, poses = helix_trajectory()
+    gt = Trajectory.from_poses(t, poses)
+    with pytest.raises(InputDataError, match="share no timestamps"):
+        ate_rpe(Trajectory.from_poses(t + 100.0, poses), gt)
+    with pytest.raises(InputDataError, match="empty trajectory"):
+        ate_rpe(Trajectory(np.zeros(0), np.zeros((0, 3)), np.zeros((0, 4))), gt)
+    with pytest.raises(InputDataError, match="at least 3 associated poses"):
+        ate_rpe(Trajectory.from_poses(t[:2], poses[:2]), gt)
+    with pytest.raises(ConfigError, match="Sim"):
+        ate_rpe(gt, gt, align="sim3")
+
+
+def test_ate_without_evo_says_how_to_install(monkeypatch):
+    real_import = builtins.__import__
+
+    def no_evo(name, *args, **kwargs):
+        if name == "evo" or name.startswith("evo."):
+            raise ImportError("No module named 'evo'")
+        return real_import(name, *args, **kwargs)
+
+    monkeypatch.setattr(builtins, "__import__", no_evo)
+    t, poses = helix_trajectory()
+    gt = Trajectory.from_poses(t, poses)
+    with pytest.raises(FppError, match=r"pip install fpp-graph\[eval\]"):
+        ate_rpe(gt, gt)
+
+
+def test_loop_return_errors_are_zero_on_a_perfect_turntable_and_see_drift():
+    poses = turntable_poses(n_views=36, turns=3)
+    perfect = loop_return_errors(poses, 36)
+    assert perfect.translation_m.shape == (2,)
+    assert np.all(perfect.translation_m < 1e-12) and np.all(perfect.rotation_deg < 1e-6)
+    # drift: every pose of turn j is off by j mm along x and j * 0.1 deg about z
+    drifted = poses.copy()
+    for j in range(1, 3):
+        bump = make_pose(Rotation.from_rotvec([0, 0, np.radians(0.1 * j)]).as_matrix())
+        for k in range(36):
+            i = j * 36 + k
+            drifted[i] = compose(drifted[i], bump)
+            drifted[i, :3, 3] += [0.001 * j, 0.0, 0.0]
+    out = loop_return_errors(drifted, 36)
+    np.testing.assert_allclose(out.translation_m, [0.001, 0.002], atol=1e-12)
+    np.testing.assert_allclose(out.rotation_deg, [0.1, 0.2], atol=1e-9)
+    assert out.per_view_translation_m.shape == (2, 36)
+
+
+def test_loop_return_partial_turn_and_bad_input():
+    poses = turntable_poses(n_views=10, turns=3)[:24]  # 2 turns and 4 views
+    out = loop_return_errors(poses, 10)
+    assert out.per_view_translation_m.shape == (2, 10)
+    assert np.isnan(out.per_view_translation_m[1, 4:]).all()
+    assert np.isfinite(out.translation_m).all()
+    with pytest.raises(InputDataError, match="do not complete a turn"):
+        loop_return_errors(poses[:10], 10)
+    with pytest.raises(InputDataError, match="views_per_turn must be >= 1"):
+        loop_return_errors(poses, 0)
+    with pytest.raises(InputDataError, match="N x 4 x 4"):
+        loop_return_errors(poses[:, :3, :], 10)
+
+
+def test_fit_circle_recovers_a_tilted_circle():
+    poses = turntable_poses(n_views=36, turns=1, radius_m=0.5)
+    fit = fit_circle(poses[:, :3, 3])
+    assert fit.radius_m == pytest.approx(0.5, abs=1e-9)
+    np.testing.assert_allclose(fit.centre, [0.1, -0.2, 1.5], atol=1e-9)
+    axis = Rotation.from_rotvec([0.3, 0.2, 0.0]).as_matrix()[:, 1]
+    assert abs(abs(fit.normal @ axis) - 1.0) < 1e-12
+    assert fit.planarity_rms_m < 1e-12 and fit.radial_rms_m < 1e-12
+    # the normal follows the sense of motion
+    reverse = fit_circle(poses[::-1, :3, 3])
+    np.testing.assert_allclose(reverse.normal, -fit.normal, atol=1e-12)
+
+
+def test_fit_circle_on_an_arc_with_noise():
+    rng = np.random.default_rng(2)
+    a = np.linspace(0, np.pi / 2, 200)  # a quarter arc: the algebraic fit alone is biased here
+    pts = np.column_stack([2.0 * np.cos(a), 2.0 * np.sin(a), np.zeros_like(a)])
+    pts += 0.001 * rng.standard_normal(pts.shape)
+    fit = fit_circle(pts)
+    assert fit.radius_m == pytest.approx(2.0, abs=0.002)
+    assert fit.planarity_rms_m == pytest.approx(0.001, rel=0.2)
+    assert fit.radial_rms_m == pytest.approx(0.001, rel=0.2)
+
+
+def test_fit_circle_bad_input():
+    with pytest.raises(InputDataError, match="at least 3 finite"):
+        fit_circle(np.zeros((2, 3)))
+    with pytest.raises(InputDataError, match="on a line"):
+        fit_circle(np.outer(np.arange(5.0), [1.0, 2.0, 3.0]))
+
+
+def _sphere(radius=0.3, centre=(0.2, 0.1, 1.0), resolution=200):
+    mesh = o3d.geometry.TriangleMesh.create_sphere(radius, resolution)
+    mesh.translate(centre)
+    return np.asarray(mesh.vertices), np.asarray(mesh.triangles)
+
+
+def test_map_accuracy_at_known_distances(rng):
+    radius, centre = 0.3, np.array([0.2, 0.1, 1.0])
+    V, F = _sphere(radius, centre)
+    directions = rng.normal(size=(20000, 3))
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    offsets = np.where(rng.random(20000) < 0.5, -0.002, 0.002)  # 2 mm inside or outside
+    acc = map_accuracy(centre + directions * (radius + offsets)[:, None], V, F)
+    assert acc.count == 20000
+    # the tessellated sphere lies up to ~20 um inside the true one at this resolution
+    assert acc.rms_m == pytest.approx(0.002, abs=1e-5)
+    assert acc.mean_m == pytest.approx(0.002, abs=1e-5)
+    assert acc.p95_m == pytest.approx(0.002, abs=3e-5) and acc.max_m < 0.00203
+
+
+def test_map_accuracy_far_from_origin_keeps_precision(rng):
+    # float32 raycasting at 1 km would round to ~60 um; the centring keeps it at ~1 um
+    centre = np.array([1000.0, -500.0, 200.0])
+    V, F = _sphere(0.3, centre, resolution=20)
+    radial = (V - centre) / np.linalg.norm(V - centre, axis=1, keepdims=True)
+    # a point 1 mm outside a vertex of a convex mesh has that vertex as its closest point
+    acc = map_accuracy(V + 0.001 * radial, V, F)
+    assert acc.mean_m == pytest.approx(0.001, abs=1e-6) and acc.max_m == pytest.approx(0.001, abs=2e-6)
+
+
+def test_map_accuracy_bad_input(tmp_path):
+    V, F = _sphere(resolution=10)
+    with pytest.raises(InputDataError, match="reference mesh is empty"):
+        map_accuracy(V, np.zeros((0, 3)), np.zeros((0, 3), dtype=int))
+    with pytest.raises(InputDataError, match="no finite points"):
+        map_accuracy(np.full((3, 3), np.nan), V, F)
+    with pytest.raises(InputDataError, match="does not exist"):
+        load_mesh(tmp_path / "missing.ply")
+    (tmp_path / "garbage.ply").write_bytes(b"not a mesh at all")
+    with pytest.raises(InputDataError, match="no triangles"):
+        load_mesh(tmp_path / "garbage.ply")
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(V))
+    o3d.io.write_point_cloud(str(tmp_path / "cloud.ply"), cloud)
+    with pytest.raises(InputDataError, match="no triangles"):
+        load_mesh(tmp_path / "cloud.ply")
+
+
+def test_load_mesh_round_trip(tmp_path):
+    from fpp_graph.fusion import write_mesh_ply
+
+    V, F = _sphere(resolution=30)
+    write_mesh_ply(tmp_path / "gt.ply", V, F)
+    V2, F2 = load_mesh(tmp_path / "gt.ply")
+    np.testing.assert_array_equal(V2, V)
+    np.testing.assert_array_equal(F2, F)
