@@ -1,0 +1,286 @@
+"""PNG plots of a run: trajectory with its graph edges, map before/after loop closure, errors.
+
+Matplotlib ``Figure`` objects are used directly (Agg, no pyplot state, nothing shown), and PNGs
+are written atomically. Positions are metres in code; axes are labelled in millimetres for maps
+smaller than 5 m and in metres beyond.
+
+The top view drops the world axis the data varies least along (the "up" of the scene: ``y`` for
+a camera-style y-down world, ``z`` for a z-up one), so axes keep their names; when the data's
+flattest direction is oblique to every world axis (a tilted turntable), the view looks down that
+direction instead (PCA) and the axes are labelled as principal axes.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from fpp_graph.atomic import atomic_open
+from fpp_graph.errors import InputDataError
+
+log = logging.getLogger(__name__)
+
+_AXIS_NAMES = ("x", "y", "z")
+_AXIS_SNAP_COS = np.cos(np.radians(20.0))  # use world axes when "up" is within 20 deg of one
+
+
+@dataclass(frozen=True)
+class TopView:
+    """A projection of 3D world points onto a 2D top view.
+
+    ``basis`` (2, 3) holds the horizontal and vertical plot directions and ``up`` (3,) the
+    viewing direction; ``labels`` name the two plot axes.
+    """
+
+    basis: NDArray[np.float64]
+    up: NDArray[np.float64]
+    labels: tuple[str, str]
+    up_label: str
+    scale: float  # plot units per metre (1000 for mm, 1 for m)
+    unit: str
+
+    def project(self, points_m: NDArray[np.float64]) -> NDArray[np.float64]:
+        """(N, 3) metres -> (N, 2) plot units."""
+        return np.asarray(points_m, dtype=np.float64).reshape(-1, 3) @ self.basis.T * self.scale
+
+    def height(self, points_m: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Coordinate along the viewing direction, plot units."""
+        return np.asarray(points_m, dtype=np.float64).reshape(-1, 3) @ self.up * self.scale
+
+
+def top_view(points_m: NDArray[np.float64]) -> TopView:
+    """Choose the top view of a set of world points (see the module docstring)."""
+    P = np.asarray(points_m, dtype=np.float64).reshape(-1, 3)
+    P = P[np.all(np.isfinite(P), axis=1)]
+    extent = float(np.ptp(P, axis=0).max()) if len(P) else 0.0
+    scale, unit = (1000.0, "mm") if extent < 5.0 else (1.0, "m")
+    eye = np.eye(3)
+    if len(P) >= 3:
+        _, s, Vt = np.linalg.svd(P - P.mean(axis=0), full_matrices=False)
+        normal = Vt[2]
+        k = int(np.argmax(np.abs(normal)))
+        oblique = abs(normal[k]) < _AXIS_SNAP_COS and s[1] > 10 * max(s[2], 1e-15)
+        if oblique:
+            return TopView(Vt[:2].copy(), normal.copy(), ("principal axis 1", "principal axis 2"), "principal axis 3", scale, unit)
+    else:
+        k = int(np.argmin(np.ptp(P, axis=0))) if len(P) else 1
+    i, j = (a for a in range(3) if a != k)
+    return TopView(eye[[i, j]], eye[k], (_AXIS_NAMES[i], _AXIS_NAMES[j]), _AXIS_NAMES[k], scale, unit)
+
+
+def _new_figure(ncols: int = 1, size: tuple[float, float] = (8.0, 7.0)):
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=size, layout="constrained")
+    axes = fig.subplots(1, ncols, squeeze=False)[0]
+    return fig, axes
+
+
+def _save(fig, path: str | os.PathLike[str], dpi: int = 150) -> None:
+    with atomic_open(path, "wb") as handle:
+        fig.savefig(handle, format="png", dpi=dpi)
+    log.info("wrote %s", path)
+
+
+def _as_pose_dict(poses: Mapping[int, NDArray] | NDArray | Sequence[NDArray]) -> dict[int, NDArray[np.float64]]:
+    if isinstance(poses, Mapping):
+        out = {int(k): np.asarray(v, dtype=np.float64) for k, v in poses.items()}
+    else:
+        out = dict(enumerate(np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)))
+    for k, T in out.items():
+        if T.shape != (4, 4):
+            raise InputDataError(f"plot: pose of frame {k} must be 4x4, got {T.shape}")
+    return out
+
+
+def _align_rigid(src: NDArray[np.float64], dst: NDArray[np.float64]) -> tuple[NDArray, NDArray]:
+    """R, t minimising ||dst - (R src + t)|| (Kabsch, no scale) via scipy."""
+    from scipy.spatial.transform import Rotation
+
+    mu_s, mu_d = src.mean(axis=0), dst.mean(axis=0)
+    R = Rotation.align_vectors(dst - mu_d, src - mu_s)[0].as_matrix()
+    return R, mu_d - R @ mu_s
+
+
+def _edge_segments(edges, positions: dict[int, NDArray], view: TopView) -> NDArray[np.float64]:
+    segs = [(positions[a], positions[b]) for a, b in edges if a in positions and b in positions]
+    if not segs:
+        return np.zeros((0, 2, 2))
+    arr = np.asarray(segs)  # (E, 2, 3)
+    return view.project(arr.reshape(-1, 3)).reshape(-1, 2, 2)
+
+
+def plot_trajectory_top_view(
+    path: str | os.PathLike[str],
+    poses_world_sensor: Mapping[int, NDArray[np.float64]] | NDArray[np.float64],
+    odometry_edges: Sequence[tuple[int, int]] = (),
+    loop_edges_accepted: Sequence[tuple[int, int]] = (),
+    loop_edges_rejected: Sequence[tuple[int, int]] = (),
+    gt_poses: Mapping[int, NDArray[np.float64]] | NDArray[np.float64] | None = None,
+    title: str = "",
+) -> None:
+    """Top view of the trajectory and its pose-graph edges, saved as PNG.
+
+    Parameters
+    ----------
+    poses_world_sensor : {frame id: (4, 4)} or (N, 4, 4)
+        Estimated poses (an array is keyed 0..N-1).
+    odometry_edges, loop_edges_accepted, loop_edges_rejected : sequences of (id, id)
+        Drawn grey, green and red dashed; edges to unknown ids are skipped.
+    gt_poses : {frame id: (4, 4)} or (N, 4, 4), optional
+        Ground truth, drawn dashed black after an SE(3) alignment onto the estimate over the
+        shared ids (the two world frames need not agree).
+    """
+    from matplotlib.collections import LineCollection
+
+    poses = _as_pose_dict(poses_world_sensor)
+    if not poses:
+        raise InputDataError(f"plot {path}: no poses to draw")
+    ids = sorted(poses)
+    positions = {k: poses[k][:3, 3] for k in ids}
+    est_xyz = np.array([positions[k] for k in ids])
+    gt_xyz = None
+    if gt_poses is not None:
+        gt = _as_pose_dict(gt_poses)
+        common = [k for k in ids if k in gt]
+        if len(common) >= 3:
+            src = np.array([gt[k][:3, 3] for k in common])
+            R, t = _align_rigid(src, np.array([positions[k] for k in common]))
+            gt_ids = sorted(gt)
+            gt_xyz = np.array([gt[k][:3, 3] for k in gt_ids]) @ R.T + t
+        else:
+            log.warning("plot %s: ground truth shares %d ids with the estimate; not drawn", path, len(common))
+    view = top_view(est_xyz if gt_xyz is None else np.vstack([est_xyz, gt_xyz]))
+    fig, (ax,) = _new_figure()
+    if gt_xyz is not None:
+        g = view.project(gt_xyz)
+        ax.plot(g[:, 0], g[:, 1], "k--", lw=1.0, label="ground truth (SE(3)-aligned)", zorder=1)
+    edge_styles = (
+        (odometry_edges, "odometry", {"colors": "0.45", "linewidths": 1.2, "zorder": 2}),
+        (loop_edges_accepted, "loop, accepted", {"colors": "tab:green", "linewidths": 1.4, "zorder": 3}),
+        (loop_edges_rejected, "loop, rejected", {"colors": "tab:red", "linewidths": 1.0, "linestyles": "--", "zorder": 3}),
+    )
+    for edges, name, style in edge_styles:
+        segments = _edge_segments(edges, positions, view)
+        if len(segments):  # an empty collection would still put a sample in the legend
+            ax.add_collection(LineCollection(segments, label=f"{name} ({len(segments)})", **style))
+    p = view.project(est_xyz)
+    ax.scatter(p[:, 0], p[:, 1], s=8, c="tab:blue", zorder=4, label=f"keyframes ({len(p)})")
+    ax.scatter(p[:1, 0], p[:1, 1], s=60, marker="*", c="gold", edgecolors="k", zorder=5, label="first")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.autoscale_view()
+    ax.set_xlabel(f"{view.labels[0]} ({view.unit})")
+    ax.set_ylabel(f"{view.labels[1]} ({view.unit})")
+    ax.grid(True, lw=0.3)
+    ax.legend(loc="best", fontsize=8)
+    ax.set_title(title or "trajectory, top view")
+    _save(fig, path)
+
+
+def _subsample(points: NDArray, colors: NDArray | None, max_points: int, seed: int = 0):
+    if len(points) <= max_points:
+        return points, colors
+    pick = np.random.default_rng(seed).choice(len(points), max_points, replace=False)
+    return points[pick], None if colors is None else colors[pick]
+
+
+def plot_map_before_after(
+    path: str | os.PathLike[str],
+    points_before: NDArray[np.float64],
+    points_after: NDArray[np.float64],
+    gt_points: NDArray[np.float64] | None = None,
+    colors: NDArray[np.float64] | None = None,
+    colors_before: NDArray[np.float64] | None = None,
+    titles: tuple[str, str] = ("before loop closure (odometry only)", "after loop closure"),
+    max_points: int = 200_000,
+) -> None:
+    """Two top views of the fused map, before and after loop closure, on the same limits.
+
+    Parameters
+    ----------
+    points_before, points_after : (N, 3) float64
+        World points, metres.
+    gt_points : (M, 3) float64, optional
+        Reference points (e.g. GT mesh vertices) in the same world frame, drawn grey beneath.
+    colors, colors_before : (N, 3) in [0, 1], optional
+        Point colours of the after / before maps; without them points are coloured by height.
+    max_points : int
+        Each cloud is randomly subsampled to at most this many points.
+    """
+    before = np.asarray(points_before, dtype=np.float64).reshape(-1, 3)
+    after = np.asarray(points_after, dtype=np.float64).reshape(-1, 3)
+    for name, pts, col in (("points_before", before, colors_before), ("points_after", after, colors)):
+        if col is not None and np.shape(col) != pts.shape:
+            raise InputDataError(f"plot {path}: colours of {name} have shape {np.shape(col)}, expected {pts.shape}")
+    if len(before) == 0 and len(after) == 0:
+        raise InputDataError(f"plot {path}: both maps are empty")
+    before, colors_before = _subsample(before, colors_before, max_points, 0)
+    after, colors = _subsample(after, colors, max_points, 1)
+    gt = None if gt_points is None else _subsample(np.asarray(gt_points, dtype=np.float64).reshape(-1, 3), None, max_points, 2)[0]
+    view = top_view(after if len(after) >= 3 else before)
+    both = np.vstack([before, after])
+    heights = view.height(both)
+    vmin, vmax = (np.percentile(heights, [2, 98]) if len(heights) else (0.0, 1.0))
+    all_2d = view.project(both if gt is None else np.vstack([both, gt]))
+    lo, hi = all_2d.min(axis=0), all_2d.max(axis=0)
+    pad = 0.03 * max(float((hi - lo).max()), 1e-9)
+    aspect = float(np.clip((hi[1] - lo[1] + 2 * pad) / (hi[0] - lo[0] + 2 * pad), 0.4, 1.6))
+    fig, axes = _new_figure(2, size=(14.0, 1.2 + 6.0 * aspect))
+    marker = max(0.05, min(2.0, 2e4 / max(len(after), len(before), 1)))
+    mappable = None
+    for ax, pts, col, title in zip(axes, (before, after), (colors_before, colors), titles, strict=True):
+        if gt is not None:
+            g = view.project(gt)
+            ax.scatter(g[:, 0], g[:, 1], s=marker * 3, c="0.8", linewidths=0, rasterized=True, label="reference")
+        q = view.project(pts)
+        if col is not None:
+            ax.scatter(q[:, 0], q[:, 1], s=marker, c=np.clip(col, 0, 1), linewidths=0, rasterized=True)
+        else:
+            mappable = ax.scatter(q[:, 0], q[:, 1], s=marker, c=view.height(pts), cmap="viridis", vmin=vmin, vmax=vmax, linewidths=0, rasterized=True)
+        ax.set_xlim(lo[0] - pad, hi[0] + pad)
+        ax.set_ylim(lo[1] - pad, hi[1] + pad)
+        ax.set_aspect("equal")
+        ax.set_xlabel(f"{view.labels[0]} ({view.unit})")
+        ax.set_ylabel(f"{view.labels[1]} ({view.unit})")
+        ax.set_title(f"{title}: {len(pts)} points")
+        ax.grid(True, lw=0.3)
+        if gt is not None:
+            ax.legend(loc="upper right", fontsize=8, markerscale=5)
+    if mappable is not None:
+        fig.colorbar(mappable, ax=list(axes), shrink=0.7, label=f"{view.up_label} ({view.unit})")
+    _save(fig, path)
+
+
+def plot_errors(
+    path: str | os.PathLike[str],
+    per_frame_error_mm: NDArray[np.float64],
+    frame_ids: Sequence[int] | NDArray | None = None,
+    title: str = "absolute trajectory error",
+    ylabel: str = "translation error (mm)",
+) -> None:
+    """Per-frame error curve (e.g. ATE in mm) with its RMSE and mean as horizontal lines."""
+    err = np.asarray(per_frame_error_mm, dtype=np.float64).reshape(-1)
+    if err.size == 0:
+        raise InputDataError(f"plot {path}: no errors to plot")
+    x = np.arange(err.size) if frame_ids is None else np.asarray(frame_ids).reshape(-1)
+    if x.shape != err.shape:
+        raise InputDataError(f"plot {path}: {x.size} frame ids for {err.size} errors")
+    finite = np.isfinite(err)
+    rmse = float(np.sqrt(np.mean(err[finite] ** 2))) if finite.any() else float("nan")
+    mean = float(np.mean(err[finite])) if finite.any() else float("nan")
+    fig, (ax,) = _new_figure(size=(9.0, 4.0))
+    ax.plot(x, err, "-", lw=1.0, color="tab:blue", label="per frame")
+    ax.axhline(rmse, color="tab:red", lw=1.0, label=f"RMSE {rmse:.3g}")
+    ax.axhline(mean, color="tab:orange", lw=1.0, ls="--", label=f"mean {mean:.3g}")
+    ax.set_xlabel("frame")
+    ax.set_ylabel(ylabel)
+    ax.set_ylim(bottom=0)
+    ax.grid(True, lw=0.3)
+    ax.legend(loc="best", fontsize=8)
+    ax.set_title(title)
+    _save(fig, path)
