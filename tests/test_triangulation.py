@@ -1,0 +1,192 @@
+"""Triangulation: exactness on synthetic rigs, distortion on both devices, validity, errors."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from fpp_graph.errors import CalibrationError, InputDataError
+from fpp_graph.geometry import make_pose
+from frontend.rig import PinholeModel, RigCalibration
+from frontend.triangulation import (
+    Triangulator,
+    distort_normalized,
+    project_to_camera,
+    project_to_projector,
+    undistort_pixels,
+)
+
+CAM_DIST = np.array([-0.12, 0.08, 0.001, -0.0005, -0.02])
+PROJ_DIST = np.array([-0.05, 0.1, 0.0008, 0.0004, 0.0])
+
+
+def make_rig(camera_dist=CAM_DIST, projector_dist=PROJ_DIST, centre=(0.12, 0.01, 0.0)) -> RigCalibration:
+    """640x400 camera (f~800 px), 456x570 projector (f 1000 px, offset principal point)."""
+    camera = PinholeModel(640, 400, np.array([[800.0, 0, 322.0], [0, 801.0, 198.0], [0, 0, 1]]), np.asarray(camera_dist))
+    projector = PinholeModel(456, 570, np.array([[1000.0, 0, 230.0], [0, 1000.0, 560.0], [0, 0, 1]]), np.asarray(projector_dist))
+    R = Rotation.from_euler("xyz", [2.0, -8.0, 1.0], degrees=True).as_matrix()
+    centre_camera = np.asarray(centre, dtype=float)  # projector centre in the camera frame, metres
+    return RigCalibration(camera, projector, make_pose(R, -R @ centre_camera))
+
+
+def camera_rays(cal: RigCalibration) -> np.ndarray:
+    H, W = cal.camera.height, cal.camera.width
+    vv, uu = np.mgrid[0:H, 0:W].astype(float)
+    xy, ok = undistort_pixels(cal.camera, np.column_stack([uu.ravel(), vv.ravel()]))
+    assert ok.all()
+    return np.column_stack([xy, np.ones(len(xy))]).reshape(H, W, 3)
+
+
+def plane_scene(cal: RigCalibration) -> np.ndarray:
+    """xyz map (camera frame) of a tilted plane ~0.5 m away, seen by every camera pixel."""
+    r = camera_rays(cal)
+    n = np.array([0.1, -0.2, 1.0])
+    n /= np.linalg.norm(n)
+    return r * (0.5 / (r @ n))[..., None]
+
+
+def sphere_scene(cal: RigCalibration) -> np.ndarray:
+    """xyz map of a sphere (radius 0.25 m, centre 0.6 m ahead); NaN where the ray misses it."""
+    r = camera_rays(cal)
+    c = np.array([0.02, -0.01, 0.6])
+    rn = np.linalg.norm(r, axis=-1)
+    d = r / rn[..., None]
+    b = d @ c
+    disc = b**2 - (c @ c - 0.25**2)
+    s = b - np.sqrt(np.where(disc > 0, disc, np.nan))
+    return d * s[..., None]
+
+
+def projector_inside(cal: RigCalibration, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    p = cal.projector
+    return (u >= 0) & (u <= p.width - 1) & (v >= 0) & (v <= p.height - 1)
+
+
+def test_camera_grid_round_trip():
+    cal = make_rig()
+    X = plane_scene(cal)
+    u, v = project_to_camera(cal, X)
+    vv, uu = np.mgrid[0:400, 0:640]
+    assert np.max(np.abs(u - uu)) < 1e-8 and np.max(np.abs(v - vv)) < 1e-8
+
+
+@pytest.mark.parametrize("dtype, tol_m", [(np.float64, 1e-9), (np.float32, 1e-6)])
+def test_exact_without_projector_distortion(dtype, tol_m):
+    cal = make_rig(projector_dist=np.zeros(5))
+    X = plane_scene(cal)
+    u_p, v_p = project_to_projector(cal, X)
+    inside = projector_inside(cal, u_p, v_p)
+    assert inside.mean() > 0.15
+    xyz = Triangulator(cal, dtype=dtype).triangulate(np.where(inside, u_p, np.nan))
+    assert xyz.shape == (400, 640, 3) and xyz.dtype == np.float64
+    err = np.linalg.norm(xyz - X, axis=-1)
+    assert np.all(np.isfinite(err[inside]))
+    assert np.all(np.isnan(xyz[~inside]))
+    assert err[inside].max() < tol_m
+
+
+@pytest.mark.parametrize("scene", [plane_scene, sphere_scene])
+def test_distortion_on_both_devices(scene):
+    cal = make_rig()
+    X = scene(cal)
+    u_p, v_p = project_to_projector(cal, X)
+    inside = projector_inside(cal, u_p, v_p)
+    assert inside.sum() > 5000
+    fast = Triangulator(cal)
+    assert 1 <= fast.projector_fit_degree <= 7
+    assert fast.projector_fit_max_error_px < 1e-3
+    err = np.linalg.norm(fast.triangulate(u_p) - X, axis=-1)[inside]
+    assert np.all(np.isfinite(err)) and err.max() < 1e-6
+    exact = Triangulator(cal, dtype=np.float64, projector_refine_iterations=2)
+    err = np.linalg.norm(exact.triangulate(u_p) - X, axis=-1)[inside]
+    assert err.max() < 1e-9
+    # Ignoring the projector's distortion would be wrong by far more than that.
+    naive = Triangulator(make_rig(projector_dist=np.zeros(5)), dtype=np.float64)
+    assert np.nanmax(np.linalg.norm(naive.triangulate(u_p) - X, axis=-1)[inside]) > 1e-4
+
+
+def test_rows_axis_on_vertical_baseline():
+    cal = make_rig(centre=(0.01, 0.12, 0.0))
+    X = plane_scene(cal)
+    u_p, v_p = project_to_projector(cal, X)
+    inside = projector_inside(cal, u_p, v_p)
+    tri = Triangulator(cal, axis="rows")
+    err = np.linalg.norm(tri.triangulate(v_p) - X, axis=-1)[inside]
+    assert inside.sum() > 5000 and np.all(np.isfinite(err)) and err.max() < 1e-6
+    depth = tri.depth(v_p)
+    assert np.nanmax(np.abs(depth - X[..., 2])[inside]) < 1e-6
+
+
+def test_mask_nan_and_out_buffer():
+    cal = make_rig(projector_dist=np.zeros(5))
+    X = plane_scene(cal)
+    u_p, _ = project_to_projector(cal, X)
+    u_p[:10] = np.nan
+    mask = np.ones(u_p.shape, dtype=bool)
+    mask[:, :20] = False
+    out = np.zeros((400, 640, 3))
+    xyz = Triangulator(cal).triangulate(u_p.astype(np.float32), mask, out=out)
+    assert xyz is out
+    assert np.all(np.isnan(xyz[:10])) and np.all(np.isnan(xyz[:, :20]))
+    assert np.isfinite(xyz[200, 320]).all()
+
+
+def test_rejects_points_behind_and_at_infinity():
+    cal = make_rig(projector_dist=np.zeros(5))
+    tri = Triangulator(cal, dtype=np.float64, depth_range_m=(0.1, 10.0))
+    rays = camera_rays(cal)
+    # Projector column of each ray's point at infinity (denominator 0) and of the camera centre
+    # side (depth -> 0): both must be rejected, as must a depth just beyond the far bound.
+    u_inf, _ = project_to_projector(cal, rays * 1e9)
+    assert np.all(np.isnan(tri.triangulate(u_inf)))
+    u_far, _ = project_to_projector(cal, rays * 12.0)
+    assert np.all(np.isnan(tri.depth(u_far)))
+    u_near, _ = project_to_projector(cal, rays * 0.05)
+    assert np.all(np.isnan(tri.depth(u_near)))
+    u_ok, _ = project_to_projector(cal, rays * 2.0)
+    assert np.nanmax(np.abs(tri.depth(u_ok) - 2.0)) < 1e-9
+    # Columns beyond the point at infinity mean a point behind the camera: rejected.
+    u_behind = u_inf + np.sign(u_inf - u_ok) * 5.0
+    assert np.all(np.isnan(tri.depth(u_behind)))
+
+
+def test_size_mismatch_raises():
+    tri = Triangulator(make_rig(projector_dist=np.zeros(5)))
+    with pytest.raises(CalibrationError, match=r"320x200 .*640x400"):
+        tri.triangulate(np.zeros((200, 320)))
+    with pytest.raises(InputDataError, match="2D"):
+        tri.triangulate(np.zeros((400, 640, 1)))
+    with pytest.raises(InputDataError, match="mask"):
+        tri.triangulate(np.zeros((400, 640)), mask=np.ones((10, 10), bool))
+
+
+def test_degenerate_rigs_raise():
+    cal = make_rig()
+    cal0 = RigCalibration(cal.camera, cal.projector, np.eye(4))
+    with pytest.raises(CalibrationError, match="baseline"):
+        Triangulator(cal0)
+    tilted = PinholeModel(456, 570, cal.projector.K, np.r_[PROJ_DIST, np.zeros(7), 0.01, 0.0])
+    with pytest.raises(CalibrationError, match="tilted"):
+        Triangulator(RigCalibration(cal.camera, tilted, cal.T_projector_camera))
+
+
+@pytest.mark.parametrize("n", [4, 5, 8, 12])
+def test_distortion_model_matches_opencv(n, rng):
+    dist = np.array([-0.1, 0.05, 0.001, -0.002, 0.01, 0.02, -0.01, 0.005, 0.001, -0.001, 0.0005, 0.0002])[:n]
+    pts = np.column_stack([rng.uniform(-0.5, 0.5, (100, 2)), np.ones(100)])
+    ref, _ = cv2.projectPoints(pts, np.zeros(3), np.zeros(3), np.eye(3), dist)
+    xd, yd = distort_normalized(pts[:, 0], pts[:, 1], dist)
+    assert np.allclose(np.column_stack([xd, yd]), ref.reshape(-1, 2), atol=1e-12)
+
+
+def test_project_to_projector_matches_opencv(rng):
+    cal = make_rig()
+    pts = rng.uniform([-0.2, -0.2, 0.4], [0.2, 0.2, 0.8], (50, 3))
+    R, t = cal.T_projector_camera[:3, :3], cal.T_projector_camera[:3, 3]
+    ref, _ = cv2.projectPoints(pts, cv2.Rodrigues(R)[0], t, cal.projector.K, cal.projector.dist)
+    u, v = project_to_projector(cal, pts)
+    assert np.allclose(np.column_stack([u, v]), ref.reshape(-1, 2), atol=1e-9)
+    u_b, v_b = project_to_projector(cal, np.array([[0.12, 0.01, -0.5]]))
+    assert np.isnan(u_b[0]) and np.isnan(v_b[0])
