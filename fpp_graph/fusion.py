@@ -18,9 +18,9 @@ After a pose-graph update, :meth:`VoxelMapFuser.refuse` rebuilds the map from th
 the raw fringe images are not needed again.
 
 Results are :class:`FusedMap`: numpy arrays only, so they pickle across processes. The PLY
-writers here are hand-written with numpy (binary little-endian, points as ``double``) because
-Open3D's legacy writer stores points as float32-or-double depending on the build and cannot be
-made atomic; the files read back in Open3D, MeshLab and CloudCompare.
+writers are a few lines of numpy (binary little-endian, points as ``double`` so a write/read
+round trip is exact, colours as ``uchar``) writing through :func:`fpp_graph.atomic.atomic_open`;
+Open3D, MeshLab and CloudCompare read them.
 """
 
 from __future__ import annotations
