@@ -1,0 +1,548 @@
+"""FPP decoding: least-squares phase retrieval, validity mask, temporal phase unwrapping.
+
+:func:`decode` (or a reusable :class:`Decoder`) turns one frame's captured pattern images into
+the wrapped and absolute phase, the projector coordinate of every camera pixel, the fringe
+modulation, the texture image and a validity mask. It follows the conventions of
+:mod:`frontend.patterns` (read its docstring); in short:
+
+* eq. 1: ``I_n = a + b cos(phi - delta_n)``, ``delta_n = 2 pi (n - 1) / N``;
+* eq. 2: ``phi = atan2(S, C)``, ``S = sum I_n sin delta_n``, ``C = sum I_n cos delta_n``, taken in
+  ``[0, 2 pi)``; modulation ``b = (2/N) sqrt(S^2 + C^2)``; background ``a = mean I_n``;
+* eq. 3: ``Phi = phi + 2 pi K`` with the fringe order ``K`` from the Gray code, the complementary
+  Gray code or the multi-frequency set;
+* eq. 8: ``u_p = Phi * lambda / (2 pi)``, ``lambda = W / P`` projector pixels, pixel-centre
+  coordinates (projector pixel ``j`` centred at ``u_p = j``). For ``axis="rows"`` the same
+  numbers are the projector row ``v_p``.
+
+Fringe order
+------------
+* Gray code: each bit image is binarised against a per-pixel threshold, the background ``a``
+  (or ``(white + black) / 2`` when the set has references), and Gray-decoded to ``K``. Where the
+  camera blurs a code edge the bit and the phase jump disagree by a pixel or so: plain Gray code
+  makes +-1 order errors there.
+* Complementary Gray code (Zhang et al.): the bits plus the extra half-period bit decode to the
+  half-period index ``V2``; ``K1 = V2 >> 1`` (edges at the phase jumps) and
+  ``K2 = (V2 + 1) >> 1`` (edges at mid-period). ``K = K2`` where ``phi <= pi/2``, ``K1`` where
+  ``pi/2 < phi < 3 pi/2`` and ``K2 - 1`` where ``phi >= 3 pi/2``: every read code is a quarter
+  period away from its edges, so blur and noise up to that size cause no order errors.
+* Multi-frequency: hierarchical (one frequency has one period: unwrap coarse to fine,
+  ``K_f = round((Phi_prev P_f / P_prev - phi_f) / 2 pi)``) or heterodyne (beats
+  ``phi_12 = phi_1 - phi_2``, ``phi_23 = phi_2 - phi_3`` and their beat of one period, then the
+  same coarse-to-fine rule back to the highest frequency).
+
+Validity
+--------
+A pixel is invalid for any of these reasons, counted separately in ``invalid_counts``:
+``low_modulation`` (``b < decode.min_modulation``; for several frequencies, the lowest),
+``saturated`` (a phase-shift image at or above ``decode.saturation_level``: clipping biases the
+phase; binary and reference images are only thresholded, so their clipping is harmless and not
+checked), ``shadow`` (``a < decode.min_background``) and ``bad_order`` (a fringe order outside
+``0 .. P-1``: an invalid Gray code word or a failed multi-frequency unwrap).
+
+Speed
+-----
+The hot path is a short sequence of whole-image OpenCV/numpy operations in float32, uint8 and
+int16 with in-place updates, no Python loops over pixels. The arctangent is ``cv2.phase``
+(max. error ~2e-4 rad, far below the phase noise of any real capture; ``1e-3`` of a fringe
+period is ~3e-5 of it).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+from collections.abc import Sequence
+from dataclasses import dataclass
+from functools import cached_property
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from fpp_graph.config import DecodeConfig
+from fpp_graph.errors import ConfigError, InputDataError
+from frontend.patterns import PatternSpec, unwrapping_scheme
+
+logger = logging.getLogger(__name__)
+
+TWO_PI = 2.0 * math.pi
+INVALID_REASONS = ("low_modulation", "saturated", "shadow", "bad_order")
+
+
+@dataclass(frozen=True, eq=False)
+class DecodeResult:
+    """One decoded FPP frame. All maps are (H, W) in camera pixels.
+
+    Attributes
+    ----------
+    wrapped_phase : float32, rad in [0, 2 pi)
+        Wrapped phase of the highest frequency, at every pixel (also invalid ones).
+    u_projector_px : float32, projector pixels
+        Projector coordinate along the encoded axis (``u_p`` for vertical fringes, ``v_p`` for
+        horizontal), pixel-centre convention; NaN where invalid.
+    modulation : float32, grey levels
+        Fringe modulation ``b`` (of the highest frequency).
+    texture : uint8
+        Background ``a`` (the mean of the phase-shift images): the texture image. 16-bit input
+        is scaled by ``255 / decode.saturation_level``.
+    mask : bool
+        True where valid.
+    fringe_order : int16
+        Fringe order ``K`` of the highest frequency; -1 where invalid.
+    invalid_counts : dict[str, int]
+        Pixels failing each check (``low_modulation``, ``saturated``, ``shadow``, ``bad_order``);
+        a pixel may fail several.
+    pitch_px : float
+        Fringe pitch ``lambda`` of the highest frequency, projector pixels.
+    axis : {"columns", "rows"}
+        The encoded projector axis.
+    """
+
+    wrapped_phase: NDArray[np.float32]
+    u_projector_px: NDArray[np.float32]
+    modulation: NDArray[np.float32]
+    texture: NDArray[np.uint8]
+    mask: NDArray[np.bool_]
+    fringe_order: NDArray[np.int16]
+    invalid_counts: dict[str, int]
+    pitch_px: float
+    axis: str = "columns"
+
+    @cached_property
+    def absolute_phase(self) -> NDArray[np.float32]:
+        """Absolute phase ``Phi`` (eq. 3) of the highest frequency, rad; NaN where invalid."""
+        # Derived on demand: the hot path only needs u_p, and Phi = 2 pi u_p / lambda exactly.
+        return np.multiply(self.u_projector_px, np.float32(TWO_PI / self.pitch_px))
+
+    @property
+    def valid_fraction(self) -> float:
+        return float(np.count_nonzero(self.mask)) / max(self.mask.size, 1)
+
+
+def _phase_weights(n_steps: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """sin and cos of the phase shifts ``delta_n``, with exact 0 and +-1 where they belong."""
+    delta = TWO_PI * np.arange(n_steps) / n_steps
+    sin, cos = np.sin(delta), np.cos(delta)
+    for w in (sin, cos):  # exact values let the sums skip zero weights
+        w[np.abs(w) < 1e-12] = 0.0
+        w[np.abs(w - 1) < 1e-12] = 1.0
+        w[np.abs(w + 1) < 1e-12] = -1.0
+    return sin, cos
+
+
+class _Scratch:
+    """Named work buffers of one band size, reused across bands and frames (one per thread)."""
+
+    def __init__(self, rows: int, width: int) -> None:
+        self.rows, self.width = rows, width
+        self._buffers: dict[tuple[str, str], NDArray] = {}
+
+    def get(self, name: str, dtype: type, rows: int) -> NDArray:
+        key = (name, np.dtype(dtype).str)
+        buf = self._buffers.get(key)
+        if buf is None:
+            buf = np.empty((self.rows, self.width), dtype=dtype)
+            self._buffers[key] = buf
+        return buf[:rows]  # a leading row slice of a C-contiguous array stays contiguous
+
+    def const(self, name: str, value: float, dtype: type, rows: int) -> NDArray:
+        key = ("const:" + name, np.dtype(dtype).str)
+        buf = self._buffers.get(key)
+        if buf is None:
+            buf = np.full((self.rows, self.width), value, dtype=dtype)
+            self._buffers[key] = buf
+        return buf[:rows]
+
+
+class Decoder:
+    """A decoder for one pattern spec and projector size; precomputes its tables once.
+
+    Parameters
+    ----------
+    spec : PatternSpec
+    projector_width, projector_height : int
+        Projector size in pixels (the encoded axis length sets the fringe pitch).
+    config : DecodeConfig, optional
+        Validity thresholds; the defaults of ``fpp_graph.config`` when None.
+    band_rows : int
+        The frame is decoded in bands of this many rows so that the ~20 intermediate images of a
+        band stay in the CPU cache; 0 = the whole frame at once. Results do not depend on it.
+
+    A Decoder may be shared between threads: its work buffers are per thread.
+    """
+
+    def __init__(
+        self,
+        spec: PatternSpec,
+        projector_width: int,
+        projector_height: int,
+        config: DecodeConfig | None = None,
+        band_rows: int = 64,
+    ) -> None:
+        if int(projector_width) <= 0 or int(projector_height) <= 0:
+            raise ConfigError(f"projector size must be positive, got {projector_width}x{projector_height}")
+        if band_rows < 0:
+            raise ConfigError(f"band_rows must be >= 0 (0 = whole frame), got {band_rows}")
+        self.spec = spec
+        self.projector_width = int(projector_width)
+        self.projector_height = int(projector_height)
+        self.config = config if config is not None else DecodeConfig()
+        self.band_rows = int(band_rows)
+        self.axis_length = self.projector_width if spec.axis == "columns" else self.projector_height
+        layout = spec.layout()
+        self.image_count = len(layout)
+        n_freq = len(spec.periods) if spec.kind == "multi_frequency" else 1
+        self._phase_index = [[i for i, im in enumerate(layout) if im.role == "phase" and im.frequency == f] for f in range(n_freq)]
+        self._code_index = [i for i, im in enumerate(layout) if im.role == "gray"] + [i for i, im in enumerate(layout) if im.role == "complementary"]
+        self._white_index = next((i for i, im in enumerate(layout) if im.role == "white"), None)
+        self._black_index = next((i for i, im in enumerate(layout) if im.role == "black"), None)
+        self._sin, self._cos = _phase_weights(spec.phase_steps)
+        self._finest = int(np.argmax(spec.periods))
+        self.periods_finest = spec.periods[self._finest]
+        self.pitch_px = self.axis_length / self.periods_finest
+        if spec.kind == "multi_frequency":
+            self._chain = self._unwrap_chain()
+        self._local = threading.local()
+
+    def _unwrap_chain(self) -> list[tuple]:
+        """The coarse-to-fine unwrapping steps: a list of (periods, recipe) from one period up.
+
+        A recipe is ``("freq", f)`` (the wrapped phase of frequency f) or ``("beat", a, b)``
+        (``wrap(phase_a - phase_b)`` where a, b are recipes).
+        """
+        p = self.spec.periods
+        if unwrapping_scheme(p) == "hierarchical":
+            return [(p[f], ("freq", f)) for f in np.argsort(p)]
+        order = [int(i) for i in np.argsort(p)[::-1]]  # descending period counts
+        if len(order) == 2:
+            i1, i2 = order
+            return [(1, ("beat", ("freq", i1), ("freq", i2))), (p[i1], ("freq", i1))]
+        i1, i2, i3 = order
+        p12, p23 = p[i1] - p[i2], p[i2] - p[i3]
+        b12, b23 = ("beat", ("freq", i1), ("freq", i2)), ("beat", ("freq", i2), ("freq", i3))
+        b123 = ("beat", b12, b23) if p12 > p23 else ("beat", b23, b12)
+        return [(1, b123), (p12, b12), (p[i1], ("freq", i1))]
+
+    # ------------------------------------------------------------------ input checks
+    def _describe(self) -> str:
+        s = self.spec
+        parts = [s.kind, f"{s.phase_steps}-step"]
+        if s.kind == "multi_frequency":
+            parts.append(f"x {len(s.periods)} frequencies {s.periods}")
+        else:
+            parts.append(f"+ {s.gray_bits} Gray bits" + (" + 1 complementary bit" if s.kind == "complementary_gray" else ""))
+        if s.with_reference:
+            parts.append("+ white + black")
+        return " ".join(parts)
+
+    def _check_images(self, images: NDArray | Sequence[NDArray]) -> NDArray:
+        if isinstance(images, np.ndarray):
+            stack = images
+            if stack.ndim != 3:
+                hint = " (colour images? convert them to grey, e.g. with frontend.images.load_image_stack)" if stack.ndim == 4 else ""
+                raise InputDataError(f"pattern images must be a (M, H, W) stack of single-channel 2D images, got an array of shape {stack.shape}{hint}")
+        else:
+            imgs = [np.asarray(im) for im in images]
+            if not imgs:
+                raise InputDataError(f"no pattern images given; {self._describe()} needs {self.image_count}")
+            for i, im in enumerate(imgs):
+                if im.ndim != 2:
+                    raise InputDataError(f"pattern image {i} has shape {im.shape}; every image must be single-channel 2D (H, W)")
+            if len({im.shape for im in imgs}) > 1:
+                detail = ", ".join(f"#{i} {im.shape[1]}x{im.shape[0]}" for i, im in enumerate(imgs))
+                raise InputDataError(f"pattern images have mixed sizes (W x H: {detail}); all images of a frame must have the camera's size")
+            if len({im.dtype for im in imgs}) > 1:
+                detail = ", ".join(f"#{i} {im.dtype}" for i, im in enumerate(imgs))
+                raise InputDataError(f"pattern images have mixed pixel types ({detail}); all must be uint8 or all uint16")
+            stack = np.stack(imgs)
+        if stack.dtype not in (np.uint8, np.uint16):
+            raise InputDataError(f"pattern images must be 8- or 16-bit unsigned (uint8/uint16), got {stack.dtype}; convert float or signed images first")
+        if stack.shape[0] != self.image_count:
+            raise InputDataError(f"wrong image count: pattern set {self._describe()} needs {self.image_count} images, got {stack.shape[0]}")
+        if stack.shape[1] == 0 or stack.shape[2] == 0:
+            raise InputDataError(f"pattern images are empty ({stack.shape[2]}x{stack.shape[1]} pixels)")
+        return np.ascontiguousarray(stack)
+
+    # ------------------------------------------------------------------ decoding
+    def decode(self, images: NDArray | Sequence[NDArray]) -> DecodeResult:
+        """Decode one frame.
+
+        Parameters
+        ----------
+        images : (M, H, W) uint8 or uint16, or a sequence of M such (H, W) images
+            The captured pattern images in the capture order of the spec.
+
+        Returns
+        -------
+        DecodeResult
+
+        Raises
+        ------
+        InputDataError
+            Wrong image count, mixed sizes or types, images that are not 2D or not 8/16-bit,
+            or a frame where no pixel is valid (all dark, saturated or without fringes).
+        """
+        stack = self._check_images(images)
+        h, w = stack.shape[1:]
+        rows = self.band_rows if 0 < self.band_rows < h else h
+        scratch = getattr(self._local, "scratch", None)
+        if scratch is None or scratch.rows != rows or scratch.width != w:
+            scratch = _Scratch(rows, w)
+            self._local.scratch = scratch
+        out = {
+            "phi": np.empty((h, w), np.float32),
+            "u": np.empty((h, w), np.float32),
+            "mod": np.empty((h, w), np.float32),
+            "tex": np.empty((h, w), np.uint8),
+            "mask": np.empty((h, w), np.uint8),
+            "order": np.empty((h, w), np.int16),
+        }
+        counts = np.zeros(5, dtype=np.int64)  # the four reasons, then all invalid
+        for r0 in range(0, h, rows):
+            r1 = min(h, r0 + rows)
+            band = {k: v[r0:r1] for k, v in out.items()}
+            counts += self._decode_band(stack[:, r0:r1], band, scratch)
+        invalid_counts = dict(zip(INVALID_REASONS, (int(c) for c in counts[:4]), strict=True))
+        if counts[4] == h * w:
+            cfg = self.config
+            detail = ", ".join(f"{k} {v}" for k, v in invalid_counts.items())
+            raise InputDataError(
+                f"no valid pixel in the {w}x{h} frame ({detail} of {h * w} pixels): the images are all dark, saturated or "
+                f"show no fringes; check exposure and projector, or the decode thresholds (min_modulation="
+                f"{cfg.min_modulation}, min_background={cfg.min_background}, saturation_level={cfg.saturation_level})"
+            )
+        return DecodeResult(
+            wrapped_phase=out["phi"],
+            u_projector_px=out["u"],
+            modulation=out["mod"],
+            texture=out["tex"],
+            mask=out["mask"].view(np.bool_),
+            fringe_order=out["order"],
+            invalid_counts=invalid_counts,
+            pitch_px=self.pitch_px,
+            axis=self.spec.axis,
+        )
+
+    def _decode_band(self, stack: NDArray, out: dict[str, NDArray], work: _Scratch) -> NDArray[np.int64]:
+        """Decode rows of a frame into the given output views; returns the invalid counts."""
+        cfg = self.config
+        n = self.spec.phase_steps
+        r = stack.shape[1]
+        wide = stack.dtype == np.uint16
+        phases = []
+        low_mod = work.get("low_mod", np.uint8, r)
+        tmp8 = work.get("tmp8", np.uint8, r)
+        saturated = None
+        for f, idx in enumerate(self._phase_index):
+            imgs = [stack[i] for i in idx]
+            finest = f == self._finest
+            phi = out["phi"] if finest else work.get(f"phi{f}", np.float32, r)
+            mod = out["mod"] if finest else work.get("mod", np.float32, r)
+            self._wrapped_phase(imgs, phi, mod, work)
+            phases.append(phi)
+            cv2.compare(mod, float(cfg.min_modulation), cv2.CMP_LT, dst=low_mod if f == 0 else tmp8)
+            if f > 0:
+                cv2.bitwise_or(low_mod, tmp8, dst=low_mod)
+            if cfg.saturation_level <= np.iinfo(stack.dtype).max:
+                saturated = self._saturation(imgs, work, first=saturated is None)
+            if finest:
+                total = self._background_sum(imgs, work)
+        # Texture (the background a) and the binarisation threshold, of the finest frequency.
+        if not wide:
+            cv2.convertScaleAbs(total, dst=out["tex"], alpha=1.0 / n)
+            threshold = out["tex"]
+        else:
+            cv2.convertScaleAbs(total, dst=out["tex"], alpha=255.0 / (n * cfg.saturation_level))
+            threshold = work.get("threshold", np.uint16, r)
+            np.multiply(total, np.float32(1.0 / n), out=total)
+            np.rint(total, out=total)
+            np.copyto(threshold, total, casting="unsafe")
+        shadow = cv2.compare(total, float(cfg.min_background * n), cv2.CMP_LT, dst=work.get("shadow", np.uint8, r))
+        invalid = cv2.bitwise_or(low_mod, shadow, dst=work.get("invalid", np.uint8, r))
+        if saturated is not None:
+            cv2.bitwise_or(invalid, saturated, dst=invalid)
+
+        order = out["order"]
+        if self.spec.kind == "multi_frequency":
+            self._order_multi_frequency(phases, order, work)
+        else:
+            if self._white_index is not None:
+                # (white + black) / 2; rounding down costs at most half a grey level.
+                threshold = work.get("ref_threshold", stack.dtype, r)
+                acc = work.get("ref_sum", np.uint32 if wide else np.uint16, r)
+                np.add(stack[self._white_index], stack[self._black_index], out=acc, dtype=acc.dtype)
+                np.right_shift(acc, 1, out=acc)
+                np.copyto(threshold, acc, casting="unsafe")
+            code = self._read_code(stack, threshold, work)
+            self._order_gray(code, out["phi"], order, work)
+
+        # Orders outside 0..P-1 (negative ones look huge as uint16) are invalid code words.
+        bad = cv2.compare(order.view(np.uint16), self.periods_finest - 1, cv2.CMP_GT, dst=work.get("bad", np.uint8, r))
+        cv2.bitwise_or(invalid, bad, dst=invalid)
+
+        # eq. 3 and eq. 8 in one pass: u_p = (K + phi / 2 pi) lambda.
+        u = out["u"]
+        np.multiply(order, np.float32(self.pitch_px), out=u)
+        cv2.scaleAdd(out["phi"], self.pitch_px / TWO_PI, u, dst=u)
+        cv2.copyTo(work.const("nan", np.nan, np.float32, r), invalid, u)
+        cv2.copyTo(work.const("minus_one", -1, np.int16, r), invalid, order)
+        cv2.compare(invalid, 0, cv2.CMP_EQ, dst=tmp8)
+        cv2.bitwise_and(tmp8, 1, dst=out["mask"])  # 0/1 so the uint8 image is a valid bool view
+        return np.array(
+            [
+                cv2.countNonZero(low_mod),
+                cv2.countNonZero(saturated) if saturated is not None else 0,
+                cv2.countNonZero(shadow),
+                cv2.countNonZero(bad),
+                cv2.countNonZero(invalid),
+            ],
+            dtype=np.int64,
+        )
+
+    def _wrapped_phase(self, imgs: list[NDArray], phi: NDArray, mod: NDArray, work: _Scratch) -> None:
+        """eq. 2 into ``phi`` ([0, 2 pi)) and ``mod`` (b), from one frequency's N images.
+
+        S and C are summed over symmetric pairs: ``sin delta_(N-n) = -sin delta_n`` and
+        ``cos delta_(N-n) = cos delta_n``, so each pair costs one integer difference and one
+        integer sum (exact), and N = 4 needs no multiplication at all.
+        """
+        n = len(imgs)
+        r = imgs[0].shape[0]
+        idt = np.int32 if imgs[0].dtype == np.uint16 else np.int16
+        s = work.get("S", np.float32, r)
+        c = work.get("C", np.float32, r)
+        ti = work.get("tmp_int", idt, r)
+        tf = work.get("tmp_float", np.float32, r)
+        if n % 2 == 0:
+            np.subtract(imgs[0], imgs[n // 2], out=ti, dtype=idt)  # cos 0 = 1, cos pi = -1
+            np.copyto(c, ti, casting="unsafe")
+        else:
+            np.copyto(c, imgs[0], casting="unsafe")
+        for k in range(1, (n - 1) // 2 + 1):
+            sk, ck = float(self._sin[k]), float(self._cos[k])
+            np.subtract(imgs[k], imgs[n - k], out=ti, dtype=idt)
+            if k == 1:
+                np.multiply(ti, np.float32(sk), out=s, casting="unsafe")
+            else:
+                np.copyto(tf, ti, casting="unsafe")
+                cv2.scaleAdd(tf, sk, s, dst=s)
+            if ck != 0.0:
+                np.add(imgs[k], imgs[n - k], out=ti, dtype=idt)
+                np.copyto(tf, ti, casting="unsafe")
+                cv2.scaleAdd(tf, ck, c, dst=c)
+        cv2.phase(c, s, phi)  # atan2(S, C) in [0, 2 pi)
+        cv2.magnitude(c, s, mod)
+        np.multiply(mod, np.float32(2.0 / n), out=mod)
+
+    def _background_sum(self, imgs: list[NDArray], work: _Scratch) -> NDArray:
+        """Sum of the N images (uint16 for 8-bit input, float32 for 16-bit: exact either way)."""
+        acc_dtype = np.uint16 if imgs[0].dtype == np.uint8 and len(imgs) <= 257 else np.float32
+        total = work.get("total", acc_dtype, imgs[0].shape[0])
+        np.add(imgs[0], imgs[1], out=total, dtype=acc_dtype)
+        for img in imgs[2:]:
+            np.add(total, img, out=total, casting="unsafe")
+        return total
+
+    def _saturation(self, imgs: list[NDArray], work: _Scratch, first: bool) -> NDArray:
+        """OR the saturation of these images into the band's saturation mask."""
+        r = imgs[0].shape[0]
+        peak = work.get("peak", imgs[0].dtype, r)
+        cv2.max(imgs[0], imgs[1], dst=peak)
+        for img in imgs[2:]:
+            cv2.max(peak, img, dst=peak)
+        sat = work.get("saturated", np.uint8, r)
+        level = float(math.ceil(self.config.saturation_level))
+        if first:
+            cv2.compare(peak, level, cv2.CMP_GE, dst=sat)
+        else:
+            tmp = work.get("tmp8", np.uint8, r)
+            cv2.compare(peak, level, cv2.CMP_GE, dst=tmp)
+            cv2.bitwise_or(sat, tmp, dst=sat)
+        return sat
+
+    def _read_code(self, stack: NDArray, threshold: NDArray, work: _Scratch) -> NDArray:
+        """Binarise the code images and Gray-decode them (MSB first) to an integer image."""
+        r = stack.shape[1]
+        nbits = len(self._code_index)
+        binary = work.get("binary", np.uint8, r)
+        bit = work.get("bit", np.uint8, r)
+        tmp = work.get("tmp8", np.uint8, r)
+        value = work.get("value", np.uint8 if nbits <= 8 else np.uint16, r)
+        for j, i in enumerate(self._code_index):
+            # Gray to binary on the fly: b_j = b_(j-1) xor g_j; masks are 0/255.
+            if j == 0:
+                cv2.compare(stack[i], threshold, cv2.CMP_GT, dst=binary)
+            else:
+                cv2.compare(stack[i], threshold, cv2.CMP_GT, dst=bit)
+                cv2.bitwise_xor(binary, bit, dst=binary)
+            shift = nbits - 1 - j
+            if nbits <= 8:
+                if j == 0:
+                    cv2.bitwise_and(binary, 1 << shift, dst=value)
+                else:
+                    cv2.bitwise_and(binary, 1 << shift, dst=tmp)
+                    cv2.bitwise_or(value, tmp, dst=value)
+            else:
+                term = np.left_shift((binary & 1).astype(np.uint16), np.uint16(shift))
+                if j == 0:
+                    value[...] = term
+                else:
+                    value |= term
+        return value
+
+    def _order_gray(self, code: NDArray, phi: NDArray, order: NDArray, work: _Scratch) -> None:
+        """Fringe order from the Gray code value (plain) or the half-period index (complementary)."""
+        if self.spec.kind == "gray":
+            np.copyto(order, code, casting="unsafe")
+            return
+        r = code.shape[0]
+        zone = work.get("zone", np.uint8, r)
+        k2 = work.get("k2", np.int16, r)
+        np.right_shift(code, 1, out=order, casting="unsafe")  # K1: edges at the phase jumps
+        np.add(code, 1, out=k2, dtype=np.int16)
+        np.right_shift(k2, 1, out=k2)  # K2: edges at mid-period
+        cv2.copyTo(k2, cv2.compare(phi, 0.5 * math.pi, cv2.CMP_LE, dst=zone), order)
+        np.subtract(k2, 1, out=k2)
+        cv2.copyTo(k2, cv2.compare(phi, 1.5 * math.pi, cv2.CMP_GE, dst=zone), order)
+
+    def _order_multi_frequency(self, phases: list[NDArray], order: NDArray, work: _Scratch) -> None:
+        """Fringe order of the finest frequency by hierarchical or heterodyne unwrapping."""
+        r = order.shape[0]
+        neg = work.get("neg", np.uint8, r)
+        made: dict[tuple, NDArray] = {}
+
+        def phase_of(recipe: tuple) -> NDArray:
+            if recipe[0] == "freq":
+                return phases[recipe[1]]
+            if recipe not in made:
+                buf = work.get("beat" + repr(recipe), np.float32, r)  # one buffer per distinct beat
+                np.subtract(phase_of(recipe[1]), phase_of(recipe[2]), out=buf)
+                cv2.add(buf, TWO_PI, dst=buf, mask=cv2.compare(buf, 0.0, cv2.CMP_LT, dst=neg))
+                made[recipe] = buf
+            return made[recipe]
+
+        p_prev, recipe = self._chain[0]
+        unwrapped = phase_of(recipe)  # one period: the wrapped phase is absolute
+        guess = work.get("guess", np.float32, r)
+        absolute = work.get("absolute", np.float32, r)
+        for p, recipe in self._chain[1:]:
+            wrapped = phase_of(recipe)
+            # K = round((Phi_prev * p / p_prev - phi) / 2 pi), then Phi = phi + 2 pi K.
+            np.multiply(unwrapped, np.float32(p / p_prev / TWO_PI), out=guess)
+            cv2.scaleAdd(wrapped, -1.0 / TWO_PI, guess, dst=guess)
+            np.rint(guess, out=guess)
+            cv2.scaleAdd(guess, TWO_PI, wrapped, dst=absolute)
+            unwrapped, p_prev = absolute, p
+        np.copyto(order, guess, casting="unsafe")
+
+
+def decode(
+    images: NDArray | Sequence[NDArray],
+    spec: PatternSpec,
+    projector_width: int,
+    projector_height: int,
+    config: DecodeConfig | None = None,
+) -> DecodeResult:
+    """Decode one frame (see :class:`Decoder`; build one Decoder to decode many frames)."""
+    return Decoder(spec, projector_width, projector_height, config).decode(images)
