@@ -155,7 +155,7 @@ class KeyframeManager:
         moved = float(np.linalg.norm(T[:3, 3])) >= cfg.min_translation_m
         turned = math.degrees(rotation_angle_rad(T[:3, :3])) >= cfg.min_rotation_deg
         overlap = odometry.overlap if math.isfinite(odometry.overlap) else odometry.fitness
-        low_overlap = math.isfinite(overlap) and overlap <= cfg.max_overlap
+        low_overlap = cfg.max_overlap < 1 and math.isfinite(overlap) and overlap <= cfg.max_overlap
         no_threshold = cfg.min_translation_m == 0 and cfg.min_rotation_deg == 0 and cfg.max_overlap >= 1
         return no_threshold or moved or turned or low_overlap
 

@@ -116,7 +116,7 @@ def test_chain_break_reports_disconnected_parts(rng):
 def test_keyframe_thresholds_skip_small_motion(rng):
     poses = [make_pose(np.eye(3), [0.001 * i, 0, 0]) for i in range(10)]
     registrar = MockRegistrar(poses, rng)
-    cfg = config_from_dict({"keyframes": {"min_translation_m": 0.0035, "max_overlap": 0.0}, "loop_closure": {"enabled": False}})
+    cfg = config_from_dict({"keyframes": {"min_translation_m": 0.0035}, "loop_closure": {"enabled": False}})
     manager = KeyframeManager(registrar, cfg)
     for f in make_frames(10, rng):
         manager.process(f)
