@@ -80,6 +80,7 @@ class PoseGraphConfig(StrictModel):
 
     solver: Literal["lm", "isam2"] = "lm"
     initialization: Literal["chordal", "given"] = "chordal"
+    noise_model: Literal["file", "isotropic"] = Field("file", description="edge information as given, or SE-Sync's isotropic tau/kappa model")
     robust: Literal["none", "cauchy", "gnc"] = "gnc"
     gnc_inlier_probability: float = Field(0.99, gt=0, lt=1)
     cauchy_scale: float = Field(1.0, gt=0)
