@@ -178,7 +178,7 @@ class Decoder:
         projector_width: int,
         projector_height: int,
         config: DecodeConfig | None = None,
-        band_rows: int = 64,
+        band_rows: int = 128,
     ) -> None:
         if int(projector_width) <= 0 or int(projector_height) <= 0:
             raise ConfigError(f"projector size must be positive, got {projector_width}x{projector_height}")
