@@ -516,26 +516,30 @@ def build_turntable(cfg: TurntableConfig, base_dir: Path | None = None) -> tuple
 # Corridor
 # ---------------------------------------------------------------------------------------------
 def make_poster(seed: int, width_px: int = 480, height_px: int = 640) -> NDArray[np.float32]:
-    """A procedural poster (grey, [0, 1]): title bars, blocks, circles and 'text' lines."""
+    """A procedural poster (grey, [0, 1]): blocks, circles, a title and 'text' lines."""
     rng = np.random.default_rng(seed)
-    img = np.full((height_px, width_px), 0.85 - 0.2 * rng.random(), dtype=np.float32)
+
+    def grey(lo: float, hi: float) -> int:
+        return int(255 * rng.uniform(lo, hi))
+
+    img = np.full((height_px, width_px), grey(0.65, 0.85), dtype=np.uint8)
     for _ in range(6):
         x0, y0 = int(rng.integers(0, width_px - 60)), int(rng.integers(0, height_px - 60))
         x1, y1 = x0 + int(rng.integers(40, 220)), y0 + int(rng.integers(30, 200))
-        cv2.rectangle(img, (x0, y0), (x1, y1), float(rng.uniform(0.05, 0.7)), -1)
+        cv2.rectangle(img, (x0, y0), (x1, y1), grey(0.05, 0.7), -1)
     for _ in range(5):
         c = (int(rng.integers(0, width_px)), int(rng.integers(0, height_px)))
-        cv2.circle(img, c, int(rng.integers(15, 90)), float(rng.uniform(0.0, 0.95)), -1)
+        cv2.circle(img, c, int(rng.integers(15, 90)), grey(0.0, 0.95), -1)
     y = int(height_px * 0.72)
     while y < height_px - 20:
         x = 25
         while x < width_px - 40:
             w = int(rng.integers(12, 60))
-            cv2.rectangle(img, (x, y), (min(x + w, width_px - 25), y + 9), 0.1, -1)
+            cv2.rectangle(img, (x, y), (min(x + w, width_px - 25), y + 9), 25, -1)
             x += w + int(rng.integers(8, 16))
         y += 22
-    cv2.putText(img, f"No.{seed % 97:02d}", (30, 80), cv2.FONT_HERSHEY_DUPLEX, 2.0, 0.05, 4)
-    return cv2.GaussianBlur(img, (0, 0), 1.0)
+    cv2.putText(img, f"No.{seed % 97:02d}", (30, 80), cv2.FONT_HERSHEY_DUPLEX, 2.0, 15, 4)
+    return cv2.GaussianBlur(img.astype(np.float32) / 255.0, (0, 0), 1.0)
 
 
 def build_corridor(cfg: CorridorConfig) -> tuple[Scene, NDArray, NDArray]:

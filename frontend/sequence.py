@@ -1,0 +1,297 @@
+"""Recorded FPP sequences on disk: writing (simulator, or a real sensor's capture tool) and reading.
+
+Folder layout (DESIGN.md)::
+
+    sequence.yaml            format, units, sensor calibration, pattern set, frame list
+    frame_000000/000.png     pattern images of frame 0, in capture order (8- or 16-bit grey)
+    frame_000000/001.png
+    ...
+    groundtruth.tum          optional: timestamp tx ty tz qx qy qz qw of T_world_sensor (metres)
+    groundtruth_mesh.ply     optional: the scene in the world frame (metres)
+
+``sequence.yaml``::
+
+    format: fpp-graph sequence v1
+    units: {length: m, time: s, calibration_length: mm}
+    calibration: {...}         # RigCalibration.to_dict(): states its own length_unit
+    patterns: {...}            # PatternSpec.to_dict()
+    image_count: 11            # images per frame
+    frames:
+      - {id: 0, timestamp: 0.0, folder: frame_000000, images: [000.png, 001.png, ...]}
+    groundtruth: {trajectory: groundtruth.tum, mesh: groundtruth_mesh.ply}   # optional
+    source: {...}              # free-form provenance (simulator settings, capture software)
+
+A real sensor's recording fits this format as is: the frame folders hold whatever the camera
+captured, in capture order, and the calibration comes from the rig calibration.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import shutil
+from collections.abc import Sequence as _Seq
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import yaml
+from numpy.typing import NDArray
+
+from fpp_graph.atomic import atomic_write_bytes, atomic_write_text
+from fpp_graph.errors import InputDataError, OutputError
+from fpp_graph.trajectory import Trajectory, read_tum, write_tum
+from frontend.images import load_image_stack
+from frontend.patterns import PatternSpec
+from frontend.rig import RigCalibration
+
+log = logging.getLogger(__name__)
+
+FORMAT = "fpp-graph sequence v1"
+SEQUENCE_FILE = "sequence.yaml"
+GT_TRAJECTORY_FILE = "groundtruth.tum"
+GT_MESH_FILE = "groundtruth_mesh.ply"
+
+
+def frame_folder_name(frame_id: int) -> str:
+    return f"frame_{int(frame_id):06d}"
+
+
+@dataclass(frozen=True)
+class FrameRecord:
+    """One frame of a sequence: id, capture time (s), folder and image file names in capture order."""
+
+    id: int
+    timestamp: float
+    folder: str
+    images: tuple[str, ...]
+
+
+@dataclass(eq=False)
+class Sequence:
+    """A recorded FPP sequence read from disk (images are loaded on demand).
+
+    Attributes
+    ----------
+    path : Path
+    calibration : RigCalibration
+    spec : PatternSpec
+    frames : list of FrameRecord
+    ground_truth : Trajectory or None
+        ``T_world_sensor`` per frame (same order and timestamps as ``frames``).
+    ground_truth_mesh_path : Path or None
+    source : dict
+        Provenance recorded by the writer.
+    """
+
+    path: Path
+    calibration: RigCalibration
+    spec: PatternSpec
+    frames: list[FrameRecord]
+    ground_truth: Trajectory | None = None
+    ground_truth_mesh_path: Path | None = None
+    source: dict[str, Any] = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    def image_paths(self, i: int) -> list[Path]:
+        rec = self.frames[i]
+        return [self.path / rec.folder / name for name in rec.images]
+
+    def load_frame_images(self, i: int) -> NDArray:
+        """The pattern images of the ``i``-th frame (list position), (M, H, W) uint8 or uint16.
+
+        Raises
+        ------
+        InputDataError
+            A missing or corrupt PNG (the message names the file): a pipeline may skip the frame.
+        CalibrationError
+            The images' size differs from the calibration's camera.
+        """
+        if not 0 <= i < len(self.frames):
+            raise InputDataError(f"{self.path}: frame index {i} out of range (0..{len(self.frames) - 1})")
+        rec = self.frames[i]
+        stack = load_image_stack(self.image_paths(i))
+        self.calibration.check_image_size(stack.shape[2], stack.shape[1], f"{self.path / rec.folder}")
+        return stack
+
+    def ground_truth_pose(self, i: int) -> NDArray[np.float64] | None:
+        if self.ground_truth is None:
+            return None
+        return self.ground_truth.poses_world_sensor[i]
+
+
+def read_sequence(path: str | os.PathLike[str]) -> Sequence:
+    """Read ``sequence.yaml`` of a sequence folder (images stay on disk).
+
+    Raises
+    ------
+    InputDataError
+        Missing or malformed ``sequence.yaml``, a frame list inconsistent with the pattern set,
+        a ground-truth trajectory that does not match the frames.
+    CalibrationError
+        Malformed calibration.
+    ConfigError
+        Malformed pattern section.
+    """
+    path = Path(path)
+    meta_path = path / SEQUENCE_FILE
+    if not meta_path.is_file():
+        raise InputDataError(f"{path} is not an FPP sequence folder: {SEQUENCE_FILE} is missing")
+    try:
+        meta = yaml.safe_load(meta_path.read_text(encoding="utf-8"))
+    except OSError as exc:
+        raise InputDataError(f"cannot read {meta_path}: {exc.strerror}") from exc
+    except yaml.YAMLError as exc:
+        raise InputDataError(f"{meta_path}: not valid YAML ({exc})") from None
+    if not isinstance(meta, dict):
+        raise InputDataError(f"{meta_path}: expected a mapping at the top level")
+    if meta.get("format") != FORMAT:
+        raise InputDataError(f"{meta_path}: format is {meta.get('format')!r}, expected {FORMAT!r}")
+    for key in ("calibration", "patterns", "frames"):
+        if key not in meta:
+            raise InputDataError(f"{meta_path}: missing key {key!r}")
+    calibration = RigCalibration.from_dict(meta["calibration"], where=f"{meta_path}: calibration")
+    spec = PatternSpec.from_dict(meta["patterns"], where=f"{meta_path}: patterns")
+    m = spec.image_count()
+    if "image_count" in meta and int(meta["image_count"]) != m:
+        raise InputDataError(f"{meta_path}: image_count {meta['image_count']} but the pattern set has {m} images")
+    if not isinstance(meta["frames"], list):
+        raise InputDataError(f"{meta_path}: frames must be a list")
+    frames: list[FrameRecord] = []
+    for k, fr in enumerate(meta["frames"]):
+        where = f"{meta_path}: frames[{k}]"
+        try:
+            rec = FrameRecord(int(fr["id"]), float(fr["timestamp"]), str(fr["folder"]), tuple(str(n) for n in fr["images"]))
+        except (KeyError, TypeError, ValueError) as exc:
+            raise InputDataError(f"{where}: malformed frame entry ({exc!r}); need id, timestamp, folder, images") from None
+        if len(rec.images) != m:
+            raise InputDataError(f"{where}: {len(rec.images)} images listed but the pattern set has {m}")
+        if frames and rec.id <= frames[-1].id:
+            raise InputDataError(f"{where}: frame ids must increase (id {rec.id} after {frames[-1].id})")
+        frames.append(rec)
+    gt_meta = meta.get("groundtruth") or {}
+    ground_truth = None
+    gt_traj = path / gt_meta.get("trajectory", GT_TRAJECTORY_FILE)
+    if gt_traj.is_file():
+        ground_truth = read_tum(gt_traj)
+        if len(ground_truth) != len(frames):
+            raise InputDataError(f"{gt_traj}: {len(ground_truth)} poses for {len(frames)} frames; one pose per frame is required")
+        if frames and not np.allclose(ground_truth.timestamps_s, [f.timestamp for f in frames], atol=1e-9):
+            raise InputDataError(f"{gt_traj}: timestamps differ from the frame list in {SEQUENCE_FILE}")
+    gt_mesh = path / gt_meta.get("mesh", GT_MESH_FILE)
+    return Sequence(
+        path=path,
+        calibration=calibration,
+        spec=spec,
+        frames=frames,
+        ground_truth=ground_truth,
+        ground_truth_mesh_path=gt_mesh if gt_mesh.is_file() else None,
+        source=dict(meta.get("source") or {}),
+    )
+
+
+class SequenceWriter:
+    """Writes a sequence folder frame by frame; ``close()`` writes ``sequence.yaml`` last.
+
+    Every file is written atomically. ``sequence.yaml`` appears only when the sequence is
+    complete, so a folder without it is an interrupted write, never a short sequence.
+
+    Parameters
+    ----------
+    path : path
+        Output folder; must not exist or be empty unless ``overwrite``.
+    calibration, spec
+        Written into ``sequence.yaml``.
+    overwrite : bool
+        Replace an existing sequence folder.
+    source : dict, optional
+        Provenance (e.g. the simulator's scene and noise settings).
+    """
+
+    def __init__(self, path: str | os.PathLike[str], calibration: RigCalibration, spec: PatternSpec, overwrite: bool = False, source: dict[str, Any] | None = None):
+        self.path = Path(path)
+        if self.path.exists() and (not self.path.is_dir() or any(self.path.iterdir())):
+            if not overwrite:
+                raise OutputError(f"{self.path} exists and is not empty; choose another folder or pass overwrite")
+            if (self.path / SEQUENCE_FILE).is_file() or all(p.name.startswith("frame_") or p.name.startswith("groundtruth") for p in self.path.iterdir()):
+                shutil.rmtree(self.path)
+            else:
+                raise OutputError(f"{self.path} holds files that are not a sequence; refusing to delete it")
+        try:
+            self.path.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise OutputError(f"cannot create {self.path}: {exc.strerror}") from exc
+        self.calibration = calibration
+        self.spec = spec
+        self.source = dict(source or {})
+        self.frames: list[FrameRecord] = []
+        self._has_gt_traj = False
+        self._has_gt_mesh = False
+
+    def add_frame(self, frame_id: int, timestamp: float, images: NDArray | _Seq[NDArray]) -> FrameRecord:
+        """Write one frame's images (M, H, W) uint8/uint16 as PNGs ``000.png``.. in capture order."""
+        stack = np.asarray(images)
+        if stack.ndim != 3 or stack.shape[0] != self.spec.image_count():
+            raise InputDataError(f"frame {frame_id}: expected ({self.spec.image_count()}, H, W) images, got {stack.shape}")
+        if stack.dtype not in (np.uint8, np.uint16):
+            raise InputDataError(f"frame {frame_id}: images must be uint8 or uint16, got {stack.dtype}")
+        self.calibration.check_image_size(stack.shape[2], stack.shape[1], f"frame {frame_id}")
+        if self.frames and frame_id <= self.frames[-1].id:
+            raise InputDataError(f"frame ids must increase: {frame_id} after {self.frames[-1].id}")
+        folder = frame_folder_name(frame_id)
+        names = tuple(f"{k:03d}.png" for k in range(stack.shape[0]))
+        for name, img in zip(names, stack, strict=True):
+            ok, buf = cv2.imencode(".png", img, [cv2.IMWRITE_PNG_COMPRESSION, 1])
+            if not ok:
+                raise OutputError(f"cannot encode {folder}/{name} as PNG")
+            atomic_write_bytes(self.path / folder / name, buf.tobytes())
+        rec = FrameRecord(int(frame_id), float(timestamp), folder, names)
+        self.frames.append(rec)
+        return rec
+
+    def write_ground_truth(self, poses_world_sensor: NDArray | None = None, mesh: Any = None) -> None:
+        """Write ``groundtruth.tum`` (one T_world_sensor per written frame) and/or the mesh (Open3D legacy)."""
+        if poses_world_sensor is not None:
+            poses = np.asarray(poses_world_sensor, dtype=np.float64).reshape(-1, 4, 4)
+            if len(poses) != len(self.frames):
+                raise InputDataError(f"{len(poses)} ground-truth poses for {len(self.frames)} written frames")
+            write_tum(self.path / GT_TRAJECTORY_FILE, Trajectory.from_poses([f.timestamp for f in self.frames], poses))
+            self._has_gt_traj = True
+        if mesh is not None:
+            import open3d as o3d
+
+            tmp = self.path / f".{GT_MESH_FILE}.tmp.ply"
+            if not o3d.io.write_triangle_mesh(str(tmp), mesh, write_ascii=False, compressed=False, print_progress=False):
+                raise OutputError(f"cannot write {self.path / GT_MESH_FILE}")
+            os.replace(tmp, self.path / GT_MESH_FILE)
+            self._has_gt_mesh = True
+
+    def close(self) -> Path:
+        """Write ``sequence.yaml``; returns the sequence folder."""
+        if not self.frames:
+            raise InputDataError(f"{self.path}: a sequence needs at least one frame; nothing was written")
+        meta: dict[str, Any] = {
+            "format": FORMAT,
+            "units": {"length": "m", "time": "s", "calibration_length": "mm", "note": "ground truth in metres; the calibration states its own length_unit"},
+            "calibration": self.calibration.to_dict("mm"),
+            "patterns": self.spec.to_dict(),
+            "image_count": self.spec.image_count(),
+            "frames": [{"id": f.id, "timestamp": f.timestamp, "folder": f.folder, "images": list(f.images)} for f in self.frames],
+        }
+        gt: dict[str, str] = {}
+        if self._has_gt_traj:
+            gt["trajectory"] = GT_TRAJECTORY_FILE
+        if self._has_gt_mesh:
+            gt["mesh"] = GT_MESH_FILE
+        if gt:
+            meta["groundtruth"] = gt
+        if self.source:
+            meta["source"] = self.source
+        atomic_write_text(self.path / SEQUENCE_FILE, yaml.safe_dump(meta, sort_keys=False))
+        log.info("wrote sequence %s with %d frames", self.path, len(self.frames))
+        return self.path
+
