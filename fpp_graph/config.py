@@ -40,6 +40,7 @@ class RegistrationConfig(StrictModel):
 
     feature: Literal["surf", "sift", "orb", "akaze"] = "surf"
     max_features: int = Field(4000, gt=0)
+    feature_max_width_px: int = Field(1024, ge=0, description="wider textures are reduced by an integer factor before detection (0: never)")
     ratio_test: float = Field(0.8, gt=0, le=1)
     mutual_check: bool = True
     ransac_threshold_m: float = Field(0.002, gt=0)
@@ -54,6 +55,8 @@ class RegistrationConfig(StrictModel):
     max_inlier_rmse_m: float = Field(0.002, gt=0)
     min_overlap: float = Field(0.1, ge=0, le=1)
     degeneracy_ratio: float = Field(1e-4, gt=0, description="smallest/largest Hessian eigenvalue below which a direction is unconstrained")
+    max_icp_shift_m: float = Field(0.003, gt=0, description="ICP moving RANSAC's keypoint inliers further than this means a wrong basin: reject")
+    information_scale: float = Field(1.0, gt=0, description="multiplies the correspondence information; calibrated by NEES over simulated pairs")
 
 
 class KeyframeConfig(StrictModel):

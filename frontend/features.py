@@ -1,0 +1,181 @@
+"""2D keypoints on FPP texture images and their matching.
+
+Detectors (``registration.feature`` in the config): ``surf`` (the project's own implementation,
+:mod:`frontend.surf`, as the paper uses), and OpenCV's ``sift``, ``orb`` and ``akaze``. Images
+wider than ``registration.feature_max_width_px`` are reduced by an integer factor before
+detection (area averaging); keypoints are returned in full-image pixels, so the 2D-to-3D lift
+reads the full-resolution ``xyz_map``.
+
+Matching: nearest neighbour in descriptor space (L2 for float descriptors, Hamming for binary
+ones), Lowe's ratio test against the second neighbour, and optionally the mutual check (the
+match must also be the nearest neighbour in the other direction).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+from collections.abc import Callable
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from fpp_graph.config import RegistrationConfig
+from fpp_graph.errors import InputDataError
+from fpp_graph.types import Frame
+from frontend.surf import SurfParams, surf_detect_and_compute
+
+log = logging.getLogger(__name__)
+
+Detector = Callable[[NDArray[np.uint8]], tuple[NDArray[np.float64], NDArray]]
+"""A detector maps an (H, W) uint8 image to ``(keypoints_uv (K, 2) float64, descriptors (K, D))``."""
+
+
+def _working_image(image: NDArray[np.uint8], max_width: int) -> tuple[NDArray[np.uint8], int]:
+    factor = 1
+    if max_width > 0 and image.shape[1] > max_width:
+        factor = int(math.ceil(image.shape[1] / max_width))
+    if factor == 1:
+        return image, 1
+    small = cv2.resize(image, (image.shape[1] // factor, image.shape[0] // factor), interpolation=cv2.INTER_AREA)
+    return small, factor
+
+
+def _opencv_detector(make: Callable[[], cv2.Feature2D], max_features: int, max_width: int) -> Detector:
+    detector = make()
+
+    def detect(image: NDArray[np.uint8]) -> tuple[NDArray[np.float64], NDArray]:
+        small, factor = _working_image(image, max_width)
+        kps, desc = detector.detectAndCompute(small, None)
+        if desc is None or not kps:
+            return np.zeros((0, 2)), np.zeros((0, 32), np.uint8)
+        if len(kps) > max_features:
+            order = np.argsort([-k.response for k in kps], kind="stable")[:max_features]
+            kps = [kps[i] for i in order]
+            desc = desc[order]
+        uv = np.array([k.pt for k in kps], dtype=np.float64).reshape(-1, 2)
+        # OpenCV keypoints use the pixel-centre convention too: map back to full-image pixels
+        return (uv + 0.5) * factor - 0.5, desc
+
+    return detect
+
+
+def make_detector(config: RegistrationConfig) -> Detector:
+    """Build the detector+descriptor selected by ``config.feature``.
+
+    Returns
+    -------
+    Detector
+        ``detect(texture) -> (keypoints_uv (K, 2) float64 full-image pixels, descriptors (K, D))``;
+        float32 descriptors for surf/sift, uint8 binary ones for orb/akaze.
+    """
+    n = int(config.max_features)
+    width = int(config.feature_max_width_px)
+    if config.feature == "surf":
+        params = SurfParams(max_features=n, max_working_width=width)
+
+        def surf(image: NDArray[np.uint8]) -> tuple[NDArray[np.float64], NDArray]:
+            kp = surf_detect_and_compute(image, params)
+            return kp.uv, kp.descriptors
+
+        return surf
+    if config.feature == "sift":
+        return _opencv_detector(lambda: cv2.SIFT_create(nfeatures=n), n, width)
+    if config.feature == "orb":
+        return _opencv_detector(lambda: cv2.ORB_create(nfeatures=n, scaleFactor=1.2, nlevels=8, fastThreshold=10), n, width)
+    if config.feature == "akaze":
+        return _opencv_detector(lambda: cv2.AKAZE_create(threshold=5e-4), n, width)
+    raise InputDataError(f"unknown feature type {config.feature!r}; use surf, sift, orb or akaze")  # pragma: no cover
+
+
+def _check_texture(frame: Frame) -> NDArray[np.uint8]:
+    if frame.texture is None:
+        raise InputDataError(f"frame {frame.id}: no texture image, cannot detect keypoints")
+    texture = frame.texture
+    if min(texture.shape) < 32:
+        raise InputDataError(f"frame {frame.id}: texture {texture.shape} is too small for keypoints (need >= 32x32)")
+    return texture
+
+
+def detect_and_describe(frame: Frame, config: RegistrationConfig, detector: Detector | None = None) -> Frame:
+    """Return ``frame`` with ``keypoints_uv`` and ``descriptors`` filled in (computed once per frame).
+
+    Raises
+    ------
+    InputDataError
+        The frame has no (or a too small) texture image.
+    """
+    texture = _check_texture(frame)
+    detect = detector or make_detector(config)
+    uv, desc = detect(np.ascontiguousarray(texture))
+    meta = dict(frame.metadata)
+    meta["feature"] = config.feature
+    return dataclasses.replace(frame, keypoints_uv=uv, descriptors=desc, metadata=meta)
+
+
+def match_descriptors(
+    descriptors_a: NDArray, descriptors_b: NDArray, ratio: float = 0.8, mutual: bool = True
+) -> NDArray[np.int64]:
+    """Match descriptors of image a against image b.
+
+    Parameters
+    ----------
+    descriptors_a, descriptors_b : (Ka, D), (Kb, D)
+        Float descriptors (L2 distance) or uint8 binary descriptors (Hamming distance); both
+        of the same kind and length.
+    ratio : float
+        Keep a match when ``d1 < ratio * d2`` (Lowe's test; 1 disables it).
+    mutual : bool
+        Keep a match only when b's nearest neighbour in a is the same point.
+
+    Returns
+    -------
+    (M, 2) int64
+        Index pairs ``(i_a, i_b)``, best (lowest distance ratio) first.
+
+    Raises
+    ------
+    InputDataError
+        Descriptor arrays of different kinds or lengths.
+    """
+    a = np.asarray(descriptors_a)
+    b = np.asarray(descriptors_b)
+    if a.ndim != 2 or b.ndim != 2 or a.shape[1] != b.shape[1] or a.dtype != b.dtype:
+        raise InputDataError(
+            f"descriptors do not match in kind: {a.dtype} {a.shape} vs {b.dtype} {b.shape}; "
+            "both frames must be described with the same feature type"
+        )
+    if a.shape[0] < 2 or b.shape[0] < 2:
+        return np.zeros((0, 2), np.int64)
+    binary = a.dtype == np.uint8
+    if binary:
+        norm = cv2.NORM_HAMMING
+    else:
+        norm = cv2.NORM_L2
+        a = np.ascontiguousarray(a, dtype=np.float32)
+        b = np.ascontiguousarray(b, dtype=np.float32)
+    matcher = cv2.BFMatcher(norm, crossCheck=False)
+    knn = matcher.knnMatch(a, b, k=2)
+    ia, ib, score = [], [], []
+    for pair in knn:
+        if len(pair) < 2:
+            continue
+        m1, m2 = pair
+        if m1.distance < ratio * m2.distance:
+            ia.append(m1.queryIdx)
+            ib.append(m1.trainIdx)
+            score.append(m1.distance / max(m2.distance, 1e-12))
+    if not ia:
+        return np.zeros((0, 2), np.int64)
+    ia_arr, ib_arr, score_arr = np.array(ia), np.array(ib), np.array(score)
+    if mutual:
+        back = matcher.match(b, a)
+        nn_ba = np.full(b.shape[0], -1, np.int64)
+        for m in back:
+            nn_ba[m.queryIdx] = m.trainIdx
+        keep = nn_ba[ib_arr] == ia_arr
+        ia_arr, ib_arr, score_arr = ia_arr[keep], ib_arr[keep], score_arr[keep]
+    order = np.argsort(score_arr, kind="stable")
+    return np.stack([ia_arr[order], ib_arr[order]], axis=1).astype(np.int64)
