@@ -104,37 +104,37 @@ class SurfKeypoints:
         return int(self.uv.shape[0])
 
 
-def _box_grid(I: NDArray, y0: int, x0: int, step: int, ny: int, nx: int, r0: int, r1: int, c0: int, c1: int) -> NDArray:
+def _box_grid(ii: NDArray, y0: int, x0: int, step: int, ny: int, nx: int, r0: int, r1: int, c0: int, c1: int) -> NDArray:
     """Sums of the boxes rows ``y+r0..y+r1``, cols ``x+c0..x+c1`` (inclusive) at the grid
-    ``y = y0 + step*i, x = x0 + step*j`` of a padded integral image ``I``."""
+    ``y = y0 + step*i, x = x0 + step*j`` of a padded integral image ``ii``."""
     ya, yb = y0 + r0, y0 + r1 + 1
     xa, xb = x0 + c0, x0 + c1 + 1
     sl = slice  # local alias keeps the four reads on one line each
-    A = I[sl(ya, ya + step * ny, step), sl(xa, xa + step * nx, step)]
-    B = I[sl(ya, ya + step * ny, step), sl(xb, xb + step * nx, step)]
-    C = I[sl(yb, yb + step * ny, step), sl(xa, xa + step * nx, step)]
-    D = I[sl(yb, yb + step * ny, step), sl(xb, xb + step * nx, step)]
+    A = ii[sl(ya, ya + step * ny, step), sl(xa, xa + step * nx, step)]
+    B = ii[sl(ya, ya + step * ny, step), sl(xb, xb + step * nx, step)]
+    C = ii[sl(yb, yb + step * ny, step), sl(xa, xa + step * nx, step)]
+    D = ii[sl(yb, yb + step * ny, step), sl(xb, xb + step * nx, step)]
     return D - B - C + A
 
 
-def _hessian_layer(I: NDArray, pad: int, step: int, ny: int, nx: int, L: int) -> tuple[NDArray, NDArray]:
+def _hessian_layer(ii: NDArray, pad: int, step: int, ny: int, nx: int, L: int) -> tuple[NDArray, NDArray]:
     """det(H) and trace sign of one filter size over the sampling grid."""
     lobe = L // 3
     half_long = (3 * lobe - 1) // 2
     half_short = lobe - 1
     half_mid = (lobe - 1) // 2
     # Dyy: a (2l-1) wide, 3l tall box minus 3x its middle third
-    dyy = _box_grid(I, pad, pad, step, ny, nx, -half_long, half_long, -half_short, half_short) - 3.0 * _box_grid(
-        I, pad, pad, step, ny, nx, -half_mid, half_mid, -half_short, half_short
+    dyy = _box_grid(ii, pad, pad, step, ny, nx, -half_long, half_long, -half_short, half_short) - 3.0 * _box_grid(
+        ii, pad, pad, step, ny, nx, -half_mid, half_mid, -half_short, half_short
     )
-    dxx = _box_grid(I, pad, pad, step, ny, nx, -half_short, half_short, -half_long, half_long) - 3.0 * _box_grid(
-        I, pad, pad, step, ny, nx, -half_short, half_short, -half_mid, half_mid
+    dxx = _box_grid(ii, pad, pad, step, ny, nx, -half_short, half_short, -half_long, half_long) - 3.0 * _box_grid(
+        ii, pad, pad, step, ny, nx, -half_short, half_short, -half_mid, half_mid
     )
     dxy = (
-        _box_grid(I, pad, pad, step, ny, nx, -lobe, -1, -lobe, -1)
-        + _box_grid(I, pad, pad, step, ny, nx, 1, lobe, 1, lobe)
-        - _box_grid(I, pad, pad, step, ny, nx, -lobe, -1, 1, lobe)
-        - _box_grid(I, pad, pad, step, ny, nx, 1, lobe, -lobe, -1)
+        _box_grid(ii, pad, pad, step, ny, nx, -lobe, -1, -lobe, -1)
+        + _box_grid(ii, pad, pad, step, ny, nx, 1, lobe, 1, lobe)
+        - _box_grid(ii, pad, pad, step, ny, nx, -lobe, -1, 1, lobe)
+        - _box_grid(ii, pad, pad, step, ny, nx, 1, lobe, -lobe, -1)
     )
     norm = 1.0 / float(L * L)
     dxx *= norm
@@ -177,7 +177,7 @@ def fast_hessian(image01: NDArray[np.float32], params: SurfParams) -> tuple[NDAr
     max_L = _filter_size(params.n_octaves - 1, params.n_intervals - 1)
     pad = max_L // 2 + 2
     padded = cv2.copyMakeBorder(image01, pad, pad, pad, pad, cv2.BORDER_REPLICATE)
-    I = cv2.integral(padded, sdepth=cv2.CV_64F)
+    integral = cv2.integral(padded, sdepth=cv2.CV_64F)
     out_uv, out_s, out_r, out_sign = [], [], [], []
     computed: dict[int, tuple[int, NDArray, NDArray]] = {}
     for o in range(params.n_octaves):
@@ -200,11 +200,11 @@ def fast_hessian(image01: NDArray[np.float32], params: SurfParams) -> tuple[NDAr
             if step == 1:
                 det, sign = _hessian_layer_dense(image01, L)
             else:
-                det, sign = _hessian_layer(I, pad, step, ny, nx, L)
+                det, sign = _hessian_layer(integral, pad, step, ny, nx, L)
             computed[L] = (step, det, sign)
             layers.append(det)
             signs.append(sign)
-        stack = np.stack(layers)  # (n_int, ny, nx)
+        stack = np.stack(layers)  # (n_int, ny, nx); read by v() below
         kernel = np.ones((3, 3), np.uint8)
         dil = np.stack([cv2.dilate(layer, kernel) for layer in layers])
         for i in range(1, params.n_intervals - 1):
@@ -222,7 +222,7 @@ def fast_hessian(image01: NDArray[np.float32], params: SurfParams) -> tuple[NDAr
             if ys.size == 0:
                 continue
             # quadratic interpolation in (x, y, s): offset = -H^-1 g
-            def v(ds: int, dy: int, dx: int) -> NDArray:
+            def v(ds: int, dy: int, dx: int, i: int = i, ys: NDArray = ys, xs: NDArray = xs, stack: NDArray = stack) -> NDArray:
                 return stack[i + ds, ys + dy, xs + dx].astype(np.float64)
 
             c = v(0, 0, 0)
