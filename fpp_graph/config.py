@@ -73,7 +73,8 @@ class LoopClosureConfig(StrictModel):
     enabled: bool = True
     proximity_radius_m: float = Field(0.3, ge=0)
     proximity_sigma: float = Field(3.0, gt=0, description="search radius grows by this many standard deviations of the pose covariance")
-    appearance_top_k: int = Field(5, ge=0)
+    appearance_top_k: int = Field(3, ge=0)
+    appearance_min_score: float = Field(0.1, ge=-1, le=1, description="minimum VLAD cosine similarity for an appearance candidate")
     min_frame_separation: int = Field(5, ge=1)
     max_candidates_per_frame: int = Field(8, ge=1)
 

@@ -112,6 +112,7 @@ class KeyframeManager:
             T0 = frame.T_world_sensor_guess if frame.T_world_sensor_guess is not None else np.eye(4)
             self._add_keyframe(frame, np.array(T0), odometry=None, drift_var=0.0)
             self.segment_starts.append(frame.id)
+            self.loop_detector.add(frame)
             return True
         odometry = self._register_to_recent(frame)
         if odometry is None:
@@ -121,6 +122,7 @@ class KeyframeManager:
             log.warning("chain broken at frame %d: new segment starts there (pose unknown relative to the previous segment until a loop joins them)", frame.id)
             self._add_keyframe(frame, T_start, odometry=None, drift_var=0.0)
             self.segment_starts.append(frame.id)
+            self._close_loops(frame)  # appearance may rejoin the new segment to an older one
             return True
         kf_id = odometry.target_id
         if self._is_keyframe(odometry):
@@ -150,14 +152,18 @@ class KeyframeManager:
         return None
 
     def _is_keyframe(self, odometry: Constraint) -> bool:
+        """Keyframe when any enabled criterion fires; with none enabled every frame is one."""
         cfg = self.config.keyframes
         T = odometry.T_target_source
-        moved = float(np.linalg.norm(T[:3, 3])) >= cfg.min_translation_m
-        turned = math.degrees(rotation_angle_rad(T[:3, :3])) >= cfg.min_rotation_deg
         overlap = odometry.overlap if math.isfinite(odometry.overlap) else odometry.fitness
-        low_overlap = cfg.max_overlap < 1 and math.isfinite(overlap) and overlap <= cfg.max_overlap
-        no_threshold = cfg.min_translation_m == 0 and cfg.min_rotation_deg == 0 and cfg.max_overlap >= 1
-        return no_threshold or moved or turned or low_overlap
+        criteria = []
+        if cfg.min_translation_m > 0:
+            criteria.append(float(np.linalg.norm(T[:3, 3])) >= cfg.min_translation_m)
+        if cfg.min_rotation_deg > 0:
+            criteria.append(math.degrees(rotation_angle_rad(T[:3, :3])) >= cfg.min_rotation_deg)
+        if cfg.max_overlap < 1:
+            criteria.append(math.isfinite(overlap) and overlap <= cfg.max_overlap)
+        return any(criteria) if criteria else True
 
     def _add_keyframe(self, frame: Frame, T_world: NDArray, odometry: Constraint | None, drift_var: float) -> None:
         self.store.put(frame)

@@ -6,9 +6,9 @@ look-alike places, e.g. repeated posters, and proposes false loops there). Every
 verified geometrically by the front-end's :class:`~fpp_graph.types.PairRegistrar` and the robust
 back-end (GNC) has the last word.
 
-Appearance is a TF-IDF bag of visual words over the frames' keypoint descriptors, with a
-vocabulary clustered (k-means) from the first keyframes' descriptors, so it adapts to whatever
-descriptor the front-end uses (SURF, SIFT, ORB bits, ...).
+Appearance is a VLAD global descriptor (an aggregated bag of visual words) over the frames'
+keypoint descriptors, with a vocabulary clustered (k-means) from the first keyframes'
+descriptors, so it adapts to whatever descriptor the front-end uses (SURF, SIFT, ORB bits, ...).
 """
 
 from __future__ import annotations
@@ -38,16 +38,23 @@ def _as_float_descriptors(descriptors: NDArray) -> NDArray[np.float32]:
 
 
 class AppearanceIndex:
-    """TF-IDF bag-of-words index over keyframe descriptors, scored by cosine similarity."""
+    """VLAD global descriptors over keyframe descriptors, scored by cosine similarity.
 
-    def __init__(self, vocabulary_size: int = 256, training_descriptors: int = 20000, seed: int = 0) -> None:
+    VLAD (Jegou et al. 2010) sums, per visual word, the residuals of the descriptors assigned to
+    it; unlike a plain bag-of-words histogram it keeps where in descriptor space each feature
+    lies, so two views of the same texture correlate strongly while different places score near
+    zero. Signed square-root (power) normalisation, then per-word and global L2 normalisation.
+    The vocabulary is clustered (k-means) from the first keyframes' descriptors.
+    """
+
+    def __init__(self, vocabulary_size: int = 64, training_descriptors: int = 20000, seed: int = 0) -> None:
         self.vocabulary_size = vocabulary_size
         self.training_descriptors = training_descriptors
         self.seed = seed
         self._pending: list[tuple[int, NDArray[np.float32]]] = []
+        self._centroids: NDArray[np.float64] | None = None
         self._tree: cKDTree | None = None
-        self._histograms: dict[int, NDArray[np.float64]] = {}
-        self._document_frequency: NDArray[np.float64] | None = None
+        self._vectors: dict[int, NDArray[np.float64]] = {}
 
     @property
     def trained(self) -> bool:
@@ -60,25 +67,28 @@ class AppearanceIndex:
         rng = np.random.default_rng(self.seed)
         if len(sample) > self.training_descriptors:
             sample = sample[rng.choice(len(sample), self.training_descriptors, replace=False)]
-        k = min(self.vocabulary_size, max(2, len(sample) // 4))
+        k = min(self.vocabulary_size, max(2, len(sample) // 8))
         centroids, _ = kmeans2(sample.astype(np.float64), k, minit="++", seed=self.seed, iter=15)
+        self._centroids = centroids
         self._tree = cKDTree(centroids)
-        self._document_frequency = np.zeros(k)
         pending, self._pending = self._pending, []
         for frame_id, desc in pending:
-            self._insert(frame_id, desc)
+            self._vectors[frame_id] = self._vlad(desc)
         log.debug("appearance vocabulary: %d words from %d descriptors", k, len(sample))
 
-    def _words(self, desc: NDArray[np.float32]) -> NDArray[np.float64]:
-        assert self._tree is not None
+    def _vlad(self, desc: NDArray[np.float32]) -> NDArray[np.float64]:
+        assert self._tree is not None and self._centroids is not None
         _, words = self._tree.query(desc, k=1)
-        return np.bincount(words, minlength=self._tree.n).astype(np.float64)
-
-    def _insert(self, frame_id: int, desc: NDArray[np.float32]) -> None:
-        counts = self._words(desc)
-        self._histograms[frame_id] = counts
-        assert self._document_frequency is not None
-        self._document_frequency += counts > 0
+        k, dim = self._centroids.shape
+        residuals = desc.astype(np.float64) - self._centroids[words]
+        vlad = np.zeros((k, dim))
+        np.add.at(vlad, words, residuals)
+        vlad = np.sign(vlad) * np.sqrt(np.abs(vlad))
+        norms = np.linalg.norm(vlad, axis=1, keepdims=True)
+        vlad = np.divide(vlad, norms, out=np.zeros_like(vlad), where=norms > 0)
+        flat = vlad.reshape(-1)
+        norm = np.linalg.norm(flat)
+        return flat / norm if norm > 0 else flat
 
     def add(self, frame_id: int, descriptors: NDArray | None) -> None:
         """Index a keyframe's descriptors (frames without descriptors are ignored)."""
@@ -87,33 +97,23 @@ class AppearanceIndex:
         desc = _as_float_descriptors(descriptors)
         if self._tree is None:
             self._pending.append((frame_id, desc))
-            if sum(len(d) for _, d in self._pending) >= 4 * self.vocabulary_size and len(self._pending) >= 2:
+            if sum(len(d) for _, d in self._pending) >= 16 * self.vocabulary_size and len(self._pending) >= 2:
                 self._train()
             return
-        self._insert(frame_id, desc)
-
-    def _tfidf(self, counts: NDArray[np.float64]) -> NDArray[np.float64]:
-        assert self._document_frequency is not None
-        n_docs = max(1, len(self._histograms))
-        idf = np.log((n_docs + 1.0) / (self._document_frequency + 1.0)) + 1.0
-        v = counts / max(counts.sum(), 1.0) * idf
-        norm = np.linalg.norm(v)
-        return v / norm if norm > 0 else v
+        self._vectors[frame_id] = self._vlad(desc)
 
     def query(self, descriptors: NDArray | None, top_k: int, exclude: set[int] | None = None) -> list[tuple[int, float]]:
         """The ``top_k`` indexed frames most similar to ``descriptors`` as ``(frame_id, cosine)``."""
         if descriptors is None or len(descriptors) == 0 or top_k <= 0:
             return []
         if self._tree is None:
-            if len(self._pending) >= 2:
+            if len(self._pending) >= 1 and sum(len(d) for _, d in self._pending) >= 2 * self.vocabulary_size:
                 self._train()
             else:
                 return []
-        q = self._tfidf(self._words(_as_float_descriptors(descriptors)))
+        q = self._vlad(_as_float_descriptors(descriptors))
         exclude = exclude or set()
-        scores = [
-            (fid, float(q @ self._tfidf(h))) for fid, h in self._histograms.items() if fid not in exclude
-        ]
+        scores = [(fid, float(q @ v)) for fid, v in self._vectors.items() if fid not in exclude]
         scores.sort(key=lambda s: -s[1])
         return scores[:top_k]
 
@@ -174,13 +174,20 @@ class ProximityAppearanceLoopDetector:
                 if distance <= radius and facing > 0.0:
                     score = 1.0 - distance / max(radius, 1e-12)
                     found[fid] = LoopCandidate(frame.id, fid, score, "proximity")
+        proximity = sorted(found.values(), key=lambda c: -c.score)
+        appearance: list[LoopCandidate] = []
         for fid, score in self.appearance.query(frame.descriptors, cfg.appearance_top_k, exclude=too_close):
+            if score < cfg.appearance_min_score:
+                continue
             if fid in found:
-                found[fid] = LoopCandidate(frame.id, fid, max(found[fid].score, score), "proximity+appearance")
-            elif score > 0:
-                found[fid] = LoopCandidate(frame.id, fid, score, "appearance")
-        ranked = sorted(found.values(), key=lambda c: -c.score)
-        return ranked[: cfg.max_candidates_per_frame]
+                found[fid] = LoopCandidate(frame.id, fid, found[fid].score, "proximity+appearance")
+            else:
+                appearance.append(LoopCandidate(frame.id, fid, score, "appearance"))
+        # proximity candidates first (nearest first): they are the likely revisits under a
+        # decent estimate; appearance fills the remaining slots (it finds loops after drift)
+        proximity = [found[c.match_id] for c in proximity]
+        n_prox = max(0, cfg.max_candidates_per_frame - len(appearance))
+        return [*proximity[:n_prox], *appearance][: cfg.max_candidates_per_frame]
 
 
 def position_sigma_from_covariance(covariance_rot_trans: NDArray[np.float64] | None) -> float:
