@@ -1,0 +1,92 @@
+"""The FPP sequence as a :class:`fpp_graph.sources.FrameSource` (registered as ``fpp``).
+
+Reads a recorded sequence folder (``sequence.yaml`` + per-frame PNG stacks, the format the
+simulator writes and a real sensor's recordings must fit), decodes each frame through
+:class:`frontend.fpp_sensor.FppSensor` and computes its 2D keypoints once, so registration of
+every pair reuses them.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Any
+
+from fpp_graph.config import Config
+from fpp_graph.trajectory import Trajectory
+from fpp_graph.types import Frame
+from frontend.sequence import SEQUENCE_FILE, read_sequence
+
+log = logging.getLogger(__name__)
+
+
+class FppSequenceSource:
+    """Frames of a recorded FPP sequence, decoded lazily (pickles: heavy state is rebuilt per process)."""
+
+    name = "fpp"
+
+    def __init__(self, path: Path, config: Config) -> None:
+        self.path = Path(path)
+        self.config = config
+        self.sequence = read_sequence(self.path)
+        self._index = {rec.id: i for i, rec in enumerate(self.sequence.frames)}
+        self._sensor = None
+
+    def __getstate__(self) -> dict[str, Any]:
+        state = dict(self.__dict__)
+        state["_sensor"] = None  # decoder tables are rebuilt in each worker process
+        return state
+
+    @classmethod
+    def detect(cls, path: Path) -> bool:
+        return (Path(path) / SEQUENCE_FILE).is_file()
+
+    @property
+    def sensor(self):
+        if self._sensor is None:
+            from frontend.fpp_sensor import FppSensor
+
+            self._sensor = FppSensor(self.sequence.calibration, self.sequence.spec, self.config.decode)
+        return self._sensor
+
+    def frame_ids(self) -> list[int]:
+        return [rec.id for rec in self.sequence.frames]
+
+    def load_frame(self, frame_id: int) -> Frame:
+        from frontend.features import detect_and_describe
+
+        i = self._index[frame_id]
+        rec = self.sequence.frames[i]
+        images = self.sequence.load_frame_images(i)
+        frame = self.sensor.frame_from_images(rec.id, rec.timestamp, images)
+        frame = Frame(
+            id=frame.id, timestamp=frame.timestamp, points=frame.points, colors=frame.colors,
+            xyz_map=frame.xyz_map, texture=frame.texture,
+            metadata={**frame.metadata, "K": self.sequence.calibration.camera.K.tolist()},
+        )
+        return detect_and_describe(frame, self.config.registration)
+
+    def make_registrar(self):
+        from frontend.registration import FppPairRegistrar
+
+        return FppPairRegistrar(self.config.registration)
+
+    def ground_truth(self) -> Trajectory | None:
+        return self.sequence.ground_truth
+
+    def ground_truth_mesh(self) -> Path | None:
+        return self.sequence.ground_truth_mesh_path
+
+    def describe(self) -> dict[str, Any]:
+        cam = self.sequence.calibration.camera
+        scene_config = (self.sequence.source or {}).get("config") or {}
+        turntable = scene_config.get("turntable") or {}
+        out: dict[str, Any] = {
+            "sensor": "fpp",
+            "frames": len(self.sequence.frames),
+            "image_size": [cam.width, cam.height],
+            "patterns": self.sequence.spec.to_dict(),
+        }
+        if scene_config.get("scene") == "turntable" or turntable:
+            out["views_per_turn"] = int(turntable.get("views_per_turn", 13))
+        return out
