@@ -1,0 +1,262 @@
+"""Rig calibration: Gray-code decoding, synthetic calibration, third-party readers, failures."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from conftest import shared_data_path
+from scipy.spatial.transform import Rotation
+
+from fpp_graph.errors import CalibrationError
+from fpp_graph.geometry import make_pose
+from frontend.calibration_io import (
+    read_any_calibration,
+    read_procam_calibration,
+    read_slmaster_calibration,
+)
+from frontend.rig import PinholeModel, RigCalibration, load_calibration, save_calibration
+from frontend.rig_calibration import (
+    Chessboard,
+    calibrate_from_captures,
+    calibrate_from_graycode_folders,
+    calibrate_rig,
+    decode_gray_code,
+    gray_code_bit_counts,
+    gray_code_patterns,
+    projector_corners,
+    read_graycode_capture,
+    sample_board_poses,
+    simulate_graycode_captures,
+    transfer_rms_px,
+)
+
+# ---------------------------------------------------------------- Gray code
+
+
+def test_gray_code_patterns_match_opencv():
+    ok, ref = cv2.structured_light.GrayCodePattern.create(100, 60).generate()
+    ours = gray_code_patterns(100, 60)
+    assert gray_code_bit_counts(100, 60) == (7, 6)
+    assert len(ref) == len(ours) == 26
+    assert all(np.array_equal(a, b) for a, b in zip(ref, ours, strict=True))
+
+
+def test_decode_own_patterns_gives_identity():
+    pats = gray_code_patterns(100, 60)
+    dec = decode_gray_code(pats, (100, 60))
+    assert dec.valid.all()
+    assert np.array_equal(dec.column, np.broadcast_to(np.arange(100), (60, 100)))
+    assert np.array_equal(dec.row, np.broadcast_to(np.arange(60)[:, None], (60, 100)))
+
+
+def test_decode_thresholds_and_step(rng):
+    pats = gray_code_patterns(50, 40).astype(float) * 0.5 + 20
+    pats += rng.normal(0, 0.5, pats.shape)
+    white = np.full((40, 50), 150.0)
+    black = np.full((40, 50), 20.0)
+    black[:5] = 140.0  # unlit: white - black below the black threshold
+    pats[4, 10:12, :] = pats[5, 10:12, :] + 1.0  # a bit without contrast: unreliable
+    dec = decode_gray_code(pats, (100, 80), white, black, step=2)
+    assert not dec.valid[:5].any() and not dec.valid[10:12].any()
+    assert np.all(dec.column[dec.valid] % 2 == 0)
+    assert np.array_equal(dec.column[20], 2 * np.arange(50))
+    assert np.all(dec.column[~dec.valid] == -1)
+
+
+def test_decode_wrong_image_count():
+    with pytest.raises(CalibrationError, match="needs 40 images"):
+        decode_gray_code(np.zeros((38, 4, 4)), (1024, 768))
+
+
+def test_projector_corners_local_homography(rng):
+    # A camera -> projector map that is a known homography, integer-quantised like Gray code,
+    # with a few wrong codes: the corner must come back to sub-pixel accuracy.
+    Hm = np.array([[0.8, 0.05, 12.0], [-0.03, 0.9, 7.0], [1e-4, -5e-5, 1.0]])
+    vv, uu = np.mgrid[0:120, 0:160].astype(float)
+    p = np.stack([uu, vv, np.ones_like(uu)], -1) @ Hm.T
+    u, v = np.floor(p[..., 0] / p[..., 2] + 0.5), np.floor(p[..., 1] / p[..., 2] + 0.5)
+    u[50, 50:53] += 40  # wrong codes
+    corners = np.array([[51.3, 48.7], [100.2, 60.9], [3.0, 3.0]])
+    out, ok = projector_corners(corners, u, v, window_half=8)
+    assert ok.tolist() == [True, True, False]  # the last one's window leaves the image
+    q = np.column_stack([corners[:2], np.ones(2)]) @ Hm.T
+    assert np.max(np.abs(out[:2] - q[:, :2] / q[:, 2:])) < 0.1
+
+
+# ---------------------------------------------------------------- synthetic calibration
+
+
+def small_rig() -> RigCalibration:
+    camera = PinholeModel(480, 300, np.array([[560.0, 0, 241.0], [0, 561.0, 149.0], [0, 0, 1]]), np.array([-0.1, 0.08, 0.0003, -0.0002, 0.0]))
+    projector = PinholeModel(384, 288, np.array([[480.0, 0, 193.0], [0, 481.0, 200.0], [0, 0, 1]]), np.array([-0.04, 0.05, 0.0, 0.0, 0.0]))
+    R = Rotation.from_euler("xyz", [1.0, -7.0, 0.5], degrees=True).as_matrix()
+    return RigCalibration(camera, projector, make_pose(R, -R @ np.array([0.15, -0.01, 0.0])))
+
+
+def test_synthetic_calibration_recovers_rig(tmp_path):
+    rng = np.random.default_rng(7)
+    truth = small_rig()
+    board = Chessboard((9, 7), 0.03)
+    poses = sample_board_poses(truth, board, 7, rng)
+    captures = simulate_graycode_captures(truth, board, poses, rng, supersample=2)
+    report, observations = calibrate_from_captures(captures, board, (384, 288))
+    est = report.calibration
+    rms = est.reprojection_rms_px
+    assert set(rms) == {"camera", "projector", "stereo"}
+    assert rms["camera"] < 0.3 and rms["projector"] < 0.3 and rms["stereo"] < 0.3
+    for dev in ("camera", "projector"):
+        Kt, Ke = getattr(truth, dev).K, getattr(est, dev).K
+        assert abs(Ke[0, 0] / Kt[0, 0] - 1) < 0.01 and abs(Ke[1, 1] / Kt[1, 1] - 1) < 0.01
+        assert np.hypot(Ke[0, 2] - Kt[0, 2], Ke[1, 2] - Kt[1, 2]) < 3.0
+    assert abs(est.baseline_m - truth.baseline_m) < 1e-3
+    assert transfer_rms_px(est, observations, board)[0] < 0.5
+    # The written YAML states its units and reads back identically.
+    save_calibration(tmp_path / "rig.yaml", est)
+    text = (tmp_path / "rig.yaml").read_text()
+    assert "length_unit: mm" in text and "reprojection_rms_px" in text
+    back = load_calibration(tmp_path / "rig.yaml")
+    assert np.allclose(back.T_projector_camera, est.T_projector_camera, atol=1e-15)
+    assert back.reprojection_rms_px == rms
+
+
+def test_calibrate_rig_needs_three_poses():
+    board = Chessboard((4, 3), 0.02)
+    with pytest.raises(CalibrationError, match="at least 3"):
+        calibrate_rig([], board, (64, 48), (64, 48))
+
+
+def test_capture_folder_errors(tmp_path):
+    with pytest.raises(CalibrationError, match="needs 42"):
+        read_graycode_capture(tmp_path, (1024, 768))
+    for i in range(4):  # a 2x2 projector: 1 column bit, 1 row bit, each with inverse
+        cv2.imwrite(str(tmp_path / f"graycode_{i:02d}.png"), np.zeros((10, 12), np.uint8))
+    cv2.imwrite(str(tmp_path / "graycode_04.png"), np.zeros((10, 12), np.uint8))
+    cv2.imwrite(str(tmp_path / "graycode_05.png"), np.zeros((11, 12), np.uint8))
+    with pytest.raises(CalibrationError, match="differs"):
+        read_graycode_capture(tmp_path, (2, 2))
+
+
+# ---------------------------------------------------------------- real data
+
+
+def test_procam_real_calibration():
+    root = shared_data_path("real_fpp", "procam_calibration")
+    board = Chessboard((9, 7), 0.075)
+    report = calibrate_from_graycode_folders([root / f"capture_{i}" for i in range(5)], board, (1024, 768))
+    rms = report.calibration.reprojection_rms_px
+    # The reference result has a stereo RMS of 0.857 px; the local-homography corners fit better.
+    assert rms["camera"] < 0.5 and rms["projector"] < 0.5 and rms["stereo"] < 0.857
+    ref = read_procam_calibration(root / "calibration_result.xml")
+    assert abs(report.calibration.camera.K[0, 0] / ref.camera.K[0, 0] - 1) < 1e-3
+    assert report.projector_corners > 250
+
+
+def test_read_slmaster():
+    cal = read_slmaster_calibration(shared_data_path("real_fpp", "slmaster_monocular", "caliInfo.yml"))
+    assert (cal.camera.width, cal.camera.height) == (1280, 1024)
+    assert (cal.projector.width, cal.projector.height) == (1920, 1080)
+    assert cal.camera.K[0, 0] == pytest.approx(1754.1123627841946)
+    assert cal.projector.K[0, 2] == pytest.approx(990.32167330402626)
+    assert cal.baseline_m == pytest.approx(0.10944, abs=1e-5)
+    C = -cal.T_projector_camera[:3, :3].T @ cal.T_projector_camera[:3, 3]
+    assert C[0] == pytest.approx(0.10638, abs=1e-4)  # projector to the camera's +x side
+    assert cal.T_projector_camera[0, 3] == pytest.approx(-0.10818012009065924)
+
+
+def test_read_procam():
+    path = shared_data_path("real_fpp", "procam_calibration", "calibration_result.xml")
+    cal = read_procam_calibration(path)
+    assert (cal.camera.width, cal.camera.height) == (1280, 1024)
+    assert (cal.projector.width, cal.projector.height) == (1024, 768)
+    assert cal.reprojection_rms_px["stereo"] == pytest.approx(0.85657309970713724)
+    assert cal.T_projector_camera[1, 3] == pytest.approx(-0.63045718819563251)
+    assert read_procam_calibration(path, length_unit="cm").T_projector_camera[1, 3] == pytest.approx(-6.3045718819563251)
+    assert read_any_calibration(path).baseline_m == pytest.approx(cal.baseline_m)
+
+
+def test_read_any_own_yaml(tmp_path):
+    cal = small_rig()
+    save_calibration(tmp_path / "rig.yaml", cal)
+    assert np.allclose(read_any_calibration(tmp_path / "rig.yaml").T_projector_camera, cal.T_projector_camera)
+
+
+# ---------------------------------------------------------------- malformed files
+
+SLMASTER_OK = """%YAML:1.0
+---
+M1: !!opencv-matrix
+   rows: 3
+   cols: 3
+   dt: d
+   data: [ 1000., 0., 640., 0., 1000., 512., 0., 0., 1. ]
+D1: !!opencv-matrix
+   rows: 1
+   cols: 5
+   dt: d
+   data: [ 0., 0., 0., 0., 0. ]
+S: !!opencv-matrix
+   rows: 2
+   cols: 1
+   dt: d
+   data: [ 1280., 1024. ]
+M4: !!opencv-matrix
+   rows: 3
+   cols: 3
+   dt: d
+   data: [ 2000., 0., 960., 0., 2000., 540., 0., 0., 1. ]
+Rlp: !!opencv-matrix
+   rows: 3
+   cols: 3
+   dt: d
+   data: [ 1., 0., 0., 0., 1., 0., 0., 0., 1. ]
+Tlp: !!opencv-matrix
+   rows: 3
+   cols: 1
+   dt: d
+   data: [ -100., 0., 0. ]
+"""
+
+
+def write(tmp_path: Path, name: str, text: str) -> Path:
+    p = tmp_path / name
+    p.write_text(text)
+    return p
+
+
+def test_slmaster_minimal_file_and_missing_distortion(tmp_path):
+    cal = read_slmaster_calibration(write(tmp_path, "ok.yml", SLMASTER_OK))
+    assert cal.baseline_m == pytest.approx(0.1) and cal.projector.dist.size == 0
+
+
+@pytest.mark.parametrize(
+    "edit, match",
+    [
+        (lambda t: t.replace("M4:", "M5:"), r"missing node 'M4'"),
+        (lambda t: t.replace("Tlp:", "Txx:"), r"missing node 'Tlp'"),
+        (lambda t: t.replace("data: [ 1., 0., 0., 0., 1., 0., 0., 0., 1. ]", "data: [ 1., 0., 0., 0., 2., 0., 0., 0., 1. ]"), r"'Rlp' is not a rotation"),
+        (lambda t: t.replace("rows: 3\n   cols: 1\n   dt: d\n   data: [ -100., 0., 0. ]", "rows: 2\n   cols: 1\n   dt: d\n   data: [ -100., 0. ]"), r"'Tlp' has shape"),
+        (lambda t: t.replace("1000., 0., 640.", "-1000., 0., 640."), r"'M1'.*positive focal"),
+        (lambda t: t.replace("data: [ 1280., 1024. ]", "data: [ 1280., 1024., 3. ]").replace("rows: 2", "rows: 3"), r"'S' has shape"),
+        (lambda t: t.replace("data: [ -100., 0., 0. ]", "data: [ -100., 0., 0."), r"not a readable OpenCV FileStorage"),
+    ],
+)
+def test_slmaster_malformed(tmp_path, edit, match):
+    path = write(tmp_path, "caliInfo.yml", edit(SLMASTER_OK))
+    with pytest.raises(CalibrationError, match=match) as info:
+        read_slmaster_calibration(path)
+    assert str(path) in str(info.value)
+
+
+def test_missing_and_unknown_files(tmp_path):
+    with pytest.raises(CalibrationError, match="does not exist"):
+        read_procam_calibration(tmp_path / "nope.xml")
+    other = write(tmp_path, "other.yml", "%YAML:1.0\n---\nfoo: 1\n")
+    with pytest.raises(CalibrationError, match="unknown calibration format"):
+        read_any_calibration(other)
+    with pytest.raises(CalibrationError, match="missing node 'img_shape'"):
+        read_procam_calibration(other)
+    with pytest.raises(CalibrationError, match="length_unit"):
+        read_procam_calibration(other, length_unit="inch")
