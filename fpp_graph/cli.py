@@ -87,3 +87,16 @@ def main(argv: list[str] | None = None) -> int:
 
 if __name__ == "__main__":
     sys.exit(main())
+
+
+def _register_commands() -> None:
+    """Attach the run/eval/batch commands and any front-end command plug-ins (entry points)."""
+    from importlib.metadata import entry_points
+
+    from fpp_graph import cli_run  # noqa: F401  (registers run, eval, batch on `app`)
+
+    for ep in entry_points(group="fpp_graph.cli"):
+        app.command(ep.name)(ep.load())
+
+
+_register_commands()
