@@ -86,7 +86,9 @@ def make_detector(config: RegistrationConfig) -> Detector:
     if config.feature == "orb":
         return _opencv_detector(lambda: cv2.ORB_create(nfeatures=n, scaleFactor=1.2, nlevels=8, fastThreshold=10), n, width)
     if config.feature == "akaze":
-        return _opencv_detector(lambda: cv2.AKAZE_create(threshold=5e-4), n, width)
+        # OpenCV 5 moved AKAZE to xfeatures2d; 4.x has it at top level
+        factory = getattr(cv2, "AKAZE_create", None) or cv2.xfeatures2d.AKAZE_create
+        return _opencv_detector(lambda: factory(threshold=5e-4), n, width)
     raise InputDataError(f"unknown feature type {config.feature!r}; use surf, sift, orb or akaze")  # pragma: no cover
 
 

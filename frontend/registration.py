@@ -1,0 +1,736 @@
+"""Pairwise registration of FPP frames: the project's :class:`~fpp_graph.types.PairRegistrar`.
+
+``FppPairRegistrar.register(target, source)`` runs these steps, each a public function:
+
+1. keypoints on both texture images (:func:`frontend.features.detect_and_describe`, once per
+   frame) and descriptor matching with ratio test and mutual check;
+2. :func:`lift_keypoints`: matched keypoints to 3D through each frame's ``xyz_map`` (bilinear
+   where the four neighbouring pixels are valid and on one surface, else skipped);
+3. :func:`ransac_rigid`: ``T_target_source`` from 3-point samples by the closed-form SVD solution
+   (:func:`kabsch`, the paper's eq. 10) inside RANSAC, refitted on all inliers;
+4. :func:`refine_icp`: GICP or point-to-plane ICP (small_gicp) on voxel-downsampled clouds;
+5. :func:`information_from_icp`: 6x6 information in ``[rot, trans]`` order from the point-to-plane
+   correspondences, scaled by the NEES-calibrated ``information_scale``;
+6. verification with explicit reasons (too few matches/inliers, ICP leaving the RANSAC basin,
+   low fitness/overlap, high inlier RMSE, degenerate geometry via :func:`check_degeneracy`).
+
+A pair that fails any check returns ``Constraint.rejected(...)`` with the reason; a pair that
+cannot be attempted at all (no texture, no 3D points) is rejected the same way, so a caller
+looping over candidates never sees an exception for bad overlap or bad frames.
+
+Error convention of the information matrix: ``e = Log(T_true^-1 T_est)`` (right perturbation,
+``T_est = T_true Exp(e)``), ``e = [omega (rad), v (m)]``, as :mod:`fpp_graph.geometry` and GTSAM.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+import weakref
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from fpp_graph.config import RegistrationConfig
+from fpp_graph.errors import FppError, InputDataError
+from fpp_graph.geometry import invert
+from fpp_graph.types import Constraint, ConstraintKind, Frame
+from frontend.features import Detector, detect_and_describe, make_detector, match_descriptors
+
+log = logging.getLogger(__name__)
+
+Array = NDArray[np.float64]
+
+
+# ---------------------------------------------------------------------------------------------
+# 2D -> 3D
+# ---------------------------------------------------------------------------------------------
+def lift_keypoints(
+    xyz_map: NDArray, keypoints_uv: NDArray, max_depth_step_m: float = 0.005
+) -> tuple[Array, NDArray[np.bool_]]:
+    """3D points (sensor frame, metres) under sub-pixel keypoints, by bilinear interpolation.
+
+    Parameters
+    ----------
+    xyz_map : (H, W, 3) float64
+        Organised points, NaN where invalid.
+    keypoints_uv : (K, 2) float64
+        ``(u = column, v = row)`` pixel coordinates, pixel-centre convention.
+    max_depth_step_m : float
+        Skip a keypoint whose four neighbours span more depth than this (an edge: interpolating
+        across it would invent a point in mid-air).
+
+    Returns
+    -------
+    points : (K, 3) float64
+        Interpolated points; NaN rows where ``valid`` is False.
+    valid : (K,) bool
+        All four neighbours inside the image, finite, and on one surface.
+    """
+    xyz = np.asarray(xyz_map, dtype=np.float64)
+    uv = np.asarray(keypoints_uv, dtype=np.float64).reshape(-1, 2)
+    H, W = xyz.shape[:2]
+    out = np.full((uv.shape[0], 3), np.nan)
+    valid = np.zeros(uv.shape[0], dtype=bool)
+    if uv.shape[0] == 0:
+        return out, valid
+    finite_uv = np.all(np.isfinite(uv), axis=1)
+    u = np.where(finite_uv, uv[:, 0], -10.0)
+    v = np.where(finite_uv, uv[:, 1], -10.0)
+    u0 = np.floor(u).astype(np.int64)
+    v0 = np.floor(v).astype(np.int64)
+    inside = (u0 >= 0) & (v0 >= 0) & (u0 + 1 < W) & (v0 + 1 < H)
+    idx = np.flatnonzero(inside)
+    if idx.size == 0:
+        return out, valid
+    a, b = u0[idx], v0[idx]
+    p00, p10, p01, p11 = xyz[b, a], xyz[b, a + 1], xyz[b + 1, a], xyz[b + 1, a + 1]
+    corners = np.stack([p00, p10, p01, p11], axis=1)  # (k, 4, 3)
+    ok = np.all(np.isfinite(corners), axis=(1, 2))
+    z = corners[..., 2]
+    with np.errstate(invalid="ignore"):
+        ok &= (np.nanmax(z, axis=1) - np.nanmin(z, axis=1)) <= max_depth_step_m
+    fu = (u[idx] - a)[:, None]
+    fv = (v[idx] - b)[:, None]
+    interp = (1 - fv) * ((1 - fu) * p00 + fu * p10) + fv * ((1 - fu) * p01 + fu * p11)
+    sel = idx[ok]
+    out[sel] = interp[ok]
+    valid[sel] = True
+    return out, valid
+
+
+# ---------------------------------------------------------------------------------------------
+# closed form and RANSAC
+# ---------------------------------------------------------------------------------------------
+def _kabsch_batch(P_target: Array, P_source: Array) -> tuple[Array, Array]:
+    """Batched closed-form rotation/translation: (B, n, 3) each -> R (B, 3, 3), t (B, 3)."""
+    ct = P_target.mean(axis=1)
+    cs = P_source.mean(axis=1)
+    Hm = np.einsum("bni,bnj->bij", P_source - cs[:, None], P_target - ct[:, None])
+    U, _, Vt = np.linalg.svd(Hm)
+    d = np.sign(np.linalg.det(np.einsum("bji,bkj->bik", Vt, U)))
+    d[d == 0] = 1.0
+    D = np.zeros_like(Hm)
+    D[:, 0, 0] = 1.0
+    D[:, 1, 1] = 1.0
+    D[:, 2, 2] = d
+    R = np.einsum("bji,bjk,blk->bil", Vt, D, U)  # V D U^T
+    t = ct - np.einsum("bij,bj->bi", R, cs)
+    return R, t
+
+
+def kabsch(P_target: NDArray, P_source: NDArray, weights: NDArray | None = None) -> Array:
+    """Closed-form ``T_target_source`` minimising ``sum w ||P_target - R P_source - t||^2`` (eq. 10).
+
+    Parameters
+    ----------
+    P_target, P_source : (N, 3) float64
+        Corresponding points (N >= 3, not collinear), metres.
+    weights : (N,) float64, optional
+        Non-negative weights.
+
+    Returns
+    -------
+    (4, 4) float64
+        Rigid transform (det +1; reflections are corrected as in Umeyama 1991). No scale.
+
+    Raises
+    ------
+    InputDataError
+        Fewer than 3 points or mismatched shapes.
+    """
+    Pt = np.asarray(P_target, dtype=np.float64).reshape(-1, 3)
+    Ps = np.asarray(P_source, dtype=np.float64).reshape(-1, 3)
+    if Pt.shape != Ps.shape or Pt.shape[0] < 3:
+        raise InputDataError(f"kabsch needs two N x 3 arrays of the same shape with N >= 3, got {Pt.shape} and {Ps.shape}")
+    w = np.ones(Pt.shape[0]) if weights is None else np.asarray(weights, dtype=np.float64).reshape(-1)
+    w = w / max(w.sum(), 1e-300)
+    ct = w @ Pt
+    cs = w @ Ps
+    Hm = (Ps - cs).T @ ((Pt - ct) * w[:, None])
+    U, _, Vt = np.linalg.svd(Hm)
+    d = 1.0 if np.linalg.det(Vt.T @ U.T) >= 0 else -1.0
+    R = Vt.T @ np.diag([1.0, 1.0, d]) @ U.T
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = ct - R @ cs
+    return T
+
+
+@dataclass(frozen=True, eq=False)
+class RansacResult:
+    """Outcome of :func:`ransac_rigid`.
+
+    Attributes
+    ----------
+    T_target_source : (4, 4) float64
+        Refitted on all inliers (identity when nothing was found).
+    inliers : (N,) bool
+    iterations : int
+        Hypotheses drawn.
+    inlier_rmse_m : float
+        RMS 3D residual of the inliers.
+    """
+
+    T_target_source: Array
+    inliers: NDArray[np.bool_]
+    iterations: int
+    inlier_rmse_m: float
+
+    @property
+    def num_inliers(self) -> int:
+        return int(self.inliers.sum())
+
+
+def ransac_rigid(
+    P_target: NDArray,
+    P_source: NDArray,
+    threshold_m: float,
+    max_iterations: int = 2000,
+    confidence: float = 0.9999,
+    rng: np.random.Generator | None = None,
+    extra_hypotheses: list[NDArray] | None = None,
+    batch: int = 64,
+) -> RansacResult:
+    """Robust ``T_target_source`` from 3D-3D correspondences (3-point closed-form RANSAC).
+
+    Samples are drawn in batches; a sample whose three pairwise distances disagree between the
+    frames by more than ``2 threshold_m`` is discarded before the SVD (rigid motions keep
+    distances), which makes most outlier samples free. The iteration count adapts to the best
+    inlier ratio for the requested ``confidence``. The winner is refitted on its inliers twice.
+
+    Parameters
+    ----------
+    P_target, P_source : (N, 3) float64
+        Corresponding points, metres.
+    threshold_m : float
+        Inlier distance ``||P_target - T P_source||``.
+    extra_hypotheses : list of (4, 4), optional
+        Poses scored alongside the samples (e.g. a prior guess).
+
+    Returns
+    -------
+    RansacResult
+    """
+    Pt = np.asarray(P_target, dtype=np.float64).reshape(-1, 3)
+    Ps = np.asarray(P_source, dtype=np.float64).reshape(-1, 3)
+    n = Pt.shape[0]
+    rng = rng or np.random.default_rng(0)
+    thr2 = threshold_m**2
+    best_count, best_T, drawn = -1, np.eye(4), 0
+    if n < 3:
+        return RansacResult(np.eye(4), np.zeros(n, bool), 0, float("nan"))
+
+    def score(R: Array, t: Array) -> NDArray:
+        res = np.einsum("bij,nj->bni", R, Ps) + t[:, None, :] - Pt[None]
+        return np.einsum("bni,bni->bn", res, res) < thr2
+
+    for T in extra_hypotheses or []:
+        T = np.asarray(T, dtype=np.float64)
+        count = int(score(T[None, :3, :3], T[None, :3, 3]).sum())
+        if count > best_count:
+            best_count, best_T = count, T.copy()
+    needed = max_iterations
+    log_fail = math.log(max(1.0 - confidence, 1e-300))
+    while drawn < min(needed, max_iterations):
+        b = min(batch, max_iterations - drawn)
+        idx = np.stack([rng.choice(n, 3, replace=False) for _ in range(b)])
+        drawn += b
+        st, ss = Pt[idx], Ps[idx]  # (b, 3, 3)
+        ok = np.ones(b, dtype=bool)
+        for i, j in ((0, 1), (0, 2), (1, 2)):
+            dt = np.linalg.norm(st[:, i] - st[:, j], axis=1)
+            ds = np.linalg.norm(ss[:, i] - ss[:, j], axis=1)
+            ok &= (np.abs(dt - ds) < 2 * threshold_m) & (ds > 10 * threshold_m)
+        if not np.any(ok):
+            continue
+        R, t = _kabsch_batch(st[ok], ss[ok])
+        counts = score(R, t).sum(axis=1)
+        k = int(np.argmax(counts))
+        if counts[k] > best_count:
+            best_count = int(counts[k])
+            best_T = np.eye(4)
+            best_T[:3, :3], best_T[:3, 3] = R[k], t[k]
+            w = best_count / n
+            p_all = w**3
+            needed = drawn if p_all >= 1.0 else int(math.ceil(log_fail / math.log(max(1.0 - p_all, 1e-300))))
+    if best_count < 3:
+        return RansacResult(np.eye(4), np.zeros(n, bool), drawn, float("nan"))
+    T = best_T
+    inl = score(T[None, :3, :3], T[None, :3, 3])[0]
+    for _ in range(2):
+        if inl.sum() < 3:
+            break
+        T = kabsch(Pt[inl], Ps[inl])
+        inl = score(T[None, :3, :3], T[None, :3, 3])[0]
+    res = Pt[inl] - (Ps[inl] @ T[:3, :3].T + T[:3, 3])
+    rmse = float(np.sqrt(np.mean(np.sum(res**2, axis=1)))) if inl.any() else float("nan")
+    return RansacResult(T, inl, drawn, rmse)
+
+
+# ---------------------------------------------------------------------------------------------
+# ICP and its information
+# ---------------------------------------------------------------------------------------------
+@dataclass(frozen=True, eq=False)
+class IcpCloud:
+    """A voxel-downsampled cloud ready for small_gicp (points, normals, covariances, KD-tree)."""
+
+    cloud: Any  # small_gicp.PointCloud (not picklable: keep it inside one process)
+    tree: Any  # small_gicp.KdTree
+    points: Array  # (M, 3)
+    normals: Array  # (M, 3)
+
+    @property
+    def size(self) -> int:
+        return int(self.points.shape[0])
+
+
+def prepare_icp_cloud(points: NDArray, voxel_m: float, num_neighbors: int = 10) -> IcpCloud:
+    """Voxel-downsample ``points`` (N, 3) and estimate normals/covariances for ICP (one thread)."""
+    import small_gicp
+
+    P = np.ascontiguousarray(np.asarray(points, dtype=np.float64).reshape(-1, 3))
+    down = small_gicp.voxelgrid_sampling(P, voxel_m, 1)
+    tree = small_gicp.KdTree(down, num_threads=1)
+    if down.size() >= num_neighbors:
+        small_gicp.estimate_normals_covariances(down, tree, num_neighbors, 1)
+        normals = np.asarray(down.normals())[:, :3].copy()
+    else:
+        normals = np.zeros((down.size(), 3))
+    return IcpCloud(cloud=down, tree=tree, points=np.asarray(down.points())[:, :3].copy(), normals=normals)
+
+
+def organised_subsample(xyz_map: NDArray, voxel_m: float) -> Array:
+    """Valid points of an organised map, every k-th pixel with k such that the pixel footprint
+    times k is at most half a voxel (voxel averaging after it sees the same surface density,
+    at a fraction of the cost of voxelising every pixel)."""
+    xyz = np.asarray(xyz_map, dtype=np.float64)
+    H, W = xyz.shape[:2]
+    step_px = 1
+    d = np.linalg.norm(np.diff(xyz[H // 4 : 3 * H // 4 : max(1, H // 50), :, :], axis=1), axis=2)
+    d = d[np.isfinite(d) & (d < voxel_m)]
+    if d.size > 10:
+        footprint = float(np.median(d))
+        step_px = max(1, int(0.5 * voxel_m / max(footprint, 1e-9)))
+    sub = xyz[::step_px, ::step_px].reshape(-1, 3)
+    return sub[np.all(np.isfinite(sub), axis=1)]
+
+
+@dataclass(frozen=True, eq=False)
+class IcpResult:
+    """Outcome of :func:`refine_icp`.
+
+    Attributes
+    ----------
+    T_target_source : (4, 4) float64
+    converged : bool
+    iterations : int
+    fitness : float
+        Fraction of source voxels with a target neighbour within the correspondence distance.
+    overlap : float
+        The smaller of that fraction and its target-to-source counterpart.
+    inlier_rmse_m : float
+        RMS point-to-plane distance of the correspondences.
+    num_correspondences : int
+        Estimated over all source voxels.
+    source_points, target_normals_matched, residuals_m : arrays
+        Correspondence data (source voxel points, the matched target normals, point-to-plane
+        residuals) for :func:`information_from_icp`.
+    """
+
+    T_target_source: Array
+    converged: bool
+    iterations: int
+    fitness: float
+    overlap: float
+    inlier_rmse_m: float
+    num_correspondences: int
+    source_points: Array = field(repr=False)
+    target_normals_matched: Array = field(repr=False)
+    residuals_m: Array = field(repr=False)
+
+
+def refine_icp(
+    target: IcpCloud,
+    source: IcpCloud,
+    T_init: NDArray,
+    method: str = "gicp",
+    max_correspondence_m: float = 0.004,
+    max_iterations: int = 50,
+    analysis_points: int = 6000,
+) -> IcpResult:
+    """Refine ``T_target_source`` by GICP or point-to-plane ICP (small_gicp, one thread).
+
+    Parameters
+    ----------
+    target, source : IcpCloud
+        From :func:`prepare_icp_cloud`.
+    T_init : (4, 4)
+        Initial ``T_target_source`` (the RANSAC result).
+    method : {"gicp", "point_to_plane", "none"}
+        ``none`` skips the optimisation but still measures the correspondences.
+    analysis_points : int
+        Correspondences for the quality figures and the information are measured on about this
+        many evenly strided source (and target) voxels.
+
+    Returns
+    -------
+    IcpResult
+    """
+    import small_gicp
+
+    T0 = np.asarray(T_init, dtype=np.float64)
+    if method == "none":
+        T, converged, iterations = T0.copy(), True, 0
+    else:
+        reg_type = {"gicp": "GICP", "point_to_plane": "PLANE_ICP"}[method]
+        res = small_gicp.align(
+            target.cloud,
+            source.cloud,
+            target.tree,
+            init_T_target_source=T0,
+            registration_type=reg_type,
+            max_correspondence_distance=max_correspondence_m,
+            num_threads=1,
+            max_iterations=max_iterations,
+            # small_gicp's defaults (0.1 deg, 1 mm) stop far above FPP precision
+            rotation_epsilon=1e-7,
+            translation_epsilon=1e-8,
+        )
+        T, converged, iterations = np.asarray(res.T_target_source, dtype=np.float64), bool(res.converged), int(res.iterations)
+    # the quality figures and the information need only a fixed-size, evenly spread sample of
+    # the source voxels (the information is scaled back to the full count)
+    stride = max(1, source.size // analysis_points)
+    Ps = source.points[::stride]
+    moved = Ps @ T[:3, :3].T + T[:3, 3]
+    idx, sq = target.tree.batch_nearest_neighbor_search(moved, num_threads=1)
+    idx = np.asarray(idx, dtype=np.int64).reshape(-1)
+    sq = np.asarray(sq, dtype=np.float64).reshape(-1)
+    ok = (idx >= 0) & (sq <= max_correspondence_m**2)
+    n_t = target.normals[idx[ok]]
+    r = np.einsum("ij,ij->i", n_t, moved[ok] - target.points[idx[ok]])
+    fitness = float(ok.mean()) if ok.size else 0.0
+    # target -> source direction for the overlap (a small source fully inside a large target
+    # has fitness 1 but overlap limited by the target side)
+    back = invert(T)
+    moved_t = target.points[:: max(1, target.size // analysis_points)] @ back[:3, :3].T + back[:3, 3]
+    _, sq_t = source.tree.batch_nearest_neighbor_search(moved_t, num_threads=1)
+    sq_t = np.asarray(sq_t, dtype=np.float64).reshape(-1)
+    frac_t = float(np.mean(sq_t <= max_correspondence_m**2)) if sq_t.size else 0.0
+    rmse = float(np.sqrt(np.mean(r**2))) if r.size else float("nan")
+    return IcpResult(
+        T_target_source=T,
+        converged=converged,
+        iterations=iterations,
+        fitness=fitness,
+        overlap=min(fitness, frac_t),
+        inlier_rmse_m=rmse,
+        num_correspondences=int(round(ok.sum() * stride)),
+        source_points=Ps[ok],
+        target_normals_matched=n_t,
+        residuals_m=r,
+    )
+
+
+def _point_to_plane_jacobian(T_target_source: Array, source_points: Array, target_normals: Array) -> Array:
+    """Rows ``d r / d [omega, v]`` of ``r = n . (T Exp(xi) p - q)`` at ``xi = 0``: ``[p x m, m]``, ``m = R^T n``."""
+    m = target_normals @ T_target_source[:3, :3]  # rows: R^T n
+    return np.concatenate([np.cross(source_points, m), m], axis=1)
+
+
+def information_from_icp(icp: IcpResult, scale: float = 1.0, min_sigma_m: float = 1e-6) -> Array:
+    """6x6 information of ``T_target_source`` in ``[rot, trans]`` order from point-to-plane terms.
+
+    ``info = scale * J^T J / sigma^2`` with ``J`` the point-to-plane Jacobian of every
+    correspondence (right perturbation, see module doc) and ``sigma^2`` the residual variance
+    ``sum r^2 / (n - 6)`` (floored at ``min_sigma_m``). Neighbouring voxel residuals are not
+    independent and voxelisation adds a bias that noise statistics do not see, so the raw matrix
+    is overconfident; ``scale`` (< 1) is the correction calibrated by NEES over simulated pairs
+    (``scripts/registration_accuracy.py``).
+
+    Returns
+    -------
+    (6, 6) float64
+        Symmetric; singular when the geometry is degenerate (see :func:`check_degeneracy`).
+    """
+    n = icp.residuals_m.size
+    if n < 7:
+        return np.zeros((6, 6))
+    J = _point_to_plane_jacobian(icp.T_target_source, icp.source_points, icp.target_normals_matched)
+    sigma2 = max(float(np.sum(icp.residuals_m**2)) / (n - 6), min_sigma_m**2)
+    # the residuals are a sample of all correspondences: scale back to the full count
+    info = scale * (icp.num_correspondences / n) * (J.T @ J) / sigma2
+    return 0.5 * (info + info.T)
+
+
+@dataclass(frozen=True)
+class Degeneracy:
+    """Outcome of :func:`check_degeneracy`.
+
+    Attributes
+    ----------
+    degenerate : bool
+    eigenvalue_ratios : (6,) float64
+        Eigenvalues of the length-normalised information over the largest, ascending.
+    unconstrained : list of str
+        Human-readable weak directions, e.g. ``"translation along (0.00, 1.00, 0.00)"``.
+    directions : (k, 6) float64
+        The weak eigenvectors in ``[rot, trans]`` about the source cloud's centroid.
+    """
+
+    degenerate: bool
+    eigenvalue_ratios: Array
+    unconstrained: list[str]
+    directions: Array
+
+
+def check_degeneracy(information: NDArray, source_points: NDArray, ratio: float = 1e-4) -> Degeneracy:
+    """Find directions the geometry does not constrain (one plane: 2 in-plane shifts + 1 spin).
+
+    The information is re-expressed about the centroid of ``source_points`` with rotations in
+    arc length at their RMS radius, so rotational and translational eigenvalues compare in the
+    same unit (m^-2); a direction whose eigenvalue is below ``ratio`` times the largest is
+    unconstrained.
+
+    Parameters
+    ----------
+    information : (6, 6)
+        ``[rot, trans]`` information of ``T_target_source`` (source-frame perturbation).
+    source_points : (N, 3)
+        Points that built it (source frame).
+    ratio : float
+
+    Returns
+    -------
+    Degeneracy
+    """
+    info = np.asarray(information, dtype=np.float64)
+    P = np.asarray(source_points, dtype=np.float64).reshape(-1, 3)
+    c = P.mean(axis=0) if P.size else np.zeros(3)
+    radius = float(np.sqrt(np.mean(np.sum((P - c) ** 2, axis=1)))) if P.size else 1.0
+    radius = max(radius, 1e-6)
+    # xi about the origin = A xi_c with xi_c = [omega, v_c] about the centroid: v = v_c - omega x c
+    A = np.eye(6)
+    A[3:, :3] = np.array([[0.0, c[2], -c[1]], [-c[2], 0.0, c[0]], [c[1], -c[0], 0.0]])  # -[c]x
+    S = np.diag([1.0 / radius] * 3 + [1.0] * 3)  # omega = arc / radius
+    info_c = S @ A.T @ info @ A @ S
+    info_c = 0.5 * (info_c + info_c.T)
+    w, V = np.linalg.eigh(info_c)
+    wmax = max(float(w[-1]), 1e-300)
+    ratios = w / wmax
+    weak = np.flatnonzero(ratios < ratio)
+    names = []
+    for k in weak:
+        vec = V[:, k]
+        rot, trans = vec[:3], vec[3:]
+        if np.linalg.norm(rot) >= np.linalg.norm(trans):
+            a = rot / np.linalg.norm(rot)
+            names.append(f"rotation about ({a[0]:.2f}, {a[1]:.2f}, {a[2]:.2f})")
+        else:
+            a = trans / np.linalg.norm(trans)
+            names.append(f"translation along ({a[0]:.2f}, {a[1]:.2f}, {a[2]:.2f})")
+    return Degeneracy(bool(weak.size), ratios, names, V[:, weak].T.copy())
+
+
+# ---------------------------------------------------------------------------------------------
+# the registrar
+# ---------------------------------------------------------------------------------------------
+class FppPairRegistrar:
+    """Keypoints + RANSAC + ICP registration of two FPP frames (implements ``PairRegistrar``).
+
+    Keypoints and ICP clouds are cached per :class:`Frame` object (weakly), so a frame taking
+    part in several pairs is described and voxelised once.
+
+    Parameters
+    ----------
+    config : RegistrationConfig
+    seed : int
+        RANSAC sampling seed (results are reproducible).
+    """
+
+    def __init__(self, config: RegistrationConfig | None = None, seed: int = 0):
+        self.config = config or RegistrationConfig()
+        self.seed = seed
+        self._detector: Detector | None = None
+        self._features: weakref.WeakKeyDictionary[Frame, Frame] = weakref.WeakKeyDictionary()
+        self._clouds: weakref.WeakKeyDictionary[Frame, IcpCloud] = weakref.WeakKeyDictionary()
+        self.last_timings_s: dict[str, float] = {}
+
+    # -- per-frame work ----------------------------------------------------------------------
+    def describe(self, frame: Frame) -> Frame:
+        """The frame with keypoints/descriptors of the configured type (cached)."""
+        cached = self._features.get(frame)
+        if cached is not None:
+            return cached
+        if frame.keypoints_uv is not None and frame.metadata.get("feature") == self.config.feature:
+            described = frame
+        else:
+            if self._detector is None:
+                self._detector = make_detector(self.config)
+            described = detect_and_describe(frame, self.config, self._detector)
+        self._features[frame] = described
+        return described
+
+    def icp_cloud(self, frame: Frame) -> IcpCloud:
+        """The frame's voxel-downsampled ICP cloud (cached)."""
+        cached = self._clouds.get(frame)
+        if cached is None:
+            pts = organised_subsample(frame.xyz_map, self.config.icp_voxel_m) if frame.xyz_map is not None else frame.points
+            cached = prepare_icp_cloud(pts, self.config.icp_voxel_m)
+            self._clouds[frame] = cached
+        return cached
+
+    # -- the pair ------------------------------------------------------------------------------
+    def register(
+        self,
+        target: Frame,
+        source: Frame,
+        T_guess: NDArray[np.float64] | None = None,
+        kind: ConstraintKind | str = ConstraintKind.ODOMETRY,
+    ) -> Constraint:
+        """Estimate ``T_target_source``; a failed pair returns a rejected Constraint with the reason.
+
+        Parameters
+        ----------
+        target, source : Frame
+            Need ``xyz_map`` and ``texture`` (same size per frame, checked by Frame).
+        T_guess : (4, 4), optional
+            Prior ``T_target_source``; scored as one more RANSAC hypothesis (never trusted alone).
+        kind : ConstraintKind
+            Recorded on the constraint.
+
+        Returns
+        -------
+        Constraint
+            Accepted with information ``[rot, trans]``, or rejected with ``rejection_reason``.
+        """
+        cfg = self.config
+        timings: dict[str, float] = {}
+        self.last_timings_s = timings
+        ids = (source.id, target.id)
+
+        def reject(reason: str, **quality: Any) -> Constraint:
+            log.info("pair %d->%d rejected: %s", source.id, target.id, reason)
+            meta = dict(quality.pop("metadata", {}))
+            meta["timings_s"] = dict(timings)
+            return Constraint.rejected(*ids, reason, kind=kind, metadata=meta, **quality)
+
+        for role, frame in (("target", target), ("source", source)):
+            if frame.xyz_map is None:
+                return reject(f"{role} frame {frame.id} has no xyz_map: keypoints cannot be lifted to 3D")
+            if frame.texture is None:
+                return reject(f"{role} frame {frame.id} has no texture image: no keypoints")
+            if not np.any(np.isfinite(frame.xyz_map[..., 2])):
+                return reject(f"{role} frame {frame.id} has no valid 3D points")
+            if min(frame.texture.shape) < 32:
+                return reject(f"{role} frame {frame.id}: texture {frame.texture.shape} too small for keypoints")
+        try:
+            t0 = time.perf_counter()
+            tgt = self.describe(target)
+            src = self.describe(source)
+            timings["features"] = time.perf_counter() - t0
+            t0 = time.perf_counter()
+            matches = match_descriptors(tgt.descriptors, src.descriptors, cfg.ratio_test, cfg.mutual_check)
+            timings["match"] = time.perf_counter() - t0
+        except FppError as exc:
+            return reject(f"features failed: {exc}")
+        if matches.shape[0] < cfg.min_inliers:
+            return reject(f"too few matches ({matches.shape[0]} < {cfg.min_inliers})", metadata={"matches": int(matches.shape[0])})
+        t0 = time.perf_counter()
+        Pt, vt = lift_keypoints(target.xyz_map, tgt.keypoints_uv[matches[:, 0]])
+        Ps, vs = lift_keypoints(source.xyz_map, src.keypoints_uv[matches[:, 1]])
+        ok = vt & vs
+        Pt, Ps = Pt[ok], Ps[ok]
+        matches3d = matches[ok]
+        if Pt.shape[0] < cfg.min_inliers:
+            return reject(f"too few matches with valid 3D ({Pt.shape[0]} < {cfg.min_inliers})", metadata={"matches": int(matches.shape[0])})
+        rng = np.random.default_rng([self.seed, source.id & 0xFFFFFFFF, target.id & 0xFFFFFFFF])
+        extra = [np.asarray(T_guess, dtype=np.float64)] if T_guess is not None else None
+        ransac = ransac_rigid(Pt, Ps, cfg.ransac_threshold_m, cfg.ransac_iterations, cfg.ransac_confidence, rng, extra)
+        timings["ransac"] = time.perf_counter() - t0
+        meta: dict[str, Any] = {
+            "matches": int(matches.shape[0]),
+            "matches_3d": int(Pt.shape[0]),
+            "ransac_inliers": ransac.num_inliers,
+            "ransac_iterations": ransac.iterations,
+            "ransac_rmse_m": ransac.inlier_rmse_m,
+            "T_ransac": ransac.T_target_source,
+            "feature": cfg.feature,
+        }
+        if ransac.num_inliers < cfg.min_inliers:
+            return reject(f"too few inliers ({ransac.num_inliers} < {cfg.min_inliers} RANSAC inliers of {Pt.shape[0]})", inlier_count=ransac.num_inliers, metadata=meta)
+        t0 = time.perf_counter()
+        tcloud = self.icp_cloud(target)
+        scloud = self.icp_cloud(source)
+        timings["icp_prepare"] = time.perf_counter() - t0
+        if min(tcloud.size, scloud.size) < 30:
+            return reject(f"too few points for ICP ({tcloud.size} target, {scloud.size} source voxels)", inlier_count=ransac.num_inliers, metadata=meta)
+        t0 = time.perf_counter()
+        icp = refine_icp(tcloud, scloud, ransac.T_target_source, cfg.icp_method, cfg.icp_max_correspondence_m, cfg.icp_max_iterations)
+        timings["icp"] = time.perf_counter() - t0
+        T = icp.T_target_source
+        quality = {"fitness": icp.fitness, "inlier_rmse_m": icp.inlier_rmse_m, "inlier_count": ransac.num_inliers, "overlap": icp.overlap}
+        meta.update({"icp_iterations": icp.iterations, "icp_converged": icp.converged, "icp_correspondences": icp.num_correspondences})
+        if not np.all(np.isfinite(T)):
+            return reject("ICP diverged (non-finite pose)", metadata=meta, **quality)
+        # where ICP moved the keypoint inliers: a large move means it left RANSAC's basin
+        Ps_in = Ps[ransac.inliers]
+        shift = np.linalg.norm((Ps_in @ T[:3, :3].T + T[:3, 3]) - (Ps_in @ ransac.T_target_source[:3, :3].T + ransac.T_target_source[:3, 3]), axis=1)
+        meta["icp_shift_m"] = float(shift.max()) if shift.size else 0.0
+        res_kp = np.linalg.norm(Pt - (Ps @ T[:3, :3].T + T[:3, 3]), axis=1)
+        kp_inliers = int(np.sum(res_kp < cfg.ransac_threshold_m))
+        meta["keypoint_inliers_after_icp"] = kp_inliers
+        meta["matches_used"] = matches3d[res_kp < cfg.ransac_threshold_m]
+        if meta["icp_shift_m"] > cfg.max_icp_shift_m:
+            return reject(f"ICP left the RANSAC basin (moved keypoint inliers by {1e3 * meta['icp_shift_m']:.2f} mm > {1e3 * cfg.max_icp_shift_m:.2f} mm)", metadata=meta, **quality)
+        if kp_inliers < cfg.min_inliers:
+            return reject(f"too few inliers after ICP ({kp_inliers} < {cfg.min_inliers} keypoints agree)", metadata=meta, **quality)
+        if icp.fitness < cfg.min_fitness:
+            return reject(f"low fitness ({icp.fitness:.3f} < {cfg.min_fitness})", metadata=meta, **quality)
+        if icp.overlap < cfg.min_overlap:
+            return reject(f"low overlap ({icp.overlap:.3f} < {cfg.min_overlap})", metadata=meta, **quality)
+        if not icp.inlier_rmse_m <= cfg.max_inlier_rmse_m:
+            return reject(f"high inlier RMSE ({1e3 * icp.inlier_rmse_m:.3f} mm > {1e3 * cfg.max_inlier_rmse_m:.3f} mm)", metadata=meta, **quality)
+        t0 = time.perf_counter()
+        info = information_from_icp(icp, scale=cfg.information_scale)
+        deg = check_degeneracy(info, icp.source_points, cfg.degeneracy_ratio)
+        timings["information"] = time.perf_counter() - t0
+        meta["eigenvalue_ratios"] = deg.eigenvalue_ratios
+        if deg.degenerate:
+            return reject("degenerate geometry: unconstrained " + "; ".join(deg.unconstrained), metadata={**meta, "unconstrained_directions": deg.directions}, **quality)
+        meta["timings_s"] = dict(timings)
+        return Constraint(
+            source_id=source.id,
+            target_id=target.id,
+            T_target_source=T,
+            information=info,
+            kind=kind,
+            metadata=meta,
+            **quality,
+        )
+
+
+def with_features(frame: Frame, config: RegistrationConfig) -> Frame:
+    """Alias of :func:`frontend.features.detect_and_describe` for pipeline code that only imports this module."""
+    return detect_and_describe(frame, config)
+
+
+__all__ = [
+    "Degeneracy",
+    "FppPairRegistrar",
+    "IcpCloud",
+    "IcpResult",
+    "RansacResult",
+    "check_degeneracy",
+    "information_from_icp",
+    "kabsch",
+    "lift_keypoints",
+    "organised_subsample",
+    "prepare_icp_cloud",
+    "ransac_rigid",
+    "refine_icp",
+    "with_features",
+]
