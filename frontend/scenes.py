@@ -378,6 +378,9 @@ def make_doll(height_m: float = 0.22, seed: int = 7) -> list[SurfacePart]:
         sphere("eye_right", [0.027 * s, -0.012 * s, 0.197 * s], np.full(3, 0.0055) * s, mat(0.1, 0.01, 9, 0.1)),
         cylinder("belt", [0, 0, 0.085 * s], [0, 0, 0.095 * s], 0.04 * s, mat(0.15, 0.01, 10, 0.3)),
     ]
+    top = max(float(p.vertices[:, 2].max()) for p in parts)
+    for p in parts:  # exact requested height
+        p.vertices = p.vertices * (height_m / top)
     return parts
 
 
