@@ -1,0 +1,277 @@
+"""g2o 3D pose-graph files: ``VERTEX_SE3:QUAT``, ``EDGE_SE3:QUAT`` and ``FIX``, read and written.
+
+Format (one record per line, ``#`` starts a comment)::
+
+    VERTEX_SE3:QUAT id tx ty tz qx qy qz qw
+    EDGE_SE3:QUAT i j tx ty tz qx qy qz qw  I11 I12 ... I16 I22 ... I66
+    FIX id [id ...]
+
+A vertex holds ``T_world_sensor``. An edge's measurement is ``T_i_j``: it maps points of vertex
+``j`` into vertex ``i``, so ``i`` is the target and ``j`` the source of a
+:class:`~fpp_graph.pose_graph.PoseGraphEdge`. The 21 numbers are the upper triangle (row by
+row) of the 6x6 information matrix in g2o's ``[trans, rot]`` order; the project uses
+``[rot, trans]`` and converts by permutation on read and write.
+
+g2o has no edge kinds: on read, an edge between vertices adjacent in sorted id order is
+odometry (a known inlier for GNC), any other edge a loop.
+
+Reading is strict: a truncated line, an unknown tag, a non-number, NaN, a zero or non-unit
+quaternion (norm off by more than 1e-3), a duplicate vertex, an edge to a missing vertex or an
+information matrix that is not positive definite raises
+:class:`~fpp_graph.errors.InputDataError` naming the file and line. Writing uses the shortest
+repr that parses back to the same double (``gtsam.writeG2o`` keeps 6 digits), and quaternions
+read from a file are written back as read, so write-then-read reproduces poses bit for bit.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from collections.abc import Mapping
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.spatial.transform import Rotation
+
+from fpp_graph.atomic import atomic_open
+from fpp_graph.errors import InputDataError
+from fpp_graph.pose_graph import PoseGraph, PoseGraphEdge
+from fpp_graph.types import ConstraintKind
+
+log = logging.getLogger(__name__)
+
+VERTEX_TAG = "VERTEX_SE3:QUAT"
+EDGE_TAG = "EDGE_SE3:QUAT"
+FIX_TAG = "FIX"
+_QUAT_NORM_TOLERANCE = 1e-3  # files of other tools carry 6-7 digit quaternions
+_MIN_EIGENVALUE_RATIO = 1e-14  # below this smallest/largest eigenvalue, information is singular in double
+_G2O_FROM_ROT_TRANS = np.array([3, 4, 5, 0, 1, 2])  # [trans, rot] <-> [rot, trans] (its own inverse)
+_UPPER = np.triu_indices(6)
+_KNOWN_2D = {"VERTEX_SE2", "EDGE_SE2", "VERTEX_XY", "EDGE_SE2_XY"}
+
+
+def _fail(path: Path, line: int, message: str) -> InputDataError:
+    return InputDataError(f"{path}:{line}: {message}")
+
+
+def _parse_numbers(tokens: list[str], path: Path, line: int, what: str) -> list[float]:
+    try:
+        return [float(t) for t in tokens]
+    except ValueError:
+        bad = next(t for t in tokens if not _is_float(t))
+        raise _fail(path, line, f"{what}: {bad!r} is not a number") from None
+
+
+def _is_float(token: str) -> bool:
+    try:
+        float(token)
+    except ValueError:
+        return False
+    return True
+
+
+def _parse_id(token: str, path: Path, line: int, what: str) -> int:
+    if not (token.isascii() and token.isdigit()) or len(token) > 18:
+        raise _fail(path, line, f"{what}: id {token!r} is not a non-negative integer below 10^18")
+    return int(token)
+
+
+def _rotations_from_quats(quats_xyzw: NDArray[np.float64], lines: list[int], path: Path, what: str) -> NDArray[np.float64]:
+    """Rotation matrices of unit quaternions; a zero or non-unit one is an error naming its line."""
+    if len(quats_xyzw) == 0:
+        return np.zeros((0, 3, 3))
+    norms = np.linalg.norm(quats_xyzw, axis=1)
+    bad = np.flatnonzero(np.abs(norms - 1.0) > _QUAT_NORM_TOLERANCE)
+    if len(bad):
+        i = int(bad[0])
+        kind = "zero quaternion" if norms[i] == 0 else f"quaternion norm {norms[i]:.6g} is not 1 (tolerance {_QUAT_NORM_TOLERANCE})"
+        raise _fail(path, lines[i], f"{what}: {kind}; write qx qy qz qw of a unit quaternion")
+    return Rotation.from_quat(quats_xyzw).as_matrix()
+
+
+def read_g2o(path: str | os.PathLike[str]) -> PoseGraph:
+    """Read a 3D g2o pose graph into a :class:`~fpp_graph.pose_graph.PoseGraph`.
+
+    Vertices become poses (initial values), ``FIX`` lines fixed poses, edges edges with
+    information converted to ``[rot, trans]`` order. Raises
+    :class:`~fpp_graph.errors.InputDataError` naming the line of any malformed record.
+    """
+    path = Path(path)
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise InputDataError(f"cannot read pose graph {path}: {exc.strerror}") from None
+
+    v_ids: list[int] = []
+    v_vals: list[list[float]] = []
+    v_lines: list[int] = []
+    e_ids: list[tuple[int, int]] = []
+    e_vals: list[list[float]] = []
+    e_lines: list[int] = []
+    fixed: list[tuple[int, int]] = []
+    for lineno, raw in enumerate(data.splitlines(), start=1):
+        try:
+            line = raw.decode("ascii")
+        except UnicodeDecodeError:
+            raise _fail(path, lineno, "not plain ASCII text; is this a g2o file?") from None
+        tokens = line.split()
+        if not tokens or tokens[0].startswith("#"):
+            continue
+        tag = tokens[0]
+        if any("_" in t for t in tokens[1:]):  # float() would accept "1_000"
+            raise _fail(path, lineno, "numbers must not contain '_'")
+        if tag == VERTEX_TAG:
+            if len(tokens) != 9:
+                raise _fail(path, lineno, f"{tag} needs 8 fields (id tx ty tz qx qy qz qw), got {len(tokens) - 1}")
+            v_ids.append(_parse_id(tokens[1], path, lineno, tag))
+            v_vals.append(_parse_numbers(tokens[2:], path, lineno, tag))
+            v_lines.append(lineno)
+        elif tag == EDGE_TAG:
+            if len(tokens) != 31:
+                raise _fail(
+                    path, lineno,
+                    f"{tag} needs 30 fields (i j tx ty tz qx qy qz qw and 21 information entries), got {len(tokens) - 1}",
+                )
+            e_ids.append((_parse_id(tokens[1], path, lineno, tag), _parse_id(tokens[2], path, lineno, tag)))
+            e_vals.append(_parse_numbers(tokens[3:], path, lineno, tag))
+            e_lines.append(lineno)
+        elif tag == FIX_TAG:
+            if len(tokens) < 2:
+                raise _fail(path, lineno, "FIX needs at least one vertex id")
+            fixed.extend((_parse_id(t, path, lineno, tag), lineno) for t in tokens[1:])
+        elif tag in _KNOWN_2D:
+            raise _fail(path, lineno, f"{tag} is a 2D record; only 3D graphs (VERTEX_SE3:QUAT, EDGE_SE3:QUAT) are supported")
+        else:
+            raise _fail(path, lineno, f"unknown record {tag!r}; expected {VERTEX_TAG}, {EDGE_TAG} or {FIX_TAG}")
+
+    if not v_ids:
+        raise InputDataError(f"{path}: no {VERTEX_TAG} records; not a 3D g2o pose graph")
+
+    # vertices
+    vertex_line: dict[int, int] = {}
+    for key, lineno in zip(v_ids, v_lines, strict=True):
+        if key in vertex_line:
+            raise _fail(path, lineno, f"vertex {key} is defined twice (first on line {vertex_line[key]})")
+        vertex_line[key] = lineno
+    v = np.asarray(v_vals, dtype=np.float64).reshape(-1, 7)
+    bad = np.flatnonzero(~np.all(np.isfinite(v), axis=1))
+    if len(bad):
+        raise _fail(path, v_lines[int(bad[0])], f"{VERTEX_TAG}: NaN or infinite value")
+    poses = np.tile(np.eye(4), (len(v), 1, 1))
+    poses[:, :3, :3] = _rotations_from_quats(v[:, 3:], v_lines, path, VERTEX_TAG)
+    poses[:, :3, 3] = v[:, :3]
+
+    # edges
+    e = np.asarray(e_vals, dtype=np.float64).reshape(-1, 28)
+    bad = np.flatnonzero(~np.all(np.isfinite(e), axis=1))
+    if len(bad):
+        raise _fail(path, e_lines[int(bad[0])], f"{EDGE_TAG}: NaN or infinite value")
+    for (i, j), lineno in zip(e_ids, e_lines, strict=True):
+        for key in (i, j):
+            if key not in vertex_line:
+                raise _fail(path, lineno, f"edge {i}->{j} refers to vertex {key}, which has no {VERTEX_TAG} record")
+        if i == j:
+            raise _fail(path, lineno, f"edge {i}->{j} links a vertex to itself")
+    rotations = _rotations_from_quats(e[:, 3:7], e_lines, path, EDGE_TAG)
+    info_g2o = np.zeros((len(e), 6, 6))
+    info_g2o[:, _UPPER[0], _UPPER[1]] = e[:, 7:]
+    info_g2o = info_g2o + np.transpose(np.triu(info_g2o, 1), (0, 2, 1))
+    info = info_g2o[:, _G2O_FROM_ROT_TRANS][:, :, _G2O_FROM_ROT_TRANS]
+    if len(info):
+        eig = np.linalg.eigvalsh(info)
+        bad = np.flatnonzero(eig[:, 0] <= _MIN_EIGENVALUE_RATIO * np.abs(eig[:, -1]))
+        if len(bad):
+            i = int(bad[0])
+            raise _fail(
+                path, e_lines[i],
+                f"information matrix is not positive definite (eigenvalues {eig[i, 0]:.3g} .. {eig[i, -1]:.3g}); "
+                "an edge must constrain all 6 degrees of freedom",
+            )
+
+    for key, lineno in fixed:
+        if key not in vertex_line:
+            raise _fail(path, lineno, f"FIX refers to vertex {key}, which has no {VERTEX_TAG} record")
+
+    order = np.sort(np.asarray(v_ids, dtype=np.int64))
+    rank = {int(k): r for r, k in enumerate(order)}
+    edges = []
+    for n, (i, j) in enumerate(e_ids):
+        T = np.eye(4)
+        T[:3, :3] = rotations[n]
+        T[:3, 3] = e[n, :3]
+        kind = ConstraintKind.ODOMETRY if abs(rank[i] - rank[j]) == 1 else ConstraintKind.LOOP
+        edges.append(PoseGraphEdge(source_id=j, target_id=i, T_target_source=T, information_rot_trans=info[n], kind=kind))
+
+    graph = PoseGraph()
+    graph._load(v_ids, poses, v[:, 3:].copy(), edges, e[:, 3:7].copy(), [k for k, _ in fixed])
+    log.debug("read %s: %d vertices, %d edges, %d fixed", path, len(v_ids), len(edges), len(fixed))
+    return graph
+
+
+def _quats_for(matrices: NDArray[np.float64]) -> NDArray[np.float64]:
+    if len(matrices) == 0:
+        return np.zeros((0, 4))
+    q = Rotation.from_matrix(matrices).as_quat()
+    return np.where(q[:, 3:4] < 0, -q, q)
+
+
+def _fmt(values: ArrayLike) -> str:
+    return " ".join(repr(float(x)) for x in np.asarray(values, dtype=np.float64).ravel())
+
+
+def write_g2o(path: str | os.PathLike[str], graph: PoseGraph, poses: Mapping[int, ArrayLike] | None = None) -> None:
+    """Write ``graph`` as a 3D g2o file, atomically and at full precision.
+
+    Parameters
+    ----------
+    path : path
+        Output file (parents are created).
+    graph : PoseGraph
+        Vertices (in the graph's order), ``FIX`` for fixed poses, edges. Priors have no g2o
+        record and are left out (with a warning).
+    poses : mapping int -> (4, 4), optional
+        Vertex poses to write instead of the graph's current ones (e.g. a result's
+        ``poses_world_sensor``); keys absent here keep the graph's pose.
+    """
+    from fpp_graph.pose_graph import _as_pose
+
+    current = graph._poses
+    if poses is not None:
+        unknown = sorted(set(poses) - set(current))
+        if unknown:
+            raise InputDataError(f"write_g2o: poses given for keys {unknown[:10]} that are not in the graph")
+    keys = list(current)
+    matrices = []
+    cached: dict[int, np.ndarray] = {}
+    for key in keys:
+        T = current[key]
+        if poses is not None and key in poses:
+            given = np.asarray(poses[key], dtype=np.float64)
+            if not np.array_equal(given, T):
+                T = _as_pose(given, f"write_g2o: pose {key}")
+        matrices.append(T)
+        q = graph._pose_quat_xyzw.get(key)
+        if q is not None and T is current[key]:
+            cached[key] = q
+    matrices_arr = np.asarray(matrices).reshape(-1, 4, 4)
+    computed = _quats_for(matrices_arr[:, :3, :3])
+    edges = graph.edges()
+    edge_quats = _quats_for(np.asarray([e.T_target_source[:3, :3] for e in edges]).reshape(-1, 3, 3))
+    if graph.priors():
+        log.warning("write_g2o: %d prior(s) have no g2o record and are not written", len(graph.priors()))
+
+    lines = []
+    for n, key in enumerate(keys):
+        q = cached.get(key, computed[n])
+        lines.append(f"{VERTEX_TAG} {key} {_fmt(matrices_arr[n, :3, 3])} {_fmt(q)}\n")
+    for key in graph.fixed_poses():
+        lines.append(f"{FIX_TAG} {key}\n")
+    for n, e in enumerate(edges):
+        q = graph._edge_quat_xyzw.get(n, edge_quats[n])
+        info_g2o = e.information_rot_trans[_G2O_FROM_ROT_TRANS][:, _G2O_FROM_ROT_TRANS]
+        lines.append(
+            f"{EDGE_TAG} {e.target_id} {e.source_id} {_fmt(e.T_target_source[:3, 3])} {_fmt(q)} {_fmt(info_g2o[_UPPER])}\n"
+        )
+    with atomic_open(path, "w", encoding="ascii") as handle:
+        handle.writelines(lines)

@@ -1,0 +1,1106 @@
+"""The pose graph: a numpy-in, numpy-out wrapper over GTSAM ``Pose3`` factor graphs.
+
+Callers see 4x4 ``T_world_sensor`` matrices and 6x6 information matrices in ``[rot, trans]``
+order (GTSAM's tangent order); no gtsam type crosses this module's surface.
+
+- :class:`PoseGraph`: batch optimisation. Chordal initialisation (``gtsam.InitializePose3``,
+  falling back to the given poses when it fails), Levenberg-Marquardt, robust loop handling
+  (GNC with truncated least squares where odometry and priors are known inliers, or a Cauchy
+  loss), a chi-square consistency check of loop edges after optimising, and marginal
+  covariances. Structural problems (disconnected parts, unconstrained poses) are found before
+  solving and raised as :class:`~fpp_graph.errors.GraphError` naming the poses.
+- :class:`IncrementalPoseGraph`: iSAM2 for live use, one update per keyframe, with
+  :meth:`IncrementalPoseGraph.polish` for a batch (GNC) pass after a loop closes.
+- :func:`sesync_objective`: the SE-Sync objective ``F`` of a graph at given poses, so results
+  compare with published certified optima.
+
+Edge semantics: an edge from ``source_id`` to ``target_id`` carries ``T_target_source`` (maps
+source-frame points into the target frame) and becomes ``BetweenFactorPose3(target, source,
+T_target_source)``, whose error is ``Log(T_target_source^-1 * T_world_target^-1 *
+T_world_source)`` in ``[rot, trans]``. The cost is GTSAM's ``0.5 * sum ||whitened error||^2``.
+
+Anchors: :meth:`PoseGraph.fix_pose` is a hard anchor. It is implemented as a prior whose
+information is 1e8 times the largest edge information, because GTSAM's exact constraint
+(``NonlinearEquality``) breaks GNC's re-weighting; with a single anchor the solution is then
+moved rigidly (an exact symmetry of the cost) so the anchored pose keeps its value to the bit.
+A graph without any anchor that is connected gets its smallest key fixed (the gauge).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from fpp_graph.config import PoseGraphConfig
+from fpp_graph.errors import GraphError
+from fpp_graph.graph_diagnostics import check_constrained, connected_parts
+from fpp_graph.types import Constraint, ConstraintKind
+
+if TYPE_CHECKING:  # gtsam is imported lazily so that importing this module stays cheap
+    import gtsam
+
+log = logging.getLogger(__name__)
+
+Array = NDArray[np.float64]
+
+#: A fixed pose is a prior this many times stiffer than the stiffest edge information.
+ANCHOR_STIFFNESS = 1e8
+#: Tolerance on R^T R - I below which a given rotation is used as is (no re-projection).
+_ORTHONORMAL_ATOL = 1e-12
+#: Largest deviation from a rotation accepted (and projected onto SO(3)) in a given pose.
+_RIGID_ATOL = 1e-5
+#: Inner LM tolerance during GNC's outer iterations; a tight LM polish follows GNC.
+_GNC_INNER_RELATIVE_TOL = 1e-6
+#: Most loop edges removed one by one by the consistency check before giving up.
+_MAX_CONSISTENCY_ROUNDS = 100
+
+
+# ----------------------------------------------------------------------------------------------
+# Data
+# ----------------------------------------------------------------------------------------------
+@dataclass(frozen=True, eq=False)
+class PoseGraphEdge:
+    """One relative-pose edge as stored in a :class:`PoseGraph`.
+
+    Attributes
+    ----------
+    source_id, target_id : int
+        Pose keys; the measurement maps source-frame points into the target frame.
+    T_target_source : (4, 4) float64
+        Measured relative pose (metres).
+    information_rot_trans : (6, 6) float64
+        Information of the measurement, ``[rot, trans]`` order (the file's, not the
+        solver's noise model when an isotropic model is chosen at optimisation time).
+    kind : ConstraintKind
+        ``odometry`` (a known inlier for GNC) or ``loop`` (may be rejected).
+    """
+
+    source_id: int
+    target_id: int
+    T_target_source: Array
+    information_rot_trans: Array
+    kind: ConstraintKind = ConstraintKind.ODOMETRY
+
+    @property
+    def pair(self) -> tuple[int, int]:
+        """``(source_id, target_id)``, the key used in rejection lists."""
+        return (self.source_id, self.target_id)
+
+
+@dataclass(frozen=True, eq=False)
+class PosePrior:
+    """A unary prior ``T_world_sensor`` on one pose with 6x6 ``[rot, trans]`` information."""
+
+    key: int
+    T_world_sensor: Array
+    information_rot_trans: Array
+
+
+@dataclass(frozen=True)
+class PoseGraphResult:
+    """Outcome of :meth:`PoseGraph.optimize`.
+
+    Attributes
+    ----------
+    poses_world_sensor : dict[int, (4, 4) float64]
+        Optimised poses.
+    initial_cost : float
+        ``0.5 * sum ||whitened residual||^2`` over all edges and priors at the poses the graph
+        held before optimising (solver noise model, no robust loss).
+    final_cost : float
+        The same cost at the solution, over the edges kept (rejected loops excluded).
+    iterations : int
+        Levenberg-Marquardt (or iSAM2) iterations of the final solve, re-solves included.
+    seconds : float
+        Wall time of the whole call (checks, initialisation, solving, consistency check).
+    rejected_loops : list of (source_id, target_id)
+        Loop edges left out of the solution: by GNC or removed by the consistency check.
+    inconsistent_loops : list of (source_id, target_id)
+        Loop edges whose whitened residual exceeded the chi-square bound (removed and
+        re-optimised when ``remove_inconsistent_loops`` is set).
+    initialization : str
+        ``"chordal"`` or ``"given"``, with the reason when chordal initialisation failed.
+    initialized_cost : float
+        The cost at the initial values handed to the solver (after initialisation).
+    noise_model, robust, solver : str
+        The options used.
+    """
+
+    poses_world_sensor: dict[int, Array]
+    initial_cost: float
+    final_cost: float
+    iterations: int
+    seconds: float
+    rejected_loops: list[tuple[int, int]]
+    inconsistent_loops: list[tuple[int, int]]
+    initialization: str
+    initialized_cost: float = math.nan
+    noise_model: str = "file"
+    robust: str = "none"
+    solver: str = "lm"
+
+
+# ----------------------------------------------------------------------------------------------
+# Validation and conversion helpers (numpy only)
+# ----------------------------------------------------------------------------------------------
+def _as_pose(T: ArrayLike, where: str) -> Array:
+    """A validated 4x4 rigid transform; rotations off SO(3) by < 1e-5 are projected onto it."""
+    T = np.array(T, dtype=np.float64)
+    if T.shape != (4, 4):
+        raise GraphError(f"{where}: a pose must be a 4x4 matrix, got shape {T.shape}")
+    if not np.all(np.isfinite(T)):
+        raise GraphError(f"{where}: the pose contains NaN or infinite values")
+    R = T[:3, :3]
+    deviation = np.abs(R.T @ R - np.eye(3)).max()
+    if deviation > _RIGID_ATOL or abs(np.linalg.det(R) - 1.0) > _RIGID_ATOL or not np.allclose(T[3], [0, 0, 0, 1], atol=_RIGID_ATOL):
+        raise GraphError(
+            f"{where}: not a rigid transform (rotation off SO(3) by {deviation:.2g}, det {np.linalg.det(R):.6g}, "
+            f"last row {T[3].tolist()}); pass a 4x4 [R t; 0 0 0 1] with orthonormal R"
+        )
+    if deviation > _ORTHONORMAL_ATOL:
+        U, _, Vt = np.linalg.svd(R)
+        T[:3, :3] = U @ Vt
+    T[3] = (0.0, 0.0, 0.0, 1.0)
+    return T
+
+
+def _as_information(information: ArrayLike, where: str) -> Array:
+    """A validated 6x6 symmetric positive-definite information matrix (exactly symmetrised)."""
+    info = np.array(information, dtype=np.float64)
+    if info.shape != (6, 6):
+        raise GraphError(f"{where}: information must be 6x6 [rot, trans], got shape {info.shape}")
+    if not np.all(np.isfinite(info)):
+        raise GraphError(f"{where}: information contains NaN or infinite values")
+    scale = max(float(np.abs(info).max()), 1e-300)
+    if np.abs(info - info.T).max() > 1e-9 * scale:
+        raise GraphError(f"{where}: information matrix is not symmetric")
+    info = 0.5 * (info + info.T)
+    try:
+        np.linalg.cholesky(info)
+    except np.linalg.LinAlgError:
+        eig = np.linalg.eigvalsh(info)
+        raise GraphError(
+            f"{where}: information matrix is not positive definite (smallest eigenvalue {eig.min():.3g}); "
+            "every edge must constrain all 6 degrees of freedom: reject the measurement instead"
+        ) from None
+    return info
+
+
+def sesync_tau_kappa(information_rot_trans: ArrayLike) -> tuple[Array, Array]:
+    """SE-Sync's isotropic precisions of edges (Rosen et al., IJRR 2019).
+
+    Parameters
+    ----------
+    information_rot_trans : (..., 6, 6)
+        Information matrices in ``[rot, trans]`` order.
+
+    Returns
+    -------
+    tau, kappa : (...) float64
+        ``tau = 3 / trace(inv(translation block))``, ``kappa = 3 / (2 trace(inv(rotation block)))``
+        (the blocks of the information matrix, as SE-Sync's g2o reader does).
+    """
+    info = np.asarray(information_rot_trans, dtype=np.float64)
+    rot_cov_trace = np.trace(np.linalg.inv(info[..., :3, :3]), axis1=-2, axis2=-1)
+    trans_cov_trace = np.trace(np.linalg.inv(info[..., 3:, 3:]), axis1=-2, axis2=-1)
+    return 3.0 / trans_cov_trace, 3.0 / (2.0 * rot_cov_trace)
+
+
+def isotropic_information(information_rot_trans: ArrayLike) -> Array:
+    """GTSAM information matching SE-Sync's isotropic model: ``diag(4 kappa I3, 2 tau I3)``.
+
+    SE-Sync minimises ``sum kappa ||R_j - R_i R_ij||_F^2 + tau ||t_j - t_i - R_i t_ij||^2``.
+    With ``E = R_ij^T R_i^T R_j`` at angle ``theta``, ``||R_j - R_i R_ij||_F^2 = 4 (1 - cos
+    theta) = 2 theta^2 + O(theta^4)``, and the translation term equals the squared norm of the
+    between error's translation (up to the SE(3) log's second-order coupling). GTSAM's cost is
+    ``0.5 e^T W e``, so ``W_rot = 4 kappa`` and ``W_trans = 2 tau`` make the two objectives
+    agree to second order, hence share the optimum to the figures published.
+
+    Parameters
+    ----------
+    information_rot_trans : (..., 6, 6)
+
+    Returns
+    -------
+    (..., 6, 6) float64
+    """
+    tau, kappa = sesync_tau_kappa(information_rot_trans)
+    out = np.zeros(np.shape(information_rot_trans), dtype=np.float64)
+    idx = np.arange(3)
+    out[..., idx, idx] = 4.0 * kappa[..., None]
+    out[..., idx + 3, idx + 3] = 2.0 * tau[..., None]
+    return out
+
+
+def _values_from(poses: Mapping[int, Array]) -> gtsam.Values:
+    import gtsam
+
+    values = gtsam.Values()
+    for key, T in poses.items():
+        values.insert(int(key), gtsam.Pose3(T))
+    return values
+
+
+def _poses_from(values: gtsam.Values, keys: Iterable[int] | None = None) -> dict[int, Array]:
+    """4x4 poses of ``values`` (all Pose3 keys, or ``keys``), in one vectorised extraction."""
+    import gtsam
+
+    all_keys = [int(k) for k in values.keys()]
+    rows = gtsam.utilities.extractPose3(values)  # key order, R row-major then t
+    T = np.zeros((len(all_keys), 4, 4))
+    T[:, :3, :3] = rows[:, :9].reshape(-1, 3, 3)
+    T[:, :3, 3] = rows[:, 9:12]
+    T[:, 3, 3] = 1.0
+    poses = dict(zip(all_keys, T, strict=True))
+    if keys is None:
+        return poses
+    return {int(k): poses[int(k)] for k in keys}
+
+
+def _lm_params(max_iterations: int, relative_error_tol: float) -> gtsam.LevenbergMarquardtParams:
+    import gtsam
+
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(int(max_iterations))
+    params.setRelativeErrorTol(float(relative_error_tol))
+    # Stop on the relative decrease only: the cost of a well-fitting graph can be tiny in
+    # absolute terms (parking-garage's optimum is 1.26) and an absolute threshold stops early.
+    params.setAbsoluteErrorTol(0.0)
+    params.setErrorTol(0.0)
+    return params
+
+
+def _short(exc: BaseException) -> str:
+    """GTSAM's exception texts run over many lines; the first sentence says what happened."""
+    text = " ".join(str(exc).split())
+    return text.split(". ")[0].rstrip(".") or type(exc).__name__
+
+
+def _solver_error(exc: Exception) -> GraphError:
+    return GraphError(
+        f"the pose-graph solver failed: {_short(exc)}; the structure check passed, so this usually means "
+        "badly scaled information (very different magnitudes) or NaN poses; check the edges near that pose"
+    )
+
+
+# ----------------------------------------------------------------------------------------------
+# The batch pose graph
+# ----------------------------------------------------------------------------------------------
+class PoseGraph:
+    """A 3D pose graph: poses ``T_world_sensor``, relative-pose edges, anchors and priors.
+
+    Examples
+    --------
+    >>> graph = PoseGraph()
+    >>> graph.add_pose(0, np.eye(4)); graph.add_pose(1, T_world_1_guess)
+    >>> graph.fix_pose(0)
+    >>> graph.add_edge(1, 0, T_0_1, information_rot_trans)     # maps frame 1 into frame 0
+    >>> result = graph.optimize()
+    >>> result.poses_world_sensor[1], graph.marginal_covariance(1)
+
+    :meth:`optimize` replaces the stored poses by the solution, so :meth:`poses` returns the
+    latest estimate and a second call starts from it.
+    """
+
+    def __init__(self) -> None:
+        self._poses: dict[int, Array] = {}
+        self._fixed: list[int] = []
+        self._priors: list[PosePrior] = []
+        self._edges: list[PoseGraphEdge] = []
+        # Exact quaternions (x y z w) of poses/edges read from a file, so that a g2o write
+        # after a read reproduces the file's numbers (a matrix -> quaternion round trip need
+        # not be bit-exact). Dropped when the pose changes.
+        self._pose_quat_xyzw: dict[int, Array] = {}
+        self._edge_quat_xyzw: dict[int, Array] = {}
+        self._solution: tuple[gtsam.NonlinearFactorGraph, None] | None = None
+        self._marginals: gtsam.Marginals | None = None
+
+    # -- building --------------------------------------------------------------------------
+    def add_pose(self, key: int, T_world_sensor: ArrayLike) -> None:
+        """Add a pose (its initial value) under an integer key >= 0.
+
+        Raises
+        ------
+        GraphError
+            The key exists already (use :meth:`set_pose`), is negative, or the pose is not rigid.
+        """
+        key = self._check_key(key)
+        if key in self._poses:
+            raise GraphError(f"pose {key} is already in the graph; use set_pose to change its value")
+        self._poses[key] = _as_pose(T_world_sensor, f"pose {key}")
+        self._invalidate()
+
+    def set_pose(self, key: int, T_world_sensor: ArrayLike) -> None:
+        """Replace the current value (initial guess) of an existing pose."""
+        key = self._require_pose(key, "set_pose")
+        self._poses[key] = _as_pose(T_world_sensor, f"pose {key}")
+        self._pose_quat_xyzw.pop(key, None)
+        self._invalidate()
+
+    def fix_pose(self, key: int) -> None:
+        """Hold a pose at its current value (hard anchor; removes the gauge freedom)."""
+        key = self._require_pose(key, "fix_pose")
+        if key not in self._fixed:
+            self._fixed.append(key)
+            self._invalidate()
+
+    def add_prior(self, key: int, T_world_sensor: ArrayLike, information_rot_trans: ArrayLike) -> None:
+        """Add a unary prior on a pose, with 6x6 information in ``[rot, trans]`` order."""
+        key = self._require_pose(key, "add_prior")
+        where = f"prior on pose {key}"
+        self._priors.append(PosePrior(key, _as_pose(T_world_sensor, where), _as_information(information_rot_trans, where)))
+        self._invalidate()
+
+    def add_edge(
+        self,
+        source_id: int,
+        target_id: int,
+        T_target_source: ArrayLike,
+        information_rot_trans: ArrayLike,
+        kind: str | ConstraintKind = ConstraintKind.ODOMETRY,
+    ) -> None:
+        """Add a relative-pose measurement ``T_target_source`` (maps source points into target).
+
+        Parameters
+        ----------
+        source_id, target_id : int
+            Keys of poses already in the graph.
+        T_target_source : (4, 4)
+            Measured relative pose, metres.
+        information_rot_trans : (6, 6)
+            Symmetric positive-definite information, ``[rot, trans]`` order.
+        kind : {"odometry", "loop"}
+            Odometry edges are known inliers for GNC; loop edges can be rejected.
+        """
+        where = f"edge {source_id}->{target_id}"
+        source_id = self._require_pose(source_id, where)
+        target_id = self._require_pose(target_id, where)
+        if source_id == target_id:
+            raise GraphError(f"{where}: an edge must link two different poses")
+        try:
+            kind = ConstraintKind(kind)
+        except ValueError:
+            raise GraphError(f"{where}: kind must be 'odometry' or 'loop', got {kind!r}") from None
+        self._edges.append(
+            PoseGraphEdge(
+                source_id,
+                target_id,
+                _as_pose(T_target_source, where),
+                _as_information(information_rot_trans, where),
+                kind,
+            )
+        )
+        self._invalidate()
+
+    def add_constraint(self, constraint: Constraint) -> None:
+        """Add an accepted :class:`~fpp_graph.types.Constraint` as an edge of its kind.
+
+        Raises
+        ------
+        GraphError
+            The constraint was rejected by the front-end (its pose must not be used), or a key
+            is missing.
+        """
+        if not constraint.accepted:
+            raise GraphError(
+                f"constraint {constraint.source_id}->{constraint.target_id} was rejected "
+                f"({constraint.rejection_reason}); only accepted constraints can enter the pose graph"
+            )
+        self.add_edge(
+            constraint.source_id,
+            constraint.target_id,
+            constraint.T_target_source,
+            constraint.information,
+            constraint.kind,
+        )
+
+    # -- reading ---------------------------------------------------------------------------
+    @property
+    def num_poses(self) -> int:
+        return len(self._poses)
+
+    @property
+    def num_edges(self) -> int:
+        return len(self._edges)
+
+    def poses(self) -> dict[int, Array]:
+        """Current poses (initial values until :meth:`optimize` runs, then the last solution)."""
+        return {k: T.copy() for k, T in self._poses.items()}
+
+    def edges(self) -> list[PoseGraphEdge]:
+        """The stored edges, in insertion order."""
+        return list(self._edges)
+
+    def priors(self) -> list[PosePrior]:
+        return list(self._priors)
+
+    def fixed_poses(self) -> list[int]:
+        return list(self._fixed)
+
+    def __contains__(self, key: object) -> bool:
+        return key in self._poses
+
+    def __repr__(self) -> str:
+        loops = sum(e.kind is ConstraintKind.LOOP for e in self._edges)
+        return f"PoseGraph({self.num_poses} poses, {self.num_edges} edges ({loops} loops), fixed {self._fixed})"
+
+    # -- optimisation ----------------------------------------------------------------------
+    def optimize(self, config: PoseGraphConfig | None = None) -> PoseGraphResult:
+        """Optimise the graph; the stored poses become the solution.
+
+        Steps: structure check (raises :class:`GraphError` naming unconstrained parts),
+        initialisation (chordal or given), solve (LM, or iSAM2 batch; GNC or Cauchy on loop
+        edges), consistency check of loop edges (chi-square bound on the whitened residual;
+        the worst offender removed and the graph re-solved, one at a time, when configured).
+
+        Parameters
+        ----------
+        config : PoseGraphConfig, optional
+            Defaults to ``PoseGraphConfig()``.
+        """
+        cfg = config or PoseGraphConfig()
+        start = time.perf_counter()
+        auto_anchor = check_constrained(list(self._poses), (e.pair for e in self._edges), self._anchored_keys())
+        anchors = list(self._fixed) + ([auto_anchor] if auto_anchor is not None else [])
+        problem = _Problem(self, anchors, cfg)
+        given = _values_from(self._poses)
+        initial_cost = problem.cost(given, np.ones(problem.num_edges, dtype=bool))
+
+        active = np.ones(problem.num_edges, dtype=bool)
+        initial, initialization = self._initialize(problem, active, given, cfg)
+        initialized_cost = problem.cost(initial, active)
+        log.debug("initial cost %.6g (given), %.6g (%s)", initial_cost, initialized_cost, initialization)
+
+        values, iterations, gnc_rejected = problem.solve(initial, active, cfg)
+        rejected = sorted(gnc_rejected)
+        active[list(gnc_rejected)] = False
+
+        inconsistent: list[int] = []
+        for _ in range(_MAX_CONSISTENCY_ROUNDS):
+            flagged = problem.inconsistent_loops(values, active, cfg.consistency_probability)
+            if not flagged:
+                break
+            if not cfg.remove_inconsistent_loops:
+                inconsistent.extend(i for i, _ in flagged)
+                break
+            worst, r2 = flagged[0]
+            log.info(
+                "loop edge %d->%d is inconsistent (whitened residual^2 %.3g > chi-square bound %.3g); "
+                "removing it and re-optimising",
+                *problem.edges[worst].pair, r2, problem.chi2_bound(cfg.consistency_probability),
+            )
+            inconsistent.append(worst)
+            active[worst] = False
+            values, more, _ = problem.solve(values, active, cfg, robust="none" if cfg.robust == "gnc" else cfg.robust)
+            iterations += more
+        else:
+            log.warning("consistency check stopped after %d removals; loop edges may remain inconsistent", _MAX_CONSISTENCY_ROUNDS)
+
+        # The gauge move is rigid (cost unchanged) and anchors move by ~1e-8 sigma at most, so
+        # the cost at the solver's values is the cost of the returned poses.
+        final_cost = problem.cost(values, active)
+        poses = problem.poses_with_gauge(values, self._poses, anchors, bool(self._priors))
+        self._poses.update(poses)
+        self._pose_quat_xyzw.clear()
+        self._solution = (problem.gaussian_graph(active), None)
+        self._marginals = None
+
+        removed = inconsistent if cfg.remove_inconsistent_loops else []
+        result = PoseGraphResult(
+            poses_world_sensor={k: T.copy() for k, T in poses.items()},
+            initial_cost=float(initial_cost),
+            final_cost=float(final_cost),
+            iterations=int(iterations),
+            seconds=time.perf_counter() - start,
+            rejected_loops=[problem.edges[i].pair for i in sorted(set(rejected) | set(removed))],
+            inconsistent_loops=[problem.edges[i].pair for i in inconsistent],
+            initialization=initialization,
+            initialized_cost=float(initialized_cost),
+            noise_model=cfg.noise_model,
+            robust=cfg.robust,
+            solver=cfg.solver,
+        )
+        log.info(
+            "pose graph: %d poses, %d edges, cost %.6g -> %.6g in %d iterations, %.3f s (%s init, %s noise, robust %s); "
+            "%d loop(s) rejected, %d inconsistent",
+            self.num_poses, self.num_edges, result.initial_cost, result.final_cost, result.iterations, result.seconds,
+            initialization.split(" ")[0], cfg.noise_model, cfg.robust, len(result.rejected_loops), len(result.inconsistent_loops),
+        )
+        return result
+
+    def marginal_covariance(self, key: int) -> Array:
+        """6x6 marginal covariance of a pose at the last solution, ``[rot, trans]`` order.
+
+        The covariance is of GTSAM's right perturbation ``T_world_sensor * Exp(xi)``, i.e. in
+        the sensor (body) frame, with rotation in rad and translation in metres. Before any
+        :meth:`optimize`, it is evaluated at the current poses with the file noise model.
+        """
+        import gtsam
+
+        key = self._require_pose(key, "marginal_covariance")
+        if self._solution is None:
+            auto_anchor = check_constrained(list(self._poses), (e.pair for e in self._edges), self._anchored_keys())
+            anchors = list(self._fixed) + ([auto_anchor] if auto_anchor is not None else [])
+            problem = _Problem(self, anchors, PoseGraphConfig(robust="none"))
+            self._solution = (problem.gaussian_graph(np.ones(problem.num_edges, dtype=bool)), None)
+        if self._marginals is None:
+            try:
+                self._marginals = gtsam.Marginals(self._solution[0], _values_from(self._poses))
+            except RuntimeError as exc:
+                raise _solver_error(exc) from None
+        return np.array(self._marginals.marginalCovariance(key), dtype=np.float64)
+
+    # -- internals -------------------------------------------------------------------------
+    def _anchored_keys(self) -> set[int]:
+        return set(self._fixed) | {p.key for p in self._priors}
+
+    def _initialize(self, problem: _Problem, active: NDArray[np.bool_], given: gtsam.Values, cfg: PoseGraphConfig) -> tuple[gtsam.Values, str]:
+
+        if cfg.initialization == "given" or problem.num_edges == 0:
+            return given, "given"
+        label = "chordal"
+        edges = active
+        if cfg.robust == "gnc" and np.any(active & problem.is_loop):
+            # Loops may be outliers; a least-squares initialisation over them spreads their
+            # error over the whole graph and every GNC inner solve starts from it. Use the
+            # known inliers alone when they tie every pose to an anchor.
+            inliers = active & ~problem.is_loop
+            parts = connected_parts(self._poses, (problem.edges[i].pair for i in np.flatnonzero(inliers)))
+            anchored = set(problem.anchors) | {p.key for p in self._priors}
+            if all(anchored.intersection(part) for part in parts):
+                edges, label = inliers, "chordal (odometry and priors only: loops may be outliers)"
+        values, failure = problem.chordal(edges)
+        if values is None:
+            log.warning("chordal initialisation failed (%s); starting from the given poses", failure)
+            return given, f"given (chordal initialisation failed: {failure})"
+        return values, label
+
+    def _check_key(self, key: int) -> int:
+        if isinstance(key, bool) or not isinstance(key, (int, np.integer)):
+            raise GraphError(f"pose keys must be integers, got {key!r}")
+        key = int(key)
+        if key < 0 or key >= 2**63:
+            raise GraphError(f"pose key {key} is out of range (0 <= key < 2^63)")
+        return key
+
+    def _require_pose(self, key: int, where: str) -> int:
+        key = self._check_key(key)
+        if key not in self._poses:
+            raise GraphError(f"{where}: pose {key} is not in the graph; add_pose it first")
+        return key
+
+    def _invalidate(self) -> None:
+        self._solution = None
+        self._marginals = None
+
+    # Bulk loading for the g2o reader (validated there, vectorised, keeps file quaternions).
+    def _load(
+        self,
+        keys: Sequence[int],
+        poses: Array,
+        pose_quats_xyzw: Array,
+        edges: Sequence[PoseGraphEdge],
+        edge_quats_xyzw: Array,
+        fixed: Sequence[int],
+    ) -> None:
+        base = len(self._edges)
+        for key, T, q in zip(keys, poses, pose_quats_xyzw, strict=True):
+            self._poses[int(key)] = T
+            self._pose_quat_xyzw[int(key)] = q
+        self._edges.extend(edges)
+        for i, q in enumerate(edge_quats_xyzw):
+            self._edge_quat_xyzw[base + i] = q
+        for key in fixed:
+            if key not in self._fixed:
+                self._fixed.append(int(key))
+        self._invalidate()
+
+
+class _Problem:
+    """GTSAM factors of one optimisation: anchors, priors and edges under one noise model."""
+
+    def __init__(self, graph: PoseGraph, anchors: Sequence[int], cfg: PoseGraphConfig) -> None:
+        import gtsam
+
+        self.given_poses = graph._poses
+        self.anchors = list(anchors)
+        self.edges = graph.edges()
+        self.priors = graph.priors()
+        self.num_edges = len(self.edges)
+        if self.edges:
+            info = np.stack([e.information_rot_trans for e in self.edges])
+            if cfg.noise_model == "isotropic":
+                info = isotropic_information(info)
+        else:
+            info = np.zeros((0, 6, 6))
+        self.model_information = info
+        stiffest = max([float(np.abs(np.diagonal(info, axis1=1, axis2=2)).max()) if len(info) else 1.0]
+                       + [float(np.abs(np.diag(p.information_rot_trans)).max()) for p in self.priors])
+        self.stiffest = stiffest
+        self.anchor_poses = {k: graph._poses[k] for k in self.anchors}
+        anchor_noise = gtsam.noiseModel.Isotropic.Precision(6, ANCHOR_STIFFNESS * stiffest)
+        self.anchor_factors = [
+            gtsam.PriorFactorPose3(k, gtsam.Pose3(graph._poses[k]), anchor_noise) for k in self.anchors
+        ]
+        self.prior_factors = [
+            gtsam.PriorFactorPose3(p.key, gtsam.Pose3(p.T_world_sensor), gtsam.noiseModel.Gaussian.Information(p.information_rot_trans))
+            for p in self.priors
+        ]
+        self.noise = [gtsam.noiseModel.Gaussian.Information(w) for w in info]
+        self.measured = [gtsam.Pose3(e.T_target_source) for e in self.edges]
+        self.gaussian = [
+            gtsam.BetweenFactorPose3(e.target_id, e.source_id, m, n)
+            for e, m, n in zip(self.edges, self.measured, self.noise, strict=True)
+        ]
+        self.is_loop = np.array([e.kind is ConstraintKind.LOOP for e in self.edges], dtype=bool)
+
+    # -- graphs ----------------------------------------------------------------------------
+    def gaussian_graph(self, active: NDArray[np.bool_], anchor_stiffness: float | None = None) -> gtsam.NonlinearFactorGraph:
+        """Anchors, priors and the active edges, Gaussian noise.
+
+        ``anchor_stiffness`` overrides :data:`ANCHOR_STIFFNESS` (chordal initialisation wants
+        anchors as stiff as the edges: its linear solve sees a 1e8 ratio as indeterminate).
+        """
+        import gtsam
+
+        graph = gtsam.NonlinearFactorGraph()
+        if anchor_stiffness is None:
+            for f in self.anchor_factors:
+                graph.add(f)
+        else:
+            noise = gtsam.noiseModel.Isotropic.Precision(6, anchor_stiffness * self.stiffest)
+            for k in self.anchors:
+                graph.add(gtsam.PriorFactorPose3(k, gtsam.Pose3(self.anchor_poses[k]), noise))
+        for f in self.prior_factors:
+            graph.add(f)
+        for i in np.flatnonzero(active):
+            graph.add(self.gaussian[i])
+        return graph
+
+    def robust_graph(self, active: NDArray[np.bool_], cauchy_scale: float) -> gtsam.NonlinearFactorGraph:
+        """As :meth:`gaussian_graph`, with a Cauchy loss on loop edges."""
+        import gtsam
+
+        graph = gtsam.NonlinearFactorGraph()
+        for f in [*self.anchor_factors, *self.prior_factors]:
+            graph.add(f)
+        loss = gtsam.noiseModel.mEstimator.Cauchy.Create(float(cauchy_scale))
+        for i in np.flatnonzero(active):
+            if self.is_loop[i]:
+                e = self.edges[i]
+                graph.add(gtsam.BetweenFactorPose3(e.target_id, e.source_id, self.measured[i], gtsam.noiseModel.Robust.Create(loss, self.noise[i])))
+            else:
+                graph.add(self.gaussian[i])
+        return graph
+
+    def chordal(self, active: NDArray[np.bool_]) -> tuple[gtsam.Values | None, str]:
+        """Chordal initialisation (``gtsam.InitializePose3``) over the active edges, anchors
+        held exactly; ``(None, reason)`` when it fails."""
+        import gtsam
+
+        try:
+            values = gtsam.InitializePose3.initialize(self.gaussian_graph(active, anchor_stiffness=1.0))
+            poses = _poses_from(values, self.given_poses)
+        except Exception as exc:  # gtsam raises RuntimeError/ValueError subclasses from C++
+            return None, _short(exc)
+        if not np.all(np.isfinite(np.stack(list(poses.values())))):
+            return None, "it returned non-finite poses"
+        poses = self.poses_with_gauge_values(poses, self.given_poses, self.anchors, bool(self.priors))
+        return _values_from(poses), ""
+
+    # -- costs -----------------------------------------------------------------------------
+    def cost(self, values: gtsam.Values, active: NDArray[np.bool_]) -> float:
+        """``0.5 sum ||whitened||^2`` over priors and active edges (anchors excluded)."""
+        total = sum(f.error(values) for f in self.prior_factors)
+        for i in np.flatnonzero(active):
+            total += self.gaussian[i].error(values)
+        return float(total)
+
+    @staticmethod
+    def chi2_bound(probability: float) -> float:
+        from scipy.special import chdtri  # scipy.stats would add ~0.8 s of import
+
+        return float(chdtri(6, 1.0 - probability))
+
+    def inconsistent_loops(self, values: gtsam.Values, active: NDArray[np.bool_], probability: float) -> list[tuple[int, float]]:
+        """Active loop edges with whitened residual^2 above the chi-square bound, worst first."""
+        bound = self.chi2_bound(probability)
+        flagged = []
+        for i in np.flatnonzero(active & self.is_loop):
+            r2 = 2.0 * self.gaussian[i].error(values)
+            if r2 > bound:
+                flagged.append((int(i), r2))
+        return sorted(flagged, key=lambda item: -item[1])
+
+    # -- solving ---------------------------------------------------------------------------
+    def solve(
+        self, initial: gtsam.Values, active: NDArray[np.bool_], cfg: PoseGraphConfig, robust: str | None = None
+    ) -> tuple[gtsam.Values, int, list[int]]:
+        """Solve from ``initial``; returns values, iterations and the edges GNC rejected."""
+        robust = cfg.robust if robust is None else robust
+        try:
+            if robust == "gnc" and np.any(active & self.is_loop):
+                return self._solve_gnc(initial, active, cfg)
+            graph = self.robust_graph(active, cfg.cauchy_scale) if robust == "cauchy" else self.gaussian_graph(active)
+            if cfg.solver == "isam2":
+                values, iterations = _isam2_batch(graph, initial, cfg)
+            else:
+                values, iterations = _lm(graph, initial, cfg.max_iterations, cfg.relative_error_tol)
+            return values, iterations, []
+        except RuntimeError as exc:
+            raise _solver_error(exc) from None
+
+    def _solve_gnc(self, initial: gtsam.Values, active: NDArray[np.bool_], cfg: PoseGraphConfig) -> tuple[gtsam.Values, int, list[int]]:
+        import gtsam
+
+        graph = self.gaussian_graph(active)
+        n_fixed = len(self.anchor_factors) + len(self.prior_factors)
+        edge_of_factor = np.flatnonzero(active)
+        known_inliers = list(range(n_fixed)) + [n_fixed + j for j, i in enumerate(edge_of_factor) if not self.is_loop[i]]
+        params = gtsam.GncLMParams(_lm_params(cfg.max_iterations, max(cfg.relative_error_tol, _GNC_INNER_RELATIVE_TOL)))
+        params.setLossType(gtsam.GncLossType.TLS)
+        params.setKnownInliers(known_inliers)
+        optimizer = gtsam.GncLMOptimizer(graph, initial, params)
+        optimizer.setInlierCostThresholdsAtProbability(float(cfg.gnc_inlier_probability))
+        values = optimizer.optimize()
+        weights = np.asarray(optimizer.getWeights(), dtype=np.float64)
+        rejected = [int(edge_of_factor[j]) for j in range(len(edge_of_factor)) if weights[n_fixed + j] < 0.5]
+        for i in rejected:
+            log.info("GNC rejected loop edge %d->%d", *self.edges[i].pair)
+        # Polish on the inliers with a tight LM: GNC's inner solves use a looser tolerance.
+        kept = active.copy()
+        kept[rejected] = False
+        graph = self.gaussian_graph(kept)
+        values, iterations = _lm(graph, values, cfg.max_iterations, cfg.relative_error_tol)
+        # GNC's inner solves all start from the initial values (loops left out of the chordal
+        # initialisation), which can leave the inliers in a poor basin. With outliers gone,
+        # chordal initialisation over the inliers is safe: keep whichever solution is better.
+        if cfg.initialization == "chordal" and rejected:
+            restart, _ = self.chordal(kept)
+            if restart is not None:
+                candidate, more = _lm(graph, restart, cfg.max_iterations, cfg.relative_error_tol)
+                iterations += more
+                if self.cost(candidate, kept) < self.cost(values, kept):
+                    values = candidate
+        # GNC's weights can end at 0 for a borderline true loop. Truncated least squares counts
+        # a measurement as an inlier when its cost at the solution is under the threshold, so
+        # re-admit such loops and re-solve until the inlier set is stable.
+        threshold = 0.5 * self.chi2_bound(cfg.gnc_inlier_probability)
+        for _ in range(5):
+            back = [i for i in rejected if self.gaussian[i].error(values) < threshold]
+            if not back:
+                break
+            for i in back:
+                log.info("loop edge %d->%d re-admitted after GNC (cost %.3g < %.3g at the solution)", *self.edges[i].pair, self.gaussian[i].error(values), threshold)
+            rejected = [i for i in rejected if i not in back]
+            kept[back] = True
+            values, more = _lm(self.gaussian_graph(kept), values, cfg.max_iterations, cfg.relative_error_tol)
+            iterations += more
+        return values, iterations, rejected
+
+    # -- gauge -----------------------------------------------------------------------------
+    def poses_with_gauge(self, values: gtsam.Values, given: Mapping[int, Array], anchors: Sequence[int], has_priors: bool) -> dict[int, Array]:
+        return self.poses_with_gauge_values(_poses_from(values, given), given, anchors, has_priors)
+
+    @staticmethod
+    def poses_with_gauge_values(
+        poses: dict[int, Array], given: Mapping[int, Array], anchors: Sequence[int], has_priors: bool
+    ) -> dict[int, Array]:
+        """Hold anchors exactly: a rigid move of the whole solution when one anchor is the only
+        absolute information (an exact symmetry of the cost), else the anchors' given values."""
+        if not anchors:
+            return poses
+        if len(anchors) == 1 and not has_priors:
+            key = anchors[0]
+            correction = given[key] @ np.linalg.inv(poses[key])
+            correction = _as_pose(correction, "gauge correction")
+            poses = {k: correction @ T for k, T in poses.items()}
+            for k in poses:
+                poses[k][3] = (0.0, 0.0, 0.0, 1.0)
+        for key in anchors:
+            poses[key] = given[key].copy()
+        return poses
+
+
+def _lm(graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values, max_iterations: int, relative_error_tol: float) -> tuple[gtsam.Values, int]:
+    import gtsam
+
+    optimizer = gtsam.LevenbergMarquardtOptimizer(graph, initial, _lm_params(max_iterations, relative_error_tol))
+    values = optimizer.optimize()
+    return values, int(optimizer.iterations())
+
+
+def _isam2_batch(graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values, cfg: PoseGraphConfig) -> tuple[gtsam.Values, int]:
+    """All factors in one iSAM2 update, then re-linearising updates until the cost settles."""
+    import gtsam
+
+    params = gtsam.ISAM2Params()
+    params.setRelinearizeThreshold(1e-6)
+    params.relinearizeSkip = 1
+    isam = gtsam.ISAM2(params)
+    isam.update(graph, initial)
+    values = isam.calculateEstimate()
+    previous = graph.error(values)
+    iterations = 1
+    while iterations < cfg.max_iterations:
+        isam.update()
+        iterations += 1
+        values = isam.calculateEstimate()
+        cost = graph.error(values)
+        if abs(previous - cost) <= cfg.relative_error_tol * max(previous, 1e-300):
+            break
+        previous = cost
+    return values, iterations
+
+
+# ----------------------------------------------------------------------------------------------
+# SE-Sync objective
+# ----------------------------------------------------------------------------------------------
+def sesync_objective(graph: PoseGraph, poses: Mapping[int, ArrayLike] | None = None) -> float:
+    """SE-Sync's objective ``F`` at ``poses`` (default: the graph's current poses).
+
+    ``F = sum kappa ||R_s - R_t R_ts||_F^2 + tau ||t_s - t_t - R_t t_ts||^2`` over edges
+    ``(source s, target t)`` measuring ``T_target_source = (R_ts, t_ts)``, with ``tau`` and
+    ``kappa`` from each edge's information (:func:`sesync_tau_kappa`). Rosen et al. (IJRR
+    2019, table 2) publish certified optima of it for the standard benchmark graphs.
+    """
+    edges = graph.edges()
+    if not edges:
+        return 0.0
+    current = graph._poses if poses is None else poses
+    try:
+        T_src = np.stack([np.asarray(current[e.source_id], dtype=np.float64) for e in edges])
+        T_tgt = np.stack([np.asarray(current[e.target_id], dtype=np.float64) for e in edges])
+    except KeyError as exc:
+        raise GraphError(f"sesync_objective: no pose given for key {exc.args[0]}") from None
+    M = np.stack([e.T_target_source for e in edges])
+    tau, kappa = sesync_tau_kappa(np.stack([e.information_rot_trans for e in edges]))
+    R_t = T_tgt[:, :3, :3]
+    rot = T_src[:, :3, :3] - R_t @ M[:, :3, :3]
+    trans = T_src[:, :3, 3] - T_tgt[:, :3, 3] - np.einsum("nij,nj->ni", R_t, M[:, :3, 3])
+    return float(np.sum(kappa * np.sum(rot**2, axis=(1, 2))) + np.sum(tau * np.sum(trans**2, axis=1)))
+
+
+# ----------------------------------------------------------------------------------------------
+# iSAM2: incremental, for live use
+# ----------------------------------------------------------------------------------------------
+class IncrementalPoseGraph:
+    """A pose graph grown one keyframe at a time and solved incrementally with iSAM2.
+
+    The first keyframe is the anchor. Each later keyframe comes with its odometry constraint
+    (to any keyframe already in the graph); loops join between updates. :meth:`update` runs
+    one iSAM2 step (a few when a loop arrived). After a loop closes, :meth:`polish` runs the
+    batch optimiser (GNC by default) on the whole graph and restarts iSAM2 from its solution
+    without the loops GNC rejected.
+
+    Parameters
+    ----------
+    config : PoseGraphConfig, optional
+        Used by :meth:`polish`; ``robust == "cauchy"`` also puts a Cauchy loss on loop edges
+        inside iSAM2 (GNC is batch-only: iSAM2 keeps loops Gaussian until the polish).
+    relinearize_threshold : float
+        iSAM2 re-linearises a variable whose update exceeds this (tangent units, rad/m).
+    loop_extra_updates : int
+        Additional iSAM2 steps after an update that brought loops (re-linearisation settles).
+    """
+
+    def __init__(
+        self,
+        config: PoseGraphConfig | None = None,
+        *,
+        relinearize_threshold: float = 0.01,
+        loop_extra_updates: int = 2,
+    ) -> None:
+        self.config = config or PoseGraphConfig()
+        self.relinearize_threshold = float(relinearize_threshold)
+        self.loop_extra_updates = int(loop_extra_updates)
+        self._graph = PoseGraph()  # bookkeeping of what iSAM2 holds: poses (guesses), edges
+        self._rejected: list[tuple[int, int]] = []
+        self._reset_isam()
+        self._estimate: dict[int, Array] = {}
+        self._pending_loops = False
+
+    def _reset_isam(self) -> None:
+        import gtsam
+
+        params = gtsam.ISAM2Params()
+        params.setRelinearizeThreshold(self.relinearize_threshold)
+        params.relinearizeSkip = 1
+        self._isam = gtsam.ISAM2(params)
+        self._new_factors = gtsam.NonlinearFactorGraph()
+        self._new_values = gtsam.Values()
+        self._anchor_key: int | None = None
+
+    # -- building --------------------------------------------------------------------------
+    @property
+    def num_poses(self) -> int:
+        return self._graph.num_poses
+
+    @property
+    def num_edges(self) -> int:
+        return self._graph.num_edges
+
+    @property
+    def rejected_loops(self) -> list[tuple[int, int]]:
+        """Loops dropped by earlier :meth:`polish` calls."""
+        return list(self._rejected)
+
+    def add_keyframe(self, key: int, T_world_sensor_guess: ArrayLike | None = None, odometry: Constraint | None = None) -> None:
+        """Add a keyframe with its initial guess and its odometry constraint.
+
+        Parameters
+        ----------
+        key : int
+            New pose key.
+        T_world_sensor_guess : (4, 4), optional
+            Initial guess; when omitted, the odometry composed onto the current estimate of the
+            other keyframe (identity for the first keyframe).
+        odometry : Constraint, optional
+            Accepted constraint between ``key`` and a keyframe already added. Required for every
+            keyframe but the first (iSAM2 cannot hold a disconnected pose).
+        """
+        import gtsam
+
+        first = self._graph.num_poses == 0
+        if odometry is None and not first:
+            raise GraphError(
+                f"keyframe {key}: an odometry constraint to an earlier keyframe is required; a chain "
+                "break needs a new IncrementalPoseGraph (or a prior) for the new segment"
+            )
+        if odometry is not None:
+            if key not in (odometry.source_id, odometry.target_id):
+                raise GraphError(f"keyframe {key}: its odometry links {odometry.source_id}->{odometry.target_id}, not {key}")
+            other = odometry.target_id if odometry.source_id == key else odometry.source_id
+            if other not in self._graph:
+                raise GraphError(f"keyframe {key}: its odometry refers to keyframe {other}, which is not in the graph")
+        if T_world_sensor_guess is None:
+            if odometry is None:
+                guess = np.eye(4)
+            elif odometry.source_id == key:
+                guess = self._current(odometry.target_id) @ odometry.T_target_source
+            else:
+                guess = self._current(odometry.source_id) @ np.linalg.inv(odometry.T_target_source)
+        else:
+            guess = T_world_sensor_guess
+        self._graph.add_pose(key, guess)
+        T = self._graph._poses[key]
+        self._new_values.insert(int(key), gtsam.Pose3(T))
+        if first:
+            self._graph.fix_pose(key)
+            self._anchor_key = int(key)
+        if odometry is not None:
+            self._add_edge(odometry, ConstraintKind(odometry.kind))
+        self._estimate[int(key)] = T.copy()
+
+    def add_loop(self, constraint: Constraint) -> None:
+        """Add an accepted loop constraint between two keyframes already added."""
+        for k in (constraint.source_id, constraint.target_id):
+            if k not in self._graph:
+                raise GraphError(f"loop {constraint.source_id}->{constraint.target_id}: keyframe {k} is not in the graph")
+        self._add_edge(constraint, ConstraintKind.LOOP)
+        self._pending_loops = True
+
+    def _add_edge(self, constraint: Constraint, kind: ConstraintKind) -> None:
+        import gtsam
+
+        first_edge = self._graph.num_edges == 0
+        self._graph.add_constraint(constraint)
+        edge = self._graph._edges[-1]
+        if kind is not edge.kind:
+            self._graph._edges[-1] = PoseGraphEdge(edge.source_id, edge.target_id, edge.T_target_source, edge.information_rot_trans, kind)
+        info = edge.information_rot_trans
+        if self.config.noise_model == "isotropic":
+            info = isotropic_information(info)
+        noise = gtsam.noiseModel.Gaussian.Information(info)
+        if kind is ConstraintKind.LOOP and self.config.robust == "cauchy":
+            noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(self.config.cauchy_scale), noise)
+        if first_edge:
+            # The anchor's stiffness follows the first edge's information; until an edge
+            # exists the first keyframe waits in _new_values (iSAM2 cannot hold a lone pose).
+            self._new_factors.add(self._anchor_factor(info))
+        self._new_factors.add(gtsam.BetweenFactorPose3(edge.target_id, edge.source_id, gtsam.Pose3(edge.T_target_source), noise))
+
+    def _anchor_factor(self, info: Array):
+        import gtsam
+
+        precision = ANCHOR_STIFFNESS * float(np.abs(np.diag(info)).max())
+        T = self._graph._poses[self._anchor_key]
+        return gtsam.PriorFactorPose3(self._anchor_key, gtsam.Pose3(T), gtsam.noiseModel.Isotropic.Precision(6, precision))
+
+    def _current(self, key: int) -> Array:
+        return self._estimate.get(int(key), self._graph._poses[int(key)])
+
+    # -- solving ---------------------------------------------------------------------------
+    def update(self) -> dict[int, Array]:
+        """One iSAM2 step with everything added since the last call; the current estimate."""
+        if self._graph.num_edges and (self._new_factors.size() or self._new_values.size()):
+            try:
+                self._isam.update(self._new_factors, self._new_values)
+                if self._pending_loops:
+                    for _ in range(self.loop_extra_updates):
+                        self._isam.update()
+            except RuntimeError as exc:
+                raise _solver_error(exc) from None
+            self._new_factors.resize(0)
+            self._new_values.clear()
+            self._pending_loops = False
+            self._estimate = _poses_from(self._isam.calculateEstimate())
+        return dict(self._estimate)
+
+    def estimate(self) -> dict[int, Array]:
+        """The estimate after the last :meth:`update` (guesses for keyframes added since)."""
+        return dict(self._estimate)
+
+    def marginal_covariance(self, key: int) -> Array:
+        """6x6 ``[rot, trans]`` marginal covariance (body frame) from iSAM2's Bayes tree."""
+        self.update()
+        if int(key) not in self._estimate:
+            raise GraphError(f"marginal_covariance: keyframe {key} is not in the graph")
+        return np.array(self._isam.marginalCovariance(int(key)), dtype=np.float64)
+
+    def to_pose_graph(self) -> PoseGraph:
+        """A batch :class:`PoseGraph` at the current estimate (first keyframe fixed)."""
+        graph = PoseGraph()
+        for key in self._graph._poses:
+            graph.add_pose(key, self._current(key))
+        if self._anchor_key is not None:
+            graph.fix_pose(self._anchor_key)
+        for e in self._graph._edges:
+            graph.add_edge(e.source_id, e.target_id, e.T_target_source, e.information_rot_trans, e.kind)
+        return graph
+
+    def polish(self, config: PoseGraphConfig | None = None) -> PoseGraphResult:
+        """Batch-optimise the whole graph (GNC by default) and restart iSAM2 from the result.
+
+        Loops rejected by the batch pass leave the incremental graph for good.
+        """
+        import gtsam
+
+        self.update()
+        result = self.to_pose_graph().optimize(config or self.config)
+        rejected = set(result.rejected_loops)
+        self._rejected.extend(sorted(rejected))
+        kept = [e for e in self._graph._edges if not (e.kind is ConstraintKind.LOOP and e.pair in rejected)]
+        old = self._graph
+        self._graph = PoseGraph()
+        anchor = self._anchor_key
+        self._reset_isam()
+        for key in old._poses:
+            self._graph.add_pose(key, result.poses_world_sensor[key])
+            self._new_values.insert(int(key), gtsam.Pose3(self._graph._poses[key]))
+        self._anchor_key = anchor
+        self._graph.fix_pose(anchor)
+        for e in kept:
+            c = Constraint(e.source_id, e.target_id, e.T_target_source, e.information_rot_trans, kind=e.kind)
+            self._add_edge(c, e.kind)
+        self._pending_loops = False
+        self._estimate = {k: T.copy() for k, T in result.poses_world_sensor.items()}
+        self.update()
+        return result
