@@ -155,6 +155,72 @@ class _Scratch:
         return buf[:rows]
 
 
+def _wrapped_phase_band(imgs: list[NDArray], sin: NDArray, cos: NDArray, phi: NDArray, mod: NDArray, work: _Scratch) -> None:
+    """eq. 2 into ``phi`` ([0, 2 pi)) and ``mod`` (b), from one frequency's N images.
+
+    S and C are summed over symmetric pairs: ``sin delta_(N-n) = -sin delta_n`` and
+    ``cos delta_(N-n) = cos delta_n``, so each pair costs one integer difference and one
+    integer sum (exact), and N = 4 needs no multiplication at all.
+    """
+    n = len(imgs)
+    r = imgs[0].shape[0]
+    idt = np.int32 if imgs[0].dtype == np.uint16 else np.int16
+    s = work.get("S", np.float32, r)
+    c = work.get("C", np.float32, r)
+    ti = work.get("tmp_int", idt, r)
+    tf = work.get("tmp_float", np.float32, r)
+    if n % 2 == 0:
+        np.subtract(imgs[0], imgs[n // 2], out=ti, dtype=idt)  # cos 0 = 1, cos pi = -1
+        np.copyto(c, ti, casting="unsafe")
+    else:
+        np.copyto(c, imgs[0], casting="unsafe")
+    for k in range(1, (n - 1) // 2 + 1):
+        sk, ck = float(sin[k]), float(cos[k])
+        np.subtract(imgs[k], imgs[n - k], out=ti, dtype=idt)
+        if k == 1:
+            np.multiply(ti, np.float32(sk), out=s, casting="unsafe")
+        else:
+            np.copyto(tf, ti, casting="unsafe")
+            cv2.scaleAdd(tf, sk, s, dst=s)
+        if ck != 0.0:
+            np.add(imgs[k], imgs[n - k], out=ti, dtype=idt)
+            np.copyto(tf, ti, casting="unsafe")
+            cv2.scaleAdd(tf, ck, c, dst=c)
+    cv2.phase(c, s, phi)  # atan2(S, C) in [0, 2 pi)
+    cv2.magnitude(c, s, mod)
+    np.multiply(mod, np.float32(2.0 / n), out=mod)
+
+
+def _as_stack(images: NDArray | Sequence[NDArray], expected: int, what: str) -> NDArray:
+    """Validate a frame's images and return them as one C-contiguous (M, H, W) stack."""
+    if isinstance(images, np.ndarray):
+        stack = images
+        if stack.ndim != 3:
+            hint = " (colour images? convert them to grey, e.g. with frontend.images.load_image_stack)" if stack.ndim == 4 else ""
+            raise InputDataError(f"pattern images must be a (M, H, W) stack of single-channel 2D images, got an array of shape {stack.shape}{hint}")
+    else:
+        imgs = [np.asarray(im) for im in images]
+        if not imgs:
+            raise InputDataError(f"no pattern images given; {what} needs {expected}")
+        for i, im in enumerate(imgs):
+            if im.ndim != 2:
+                raise InputDataError(f"pattern image {i} has shape {im.shape}; every image must be single-channel 2D (H, W)")
+        if len({im.shape for im in imgs}) > 1:
+            detail = ", ".join(f"#{i} {im.shape[1]}x{im.shape[0]}" for i, im in enumerate(imgs))
+            raise InputDataError(f"pattern images have mixed sizes (W x H: {detail}); all images of a frame must have the camera's size")
+        if len({im.dtype for im in imgs}) > 1:
+            detail = ", ".join(f"#{i} {im.dtype}" for i, im in enumerate(imgs))
+            raise InputDataError(f"pattern images have mixed pixel types ({detail}); all must be uint8 or all uint16")
+        stack = np.stack(imgs)
+    if stack.dtype not in (np.uint8, np.uint16):
+        raise InputDataError(f"pattern images must be 8- or 16-bit unsigned (uint8/uint16), got {stack.dtype}; convert float or signed images first")
+    if stack.shape[0] != expected:
+        raise InputDataError(f"wrong image count: {what} needs {expected} images, got {stack.shape[0]}")
+    if stack.shape[1] == 0 or stack.shape[2] == 0:
+        raise InputDataError(f"pattern images are empty ({stack.shape[2]}x{stack.shape[1]} pixels)")
+    return np.ascontiguousarray(stack)
+
+
 class Decoder:
     """A decoder for one pattern spec and projector size; precomputes its tables once.
 
@@ -237,32 +303,7 @@ class Decoder:
         return " ".join(parts)
 
     def _check_images(self, images: NDArray | Sequence[NDArray]) -> NDArray:
-        if isinstance(images, np.ndarray):
-            stack = images
-            if stack.ndim != 3:
-                hint = " (colour images? convert them to grey, e.g. with frontend.images.load_image_stack)" if stack.ndim == 4 else ""
-                raise InputDataError(f"pattern images must be a (M, H, W) stack of single-channel 2D images, got an array of shape {stack.shape}{hint}")
-        else:
-            imgs = [np.asarray(im) for im in images]
-            if not imgs:
-                raise InputDataError(f"no pattern images given; {self._describe()} needs {self.image_count}")
-            for i, im in enumerate(imgs):
-                if im.ndim != 2:
-                    raise InputDataError(f"pattern image {i} has shape {im.shape}; every image must be single-channel 2D (H, W)")
-            if len({im.shape for im in imgs}) > 1:
-                detail = ", ".join(f"#{i} {im.shape[1]}x{im.shape[0]}" for i, im in enumerate(imgs))
-                raise InputDataError(f"pattern images have mixed sizes (W x H: {detail}); all images of a frame must have the camera's size")
-            if len({im.dtype for im in imgs}) > 1:
-                detail = ", ".join(f"#{i} {im.dtype}" for i, im in enumerate(imgs))
-                raise InputDataError(f"pattern images have mixed pixel types ({detail}); all must be uint8 or all uint16")
-            stack = np.stack(imgs)
-        if stack.dtype not in (np.uint8, np.uint16):
-            raise InputDataError(f"pattern images must be 8- or 16-bit unsigned (uint8/uint16), got {stack.dtype}; convert float or signed images first")
-        if stack.shape[0] != self.image_count:
-            raise InputDataError(f"wrong image count: pattern set {self._describe()} needs {self.image_count} images, got {stack.shape[0]}")
-        if stack.shape[1] == 0 or stack.shape[2] == 0:
-            raise InputDataError(f"pattern images are empty ({stack.shape[2]}x{stack.shape[1]} pixels)")
-        return np.ascontiguousarray(stack)
+        return _as_stack(images, self.image_count, f"pattern set {self._describe()}")
 
     # ------------------------------------------------------------------ decoding
     def decode(self, images: NDArray | Sequence[NDArray]) -> DecodeResult:
@@ -401,39 +442,7 @@ class Decoder:
         )
 
     def _wrapped_phase(self, imgs: list[NDArray], phi: NDArray, mod: NDArray, work: _Scratch) -> None:
-        """eq. 2 into ``phi`` ([0, 2 pi)) and ``mod`` (b), from one frequency's N images.
-
-        S and C are summed over symmetric pairs: ``sin delta_(N-n) = -sin delta_n`` and
-        ``cos delta_(N-n) = cos delta_n``, so each pair costs one integer difference and one
-        integer sum (exact), and N = 4 needs no multiplication at all.
-        """
-        n = len(imgs)
-        r = imgs[0].shape[0]
-        idt = np.int32 if imgs[0].dtype == np.uint16 else np.int16
-        s = work.get("S", np.float32, r)
-        c = work.get("C", np.float32, r)
-        ti = work.get("tmp_int", idt, r)
-        tf = work.get("tmp_float", np.float32, r)
-        if n % 2 == 0:
-            np.subtract(imgs[0], imgs[n // 2], out=ti, dtype=idt)  # cos 0 = 1, cos pi = -1
-            np.copyto(c, ti, casting="unsafe")
-        else:
-            np.copyto(c, imgs[0], casting="unsafe")
-        for k in range(1, (n - 1) // 2 + 1):
-            sk, ck = float(self._sin[k]), float(self._cos[k])
-            np.subtract(imgs[k], imgs[n - k], out=ti, dtype=idt)
-            if k == 1:
-                np.multiply(ti, np.float32(sk), out=s, casting="unsafe")
-            else:
-                np.copyto(tf, ti, casting="unsafe")
-                cv2.scaleAdd(tf, sk, s, dst=s)
-            if ck != 0.0:
-                np.add(imgs[k], imgs[n - k], out=ti, dtype=idt)
-                np.copyto(tf, ti, casting="unsafe")
-                cv2.scaleAdd(tf, ck, c, dst=c)
-        cv2.phase(c, s, phi)  # atan2(S, C) in [0, 2 pi)
-        cv2.magnitude(c, s, mod)
-        np.multiply(mod, np.float32(2.0 / n), out=mod)
+        _wrapped_phase_band(imgs, self._sin, self._cos, phi, mod, work)
 
     def _background_sum(self, imgs: list[NDArray], work: _Scratch) -> NDArray:
         """Sum of the N images (uint16 for 8-bit input, float32 for 16-bit: exact either way)."""
@@ -546,3 +555,44 @@ def decode(
 ) -> DecodeResult:
     """Decode one frame (see :class:`Decoder`; build one Decoder to decode many frames)."""
     return Decoder(spec, projector_width, projector_height, config).decode(images)
+
+
+def compute_wrapped_phase(images: NDArray | Sequence[NDArray], band_rows: int = 128) -> tuple[NDArray[np.float32], NDArray[np.float32], NDArray[np.float32]]:
+    """eq. 2 alone: wrapped phase, modulation and background of N phase-shifted images.
+
+    Parameters
+    ----------
+    images : (N, H, W) uint8 or uint16, N >= 3
+        ``I_n = a + b cos(phi - 2 pi n / N)``, n = 0..N-1 (the convention of
+        :mod:`frontend.patterns`).
+    band_rows : int
+        Rows per band (cache blocking); 0 = whole image.
+
+    Returns
+    -------
+    wrapped_phase : (H, W) float32, rad in [0, 2 pi)
+    modulation : (H, W) float32, ``b`` in grey levels
+    background : (H, W) float32, ``a`` in grey levels
+    """
+    n = len(images)
+    if n < 3:
+        raise InputDataError(f"phase shifting needs at least 3 images, got {n}")
+    stack = _as_stack(images, n, f"{n}-step phase shifting")
+    h, w = stack.shape[1:]
+    rows = band_rows if 0 < band_rows < h else h
+    sin, cos = _phase_weights(n)
+    phi = np.empty((h, w), np.float32)
+    mod = np.empty((h, w), np.float32)
+    background = np.empty((h, w), np.float32)
+    work = _Scratch(rows, w)
+    acc_dtype = np.uint16 if stack.dtype == np.uint8 and n <= 257 else np.float32
+    for r0 in range(0, h, rows):
+        r1 = min(h, r0 + rows)
+        imgs = [stack[i, r0:r1] for i in range(n)]
+        _wrapped_phase_band(imgs, sin, cos, phi[r0:r1], mod[r0:r1], work)
+        total = work.get("total", acc_dtype, r1 - r0)
+        np.add(imgs[0], imgs[1], out=total, dtype=acc_dtype)
+        for img in imgs[2:]:
+            np.add(total, img, out=total, casting="unsafe")
+        np.multiply(total, np.float32(1.0 / n), out=background[r0:r1])
+    return phi, mod, background

@@ -15,7 +15,7 @@ from fpp_graph.config import DecodeConfig
 from fpp_graph.errors import InputDataError
 from frontend.images import load_image_stack
 from frontend.patterns import PatternSpec
-from frontend.phase import Decoder, decode
+from frontend.phase import Decoder, compute_wrapped_phase, decode
 from frontend.synthetic_captures import render_captures, smooth_projector_map
 
 PW, PH = 640, 400  # projector: the camera sees ~1.9 projector pixels per pixel (non-integer)
@@ -315,3 +315,14 @@ def test_slmaster_monocular_decodes_smoothly(decode_real) -> None:
     u = result.u_projector_px[400:800, 500:850]
     assert np.isfinite(u).mean() > 0.99
     assert np.nanmedian(np.diff(u, axis=1)) > 1.0  # u_p grows left to right on the object
+
+
+def test_compute_wrapped_phase_alone(scene) -> None:
+    u, v = scene
+    spec = PatternSpec("gray", phase_steps=5, periods=(20,), gray_bits=5)
+    images = render_captures(spec, u, v, PW, PH, 3000.0, 2000.0, dtype=np.uint16)[:5]
+    phi, modulation, background = compute_wrapped_phase(images, band_rows=17)
+    assert np.max(np.abs(_wrap_pm_pi(phi - 2 * np.pi * 20 * u / PW))) < 1e-3
+    assert np.allclose(modulation, 2000.0, rtol=1e-3) and np.allclose(background, 3000.0, atol=0.5)
+    with pytest.raises(InputDataError, match="at least 3 images"):
+        compute_wrapped_phase(images[:2])
