@@ -471,7 +471,7 @@ def read_graycode_capture(folder: str | os.PathLike[str], projector_size: tuple[
     return stack[:-2], stack[-2], stack[-1]
 
 
-def calibrate_from_graycode_folders(
+def observe_graycode_folders(
     folders: Sequence[str | os.PathLike[str]],
     board: Chessboard,
     projector_size: tuple[int, int],
@@ -480,13 +480,16 @@ def calibrate_from_graycode_folders(
     white_threshold: float = 5.0,
     black_threshold: float = 40.0,
     window_half: int | None = None,
-    refine_intrinsics: bool = False,
-    calibration_flags: int = 0,
-) -> RigCalibrationReport:
-    """Calibrate from procam-calibration style capture folders (one per board pose).
+) -> tuple[list[PoseObservation], tuple[int, int]]:
+    """Decode procam-calibration style capture folders and find the corners of each pose.
 
     Each folder holds ``graycode_XX.png``: the Gray-code patterns with inverses in OpenCV order,
     then white, then black. Poses whose board is not found are skipped with a warning.
+
+    Returns
+    -------
+    observations : list of PoseObservation
+    camera_size : (width, height)
     """
     observations = []
     camera_size = None
@@ -504,6 +507,25 @@ def calibrate_from_graycode_folders(
             log.warning("%s", exc)
     if camera_size is None:
         raise CalibrationError("no capture folders given")
+    return observations, camera_size
+
+
+def calibrate_from_graycode_folders(
+    folders: Sequence[str | os.PathLike[str]],
+    board: Chessboard,
+    projector_size: tuple[int, int],
+    *,
+    step: int = 1,
+    white_threshold: float = 5.0,
+    black_threshold: float = 40.0,
+    window_half: int | None = None,
+    refine_intrinsics: bool = False,
+    calibration_flags: int = 0,
+) -> RigCalibrationReport:
+    """Calibrate from procam-calibration style capture folders (see :func:`observe_graycode_folders`)."""
+    observations, camera_size = observe_graycode_folders(
+        folders, board, projector_size, step=step, white_threshold=white_threshold, black_threshold=black_threshold, window_half=window_half
+    )
     return calibrate_rig(observations, board, camera_size, projector_size, refine_intrinsics=refine_intrinsics, calibration_flags=calibration_flags)
 
 

@@ -1,0 +1,105 @@
+"""Acceptance: calibrate the real procam-calibration captures and compare with the reference.
+
+Data: ``../shared/data/real_fpp/procam_calibration`` (kamino410/procam-calibration sample:
+5 chessboard poses, 9x7 inner corners, 75 mm squares, 1024x768 projector, 1280x1024 camera).
+The reference ``calibration_result.xml`` came from ``calibrate.py 768 1024 9 7 75 1``.
+
+Prints our single-device and stereo RMS next to the reference's 0.857 px, both calibrations'
+parameters, and the camera -> projector transfer RMS (board pose from the camera, projected
+into the projector through the rig) of ours (in-sample and leave-one-pose-out) and of the
+reference, on the same decoded corners. Writes ``results/procam_calibration.yaml`` (mm).
+
+Usage: ``.venv/bin/python scripts/calibrate_real.py [--data DIR] [--out FILE]``
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from frontend.calibration_io import read_procam_calibration, read_slmaster_calibration
+from frontend.rig import save_calibration
+from frontend.rig_calibration import (
+    Chessboard,
+    calibrate_rig,
+    observe_graycode_folders,
+    transfer_rms_px,
+)
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def describe(name: str, cal) -> None:
+    c, p = cal.camera, cal.projector
+    R, t = cal.T_projector_camera[:3, :3], cal.T_projector_camera[:3, 3]
+    print(f"  {name}:")
+    print(f"    camera    f = ({c.K[0, 0]:.2f}, {c.K[1, 1]:.2f}) c = ({c.K[0, 2]:.2f}, {c.K[1, 2]:.2f}) dist = {np.array2string(c.dist, precision=4)}")
+    print(f"    projector f = ({p.K[0, 0]:.2f}, {p.K[1, 1]:.2f}) c = ({p.K[0, 2]:.2f}, {p.K[1, 2]:.2f}) dist = {np.array2string(p.dist, precision=4)}")
+    print(f"    projector centre in camera frame = {np.array2string(-R.T @ t * 1e3, precision=1)} mm, baseline {cal.baseline_m * 1e3:.1f} mm")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--data", type=Path, default=ROOT.parent / "shared" / "data" / "real_fpp" / "procam_calibration")
+    parser.add_argument("--out", type=Path, default=ROOT / "results" / "procam_calibration.yaml")
+    args = parser.parse_args()
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+
+    board = Chessboard((9, 7), 0.075)
+    projector_size = (1024, 768)
+    folders = sorted(args.data.glob("capture_*"))
+    observations, camera_size = observe_graycode_folders(folders, board, projector_size)
+    report = calibrate_rig(observations, board, camera_size, projector_size)
+    ours = report.calibration
+    ref = read_procam_calibration(args.data / "calibration_result.xml", projector_size=projector_size)
+    rms = ours.reprojection_rms_px
+    print(f"procam-calibration sample: {len(folders)} poses, {report.camera_corners} camera corners, {report.projector_corners} projector corners")
+    print(f"  RMS reprojection, ours: camera {rms['camera']:.3f} px, projector {rms['projector']:.3f} px, stereo {rms['stereo']:.3f} px;"
+          f" reference (stereo): {ref.reprojection_rms_px['stereo']:.3f} px")
+    refined = calibrate_rig(observations, board, camera_size, projector_size, refine_intrinsics=True).calibration
+    print(f"  with intrinsics refined in the stereo step: stereo RMS {refined.reprojection_rms_px['stereo']:.3f} px")
+    fixed_k3 = calibrate_rig(observations, board, camera_size, projector_size, calibration_flags=cv2.CALIB_FIX_K3).calibration
+    r3 = fixed_k3.reprojection_rms_px
+    print(f"  with k3 fixed at 0 (5 poses hardly constrain it): camera {r3['camera']:.3f} px, projector {r3['projector']:.3f} px, stereo {r3['stereo']:.3f} px")
+    describe("ours", ours)
+    describe("ours, k3 fixed", fixed_k3)
+    describe("reference", ref)
+
+    t_ours, per_ours = transfer_rms_px(ours, observations, board)
+    t_ref, per_ref = transfer_rms_px(ref, observations, board)
+    loo = []
+    for i in range(len(observations)):
+        rest = observations[:i] + observations[i + 1 :]
+        cal_i = calibrate_rig(rest, board, camera_size, projector_size).calibration
+        loo.append(transfer_rms_px(cal_i, [observations[i]], board)[0])
+    print("  camera -> projector transfer RMS on our decoded corners (projector px):")
+    print(f"    ours in-sample {t_ours:.3f} (per pose {np.round(per_ours, 3).tolist()})")
+    print(f"    ours leave-one-pose-out {np.sqrt(np.mean(np.square(loo))):.3f} (per pose {np.round(loo, 3).tolist()})")
+    print(f"    reference {t_ref:.3f} (per pose {np.round(per_ref, 3).tolist()})")
+
+    # The reference's projector coordinates turn out to be twice ours (a 2048x1536 projector
+    # decoded with Gray-code step 2 gives the same 42 images): compare in those units too.
+    obs2, _ = observe_graycode_folders(folders, board, (2048, 1536), step=2)
+    ours2 = calibrate_rig(obs2, board, camera_size, (2048, 1536)).calibration
+    ref2 = read_procam_calibration(args.data / "calibration_result.xml", projector_size=(2048, 1536))
+    r2 = ours2.reprojection_rms_px
+    print("  in the reference's apparent units (projector coordinates x2: 2048x1536, Gray-code step 2):")
+    print(f"    ours: camera {r2['camera']:.3f} px, projector {r2['projector']:.3f} px, stereo {r2['stereo']:.3f} px (reference stereo {ref2.reprojection_rms_px['stereo']:.3f} px)")
+    print(f"    transfer RMS: ours {transfer_rms_px(ours2, obs2, board)[0]:.3f} px, reference {transfer_rms_px(ref2, obs2, board)[0]:.3f} px")
+    describe("ours, x2 units", ours2)
+
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    save_calibration(args.out, ours)
+    print(f"  wrote {args.out}")
+
+    sl = args.data.parent / "slmaster_monocular" / "caliInfo.yml"
+    if sl.exists():
+        describe("SLMaster caliInfo.yml (read, Rlp/Tlp = T_projector_camera)", read_slmaster_calibration(sl))
+
+
+if __name__ == "__main__":
+    main()
