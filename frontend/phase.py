@@ -17,9 +17,10 @@ modulation, the texture image and a validity mask. It follows the conventions of
 Fringe order
 ------------
 * Gray code: each bit image is binarised against a per-pixel threshold, the background ``a``
-  (or ``(white + black) / 2`` when the set has references), and Gray-decoded to ``K``. Where the
-  camera blurs a code edge the bit and the phase jump disagree by a pixel or so: plain Gray code
-  makes +-1 order errors there.
+  (or ``(white + black) / 2`` when the set has references), and Gray-decoded to ``K``. A code
+  edge lies between projector pixels while the phase jump lies on a pixel centre (half a pixel
+  apart), and the camera blurs the edge: plain Gray code makes +-1 order errors along every
+  code edge.
 * Complementary Gray code (Zhang et al.): the bits plus the extra half-period bit decode to the
   half-period index ``V2``; ``K1 = V2 >> 1`` (edges at the phase jumps) and
   ``K2 = (V2 + 1) >> 1`` (edges at mid-period). ``K = K2`` where ``phi <= pi/2``, ``K1`` where
@@ -41,10 +42,11 @@ checked), ``shadow`` (``a < decode.min_background``) and ``bad_order`` (a fringe
 
 Speed
 -----
-The hot path is a short sequence of whole-image OpenCV/numpy operations in float32, uint8 and
-int16 with in-place updates, no Python loops over pixels. The arctangent is ``cv2.phase``
-(max. error ~2e-4 rad, far below the phase noise of any real capture; ``1e-3`` of a fringe
-period is ~3e-5 of it).
+The frame is processed in bands of rows that fit the CPU cache; each band is a short sequence
+of OpenCV/numpy operations in float32, uint8 and int16, in place into reused buffers, with no
+Python loop over pixels. The arctangent is ``cv2.phase``: its error is below 2e-4 rad (3e-5 of
+a fringe period), far below the phase noise of any real capture; float rounding can make it
+return exactly ``2 pi`` for phases a hair below it, which the unwrapping handles.
 """
 
 from __future__ import annotations
@@ -77,7 +79,8 @@ class DecodeResult:
     Attributes
     ----------
     wrapped_phase : float32, rad in [0, 2 pi)
-        Wrapped phase of the highest frequency, at every pixel (also invalid ones).
+        Wrapped phase of the highest frequency, at every pixel (also invalid ones; see the
+        module docstring on ``cv2.phase`` rounding).
     u_projector_px : float32, projector pixels
         Projector coordinate along the encoded axis (``u_p`` for vertical fringes, ``v_p`` for
         horizontal), pixel-centre convention; NaN where invalid.
