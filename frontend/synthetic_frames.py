@@ -63,7 +63,7 @@ class ProceduralAlbedo:
                 scale[0] = self.lattice * max(1, round(self.period_x_m / (cell * self.lattice))) / self.period_x_m
             coords = (p * scale + off).T
             total += w * ndimage.map_coordinates(grid, coords, order=1, mode="grid-wrap")
-        return 0.5 + 0.45 * np.tanh(6.0 * (total - 0.5))
+        return 0.5 + 0.45 * np.tanh(3.0 * (total - 0.5))
 
 
 @dataclass
@@ -153,11 +153,13 @@ def render_frame(
     frame_id: int = 0,
     seed: int = 0,
     max_range_m: float = 2.0,
+    supersampling: int = 2,
+    shading: float = 0.3,
 ) -> Frame:
     """Ray-cast one frame: ``xyz_map`` (sensor frame, noisy along the ray), ``texture``, ``points``.
 
-    The texture is ``albedo * (0.3 + 0.7 cos(incidence))`` (a light at the camera) as 8-bit grey
-    with Gaussian noise; pixels that miss the scene are NaN / 0. ``T_world_sensor_guess`` is left
+    The texture is ``albedo * (1 - shading + shading cos(incidence))`` (a light at the camera),
+    integrated over each pixel with ``supersampling``^2 rays, as 8-bit grey with Gaussian noise; pixels that miss the scene are NaN / 0. ``T_world_sensor_guess`` is left
     empty; the true pose goes to ``metadata["T_world_sensor_true"]``.
     """
     K = camera_matrix(width, height) if K is None else np.asarray(K, float)
@@ -173,11 +175,21 @@ def render_frame(
     t_noisy = t_hit + rng.normal(0.0, depth_noise_m, t_hit.shape)
     xyz = np.full((width * height, 3), np.nan)
     xyz[hit] = rays_c[hit] * t_noisy[hit, None]
-    p_world = T[:3, 3] + dirs_w[hit] * t_hit[hit, None]
-    cos_inc = np.abs(np.einsum("ij,ij->i", normals_w[hit], dirs_w[hit]))
-    shade = scene.albedo(p_world) * (0.3 + 0.7 * cos_inc)
+    # the texture is integrated over each pixel (supersampling x supersampling rays): point
+    # sampling would alias the albedo and make the two views disagree at sub-pixel level
+    ss = max(1, int(supersampling))
+    offs = (np.arange(ss) + 0.5) / ss - 0.5
     img = np.zeros(width * height)
-    img[hit] = 235.0 * shade
+    for dv in offs:
+        for du in offs:
+            r = np.stack([(u + du - K[0, 2]) / K[0, 0], (v + dv - K[1, 2]) / K[1, 1], np.ones_like(u)], axis=-1).reshape(-1, 3)
+            r /= np.linalg.norm(r, axis=1, keepdims=True)
+            d_w = r @ T[:3, :3].T
+            t_s, n_s = scene.cast(np.ascontiguousarray(origins), d_w)
+            h = np.isfinite(t_s) & (t_s < max_range_m)
+            p_world = T[:3, 3] + d_w[h] * t_s[h, None]
+            cos_inc = np.abs(np.einsum("ij,ij->i", n_s[h], d_w[h]))
+            img[h] += 235.0 * scene.albedo(p_world) * (1.0 - shading + shading * cos_inc) / (ss * ss)
     img += rng.normal(0.0, image_noise_grey, img.shape)
     texture = np.clip(np.round(img), 0, 255).astype(np.uint8).reshape(height, width)
     xyz_map = xyz.reshape(height, width, 3)
