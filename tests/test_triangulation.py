@@ -190,3 +190,16 @@ def test_project_to_projector_matches_opencv(rng):
     assert np.allclose(np.column_stack([u, v]), ref.reshape(-1, 2), atol=1e-9)
     u_b, v_b = project_to_projector(cal, np.array([[0.12, 0.01, -0.5]]))
     assert np.isnan(u_b[0]) and np.isnan(v_b[0])
+
+
+def test_float32_out_buffer_and_bad_out():
+    cal = make_rig(projector_dist=np.zeros(5))
+    X = plane_scene(cal)
+    u_p, v_p = project_to_projector(cal, X)
+    inside = projector_inside(cal, u_p, v_p)
+    tri = Triangulator(cal)
+    out32 = np.empty((400, 640, 3), np.float32)
+    xyz = tri.triangulate(np.where(inside, u_p, np.nan), out=out32)
+    assert xyz is out32 and np.nanmax(np.abs(xyz - X)[inside]) < 1e-6
+    with pytest.raises(InputDataError, match="out must be"):
+        tri.triangulate(u_p, out=np.empty((400, 640, 3), np.int32))
