@@ -68,17 +68,17 @@ def _noise_planes(seed: int) -> list[NDArray[np.float32]]:
         return _NOISE_CACHE[seed]
 
 
+_ROW = 1024  # cv2.remap maps must stay below 32767 in each dimension: sample in rows of this width
+
+
 def _sample_tile(tile: NDArray[np.float32], cols: NDArray[np.float32], rows: NDArray[np.float32]) -> NDArray[np.float32]:
-    n = cols.size
-    width = 1024
-    h = -(-n // width)
-    mx = np.zeros(h * width, dtype=np.float32)
-    my = np.zeros(h * width, dtype=np.float32)
-    # Wrap into the tile first: cv2.remap takes float32 maps, whose precision must stay < 0.01 cell.
-    mx[:n] = np.mod(cols, _LATTICE)
-    my[:n] = np.mod(rows, _LATTICE)
-    out = cv2.remap(tile, mx.reshape(h, width), my.reshape(h, width), cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
-    return out.reshape(-1)[:n]
+    """Bilinear samples of a wrapping tile at (cols, rows), both (h * _ROW,) float32 contiguous.
+
+    cv2.remap converts coordinates to fixed point (|coordinate| < 32767 cells) and wraps them
+    with BORDER_WRAP; it runs at memory speed.
+    """
+    h = cols.size // _ROW
+    return cv2.remap(tile, cols.reshape(h, _ROW), rows.reshape(h, _ROW), cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP).reshape(-1)
 
 
 @dataclass(frozen=True)
@@ -102,17 +102,27 @@ class ProceduralMaterial:
 
     def albedo(self, points_world: NDArray, triangle_ids: NDArray | None = None, bary_uv: NDArray | None = None) -> NDArray[np.float64]:
         p = np.asarray(points_world)
+        n = p.shape[0]
         tiles = _noise_planes(self.seed)
-        total = np.zeros(p.shape[0], dtype=np.float32)
+        padded = -(-n // _ROW) * _ROW
+        coords = np.zeros((3, padded), dtype=np.float32)
+        total = np.zeros(padded, dtype=np.float32)
         weight_sum = 0.0
         cells_per_scale = 4.0  # lattice cells per feature size (the tile is blurred over 1.5 cells)
         for k in range(max(1, self.octaves)):
             f = cells_per_scale * (2.0**k) / self.scale_m
-            q = (p * f).astype(np.float32) + np.float32(97.3 * (k + 1))
+            for a in range(3):
+                # Fold large coordinates into one tile period in float64 first, so the float32
+                # coordinates cv2.remap sees stay small and exact to ~1e-4 cell.
+                np.mod(p[:, a] * f + 97.3 * (k + 1), _LATTICE, out=coords[a, :n], casting="unsafe")
             w = 0.55**k
-            octave = _sample_tile(tiles[0], q[:, 1], q[:, 2]) + _sample_tile(tiles[1], q[:, 2], q[:, 0]) + _sample_tile(tiles[2], q[:, 0], q[:, 1])
-            total += np.float32(w / math.sqrt(3.0)) * octave
+            octave = _sample_tile(tiles[0], coords[1], coords[2])
+            octave += _sample_tile(tiles[1], coords[2], coords[0])
+            octave += _sample_tile(tiles[2], coords[0], coords[1])
+            octave *= np.float32(w / math.sqrt(3.0))
+            total += octave
             weight_sum += w * w
+        total = total[:n]
         fbm = total / np.float32(math.sqrt(weight_sum))  # ~unit standard deviation
         if self.stripes_m > 0:
             fbm = 0.6 * fbm + 0.4 * np.sin(2 * np.pi * p[:, 0] / self.stripes_m + 2.0 * fbm)
