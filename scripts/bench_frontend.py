@@ -14,7 +14,8 @@ Prints, in one run:
    ``I_i = a + b cos(psi + 2 pi i / 3)`` (shift the other way from ours,
    ``cos(phi - 2 pi n / N)``), so on the same images its ``psi`` is ``-phi``: the error is taken
    after that sign flip. Also the ratio of OpenCV's 3-image phase map to our whole 12-image
-   decode.
+   decode, and both errors on a flat scene (OpenCV band-passes every image around a single
+   spatial frequency before its per-pixel formula, which hurts on curved scenes only).
 
 Everything is pinned to one thread (OMP_NUM_THREADS=1, cv2.setNumThreads(1)). The machine may be
 shared: the medians can be inflated; run it twice if in doubt.
@@ -43,14 +44,30 @@ CAMERA_W, CAMERA_H = 1920, 1200
 PROJECTOR_W, PROJECTOR_H = 1920, 1080
 
 
+CPU_TIMES: dict[int, float] = {}
+
+
 def median_ms(fn: Callable[[], object], repeat: int) -> tuple[float, float]:
+    """Median and min wall time (ms); the median CPU time is kept in CPU_TIMES[id(fn)].
+
+    On a shared machine wall time includes waiting for a core; the process CPU time of this
+    single-threaded work does not (it still feels shared caches), so both are reported.
+    """
     fn()  # warm-up (allocations, caches, OpenCV dispatch)
-    times = []
+    times, cpu = [], []
     for _ in range(repeat):
-        start = time.perf_counter()
+        start, start_cpu = time.perf_counter(), time.process_time()
         fn()
         times.append((time.perf_counter() - start) * 1e3)
+        cpu.append((time.process_time() - start_cpu) * 1e3)
+    CPU_TIMES[id(fn)] = statistics.median(cpu)
     return statistics.median(times), min(times)
+
+
+def timed(fn: Callable[[], object], repeat: int) -> tuple[float, float, float]:
+    """(median wall ms, min wall ms, median CPU ms)."""
+    med, best = median_ms(fn, repeat)
+    return med, best, CPU_TIMES[id(fn)]
 
 
 def rms_phase_error(phase: np.ndarray, truth: np.ndarray) -> float:
@@ -71,8 +88,8 @@ def synthetic_calibration():
     return RigCalibration(camera=camera, projector=projector, T_projector_camera=T)
 
 
-def time_triangulation(u_projector_px: np.ndarray, mask: np.ndarray, repeat: int) -> tuple[float, float] | str:
-    """HOOK: median/min ms of ``frontend.triangulation.Triangulator(calibration).triangulate``.
+def time_triangulation(u_projector_px: np.ndarray, mask: np.ndarray, repeat: int) -> tuple[float, float, float] | str:
+    """HOOK: (median wall, min wall, median CPU) ms of ``frontend.triangulation.Triangulator(calibration).triangulate``.
 
     Returns a string saying why when the triangulation module is not available yet.
     """
@@ -85,7 +102,7 @@ def time_triangulation(u_projector_px: np.ndarray, mask: np.ndarray, repeat: int
     except Exception as exc:  # another helper's module: report, do not crash the benchmark
         return f"could not build a Triangulator ({type(exc).__name__}: {exc})"
     out = np.empty((CAMERA_H, CAMERA_W, 3), dtype=np.float64)
-    return median_ms(lambda: triangulator.triangulate(u_projector_px, mask, out=out), repeat)
+    return timed(lambda: triangulator.triangulate(u_projector_px, mask, out=out), repeat)
 
 
 def opencv_phase_map(images3: np.ndarray) -> Callable[[], np.ndarray]:
@@ -117,10 +134,10 @@ def main() -> None:
     err = result.u_projector_px - u
     order_errors = int(np.count_nonzero(result.mask & (np.abs(err) > result.pitch_px / 2)))
     truth = 2 * np.pi * 128 * u / PROJECTOR_W
-    t_decode, t_decode_min = median_ms(lambda: decoder.decode(images), args.repeat)
+    t_decode, t_decode_min, c_decode = timed(lambda: decoder.decode(images), args.repeat)
     print(f"frame: {CAMERA_W}x{CAMERA_H} camera, {spec.image_count()} uint8 images (4-step + 7 Gray bits + complementary bit), "
-          f"sigma {args.sigma} grey, B 80, blur 1 px; one thread; median of {args.repeat}")
-    print(f"ours   full decode                 median {t_decode:6.1f} ms  (min {t_decode_min:5.1f})   budget ~25 ms   "
+          f"sigma {args.sigma} grey, B 80, blur 1 px; one thread; median of {args.repeat}; load average {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores")
+    print(f"ours   full decode                 median {t_decode:6.1f} ms  (min {t_decode_min:5.1f}, CPU {c_decode:5.1f})   budget ~25 ms   "
           f"valid {100 * result.valid_fraction:.2f} %, order errors {order_errors}, "
           f"phase RMS {rms_phase_error(result.wrapped_phase, truth):.4f} rad, u_p RMS {np.sqrt(np.nanmean(err**2)):.4f} px")
 
@@ -128,26 +145,35 @@ def main() -> None:
     if isinstance(tri, str):
         print(f"triangulation                      {tri}")
     else:
-        total = t_decode + tri[0]
-        print(f"triangulation (frontend.triangulation) median {tri[0]:6.1f} ms  (min {tri[1]:5.1f})")
-        print(f"decode + triangulation             median {total:6.1f} ms  target <= 40 ms  {'PASS' if total <= 40 else 'FAIL'}")
+        total, total_min, total_cpu = t_decode + tri[0], t_decode_min + tri[1], c_decode + tri[2]
+        print(f"triangulation (frontend.triangulation) median {tri[0]:6.1f} ms  (min {tri[1]:5.1f}, CPU {tri[2]:5.1f})")
+        print(f"decode + triangulation             median {total:6.1f} ms  (min {total_min:5.1f}, CPU {total_cpu:5.1f})  target <= 40 ms  "
+              f"{'PASS' if total <= 40 else ('PASS on min/CPU time only (machine busy?)' if min(total_min, total_cpu) <= 40 else 'FAIL')}")
 
     spec3 = PatternSpec("gray", phase_steps=3, periods=(128,), gray_bits=7)
     images3 = render_captures(spec3, u, v, PROJECTOR_W, PROJECTOR_H, **{**kw, "rng": np.random.default_rng(8)})[:3]
     ours3 = compute_wrapped_phase(images3)[0]
     opencv = opencv_phase_map(images3)
     psi = opencv()
-    t_ours3, _ = median_ms(lambda: compute_wrapped_phase(images3), args.repeat)
-    t_cv, t_cv_min = median_ms(opencv, args.repeat)
+    t_ours3, t_ours3_min, c_ours3 = timed(lambda: compute_wrapped_phase(images3), args.repeat)
+    t_cv, t_cv_min, c_cv = timed(opencv, args.repeat)
     err_ours3 = rms_phase_error(ours3, truth)
     err_cv = rms_phase_error(-psi, truth)  # OpenCV's shift direction is the opposite of ours
     theory = np.sqrt(2 / 3) * args.sigma / 80
     print(f"phase map only, same 3-step uint8 images (theory sqrt(2/N) sigma/B = {theory:.4f} rad; the 1 px blur adds a little):")
-    print(f"  ours   compute_wrapped_phase     median {t_ours3:6.1f} ms   phase RMS {err_ours3:.4f} rad")
-    print(f"  OpenCV computePhaseMap (PSP)     median {t_cv:6.1f} ms  (min {t_cv_min:5.1f})   phase RMS {err_cv:.4f} rad (after the sign flip)")
-    print(f"  speed ratio OpenCV / ours (phase map): {t_cv / t_ours3:5.1f}x   (aim >= 4x at equal or lower error: "
+    print(f"  ours   compute_wrapped_phase     median {t_ours3:6.1f} ms  (min {t_ours3_min:5.1f}, CPU {c_ours3:5.1f})   phase RMS {err_ours3:.4f} rad")
+    print(f"  OpenCV computePhaseMap (PSP)     median {t_cv:6.1f} ms  (min {t_cv_min:5.1f}, CPU {c_cv:5.1f})   phase RMS {err_cv:.4f} rad (after the sign flip)")
+    print(f"  speed ratio OpenCV / ours (phase map): {t_cv / t_ours3:5.1f}x wall, {c_cv / c_ours3:5.1f}x CPU   (aim >= 4x at equal or lower error: "
           f"{'PASS' if t_cv / t_ours3 >= 4 and err_ours3 <= err_cv * 1.001 else 'FAIL'})")
     print(f"  OpenCV 3-image phase map / our whole 12-image decode: {t_cv / t_decode:5.2f}x")
+    # OpenCV band-passes each image around one spatial frequency before the 3-step formula
+    # (to remove its cross markers); on our curved scene the fringe frequency varies, which
+    # costs it accuracy. On a flat scene (one frequency) the filter is harmless:
+    u_flat = np.tile(np.linspace(20.0, PROJECTOR_W - 20.0, CAMERA_W), (CAMERA_H, 1))
+    flat3 = render_captures(spec3, u_flat, v, PROJECTOR_W, PROJECTOR_H, **{**kw, "rng": np.random.default_rng(9)})[:3]
+    truth_flat = 2 * np.pi * 128 * u_flat / PROJECTOR_W
+    print(f"  flat scene (constant fringe frequency): phase RMS ours {rms_phase_error(compute_wrapped_phase(flat3)[0], truth_flat):.4f} rad, "
+          f"OpenCV {rms_phase_error(-opencv_phase_map(flat3)(), truth_flat):.4f} rad")
 
 
 if __name__ == "__main__":
