@@ -1,0 +1,109 @@
+"""SURF (frontend.surf) and the feature factory/matching (frontend.features)."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from fpp_graph.config import RegistrationConfig
+from fpp_graph.errors import InputDataError
+from fpp_graph.types import Frame
+from frontend.features import detect_and_describe, make_detector, match_descriptors
+from frontend.surf import SurfParams, _hessian_layer, _hessian_layer_dense, surf_detect_and_compute
+
+
+def _texture(seed: int = 0, shape=(240, 320)) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    img = cv2.GaussianBlur(rng.random(shape).astype(np.float32), (0, 0), 2.5)
+    img = (img - img.min()) / (img.max() - img.min())
+    return np.clip(img * 255, 0, 255).astype(np.uint8)
+
+
+def test_dense_and_integral_hessian_agree():
+    img = _texture(1).astype(np.float32) / 255
+    pad = 40
+    ii = cv2.integral(cv2.copyMakeBorder(img, pad, pad, pad, pad, cv2.BORDER_REPLICATE), sdepth=cv2.CV_64F)
+    for L in (9, 15, 27):
+        a, sa = _hessian_layer(ii, pad, 1, img.shape[0], img.shape[1], L)
+        b, sb = _hessian_layer_dense(img, L)
+        inner = (slice(20, -20), slice(20, -20))
+        assert np.abs(a - b)[inner].max() < 1e-6 * np.abs(a[inner]).max()
+
+
+def test_blob_position_and_scale():
+    # a Gaussian blob of sigma 4 px: SURF's scale s relates to sigma (s ~ sigma / sqrt(2) .. sigma)
+    img = np.full((160, 200), 40, np.uint8)
+    yy, xx = np.mgrid[0:160, 0:200]
+    blob = 200 * np.exp(-((xx - 97.3) ** 2 + (yy - 81.6) ** 2) / (2 * 4.0**2))
+    img = np.clip(img + blob, 0, 255).astype(np.uint8)
+    kp = surf_detect_and_compute(img, SurfParams(hessian_threshold=1e-3))
+    assert len(kp) >= 1
+    best = int(np.argmax(kp.response))
+    assert np.allclose(kp.uv[best], [97.3, 81.6], atol=0.5)
+    assert 2.0 < kp.scale[best] < 6.0
+    assert kp.laplacian_sign[best] == -1  # bright blob: negative trace
+    assert np.allclose(np.linalg.norm(kp.descriptors, axis=1), 1.0, atol=1e-5)
+
+
+def test_rotation_invariant_matching():
+    img = _texture(2)
+    M = cv2.getRotationMatrix2D((160, 120), 35, 1.0)
+    rot = cv2.warpAffine(img, M, (320, 240), borderMode=cv2.BORDER_REFLECT)
+    a = surf_detect_and_compute(img)
+    b = surf_detect_and_compute(rot)
+    m = match_descriptors(a.descriptors, b.descriptors, 0.8, True)
+    assert m.shape[0] > 40
+    pred = a.uv[m[:, 0]] @ M[:, :2].T + M[:, 2]
+    err = np.linalg.norm(pred - b.uv[m[:, 1]], axis=1)
+    assert np.mean(err < 1.5) > 0.8
+    assert np.median(err[err < 1.5]) < 0.5
+
+
+def test_working_width_maps_back_to_full_pixels():
+    img = _texture(3, (240, 320))
+    big = cv2.resize(img, (640, 480), interpolation=cv2.INTER_LINEAR)
+    small_kp = surf_detect_and_compute(img, SurfParams(max_working_width=0))
+    big_kp = surf_detect_and_compute(big, SurfParams(max_working_width=320))
+    m = match_descriptors(small_kp.descriptors, big_kp.descriptors, 0.8, True)
+    pred = (small_kp.uv[m[:, 0]] + 0.5) * 2 - 0.5
+    err = np.linalg.norm(pred - big_kp.uv[m[:, 1]], axis=1)
+    assert np.median(err) < 1.0
+
+
+def test_surf_rejects_bad_images():
+    with pytest.raises(InputDataError, match="uint8"):
+        surf_detect_and_compute(np.zeros((64, 64), np.float32))
+    with pytest.raises(InputDataError, match="at least 32x32"):
+        surf_detect_and_compute(np.zeros((16, 64), np.uint8))
+    assert len(surf_detect_and_compute(np.zeros((64, 64), np.uint8))) == 0  # flat: no keypoints, no error
+
+
+@pytest.mark.parametrize("feature", ["surf", "sift", "orb", "akaze"])
+def test_detector_factory(feature):
+    img = _texture(4)
+    cfg = RegistrationConfig(feature=feature, max_features=300)
+    uv, desc = make_detector(cfg)(img)
+    assert uv.shape[0] == desc.shape[0] > 20
+    assert uv.shape[0] <= 300 or feature == "akaze"
+    assert np.all((uv >= -0.5) & (uv <= [319.5, 239.5]))
+    assert desc.dtype == (np.float32 if feature in ("surf", "sift") else np.uint8)
+
+
+def test_detect_and_describe_and_missing_texture():
+    frame = Frame(id=3, timestamp=0.0, points=np.zeros((0, 3)), texture=_texture(5))
+    out = detect_and_describe(frame, RegistrationConfig())
+    assert out.keypoints_uv.shape[0] > 20 and out.metadata["feature"] == "surf"
+    with pytest.raises(InputDataError, match="frame 4: no texture"):
+        detect_and_describe(Frame(id=4, timestamp=0.0, points=np.zeros((0, 3))), RegistrationConfig())
+
+
+def test_match_ratio_and_mutual():
+    rng = np.random.default_rng(0)
+    a = rng.normal(size=(50, 64)).astype(np.float32)
+    b = np.concatenate([a[:30] + 0.01 * rng.normal(size=(30, 64)).astype(np.float32), rng.normal(size=(20, 64)).astype(np.float32)])
+    m = match_descriptors(a, b, 0.8, True)
+    assert set(map(tuple, m)) == {(i, i) for i in range(30)}
+    with pytest.raises(InputDataError, match="same feature type"):
+        match_descriptors(a, b.astype(np.uint8), 0.8, True)
+    assert match_descriptors(a[:1], b, 0.8, True).shape == (0, 2)
