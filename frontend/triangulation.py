@@ -64,7 +64,7 @@ _UNDISTORT_ROUNDTRIP_TOL = 1e-9
 # Fit of the projector's inverse distortion: samples per pixel along the ray, and candidate degrees.
 _FIT_SAMPLES = 48
 _FIT_TABLE_LINES = 4096
-_FIT_MAX_DEGREE = 7
+_FIT_MAX_DEGREE = 9
 # Margin (fraction of the projector size) around the projector image that the fit still covers.
 _FIT_MARGIN = 0.02
 
@@ -536,12 +536,13 @@ class Triangulator:
         self._fit_coeffs = [(per_pixel[i] / half**i).astype(self.dtype) for i in range(degree, -1, -1)]
         self.projector_fit_degree = degree
         self.projector_fit_max_error_px = self._check_projector_fit((slice(None, None, 5), slice(None, None, 5)), nodes)
-        level = logging.WARNING if self.projector_fit_max_error_px > tolerance_px else logging.INFO
+        above = self.projector_fit_max_error_px > tolerance_px
         log.log(
-            level,
+            logging.WARNING if above else logging.INFO,
             "projector inverse distortion: degree %d polynomials on %d epipolar lines (fit error %.3g px), "
-            "max error %.3g px on sampled pixels (tolerance %.3g px)",
+            "max error %.3g px on sampled pixels (tolerance %.3g px)%s",
             degree, _FIT_TABLE_LINES, table_err, self.projector_fit_max_error_px, tolerance_px,
+            "; the worst pixels are near the projector's corners, set projector_refine_iterations=1 for exactness" if above else "",
         )
 
     def _check_projector_fit(self, block: tuple[slice, slice], nodes: NDArray) -> float:

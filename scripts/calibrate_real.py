@@ -98,7 +98,32 @@ def main() -> None:
 
     sl = args.data.parent / "slmaster_monocular" / "caliInfo.yml"
     if sl.exists():
-        describe("SLMaster caliInfo.yml (read, Rlp/Tlp = T_projector_camera)", read_slmaster_calibration(sl))
+        cal = read_slmaster_calibration(sl)
+        describe("SLMaster caliInfo.yml (read, Rlp/Tlp = T_projector_camera)", cal)
+        slmaster_direction_check(cal, sl.parent)
+
+
+def slmaster_direction_check(cal, folder: Path) -> None:
+    """Triangulate the decoded SLMaster relief under both readings of Rlp/Tlp."""
+    import runpy
+
+    from fpp_graph.geometry import invert
+    from frontend.rig import RigCalibration
+    from frontend.triangulation import Triangulator
+
+    try:  # the phase helper's decoder script knows SLMaster's pattern conventions
+        decoded = runpy.run_path(str(ROOT / "scripts" / "decode_real.py"))["decode_slmaster_monocular"](folder)
+    except Exception as exc:  # another helper's module: report, do not fail the calibration
+        print(f"  SLMaster direction check skipped: cannot decode the relief ({type(exc).__name__}: {exc})")
+        return
+    print("  SLMaster relief triangulated under both readings of Rlp/Tlp:")
+    readings = (("Rlp/Tlp = T_projector_camera (camera -> projector)", cal),
+                ("Rlp/Tlp = T_camera_projector (projector -> camera)", RigCalibration(cal.camera, cal.projector, invert(cal.T_projector_camera))))
+    for name, c in readings:
+        xyz = Triangulator(c, depth_range_m=(0.01, 100.0)).triangulate(decoded.u_projector_px)
+        P = xyz[np.isfinite(xyz[..., 2])]
+        lo, hi = np.percentile(P, [1, 99], axis=0) * 1e3
+        print(f"    {name}: depth {lo[2]:.0f}-{hi[2]:.0f} mm, lateral extent {hi[0] - lo[0]:.0f} x {hi[1] - lo[1]:.0f} mm")
 
 
 if __name__ == "__main__":
