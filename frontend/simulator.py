@@ -107,7 +107,7 @@ class RenderSettings(_Strict):
     at mid-grey).
     """
 
-    projector_irradiance_grey: float = Field(200.0, ge=0, description="grey level of a white Lambertian surface facing the projector at the working distance, full-white pattern")
+    projector_irradiance_grey: float = Field(220.0, ge=0, description="grey level of a white Lambertian surface facing the projector at the working distance, full-white pattern")
     pattern_black_level: float = Field(0.01, ge=0, lt=1, description="DMD contrast: a black pattern pixel still emits this fraction")
     projector_gamma: float = Field(1.0, gt=0, description="projector response exponent on the (already pre-corrected) pattern value")
     ambient_grey: float = Field(8.0, ge=0, description="ambient light on a white surface, grey levels")
