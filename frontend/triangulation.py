@@ -28,14 +28,16 @@ are invalid).
 
 Projector: the decoded ``u_p`` is a *distorted* projector coordinate, while the linear equation
 needs the undistorted (pinhole) one, and the distortion at ``u_p`` depends on the unknown ``v_p``.
-Along the camera ray of one pixel, however, the projector sees a fixed epipolar curve, so the
-undistorted coordinate is a smooth 1D function of the measured one. It is fitted once per
-calibration, per pixel, by a polynomial in ``u_p`` (least squares on points sampled along the ray
-over the depth range and the projector image; the degree is the smallest that meets
-``projector_fit_tolerance_px``), which costs ``2 * degree + 1`` more passes per frame.
-``projector_refine_iterations`` adds exact Newton-type corrections (project the triangulated point
-through the full distortion model, correct the undistorted coordinate with the fitted slope) for
-when the fit tolerance is not enough.
+Along the camera ray of one pixel, however, the projector sees a fixed epipolar line, so the
+undistorted coordinate is a smooth 1D function of the measured one; and all epipolar lines pass
+through the epipole, so that function depends on the pixel only through its line. Once per
+calibration, polynomials ``u_undistorted = poly(u_p)`` are least-squares fitted on a fine table
+of lines of that pencil (over the projector image), interpolated per pixel, and checked against
+the exact model along sampled rays. The degree is the smallest meeting
+``projector_fit_tolerance_px`` (at most 9); a frame then costs ``2 * degree + 1`` more passes.
+``projector_refine_iterations`` adds exact corrections (project the triangulated point through
+the full distortion model, correct the undistorted coordinate with the fitted slope) for when
+the fit is not enough (strong distortion near the projector's corners).
 
 Validity: NaN input, ``mask == False``, depths outside ``depth_range_m``, and points behind the
 projector give NaN. The grazing case (camera ray parallel to the projector's column plane, the
@@ -469,7 +471,6 @@ class Triangulator:
         center = 0.5 * (size - 1)
         half = 0.5 * size + margin
         self._fit_center = center
-        self._fit_range = (-margin, size - 1 + margin)
 
         # Crossing of every pixel's epipolar line with the central column (or row).
         epipole = K_p @ T[:3, 3]
