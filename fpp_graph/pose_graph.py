@@ -444,6 +444,27 @@ class PoseGraph:
     def fixed_poses(self) -> list[int]:
         return list(self._fixed)
 
+    def subgraph(self, keys: Iterable[int]) -> PoseGraph:
+        """The poses ``keys`` (current values), their fixes and priors, and the edges between them."""
+        keep = {int(k) for k in keys}
+        missing = sorted(keep - set(self._poses))
+        if missing:
+            raise GraphError(f"subgraph: poses {missing[:10]} are not in the graph")
+        out = PoseGraph()
+        for k, T in self._poses.items():
+            if k in keep:
+                out._poses[k] = T.copy()
+                if k in self._pose_quat_xyzw:
+                    out._pose_quat_xyzw[k] = self._pose_quat_xyzw[k]
+        out._fixed = [k for k in self._fixed if k in keep]
+        out._priors = [p for p in self._priors if p.key in keep]
+        for n, e in enumerate(self._edges):
+            if e.source_id in keep and e.target_id in keep:
+                if n in self._edge_quat_xyzw:
+                    out._edge_quat_xyzw[len(out._edges)] = self._edge_quat_xyzw[n]
+                out._edges.append(e)
+        return out
+
     def __contains__(self, key: object) -> bool:
         return key in self._poses
 
@@ -562,25 +583,13 @@ class PoseGraph:
         return set(self._fixed) | {p.key for p in self._priors}
 
     def _initialize(self, problem: _Problem, active: NDArray[np.bool_], given: gtsam.Values, cfg: PoseGraphConfig) -> tuple[gtsam.Values, str]:
-
         if cfg.initialization == "given" or problem.num_edges == 0:
             return given, "given"
-        label = "chordal"
-        edges = active
-        if cfg.robust == "gnc" and np.any(active & problem.is_loop):
-            # Loops may be outliers; a least-squares initialisation over them spreads their
-            # error over the whole graph and every GNC inner solve starts from it. Use the
-            # known inliers alone when they tie every pose to an anchor.
-            inliers = active & ~problem.is_loop
-            parts = connected_parts(self._poses, (problem.edges[i].pair for i in np.flatnonzero(inliers)))
-            anchored = set(problem.anchors) | {p.key for p in self._priors}
-            if all(anchored.intersection(part) for part in parts):
-                edges, label = inliers, "chordal (odometry and priors only: loops may be outliers)"
-        values, failure = problem.chordal(edges)
+        values, failure = problem.chordal(active)
         if values is None:
             log.warning("chordal initialisation failed (%s); starting from the given poses", failure)
             return given, f"given (chordal initialisation failed: {failure})"
-        return values, label
+        return values, "chordal"
 
     def _check_key(self, key: int) -> int:
         if isinstance(key, bool) or not isinstance(key, (int, np.integer)):
@@ -757,17 +766,49 @@ class _Problem:
         except RuntimeError as exc:
             raise _solver_error(exc) from None
 
+    def _known_inliers_span(self, inliers: NDArray[np.bool_]) -> bool:
+        """True when odometry and priors alone tie every pose to an anchor."""
+        parts = connected_parts(self.given_poses, (self.edges[i].pair for i in np.flatnonzero(inliers)))
+        anchored = set(self.anchors) | {p.key for p in self.priors}
+        return all(anchored.intersection(part) for part in parts)
+
     def _solve_gnc(self, initial: gtsam.Values, active: NDArray[np.bool_], cfg: PoseGraphConfig) -> tuple[gtsam.Values, int, list[int]]:
+        """Truncated least squares on loop edges by graduated non-convexity.
+
+        1. Least squares over all edges from ``initial``: when every loop then costs less
+           than the inlier threshold, that solution is already a truncated-least-squares
+           optimum (all weights 1) and GNC is skipped (the common, outlier-free case).
+        2. Otherwise GNC (odometry and priors known inliers) from a chordal initialisation
+           over the known inliers alone: loops may be outliers, and a least-squares start
+           over them spreads their error over the graph while every GNC inner solve restarts
+           from the initial values.
+        3. A tight LM polish on the inliers, a chordal restart over the inliers (kept when
+           better), and re-admission of rejected loops whose cost at the solution is under
+           the threshold (truncated least squares counts them as inliers there).
+        """
         import gtsam
 
+        threshold = 0.5 * self.chi2_bound(cfg.gnc_inlier_probability)  # GTSAM's barcSq
         graph = self.gaussian_graph(active)
+        loops = np.flatnonzero(active & self.is_loop)
+        values, iterations = _lm(graph, initial, cfg.max_iterations, cfg.relative_error_tol)
+        if all(self.gaussian[i].error(values) <= threshold for i in loops):
+            return values, iterations, []
+        start = initial
+        inliers = active & ~self.is_loop
+        if cfg.initialization == "chordal" and self._known_inliers_span(inliers):
+            restart, failure = self.chordal(inliers)
+            if restart is not None:
+                start = restart
+            else:
+                log.debug("chordal initialisation over odometry failed (%s); GNC starts from the initial values", failure)
         n_fixed = len(self.anchor_factors) + len(self.prior_factors)
         edge_of_factor = np.flatnonzero(active)
         known_inliers = list(range(n_fixed)) + [n_fixed + j for j, i in enumerate(edge_of_factor) if not self.is_loop[i]]
         params = gtsam.GncLMParams(_lm_params(cfg.max_iterations, max(cfg.relative_error_tol, _GNC_INNER_RELATIVE_TOL)))
         params.setLossType(gtsam.GncLossType.TLS)
         params.setKnownInliers(known_inliers)
-        optimizer = gtsam.GncLMOptimizer(graph, initial, params)
+        optimizer = gtsam.GncLMOptimizer(graph, start, params)
         optimizer.setInlierCostThresholdsAtProbability(float(cfg.gnc_inlier_probability))
         values = optimizer.optimize()
         weights = np.asarray(optimizer.getWeights(), dtype=np.float64)
@@ -778,7 +819,8 @@ class _Problem:
         kept = active.copy()
         kept[rejected] = False
         graph = self.gaussian_graph(kept)
-        values, iterations = _lm(graph, values, cfg.max_iterations, cfg.relative_error_tol)
+        values, more = _lm(graph, values, cfg.max_iterations, cfg.relative_error_tol)
+        iterations += more
         # GNC's inner solves all start from the initial values (loops left out of the chordal
         # initialisation), which can leave the inliers in a poor basin. With outliers gone,
         # chordal initialisation over the inliers is safe: keep whichever solution is better.
@@ -792,7 +834,6 @@ class _Problem:
         # GNC's weights can end at 0 for a borderline true loop. Truncated least squares counts
         # a measurement as an inlier when its cost at the solution is under the threshold, so
         # re-admit such loops and re-solve until the inlier set is stable.
-        threshold = 0.5 * self.chi2_bound(cfg.gnc_inlier_probability)
         for _ in range(5):
             back = [i for i in rejected if self.gaussian[i].error(values) < threshold]
             if not back:
