@@ -84,6 +84,11 @@ def test_projector_corners_local_homography(rng):
     assert ok.tolist() == [True, True, False]  # the last one's window leaves the image
     q = np.column_stack([corners[:2], np.ones(2)]) @ Hm.T
     assert np.max(np.abs(out[:2] - q[:, :2] / q[:, 2:])) < 0.1
+    # Float maps (from phase decoding) with NaN holes work the same way, more accurately.
+    u_f, v_f = p[..., 0] / p[..., 2] + rng.normal(0, 0.02, u.shape), p[..., 1] / p[..., 2]
+    u_f[45:50, 45:60] = np.nan
+    out_f, ok_f = projector_corners(corners[:2], u_f, v_f, window_half=8)
+    assert ok_f.all() and np.max(np.abs(out_f - q[:, :2] / q[:, 2:])) < 0.02
 
 
 # ---------------------------------------------------------------- synthetic calibration
