@@ -35,6 +35,7 @@ import open3d as o3d
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from scipy import ndimage
+from scipy.spatial.transform import Rotation
 
 from fpp_graph.errors import ConfigError, InputDataError
 
@@ -68,6 +69,7 @@ def _noise_planes(seed: int) -> list[NDArray[np.float32]]:
         return _NOISE_CACHE[seed]
 
 
+_TEXTURE_ROTATION = Rotation.from_euler("xyz", [37.0, 23.0, 61.0], degrees=True).as_matrix()
 _ROW = 1024  # cv2.remap maps must stay below 32767 in each dimension: sample in rows of this width
 
 
@@ -101,7 +103,10 @@ class ProceduralMaterial:
     stripes_m: float = 0.0
 
     def albedo(self, points_world: NDArray, triangle_ids: NDArray | None = None, bary_uv: NDArray | None = None) -> NDArray[np.float64]:
-        p = np.asarray(points_world)
+        # A generic rotation first: axis-aligned walls would otherwise see two of the three 2D
+        # tiles as 1D stripes (a plaid look that gives poorly localised keypoints).
+        p0 = np.asarray(points_world)
+        p = p0 @ _TEXTURE_ROTATION.T.astype(p0.dtype)
         n = p.shape[0]
         tiles = _noise_planes(self.seed)
         padded = -(-n // _ROW) * _ROW
@@ -125,7 +130,7 @@ class ProceduralMaterial:
         total = total[:n]
         fbm = total / np.float32(math.sqrt(weight_sum))  # ~unit standard deviation
         if self.stripes_m > 0:
-            fbm = 0.6 * fbm + 0.4 * np.sin(2 * np.pi * p[:, 0] / self.stripes_m + 2.0 * fbm)
+            fbm = 0.6 * fbm + 0.4 * np.sin(2 * np.pi * p0[:, 0] / self.stripes_m + 2.0 * fbm)
         a = self.base + 0.5 * self.contrast * np.tanh(self.sharpness * fbm / 2.0)
         return np.clip(a, 0.0, 1.0)
 
