@@ -462,7 +462,9 @@ class FppSimulator:
             out["v_p"][sl] = v_p
             g = gids[idx]
             alb = np.zeros(idx.size, np.float32)
-            for gid, pi in self._gid_to_part.items():
+            present = np.flatnonzero(np.bincount(g, minlength=1))  # only the parts this view sees
+            for gid in present:
+                pi = self._gid_to_part[int(gid)]
                 sel = np.flatnonzero(g == gid)
                 if sel.size:
                     alb[sel] = self._parts[pi].material.albedo(pts_world[sel], tris_all[idx[sel]].astype(np.int64), bary_all[idx[sel]])

@@ -197,3 +197,22 @@ def test_bunny_turntable_renders_and_decodes(rig, spec):
     ok = np.isfinite(decoded.xyz_map[..., 2]) & np.isfinite(gt[..., 2])
     err = np.linalg.norm(decoded.xyz_map[ok] - gt[ok], axis=1)
     assert np.median(err) < 1e-4
+
+
+def test_vertex_colour_albedo_from_a_mesh_file(tmp_path):
+    import open3d as o3d
+
+    mesh = o3d.geometry.TriangleMesh.create_box(1.0, 1.0, 1.0)
+    mesh.vertex_colors = o3d.utility.Vector3dVector(np.tile([[0.2, 0.2, 0.2]], (len(mesh.vertices), 1)))
+    path = tmp_path / "grey_box.ply"
+    o3d.io.write_triangle_mesh(str(path), mesh)
+    setup = load_simulation(
+        {"scene": "turntable", "turntable": {"object": str(path), "object_size_m": 0.1, "texture": {"kind": "vertex_colors"}, "turns": 1, "views_per_turn": 1, "table_radius_m": 0}},
+        preview=True,
+    )
+    sim = FppSimulator(setup.calibration, setup.spec, setup.scene, setup.settings)
+    gt, _ = sim.ground_truth(setup.poses_world_sensor[0])
+    hit = np.isfinite(gt.depth_m)
+    assert hit.sum() > 1000
+    np.testing.assert_allclose(gt.albedo[hit], 0.2, atol=1e-3)
+    assert np.all(gt.albedo[~hit] == 0)
