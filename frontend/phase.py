@@ -385,7 +385,7 @@ class Decoder:
             mod = out["mod"] if finest else work.get("mod", np.float32, r)
             self._wrapped_phase(imgs, phi, mod, work)
             phases.append(phi)
-            cv2.compare(mod, float(cfg.min_modulation), cv2.CMP_LT, dst=low_mod if f == 0 else tmp8)
+            np.less(mod, np.float32(cfg.min_modulation), out=(low_mod if f == 0 else tmp8).view(np.bool_))
             if f > 0:
                 cv2.bitwise_or(low_mod, tmp8, dst=low_mod)
             if cfg.saturation_level <= np.iinfo(stack.dtype).max:
@@ -402,7 +402,10 @@ class Decoder:
             np.multiply(total, np.float32(1.0 / n), out=total)
             np.rint(total, out=total)
             np.copyto(threshold, total, casting="unsafe")
-        shadow = cv2.compare(total, float(cfg.min_background * n), cv2.CMP_LT, dst=work.get("shadow", np.uint8, r))
+        shadow = work.get("shadow", np.uint8, r)
+        # a < min_background <=> sum < min_background N; an integer sum compares with the ceiling.
+        limit = np.float32(cfg.min_background * n) if total.dtype == np.float32 else total.dtype.type(min(math.ceil(cfg.min_background * n), np.iinfo(total.dtype).max))
+        np.less(total, limit, out=shadow.view(np.bool_))
         invalid = cv2.bitwise_or(low_mod, shadow, dst=work.get("invalid", np.uint8, r))
         if saturated is not None:
             cv2.bitwise_or(invalid, saturated, dst=invalid)
@@ -422,7 +425,8 @@ class Decoder:
             self._order_gray(code, out["phi"], order, work)
 
         # Orders outside 0..P-1 (negative ones look huge as uint16) are invalid code words.
-        bad = cv2.compare(order.view(np.uint16), self.periods_finest - 1, cv2.CMP_GT, dst=work.get("bad", np.uint8, r))
+        bad = work.get("bad", np.uint8, r)
+        np.greater(order.view(np.uint16), np.uint16(self.periods_finest - 1), out=bad.view(np.bool_))
         cv2.bitwise_or(invalid, bad, dst=invalid)
 
         # eq. 3 and eq. 8 in one pass: u_p = (K + phi / 2 pi) lambda.
@@ -431,8 +435,7 @@ class Decoder:
         cv2.scaleAdd(out["phi"], self.pitch_px / TWO_PI, u, dst=u)
         cv2.copyTo(work.const("nan", np.nan, np.float32, r), invalid, u)
         cv2.copyTo(work.const("minus_one", -1, np.int16, r), invalid, order)
-        cv2.compare(invalid, 0, cv2.CMP_EQ, dst=tmp8)
-        cv2.bitwise_and(tmp8, 1, dst=out["mask"])  # 0/1 so the uint8 image is a valid bool view
+        np.equal(invalid, 0, out=out["mask"].view(np.bool_))
         return np.array(
             [
                 cv2.countNonZero(low_mod),
@@ -464,12 +467,12 @@ class Decoder:
         for img in imgs[2:]:
             cv2.max(peak, img, dst=peak)
         sat = work.get("saturated", np.uint8, r)
-        level = float(math.ceil(self.config.saturation_level))
+        level = peak.dtype.type(math.ceil(self.config.saturation_level))
         if first:
-            cv2.compare(peak, level, cv2.CMP_GE, dst=sat)
+            np.greater_equal(peak, level, out=sat.view(np.bool_))
         else:
             tmp = work.get("tmp8", np.uint8, r)
-            cv2.compare(peak, level, cv2.CMP_GE, dst=tmp)
+            np.greater_equal(peak, level, out=tmp.view(np.bool_))
             cv2.bitwise_or(sat, tmp, dst=sat)
         return sat
 
@@ -514,9 +517,11 @@ class Decoder:
         np.right_shift(code, 1, out=order, casting="unsafe")  # K1: edges at the phase jumps
         np.add(code, 1, out=k2, dtype=np.int16)
         np.right_shift(k2, 1, out=k2)  # K2: edges at mid-period
-        cv2.copyTo(k2, cv2.compare(phi, 0.5 * math.pi, cv2.CMP_LE, dst=zone), order)
+        np.less_equal(phi, np.float32(0.5 * math.pi), out=zone.view(np.bool_))
+        cv2.copyTo(k2, zone, order)
         np.subtract(k2, 1, out=k2)
-        cv2.copyTo(k2, cv2.compare(phi, 1.5 * math.pi, cv2.CMP_GE, dst=zone), order)
+        np.greater_equal(phi, np.float32(1.5 * math.pi), out=zone.view(np.bool_))
+        cv2.copyTo(k2, zone, order)
 
     def _order_multi_frequency(self, phases: list[NDArray], order: NDArray, work: _Scratch) -> None:
         """Fringe order of the finest frequency by hierarchical or heterodyne unwrapping."""
@@ -530,7 +535,8 @@ class Decoder:
             if recipe not in made:
                 buf = work.get("beat" + repr(recipe), np.float32, r)  # one buffer per distinct beat
                 np.subtract(phase_of(recipe[1]), phase_of(recipe[2]), out=buf)
-                cv2.add(buf, TWO_PI, dst=buf, mask=cv2.compare(buf, 0.0, cv2.CMP_LT, dst=neg))
+                np.less(buf, np.float32(0.0), out=neg.view(np.bool_))
+                cv2.add(buf, TWO_PI, dst=buf, mask=neg)
                 made[recipe] = buf
             return made[recipe]
 
