@@ -258,6 +258,7 @@ def _poses_from(values: gtsam.Values, keys: Iterable[int] | None = None) -> dict
     T[:, :3, :3] = rows[:, :9].reshape(-1, 3, 3)
     T[:, :3, 3] = rows[:, 9:12]
     T[:, 3, 3] = 1.0
+    T.setflags(write=False)  # handed out as views: read-only instead of one copy per pose
     poses = dict(zip(all_keys, T, strict=True))
     if keys is None:
         return poses
@@ -862,9 +863,11 @@ class _Problem:
             key = anchors[0]
             correction = given[key] @ np.linalg.inv(poses[key])
             correction = _as_pose(correction, "gauge correction")
-            poses = {k: correction @ T for k, T in poses.items()}
-            for k in poses:
-                poses[k][3] = (0.0, 0.0, 0.0, 1.0)
+            keys = list(poses)
+            moved = np.einsum("ij,njk->nik", correction, np.stack([poses[k] for k in keys]))
+            moved[:, 3] = (0.0, 0.0, 0.0, 1.0)
+            moved.setflags(write=False)
+            poses = dict(zip(keys, moved, strict=True))
         for key in anchors:
             poses[key] = given[key].copy()
         return poses
@@ -1080,7 +1083,13 @@ class IncrementalPoseGraph:
 
     # -- solving ---------------------------------------------------------------------------
     def update(self) -> dict[int, Array]:
-        """One iSAM2 step with everything added since the last call; the current estimate."""
+        """One iSAM2 step with everything added since the last call.
+
+        Returns
+        -------
+        dict[int, (4, 4) float64]
+            The current estimate ``T_world_sensor`` of every keyframe (read-only arrays).
+        """
         if self._graph.num_edges and (self._new_factors.size() or self._new_values.size()):
             try:
                 self._isam.update(self._new_factors, self._new_values)
@@ -1092,7 +1101,11 @@ class IncrementalPoseGraph:
             self._new_factors.resize(0)
             self._new_values.clear()
             self._pending_loops = False
-            self._estimate = _poses_from(self._isam.calculateEstimate())
+            # the anchor is a stiff prior: move the estimate rigidly so it holds to the bit
+            anchor = self._anchor_key
+            self._estimate = _Problem.poses_with_gauge_values(
+                _poses_from(self._isam.calculateEstimate()), {anchor: self._graph._poses[anchor]}, [anchor], False
+            )
         return dict(self._estimate)
 
     def estimate(self) -> dict[int, Array]:
