@@ -180,7 +180,8 @@ def read_g2o(path: str | os.PathLike[str]) -> PoseGraph:
     info = info_g2o[:, _G2O_FROM_ROT_TRANS][:, :, _G2O_FROM_ROT_TRANS]
     if len(info):
         eig = np.linalg.eigvalsh(info)
-        bad = np.flatnonzero(eig[:, 0] <= _MIN_EIGENVALUE_RATIO * np.abs(eig[:, -1]))
+        # written so that NaN eigenvalues (overflow on ~1e308 entries) count as bad too
+        bad = np.flatnonzero(~(eig[:, 0] > _MIN_EIGENVALUE_RATIO * np.abs(eig[:, -1])) | ~np.isfinite(eig[:, -1]))
         if len(bad):
             i = int(bad[0])
             raise _fail(
