@@ -90,6 +90,13 @@ def _rotations_from_quats(quats_xyzw: NDArray[np.float64], lines: list[int], pat
     return Rotation.from_quat(quats_xyzw).as_matrix()
 
 
+def _eigenvalues_or_nan(matrix: NDArray[np.float64]) -> NDArray[np.float64]:
+    try:
+        return np.linalg.eigvalsh(matrix)
+    except np.linalg.LinAlgError:
+        return np.full(6, np.nan)
+
+
 def read_g2o(path: str | os.PathLike[str]) -> PoseGraph:
     """Read a 3D g2o pose graph into a :class:`~fpp_graph.pose_graph.PoseGraph`.
 
@@ -179,7 +186,11 @@ def read_g2o(path: str | os.PathLike[str]) -> PoseGraph:
     info_g2o = info_g2o + np.transpose(np.triu(info_g2o, 1), (0, 2, 1))
     info = info_g2o[:, _G2O_FROM_ROT_TRANS][:, :, _G2O_FROM_ROT_TRANS]
     if len(info):
-        eig = np.linalg.eigvalsh(info)
+        with np.errstate(all="ignore"):
+            try:
+                eig = np.linalg.eigvalsh(info)
+            except np.linalg.LinAlgError:  # no convergence on absurd magnitudes: find the edge
+                eig = np.array([_eigenvalues_or_nan(m) for m in info])
         # written so that NaN eigenvalues (overflow on ~1e308 entries) count as bad too
         bad = np.flatnonzero(~(eig[:, 0] > _MIN_EIGENVALUE_RATIO * np.abs(eig[:, -1])) | ~np.isfinite(eig[:, -1]))
         if len(bad):
@@ -196,11 +207,13 @@ def read_g2o(path: str | os.PathLike[str]) -> PoseGraph:
 
     order = np.sort(np.asarray(v_ids, dtype=np.int64))
     rank = {int(k): r for r, k in enumerate(order)}
+    info.setflags(write=False)
     edges = []
     for n, (i, j) in enumerate(e_ids):
         T = np.eye(4)
         T[:3, :3] = rotations[n]
         T[:3, 3] = e[n, :3]
+        T.setflags(write=False)
         kind = ConstraintKind.ODOMETRY if abs(rank[i] - rank[j]) == 1 else ConstraintKind.LOOP
         edges.append(PoseGraphEdge(source_id=j, target_id=i, T_target_source=T, information_rot_trans=info[n], kind=kind))
 

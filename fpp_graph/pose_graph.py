@@ -320,7 +320,7 @@ class PoseGraph:
         # not be bit-exact). Dropped when the pose changes.
         self._pose_quat_xyzw: dict[int, Array] = {}
         self._edge_quat_xyzw: dict[int, Array] = {}
-        self._solution: tuple[gtsam.NonlinearFactorGraph, None] | None = None
+        self._solution_graph: gtsam.NonlinearFactorGraph | None = None  # factors of the last solve
         self._marginals: gtsam.Marginals | None = None
 
     # -- building --------------------------------------------------------------------------
@@ -389,15 +389,11 @@ class PoseGraph:
             kind = ConstraintKind(kind)
         except ValueError:
             raise GraphError(f"{where}: kind must be 'odometry' or 'loop', got {kind!r}") from None
-        self._edges.append(
-            PoseGraphEdge(
-                source_id,
-                target_id,
-                _as_pose(T_target_source, where),
-                _as_information(information_rot_trans, where),
-                kind,
-            )
-        )
+        T = _as_pose(T_target_source, where)
+        info = _as_information(information_rot_trans, where)
+        T.setflags(write=False)  # edges are shared with callers through edges()
+        info.setflags(write=False)
+        self._edges.append(PoseGraphEdge(source_id, target_id, T, info, kind))
         self._invalidate()
 
     def add_constraint(self, constraint: Constraint) -> None:
@@ -531,7 +527,7 @@ class PoseGraph:
         poses = problem.poses_with_gauge(values, self._poses, anchors, bool(self._priors))
         self._poses.update(poses)
         self._pose_quat_xyzw.clear()
-        self._solution = (problem.gaussian_graph(active), None)
+        self._solution_graph = problem.gaussian_graph(active)
         self._marginals = None
 
         removed = inconsistent if cfg.remove_inconsistent_loops else []
@@ -567,14 +563,14 @@ class PoseGraph:
         import gtsam
 
         key = self._require_pose(key, "marginal_covariance")
-        if self._solution is None:
+        if self._solution_graph is None:
             auto_anchor = check_constrained(list(self._poses), (e.pair for e in self._edges), self._anchored_keys())
             anchors = list(self._fixed) + ([auto_anchor] if auto_anchor is not None else [])
             problem = _Problem(self, anchors, PoseGraphConfig(robust="none"))
-            self._solution = (problem.gaussian_graph(np.ones(problem.num_edges, dtype=bool)), None)
+            self._solution_graph = problem.gaussian_graph(np.ones(problem.num_edges, dtype=bool))
         if self._marginals is None:
             try:
-                self._marginals = gtsam.Marginals(self._solution[0], _values_from(self._poses))
+                self._marginals = gtsam.Marginals(self._solution_graph, _values_from(self._poses))
             except RuntimeError as exc:
                 raise _solver_error(exc) from None
         return np.array(self._marginals.marginalCovariance(key), dtype=np.float64)
@@ -607,7 +603,7 @@ class PoseGraph:
         return key
 
     def _invalidate(self) -> None:
-        self._solution = None
+        self._solution_graph = None
         self._marginals = None
 
     # Bulk loading for the g2o reader (validated there, vectorised, keeps file quaternions).
@@ -1013,6 +1009,8 @@ class IncrementalPoseGraph:
         import gtsam
 
         first = self._graph.num_poses == 0
+        if odometry is not None and not odometry.accepted:
+            raise GraphError(f"keyframe {key}: its odometry was rejected ({odometry.rejection_reason}); it cannot enter the graph")
         if odometry is None and not first:
             raise GraphError(
                 f"keyframe {key}: an odometry constraint to an earlier keyframe is required; a chain "
