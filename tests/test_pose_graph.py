@@ -212,6 +212,28 @@ def test_chordal_initialisation_escapes_the_odometry_local_minimum():
     assert ate_rmse_m(chordal.poses_world_sensor, sim.poses_true) < 0.2 < ate_rmse_m(from_odometry.poses_world_sensor, sim.poses_true)
 
 
+def test_badly_scaled_information_fails_chordal_and_falls_back():
+    sim = small_corridor()
+    graph = PoseGraph()
+    for k, T in sim.odometry_chain().items():
+        graph.add_pose(k, T)
+    graph.fix_pose(0)
+    for s, t, T, info, kind in sim.edges:
+        scaled = info.copy()
+        scaled[:3, :3] *= 1e-10  # rotations nearly free: gtsam's chordal solve calls it indeterminate
+        graph.add_edge(s, t, T, scaled, kind)
+    given = PoseGraph()
+    for k, T in graph.poses().items():
+        given.add_pose(k, T)
+    given.fix_pose(0)
+    for e in graph.edges():
+        given.add_edge(e.source_id, e.target_id, e.T_target_source, e.information_rot_trans, e.kind)
+    result = graph.optimize(LM)
+    assert result.initialization.startswith("given (chordal initialisation failed: Indeterminate linear system")
+    reference = given.optimize(PoseGraphConfig(initialization="given", robust="none", remove_inconsistent_loops=False))
+    assert result.final_cost == pytest.approx(reference.final_cost, rel=1e-6)
+
+
 def test_failing_chordal_initialisation_falls_back_to_the_given_poses(monkeypatch):
     import gtsam
 
