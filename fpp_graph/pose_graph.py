@@ -500,26 +500,38 @@ class PoseGraph:
         rejected = sorted(gnc_rejected)
         active[list(gnc_rejected)] = False
 
-        inconsistent: list[int] = []
+        removed: list[int] = []  # inconsistent loops taken out, worst first, one per re-solve
+        kept_flagged: list[int] = []  # inconsistent loops left in (removal off, or needed)
         for _ in range(_MAX_CONSISTENCY_ROUNDS):
             flagged = problem.inconsistent_loops(values, active, cfg.consistency_probability)
             if not flagged:
                 break
             if not cfg.remove_inconsistent_loops:
-                inconsistent.extend(i for i, _ in flagged)
+                kept_flagged = [i for i, _ in flagged]
                 break
-            worst, r2 = flagged[0]
+            needed = problem.necessary_loops(active)
+            removable = [(i, r2) for i, r2 in flagged if i not in needed]
+            if not removable:
+                kept_flagged = [i for i, _ in flagged]
+                log.warning(
+                    "inconsistent loop edge(s) %s are the only links of part of the graph to its anchor; kept",
+                    [problem.edges[i].pair for i in kept_flagged],
+                )
+                break
+            worst, r2 = removable[0]
             log.info(
                 "loop edge %d->%d is inconsistent (whitened residual^2 %.3g > chi-square bound %.3g); "
                 "removing it and re-optimising",
                 *problem.edges[worst].pair, r2, problem.chi2_bound(cfg.consistency_probability),
             )
-            inconsistent.append(worst)
+            removed.append(worst)
             active[worst] = False
             values, more, _ = problem.solve(values, active, cfg, robust="none" if cfg.robust == "gnc" else cfg.robust)
             iterations += more
         else:
-            log.warning("consistency check stopped after %d removals; loop edges may remain inconsistent", _MAX_CONSISTENCY_ROUNDS)
+            kept_flagged = [i for i, _ in problem.inconsistent_loops(values, active, cfg.consistency_probability)]
+            log.warning("consistency check stopped after %d removals; %d loop edge(s) remain inconsistent",
+                        _MAX_CONSISTENCY_ROUNDS, len(kept_flagged))
 
         # The gauge move is rigid (cost unchanged) and anchors move by ~1e-8 sigma at most, so
         # the cost at the solver's values is the cost of the returned poses.
@@ -530,7 +542,6 @@ class PoseGraph:
         self._solution_graph = problem.gaussian_graph(active)
         self._marginals = None
 
-        removed = inconsistent if cfg.remove_inconsistent_loops else []
         result = PoseGraphResult(
             poses_world_sensor={k: T.copy() for k, T in poses.items()},
             initial_cost=float(initial_cost),
@@ -538,7 +549,7 @@ class PoseGraph:
             iterations=int(iterations),
             seconds=time.perf_counter() - start,
             rejected_loops=[problem.edges[i].pair for i in sorted(set(rejected) | set(removed))],
-            inconsistent_loops=[problem.edges[i].pair for i in inconsistent],
+            inconsistent_loops=[problem.edges[i].pair for i in [*removed, *kept_flagged]],
             initialization=initialization,
             initialized_cost=float(initialized_cost),
             noise_model=cfg.noise_model,
@@ -745,6 +756,33 @@ class _Problem:
                 flagged.append((int(i), r2))
         return sorted(flagged, key=lambda item: -item[1])
 
+    def necessary_loops(self, active: NDArray[np.bool_]) -> set[int]:
+        """Active loop edges whose removal would leave part of the graph without an anchor.
+
+        Such a loop has no redundancy: nothing can confirm or refute it, and the solve needs
+        it. GNC treats them as known inliers and the consistency check does not remove them.
+        """
+        import networkx as nx
+
+        graph = nx.MultiGraph()
+        graph.add_nodes_from(self.given_poses)
+        index = {}
+        for i in np.flatnonzero(active):
+            u, v = self.edges[i].pair
+            graph.add_edge(u, v, key=int(i))
+            index[frozenset((u, v))] = int(i)
+        anchored = set(self.anchors) | {p.key for p in self.priors}
+        needed = set()
+        for u, v in nx.bridges(graph):
+            i = index[frozenset((u, v))]  # a bridge is a single edge, so the pair names it
+            if not self.is_loop[i]:
+                continue
+            graph.remove_edge(u, v, key=i)
+            if any(not anchored.intersection(part) for part in nx.connected_components(graph)):
+                needed.add(i)
+            graph.add_edge(u, v, key=i)
+        return needed
+
     # -- solving ---------------------------------------------------------------------------
     def solve(
         self, initial: gtsam.Values, active: NDArray[np.bool_], cfg: PoseGraphConfig, robust: str | None = None
@@ -792,7 +830,9 @@ class _Problem:
         if all(self.gaussian[i].error(values) <= threshold for i in loops):
             return values, iterations, []
         start = initial
+        needed = self.necessary_loops(active)
         inliers = active & ~self.is_loop
+        inliers[list(needed)] = True
         if cfg.initialization == "chordal" and self._known_inliers_span(inliers):
             restart, failure = self.chordal(inliers)
             if restart is not None:
@@ -801,7 +841,9 @@ class _Problem:
                 log.debug("chordal initialisation over odometry failed (%s); GNC starts from the initial values", failure)
         n_fixed = len(self.anchor_factors) + len(self.prior_factors)
         edge_of_factor = np.flatnonzero(active)
-        known_inliers = list(range(n_fixed)) + [n_fixed + j for j, i in enumerate(edge_of_factor) if not self.is_loop[i]]
+        known_inliers = list(range(n_fixed)) + [
+            n_fixed + j for j, i in enumerate(edge_of_factor) if not self.is_loop[i] or i in needed
+        ]
         params = gtsam.GncLMParams(_lm_params(cfg.max_iterations, max(cfg.relative_error_tol, _GNC_INNER_RELATIVE_TOL)))
         params.setLossType(gtsam.GncLossType.TLS)
         params.setKnownInliers(known_inliers)
