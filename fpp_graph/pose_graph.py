@@ -117,14 +117,17 @@ class PoseGraphResult:
     final_cost : float
         The same cost at the solution, over the edges kept (rejected loops excluded).
     iterations : int
-        Levenberg-Marquardt (or iSAM2) iterations of the final solve, re-solves included.
+        Levenberg-Marquardt (or iSAM2) iterations: the solve, GNC's polish and restarts (not
+        GNC's inner iterations, which GTSAM does not report) and consistency re-solves.
     seconds : float
         Wall time of the whole call (checks, initialisation, solving, consistency check).
     rejected_loops : list of (source_id, target_id)
         Loop edges left out of the solution: by GNC or removed by the consistency check.
     inconsistent_loops : list of (source_id, target_id)
-        Loop edges whose whitened residual exceeded the chi-square bound (removed and
-        re-optimised when ``remove_inconsistent_loops`` is set).
+        Loop edges whose whitened residual exceeded the chi-square bound: those removed (one
+        at a time, worst first, re-optimising after each, when ``remove_inconsistent_loops``
+        is set) and those left in (removal off, or the loop alone ties part of the graph to
+        its anchor).
     initialization : str
         ``"chordal"`` or ``"given"``, with the reason when chordal initialisation failed.
     initialized_cost : float
