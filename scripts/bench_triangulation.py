@@ -85,6 +85,7 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=15)
     args = parser.parse_args()
 
+    print("times: median (min) over repeats, one thread")
     print("rig 1: camera distortion, no projector distortion (1920x1200 camera, 1920x1080 projector)")
     cal = make_rig(projector_distortion=False)
     t0 = time.perf_counter()
@@ -105,11 +106,11 @@ def main() -> None:
     ms64, xyz64 = timed(lambda: tri64.triangulate(u_p), args.repeats)
     ms_peer, xyz_peer = timed(lambda: peer_solve(cal, uv_camera, u_p), max(2, args.repeats // 5))
     err = lambda a, b: float(np.nanmax(np.linalg.norm(a - b, axis=-1)))  # noqa: E731
-    print(f"  Triangulator float32 triangulate:        {ms32:7.1f} ms/frame median  (max |error| vs truth {err(xyz32, X) * 1e6:.3f} um)")
-    print(f"  Triangulator float32 with out= buffer:   {ms32_out:7.1f} ms/frame median")
-    print(f"  Triangulator float32 depth map only:     {msd:7.1f} ms/frame median")
-    print(f"  Triangulator float64 triangulate:        {ms64:7.1f} ms/frame median  (max |error| vs truth {err(xyz64, X) * 1e6:.3g} um)")
-    print(f"  peer: batched per-pixel 3x3 solve:       {ms_peer:7.1f} ms/frame median  (max |error| vs truth {err(xyz_peer, X) * 1e6:.3g} um)")
+    print(f"  Triangulator float32 triangulate:        {ms32:7.1f} ms/frame  (max |error| vs truth {err(xyz32, X) * 1e6:.3f} um)")
+    print(f"  Triangulator float32 with out= buffer:   {ms32_out:7.1f} ms/frame")
+    print(f"  Triangulator float32 depth map only:     {msd:7.1f} ms/frame")
+    print(f"  Triangulator float64 triangulate:        {ms64:7.1f} ms/frame  (max |error| vs truth {err(xyz64, X) * 1e6:.3g} um)")
+    print(f"  peer: batched per-pixel 3x3 solve:       {ms_peer:7.1f} ms/frame  (max |error| vs truth {err(xyz_peer, X) * 1e6:.3g} um)")
     print(f"  speed-up vs peer (medians): float32 {float(ms_peer) / float(ms32):.0f}x, float64 {float(ms_peer) / float(ms64):.0f}x")
     print(f"  max |Triangulator float32 - peer| = {err(xyz32, xyz_peer) * 1e6:.3f} um, float64 - peer = {err(xyz64, xyz_peer) * 1e6:.3g} um")
     same = np.isfinite(xyz32[..., 2]) == np.isfinite(xyz_peer[..., 2])
@@ -128,8 +129,8 @@ def main() -> None:
     u_p32 = np.where(inside, u_p, np.nan).astype(np.float32)
     ms, xyz = timed(lambda: tri.triangulate(u_p32), args.repeats)
     ms_exact, xyz_exact = timed(lambda: exact.triangulate(u_p32.astype(np.float64)), max(2, args.repeats // 5))
-    print(f"  Triangulator float32 (polynomial):       {ms:7.1f} ms/frame median  (max |error| vs truth {err(xyz, X) * 1e6:.3f} um)")
-    print(f"  Triangulator float64 + 2 exact refinements: {ms_exact:7.1f} ms/frame median  (max |error| vs truth {err(xyz_exact, X) * 1e6:.3g} um)")
+    print(f"  Triangulator float32 (polynomial):       {ms:7.1f} ms/frame  (max |error| vs truth {err(xyz, X) * 1e6:.3f} um)")
+    print(f"  Triangulator float64 + 2 exact refinements: {ms_exact:7.1f} ms/frame  (max |error| vs truth {err(xyz_exact, X) * 1e6:.3g} um)")
 
 
 if __name__ == "__main__":
