@@ -8,6 +8,7 @@ paths and dicts cross process boundaries.
 from __future__ import annotations
 
 import logging
+import multiprocessing
 import traceback
 from concurrent.futures import Executor, ProcessPoolExecutor
 from pathlib import Path
@@ -40,7 +41,8 @@ def run_one(sequence: str, out: str, config_path: str | None, resume: bool, over
 def make_executor(workers: int, scheduler: str | None) -> tuple[Executor, Any]:
     """A ProcessPoolExecutor, or a Dask executor when ``scheduler`` is an address or 'local'."""
     if scheduler is None:
-        return ProcessPoolExecutor(max_workers=max(1, workers)), None
+        # spawn: forking a parent that holds library threads can deadlock the child
+        return ProcessPoolExecutor(max_workers=max(1, workers), mp_context=multiprocessing.get_context("spawn")), None
     try:
         from dask.distributed import Client, LocalCluster
     except ImportError:

@@ -91,8 +91,8 @@ class KeyframeManager:
     ) -> None:
         self.registrar = registrar
         self.config = config or Config()
-        self.store = store or FrameStore()
-        self.loop_detector = loop_detector or ProximityAppearanceLoopDetector(self.config.loop_closure)
+        self.store = store if store is not None else FrameStore()
+        self.loop_detector = loop_detector if loop_detector is not None else ProximityAppearanceLoopDetector(self.config.loop_closure)
         self.on_loop = on_loop
         self.keyframe_ids: list[int] = []
         self.odometry: list[Constraint] = []

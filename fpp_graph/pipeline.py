@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import json
 import logging
+import multiprocessing
 import os
 import shutil
 import time
@@ -375,7 +376,12 @@ class Pipeline:
         workers = self.config.run.workers or (os.cpu_count() or 1)
         if workers <= 1:
             return None
-        self.executor = ProcessPoolExecutor(max_workers=workers, initializer=_init_worker, initargs=(self.source,))
+        # spawn, not fork: the parent holds threads (Open3D, OpenCV, BLAS pools) and a forked child
+        # can inherit one of their locks held, and hang forever
+        self.executor = ProcessPoolExecutor(
+            max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
+            initializer=_init_worker, initargs=(self.source,),
+        )
         return self.executor
 
     class _Timer:
