@@ -138,10 +138,14 @@ def ate_rpe(
         est = copy.deepcopy(est)
         try:
             r_a, t_a, _ = est.align(ref, correct_scale=False)
+            T_gt_est[:3, :3] = r_a
+            T_gt_est[:3, 3] = t_a
         except EvoException as exc:
-            raise InputDataError(f"ate_rpe: SE(3) alignment failed ({exc}); are the positions all on a line?") from None
-        T_gt_est[:3, :3] = r_a
-        T_gt_est[:3, 3] = t_a
+            # Positions on a line (a cart along a corridor) leave the rotation about that line
+            # free: use the orientations too, aligning each pose's origin and axis tips.
+            log.info("ate_rpe: position-only alignment degenerate (%s); aligning full poses", exc)
+            T_gt_est = _align_poses_se3(np.array(est.poses_se3), np.array(ref.poses_se3))
+            est.transform(T_gt_est)
     ape = metrics.APE(PoseRelation.translation_part)
     ape.process_data((ref, est))
     per_pose = np.asarray(ape.error, dtype=np.float64)
@@ -162,6 +166,25 @@ def ate_rpe(
         ate_per_pose_m=per_pose,
         matched=int(n),
     )
+
+
+def _align_poses_se3(poses_est: np.ndarray, poses_gt: np.ndarray, arm_m: float = 0.1) -> np.ndarray:
+    """``T_gt_est`` minimising the distances of pose origins and axis tips (Kabsch, no scale)."""
+
+    def tips(poses: np.ndarray) -> np.ndarray:
+        origins = poses[:, :3, 3]
+        axes = [origins + arm_m * poses[:, :3, k] for k in range(3)]
+        return np.concatenate([origins, *axes])
+
+    a, b = tips(poses_est), tips(poses_gt)
+    ca, cb = a.mean(axis=0), b.mean(axis=0)
+    U, _, Vt = np.linalg.svd((b - cb).T @ (a - ca))
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+    R = U @ D @ Vt
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = cb - R @ ca
+    return T
 
 
 # -- turntable figures -------------------------------------------------------------------------
