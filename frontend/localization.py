@@ -236,7 +236,9 @@ def localize_dlt(
         if count > best_count:
             best_count, best_T = count, T
             w = count / n
-            needed = int(math.ceil(log_fail / math.log(max(1.0 - w**6, 1e-300)))) if w < 1 else drawn
+            p_all = w**6
+            # log1p keeps tiny sample-success probabilities from rounding to log(1) = 0
+            needed = drawn if p_all >= 1.0 else int(min(max_iterations, math.ceil(log_fail / math.log1p(-p_all)))) if p_all > 0 else max_iterations
     if best_T is None or best_count < max(6, min_inliers):
         return LocalizationResult(nan_pose, np.full(3, np.nan), np.zeros(n, bool), float("nan"), drawn, False)
     inl = _reprojection_errors(best_T, X, uv, Km) < ransac_threshold_px

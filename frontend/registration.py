@@ -256,7 +256,8 @@ def ransac_rigid(
             best_T[:3, :3], best_T[:3, 3] = R[k], t[k]
             w = best_count / n
             p_all = w**3
-            needed = drawn if p_all >= 1.0 else int(math.ceil(log_fail / math.log(max(1.0 - p_all, 1e-300))))
+            # log1p keeps tiny sample-success probabilities from rounding to log(1) = 0
+            needed = drawn if p_all >= 1.0 else int(min(max_iterations, math.ceil(log_fail / math.log1p(-p_all)))) if p_all > 0 else max_iterations
     if best_count < 3:
         return RansacResult(np.eye(4), np.zeros(n, bool), drawn, float("nan"))
     T = best_T
