@@ -34,9 +34,11 @@ ConfigOption = Annotated[
 
 def setup_logging(level: str = "INFO", log_file: Path | None = None) -> None:
     """Configure logging for the CLI: rich console handler on stderr, optional file handler."""
+    from rich.console import Console
     from rich.logging import RichHandler
 
-    handlers: list[logging.Handler] = [RichHandler(show_path=False, rich_tracebacks=False)]
+    # stderr: stdout carries results (--json) that log lines must not corrupt
+    handlers: list[logging.Handler] = [RichHandler(console=Console(stderr=True), show_path=False, rich_tracebacks=False)]
     if log_file is not None:
         log_file.parent.mkdir(parents=True, exist_ok=True)
         file_handler = logging.FileHandler(log_file, encoding="utf-8")
