@@ -467,6 +467,47 @@ def information_from_icp(icp: IcpResult, scale: float = 1.0, min_sigma_m: float 
     return 0.5 * (info + info.T)
 
 
+def information_from_keypoints(T_target_source: NDArray, source_points: NDArray, residuals_m: NDArray, min_sigma_m: float = 2e-5) -> Array:
+    """6x6 ``[rot, trans]`` information of ``T_target_source`` from 3D keypoint correspondences.
+
+    Point-to-point residual ``r = T Exp(xi) p - q`` has Jacobian ``R [-[p]x, I]`` at ``xi = 0``;
+    each correspondence contributes ``J^T J / sigma^2`` with ``sigma^2`` the per-axis residual
+    variance (``sum |r|^2 / (3 n)``, floored at ``min_sigma_m``).
+    """
+    P = np.asarray(source_points, dtype=np.float64).reshape(-1, 3)
+    n = P.shape[0]
+    if n < 3:
+        return np.zeros((6, 6))
+    sigma2 = max(float(np.sum(np.asarray(residuals_m) ** 2)) / (3 * n), min_sigma_m**2)
+    # J^T J summed over points: R cancels (R^T R = I); blocks from [-[p]x, I]
+    S = np.array([[[0.0, -p[2], p[1]], [p[2], 0.0, -p[0]], [-p[1], p[0], 0.0]] for p in P])
+    info = np.zeros((6, 6))
+    info[:3, :3] = np.einsum("nji,njk->ik", S, S)  # (-[p]x)^T (-[p]x)
+    info[:3, 3:] = -S.sum(axis=0).T  # (-[p]x)^T I
+    info[3:, :3] = info[:3, 3:].T
+    info[3:, 3:] = n * np.eye(3)
+    return info / sigma2
+
+
+def _weak_direction_sigma_m(information: NDArray, deg: Degeneracy, source_points: NDArray) -> float:
+    """Largest standard deviation (m, rotations as arc length at the cloud's RMS radius) along the weak directions."""
+    try:
+        cov = np.linalg.inv(information)
+    except np.linalg.LinAlgError:
+        return float("inf")
+    P = np.asarray(source_points, dtype=np.float64).reshape(-1, 3)
+    c = P.mean(axis=0)
+    radius = max(float(np.sqrt(np.mean(np.sum((P - c) ** 2, axis=1)))), 1e-6)
+    A = np.eye(6)
+    A[3:, :3] = np.array([[0.0, c[2], -c[1]], [-c[2], 0.0, c[0]], [c[1], -c[0], 0.0]])
+    S = np.diag([1.0 / radius] * 3 + [1.0] * 3)
+    # covariance in the centred, length-normalised coordinates of check_degeneracy
+    M = np.linalg.inv(A @ S)
+    cov_c = M @ cov @ M.T
+    variances = [float(v @ cov_c @ v) for v in deg.directions]
+    return float(np.sqrt(max(variances))) if variances and min(np.isfinite(variances)) else float("inf")
+
+
 @dataclass(frozen=True)
 class Degeneracy:
     """Outcome of :func:`check_degeneracy`.
@@ -475,7 +516,8 @@ class Degeneracy:
     ----------
     degenerate : bool
     eigenvalue_ratios : (6,) float64
-        Eigenvalues of the length-normalised information over the largest, ascending.
+        Eigenvalues of the length-normalised information over the trace of its translation
+        block, ascending (a plane: three values near 0).
     unconstrained : list of str
         Human-readable weak directions, e.g. ``"translation along (0.00, 1.00, 0.00)"``.
     directions : (k, 6) float64
@@ -493,8 +535,8 @@ def check_degeneracy(information: NDArray, source_points: NDArray, ratio: float 
 
     The information is re-expressed about the centroid of ``source_points`` with rotations in
     arc length at their RMS radius, so rotational and translational eigenvalues compare in the
-    same unit (m^-2); a direction whose eigenvalue is below ``ratio`` times the largest is
-    unconstrained.
+    same unit (m^-2), and divided by the trace of its translation block; a direction whose
+    normalised eigenvalue is below ``ratio`` is unconstrained.
 
     Parameters
     ----------
@@ -520,8 +562,14 @@ def check_degeneracy(information: NDArray, source_points: NDArray, ratio: float 
     info_c = S @ A.T @ info @ A @ S
     info_c = 0.5 * (info_c + info_c.T)
     w, V = np.linalg.eigh(info_c)
-    wmax = max(float(w[-1]), 1e-300)
-    ratios = w / wmax
+    # normalise by the trace of the translation block: the translational eigenvalues then sum
+    # to 1 for any surface (mean of (m . d)^2 over three orthonormal d is 1/3 per direction),
+    # so a direction's value is the mean squared normal component along it. A plane gives
+    # {~0, ~0, 1} with the ~0 set by normal-estimation noise (a few degrees of normal scatter,
+    # ~1e-3..1e-2); real relief gives more. Dividing by the largest eigenvalue instead made the
+    # test depend on how strongly the *other* directions were constrained.
+    norm = max(float(np.trace(info_c[3:, 3:])), 1e-300)
+    ratios = w / norm
     weak = np.flatnonzero(ratios < ratio)
     names = []
     for k in weak:
@@ -697,11 +745,26 @@ class FppPairRegistrar:
             return reject(f"high inlier RMSE ({1e3 * icp.inlier_rmse_m:.3f} mm > {1e3 * cfg.max_inlier_rmse_m:.3f} mm)", metadata=meta, **quality)
         t0 = time.perf_counter()
         info = information_from_icp(icp, scale=cfg.information_scale)
+        # Where the dense geometry is weak (an object on a big table plane, a wall), ICP's cost
+        # is flat and the pose stays where the keypoint correspondences put it: their
+        # point-to-point information constrains exactly those directions.
+        kp_mask = res_kp < cfg.ransac_threshold_m
+        info = info + information_from_keypoints(T, Ps[kp_mask], res_kp[kp_mask])
         deg = check_degeneracy(info, icp.source_points, cfg.degeneracy_ratio)
         timings["information"] = time.perf_counter() - t0
         meta["eigenvalue_ratios"] = deg.eigenvalue_ratios
         if deg.degenerate:
-            return reject("degenerate geometry: unconstrained " + "; ".join(deg.unconstrained), metadata={**meta, "unconstrained_directions": deg.directions}, **quality)
+            # Weak in the dense geometry (one plane, an object on a table): acceptable only if the
+            # keypoints pin those directions down to within max_weak_sigma_m.
+            weak_sigma_m = _weak_direction_sigma_m(info, deg, icp.source_points)
+            meta["geometrically_weak"] = deg.unconstrained
+            meta["weak_direction_sigma_m"] = weak_sigma_m
+            if not weak_sigma_m <= cfg.max_weak_sigma_m:
+                return reject(
+                    "degenerate geometry: unconstrained " + "; ".join(deg.unconstrained)
+                    + f" (sigma {1e3 * weak_sigma_m:.3f} mm > {1e3 * cfg.max_weak_sigma_m:.3f} mm even with keypoints)",
+                    metadata={**meta, "unconstrained_directions": deg.directions}, **quality,
+                )
         meta["timings_s"] = dict(timings)
         return Constraint(
             source_id=source.id,
