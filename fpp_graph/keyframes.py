@@ -20,6 +20,7 @@ Only keyframes are kept (bounded by the :class:`~fpp_graph.frame_store.FrameStor
 
 from __future__ import annotations
 
+import inspect
 import logging
 import math
 from collections.abc import Callable
@@ -94,6 +95,11 @@ class KeyframeManager:
         self.store = store if store is not None else FrameStore()
         self.loop_detector = loop_detector if loop_detector is not None else ProximityAppearanceLoopDetector(self.config.loop_closure)
         self.on_loop = on_loop
+        try:
+            params = inspect.signature(registrar.register).parameters
+            self._registrar_takes_kind = "kind" in params or any(p.kind is p.VAR_KEYWORD for p in params.values())
+        except (TypeError, ValueError):
+            self._registrar_takes_kind = False
         self.keyframe_ids: list[int] = []
         self.odometry: list[Constraint] = []
         self.loops: list[Constraint] = []
@@ -184,7 +190,11 @@ class KeyframeManager:
         for cand in candidates:
             target = self.store.get(cand.match_id)
             T_guess = invert(self.T_world_keyframe[cand.match_id]) @ self.T_world_keyframe[frame.id]
-            constraint = self.registrar.register(target, frame, T_guess if "proximity" in cand.source else None)
+            guess = T_guess if "proximity" in cand.source else None
+            if self._registrar_takes_kind:
+                constraint = self.registrar.register(target, frame, guess, kind=ConstraintKind.LOOP)
+            else:  # a third-party registrar written against the three-argument protocol
+                constraint = self.registrar.register(target, frame, guess)
             record = LoopRecord(
                 query_id=frame.id,
                 match_id=cand.match_id,

@@ -191,9 +191,17 @@ class PairRegistrar(Protocol):
     """Estimates the relative pose of two frames (the FPP front-end implements it)."""
 
     def register(
-        self, target: Frame, source: Frame, T_guess: NDArray[np.float64] | None = None
+        self,
+        target: Frame,
+        source: Frame,
+        T_guess: NDArray[np.float64] | None = None,
+        kind: ConstraintKind = ConstraintKind.ODOMETRY,
     ) -> Constraint:
-        """Return a Constraint ``T_target_source``; a rejected one says why, never raises on bad overlap."""
+        """Return a Constraint ``T_target_source``; a rejected one says why, never raises on bad overlap.
+
+        ``kind`` tells the registrar what the pair is for: a loop candidate may deserve stricter
+        verification (look-alike places) than consecutive frames.
+        """
         ...
 
 
