@@ -41,6 +41,9 @@ RGBD_REGISTRATION_FLOORS = {
     "icp_voxel_m": 0.01,
     "icp_max_correspondence_m": 0.05,
     "max_inlier_rmse_m": 0.03,
+    "max_icp_shift_m": 0.05,
+    "max_weak_sigma_m": 0.005,
+    "loop_weak_max_guess_deviation_m": 0.1,
 }
 _SEVEN_SCENES = re.compile(r"frame-(\d+)\.color\.png$")
 
