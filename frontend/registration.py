@@ -759,18 +759,16 @@ class FppPairRegistrar:
             weak_sigma_m = _weak_direction_sigma_m(info, deg, icp.source_points)
             meta["geometrically_weak"] = deg.unconstrained
             meta["weak_direction_sigma_m"] = weak_sigma_m
-            guess_deviation_m = (
-                float(np.linalg.norm(T[:3, 3] - np.asarray(T_guess, dtype=np.float64)[:3, 3])) if T_guess is not None else float("inf")
-            )
-            if ConstraintKind(kind) is ConstraintKind.LOOP and not guess_deviation_m <= cfg.loop_weak_max_guess_deviation_m:
-                # A revisit on weak geometry (a plane) rests on the keypoints alone, and look-alike
-                # places (repeated posters) fool keypoints: without a pose estimate that agrees,
-                # it is not worth the risk.
+            if ConstraintKind(kind) is ConstraintKind.LOOP and T_guess is None:
+                # A revisit proposed by appearance alone, on weak geometry (a plane), rests on the
+                # keypoints alone, and look-alike places (repeated posters) fool keypoints.
                 return reject(
                     "degenerate geometry for a loop: unconstrained " + "; ".join(deg.unconstrained)
-                    + (" and no pose guess to confirm the keypoints" if T_guess is None else f" and {1e3 * guess_deviation_m:.1f} mm from the pose guess"),
+                    + " and no pose guess (appearance-only candidate)",
                     metadata={**meta, "unconstrained_directions": deg.directions}, **quality,
                 )
+            if ConstraintKind(kind) is ConstraintKind.LOOP:
+                meta["weak_loop_guess_deviation_m"] = float(np.linalg.norm(T[:3, 3] - np.asarray(T_guess, dtype=np.float64)[:3, 3]))
             if not weak_sigma_m <= cfg.max_weak_sigma_m:
                 return reject(
                     "degenerate geometry: unconstrained " + "; ".join(deg.unconstrained)

@@ -43,7 +43,6 @@ RGBD_REGISTRATION_FLOORS = {
     "max_inlier_rmse_m": 0.03,
     "max_icp_shift_m": 0.05,
     "max_weak_sigma_m": 0.005,
-    "loop_weak_max_guess_deviation_m": 0.1,
 }
 _SEVEN_SCENES = re.compile(r"frame-(\d+)\.color\.png$")
 
