@@ -26,6 +26,7 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from fpp_graph.errors import ConfigError, FppError, InputDataError
+from fpp_graph.geometry import kabsch
 from fpp_graph.trajectory import Trajectory
 
 log = logging.getLogger(__name__)
@@ -176,15 +177,7 @@ def _align_poses_se3(poses_est: np.ndarray, poses_gt: np.ndarray, arm_m: float =
         axes = [origins + arm_m * poses[:, :3, k] for k in range(3)]
         return np.concatenate([origins, *axes])
 
-    a, b = tips(poses_est), tips(poses_gt)
-    ca, cb = a.mean(axis=0), b.mean(axis=0)
-    U, _, Vt = np.linalg.svd((b - cb).T @ (a - ca))
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
-    R = U @ D @ Vt
-    T = np.eye(4)
-    T[:3, :3] = R
-    T[:3, 3] = cb - R @ ca
-    return T
+    return kabsch(tips(poses_gt), tips(poses_est))
 
 
 # -- turntable figures -------------------------------------------------------------------------

@@ -13,6 +13,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
+from fpp_graph.errors import InputDataError
+
 Array = NDArray[np.float64]
 
 
@@ -126,3 +128,41 @@ def adjoint(T: ArrayLike) -> Array:
     Ad[3:, 3:] = R
     Ad[3:, :3] = _skew(t) @ R
     return Ad
+
+
+def kabsch(P_target: NDArray, P_source: NDArray, weights: NDArray | None = None) -> Array:
+    """Closed-form ``T_target_source`` minimising ``sum w ||P_target - R P_source - t||^2`` (eq. 10).
+
+    Parameters
+    ----------
+    P_target, P_source : (N, 3) float64
+        Corresponding points (N >= 3, not collinear), metres.
+    weights : (N,) float64, optional
+        Non-negative weights.
+
+    Returns
+    -------
+    (4, 4) float64
+        Rigid transform (det +1; reflections are corrected as in Umeyama 1991). No scale.
+
+    Raises
+    ------
+    InputDataError
+        Fewer than 3 points or mismatched shapes.
+    """
+    Pt = np.asarray(P_target, dtype=np.float64).reshape(-1, 3)
+    Ps = np.asarray(P_source, dtype=np.float64).reshape(-1, 3)
+    if Pt.shape != Ps.shape or Pt.shape[0] < 3:
+        raise InputDataError(f"kabsch needs two N x 3 arrays of the same shape with N >= 3, got {Pt.shape} and {Ps.shape}")
+    w = np.ones(Pt.shape[0]) if weights is None else np.asarray(weights, dtype=np.float64).reshape(-1)
+    w = w / max(w.sum(), 1e-300)
+    ct = w @ Pt
+    cs = w @ Ps
+    Hm = (Ps - cs).T @ ((Pt - ct) * w[:, None])
+    U, _, Vt = np.linalg.svd(Hm)
+    d = 1.0 if np.linalg.det(Vt.T @ U.T) >= 0 else -1.0
+    R = Vt.T @ np.diag([1.0, 1.0, d]) @ U.T
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = ct - R @ cs
+    return T
