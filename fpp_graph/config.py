@@ -18,7 +18,7 @@ from typing import Any, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from fpp_graph.errors import ConfigError
+from fpp_graph.errors import ConfigError, FppError
 
 
 class StrictModel(BaseModel):
@@ -179,21 +179,29 @@ def config_from_dict(data: dict[str, Any], source: str = "<dict>") -> Config:
         raise ConfigError(_format_validation_error(exc, source)) from None
 
 
+def read_yaml_file(path: str | os.PathLike[str], error: type[FppError] = ConfigError, what: str = "config") -> Any:
+    """Parse a YAML file; unreadable files and YAML syntax errors raise ``error`` naming file and line."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise error(f"cannot read {what} {path}: {exc.strerror}") from exc
+    except UnicodeDecodeError:
+        raise error(f"{path}: not a text (UTF-8) {what} file") from None
+    try:
+        return yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f"{path}:{mark.line + 1}" if mark else str(path)
+        raise error(f"{where}: not valid YAML ({getattr(exc, 'problem', None) or exc})") from None
+
+
 def load_config(path: str | os.PathLike[str] | None = None) -> Config:
     """Load the default config, overridden by the YAML file at ``path`` if given."""
     if path is None:
         return config_from_dict({}, source="(defaults)")
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise ConfigError(f"cannot read config {path}: {exc.strerror}") from exc
-    try:
-        data = yaml.safe_load(text) or {}
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f"{path}:{mark.line + 1}" if mark else str(path)
-        raise ConfigError(f"{where}: not valid YAML ({getattr(exc, 'problem', exc)})") from None
+    data = read_yaml_file(path, ConfigError, "config") or {}
     if not isinstance(data, dict):
         raise ConfigError(f"{path}: a config file must be a mapping of sections, got {type(data).__name__}")
     return config_from_dict(data, source=str(path))

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -18,6 +17,7 @@ import yaml
 from numpy.typing import NDArray
 
 from fpp_graph.atomic import atomic_write_text
+from fpp_graph.config import read_yaml_file
 from fpp_graph.errors import CalibrationError
 from fpp_graph.geometry import is_rigid
 
@@ -169,11 +169,5 @@ def save_calibration(path: str | os.PathLike[str], calibration: RigCalibration, 
 
 def load_calibration(path: str | os.PathLike[str]) -> RigCalibration:
     """Read a calibration YAML written by :func:`save_calibration` (any stated length unit)."""
-    path = Path(path)
-    try:
-        data = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except OSError as exc:
-        raise CalibrationError(f"cannot read calibration {path}: {exc.strerror}") from exc
-    except yaml.YAMLError as exc:
-        raise CalibrationError(f"{path}: not valid YAML ({exc})") from None
+    data = read_yaml_file(path, CalibrationError, "calibration")
     return RigCalibration.from_dict(data, where=str(path))

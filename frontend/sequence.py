@@ -41,6 +41,7 @@ import yaml
 from numpy.typing import NDArray
 
 from fpp_graph.atomic import atomic_write_bytes, atomic_write_text
+from fpp_graph.config import read_yaml_file
 from fpp_graph.errors import InputDataError, OutputError
 from fpp_graph.trajectory import Trajectory, read_tum, write_tum
 from frontend.images import load_image_stack
@@ -141,12 +142,7 @@ def read_sequence(path: str | os.PathLike[str]) -> Sequence:
     meta_path = path / SEQUENCE_FILE
     if not meta_path.is_file():
         raise InputDataError(f"{path} is not an FPP sequence folder: {SEQUENCE_FILE} is missing")
-    try:
-        meta = yaml.safe_load(meta_path.read_text(encoding="utf-8"))
-    except OSError as exc:
-        raise InputDataError(f"cannot read {meta_path}: {exc.strerror}") from exc
-    except yaml.YAMLError as exc:
-        raise InputDataError(f"{meta_path}: not valid YAML ({exc})") from None
+    meta = read_yaml_file(meta_path, InputDataError, "sequence file")
     if not isinstance(meta, dict):
         raise InputDataError(f"{meta_path}: expected a mapping at the top level")
     if meta.get("format") != FORMAT:

@@ -43,6 +43,7 @@ import open3d as o3d
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from fpp_graph.config import read_yaml_file
 from fpp_graph.errors import ConfigError, InputDataError
 from frontend.patterns import PatternSpec, pattern_intensity
 from frontend.rig import PinholeModel, RigCalibration
@@ -654,7 +655,6 @@ def load_simulation(config: str | os.PathLike[str] | dict[str, Any], preview: bo
     InputDataError
         An object mesh that is missing, unreadable or empty.
     """
-    import yaml
 
     from frontend import scenes
 
@@ -663,12 +663,7 @@ def load_simulation(config: str | os.PathLike[str] | dict[str, Any], preview: bo
     if not isinstance(config, dict):
         path = Path(config)
         where = str(path)
-        try:
-            config = yaml.safe_load(path.read_text(encoding="utf-8"))
-        except OSError as exc:
-            raise ConfigError(f"cannot read scene config {path}: {exc.strerror}") from exc
-        except yaml.YAMLError as exc:
-            raise ConfigError(f"{path}: not valid YAML ({exc})") from None
+        config = read_yaml_file(path, ConfigError, "scene config")
         base_dir = path.parent
     if not isinstance(config, dict):
         raise ConfigError(f"{where}: a scene config must be a mapping")
