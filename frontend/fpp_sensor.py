@@ -13,6 +13,8 @@ from collections.abc import Sequence
 import numpy as np
 from numpy.typing import NDArray
 
+from scipy import ndimage
+
 from fpp_graph.config import DecodeConfig
 from fpp_graph.errors import InputDataError
 from fpp_graph.types import Frame
@@ -37,6 +39,13 @@ class FppSensor:
         Validity thresholds of the decoder.
     depth_range_m : (float, float)
         Accepted depths along the camera axis, metres.
+    edge_max_angle_deg : float
+        Depth-discontinuity / mixed-pixel filter (:func:`edge_filter_mask`): a pixel is dropped
+        when its surface is seen at more than this angle from the viewing ray, or when the depth
+        range of its 3x3 neighbourhood exceeds what such a surface could span. ``None`` or
+        ``>= 90`` turns the filter off.
+    edge_noise_floor_m : float
+        Depth noise allowance added to the neighbourhood range bound, metres.
     """
 
     def __init__(
@@ -45,12 +54,18 @@ class FppSensor:
         spec: PatternSpec,
         decode_config: DecodeConfig | None = None,
         depth_range_m: tuple[float, float] = (0.05, 10.0),
+        edge_max_angle_deg: float | None = 75.0,
+        edge_noise_floor_m: float = 0.0005,
     ) -> None:
         self.calibration = calibration
         self.spec = spec
         proj = calibration.projector
         self.decoder = Decoder(spec, proj.width, proj.height, decode_config)
         self.triangulator = Triangulator(calibration, axis=spec.axis, depth_range_m=depth_range_m)
+        self.edge_max_angle_deg = edge_max_angle_deg
+        self.edge_noise_floor_m = float(edge_noise_floor_m)
+        K = calibration.camera.K
+        self._focal_px = float(np.sqrt(K[0, 0] * K[1, 1]))
 
     def decode(self, images: NDArray | Sequence[NDArray], where: str = "frame") -> DecodeResult:
         """Decode one capture (M, H, W); checks the image count and size first."""
@@ -79,12 +94,20 @@ class FppSensor:
         Frame
             ``points`` (N, 3) metres in the sensor frame (valid pixels, row-major order),
             ``colors`` the texture grey in [0, 1] (N, 3), ``xyz_map`` (H, W, 3) NaN where
-            invalid, ``texture`` (H, W) uint8; metadata holds the valid fraction and the
-            decoder's invalid-pixel counts.
+            invalid, ``texture`` (H, W) uint8; metadata holds the valid fraction, the
+            decoder's invalid-pixel counts and (``edge_filter``) the pixels the
+            mixed-pixel / discontinuity filter removed.
         """
         where = f"frame {frame_id}"
         result = self.decode(images, where)
         xyz = self.triangulator.triangulate(result.u_projector_px, result.mask)
+        edge_rejected = 0
+        if self.edge_max_angle_deg is not None and self.edge_max_angle_deg < 90:
+            decoded = np.isfinite(xyz[..., 2])
+            keep = edge_filter_mask(xyz, self._focal_px, self.edge_max_angle_deg, self.edge_noise_floor_m)
+            drop = decoded & ~keep
+            edge_rejected = int(np.count_nonzero(drop))
+            xyz[drop] = np.nan
         valid = np.isfinite(xyz[..., 2])
         points = xyz[valid]
         grey = result.texture[valid].astype(np.float64) / 255.0
@@ -97,5 +120,65 @@ class FppSensor:
             xyz_map=xyz,
             texture=result.texture,
             T_world_sensor_guess=T_world_sensor_guess,
-            metadata={"valid_fraction": float(np.count_nonzero(valid)) / valid.size, "invalid_counts": dict(result.invalid_counts)},
+            metadata={
+                "valid_fraction": float(np.count_nonzero(valid)) / valid.size,
+                "invalid_counts": {**dict(result.invalid_counts), "edge_filter": edge_rejected},
+            },
         )
+
+
+def edge_filter_mask(
+    xyz_map: NDArray[np.float64], focal_px: float, max_angle_deg: float = 75.0, noise_floor_m: float = 0.0005
+) -> NDArray[np.bool_]:
+    """Pixels of an organised point map that are not mixed pixels, silhouette or grazing surface.
+
+    At a depth discontinuity (an object's silhouette in front of a farther surface, or the edge of
+    a shadow) a camera pixel integrates light from both sides; its decoded phase, hence its point,
+    lies somewhere between them, off every real surface. Such pixels are recognised locally:
+
+    1. shadow/hole edges: a pixel any of whose 8 neighbours is invalid is dropped (the mask is
+       eroded by one pixel where decoding failed);
+    2. discontinuities: a surface seen at angle ``theta`` from the ray changes depth by about
+       ``z tan(theta) / f`` per pixel, so over the 3x3 neighbourhood (diagonal 2 sqrt 2 px) its
+       depth range stays below ``2 sqrt(2) z tan(max_angle) / f + noise_floor_m``; more is a jump;
+    3. grazing angle: the normal from the neighbours' central differences makes more than
+       ``max_angle_deg`` with the viewing ray (such points are also the least accurate ones).
+
+    Parameters
+    ----------
+    xyz_map : (H, W, 3)
+        Points in the camera frame, metres, NaN where invalid.
+    focal_px : float
+        Camera focal length in pixels (sets the angular size of a pixel).
+
+    Returns
+    -------
+    (H, W) bool
+        True where the pixel is valid and kept.
+    """
+    xyz = np.asarray(xyz_map, dtype=np.float32)
+    z = xyz[..., 2]
+    valid = np.isfinite(z)
+    h, w = z.shape
+    if h < 3 or w < 3:
+        return np.zeros_like(valid)
+    z_hi = np.where(valid, z, np.float32(np.inf))
+    z_lo = np.where(valid, z, np.float32(-np.inf))
+    # an invalid neighbour makes the range infinite: hole and shadow edges go with the jumps
+    z_range = ndimage.maximum_filter(z_hi, size=3, mode="nearest") - ndimage.minimum_filter(z_lo, size=3, mode="nearest")
+    tan_max = np.float32(np.tan(np.radians(max_angle_deg)))
+    with np.errstate(invalid="ignore"):
+        bound = np.float32(2.0 * np.sqrt(2.0) / focal_px) * tan_max * z + np.float32(noise_floor_m)
+        keep = valid & (z_range <= bound)
+    keep[0, :] = keep[-1, :] = keep[:, 0] = keep[:, -1] = False
+    # normal from central differences (all 8 neighbours are valid where keep holds)
+    du = xyz[1:-1, 2:] - xyz[1:-1, :-2]
+    dv = xyz[2:, 1:-1] - xyz[:-2, 1:-1]
+    normal = np.cross(du, dv)
+    ray = xyz[1:-1, 1:-1]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        cos = np.abs(np.einsum("ijk,ijk->ij", normal, ray)) / (
+            np.linalg.norm(normal, axis=2) * np.linalg.norm(ray, axis=2)
+        )
+        keep[1:-1, 1:-1] &= cos >= np.float32(np.cos(np.radians(max_angle_deg)))
+    return keep

@@ -243,3 +243,60 @@ def test_frame_without_xyz_map_is_left_out_of_the_mesh(caplog):
     fuser.integrate(Frame(0, 0.0, np.zeros((1, 3))), np.eye(4))
     assert fuser.frames_meshed == 0 and "no xyz_map" in caplog.text
     assert fuser.result().num_points == 1
+
+
+# -- the depth-discontinuity / mixed-pixel filter of the FPP front-end --------------------------
+def _step_scene_xyz(rng, noise_m=5e-5):
+    """A wall at 0.6 m, a box face at 0.45 m in front of it, mixed pixels on the box's edge.
+
+    Returns the xyz map, the mask of mixed pixels and the mask of the tilted (80 deg) patch.
+    """
+    h, w, f = 120, 160, 400.0
+    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+    x, y = (u - w / 2) / f, (v - h / 2) / f
+    z = np.full((h, w), 0.6)
+    box = (u >= 40) & (u < 90) & (v >= 30) & (v < 80)
+    z[box] = 0.45
+    # a patch seen at about 85 degrees from the ray: depth grows by z tan(85)/f per column
+    tilt = (u >= 110) & (u < 150) & (v >= 30) & (v < 80)
+    z[tilt] = 0.6 * (1 + np.tan(np.radians(85)) / f) ** (u[tilt] - 110)
+    mixed = np.zeros((h, w), bool)
+    mixed[30:80, 90] = True  # the column right of the box: half box, half wall
+    z[mixed] = 0.525
+    z += rng.normal(0, noise_m, z.shape)
+    xyz = np.dstack([x * z, y * z, z])
+    xyz[:5, :] = np.nan  # a shadow band at the top
+    return xyz, f, mixed, tilt, box
+
+
+def test_edge_filter_removes_mixed_pixels_and_grazing_surfaces(rng):
+    from frontend.fpp_sensor import edge_filter_mask
+
+    xyz, f, mixed, tilt, box = _step_scene_xyz(rng)
+    keep = edge_filter_mask(xyz, f, max_angle_deg=75.0)
+    assert not keep[mixed].any()  # every mixed pixel goes
+    assert not keep[tilt].any()
+    assert not keep[:6, :].any()  # the shadow band and the ring of pixels next to it
+    interior_box = np.zeros_like(box)
+    interior_box[32:78, 42:88] = True
+    assert keep[interior_box].all()  # the box face away from its edges stays
+    wall = np.zeros_like(box)
+    wall[90:115, 5:150] = True
+    assert keep[wall].all()  # so does the wall (seen head on)
+    # the discontinuity costs at most a 1-pixel ring on each side
+    lost_on_box = box & ~keep
+    assert lost_on_box.sum() <= 2 * (50 + 50) + 4
+
+
+def test_edge_filter_keeps_a_moderately_tilted_plane(rng):
+    from frontend.fpp_sensor import edge_filter_mask
+
+    h, w, f = 60, 80, 300.0
+    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+    x, y = (u - w / 2) / f, (v - h / 2) / f
+    # plane through (0, 0, 0.5) with normal at 60 degrees to the optical axis
+    n = np.array([np.sin(np.radians(60)), 0.0, -np.cos(np.radians(60))])
+    z = 0.5 * n[2] / (n[0] * x + n[1] * y + n[2])  # ray (x, y, 1) z meets n . p = n . (0, 0, 0.5)
+    xyz = np.dstack([x * z, y * z, z]) + rng.normal(0, 3e-5, (h, w, 3))
+    keep = edge_filter_mask(xyz, f, max_angle_deg=75.0)
+    assert keep[1:-1, 1:-1].all()
