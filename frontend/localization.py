@@ -306,3 +306,120 @@ def refine_correspondences_klt(
     fb = np.linalg.norm((back - p0).reshape(-1, 2), axis=1)
     ok = (st.ravel() == 1) & (st2.ravel() == 1) & (fb < max_error_px)
     return p1.reshape(-1, 2).astype(np.float64), ok
+
+
+def localize_dense(
+    xyz_map_reference: NDArray,
+    texture_reference: NDArray,
+    texture_query: NDArray,
+    T_query_reference_init: NDArray,
+    K: NDArray,
+    dist: NDArray | None = None,
+    max_points: int = 3000,
+    min_distance_px: int | None = None,
+    window_px: int | None = None,
+    max_fb_error_px: float = 0.05,
+    ransac_threshold_px: float = 1.0,
+    min_inliers: int = 50,
+    iterations: int = 2,
+) -> LocalizationResult:
+    """Refine a camera pose with dense FPP correspondences tracked by KLT, then DLT + LM.
+
+    Descriptor keypoints are few and each is located only to a few tenths of a pixel in either
+    image, and the 3D point is lifted at the reference keypoint while the 2D observation is a
+    *different* detection in the query image. Here the 3D points are the FPP's own measurements
+    at exact reference pixels (strong texture corners, ``cv2.goodFeaturesToTrack``, on valid,
+    smooth surface), projected into the query image with the current pose, tracked there by
+    pyramidal Lucas-Kanade (kept when tracking back lands within ``max_fb_error_px``), and the
+    pose is re-estimated by :func:`localize_dlt` (DLT in RANSAC, LM on the reprojection error).
+    ``iterations`` repeats predict-track-estimate from the new pose.
+
+    Parameters
+    ----------
+    xyz_map_reference : (H, W, 3) float64
+        The reference frame's organised points (its sensor frame = the "world" of the result),
+        NaN where invalid.
+    texture_reference, texture_query : (H, W) uint8
+        Texture images of the reference frame and of the camera to locate.
+    T_query_reference_init : (4, 4)
+        Initial ``T_camera_world`` (e.g. :func:`localize_dlt` on descriptor matches); good to
+        about a pixel of reprojection.
+    K, dist : camera intrinsics and OpenCV distortion of the query camera.
+    min_distance_px, window_px : int, optional
+        Corner spacing and KLT window; default to image width / 160 and / 90, odd (12 and 21 px
+        at 1920 wide).
+
+    Returns
+    -------
+    LocalizationResult
+        ``success`` False (and the pose NaN) when fewer than ``min_inliers`` points track.
+
+    Raises
+    ------
+    InputDataError
+        Images not uint8 H x W of the map's size, or a non-finite initial pose.
+    """
+    xyz = np.asarray(xyz_map_reference, dtype=np.float64)
+    a = np.asarray(texture_reference)
+    b = np.asarray(texture_query)
+    T0 = np.asarray(T_query_reference_init, dtype=np.float64)
+    if xyz.ndim != 3 or xyz.shape[2] != 3:
+        raise InputDataError(f"localize_dense needs an (H, W, 3) reference xyz map, got {xyz.shape}")
+    for name, im in (("reference", a), ("query", b)):
+        if im.ndim != 2 or im.dtype != np.uint8:
+            raise InputDataError(f"localize_dense needs an H x W uint8 {name} texture, got {im.dtype} {im.shape}")
+    if a.shape != xyz.shape[:2]:
+        raise InputDataError(f"localize_dense: reference texture {a.shape} and xyz map {xyz.shape[:2]} differ; both must come from one frame")
+    if T0.shape != (4, 4) or not np.all(np.isfinite(T0)):
+        raise InputDataError("localize_dense needs a finite 4x4 initial pose (run localize_dlt on descriptor matches first)")
+    H, W = a.shape
+    mind = int(min_distance_px or max(3, round(W / 160)))
+    win = int(window_px or max(7, round(W / 90)))
+    win += 1 - win % 2
+    Km = np.asarray(K, dtype=np.float64)
+    dist_arr = np.zeros(5) if dist is None else np.asarray(dist, dtype=np.float64).reshape(-1)
+    n_fail = LocalizationResult(np.full((4, 4), np.nan), np.full(3, np.nan), np.zeros(0, bool), float("nan"), 0, False)
+    # smooth, valid surface under the whole KLT window (no depth edges, no mixed pixels)
+    z = xyz[..., 2]
+    valid = np.isfinite(z).astype(np.uint8)
+    zf = np.where(np.isfinite(z), z, 0.0).astype(np.float32)
+    kernel = np.ones((win, win), np.uint8)
+    valid_win = cv2.erode(valid, kernel) > 0
+    dz = cv2.dilate(zf, kernel) - cv2.erode(np.where(valid > 0, zf, np.float32(1e9)), kernel)
+    mask = (valid_win & (dz < 0.01 * np.nanmedian(z))).astype(np.uint8) * 255
+    if not mask.any():
+        return n_fail
+    corners = cv2.goodFeaturesToTrack(a, maxCorners=int(max_points), qualityLevel=0.005, minDistance=mind, mask=mask, blockSize=max(3, win // 3))
+    if corners is None or len(corners) < max(6, min_inliers):
+        return n_fail
+    px = np.rint(corners.reshape(-1, 2)).astype(np.int64)
+    X = xyz[px[:, 1], px[:, 0]]
+    keep = np.all(np.isfinite(X), axis=1)
+    px, X = px[keep], X[keep]
+    p0 = px.astype(np.float32).reshape(-1, 1, 2)
+    T = T0
+    result = n_fail
+    crit = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 50, 1e-3)
+    for _ in range(max(1, iterations)):
+        rvec, _ = cv2.Rodrigues(T[:3, :3])
+        pred = cv2.projectPoints(X.reshape(-1, 1, 3), rvec, T[:3, 3].reshape(3, 1), Km, dist_arr)[0].reshape(-1, 2)
+        depth = X @ T[2, :3] + T[2, 3]
+        m = win
+        inside = (depth > 0) & (pred[:, 0] >= m) & (pred[:, 1] >= m) & (pred[:, 0] < W - m) & (pred[:, 1] < H - m)
+        if inside.sum() < max(6, min_inliers):
+            return result
+        p1 = pred[inside].astype(np.float32).reshape(-1, 1, 2)
+        p1, st, _ = cv2.calcOpticalFlowPyrLK(a, b, p0[inside], p1.copy(), winSize=(win, win), maxLevel=1, criteria=crit, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
+        back, st2, _ = cv2.calcOpticalFlowPyrLK(b, a, p1, p0[inside].copy(), winSize=(win, win), maxLevel=1, criteria=crit, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
+        fb = np.linalg.norm((back - p0[inside]).reshape(-1, 2), axis=1)
+        ok = (st.ravel() == 1) & (st2.ravel() == 1) & (fb < max_fb_error_px)
+        if ok.sum() < max(6, min_inliers):
+            return result
+        Xi = X[inside][ok]
+        uv = p1.reshape(-1, 2)[ok].astype(np.float64)
+        res = localize_dlt(Xi, uv, Km, dist_arr, ransac_threshold_px=ransac_threshold_px, min_inliers=min_inliers)
+        if not res.success:
+            return result
+        result, T = res, res.T_camera_world
+    log.debug("dense localisation: %d of %d tracked points inliers, rms %.3f px", result.num_inliers, X.shape[0], result.reprojection_rms_px)
+    return result

@@ -1,0 +1,338 @@
+"""Acceptance figures of issue 5 (pairwise registration, rejection, NEES, DLT) on fringe-simulator frames.
+
+Every frame is rendered by :class:`frontend.simulator.FppSimulator` (11 fringe images:
+4-step phase + complementary Gray code), decoded and triangulated by
+:class:`frontend.fpp_sensor.FppSensor` in memory (no sequence folder is written), from the scene
+definitions ``datasets/turntable.yaml`` (the doll), ``datasets/turntable_bunny.yaml`` and
+``datasets/corridor.yaml``.
+
+Groups of pairs (target = earlier frame, source = next):
+
+* ``turntable`` / ``bunny``: adjacent views of the 13-view turntable (27.7 deg steps). The three
+  turns are offset by a third of a step (``turn_offset_deg`` = 360/39) so the 39 pairs are 39
+  distinct view pairs instead of 13 repeated ones.
+* ``corridor``: adjacent frames of the straight passes (0.31 m cart steps at 0.5 m from the
+  wall: about one-third overlap).
+* rejection tries: corridor frames with no common surface (ground-truth overlap 0), and
+  look-alike places: the sensor in front of one copy of the repeated poster and at the same
+  offset in front of another copy, registered as an appearance-only loop candidate.
+
+Printed: per feature (surf = the project's, sift, orb) and group the rotation/translation error
+distribution, inliers and time (wall and CPU); NEES of the predicted covariance; the rejection
+rate with reasons; DLT camera-centre errors (descriptor matches only, and after the dense KLT
+refinement) against the truth and against the registration.
+
+Usage::
+
+    .venv/bin/python scripts/registration_acceptance.py            # full resolution, all lines
+    .venv/bin/python scripts/registration_acceptance.py --quick    # 640x400, few pairs (minutes)
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import copy
+import json
+import math
+import os
+import sys
+import time
+from pathlib import Path
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import cv2  # noqa: E402
+import numpy as np  # noqa: E402
+
+from fpp_graph.atomic import atomic_write_text  # noqa: E402
+from fpp_graph.config import RegistrationConfig, read_yaml_file  # noqa: E402
+from fpp_graph.errors import ConfigError  # noqa: E402
+from fpp_graph.geometry import invert, pose_error, se3_log  # noqa: E402
+from fpp_graph.types import ConstraintKind, Frame  # noqa: E402
+from frontend.fpp_sensor import FppSensor  # noqa: E402
+from frontend.localization import localize_dlt, localize_dense  # noqa: E402
+from frontend.registration import FppPairRegistrar, lift_keypoints  # noqa: E402
+from frontend.simulator import FppSimulator, load_simulation, look_at_pose  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+# ---------------------------------------------------------------------------------------------
+# frames
+# ---------------------------------------------------------------------------------------------
+class SimulatedFrames:
+    """Render + decode frames of one scene definition, in memory, with their true poses."""
+
+    def __init__(self, yaml_path: Path, preview: bool, overrides: dict | None = None):
+        cfg = read_yaml_file(yaml_path, ConfigError, "scene config")
+        kind = cfg["scene"]
+        cfg = copy.deepcopy(cfg)
+        if overrides:
+            cfg[kind] = {**cfg.get(kind, {}), **overrides}
+        if kind == "turntable" and "object" in cfg[kind] and not Path(cfg[kind]["object"]).is_absolute() and cfg[kind]["object"] != "doll":
+            cfg[kind]["object"] = str((yaml_path.parent / cfg[kind]["object"]).resolve())
+        self.setup = load_simulation(cfg, preview=preview)
+        self.sim = FppSimulator(self.setup.calibration, self.setup.spec, self.setup.scene, self.setup.settings, threads=1)
+        self.sensor = FppSensor(self.setup.calibration, self.setup.spec)
+        self.poses = self.setup.poses_world_sensor
+        self.K = self.setup.calibration.camera.K
+        self.dist = self.setup.calibration.camera.dist
+        self.render_s = 0.0
+
+    def frame(self, T_world_sensor: np.ndarray, frame_id: int) -> Frame:
+        t0 = time.perf_counter()
+        images = self.sim.render(T_world_sensor, frame_index=frame_id).images
+        f = self.sensor.frame_from_images(frame_id, float(frame_id), images)
+        self.render_s += time.perf_counter() - t0
+        # slim frame: the registrar reads xyz_map + texture; the dense point list is not needed
+        sub = f.xyz_map[::16, ::16].reshape(-1, 3)
+        return Frame(
+            id=frame_id, timestamp=float(frame_id), points=sub[np.isfinite(sub[:, 2])], xyz_map=f.xyz_map, texture=f.texture,
+            metadata={"K": self.K, "dist": self.dist, "T_world_sensor_true": np.asarray(T_world_sensor, dtype=np.float64)},
+        )
+
+
+def pct(x, qs=(50, 90, 100)) -> str:
+    x = np.asarray(x, dtype=float)
+    if x.size == 0:
+        return "-"
+    return " / ".join(f"{v:.4g}" for v in np.percentile(x, qs))
+
+
+# ---------------------------------------------------------------------------------------------
+# line 1 + 3 + 4: accuracy, NEES, DLT over adjacent pairs
+# ---------------------------------------------------------------------------------------------
+def dlt_rows(reg: FppPairRegistrar, c, a: Frame, b: Frame, T_true: np.ndarray, K, dist) -> dict:
+    """DLT of the source camera in the target frame: descriptor matches, then dense KLT."""
+    out: dict = {}
+    m = c.metadata["matches_used"]
+    A, B = reg.describe(a), reg.describe(b)
+    X, ok = lift_keypoints(a.xyz_map, A.keypoints_uv[m[:, 0]])
+    t0 = time.process_time()
+    loc = localize_dlt(X[ok], B.keypoints_uv[m[:, 1]][ok], K, dist)
+    out["dlt_cpu_s"] = time.process_time() - t0
+    if loc.success:
+        out["dlt_inliers"] = loc.num_inliers
+        out["dlt_err_mm"] = 1e3 * float(np.linalg.norm(loc.camera_centre_world_m - T_true[:3, 3]))
+        out["dlt_vs_reg_mm"] = 1e3 * float(np.linalg.norm(loc.camera_centre_world_m - c.T_target_source[:3, 3]))
+        t0 = time.process_time()
+        dense = localize_dense(a.xyz_map, a.texture, b.texture, loc.T_camera_world, K, dist)
+        out["dense_cpu_s"] = time.process_time() - t0
+        if dense.success:
+            out["dense_inliers"] = dense.num_inliers
+            out["dense_rms_px"] = dense.reprojection_rms_px
+            out["dense_err_mm"] = 1e3 * float(np.linalg.norm(dense.camera_centre_world_m - T_true[:3, 3]))
+            out["dense_vs_reg_mm"] = 1e3 * float(np.linalg.norm(dense.camera_centre_world_m - c.T_target_source[:3, 3]))
+    return out
+
+
+def run_pairs(group: str, frames: SimulatedFrames, pairs: list[tuple[int, int]], features: list[str], with_dlt: bool) -> list[dict]:
+    regs = {f: FppPairRegistrar(RegistrationConfig(feature=f)) for f in features}
+    rows = []
+    cache: dict[int, Frame] = {}
+    for i, j in pairs:
+        for k in list(cache):
+            if k not in (i, j):
+                del cache[k]
+        for k in (i, j):
+            if k not in cache:
+                cache[k] = frames.frame(frames.poses[k], k)
+        a, b = cache[i], cache[j]
+        T_true = invert(frames.poses[i]) @ frames.poses[j]
+        for feat, reg in regs.items():
+            t0, c0 = time.perf_counter(), time.process_time()
+            c = reg.register(a, b)
+            row = {"group": group, "pair": (i, j), "feature": feat, "accepted": c.accepted, "reason": c.rejection_reason,
+                   "wall_s": time.perf_counter() - t0, "cpu_s": time.process_time() - c0, "inliers": c.inlier_count,
+                   "matches": c.metadata.get("matches", 0)}
+            if c.accepted:
+                rot, trans = pose_error(c.T_target_source, T_true)
+                e = se3_log(invert(T_true) @ c.T_target_source)
+                row.update(rot_deg=math.degrees(rot), trans_mm=1e3 * trans, nees=float(e @ c.information @ e))
+                if with_dlt and feat == "surf":
+                    row.update(dlt_rows(reg, c, a, b, T_true, frames.K, frames.dist))
+            rows.append(row)
+        print(f"\r  {group}: pair {i}->{j} done ({frames.render_s:.0f} s rendering so far)", end="", flush=True)
+    print()
+    return rows
+
+
+def report_accuracy(rows: list[dict]) -> None:
+    groups = sorted({r["group"] for r in rows})
+    feats = list(dict.fromkeys(r["feature"] for r in rows))
+    print("\n== line 1: accuracy of adjacent pairs (rot err deg, trans err mm: p50 / p90 / max over accepted pairs)")
+    for g in groups:
+        for f in feats:
+            sel = [r for r in rows if r["group"] == g and r["feature"] == f]
+            acc = [r for r in sel if r["accepted"]]
+            print(
+                f"   {g:9s} {f:4s} accepted {len(acc):2d}/{len(sel):2d}  rot {pct([r['rot_deg'] for r in acc])}  "
+                f"trans {pct([r['trans_mm'] for r in acc])}  inliers p50 {np.median([r['inliers'] for r in sel]) if sel else 0:.0f}  "
+                f"matches p50 {np.median([r['matches'] for r in sel]) if sel else 0:.0f}  "
+                f"wall s p50 {np.median([r['wall_s'] for r in sel]) if sel else 0:.3f} (cpu {np.median([r['cpu_s'] for r in sel]) if sel else 0:.3f})"
+            )
+            reasons = collections.Counter(r["reason"].split(" (")[0] for r in sel if not r["accepted"])
+            for why, k in reasons.most_common(3):
+                print(f"        rejected {k}x: {why}")
+    for f in feats:
+        acc = [r for r in rows if r["feature"] == f and r["accepted"]]
+        if acc:
+            rot = np.array([r["rot_deg"] for r in acc])
+            tr = np.array([r["trans_mm"] for r in acc])
+            hold = np.median(rot) <= 0.01 and np.median(tr) <= 0.02 and len(acc) >= 30
+            print(f"   all       {f:4s} n={len(acc)}  median rot {np.median(rot):.5f} deg, trans {np.median(tr):.5f} mm  "
+                  f"-> {'HOLDS' if hold else 'does not hold'} (<= 0.01 deg, <= 0.02 mm, n >= 30)")
+    print("\n== line 3: NEES = e^T info e, e = Log(T_true^-1 T_est) (6 dof; consistent if the mean is within 3..12)")
+    for f in feats:
+        for g in groups + [None]:
+            acc = [r for r in rows if r["feature"] == f and r["accepted"] and (g is None or r["group"] == g)]
+            if acc:
+                n = np.array([r["nees"] for r in acc])
+                print(f"   {f:4s} {g or 'all':9s} n={len(n):2d} mean {n.mean():.3g} median {np.median(n):.3g} (chi2_6 median 5.35); "
+                      f"scale for mean 6: {6 / n.mean():.3g}")
+    d = [r for r in rows if "dlt_err_mm" in r and r["dlt_inliers"] >= 50]
+    dd = [r for r in rows if "dense_err_mm" in r and r["dense_inliers"] >= 50]
+    print("\n== line 4: DLT camera centre (source camera in the target frame), pairs with >= 50 inliers")
+    for name, sel, key in (("descriptor matches", d, "dlt"), ("dense KLT", dd, "dense")):
+        for g in groups + [None]:
+            s = [r for r in sel if g is None or r["group"] == g]
+            if s:
+                print(f"   {name:18s} {g or 'all':9s} n={len(s):2d} inliers p50 {np.median([r[key + '_inliers'] for r in s]):.0f}  "
+                      f"err mm p50/p90/max {pct([r[key + '_err_mm'] for r in s])}  vs registration mm {pct([r[key + '_vs_reg_mm'] for r in s])}")
+
+
+# ---------------------------------------------------------------------------------------------
+# line 2: rejection
+# ---------------------------------------------------------------------------------------------
+def corridor_lookalike_poses(frames: SimulatedFrames, offsets: list[tuple[float, float]]) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Pose pairs at the same offset in front of two copies of the repeated poster."""
+    cfg = frames.setup.config["corridor"]
+    yl, yr = cfg["width_m"] / 2, -cfg["width_m"] / 2
+    d = cfg["wall_distance_m"]
+    # poster copies (slot x of the left edge, see frontend.scenes.build_corridor): left wall
+    # 1.3 and 3.05, right wall 0.5 and 2.0; 0.36 x 0.48 m, bottom at 0.72 m
+    copies = {1: [1.3 + 0.18, 3.05 + 0.18], -1: [0.5 + 0.18, 2.0 + 0.18]}
+    out = []
+    for side, xs in copies.items():
+        yw = yl if side > 0 else yr
+        for dx, dz in offsets:
+            pair = []
+            for x in xs:
+                target = np.array([x + dx, yw, 0.96 + dz])
+                pos = target - np.array([0.0, side * d, 0.0])
+                pair.append(look_at_pose(pos, target))
+            out.append((pair[0], pair[1]))
+    return out
+
+
+def run_rejection(frames: SimulatedFrames, n_frames: int, n_lookalike_offsets: int, seed: int) -> dict:
+    reg = FppPairRegistrar(RegistrationConfig())
+    poses = frames.poses
+    centres = poses[:, :3, 3]
+    looks = poses[:, :3, 2]
+    # no-overlap pairs: frames of the straight passes whose views of the walls cannot share a
+    # surface (facing different walls, or > 1 m apart along the same wall)
+    rng = np.random.default_rng(seed)
+    straight = [k for k in range(len(poses)) if abs(abs(looks[k, 1]) - 1.0) < 1e-6]
+    chosen = sorted(rng.choice(straight, size=min(n_frames, len(straight)), replace=False).tolist())
+    tries = []
+    for a_i, i in enumerate(chosen):
+        for j in chosen[a_i + 1:]:
+            same_wall = np.sign(looks[i, 1]) == np.sign(looks[j, 1])
+            if not same_wall or abs(centres[i, 0] - centres[j, 0]) > 1.0:
+                tries.append(("no overlap", i, j))
+    cache = {k: frames.frame(poses[k], k) for k in chosen}
+    reasons: collections.Counter = collections.Counter()
+    wrong = []
+    n = 0
+    for kind, i, j in tries:
+        c = reg.register(cache[i], cache[j], kind=ConstraintKind.LOOP)
+        n += 1
+        if c.accepted:
+            wrong.append((kind, i, j, c.fitness))
+        else:
+            reasons[f"{kind}: " + c.rejection_reason.split(" (")[0].split(":")[0]] += 1
+    del cache
+    rng2 = np.random.default_rng(seed + 1)
+    offsets = [(float(dx), float(dz)) for dx, dz in rng2.uniform([-0.12, -0.1], [0.12, 0.1], size=(n_lookalike_offsets, 2))]
+    look_odo = 0
+    for k, (Ta, Tb) in enumerate(corridor_lookalike_poses(frames, offsets)):
+        fa = frames.frame(Ta, 5000 + 2 * k)
+        fb = frames.frame(Tb, 5001 + 2 * k)
+        c = reg.register(fa, fb, kind=ConstraintKind.LOOP)
+        n += 1
+        if c.accepted:
+            wrong.append(("look-alike", fa.id, fb.id, c.fitness))
+        else:
+            reasons["look-alike: " + c.rejection_reason.split(" (")[0].split(":")[0]] += 1
+        # the same pair as if it were odometry (no appearance-only rule): for information only
+        if reg.register(fa, fb, kind=ConstraintKind.ODOMETRY).accepted:
+            look_odo += 1
+    rejected = n - len(wrong)
+    print(f"\n== line 2: rejection: {rejected}/{n} rejected ({100 * rejected / max(n, 1):.1f} %), each with a reason "
+          f"-> {'HOLDS' if n >= 100 and rejected >= 0.99 * n else 'does not hold'} (>= 99 % of >= 100)")
+    for r, k in reasons.most_common():
+        print(f"   {k:4d}  {r}")
+    for w in wrong:
+        print(f"   ACCEPTED {w[0]} pair {w[1]}->{w[2]} fitness {w[3]:.3f}")
+    print(f"   (look-alike pairs registered as odometry instead of an appearance-only loop: {look_odo}/{len(offsets) * 2} accepted)")
+    return {"tries": n, "rejected": rejected, "reasons": dict(reasons), "accepted": wrong, "lookalike_as_odometry_accepted": look_odo}
+
+
+# ---------------------------------------------------------------------------------------------
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--quick", action="store_true", help="640x400, 6 pairs per group, 20 rejection tries")
+    ap.add_argument("--preview", action="store_true", help="640x400 frames instead of 1920x1200")
+    ap.add_argument("--features", default="surf,sift,orb")
+    ap.add_argument("--groups", default="turntable,bunny,corridor")
+    ap.add_argument("--pairs", type=int, default=39, help="pairs per group")
+    ap.add_argument("--rejection-frames", type=int, default=16, help="corridor frames for the no-overlap tries")
+    ap.add_argument("--lookalike-offsets", type=int, default=10, help="look-alike pose pairs per wall")
+    ap.add_argument("--skip-rejection", action="store_true")
+    ap.add_argument("--no-dlt", action="store_true")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--out", default="results/registration_acceptance.json")
+    args = ap.parse_args()
+    if args.quick:
+        args.preview, args.pairs, args.rejection_frames, args.lookalike_offsets = True, 6, 6, 2
+    cv2.setNumThreads(1)
+    res_name = "640x400" if args.preview else "1920x1200"
+    print(f"fringe-simulator frames at {res_name}, features {args.features}")
+    t_start = time.time()
+    features = args.features.split(",")
+    rows: list[dict] = []
+    views = 13
+    for group in args.groups.split(","):
+        if group in ("turntable", "bunny"):
+            yaml_path = ROOT / "datasets" / ("turntable.yaml" if group == "turntable" else "turntable_bunny.yaml")
+            if group == "bunny" and not (ROOT / "../shared/data/meshes/stanford-bunny.obj").exists():
+                print("  bunny: ../shared/data/meshes/stanford-bunny.obj absent, skipped")
+                continue
+            frames = SimulatedFrames(yaml_path, args.preview, {"turns": 3, "views_per_turn": views, "turn_offset_deg": 360.0 / (3 * views)})
+            pairs = [(t * views + k, t * views + (k + 1) % views) for t in range(3) for k in range(views)][: args.pairs]
+        elif group == "corridor":
+            frames = SimulatedFrames(ROOT / "datasets" / "corridor.yaml", args.preview)
+            P = frames.poses
+            pairs = [(k, k + 1) for k in range(len(P) - 1)
+                     if abs(abs(P[k, 1, 2]) - 1.0) < 1e-6 and np.allclose(P[k, :3, 2], P[k + 1, :3, 2])][: args.pairs]
+        else:
+            raise SystemExit(f"unknown group {group!r}")
+        rows += run_pairs(group, frames, pairs, features, not args.no_dlt)
+        print(f"  {group}: {len(pairs)} pairs, {time.time() - t_start:.0f} s elapsed")
+    report_accuracy(rows)
+    result = {"resolution": res_name, "rows": rows}
+    if not args.skip_rejection:
+        frames = SimulatedFrames(ROOT / "datasets" / "corridor.yaml", args.preview)
+        result["rejection"] = run_rejection(frames, args.rejection_frames, args.lookalike_offsets, args.seed)
+    print(f"\ntotal {time.time() - t_start:.0f} s wall, {time.process_time():.0f} s CPU")
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(out, json.dumps(result, indent=1, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o)))
+    print(f"wrote {out}")
+
+
+if __name__ == "__main__":
+    main()
