@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import weakref
 import zipfile
 from collections import OrderedDict
 from pathlib import Path
@@ -83,13 +84,19 @@ class FrameStore:
     """Frames by id: the ``max_in_memory`` most recently used in memory, all of them on disk.
 
     With ``directory=None`` every frame stays in memory (small sequences, tests).
+
+    A frame evicted from the cache but still referenced elsewhere (e.g. by a registrar's
+    per-frame cache) is handed out again rather than loaded as a second copy, so there is never
+    more than one copy of a frame in memory.
     """
 
     def __init__(self, directory: str | os.PathLike[str] | None = None, max_in_memory: int = 8) -> None:
         self.directory = Path(directory) if directory is not None else None
         self.max_in_memory = max(1, int(max_in_memory))
         self._cache: OrderedDict[int, Frame] = OrderedDict()
+        self._alive: weakref.WeakValueDictionary[int, Frame] = weakref.WeakValueDictionary()
         self._ids: list[int] = []
+        self.loads = 0  # frames read back from disk (cache misses)
         if self.directory is not None:
             self.directory.mkdir(parents=True, exist_ok=True)
 
@@ -121,12 +128,16 @@ class FrameStore:
             return self._cache[frame_id]
         if self.directory is None or frame_id not in self._ids:
             raise KeyError(frame_id)
-        frame = load_frame(self.path_of(frame_id))
+        frame = self._alive.get(frame_id)
+        if frame is None:
+            frame = load_frame(self.path_of(frame_id))
+            self.loads += 1
         self._remember(frame)
         return frame
 
     def _remember(self, frame: Frame) -> None:
         self._cache[frame.id] = frame
+        self._alive[frame.id] = frame
         self._cache.move_to_end(frame.id)
         limit = self.max_in_memory if self.directory is not None else len(self._cache)
         while len(self._cache) > limit:

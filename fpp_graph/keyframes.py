@@ -110,6 +110,7 @@ class KeyframeManager:
         self.T_world_keyframe: dict[int, NDArray[np.float64]] = {}
         self.T_keyframe_frame: dict[int, tuple[int, NDArray[np.float64]]] = {}
         self._drift_var_m2: dict[int, float] = {}
+        self._parent: dict[int, int] = {}  # union-find over keyframes joined by odometry or loops
 
     # -- per frame -------------------------------------------------------------------------
     def process(self, frame: Frame) -> bool:
@@ -171,7 +172,21 @@ class KeyframeManager:
             criteria.append(math.isfinite(overlap) and overlap <= cfg.max_overlap)
         return any(criteria) if criteria else True
 
+    def _find(self, k: int) -> int:
+        root = k
+        while self._parent[root] != root:
+            root = self._parent[root]
+        while self._parent[k] != root:  # path compression
+            self._parent[k], k = root, self._parent[k]
+        return root
+
+    def _join(self, a: int, b: int) -> None:
+        self._parent[self._find(a)] = self._find(b)
+
     def _add_keyframe(self, frame: Frame, T_world: NDArray, odometry: Constraint | None, drift_var: float) -> None:
+        self._parent.setdefault(frame.id, frame.id)
+        if odometry is not None:
+            self._join(frame.id, odometry.target_id)
         self.store.put(frame)
         self.keyframe_ids.append(frame.id)
         self.T_world_keyframe[frame.id] = np.asarray(T_world, dtype=np.float64)
@@ -182,8 +197,16 @@ class KeyframeManager:
     # -- loops -----------------------------------------------------------------------------
     def _close_loops(self, frame: Frame) -> None:
         sigma = math.sqrt(self._drift_var_m2[frame.id])
+        # Proximity means something only within the query's connected part: after a chain break
+        # the new part's poses are unrelated to the older parts' (unless the frame brings a prior
+        # pose), so across parts only appearance proposes candidates.
+        if frame.T_world_sensor_guess is None:
+            root = self._find(frame.id)
+            poses = {k: T for k, T in self.T_world_keyframe.items() if self._find(k) == root}
+        else:
+            poses = self.T_world_keyframe
         candidates: list[LoopCandidate] = list(
-            self.loop_detector.candidates(frame, self.T_world_keyframe, position_sigma_m=sigma)
+            self.loop_detector.candidates(frame, poses, position_sigma_m=sigma)
         )
         self.loop_detector.add(frame)
         matched: list[int] = []
@@ -217,6 +240,7 @@ class KeyframeManager:
                 )
                 self.loops.append(replace(constraint, kind=ConstraintKind.LOOP))
                 matched.append(cand.match_id)
+                self._join(frame.id, cand.match_id)
             else:
                 log.info("loop %d->%d (%s, score %.3f) rejected: %s", frame.id, cand.match_id, cand.source, cand.score, constraint.rejection_reason)
         if matched:

@@ -140,16 +140,25 @@ def test_frame_store_bounded_and_round_trip(tmp_path, rng):
     for f in frames:
         store.put(f)
     assert len(store._cache) == 2 and len(store) == 5
+    # an evicted frame still referenced elsewhere is handed out again, not loaded a second time
+    assert store.get(0) is frames[0] and store.loads == 0
+    texture0 = frames[0].texture.copy()
+    keep = frames[1]
+    frames = None
+    for i in (2, 3, 4):  # evict 0 from the LRU; nothing else holds it now
+        store.get(i)
+    loads = store.loads
     back = store.get(0)
+    assert store.loads == loads + 1
     np.testing.assert_allclose(back.xyz_map, xyz, atol=1e-6, equal_nan=True)
     assert back.metadata["K"] == np.eye(3).tolist()
-    assert np.array_equal(back.texture, frames[0].texture)
+    assert np.array_equal(back.texture, texture0)
     (tmp_path / "broken.npz").write_bytes(b"not a zip")
     from fpp_graph.errors import InputDataError
 
     with pytest.raises(InputDataError, match="delete it to recompute"):
         load_frame(tmp_path / "broken.npz")
-    save_frame(tmp_path / "x.npz", frames[1])
+    save_frame(tmp_path / "x.npz", keep)
 
 
 def test_appearance_index_ranks_same_place_first(rng):
