@@ -101,6 +101,25 @@ def _check_texture(frame: Frame) -> NDArray[np.uint8]:
     return texture
 
 
+def stretch_contrast(texture: NDArray[np.uint8], percentile: float = 99.0, floor: int = 8) -> NDArray[np.uint8]:
+    """Scale a texture so the ``percentile`` of its lit pixels (grey > ``floor``) maps to 255.
+
+    The detectors' thresholds (SURF's Hessian, SIFT's contrast, ORB's FAST) are absolute grey
+    levels, but an FPP texture is the background term ``a`` of the fringes: at most about half
+    the camera's range and often darker. On simulator frames (grey p99 ~110-130) stretching
+    multiplied the correct SURF matches by 2-5 (``scripts/registration_acceptance.py``).
+    """
+    hist = cv2.calcHist([texture], [0], None, [256], [0, 256]).ravel()
+    hist[: floor + 1] = 0
+    total = hist.sum()
+    if total <= 0:
+        return texture
+    hi = int(np.searchsorted(np.cumsum(hist), percentile / 100.0 * total))
+    if hi >= 254 or hi <= floor:
+        return texture
+    return cv2.convertScaleAbs(texture, alpha=255.0 / hi)
+
+
 def detect_and_describe(frame: Frame, config: RegistrationConfig, detector: Detector | None = None) -> Frame:
     """Return ``frame`` with ``keypoints_uv`` and ``descriptors`` filled in (computed once per frame).
 
@@ -111,7 +130,7 @@ def detect_and_describe(frame: Frame, config: RegistrationConfig, detector: Dete
     """
     texture = _check_texture(frame)
     detect = detector or make_detector(config)
-    uv, desc = detect(np.ascontiguousarray(texture))
+    uv, desc = detect(np.ascontiguousarray(stretch_contrast(texture)))
     meta = dict(frame.metadata)
     meta["feature"] = config.feature
     return dataclasses.replace(frame, keypoints_uv=uv, descriptors=desc, metadata=meta)
@@ -151,17 +170,62 @@ def match_descriptors(
         )
     if a.shape[0] < 2 or b.shape[0] < 2:
         return np.zeros((0, 2), np.int64)
-    binary = a.dtype == np.uint8
-    if binary:
-        norm = cv2.NORM_HAMMING
+    if a.dtype == np.uint8:
+        ia_arr, ib_arr, score_arr, nn_ba = _hamming_nearest(a, b, ratio, mutual)
     else:
-        norm = cv2.NORM_L2
-        a = np.ascontiguousarray(a, dtype=np.float32)
-        b = np.ascontiguousarray(b, dtype=np.float32)
-    matcher = cv2.BFMatcher(norm, crossCheck=False)
-    knn = matcher.knnMatch(a, b, k=2)
+        ia_arr, ib_arr, score_arr, nn_ba = _l2_nearest(np.ascontiguousarray(a, dtype=np.float32), np.ascontiguousarray(b, dtype=np.float32), ratio)
+    if mutual:
+        keep = nn_ba[ib_arr] == ia_arr
+        ia_arr, ib_arr, score_arr = ia_arr[keep], ib_arr[keep], score_arr[keep]
+    order = np.argsort(score_arr, kind="stable")
+    return np.stack([ia_arr[order], ib_arr[order]], axis=1).astype(np.int64)
+
+
+def _l2_nearest(a: NDArray[np.float32], b: NDArray[np.float32], ratio: float, chunk_rows: int = 2048) -> tuple[NDArray, NDArray, NDArray, NDArray]:
+    """Ratio-test matches a -> b and b's nearest neighbour in a, by L2 distance.
+
+    Squared distances ``|a|^2 + |b|^2 - 2 a.b`` come from one float32 matrix product per block of
+    ``chunk_rows`` rows of ``a`` (bounded memory); the two nearest per row and the nearest per
+    column are read from the same block. Returns ``(ia, ib, d1/d2, nn_ba)``.
+    """
+    na, nb = a.shape[0], b.shape[0]
+    aa = np.einsum("ij,ij->i", a, a)
+    bb = np.einsum("ij,ij->i", b, b)
+    col_d = np.full(nb, np.inf, np.float32)
+    col_i = np.zeros(nb, np.int64)
     ia, ib, score = [], [], []
-    for pair in knn:
+    for r0 in range(0, na, chunk_rows):
+        A = a[r0 : r0 + chunk_rows]
+        D = A @ b.T
+        D *= np.float32(-2.0)
+        D += bb[None, :]
+        D += aa[r0 : r0 + A.shape[0], None]
+        np.maximum(D, np.float32(0.0), out=D)
+        rows = np.arange(A.shape[0])
+        j1 = np.argmin(D, axis=1)
+        d1 = D[rows, j1].copy()
+        # column minima before the row minima are masked for the second-nearest search
+        ci = np.argmin(D, axis=0)
+        cd = D[ci, np.arange(nb)]
+        better = cd < col_d
+        col_d[better] = cd[better]
+        col_i[better] = ci[better] + r0
+        D[rows, j1] = np.inf
+        d2 = D.min(axis=1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            r = np.sqrt(d1 / np.maximum(d2, np.float32(1e-30)))
+        ok = r < ratio
+        ia.append(rows[ok] + r0)
+        ib.append(j1[ok])
+        score.append(r[ok].astype(np.float64))
+    return np.concatenate(ia), np.concatenate(ib).astype(np.int64), np.concatenate(score), col_i
+
+
+def _hamming_nearest(a: NDArray[np.uint8], b: NDArray[np.uint8], ratio: float, mutual: bool) -> tuple[NDArray, NDArray, NDArray, NDArray]:
+    """Ratio-test matches a -> b and b's nearest neighbour in a, by Hamming distance (OpenCV)."""
+    matcher = cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=False)
+    ia, ib, score = [], [], []
+    for pair in matcher.knnMatch(a, b, k=2):
         if len(pair) < 2:
             continue
         m1, m2 = pair
@@ -169,15 +233,8 @@ def match_descriptors(
             ia.append(m1.queryIdx)
             ib.append(m1.trainIdx)
             score.append(m1.distance / max(m2.distance, 1e-12))
-    if not ia:
-        return np.zeros((0, 2), np.int64)
-    ia_arr, ib_arr, score_arr = np.array(ia), np.array(ib), np.array(score)
-    if mutual:
-        back = matcher.match(b, a)
-        nn_ba = np.full(b.shape[0], -1, np.int64)
-        for m in back:
+    nn_ba = np.full(b.shape[0], -1, np.int64)
+    if mutual and ia:
+        for m in matcher.match(b, a):
             nn_ba[m.queryIdx] = m.trainIdx
-        keep = nn_ba[ib_arr] == ia_arr
-        ia_arr, ib_arr, score_arr = ia_arr[keep], ib_arr[keep], score_arr[keep]
-    order = np.argsort(score_arr, kind="stable")
-    return np.stack([ia_arr[order], ib_arr[order]], axis=1).astype(np.int64)
+    return np.array(ia, np.int64), np.array(ib, np.int64), np.array(score, np.float64), nn_ba
