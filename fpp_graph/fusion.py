@@ -7,7 +7,8 @@ is reduced to its occupied voxels before it is merged.
 
 - Points: every voxel of edge ``voxel_size_m`` holds the weighted mean of the points (and
   colours) that fell in it, weight = number of points (or the sum of the per-point weights the
-  caller passes). Averaging the overlapping views of a surface reduces the sensor noise by about
+  caller passes), each point down-weighted by ``cos`` of its surface's angle to the viewing ray
+  when the frame has an organised ``xyz_map`` (``grazing_weight``). Averaging the overlapping views of a surface reduces the sensor noise by about
   ``sqrt(weight)``.
 - Mesh: Open3D's TSDF ``VoxelBlockGrid`` (sparse, grows with the scene). Each frame's organised ``xyz_map`` is rendered into a
   pinhole depth image (intrinsics from ``frame.metadata["K"]`` or fitted to the map), so FPP maps
@@ -127,6 +128,11 @@ class VoxelMapFuser:
         Mesh only voxels observed with at least this TSDF weight (frames).
     tsdf_block_count : int
         Initial capacity of the TSDF block hash map (it grows on demand).
+    grazing_weight : bool
+        Weight each point of a frame with an organised ``xyz_map`` by ``cos(angle)`` between its
+        surface normal and the viewing ray (:func:`grazing_weights`), so head-on views of a surface
+        dominate its voxels over grazing ones (whose points are the least accurate). Points
+        without a normal (no ``xyz_map``, hole edges) keep weight 1.
     """
 
     def __init__(
@@ -138,6 +144,7 @@ class VoxelMapFuser:
         tsdf_depth_max_m: float = 10.0,
         tsdf_min_weight: float = 1.0,
         tsdf_block_count: int = 1000,
+        grazing_weight: bool = True,
     ) -> None:
         for name, value in (("voxel_size_m", voxel_size_m), ("tsdf_voxel_m", tsdf_voxel_m), ("tsdf_truncation_m", tsdf_truncation_m)):
             if not (np.isfinite(value) and value > 0):
@@ -149,6 +156,7 @@ class VoxelMapFuser:
         self.tsdf_depth_max_m = float(tsdf_depth_max_m)
         self.tsdf_min_weight = float(tsdf_min_weight)
         self.tsdf_block_count = int(tsdf_block_count)
+        self.grazing_weight = bool(grazing_weight)
         self.reset()
 
     def reset(self) -> None:
@@ -179,7 +187,8 @@ class VoxelMapFuser:
         T_world_sensor : (4, 4) float64
             Pose of the frame.
         point_weights : (N,) float64, optional
-            Per-point weights (e.g. FPP modulation); default 1 per point.
+            Per-point weights (e.g. FPP modulation); default 1 per point, times the grazing-angle
+            weight when ``grazing_weight`` is on and the frame has an ``xyz_map``.
         """
         T = np.asarray(T_world_sensor, dtype=np.float64)
         if T.shape != (4, 4) or not np.all(np.isfinite(T)):
@@ -191,6 +200,11 @@ class VoxelMapFuser:
             raise InputDataError(
                 f"map fusion: frame {frame.id} has {points.shape[0]} points but {weights.shape[0]} weights"
             )
+        if self.grazing_weight and frame.xyz_map is not None:
+            valid = np.all(np.isfinite(frame.xyz_map), axis=2)
+            # front-ends build points as xyz_map[valid] in row-major order; use it when it fits
+            if np.count_nonzero(valid) == len(points):
+                weights = weights * grazing_weights(frame.xyz_map)[valid]
         keep = np.all(np.isfinite(points), axis=1) & (weights > 0)
         points_world = points[keep] @ T[:3, :3].T + T[:3, 3]
         w = weights[keep]
@@ -295,6 +309,24 @@ class VoxelMapFuser:
         raw fringe images are not decoded again.
         """
         return self.fuse(frames, new_poses_world_sensor)
+
+
+def grazing_weights(xyz_map: NDArray[np.float64], floor: float = 0.05) -> NDArray[np.float64]:
+    """Per-pixel ``|cos|`` of the angle between the surface normal and the viewing ray.
+
+    The normal is the cross product of the organised map's central differences (one-sided at
+    the image border). Pixels whose normal is unknown (a NaN neighbour) get 1; the weight is at
+    least ``floor`` so no valid point is dropped here (rejecting points is the front-end's job).
+    """
+    xyz = np.asarray(xyz_map, dtype=np.float64)
+    if xyz.shape[0] < 2 or xyz.shape[1] < 2:
+        return np.ones(xyz.shape[:2])
+    d_row = np.gradient(xyz, axis=0)
+    d_col = np.gradient(xyz, axis=1)
+    normal = np.cross(d_col, d_row)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        cos = np.abs(np.einsum("ijk,ijk->ij", normal, xyz)) / (np.linalg.norm(normal, axis=2) * np.linalg.norm(xyz, axis=2))
+    return np.where(np.isfinite(cos), np.clip(cos, floor, 1.0), 1.0)
 
 
 # -- intrinsics and depth rendering ---------------------------------------------------------

@@ -96,7 +96,10 @@ def test_fused_points_lie_on_the_surface(views, fused):
     assert acc.rms_m < 0.0003  # below the 0.3 mm per-point noise
     # the mesh-based figure agrees with the analytic distance to the sphere
     assert acc.rms_m == pytest.approx(np.sqrt(np.mean(radial_error(fused.points_world_m) ** 2)), abs=2e-5)
-    assert fused.weights.sum() == sum(f.num_points for f in frames)
+    # every point counts, with weight cos(normal, ray) in (0, 1]
+    assert 0.3 * sum(f.num_points for f in frames) < fused.weights.sum() < sum(f.num_points for f in frames)
+    plain = VoxelMapFuser(0.002, 0.002, 0.008, mesh=False, grazing_weight=False).fuse(frames, poses)
+    assert plain.weights.sum() == sum(f.num_points for f in frames)
     assert fused.colors.shape == fused.points_world_m.shape
     assert 0.0 <= fused.colors.min() and fused.colors.max() <= 1.0
 
@@ -300,3 +303,23 @@ def test_edge_filter_keeps_a_moderately_tilted_plane(rng):
     xyz = np.dstack([x * z, y * z, z]) + rng.normal(0, 3e-5, (h, w, 3))
     keep = edge_filter_mask(xyz, f, max_angle_deg=75.0)
     assert keep[1:-1, 1:-1].all()
+
+
+def test_grazing_weights_follow_the_angle_to_the_ray():
+    from fpp_graph.fusion import grazing_weights
+
+    # a plane z = 0.5 + x tan(60 deg): its normal makes 60 deg with the optical axis
+    h, w, f = 40, 60, 200.0
+    v, u = np.mgrid[0:h, 0:w].astype(float)
+    x, y = (u - w / 2) / f, (v - h / 2) / f
+    z = 0.5 / (1 - x * np.tan(np.radians(60)))
+    xyz = np.dstack([x * z, y * z, z])
+    xyz[0, 0] = np.nan
+    g = grazing_weights(xyz)
+    rays = xyz / np.linalg.norm(xyz, axis=2, keepdims=True)
+    n = np.array([-np.sin(np.radians(60)), 0.0, np.cos(np.radians(60))])
+    expected = np.abs(rays @ n)
+    ok = np.isfinite(expected)
+    ok[:2, :2] = False  # next to the NaN pixel the normal is unknown (weight 1)
+    np.testing.assert_allclose(g[ok], expected[ok], atol=1e-6)
+    assert g[0, 1] == 1.0 and g.min() >= 0.05

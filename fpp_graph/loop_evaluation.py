@@ -1,0 +1,264 @@
+"""Loop-closure candidates against ground truth: precision and recall at each stage.
+
+A keyframe pair is a *true loop* when the two frames see the same surface under the
+ground-truth poses: the *overlap* of a pair is the smaller of the two fractions of each frame's
+points (brought into the world with its ground-truth pose) that have a point of the other frame
+within ``tolerance_m``. Pairs at or above ``min_overlap`` are true loops; the universe is every
+keyframe pair at least ``min_separation`` keyframes apart (closer pairs are odometry's job and
+the detector never proposes them).
+
+Stages, from the run's ``loops.json`` (one row per candidate):
+
+- ``proximity``: candidates proposed by pose proximity (stage contains ``proximity``);
+- ``appearance``: proposed by appearance (stage contains ``appearance``);
+- ``proposed``: the union of both;
+- ``verified``: accepted by geometric verification (the PairRegistrar);
+- ``accepted``: verified and kept by the robust back-end (GNC).
+
+Precision = true loops among a stage's pairs / the stage's pairs; recall = true loops in the
+stage / all true loops of the universe. A verified pair is also *wrong* when its measured
+relative pose disagrees with the ground truth by more than ``max_pose_error_m`` /
+``max_pose_error_deg`` (a look-alike place can overlap a little and still be registered to the
+wrong position), when the measurement is known (``graph.g2o``).
+
+The back-end never imports a front-end: frames come from the results folder's frame cache
+(``frames/frame_XXXXXX.npz``), ground truth as a mapping of frame id to ``T_world_sensor``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial import cKDTree
+
+from fpp_graph.errors import InputDataError
+from fpp_graph.geometry import invert, pose_error
+
+log = logging.getLogger(__name__)
+
+STAGES = ("proximity", "appearance", "proposed", "verified", "accepted")
+
+
+def _pair(a: int, b: int) -> tuple[int, int]:
+    return (a, b) if a < b else (b, a)
+
+
+def ground_truth_overlaps(
+    points_sensor: Mapping[int, NDArray[np.float64]],
+    poses_gt_world_sensor: Mapping[int, NDArray[np.float64]],
+    pairs: Iterable[tuple[int, int]] | None = None,
+    tolerance_m: float = 0.005,
+    max_points: int = 3000,
+    seed: int = 0,
+) -> dict[tuple[int, int], float]:
+    """Ground-truth overlap of frame pairs (``(i, j)`` with ``i < j``), in [0, 1].
+
+    Parameters
+    ----------
+    points_sensor : frame id -> (N, 3)
+        Each frame's points in its sensor frame, metres (subsampled to ``max_points``).
+    poses_gt_world_sensor : frame id -> (4, 4)
+        Ground-truth poses.
+    pairs : iterable of (i, j), optional
+        Pairs to evaluate (default: every pair of frames given).
+    tolerance_m : float
+        A point is shared when the other frame has a point this close.
+    """
+    missing = sorted(set(points_sensor) - set(poses_gt_world_sensor))
+    if missing:
+        raise InputDataError(f"loop evaluation: no ground-truth pose for frames {missing[:10]}")
+    rng = np.random.default_rng(seed)
+    world: dict[int, NDArray[np.float64]] = {}
+    trees: dict[int, cKDTree] = {}
+    boxes: dict[int, tuple[NDArray, NDArray]] = {}
+    for fid, pts in points_sensor.items():
+        p = np.asarray(pts, dtype=np.float64).reshape(-1, 3)
+        p = p[np.all(np.isfinite(p), axis=1)]
+        if len(p) > max_points:
+            p = p[rng.choice(len(p), max_points, replace=False)]
+        T = np.asarray(poses_gt_world_sensor[fid], dtype=np.float64)
+        w = p @ T[:3, :3].T + T[:3, 3]
+        world[fid] = w
+        trees[fid] = cKDTree(w) if len(w) else None
+        boxes[fid] = (w.min(axis=0), w.max(axis=0)) if len(w) else (np.full(3, np.inf), np.full(3, -np.inf))
+    ids = sorted(world)
+    todo = [_pair(a, b) for a, b in pairs] if pairs is not None else [(a, b) for i, a in enumerate(ids) for b in ids[i + 1:]]
+    out: dict[tuple[int, int], float] = {}
+
+    def shared(a: int, b: int) -> float:
+        if trees[b] is None or len(world[a]) == 0:
+            return 0.0
+        d, _ = trees[b].query(world[a], k=1, distance_upper_bound=tolerance_m)
+        return float(np.count_nonzero(np.isfinite(d))) / len(world[a])
+
+    for a, b in todo:
+        if a not in world or b not in world:
+            raise InputDataError(f"loop evaluation: no points for frame {a if a not in world else b}")
+        (lo_a, hi_a), (lo_b, hi_b) = boxes[a], boxes[b]
+        if np.any(lo_a > hi_b + tolerance_m) or np.any(lo_b > hi_a + tolerance_m):
+            out[(a, b)] = 0.0
+            continue
+        out[(a, b)] = min(shared(a, b), shared(b, a))
+    return out
+
+
+@dataclass
+class StageFigures:
+    """Precision/recall of the candidate pairs at one stage."""
+
+    pairs: int
+    true_pairs: int
+    precision: float
+    recall: float
+
+    def as_dict(self) -> dict[str, float | int]:
+        return {"pairs": self.pairs, "true": self.true_pairs, "precision": self.precision, "recall": self.recall}
+
+
+@dataclass
+class LoopEvaluation:
+    """Loop candidates of a run scored against ground truth."""
+
+    stages: dict[str, StageFigures]
+    true_loops: int
+    universe_pairs: int
+    min_overlap: float
+    false_accepted: list[dict[str, Any]] = field(default_factory=list)
+    false_verified: list[dict[str, Any]] = field(default_factory=list)
+    missed_examples: list[tuple[int, int, float]] = field(default_factory=list)
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "min_overlap": self.min_overlap,
+            "universe_pairs": self.universe_pairs,
+            "true_loops": self.true_loops,
+            "stages": {k: v.as_dict() for k, v in self.stages.items()},
+            "false_verified": self.false_verified,
+            "false_accepted": self.false_accepted,
+            "missed_examples": [list(m) for m in self.missed_examples],
+        }
+
+
+def evaluate_loops(
+    loop_rows: list[Mapping[str, Any]],
+    keyframe_ids: list[int],
+    overlaps: Mapping[tuple[int, int], float],
+    poses_gt_world_sensor: Mapping[int, NDArray[np.float64]] | None = None,
+    measured_T_target_source: Mapping[tuple[int, int], NDArray[np.float64]] | None = None,
+    min_overlap: float = 0.1,
+    min_separation: int = 5,
+    max_pose_error_m: float = 0.005,
+    max_pose_error_deg: float = 1.0,
+) -> LoopEvaluation:
+    """Score ``loops.json`` rows (``query``, ``match``, ``stage``, ``verified``, ``rejected_by_backend``).
+
+    ``measured_T_target_source`` maps ``(query, match)`` to the loop's measured ``T_match_query``
+    (from ``graph.g2o``); with ground-truth poses it flags verified loops registered to a wrong
+    pose even where the frames overlap.
+    """
+    order = {k: i for i, k in enumerate(keyframe_ids)}
+    universe = {
+        _pair(a, b) for i, a in enumerate(keyframe_ids) for b in keyframe_ids[i + min_separation:]
+    }
+    true_set = {p for p in universe if overlaps.get(p, 0.0) >= min_overlap}
+
+    def wrong_pose(q: int, m: int) -> tuple[bool, float, float]:
+        if poses_gt_world_sensor is None or measured_T_target_source is None or (q, m) not in measured_T_target_source:
+            return False, math.nan, math.nan
+        T_gt = invert(poses_gt_world_sensor[m]) @ poses_gt_world_sensor[q]
+        rot, trans = pose_error(measured_T_target_source[(q, m)], T_gt)
+        return (trans > max_pose_error_m or math.degrees(rot) > max_pose_error_deg), trans, math.degrees(rot)
+
+    sets: dict[str, set[tuple[int, int]]] = {s: set() for s in STAGES}
+    wrong: set[tuple[int, int]] = set()
+    false_verified: list[dict[str, Any]] = []
+    false_accepted: list[dict[str, Any]] = []
+    for row in loop_rows:
+        q, m = int(row["query"]), int(row["match"])
+        if q not in order or m not in order:
+            raise InputDataError(f"loop evaluation: loop {q}->{m} names a frame that is not a keyframe")
+        p = _pair(q, m)
+        stage = str(row.get("stage", ""))
+        if "proximity" in stage:
+            sets["proximity"].add(p)
+        if "appearance" in stage:
+            sets["appearance"].add(p)
+        sets["proposed"].add(p)
+        if row.get("verified"):
+            sets["verified"].add(p)
+            bad_pose, err_m, err_deg = wrong_pose(q, m)
+            is_false = p not in true_set or bad_pose
+            accepted = not row.get("rejected_by_backend")
+            if accepted:
+                sets["accepted"].add(p)
+            if is_false:
+                wrong.add(p)
+                info = {
+                    "query": q, "match": m, "stage": stage, "overlap": round(float(overlaps.get(p, 0.0)), 4),
+                    "pose_error_mm": None if math.isnan(err_m) else err_m * 1e3,
+                    "pose_error_deg": None if math.isnan(err_deg) else err_deg,
+                    "removed_by_backend": not accepted,
+                }
+                false_verified.append(info)
+                if accepted:
+                    false_accepted.append(info)
+    stages: dict[str, StageFigures] = {}
+    for name, pairs in sets.items():
+        good = {p for p in pairs if p in true_set and not (name in ("verified", "accepted") and p in wrong)}
+        stages[name] = StageFigures(
+            pairs=len(pairs),
+            true_pairs=len(good),
+            precision=len(good) / len(pairs) if pairs else math.nan,
+            recall=len(good) / len(true_set) if true_set else math.nan,
+        )
+    missed = sorted(true_set - sets["accepted"], key=lambda p: -overlaps.get(p, 0.0))
+    return LoopEvaluation(
+        stages=stages,
+        true_loops=len(true_set),
+        universe_pairs=len(universe),
+        min_overlap=min_overlap,
+        false_accepted=false_accepted,
+        false_verified=false_verified,
+        missed_examples=[(a, b, round(float(overlaps.get((a, b), 0.0)), 4)) for a, b in missed[:20]],
+    )
+
+
+def evaluate_results_loops(
+    results_dir: str | os.PathLike[str],
+    poses_gt_world_sensor: Mapping[int, NDArray[np.float64]],
+    min_overlap: float = 0.1,
+    min_separation: int = 5,
+    tolerance_m: float = 0.005,
+) -> LoopEvaluation:
+    """:func:`evaluate_loops` on a results folder (``loops.json``, ``graph.g2o``, ``frames/``)."""
+    from fpp_graph.frame_store import load_frame
+    from fpp_graph.g2o import read_g2o
+
+    results_dir = Path(results_dir)
+    loops_path, graph_path = results_dir / "loops.json", results_dir / "graph.g2o"
+    for p in (loops_path, graph_path):
+        if not p.exists():
+            raise InputDataError(f"{results_dir} has no {p.name}; is it the --out folder of an fpp-slam run?")
+    rows = json.loads(loops_path.read_text())
+    graph = read_g2o(graph_path)
+    keyframe_ids = sorted(graph.poses())
+    measured = {(e.source_id, e.target_id): e.T_target_source for e in graph.edges()}
+    points: dict[int, NDArray[np.float64]] = {}
+    for k in keyframe_ids:
+        path = results_dir / "frames" / f"frame_{k:06d}.npz"
+        if not path.exists():
+            raise InputDataError(f"loop evaluation: {path} is missing; the frame cache of the run is needed")
+        points[k] = load_frame(path).points
+    universe = [(a, b) for i, a in enumerate(keyframe_ids) for b in keyframe_ids[i + min_separation:]]
+    proposed = {_pair(int(r["query"]), int(r["match"])) for r in rows}
+    overlaps = ground_truth_overlaps(points, poses_gt_world_sensor, sorted(set(universe) | proposed), tolerance_m)
+    return evaluate_loops(rows, keyframe_ids, overlaps, poses_gt_world_sensor, measured, min_overlap, min_separation)
