@@ -120,8 +120,11 @@ class StageFigures:
     precision: float
     recall: float
 
-    def as_dict(self) -> dict[str, float | int]:
-        return {"pairs": self.pairs, "true": self.true_pairs, "precision": self.precision, "recall": self.recall}
+    def as_dict(self) -> dict[str, float | int | None]:
+        def finite(x: float) -> float | None:
+            return None if math.isnan(x) else x
+
+        return {"pairs": self.pairs, "true": self.true_pairs, "precision": finite(self.precision), "recall": finite(self.recall)}
 
 
 @dataclass

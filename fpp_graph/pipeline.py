@@ -328,7 +328,10 @@ class Pipeline:
         progress: ProgressCallback | None = None,
     ) -> None:
         self.source = source
-        self.config = config
+        # a source may carry its own defaults (an RGB-D room is metres wide, an FPP scene
+        # centimetres): ``resolve_config(config) -> Config`` is optional on a FrameSource
+        resolve = getattr(source, "resolve_config", None)
+        self.config = resolve(config) if callable(resolve) else config
         self.out = Path(out)
         self.resume = resume
         self.overwrite = overwrite
@@ -367,6 +370,10 @@ class Pipeline:
                 gt_poses = {fid: T for fid, T in zip(ids, gt.poses_world_sensor, strict=True)}
             write_plots(out, report.slam, before.points_world_m, fused.points_world_m, gt_poses)
         report.metrics = slam_summary(report)
+        if gt_poses is not None:  # loop candidates against ground truth (fpp_graph.loop_evaluation)
+            from fpp_graph.loop_evaluation import evaluate_results_loops
+
+            report.metrics["loop_evaluation"] = evaluate_results_loops(out, gt_poses).as_dict()
         atomic_write_text(out / "metrics.json", json.dumps(report.metrics, indent=1, default=float))
         return report
 

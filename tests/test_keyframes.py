@@ -170,3 +170,24 @@ def test_appearance_index_ranks_same_place_first(rng):
         best = index.query(p + rng.normal(scale=0.2, size=p.shape), top_k=1)
         assert best[0][0] == i
     assert index.query(None, 3) == []
+
+
+def test_chain_break_mid_sequence_is_rejoined_by_appearance_only(rng):
+    # 3 turns; registration from frame 20 to keyframes 19 and 18 fails (no overlap): the run goes
+    # on as a new part at 20, says where it broke, proposes only appearance candidates across
+    # the break (the new part's poses mean nothing relative to the old part), and a revisit of
+    # the same angle joins the parts again.
+    poses = turntable_poses(turns=3)
+    registrar = MockRegistrar(poses, rng, broken=[(19, 20), (18, 20)])
+    manager = KeyframeManager(registrar, Config())
+    for f in make_frames(len(poses), rng):
+        manager.process(f)
+    result = manager.finish()
+    assert [b.frame_id for b in result.chain_breaks] == [20]
+    assert "to keyframe 19" in result.chain_breaks[0].reason and "to keyframe 18" in result.chain_breaks[0].reason
+    at_break = [r for r in result.loop_records if r.query_id == 20]
+    assert at_break and all(r.stage == "appearance" for r in at_break)
+    assert any(r.verified and r.match_id == 7 for r in at_break)  # 20 = 7 + 13: same angle
+    assert result.components == [list(range(len(poses)))]
+    errs = [pose_error(poses[0] @ result.poses_world_sensor[i], poses[i])[1] for i in range(len(poses))]
+    assert max(errs) < 10 * TRANS_SIGMA * math.sqrt(VIEWS)
