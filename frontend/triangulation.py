@@ -53,6 +53,7 @@ points behind the camera by the near bound.
 from __future__ import annotations
 
 import logging
+import threading
 from typing import Literal
 
 import cv2
@@ -350,7 +351,7 @@ class Triangulator:
         # projector) the fast path compares with two scalars instead of two per-pixel maps.
         finite = ~bad
         self._scalar_bounds = bool(np.all(z_lo[finite] == z_min) and np.all(z_hi[finite] == z_max))
-        self._band_buffers: dict[int, dict[str, NDArray]] = {}
+        self._local = threading.local()
 
         self.projector_fit_degree = 0
         self.projector_fit_max_error_px = 0.0
@@ -360,6 +361,15 @@ class Triangulator:
             self._fit_projector_inverse(float(projector_fit_tolerance_px))
         elif self.projector_refine_iterations:
             self.projector_refine_iterations = 0  # nothing to refine without projector distortion
+
+    def __getstate__(self) -> dict:
+        state = self.__dict__.copy()
+        state.pop("_local", None)  # per-thread work buffers: rebuilt on use
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        self._local = threading.local()
 
     # ------------------------------------------------------------------ per frame
 
@@ -446,16 +456,16 @@ class Triangulator:
     # ------------------------------------------------------------------ banded fast path
 
     def _buffers(self, rows: int) -> dict[str, NDArray]:
-        """Work buffers for bands of ``rows`` rows (kept: a frame loop allocates nothing)."""
-        buf = self._band_buffers.get(rows)
-        if buf is None:
+        """This thread's work buffers for bands of ``rows`` rows (kept: a frame loop allocates nothing)."""
+        buf = getattr(self._local, "buffers", None)
+        if buf is None or buf["z"].shape[0] != rows:
             shape, dt = (rows, self.width), self.dtype
             buf = {name: np.empty(shape, dt) for name in ("w", "x", "num", "den", "z", "px", "py")}
             buf["xyz"] = np.empty((rows, self.width, 3), dt)
             buf["invalid"] = np.empty(shape, np.uint8)
             buf["tmp"] = np.empty(shape, np.uint8)
             buf["nan"] = np.full(shape, np.nan, dt)
-            self._band_buffers = {rows: buf}  # one band size at a time
+            self._local.buffers = buf  # per thread: a Triangulator may be shared between threads
         return buf
 
     def _run_bands(self, u: NDArray, mask: ArrayLike | None, xyz_out: NDArray | None = None, z_out: NDArray | None = None) -> None:

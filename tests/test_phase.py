@@ -192,6 +192,28 @@ def test_band_size_and_threads_do_not_change_results(scene) -> None:
         assert r.invalid_counts == reference.invalid_counts
 
 
+def test_decode_into_a_previous_result(scene) -> None:
+    """decode(out=previous) overwrites and reuses the previous result's maps, same values."""
+    u, v = scene
+    spec = PatternSpec("complementary_gray", periods=(32,), gray_bits=5)
+    decoder = Decoder(spec, PW, PH, band_rows=16)
+    first = render_captures(spec, u, v, PW, PH, noise_sigma=2.0, blur_sigma_px=1.0, rng=np.random.default_rng(1))
+    second = render_captures(spec, u + 3.3, v, PW, PH, noise_sigma=2.0, blur_sigma_px=1.0, rng=np.random.default_rng(2))
+    second[:, :30] = 0  # a dark strip: invalid pixels must be reset too
+    previous = decoder.decode(first)
+    fresh = decoder.decode(second)
+    reused = decoder.decode(second, out=previous)
+    assert reused.u_projector_px is previous.u_projector_px and np.shares_memory(reused.mask, previous.mask)
+    for name in ("wrapped_phase", "u_projector_px", "modulation", "texture", "mask", "fringe_order"):
+        assert np.array_equal(getattr(reused, name), getattr(fresh, name), equal_nan=True), name
+    assert reused.invalid_counts == fresh.invalid_counts and reused.invalid_counts["shadow"] >= 30 * CW
+    small = Decoder(spec, PW, PH).decode(first[:, :100, :200])
+    with pytest.raises(InputDataError, match=r"320x240 .*same size"):
+        decoder.decode(second, out=small)
+    with pytest.raises(InputDataError, match="DecodeResult"):
+        decoder.decode(second, out=np.empty((CH, CW)))
+
+
 def test_sixteen_bit_images(scene) -> None:
     u, v = scene
     spec = PatternSpec("complementary_gray", periods=(32,), gray_bits=5)

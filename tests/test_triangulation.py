@@ -203,3 +203,44 @@ def test_float32_out_buffer_and_bad_out():
     assert xyz is out32 and np.nanmax(np.abs(xyz - X)[inside]) < 1e-6
     with pytest.raises(InputDataError, match="out must be"):
         tri.triangulate(u_p, out=np.empty((400, 640, 3), np.int32))
+
+
+def test_bands_threads_and_bound_paths_agree():
+    """Band size, shared use from threads, per-pixel vs scalar depth bounds: identical maps."""
+    import pickle
+    import threading
+
+    cal = make_rig()
+    X = sphere_scene(cal)
+    u_p, v_p = project_to_projector(cal, X)
+    u_p = np.where(projector_inside(cal, u_p, v_p), u_p, np.nan).astype(np.float32)
+    mask = np.ones(u_p.shape, dtype=bool)
+    mask[100:120, 300:400] = False
+    reference = Triangulator(cal, band_rows=0).triangulate(u_p, mask)
+    assert np.isnan(reference[100:120, 300:400]).all() and np.isfinite(reference).any()
+    for rows in (1, 7, 16, 399):
+        assert np.array_equal(Triangulator(cal, band_rows=rows).triangulate(u_p, mask), reference, equal_nan=True), rows
+    per_pixel = Triangulator(cal, band_rows=7)
+    assert per_pixel._scalar_bounds  # this rig's depth range is all in front of the projector
+    per_pixel._scalar_bounds = False  # the per-pixel bounds then equal the scalars
+    assert np.array_equal(per_pixel.triangulate(u_p, mask), reference, equal_nan=True)
+    assert np.array_equal(per_pixel.depth(u_p, mask), reference[..., 2], equal_nan=True)
+    shared = pickle.loads(pickle.dumps(Triangulator(cal, band_rows=16)))
+    results = [None] * 4
+
+    def work(i: int) -> None:
+        results[i] = shared.triangulate(u_p, mask)
+
+    threads = [threading.Thread(target=work, args=(i,)) for i in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    for r in results:
+        assert np.array_equal(r, reference, equal_nan=True)
+
+
+def test_out_buffer_must_be_contiguous():
+    tri = Triangulator(make_rig(projector_dist=np.zeros(5)))
+    with pytest.raises(InputDataError, match="C-contiguous"):
+        tri.triangulate(np.zeros((400, 640), np.float32), out=np.empty((400, 640, 6))[..., ::2])
