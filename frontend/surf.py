@@ -117,57 +117,79 @@ def _box_grid(ii: NDArray, y0: int, x0: int, step: int, ny: int, nx: int, r0: in
     return D - B - C + A
 
 
-def _hessian_layer(ii: NDArray, pad: int, step: int, ny: int, nx: int, L: int) -> tuple[NDArray, NDArray]:
-    """det(H) and trace sign of one filter size over the sampling grid."""
+def _hessian_layer(
+    ii: NDArray, pad: int, step: int, ny: int, nx: int, L: int, with_sign: bool = True
+) -> tuple[NDArray, NDArray | None]:
+    """det(H) (float32) and, if asked, the trace sign of one filter size over the sampling grid."""
     lobe = L // 3
     half_long = (3 * lobe - 1) // 2
     half_short = lobe - 1
     half_mid = (lobe - 1) // 2
     # Dyy: a (2l-1) wide, 3l tall box minus 3x its middle third
-    dyy = _box_grid(ii, pad, pad, step, ny, nx, -half_long, half_long, -half_short, half_short) - 3.0 * _box_grid(
-        ii, pad, pad, step, ny, nx, -half_mid, half_mid, -half_short, half_short
-    )
-    dxx = _box_grid(ii, pad, pad, step, ny, nx, -half_short, half_short, -half_long, half_long) - 3.0 * _box_grid(
-        ii, pad, pad, step, ny, nx, -half_short, half_short, -half_mid, half_mid
-    )
-    dxy = (
-        _box_grid(ii, pad, pad, step, ny, nx, -lobe, -1, -lobe, -1)
-        + _box_grid(ii, pad, pad, step, ny, nx, 1, lobe, 1, lobe)
-        - _box_grid(ii, pad, pad, step, ny, nx, -lobe, -1, 1, lobe)
-        - _box_grid(ii, pad, pad, step, ny, nx, 1, lobe, -lobe, -1)
-    )
-    norm = 1.0 / float(L * L)
-    dxx *= norm
-    dyy *= norm
-    dxy *= norm
-    det = dxx * dyy - (0.81 * dxy * dxy)
-    return det.astype(np.float32), np.sign(dxx + dyy).astype(np.int8)
+    dyy = _box_grid(ii, pad, pad, step, ny, nx, -half_long, half_long, -half_short, half_short)
+    dyy -= 3.0 * _box_grid(ii, pad, pad, step, ny, nx, -half_mid, half_mid, -half_short, half_short)
+    dxx = _box_grid(ii, pad, pad, step, ny, nx, -half_short, half_short, -half_long, half_long)
+    dxx -= 3.0 * _box_grid(ii, pad, pad, step, ny, nx, -half_short, half_short, -half_mid, half_mid)
+    dxy = _box_grid(ii, pad, pad, step, ny, nx, -lobe, -1, -lobe, -1)
+    dxy += _box_grid(ii, pad, pad, step, ny, nx, 1, lobe, 1, lobe)
+    dxy -= _box_grid(ii, pad, pad, step, ny, nx, -lobe, -1, 1, lobe)
+    dxy -= _box_grid(ii, pad, pad, step, ny, nx, 1, lobe, -lobe, -1)
+    norm2 = 1.0 / float(L) ** 4  # each filter normalised by L^2
+    det = dxx * dyy
+    dxy *= dxy
+    det -= 0.81 * dxy
+    det *= norm2
+    return det.astype(np.float32), (np.sign(dxx + dyy).astype(np.int8) if with_sign else None)
 
 
-def _hessian_layer_dense(img: NDArray[np.float32], L: int) -> tuple[NDArray, NDArray]:
-    """det(H) and trace sign at every pixel (sampling step 1) with cv2.boxFilter; equals
-    :func:`_hessian_layer` with ``step = 1`` but runs on SIMD float32 box filters."""
+def _hessian_layer_dense(img: NDArray[np.float32], L: int, with_sign: bool = True) -> tuple[NDArray, NDArray | None]:
+    """det(H) and (if asked) the trace sign at every pixel (sampling step 1) with cv2.boxFilter;
+    equals :func:`_hessian_layer` with ``step = 1`` but runs on SIMD float32 box filters."""
     lobe = L // 3
-    bf = cv2.boxFilter
     rep = cv2.BORDER_REPLICATE
+
+    def bf(size: tuple[int, int]) -> NDArray[np.float32]:
+        return cv2.boxFilter(img, cv2.CV_32F, size, normalize=False, borderType=rep)
+
     wide, short = 2 * lobe - 1, lobe
-    dyy = bf(img, cv2.CV_32F, (wide, 3 * lobe), normalize=False, borderType=rep) - 3.0 * bf(img, cv2.CV_32F, (wide, short), normalize=False, borderType=rep)
-    dxx = bf(img, cv2.CV_32F, (3 * lobe, wide), normalize=False, borderType=rep) - 3.0 * bf(img, cv2.CV_32F, (short, wide), normalize=False, borderType=rep)
-    q = bf(img, cv2.CV_32F, (lobe, lobe), normalize=False, borderType=rep)
+    dyy = cv2.scaleAdd(bf((wide, short)), -3.0, bf((wide, 3 * lobe)))  # -3 * middle + whole
+    dxx = cv2.scaleAdd(bf((short, wide)), -3.0, bf((3 * lobe, wide)))
+    q = bf((lobe, lobe))
     c = (lobe + 1) // 2
     qp = cv2.copyMakeBorder(q, c, c, c, c, rep)
     H, W = img.shape
-    dxy = qp[: H, : W] + qp[2 * c :, 2 * c :] - qp[: H, 2 * c :] - qp[2 * c :, : W]
-    norm = np.float32(1.0 / float(L * L))
-    dxx *= norm
-    dyy *= norm
-    dxy *= norm
-    det = dxx * dyy - np.float32(0.81) * dxy * dxy
-    return det, np.sign(dxx + dyy).astype(np.int8)
+    dxy = cv2.add(qp[:H, :W], qp[2 * c :, 2 * c :])
+    dxy -= qp[:H, 2 * c :]
+    dxy -= qp[2 * c :, :W]
+    norm2 = 1.0 / float(L) ** 4  # each filter normalised by L^2
+    det = cv2.multiply(dxx, dyy, scale=norm2)
+    det -= cv2.multiply(dxy, dxy, scale=0.81 * norm2)
+    return det, (np.sign(dxx + dyy).astype(np.int8) if with_sign else None)
+
+
+def _trace_sign_at(ii: NDArray, pad: int, y: NDArray, x: NDArray, L: int) -> NDArray[np.int8]:
+    """Sign of ``Dxx + Dyy`` of filter size ``L`` at integer image pixels ``(y, x)``, from the
+    integral image of the image padded by ``pad`` (the sign of the Laplacian, per keypoint)."""
+    lobe = L // 3
+    half_long = (3 * lobe - 1) // 2
+    half_short = lobe - 1
+    half_mid = (lobe - 1) // 2
+    yy = y.astype(np.int64) + pad
+    xx = x.astype(np.int64) + pad
+
+    def box(r0: int, r1: int, c0: int, c1: int) -> NDArray:
+        return ii[yy + r1 + 1, xx + c1 + 1] - ii[yy + r0, xx + c1 + 1] - ii[yy + r1 + 1, xx + c0] + ii[yy + r0, xx + c0]
+
+    dyy = box(-half_long, half_long, -half_short, half_short) - 3.0 * box(-half_mid, half_mid, -half_short, half_short)
+    dxx = box(-half_short, half_short, -half_long, half_long) - 3.0 * box(-half_short, half_short, -half_mid, half_mid)
+    return np.sign(dxx + dyy).astype(np.int8)
 
 
 def _filter_size(octave: int, interval: int) -> int:
     return 3 * ((2 ** (octave + 1)) * (interval + 1) + 1)
+
+
+_NMS_KERNEL = np.ones((3, 3), np.uint8)
 
 
 def fast_hessian(image01: NDArray[np.float32], params: SurfParams) -> tuple[NDArray, NDArray, NDArray, NDArray]:
@@ -179,7 +201,8 @@ def fast_hessian(image01: NDArray[np.float32], params: SurfParams) -> tuple[NDAr
     padded = cv2.copyMakeBorder(image01, pad, pad, pad, pad, cv2.BORDER_REPLICATE)
     integral = cv2.integral(padded, sdepth=cv2.CV_64F)
     out_uv, out_s, out_r, out_sign = [], [], [], []
-    computed: dict[int, tuple[int, NDArray, NDArray]] = {}
+    computed: dict[int, tuple[int, NDArray]] = {}
+    thr = np.float32(params.hessian_threshold)
     for o in range(params.n_octaves):
         step = 2**o
         ny, nx = H // step, W // step
@@ -188,42 +211,42 @@ def fast_hessian(image01: NDArray[np.float32], params: SurfParams) -> tuple[NDAr
         sizes = [_filter_size(o, i) for i in range(params.n_intervals)]
         if sizes[-1] > min(H, W):
             break
-        layers, signs = [], []
+        layers = []
         for L in sizes:
             if L in computed:
                 # octaves share filter sizes (15, 27 of octave 2 exist in octave 1): subsample
-                prev_step, det_prev, sign_prev = computed[L]
+                prev_step, det_prev = computed[L]
                 k = step // prev_step
                 layers.append(np.ascontiguousarray(det_prev[::k, ::k][:ny, :nx]))
-                signs.append(sign_prev[::k, ::k][:ny, :nx])
                 continue
             if step == 1:
-                det, sign = _hessian_layer_dense(image01, L)
+                det, _ = _hessian_layer_dense(image01, L, with_sign=False)
             else:
-                det, sign = _hessian_layer(integral, pad, step, ny, nx, L)
-            computed[L] = (step, det, sign)
+                det, _ = _hessian_layer(integral, pad, step, ny, nx, L, with_sign=False)
+            computed[L] = (step, det)
             layers.append(det)
-            signs.append(sign)
-        stack = np.stack(layers)  # (n_int, ny, nx); read by v() below
-        kernel = np.ones((3, 3), np.uint8)
-        dil = np.stack([cv2.dilate(layer, kernel) for layer in layers])
+        dil = [cv2.dilate(layer, _NMS_KERNEL) for layer in layers]
         for i in range(1, params.n_intervals - 1):
             L = sizes[i]
             # a keypoint's filter must lie inside the (unpadded) image
-            border = int(math.ceil((L // 2 + 1) / step)) + 1
-            centre = stack[i]
-            nb = np.maximum(np.maximum(dil[i - 1], dil[i + 1]), dil[i])
-            cand = (centre >= nb) & (centre > params.hessian_threshold)
-            cand[:border] = False
-            cand[-border:] = False
-            cand[:, :border] = False
-            cand[:, -border:] = False
+            b = int(math.ceil((L // 2 + 1) / step)) + 1
+            if ny <= 2 * b or nx <= 2 * b:
+                continue
+            inner = (slice(b, ny - b), slice(b, nx - b))
+            centre = layers[i][inner]
+            nb = np.maximum(dil[i - 1][inner], dil[i + 1][inner])
+            np.maximum(nb, dil[i][inner], out=nb)
+            cand = centre >= nb
+            cand &= centre > thr
             ys, xs = np.nonzero(cand)
             if ys.size == 0:
                 continue
+            ys += b
+            xs += b
+
             # quadratic interpolation in (x, y, s): offset = -H^-1 g
-            def v(ds: int, dy: int, dx: int, i: int = i, ys: NDArray = ys, xs: NDArray = xs, stack: NDArray = stack) -> NDArray:
-                return stack[i + ds, ys + dy, xs + dx].astype(np.float64)
+            def v(ds: int, dy: int, dx: int, i: int = i, ys: NDArray = ys, xs: NDArray = xs, layers: list = layers) -> NDArray:
+                return layers[i + ds][ys + dy, xs + dx].astype(np.float64)
 
             c = v(0, 0, 0)
             g = np.stack([(v(0, 0, 1) - v(0, 0, -1)) / 2, (v(0, 1, 0) - v(0, -1, 0)) / 2, (v(1, 0, 0) - v(-1, 0, 0)) / 2], axis=1)
@@ -250,52 +273,81 @@ def fast_hessian(image01: NDArray[np.float32], params: SurfParams) -> tuple[NDAr
             out_uv.append(np.stack([x_img, y_img], axis=1))
             out_s.append(_SCALE_PER_FILTER * L_interp)
             out_r.append(c[ok] + 0.5 * np.einsum("ij,ij->i", g[ok], off[ok]))
-            out_sign.append(signs[i][ys[ok], xs[ok]])
+            out_sign.append(_trace_sign_at(integral, pad, ys[ok] * step, xs[ok] * step, L))
     if not out_uv:
         return np.zeros((0, 2)), np.zeros(0), np.zeros(0), np.zeros(0, np.int8)
     return np.concatenate(out_uv), np.concatenate(out_s), np.concatenate(out_r), np.concatenate(out_sign)
 
 
 class _HaarBank:
-    """Dense Haar-wavelet response images per scale band, sampled bilinearly with cv2.remap."""
+    """Dense Haar-wavelet response images per scale band, sampled bilinearly with cv2.remap.
+
+    A wavelet of side ``size_px`` is evaluated on the pyramid level ``k`` where it spans 4-8
+    level pixels, as ``2 half`` level pixels (half = 2, 3 or 4: the side is rounded by at most
+    one level pixel, as SURF rounds it to whole image pixels). Its x response is the difference of two
+    ``half x 2 half`` box sums (``cv2.boxFilter``) ``half`` apart, the y response likewise; both
+    are stored as one 2-channel image shifted by whole pixels, so that one ``cv2.remap`` reads
+    ``(dx, dy)`` at any set of positions (bilinear interpolation is linear, so the difference of
+    interpolated box sums is the interpolated difference).
+    """
+
+    _PAD = 8  # level border for the shifted box sums (half <= 4 -> shifts <= 3)
 
     def __init__(self, image01: NDArray[np.float32]):
         self._pyramid = [image01]
-        self._cache: dict[tuple[int, int], tuple[NDArray, NDArray, float]] = {}
+        self._padded: dict[int, NDArray[np.float32]] = {}
+        self._cache: dict[tuple[int, int], NDArray[np.float32]] = {}
 
     def _level(self, k: int) -> NDArray:
         while len(self._pyramid) <= k:
             self._pyramid.append(cv2.resize(self._pyramid[-1], None, fx=0.5, fy=0.5, interpolation=cv2.INTER_AREA))
         return self._pyramid[k]
 
-    def sample(self, size_px: float, x: NDArray, y: NDArray) -> tuple[NDArray, NDArray]:
-        """Haar responses (dx, dy) of side ``size_px`` (image pixels) at positions ``x, y`` (any shape)."""
-        k = max(0, int(math.floor(math.log2(max(size_px, 1.0) / 6.0))))
-        img = self._level(k)
-        f = float(2**k)
-        half = max(1, int(round(size_px / f / 2.0)))
+    @staticmethod
+    def level_of(size_px: float) -> tuple[int, int]:
+        """Pyramid level ``k`` and the wavelet half side ``half`` (level pixels) for ``size_px``."""
+        k = max(0, int(math.floor(math.log2(max(size_px, 1.0) / 4.0))))
+        return k, max(1, int(round(size_px / 2.0**k / 2.0)))
+
+    def responses(self, k: int, half: int) -> NDArray[np.float32]:
+        """(H_k, W_k, 2) ``(dx, dy)`` of side ``2 half`` on level ``k``, to be read at
+        ``(X - 0.5, Y - 0.5)`` for a wavelet centred at level coordinates ``(X, Y)``."""
         key = (k, half)
         if key not in self._cache:
-            # dx = right half - left half of a (2h x 2h) window: a (h wide, 2h tall) box sampled
-            # h/2 either side of the centre (cv2.boxFilter's even-size anchor sits at k//2)
-            bx = cv2.boxFilter(img, cv2.CV_32F, (half, 2 * half), normalize=False, borderType=cv2.BORDER_REPLICATE)
-            by = cv2.boxFilter(img, cv2.CV_32F, (2 * half, half), normalize=False, borderType=cv2.BORDER_REPLICATE)
-            self._cache[key] = (bx, by, f)
-        bx, by, f = self._cache[key]
-        h = float(half)
-        anchor = (h - 1) / 2.0 - (half // 2)  # box centre minus anchor pixel, for the odd/even size
-        anchor2 = (2 * h - 1) / 2.0 - half  # the same along the 2h side
-        xs = ((x + 0.5) / f - 0.5).astype(np.float32)
-        ys = ((y + 0.5) / f - 0.5).astype(np.float32)
-        shape = xs.shape
-        xs2, ys2 = xs.reshape(shape[0], -1), ys.reshape(shape[0], -1)
+            img = self._level(k)
+            H, W = img.shape
+            P = self._PAD
+            if k not in self._padded:
+                self._padded[k] = cv2.copyMakeBorder(img, P, P, P, P, cv2.BORDER_REPLICATE)
+            padded = self._padded[k]
+            # cv2.boxFilter anchors an even side at its middle pixel: the right (lower) box of a
+            # wavelet centred at X sits p pixels after the anchor column, the left (upper) one q
+            # before, p + q = half; the remaining half-pixel offsets go into the read position
+            p = half // 2 + 1
+            q = half - p
+            assert max(p, q) < P, "wavelet wider than the level border"
+            bx = cv2.boxFilter(padded, cv2.CV_32F, (half, 2 * half), normalize=False, borderType=cv2.BORDER_REPLICATE)
+            by = cv2.boxFilter(padded, cv2.CV_32F, (2 * half, half), normalize=False, borderType=cv2.BORDER_REPLICATE)
+            out = np.empty((H, W, 2), np.float32)
+            np.subtract(bx[P + 1 : P + 1 + H, P + p : P + p + W], bx[P + 1 : P + 1 + H, P - q : P - q + W], out=out[..., 0])
+            np.subtract(by[P + p : P + p + H, P + 1 : P + 1 + W], by[P - q : P - q + H, P + 1 : P + 1 + W], out=out[..., 1])
+            self._cache[key] = out
+        return self._cache[key]
 
-        def rm(src: NDArray, mx: NDArray, my: NDArray) -> NDArray:
-            return cv2.remap(src, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    def sample(self, size_px: float, x: NDArray, y: NDArray) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+        """Haar responses (dx, dy) of side ``size_px`` at image positions ``x, y`` (any shape)."""
+        k, half = self.level_of(size_px)
+        shape = x.shape
+        f = 2.0**k
+        # level coordinates X = (x + 0.5) / f - 0.5, read at X - 0.5 (see responses)
+        mx = (np.asarray(x, np.float32).reshape(shape[0], -1) * np.float32(1.0 / f)) + np.float32(0.5 / f - 1.0)
+        my = (np.asarray(y, np.float32).reshape(shape[0], -1) * np.float32(1.0 / f)) + np.float32(0.5 / f - 1.0)
+        out = self.read(k, half, mx, my)
+        return out[..., 0].reshape(shape), out[..., 1].reshape(shape)
 
-        dx = rm(bx, xs2 + np.float32(h / 2 - anchor), ys2 - np.float32(anchor2)) - rm(bx, xs2 - np.float32(h / 2 + anchor), ys2 - np.float32(anchor2))
-        dy = rm(by, xs2 - np.float32(anchor2), ys2 + np.float32(h / 2 - anchor)) - rm(by, xs2 - np.float32(anchor2), ys2 - np.float32(h / 2 + anchor))
-        return dx.reshape(shape), dy.reshape(shape)
+    def read(self, k: int, half: int, mx: NDArray[np.float32], my: NDArray[np.float32]) -> NDArray[np.float32]:
+        """``(rows, cols, 2)`` responses at level read positions ``mx, my`` (``(rows, cols)`` float32)."""
+        return cv2.remap(self.responses(k, half), mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
 
 
 def _scale_bands(scale: NDArray) -> NDArray[np.int64]:
@@ -303,13 +355,33 @@ def _scale_bands(scale: NDArray) -> NDArray[np.int64]:
     return np.round(4.0 * np.log2(scale / 1.2)).astype(np.int64)
 
 
+def _read_positions(uv: NDArray, scale: NDArray, theta: NDArray | None, grid: NDArray[np.float32], k: int) -> tuple[NDArray, NDArray]:
+    """Level-``k`` read positions (see :meth:`_HaarBank.responses`) of a sample grid ``(2, m)`` in
+    units of the keypoint scale, rotated by ``theta``, for keypoints ``uv``: ``(n, m)`` each, by
+    one small float32 matrix product per coordinate."""
+    f = 2.0**k
+    c = uv / f + (0.5 / f - 1.0)  # (n, 2) level read position of the centre
+    a = scale / f
+    co = a * (np.cos(theta) if theta is not None else 1.0)
+    si = a * (np.sin(theta) if theta is not None else 0.0)
+    basis = np.vstack([np.ones((1, grid.shape[1]), np.float32), grid]).astype(np.float32)  # (3, m): 1, u, v
+    ax = np.stack([c[:, 0], co, -si], axis=1).astype(np.float32)  # x = cx + co u - si v
+    ay = np.stack([c[:, 1], si, co], axis=1).astype(np.float32)  # y = cy + si u + co v
+    return ax @ basis, ay @ basis
+
+
 _ORI_I, _ORI_J = np.meshgrid(np.arange(-6, 7), np.arange(-6, 7))
 _ORI_MASK = _ORI_I**2 + _ORI_J**2 < 36
 _ORI_I, _ORI_J = _ORI_I[_ORI_MASK].astype(np.float64), _ORI_J[_ORI_MASK].astype(np.float64)  # 109 samples
-_ORI_W = np.exp(-(_ORI_I**2 + _ORI_J**2) / (2 * 2.0**2))
+_ORI_GRID = np.stack([_ORI_I, _ORI_J]).astype(np.float32)
+_ORI_W = np.exp(-(_ORI_I**2 + _ORI_J**2) / (2 * 2.0**2)).astype(np.float32)
 _DESC_C = np.arange(-10, 10) + 0.5
-_DESC_U, _DESC_V = np.meshgrid(_DESC_C, _DESC_C)  # (20, 20): u along x, v along y
-_DESC_W = np.exp(-(_DESC_U**2 + _DESC_V**2) / (2 * 3.3**2))
+_DESC_U, _DESC_V = np.meshgrid(_DESC_C, _DESC_C)  # (20, 20): u along x (columns), v along y (rows)
+_DESC_GRID = np.stack([_DESC_U.ravel(), _DESC_V.ravel()]).astype(np.float32)  # (2, 400), row-major
+_DESC_W = np.exp(-(_DESC_U**2 + _DESC_V**2) / (2 * 3.3**2)).ravel()
+# (400, 16): Gaussian weight of each sample in its 5x5 sub-region (row-major 4x4 sub-regions)
+_DESC_SUM = np.zeros((400, 16), np.float32)
+_DESC_SUM[np.arange(400), (np.arange(400) // 20 // 5) * 4 + (np.arange(400) % 20) // 5] = _DESC_W
 
 
 def _orientations(bank: _HaarBank, uv: NDArray, scale: NDArray) -> NDArray:
@@ -318,15 +390,13 @@ def _orientations(bank: _HaarBank, uv: NDArray, scale: NDArray) -> NDArray:
     n_bins = 72
     for b in np.unique(bands):
         sel = np.flatnonzero(bands == b)
-        s_band = 1.2 * 2.0 ** (b / 4.0)
-        s = scale[sel, None]
-        x = uv[sel, 0, None] + _ORI_I[None] * s
-        y = uv[sel, 1, None] + _ORI_J[None] * s
-        dx, dy = bank.sample(4.0 * s_band, x, y)
-        dx = dx * _ORI_W
-        dy = dy * _ORI_W
+        k, half = bank.level_of(4.0 * 1.2 * 2.0 ** (b / 4.0))
+        mx, my = _read_positions(uv[sel], scale[sel], None, _ORI_GRID, k)
+        resp = bank.read(k, half, mx, my)
+        dx = resp[..., 0] * _ORI_W
+        dy = resp[..., 1] * _ORI_W
         ang = np.arctan2(dy, dx)
-        bins = ((ang + np.pi) / (2 * np.pi) * n_bins).astype(np.int64) % n_bins
+        bins = ((ang + np.float32(np.pi)) * np.float32(n_bins / (2 * np.pi))).astype(np.int64) % n_bins
         flat = bins + n_bins * np.arange(sel.size)[:, None]
         hx = np.bincount(flat.ravel(), weights=dx.ravel(), minlength=sel.size * n_bins).reshape(sel.size, n_bins)
         hy = np.bincount(flat.ravel(), weights=dy.ravel(), minlength=sel.size * n_bins).reshape(sel.size, n_bins)
@@ -346,26 +416,27 @@ def _descriptors(bank: _HaarBank, uv: NDArray, scale: NDArray, theta: NDArray) -
     bands = _scale_bands(scale)
     for b in np.unique(bands):
         sel = np.flatnonzero(bands == b)
-        s_band = 1.2 * 2.0 ** (b / 4.0)
-        s = scale[sel, None, None]
-        co = np.cos(theta[sel])[:, None, None]
-        si = np.sin(theta[sel])[:, None, None]
-        u = _DESC_U[None] * s
-        v = _DESC_V[None] * s
-        x = uv[sel, 0, None, None] + co * u - si * v
-        y = uv[sel, 1, None, None] + si * u + co * v
-        dx, dy = bank.sample(2.0 * s_band, x, y)
-        rx = (co * dx + si * dy) * _DESC_W
-        ry = (-si * dx + co * dy) * _DESC_W
         n = sel.size
-        # (n, 20, 20) -> (n, 4, 5, 4, 5): sub-region row, sample row, sub-region col, sample col
-        rx = rx.reshape(n, 4, 5, 4, 5)
-        ry = ry.reshape(n, 4, 5, 4, 5)
-        d = np.stack(
-            [rx.sum(axis=(2, 4)), ry.sum(axis=(2, 4)), np.abs(rx).sum(axis=(2, 4)), np.abs(ry).sum(axis=(2, 4))], axis=-1
-        ).reshape(n, 64)
+        k, half = bank.level_of(2.0 * 1.2 * 2.0 ** (b / 4.0))
+        mx, my = _read_positions(uv[sel], scale[sel], theta[sel], _DESC_GRID, k)
+        resp = bank.read(k, half, mx, my)  # (n, 400, 2): image-axis dx, dy
+        co = np.cos(theta[sel]).astype(np.float32)[:, None]
+        si = np.sin(theta[sel]).astype(np.float32)[:, None]
+        dx, dy = resp[..., 0], resp[..., 1]
+        # responses in the keypoint frame, as rows (rx of keypoint 0, ry of keypoint 0, rx of 1, ...)
+        rt = np.empty((n, 2, 400), np.float32)
+        np.multiply(dx, co, out=rt[:, 0])
+        rt[:, 0] += dy * si
+        np.multiply(dy, co, out=rt[:, 1])
+        rt[:, 1] -= dx * si
+        rt = rt.reshape(2 * n, 400)
+        # Gaussian-weighted sums per 4x4 sub-region of sum r and sum |r|: one matrix product each
+        sums = (rt @ _DESC_SUM).reshape(n, 2, 16)
+        abs_sums = (np.abs(rt) @ _DESC_SUM).reshape(n, 2, 16)
+        # per sub-region (sum dx, sum dy, sum |dx|, sum |dy|), sub-regions row-major
+        d = np.concatenate([sums, abs_sums], axis=1).transpose(0, 2, 1).reshape(n, 64)
         norm = np.linalg.norm(d, axis=1, keepdims=True)
-        desc[sel] = (d / np.maximum(norm, 1e-12)).astype(np.float32)
+        desc[sel] = d / np.maximum(norm, np.float32(1e-12))
     return desc
 
 
