@@ -15,8 +15,13 @@ centre in the world is ``O_w = -R^T T``.
 
 The DLT runs inside RANSAC (6-point samples, reprojection error), is refitted on the inliers and
 refined by Levenberg-Marquardt on the reprojection error (``cv2.solvePnPRefineLM``, with the lens
-distortion). Coplanar points make the 12-parameter DLT degenerate; the LM refinement then
-carries the accuracy, but the scene must have some relief.
+distortion). Coplanar points make the 12-parameter DLT degenerate (a wall, a table top): a
+near-planar sample (thinnest spread < 2 % of the widest) is solved by SQPnP instead, and a
+near-planar inlier set keeps the best sample's pose for the LM.
+
+:func:`localize_dense` refines a pose with the FPP's own 3D points at exact reference pixels,
+tracked into the query image by KLT (hundreds to thousands of correspondences at a few
+hundredths of a pixel instead of tens of descriptor matches at ~0.5 px).
 """
 
 from __future__ import annotations
@@ -162,6 +167,31 @@ def _reprojection_errors(T: Array, X: Array, uv: Array, K: Array) -> Array:
     return err
 
 
+def _near_planar(X: Array, ratio: float = 0.02) -> bool:
+    """True when the points' thinnest spread is below ``ratio`` of their widest (the DLT's degenerate case)."""
+    if X.shape[0] < 4:
+        return True
+    s = np.linalg.svd(X - X.mean(axis=0), compute_uv=False)
+    return bool(s[2] < ratio * s[0])
+
+
+def _sample_pose(X: Array, uv: Array, K: Array) -> Array:
+    """``T_camera_world`` from a 6-point sample: DLT, or SQPnP when the sample is near-planar.
+
+    A plane (a wall, a table top) leaves the 12-parameter DLT a family of solutions; a
+    perspective-n-point solver that knows the camera intrinsics is exact on planes too.
+    """
+    if not _near_planar(X):
+        return decompose_projection(dlt_projection_matrix(X, uv), K, X)
+    ok, rvec, tvec = cv2.solvePnP(X.reshape(-1, 1, 3), uv.reshape(-1, 1, 2), K, None, flags=cv2.SOLVEPNP_SQPNP)
+    if not ok:
+        return np.full((4, 4), np.nan)
+    T = np.eye(4)
+    T[:3, :3] = cv2.Rodrigues(rvec)[0]
+    T[:3, 3] = tvec.ravel()
+    return T
+
+
 def localize_dlt(
     points_world_m: NDArray,
     keypoints_uv: NDArray,
@@ -227,8 +257,8 @@ def localize_dlt(
         drawn += 1
         idx = rng.choice(n, 6, replace=False)
         try:
-            T = decompose_projection(dlt_projection_matrix(X[idx], uv[idx]), Km, X[idx])
-        except np.linalg.LinAlgError:
+            T = _sample_pose(X[idx], uv[idx], Km)
+        except (np.linalg.LinAlgError, cv2.error):
             continue
         if not np.all(np.isfinite(T)):
             continue
@@ -242,7 +272,7 @@ def localize_dlt(
     if best_T is None or best_count < max(6, min_inliers):
         return LocalizationResult(nan_pose, np.full(3, np.nan), np.zeros(n, bool), float("nan"), drawn, False)
     inl = _reprojection_errors(best_T, X, uv, Km) < ransac_threshold_px
-    T = decompose_projection(dlt_projection_matrix(X[inl], uv[inl]), Km, X[inl])
+    T = decompose_projection(dlt_projection_matrix(X[inl], uv[inl]), Km, X[inl]) if not _near_planar(X[inl]) else best_T
     if not np.all(np.isfinite(T)):
         T = best_T
     new_inl = _reprojection_errors(T, X, uv, Km) < ransac_threshold_px
@@ -308,6 +338,13 @@ def refine_correspondences_klt(
     return p1.reshape(-1, 2).astype(np.float64), ok
 
 
+def _local_contrast(image: NDArray, window_px: int) -> NDArray[np.uint8]:
+    """``100 * I / blur(I)`` (Gaussian sigma about two thirds of the window), as uint8 for KLT."""
+    f = image.astype(np.float32)
+    m = cv2.GaussianBlur(f, (0, 0), max(1.0, 0.65 * window_px))
+    return cv2.convertScaleAbs(f / np.maximum(m, np.float32(2.0)), alpha=100.0)
+
+
 def localize_dense(
     xyz_map_reference: NDArray,
     texture_reference: NDArray,
@@ -346,7 +383,7 @@ def localize_dense(
         about a pixel of reprojection.
     K, dist : camera intrinsics and OpenCV distortion of the query camera.
     min_distance_px, window_px : int, optional
-        Corner spacing and KLT window; default to image width / 160 and / 90, odd (12 and 21 px
+        Corner spacing and KLT window; default to image width / 160 and / 60, odd (12 and 33 px
         at 1920 wide).
 
     Returns
@@ -374,7 +411,7 @@ def localize_dense(
         raise InputDataError("localize_dense needs a finite 4x4 initial pose (run localize_dlt on descriptor matches first)")
     H, W = a.shape
     mind = int(min_distance_px or max(3, round(W / 160)))
-    win = int(window_px or max(7, round(W / 90)))
+    win = int(window_px or max(7, round(W / 60)))
     win += 1 - win % 2
     Km = np.asarray(K, dtype=np.float64)
     dist_arr = np.zeros(5) if dist is None else np.asarray(dist, dtype=np.float64).reshape(-1)
@@ -389,7 +426,12 @@ def localize_dense(
     mask = (valid_win & (dz < 0.01 * np.nanmedian(z))).astype(np.uint8) * 255
     if not mask.any():
         return n_fail
-    corners = cv2.goodFeaturesToTrack(a, maxCorners=int(max_points), qualityLevel=0.005, minDistance=mind, mask=mask, blockSize=max(3, win // 3))
+    # The FPP texture is lit by the projector, which moves with the camera: a surface point's
+    # brightness changes between views (by 20-40 % on simulator frames), which breaks KLT's
+    # brightness constancy. Track on the ratio to the local mean instead (shading is smooth).
+    a = _local_contrast(a, win)
+    b = _local_contrast(b, win)
+    corners = cv2.goodFeaturesToTrack(a, maxCorners=int(max_points), qualityLevel=0.01, minDistance=mind, mask=mask, blockSize=7)
     if corners is None or len(corners) < max(6, min_inliers):
         return n_fail
     px = np.rint(corners.reshape(-1, 2)).astype(np.int64)

@@ -53,6 +53,7 @@ from fpp_graph.geometry import invert, pose_error, se3_log  # noqa: E402
 from fpp_graph.types import ConstraintKind, Frame  # noqa: E402
 from frontend.fpp_sensor import FppSensor  # noqa: E402
 from frontend.localization import localize_dlt, localize_dense  # noqa: E402
+from frontend.features import match_descriptors  # noqa: E402
 from frontend.registration import FppPairRegistrar, lift_keypoints  # noqa: E402
 from frontend.simulator import FppSimulator, load_simulation, look_at_pose  # noqa: E402
 
@@ -105,25 +106,32 @@ def pct(x, qs=(50, 90, 100)) -> str:
 # line 1 + 3 + 4: accuracy, NEES, DLT over adjacent pairs
 # ---------------------------------------------------------------------------------------------
 def dlt_rows(reg: FppPairRegistrar, c, a: Frame, b: Frame, T_true: np.ndarray, K, dist) -> dict:
-    """DLT of the source camera in the target frame: descriptor matches, then dense KLT."""
+    """DLT of the source camera in the target frame (independent of the registration's pose):
+    all descriptor matches lifted through the target's xyz map, DLT + RANSAC + LM, then the
+    dense KLT refinement; compared with the truth and with the registration when accepted."""
     out: dict = {}
-    m = c.metadata["matches_used"]
     A, B = reg.describe(a), reg.describe(b)
+    m = match_descriptors(A.descriptors, B.descriptors, reg.config.ratio_test, reg.config.mutual_check)
     X, ok = lift_keypoints(a.xyz_map, A.keypoints_uv[m[:, 0]])
+    if ok.sum() < 6:
+        return out
     t0 = time.process_time()
     loc = localize_dlt(X[ok], B.keypoints_uv[m[:, 1]][ok], K, dist)
     out["dlt_cpu_s"] = time.process_time() - t0
-    if loc.success:
-        out["dlt_inliers"] = loc.num_inliers
-        out["dlt_err_mm"] = 1e3 * float(np.linalg.norm(loc.camera_centre_world_m - T_true[:3, 3]))
+    if not loc.success:
+        return out
+    out["dlt_inliers"] = loc.num_inliers
+    out["dlt_err_mm"] = 1e3 * float(np.linalg.norm(loc.camera_centre_world_m - T_true[:3, 3]))
+    if c.accepted:
         out["dlt_vs_reg_mm"] = 1e3 * float(np.linalg.norm(loc.camera_centre_world_m - c.T_target_source[:3, 3]))
-        t0 = time.process_time()
-        dense = localize_dense(a.xyz_map, a.texture, b.texture, loc.T_camera_world, K, dist)
-        out["dense_cpu_s"] = time.process_time() - t0
-        if dense.success:
-            out["dense_inliers"] = dense.num_inliers
-            out["dense_rms_px"] = dense.reprojection_rms_px
-            out["dense_err_mm"] = 1e3 * float(np.linalg.norm(dense.camera_centre_world_m - T_true[:3, 3]))
+    t0 = time.process_time()
+    dense = localize_dense(a.xyz_map, a.texture, b.texture, loc.T_camera_world, K, dist)
+    out["dense_cpu_s"] = time.process_time() - t0
+    if dense.success:
+        out["dense_inliers"] = dense.num_inliers
+        out["dense_rms_px"] = dense.reprojection_rms_px
+        out["dense_err_mm"] = 1e3 * float(np.linalg.norm(dense.camera_centre_world_m - T_true[:3, 3]))
+        if c.accepted:
             out["dense_vs_reg_mm"] = 1e3 * float(np.linalg.norm(dense.camera_centre_world_m - c.T_target_source[:3, 3]))
     return out
 
@@ -151,8 +159,8 @@ def run_pairs(group: str, frames: SimulatedFrames, pairs: list[tuple[int, int]],
                 rot, trans = pose_error(c.T_target_source, T_true)
                 e = se3_log(invert(T_true) @ c.T_target_source)
                 row.update(rot_deg=math.degrees(rot), trans_mm=1e3 * trans, nees=float(e @ c.information @ e))
-                if with_dlt and feat == "surf":
-                    row.update(dlt_rows(reg, c, a, b, T_true, frames.K, frames.dist))
+            if with_dlt and feat == "surf":
+                row.update(dlt_rows(reg, c, a, b, T_true, frames.K, frames.dist))
             rows.append(row)
         print(f"\r  {group}: pair {i}->{j} done ({frames.render_s:.0f} s rendering so far)", end="", flush=True)
     print()
@@ -200,7 +208,7 @@ def report_accuracy(rows: list[dict]) -> None:
             s = [r for r in sel if g is None or r["group"] == g]
             if s:
                 print(f"   {name:18s} {g or 'all':9s} n={len(s):2d} inliers p50 {np.median([r[key + '_inliers'] for r in s]):.0f}  "
-                      f"err mm p50/p90/max {pct([r[key + '_err_mm'] for r in s])}  vs registration mm {pct([r[key + '_vs_reg_mm'] for r in s])}")
+                      f"err mm p50/p90/max {pct([r[key + '_err_mm'] for r in s])}  vs registration mm {pct([r[key + '_vs_reg_mm'] for r in s if key + '_vs_reg_mm' in r])}")
 
 
 # ---------------------------------------------------------------------------------------------
