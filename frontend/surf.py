@@ -118,9 +118,10 @@ def _box_grid(ii: NDArray, y0: int, x0: int, step: int, ny: int, nx: int, r0: in
 
 
 def _hessian_layer(
-    ii: NDArray, pad: int, step: int, ny: int, nx: int, L: int, with_sign: bool = True
+    ii: NDArray, pad: int, step: int, ny: int, nx: int, L: int, with_sign: bool = True, value_scale: float = 1.0
 ) -> tuple[NDArray, NDArray | None]:
-    """det(H) (float32) and, if asked, the trace sign of one filter size over the sampling grid."""
+    """det(H) (float32) and, if asked, the trace sign of one filter size over the sampling grid
+    (``value_scale`` converts the image's values to [0, 1])."""
     lobe = L // 3
     half_long = (3 * lobe - 1) // 2
     half_short = lobe - 1
@@ -134,7 +135,7 @@ def _hessian_layer(
     dxy += _box_grid(ii, pad, pad, step, ny, nx, 1, lobe, 1, lobe)
     dxy -= _box_grid(ii, pad, pad, step, ny, nx, -lobe, -1, 1, lobe)
     dxy -= _box_grid(ii, pad, pad, step, ny, nx, 1, lobe, -lobe, -1)
-    norm2 = 1.0 / float(L) ** 4  # each filter normalised by L^2
+    norm2 = (value_scale / float(L) ** 2) ** 2  # each filter normalised by L^2
     det = dxx * dyy
     dxy *= dxy
     det -= 0.81 * dxy
@@ -142,9 +143,11 @@ def _hessian_layer(
     return det.astype(np.float32), (np.sign(dxx + dyy).astype(np.int8) if with_sign else None)
 
 
-def _hessian_layer_dense(img: NDArray[np.float32], L: int, with_sign: bool = True) -> tuple[NDArray, NDArray | None]:
+def _hessian_layer_dense(img: NDArray, L: int, with_sign: bool = True, value_scale: float = 1.0) -> tuple[NDArray, NDArray | None]:
     """det(H) and (if asked) the trace sign at every pixel (sampling step 1) with cv2.boxFilter;
-    equals :func:`_hessian_layer` with ``step = 1`` but runs on SIMD float32 box filters."""
+    equals :func:`_hessian_layer` with ``step = 1`` but runs on SIMD box filters. ``img`` is
+    float32, or uint8/uint16 (exact integer box sums, twice as fast) with ``value_scale``
+    converting its values to [0, 1]."""
     lobe = L // 3
     rep = cv2.BORDER_REPLICATE
 
@@ -161,7 +164,7 @@ def _hessian_layer_dense(img: NDArray[np.float32], L: int, with_sign: bool = Tru
     dxy = cv2.add(qp[:H, :W], qp[2 * c :, 2 * c :])
     dxy -= qp[:H, 2 * c :]
     dxy -= qp[2 * c :, :W]
-    norm2 = 1.0 / float(L) ** 4  # each filter normalised by L^2
+    norm2 = (value_scale / float(L) ** 2) ** 2  # each filter normalised by L^2
     det = cv2.multiply(dxx, dyy, scale=norm2)
     det -= cv2.multiply(dxy, dxy, scale=0.81 * norm2)
     return det, (np.sign(dxx + dyy).astype(np.int8) if with_sign else None)
@@ -192,9 +195,10 @@ def _filter_size(octave: int, interval: int) -> int:
 _NMS_KERNEL = np.ones((3, 3), np.uint8)
 
 
-def fast_hessian(image01: NDArray[np.float32], params: SurfParams) -> tuple[NDArray, NDArray, NDArray, NDArray]:
+def fast_hessian(image01: NDArray, params: SurfParams, value_scale: float = 1.0) -> tuple[NDArray, NDArray, NDArray, NDArray]:
     """Detect blobs: returns ``uv (K,2)``, ``scale (K,)``, ``response (K,)``, ``laplacian_sign (K,)``
-    in the coordinates of ``image01`` (float32 in [0, 1])."""
+    in the coordinates of ``image01``: float32 in [0, 1], or uint8/uint16 whose values times
+    ``value_scale`` are in [0, 1] (responses are those of the [0, 1] image either way)."""
     H, W = image01.shape
     max_L = _filter_size(params.n_octaves - 1, params.n_intervals - 1)
     pad = max_L // 2 + 2
@@ -220,9 +224,9 @@ def fast_hessian(image01: NDArray[np.float32], params: SurfParams) -> tuple[NDAr
                 layers.append(np.ascontiguousarray(det_prev[::k, ::k][:ny, :nx]))
                 continue
             if step == 1:
-                det, _ = _hessian_layer_dense(image01, L, with_sign=False)
+                det, _ = _hessian_layer_dense(image01, L, with_sign=False, value_scale=value_scale)
             else:
-                det, _ = _hessian_layer(integral, pad, step, ny, nx, L, with_sign=False)
+                det, _ = _hessian_layer(integral, pad, step, ny, nx, L, with_sign=False, value_scale=value_scale)
             computed[L] = (step, det)
             layers.append(det)
         dil = [cv2.dilate(layer, _NMS_KERNEL) for layer in layers]
@@ -293,14 +297,17 @@ class _HaarBank:
 
     _PAD = 8  # level border for the shifted box sums (half <= 4 -> shifts <= 3)
 
-    def __init__(self, image01: NDArray[np.float32]):
-        self._pyramid = [image01]
+    def __init__(self, image: NDArray):
+        self._pyramid = [image]
         self._padded: dict[int, NDArray[np.float32]] = {}
         self._cache: dict[tuple[int, int], NDArray[np.float32]] = {}
 
     def _level(self, k: int) -> NDArray:
         while len(self._pyramid) <= k:
-            self._pyramid.append(cv2.resize(self._pyramid[-1], None, fx=0.5, fy=0.5, interpolation=cv2.INTER_AREA))
+            # levels from 1 on in float32 (an integer level would round its averages); each
+            # keypoint reads one level and its descriptor is normalised, so units do not matter
+            src = self._pyramid[-1] if self._pyramid[-1].dtype == np.float32 else self._pyramid[-1].astype(np.float32)
+            self._pyramid.append(cv2.resize(src, None, fx=0.5, fy=0.5, interpolation=cv2.INTER_AREA))
         return self._pyramid[k]
 
     @staticmethod
@@ -440,6 +447,20 @@ def _descriptors(bank: _HaarBank, uv: NDArray, scale: NDArray, theta: NDArray) -
     return desc
 
 
+def _block_sums(img: NDArray[np.uint8], factor: int) -> NDArray:
+    """Sums of ``factor x factor`` pixel blocks (uint16 up to factor 16, else float32); the
+    image itself for factor 1. A partial last block row/column is dropped."""
+    if factor == 1:
+        return img
+    H, W = img.shape[0] // factor * factor, img.shape[1] // factor * factor
+    out = img[0:H:factor, 0:W:factor].astype(np.uint16 if factor <= 16 else np.float32)
+    for dy in range(factor):
+        for dx in range(factor):
+            if dy or dx:
+                out += img[dy:H:factor, dx:W:factor]
+    return out
+
+
 def surf_detect_and_compute(texture: NDArray, params: SurfParams | None = None) -> SurfKeypoints:
     """Detect SURF keypoints on an 8-bit grey image and compute their 64-D descriptors.
 
@@ -468,10 +489,10 @@ def surf_detect_and_compute(texture: NDArray, params: SurfParams | None = None) 
     factor = 1
     if p.max_working_width > 0 and img.shape[1] > p.max_working_width:
         factor = int(math.ceil(img.shape[1] / p.max_working_width))
-    work = img.astype(np.float32) * np.float32(1.0 / 255.0)
-    if factor > 1:
-        work = cv2.resize(work, (img.shape[1] // factor, img.shape[0] // factor), interpolation=cv2.INTER_AREA)
-    uv, scale, resp, sign = fast_hessian(work, p)
+    # the working image holds exact sums of factor x factor pixel blocks (area averaging without
+    # rounding; integer box filters run twice as fast as float ones)
+    work = _block_sums(img, factor)
+    uv, scale, resp, sign = fast_hessian(work, p, value_scale=1.0 / (255.0 * factor * factor))
     if uv.shape[0] > p.max_features:
         keep = np.argpartition(-resp, p.max_features - 1)[: p.max_features]
         uv, scale, resp, sign = uv[keep], scale[keep], resp[keep], sign[keep]
