@@ -44,7 +44,7 @@ Speed
 -----
 The frame is processed in bands of rows that fit the CPU cache; each band is a short sequence
 of OpenCV/numpy operations in float32, uint8 and int16, in place into reused buffers, with no
-Python loop over pixels. The arctangent is ``cv2.phase``: its error is below 2e-4 rad (3e-5 of
+Python loop over pixels. The arctangent is OpenCV's (``cv2.cartToPolar``, as ``cv2.phase``): its error is below 2e-4 rad (3e-5 of
 a fringe period), far below the phase noise of any real capture; float rounding can make it
 return exactly ``2 pi`` for phases a hair below it, which the unwrapping handles.
 """
@@ -194,8 +194,7 @@ def _wrapped_phase_band(imgs: list[NDArray], sin: NDArray, cos: NDArray, phi: ND
             np.add(imgs[k], imgs[n - k], out=ti, dtype=idt)
             np.copyto(tf, ti, casting="unsafe")
             cv2.scaleAdd(tf, ck, c, dst=c)
-    cv2.phase(c, s, phi)  # atan2(S, C) in [0, 2 pi)
-    cv2.magnitude(c, s, mod)
+    cv2.cartToPolar(c, s, mod, phi)  # |(C, S)| and atan2(S, C) in [0, 2 pi) (cv2.phase's), in one pass
     np.multiply(mod, np.float32(2.0 / n), out=mod)
 
 
@@ -461,8 +460,8 @@ class Decoder:
 
         # eq. 3 and eq. 8 in one pass: u_p = (K + phi / 2 pi) lambda.
         u = out["u"]
-        np.multiply(unsigned_order if unsigned_order.dtype == np.uint8 else order, np.float32(self.pitch_px), out=u)
-        cv2.scaleAdd(out["phi"], self.pitch_px / TWO_PI, u, dst=u)
+        k = unsigned_order if unsigned_order.dtype == np.uint8 else order
+        cv2.addWeighted(k, self.pitch_px, out["phi"], self.pitch_px / TWO_PI, 0.0, dst=u, dtype=cv2.CV_32F)
         cv2.copyTo(work.const("nan", np.nan, np.float32, r), invalid, u)
         cv2.copyTo(work.const("minus_one", -1, np.int16, r), invalid, order)
         np.equal(invalid, 0, out=out["mask"].view(np.bool_))

@@ -278,7 +278,7 @@ class Triangulator:
         dtype: type[np.floating] | np.dtype = np.float32,
         projector_fit_tolerance_px: float = 1e-3,
         projector_refine_iterations: int = 0,
-        band_rows: int = 16,
+        band_rows: int = 64,
     ) -> None:
         if axis not in ("columns", "rows"):
             raise ValueError(f"axis must be 'columns' or 'rows', got {axis!r}")
