@@ -11,11 +11,26 @@ Layouts
 7-Scenes: ``frame-XXXXXX.color.png``, ``frame-XXXXXX.depth.png`` (uint16 millimetres, 0 and
 65535 invalid), ``frame-XXXXXX.pose.txt`` (4x4 camera-to-world = ``T_world_sensor``, metres),
 optional ``camera-intrinsics.txt`` (3x3; default fx = fy = 585, cx = 320, cy = 240). Colour and
-depth are not registered to each other in 7-Scenes; the colour is resized onto the depth grid.
+depth are not registered to each other in 7-Scenes (two cameras of a Kinect v1, different focal
+lengths, about 2.5 cm apart): the colour image is resampled onto the depth grid through the
+colour camera model :data:`KINECT_V1_COLOR_K` / :data:`KINECT_V1_T_COLOR_DEPTH` (optional
+``color-intrinsics.txt``, 3x3, overrides the former), so a keypoint found in the texture lifts to
+the depth pixel that saw the same surface point. Pasting the colour pixel-for-pixel onto the
+depth grid instead puts image corners ~30 px (~10 cm at 2 m) away from their depth.
 
 TUM RGB-D: ``rgb.txt`` and ``depth.txt`` (``timestamp path`` lines), depth uint16 with factor
 5000 per metre, optional ``groundtruth.txt`` (TUM trajectory), optional ``intrinsics.txt``
-(``fx fy cx cy``; default the ROS default 525, 525, 319.5, 239.5).
+(``fx fy cx cy``; default the ROS default 525, 525, 319.5, 239.5). TUM depth is already
+registered to the colour image.
+
+Configuration
+-------------
+Defaults of the project are sized for millimetre FPP scenes; an RGB-D scene is metres wide and
+its depth noise is centimetres. :meth:`RgbdSource.resolve_config` raises registration thresholds
+to :data:`RGBD_REGISTRATION_FLOORS`, fusion voxels to :data:`RGBD_FUSION_FLOORS` (a 1 mm TSDF over
+a 3 m room is ~10^10 voxels) and scales the registration information by
+:data:`RGBD_INFORMATION_SCALE`. The pipeline runs on the resolved config and writes it to the
+results folder.
 """
 
 from __future__ import annotations
@@ -42,8 +57,23 @@ RGBD_REGISTRATION_FLOORS = {
     "icp_max_correspondence_m": 0.05,
     "max_inlier_rmse_m": 0.03,
     "max_icp_shift_m": 0.05,
-    "max_weak_sigma_m": 0.005,
+    "max_weak_sigma_m": 0.02,
 }
+RGBD_FUSION_FLOORS = {
+    "voxel_size_m": 0.01,
+    "tsdf_voxel_m": 0.01,
+    "tsdf_truncation_m": 0.04,
+}
+# ICP's information assumes independent residuals; Kinect depth errors are correlated over the
+# image (quantisation steps, structured-light speckle, low-frequency depth distortion), so its
+# raw information is ~10^3-10^4 times too confident (NEES over 8 pairs of 7-Scenes chess
+# frames: mean 3.6 per degree of freedom at 1e-3, so 3e-4) and the robust back-end would reject every
+# true loop as inconsistent with odometry. See scripts/rgbd_nees.py for the measurement.
+RGBD_INFORMATION_SCALE = 3e-4
+# Kinect v1 colour camera (the ROS/OpenNI defaults) and its offset from the depth camera: the
+# colour camera sits ~2.5 cm along +x of the depth (IR) camera.
+KINECT_V1_COLOR_K = np.array([[525.0, 0.0, 319.5], [0.0, 525.0, 239.5], [0.0, 0.0, 1.0]])
+KINECT_V1_T_COLOR_DEPTH = np.array([[1.0, 0, 0, -0.025], [0, 1.0, 0, 0], [0, 0, 1.0, 0], [0, 0, 0, 1.0]])
 _SEVEN_SCENES = re.compile(r"frame-(\d+)\.color\.png$")
 
 
@@ -58,6 +88,22 @@ def depth_to_xyz_map(depth_m: np.ndarray, K: np.ndarray) -> np.ndarray:
     xyz[..., 1] = (v - K[1, 2]) / K[1, 1] * z
     xyz[..., 2] = z
     return xyz
+
+
+def register_color_to_depth(color: np.ndarray, xyz_map: np.ndarray, K_color: np.ndarray, T_color_depth: np.ndarray) -> np.ndarray:
+    """Resample ``color`` onto the depth grid: each depth pixel takes the colour where its 3D point
+    projects in the colour camera (bilinear; 0 where it projects outside or has no depth).
+
+    Occlusion between the two viewpoints (a few cm apart) is ignored.
+    """
+    p = xyz_map @ T_color_depth[:3, :3].T + T_color_depth[:3, 3]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        map_u = (K_color[0, 0] * p[..., 0] / p[..., 2] + K_color[0, 2]).astype(np.float32)
+        map_v = (K_color[1, 1] * p[..., 1] / p[..., 2] + K_color[1, 2]).astype(np.float32)
+    bad = ~(np.isfinite(map_u) & np.isfinite(map_v))
+    map_u[bad] = -1.0
+    map_v[bad] = -1.0
+    return cv2.remap(color, map_u, map_v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
 
 
 @dataclass
@@ -77,6 +123,8 @@ class RgbdSource:
     def __init__(self, path: Path, config: Config) -> None:
         self.path = Path(path)
         self.config = config
+        self.K_color: np.ndarray | None = None  # None: colour already on the depth grid
+        self.T_color_depth = KINECT_V1_T_COLOR_DEPTH
         if (self.path / "rgb.txt").exists() and (self.path / "depth.txt").exists():
             self.layout = "tum"
             self.entries, self.K, self.depth_per_m = self._read_tum()
@@ -88,6 +136,7 @@ class RgbdSource:
         if not self.entries:
             raise InputDataError(f"{self.path}: no RGB-D frames found")
         self._by_id = {e.frame_id: e for e in self.entries}
+        self.config = self.resolve_config(config)
 
     @classmethod
     def detect(cls, path: Path) -> bool:
@@ -107,6 +156,13 @@ class RgbdSource:
                 K = np.loadtxt(kfile).reshape(3, 3)
             except ValueError as exc:
                 raise InputDataError(f"{kfile}: expected a 3x3 matrix ({exc})") from None
+        self.K_color = KINECT_V1_COLOR_K
+        cfile = self.path / "color-intrinsics.txt"
+        if cfile.exists():
+            try:
+                self.K_color = np.loadtxt(cfile).reshape(3, 3)
+            except ValueError as exc:
+                raise InputDataError(f"{cfile}: expected a 3x3 matrix ({exc})") from None
         entries = []
         for p in sorted(self.path.iterdir()):
             m = _SEVEN_SCENES.search(p.name)
@@ -175,14 +231,19 @@ class RgbdSource:
         color = cv2.imread(str(e.color), cv2.IMREAD_GRAYSCALE)
         if color is None:
             raise InputDataError(f"{e.color}: missing or corrupt colour image")
-        if color.shape != depth.shape:
-            color = cv2.resize(color, (depth.shape[1], depth.shape[0]), interpolation=cv2.INTER_AREA)
         depth_m = depth.astype(np.float64) / self.depth_per_m
         depth_m[depth == 65535] = 0.0
         xyz = depth_to_xyz_map(depth_m, self.K)
         valid = np.isfinite(xyz[..., 2])
         if not valid.any():
             raise InputDataError(f"{e.depth}: no valid depth")
+        if self.K_color is not None:
+            color = register_color_to_depth(color, xyz, self.K_color, self.T_color_depth)
+        elif color.shape != depth.shape:
+            raise InputDataError(
+                f"{e.color}: colour {color.shape[1]}x{color.shape[0]} but depth {depth.shape[1]}x{depth.shape[0]}; "
+                "TUM RGB-D colour must be registered to depth (same size)"
+            )
         frame = Frame(
             id=e.frame_id,
             timestamp=e.timestamp,
@@ -194,10 +255,20 @@ class RgbdSource:
         )
         return detect_and_describe(frame, self.registration_config())
 
+    @staticmethod
+    def resolve_config(config: Config) -> Config:
+        """``config`` with the RGB-D floors on registration thresholds and fusion voxels
+        (idempotent). The registrar also multiplies ``information_scale`` by
+        :data:`RGBD_INFORMATION_SCALE` (:meth:`registration_config`)."""
+        reg = config.registration
+        reg = reg.model_copy(update={k: max(getattr(reg, k), v) for k, v in RGBD_REGISTRATION_FLOORS.items()})
+        fus = config.fusion
+        fus = fus.model_copy(update={k: max(getattr(fus, k), v) for k, v in RGBD_FUSION_FLOORS.items()})
+        return config.model_copy(update={"registration": reg, "fusion": fus})
+
     def registration_config(self) -> RegistrationConfig:
         cfg = self.config.registration
-        raised = {k: max(getattr(cfg, k), v) for k, v in RGBD_REGISTRATION_FLOORS.items()}
-        return cfg.model_copy(update=raised)
+        return cfg.model_copy(update={"information_scale": cfg.information_scale * RGBD_INFORMATION_SCALE})
 
     def make_registrar(self):
         from frontend.registration import FppPairRegistrar

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -120,3 +121,198 @@ def test_foreign_folder_never_overwritten(tmp_path):
     with pytest.raises(OutputError, match="not an fpp-slam results folder"):
         Pipeline(WallSource(), config(), tmp_path, overwrite=True).run()
     assert (tmp_path / "precious.txt").read_text() == "user data"
+
+
+# -- on-disk sequences through the real readers and the CLI ----------------------------------
+def write_tum_rgbd_sequence(folder: Path, xs=XS, width=320, height=200) -> Path:
+    """A TUM RGB-D layout folder (rgb.txt, depth.txt at 5000 per metre, groundtruth, intrinsics)
+    rendered from the synthetic wall."""
+    import cv2
+
+    from fpp_graph.trajectory import write_tum
+
+    scene = synthetic_frames.bumpy_wall_scene(seed=3, size_m=(1.2, 0.8))
+    poses = [synthetic_frames.wall_pose(x, distance_m=0.45) for x in xs]
+    (folder / "rgb").mkdir(parents=True)
+    (folder / "depth").mkdir()
+    rgb_lines, depth_lines = [], []
+    for i, T in enumerate(poses):
+        frame = synthetic_frames.render_frame(scene, T, width=width, height=height, frame_id=i, supersampling=1)
+        depth = np.nan_to_num(frame.xyz_map[..., 2], nan=0.0) * 5000.0
+        t = 1.0 + i / 30.0
+        cv2.imwrite(str(folder / f"rgb/{t:.6f}.png"), frame.texture)
+        cv2.imwrite(str(folder / f"depth/{t:.6f}.png"), np.round(depth).astype(np.uint16))
+        rgb_lines.append(f"{t:.6f} rgb/{t:.6f}.png")
+        depth_lines.append(f"{t:.6f} depth/{t:.6f}.png")
+    K = frame.metadata["K"]
+    (folder / "rgb.txt").write_text("# timestamp filename\n" + "\n".join(rgb_lines) + "\n")
+    (folder / "depth.txt").write_text("# timestamp filename\n" + "\n".join(depth_lines) + "\n")
+    (folder / "intrinsics.txt").write_text(f"{K[0, 0]} {K[1, 1]} {K[0, 2]} {K[1, 2]}\n")
+    write_tum(folder / "groundtruth.txt", Trajectory.from_poses([1.0 + i / 30.0 for i in range(len(poses))], poses))
+    return folder
+
+
+@pytest.fixture(scope="module")
+def tum_sequence(tmp_path_factory):
+    return write_tum_rgbd_sequence(tmp_path_factory.mktemp("tum") / "seq")
+
+
+# the console script itself (``python -m fpp_graph.cli`` would register the commands on a second
+# copy of the module)
+_FPP_SLAM = [sys.executable, "-c", "import sys; from fpp_graph.cli import main; sys.exit(main())"]
+
+
+def _cli(*args: str, **kwargs):
+    import subprocess
+    import sys
+
+    return subprocess.run([*_FPP_SLAM, *args], capture_output=True, text=True, timeout=600, **kwargs)
+
+
+def _rgbd_config(tmp_path: Path) -> Path:
+    path = tmp_path / "cfg.yaml"
+    path.write_text("run:\n  workers: 1\nfusion:\n  mesh: false\n")
+    return path
+
+
+def _assert_outputs_whole(out: Path) -> None:
+    import open3d as o3d
+
+    from fpp_graph.frame_store import load_frame
+
+    assert not [p.name for p in out.rglob("*") if ".tmp" in p.name]
+    for npz in (out / "frames").glob("*.npz"):
+        load_frame(npz)  # raises on a truncated file
+    json.loads((out / "metrics.json").read_text())
+    read_tum(out / "trajectory.tum")
+    assert len(o3d.io.read_point_cloud(str(out / "map.ply")).points) > 100
+
+
+def test_rgbd_run_skips_a_missing_and_a_corrupt_frame_and_says_so(tmp_path, tum_sequence):
+    import shutil
+
+    seq = tmp_path / "seq"
+    shutil.copytree(tum_sequence, seq)
+    depth_files = sorted((seq / "depth").iterdir())
+    depth_files[2].unlink()  # missing
+    depth_files[5].write_bytes(b"\x89PNG\r\n\x1a\n truncated")  # corrupt
+    result = _cli("run", str(seq), "--out", str(tmp_path / "out"), "--config", str(_rgbd_config(tmp_path)))
+    assert result.returncode == 0, result.stderr[-2000:]
+    metrics = json.loads((tmp_path / "out" / "metrics.json").read_text())
+    assert metrics["frames"] == len(XS) - 2 and metrics["frames_total"] == len(XS)
+    assert set(metrics["skipped_frames"]) == {"2", "5"}
+    assert all("depth" in reason for reason in metrics["skipped_frames"].values())
+    assert "skipping frame 2" in result.stderr and "skipping frame 5" in result.stderr
+    _assert_outputs_whole(tmp_path / "out")
+
+
+def test_rgbd_colour_depth_size_mismatch_is_reported(tmp_path, tum_sequence):
+    import shutil
+
+    import cv2
+
+    from fpp_graph.config import Config
+    from frontend.rgbd import RgbdSource
+
+    seq = tmp_path / "seq"
+    shutil.copytree(tum_sequence, seq)
+    first = sorted((seq / "rgb").iterdir())[0]
+    cv2.imwrite(str(first), np.zeros((100, 160), np.uint8))
+    source = RgbdSource(seq, Config())
+    with pytest.raises(InputDataError, match="colour 160x100 but depth 320x200"):
+        source.load_frame(source.frame_ids()[0])
+
+
+def test_wrong_layout_is_one_line_error(tmp_path):
+    (tmp_path / "notes.txt").write_text("not a sequence")
+    (tmp_path / "image.png").write_bytes(b"")
+    result = _cli("run", str(tmp_path), "--out", str(tmp_path / "out"))
+    assert result.returncode == 2
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and "not a recognised sequence layout" in lines[0], result.stderr
+    assert not (tmp_path / "out").exists()
+
+
+def test_cli_refuses_existing_results_unless_resume_or_overwrite(tmp_path, tum_sequence):
+    cfg = str(_rgbd_config(tmp_path))
+    out = tmp_path / "out"
+    assert _cli("run", str(tum_sequence), "--out", str(out), "--config", cfg).returncode == 0
+    before = (out / "trajectory.tum").read_text()
+    refused = _cli("run", str(tum_sequence), "--out", str(out), "--config", cfg)
+    assert refused.returncode == 2 and "--resume" in refused.stderr and "--overwrite" in refused.stderr
+    assert (out / "trajectory.tum").read_text() == before
+    (out / "stale.txt").write_text("from the earlier run")
+    assert _cli("run", str(tum_sequence), "--out", str(out), "--config", cfg, "--overwrite").returncode == 0
+    assert not (out / "stale.txt").exists()
+    _assert_outputs_whole(out)
+
+
+def test_truncated_cache_file_is_recomputed_on_resume(tmp_path):
+    """What a crash mid-write would leave without atomic writes: a truncated frame cache."""
+    first = Pipeline(WallSource(broken=None), config(), tmp_path / "out").run()
+    cached = sorted((first.results_dir / "frames").glob("*.npz"))
+    data = cached[3].read_bytes()
+    cached[3].write_bytes(data[: len(data) // 3])
+    (first.results_dir / "metrics.json").unlink()
+    again = WallSource(broken=None)
+    resumed = Pipeline(again, config(), first.results_dir, resume=True).run()
+    assert again.loads == 1  # only the truncated frame was decoded again
+    np.testing.assert_allclose(
+        read_tum(resumed.results_dir / "trajectory.tum").positions_xyz_m,
+        read_tum(first.results_dir / "trajectory.tum").positions_xyz_m, atol=1e-6,
+    )
+
+
+def test_kill_9_mid_run_then_resume(tmp_path):
+    """SIGKILL the CLI once some frames are cached; the rerun with --resume completes and every
+    file on disk is whole (no truncated cache, no temp files)."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    seq = write_tum_rgbd_sequence(tmp_path / "seq", xs=np.linspace(-0.25, 0.25, 14).tolist())
+    out = tmp_path / "out"
+    cfg = str(_rgbd_config(tmp_path))
+    proc = subprocess.Popen(
+        [*_FPP_SLAM, "run", str(seq), "--out", str(out), "--config", cfg],
+        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+    )
+    deadline = time.monotonic() + 300
+    while proc.poll() is None and time.monotonic() < deadline:
+        if len(list((out / "frames").glob("*.npz"))) >= 3 if (out / "frames").exists() else False:
+            break
+        time.sleep(0.02)
+    killed = proc.poll() is None
+    if killed:
+        os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    if not killed:
+        pytest.skip("the run finished before it could be killed")
+    assert not (out / "metrics.json").exists()
+    cached_before = len(list((out / "frames").glob("*.npz")))
+    assert 3 <= cached_before < 14
+    result = _cli("run", str(seq), "--out", str(out), "--config", cfg, "--resume")
+    assert result.returncode == 0, result.stderr[-2000:]
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["frames"] == 14
+    _assert_outputs_whole(out)
+
+
+def test_colour_is_resampled_onto_the_depth_grid():
+    """A colour dot seen by a camera 2.5 cm to the side with another focal length lands on the
+    depth pixel of the same surface point (7-Scenes colour is not registered to depth)."""
+    from frontend.rgbd import KINECT_V1_COLOR_K, KINECT_V1_T_COLOR_DEPTH, depth_to_xyz_map, register_color_to_depth
+
+    K_depth = np.array([[585.0, 0, 320], [0, 585.0, 240], [0, 0, 1]])
+    xyz = depth_to_xyz_map(np.full((480, 640), 2.0), K_depth)
+    p_color = xyz[300, 100] + KINECT_V1_T_COLOR_DEPTH[:3, 3]
+    u = KINECT_V1_COLOR_K[0, 0] * p_color[0] / p_color[2] + KINECT_V1_COLOR_K[0, 2]
+    v = KINECT_V1_COLOR_K[1, 1] * p_color[1] / p_color[2] + KINECT_V1_COLOR_K[1, 2]
+    color = np.zeros((480, 640), np.uint8)
+    color[int(round(v)) - 1 : int(round(v)) + 2, int(round(u)) - 1 : int(round(u)) + 2] = 255
+    registered = register_color_to_depth(color, xyz, KINECT_V1_COLOR_K, KINECT_V1_T_COLOR_DEPTH)
+    peak = np.unravel_index(np.argmax(registered), registered.shape)
+    assert abs(peak[0] - 300) <= 1 and abs(peak[1] - 100) <= 1
+    assert abs(u - 100) > 10  # pasting pixel for pixel would have been 15 px off here
