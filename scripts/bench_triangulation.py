@@ -60,23 +60,26 @@ def peer_solve(cal: RigCalibration, uv_camera: np.ndarray, u_p: np.ndarray) -> n
 
 
 class Ms(float):
-    """Median milliseconds that prints as ``median (min)``: on a shared machine the minimum is
-    the better estimate of the uncontended cost."""
+    """Median wall milliseconds that prints as ``median (min, CPU median)``: on a shared machine
+    the wall time includes waiting for a core, the process CPU time does not."""
 
     minimum: float
+    cpu: float
 
     def __format__(self, spec: str) -> str:
-        return f"{float(self):{spec}} (min {self.minimum:.1f})"
+        return f"{float(self):{spec}} (min {self.minimum:.1f}, CPU {self.cpu:.1f})"
 
 
 def timed(fn, repeats: int) -> tuple[Ms, object]:
-    times, result = [], None
+    times, cpu, result = [], [], None
     for _ in range(repeats):
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         result = fn()
         times.append(time.perf_counter() - t0)
+        cpu.append(time.process_time() - c0)
     ms = Ms(1e3 * float(np.median(times)))
     ms.minimum = 1e3 * float(np.min(times))
+    ms.cpu = 1e3 * float(np.median(cpu))
     return ms, result
 
 
@@ -85,7 +88,7 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=15)
     args = parser.parse_args()
 
-    print("times: median (min) over repeats, one thread")
+    print(f"times: wall median (min, CPU median) over repeats, one thread; load average {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores")
     print("rig 1: camera distortion, no projector distortion (1920x1200 camera, 1920x1080 projector)")
     cal = make_rig(projector_distortion=False)
     t0 = time.perf_counter()
