@@ -44,7 +44,11 @@ Speed
 -----
 The frame is processed in bands of rows that fit the CPU cache; each band is a short sequence
 of OpenCV/numpy operations in float32, uint8 and int16, in place into reused buffers, with no
-Python loop over pixels. The arctangent is OpenCV's (``cv2.cartToPolar``, as ``cv2.phase``): its error is below 2e-4 rad (3e-5 of
+Python loop over pixels. The Gray code is read with same-type uint8 operations (mixed-type
+passes cost several times more) and the fringe order stays uint8 until the output. A streaming
+loop can pass the previous frame's result as ``decode(images, out=previous)`` so that the output
+maps are overwritten instead of allocated (fresh 37 MB of maps page-fault on first write: ~3 ms
+of a 1920x1200 frame). The arctangent is OpenCV's (``cv2.cartToPolar``, as ``cv2.phase``): its error is below 2e-4 rad (3e-5 of
 a fringe period), far below the phase noise of any real capture; float rounding can make it
 return exactly ``2 pi`` for phases a hair below it, which the unwrapping handles.
 """
