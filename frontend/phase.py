@@ -512,15 +512,29 @@ class Decoder:
     def _read_code(self, stack: NDArray, threshold: NDArray, work: _Scratch) -> NDArray:
         """Binarise the code images and Gray-decode them (MSB first) to an unsigned integer image.
 
-        uint8 for up to 8 code images (every step a same-type OpenCV operation on 0/255 masks,
-        the cheapest there is), uint16 beyond.
+        Gray to binary: bit k of the value is the XOR of the Gray bits 0..k (MSB first), so the
+        value is the XOR over j of "Gray bit j, spread over bits j..last". For up to 8 code
+        images each bit costs three same-type uint8 OpenCV passes (compare: 0/255; threshold:
+        0/low-bits mask; XOR into the value); beyond 8 the value is uint16 (numpy).
         """
         r = stack.shape[1]
         nbits = len(self._code_index)
-        binary = work.get("binary", np.uint8, r)
         bit = work.get("bit", np.uint8, r)
-        tmp = work.get("tmp8", np.uint8, r)
-        value = work.get("value", np.uint8 if nbits <= 8 else np.uint16, r)
+        if nbits <= 8:
+            value = work.get("value", np.uint8, r)
+            for j, i in enumerate(self._code_index):
+                low_bits = (1 << (nbits - j)) - 1  # bits j..last of the value (MSB first)
+                target = value if j == 0 else bit
+                if low_bits == 0xFF:
+                    cv2.compare(stack[i], threshold, cv2.CMP_GT, dst=target)
+                else:
+                    cv2.compare(stack[i], threshold, cv2.CMP_GT, dst=bit)
+                    cv2.threshold(bit, 0, low_bits, cv2.THRESH_BINARY, dst=target)
+                if j > 0:
+                    cv2.bitwise_xor(value, bit, dst=value)
+            return value
+        binary = work.get("binary", np.uint8, r)
+        value = work.get("value", np.uint16, r)
         for j, i in enumerate(self._code_index):
             # Gray to binary on the fly: b_j = b_(j-1) xor g_j; masks are 0/255.
             if j == 0:
@@ -528,20 +542,11 @@ class Decoder:
             else:
                 cv2.compare(stack[i], threshold, cv2.CMP_GT, dst=bit)
                 cv2.bitwise_xor(binary, bit, dst=binary)
-            shift = nbits - 1 - j
-            if nbits <= 8:
-                # 255 -> 2^shift: a scalar threshold runs at the speed of a copy (a scalar AND does not).
-                if j == 0:
-                    cv2.threshold(binary, 0, 1 << shift, cv2.THRESH_BINARY, dst=value)
-                else:
-                    cv2.threshold(binary, 0, 1 << shift, cv2.THRESH_BINARY, dst=tmp)
-                    cv2.bitwise_or(value, tmp, dst=value)
+            term = np.left_shift((binary & 1).astype(np.uint16), np.uint16(nbits - 1 - j))
+            if j == 0:
+                value[...] = term
             else:
-                term = np.left_shift((binary & 1).astype(np.uint16), np.uint16(shift))
-                if j == 0:
-                    value[...] = term
-                else:
-                    value |= term
+                value |= term
         return value
 
     def _order_gray(self, code: NDArray, phi: NDArray, work: _Scratch) -> NDArray:
