@@ -479,7 +479,6 @@ class Triangulator:
         height = self.height
         rows = self.band_rows if 0 < self.band_rows < height else height
         buf = self._buffers(rows)
-        dt = self.dtype
         mask_u8 = None if mask is None else np.ascontiguousarray(np.asarray(mask, dtype=bool)).view(np.uint8)
         c0, c1 = float(self._c0), float(self._c1)
         with np.errstate(divide="ignore", invalid="ignore"):
