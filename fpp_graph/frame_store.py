@@ -100,6 +100,20 @@ class FrameStore:
         if self.directory is not None:
             self.directory.mkdir(parents=True, exist_ok=True)
 
+    @classmethod
+    def open(cls, directory: str | os.PathLike[str], max_in_memory: int = 8) -> FrameStore:
+        """A store over the frames already saved in ``directory`` (e.g. a results folder's ``frames/``)."""
+        directory = Path(directory)
+        if not directory.is_dir():
+            raise InputDataError(f"frame store {directory} does not exist")
+        store = cls(directory, max_in_memory)
+        for path in sorted(directory.glob("frame_*.npz")):
+            try:
+                store._ids.append(int(path.stem.split("_", 1)[1]))
+            except ValueError:
+                log.warning("ignoring %s: not a frame_<id>.npz file", path)
+        return store
+
     def path_of(self, frame_id: int) -> Path:
         if self.directory is None:
             raise InputDataError("this FrameStore keeps frames in memory only")

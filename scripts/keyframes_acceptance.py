@@ -126,7 +126,7 @@ def map_figures(out: Path, source, slam, voxel_m: float) -> dict:
     err = ate_rpe(estimate, source.ground_truth())
     T = err.T_gt_estimate
     V, F = load_mesh(source.ground_truth_mesh())
-    store = FrameStore(out / "frames", max_in_memory=2)
+    store = FrameStore.open(out / "frames", max_in_memory=2)
     figures = {"ate_rmse_mm": err.ate_rmse_m * 1e3}
     for name, poses in (("before", odometry_only_poses(slam)), ("after", slam.poses_world_sensor)):
         fused = fuse_points_only(poses, slam.keyframe_ids, store, voxel_m)
@@ -197,10 +197,8 @@ def bad_input(results_root: Path, resolution: str, gap: tuple[int, int]) -> dict
         raise SystemExit(f"badinput needs the turntable24 run in {out}; run --only turntable24 first")
     cfg = load_config(None)
     source = open_source(sequence_dir("turntable24", resolution), cfg)
-    cache = FrameStore(out / "frames", max_in_memory=2)
+    cache = FrameStore.open(out / "frames", max_in_memory=2)
     ids = [i for i in source.frame_ids() if not gap[0] <= i < gap[1]]
-    for i in ids:
-        cache._ids.append(i)
     manager = KeyframeManager(source.make_registrar(), cfg)
     for i in ids:
         manager.process(cache.get(i))

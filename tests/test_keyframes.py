@@ -191,3 +191,15 @@ def test_chain_break_mid_sequence_is_rejoined_by_appearance_only(rng):
     assert result.components == [list(range(len(poses)))]
     errs = [pose_error(poses[0] @ result.poses_world_sensor[i], poses[i])[1] for i in range(len(poses))]
     assert max(errs) < 10 * TRANS_SIGMA * math.sqrt(VIEWS)
+
+
+def test_frame_store_opens_an_existing_folder(tmp_path, rng):
+    for i in (3, 1):
+        save_frame(tmp_path / f"frame_{i:06d}.npz", Frame(id=i, timestamp=float(i), points=rng.normal(size=(5, 3))))
+    store = FrameStore.open(tmp_path, max_in_memory=1)
+    assert store.ids == [1, 3] and 3 in store
+    assert store.get(3).id == 3 and store.get(1).num_points == 5
+    from fpp_graph.errors import InputDataError
+
+    with pytest.raises(InputDataError, match="does not exist"):
+        FrameStore.open(tmp_path / "nope")
