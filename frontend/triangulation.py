@@ -512,8 +512,8 @@ class Triangulator:
         np.greater_equal(z, hi, out=tmp.view(np.bool_))
         cv2.bitwise_or(invalid, tmp, dst=invalid)
         if mask_u8 is not None:
-            cv2.compare(mask_u8[r0:r1], 0, cv2.CMP_EQ, dst=tmp)
-            cv2.bitwise_or(invalid, tmp, dst=invalid)
+            # invalid (0/1) >= mask (0/1) <=> invalid or not mask, in one pass
+            cv2.compare(invalid, mask_u8[r0:r1], cv2.CMP_GE, dst=invalid)
         cv2.copyTo(buf["nan"][:n], invalid, z)
         if z_out is not None:
             np.copyto(z_out[r0:r1], z)
