@@ -21,7 +21,9 @@ Prints, in one run:
    spatial frequency before its per-pixel formula, which hurts on curved scenes only).
 
 Everything is pinned to one thread (OMP_NUM_THREADS=1, cv2.setNumThreads(1)). The machine may be
-shared: the medians can be inflated; run it twice if in doubt.
+shared: the medians can be inflated; run it twice if in doubt. With more runnable threads than
+cores (load average above the core count) the wall median also counts the time spent waiting
+for a core, and the CPU-time median is the cost of the frame on one core.
 """
 
 from __future__ import annotations
