@@ -198,6 +198,9 @@ def plot_map_before_after(
     colors_before: NDArray[np.float64] | None = None,
     titles: tuple[str, str] = ("before loop closure (odometry only)", "after loop closure"),
     max_points: int = 200_000,
+    errors_before_m: NDArray[np.float64] | None = None,
+    errors_after_m: NDArray[np.float64] | None = None,
+    error_max_mm: float = 1.0,
 ) -> None:
     """Two top views of the fused map, before and after loop closure, on the same limits.
 
@@ -211,6 +214,10 @@ def plot_map_before_after(
         Point colours of the after / before maps; without them points are coloured by height.
     max_points : int
         Each cloud is randomly subsampled to at most this many points.
+    errors_before_m, errors_after_m : (N,) float64, optional
+        Per-point distance to the reference (e.g. point-to-mesh), metres: points are then
+        coloured by it (0 .. ``error_max_mm``) and each title carries the RMS; the points are
+        drawn worst last, so outliers show.
     """
     before = np.asarray(points_before, dtype=np.float64).reshape(-1, 3)
     after = np.asarray(points_after, dtype=np.float64).reshape(-1, 3)
@@ -219,8 +226,25 @@ def plot_map_before_after(
             raise InputDataError(f"plot {path}: colours of {name} have shape {np.shape(col)}, expected {pts.shape}")
     if len(before) == 0 and len(after) == 0:
         raise InputDataError(f"plot {path}: both maps are empty")
-    before, colors_before = _subsample(before, colors_before, max_points, 0)
-    after, colors = _subsample(after, colors, max_points, 1)
+    errors: list[NDArray | None] = []
+    for name, pts, err in (("errors_before_m", before, errors_before_m), ("errors_after_m", after, errors_after_m)):
+        if err is not None:
+            err = np.asarray(err, dtype=np.float64).reshape(-1)
+            if err.shape[0] != pts.shape[0]:
+                raise InputDataError(f"plot {path}: {name} has {err.shape[0]} values for {pts.shape[0]} points")
+        errors.append(err)
+    rms_titles = [
+        f"{t}, RMS {1e3 * np.sqrt(np.mean(e**2)):.3f} mm" if e is not None and len(e) else t for t, e in zip(titles, errors, strict=True)
+    ]
+    titles = (rms_titles[0], rms_titles[1])
+    if errors[0] is not None:
+        before, colors_before = _subsample(before, errors[0][:, None], max_points, 0)
+    else:
+        before, colors_before = _subsample(before, colors_before, max_points, 0)
+    if errors[1] is not None:
+        after, colors = _subsample(after, errors[1][:, None], max_points, 1)
+    else:
+        after, colors = _subsample(after, colors, max_points, 1)
     gt = None if gt_points is None else _subsample(np.asarray(gt_points, dtype=np.float64).reshape(-1, 3), None, max_points, 2)[0]
     view = top_view(after if len(after) >= 3 else before)
     both = np.vstack([before, after])
@@ -238,7 +262,11 @@ def plot_map_before_after(
             g = view.project(gt)
             ax.scatter(g[:, 0], g[:, 1], s=marker * 3, c="0.8", linewidths=0, rasterized=True, label="reference")
         q = view.project(pts)
-        if col is not None:
+        if col is not None and col.ndim == 2 and col.shape[1] == 1:  # per-point errors
+            e_mm = col[:, 0] * 1e3
+            order = np.argsort(e_mm)
+            mappable = ax.scatter(q[order, 0], q[order, 1], s=marker, c=e_mm[order], cmap="inferno_r", vmin=0.0, vmax=error_max_mm, linewidths=0, rasterized=True)
+        elif col is not None:
             ax.scatter(q[:, 0], q[:, 1], s=marker, c=np.clip(col, 0, 1), linewidths=0, rasterized=True)
         else:
             mappable = ax.scatter(q[:, 0], q[:, 1], s=marker, c=view.height(pts), cmap="viridis", vmin=vmin, vmax=vmax, linewidths=0, rasterized=True)
@@ -252,7 +280,8 @@ def plot_map_before_after(
         if gt is not None:
             ax.legend(loc="upper right", fontsize=8, markerscale=5)
     if mappable is not None:
-        fig.colorbar(mappable, ax=list(axes), shrink=0.7, label=f"{view.up_label} ({view.unit})")
+        label = "distance to reference (mm)" if errors[0] is not None or errors[1] is not None else f"{view.up_label} ({view.unit})"
+        fig.colorbar(mappable, ax=list(axes), shrink=0.7, label=label)
     _save(fig, path)
 
 

@@ -96,6 +96,20 @@ def test_map_before_after_has_shared_limits_and_colours(tmp_path, rng):
         plot_map_before_after(path, np.zeros((0, 3)), np.zeros((0, 3)))
 
 
+def test_map_before_after_coloured_by_error(tmp_path, rng):
+    after = rng.random((3000, 3)) * [0.2, 0.1, 0.05]
+    before = after + [0.003, 0.0, 0.0]
+    path = tmp_path / "err.png"
+    plot_map_before_after(path, before, after, errors_before_m=np.full(len(before), 0.003), errors_after_m=np.full(len(after), 1e-5))
+    img = matplotlib.image.imread(str(path))
+    w = img.shape[1]
+    left, right = img[:, : int(0.45 * w), :3], img[:, int(0.5 * w) : int(0.9 * w), :3]  # the panels, not the colour bar
+    dark = lambda a: int(np.count_nonzero(a.sum(axis=2) < 0.5))  # noqa: E731  (errors past the range: black)
+    assert dark(left) > dark(right) + 1000
+    with pytest.raises(InputDataError, match="errors_after_m has 10 values"):
+        plot_map_before_after(path, before, after, errors_after_m=np.zeros(10))
+
+
 def test_plot_errors(tmp_path):
     plot_errors(tmp_path / "ate.png", np.array([0.1, 0.5, np.nan, 0.3]), frame_ids=[3, 4, 5, 6])
     assert (tmp_path / "ate.png").read_bytes().startswith(b"\x89PNG")
