@@ -357,6 +357,9 @@ class Pipeline:
         with self._timed(report, "decode+track"):
             report.slam = track(frames_with_timestamps(), self.source, self.config, store, self.progress)
         report.frames_used = len(timestamps)
+        if getattr(self, "_owns_executor", False):  # the worker processes are done: free them
+            self.executor.shutdown()
+            self.executor, self._owns_executor = None, False
         with self._timed(report, "write_graph"):
             write_trajectory_and_graph(out, report.slam, timestamps)
             write_loop_log(out, report.slam)
@@ -385,6 +388,7 @@ class Pipeline:
             return None
         # spawn, not fork: the parent holds threads (Open3D, OpenCV, BLAS pools) and a forked child
         # can inherit one of their locks held, and hang forever
+        self._owns_executor = True
         self.executor = ProcessPoolExecutor(
             max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
             initializer=_init_worker, initargs=(self.source,),
