@@ -55,7 +55,7 @@ def evaluate_results(results_dir: Path, gt_source: FrameSource, map_points_limit
     )
     described = gt_source.describe()
     views = described.get("views_per_turn")
-    if views:
+    if views and len(estimate) > int(views):  # a partial first turn has nothing to return to
         poses = estimate.poses_world_sensor
         returns = loop_return_errors(poses, int(views))
         out["loop_return_mm"] = [float(x) * 1e3 for x in returns.translation_m]

@@ -59,3 +59,36 @@ def demo(
     )
     _print_table({k: metrics[k] for k in keep if k in metrics})
     typer.echo(f"demo finished in {time.perf_counter() - start:.1f} s; results in {report.results_dir}")
+
+
+def scene_definition(name: str, seed: int | None = None) -> dict:
+    """A simulated scene by name, for scripts: ``turntable`` (the demo's doll), ``bunny``
+    (``datasets/turntable_bunny.yaml``), ``corridor`` (``datasets/corridor.yaml``), or a path to a
+    scene YAML. ``seed`` sets the sensor-noise seed (``render.seed``)."""
+    import copy
+
+    import yaml
+
+    datasets = Path(__file__).resolve().parents[1] / "datasets"
+    files = {"bunny": datasets / "turntable_bunny.yaml", "corridor": datasets / "corridor.yaml"}
+    if name == "turntable":
+        scene = copy.deepcopy(DEFAULT_SCENE)
+    else:
+        scene = yaml.safe_load(Path(files.get(name, name)).read_text())
+    if seed is not None:
+        scene["render"] = {**(scene.get("render") or {}), "seed": int(seed)}
+    return scene
+
+
+def simulate_once(name: str, folder: Path, full: bool = False, frames: int | None = None, seed: int | None = None) -> Path:
+    """Simulate ``scene_definition(name, seed)`` into ``folder`` unless the same one is there already."""
+    import json
+
+    from frontend.simulator import simulate_sequence
+
+    stamp = folder / "simulated.json"
+    wanted = json.dumps({"scene": name, "full": full, "frames": frames, "seed": seed})
+    if not (stamp.exists() and stamp.read_text() == wanted and (folder / "sequence.yaml").exists()):
+        simulate_sequence(scene_definition(name, seed), folder, preview=not full, max_frames=frames, overwrite=True)
+        stamp.write_text(wanted)
+    return folder

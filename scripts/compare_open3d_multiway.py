@@ -45,33 +45,6 @@ def cpu_seconds() -> float:
     return time.process_time() + children.ru_utime + children.ru_stime
 
 
-def scene_definition(name: str, frames: int | None):
-    import yaml
-
-    from frontend.demo import DEFAULT_SCENE
-
-    root = Path(__file__).resolve().parents[1]
-    if name == "turntable":
-        return DEFAULT_SCENE  # the demo's doll: 3 turns x 24 views
-    if name == "bunny":
-        return yaml.safe_load((root / "datasets/turntable_bunny.yaml").read_text())
-    return yaml.safe_load((root / f"datasets/{name}.yaml").read_text())
-
-
-def simulate(name: str, folder: Path, full: bool, frames: int | None) -> Path:
-    from frontend.simulator import simulate_sequence
-
-    seq = folder / "sequence"
-    stamp = folder / "sequence.done"
-    wanted = json.dumps({"full": full, "frames": frames})
-    if not (stamp.exists() and stamp.read_text() == wanted):
-        t0 = time.perf_counter()
-        simulate_sequence(scene_definition(name, frames), seq, preview=not full, max_frames=frames, overwrite=True)
-        stamp.write_text(wanted)
-        logging.getLogger("compare").info("simulated %s in %.1f s", name, time.perf_counter() - t0)
-    return seq
-
-
 def run_ours(seq: Path, out: Path) -> dict:
     from fpp_graph.cli_run import run_sequence
     from fpp_graph.config import load_config
@@ -187,10 +160,12 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     logging.getLogger("compare").setLevel(logging.INFO)
+    from frontend.demo import simulate_once
+
     rows = []
     for name in args.scenes:
         folder = args.out / name
-        seq = simulate(name, folder, args.full, args.frames)
+        seq = simulate_once(name, folder / "sequence", args.full, args.frames)
         if args.reuse_ours and (folder / "ours" / "metrics.json").exists():
             from fpp_graph.config import load_config
             from fpp_graph.run_evaluation import evaluate_results
