@@ -107,3 +107,56 @@ def test_match_ratio_and_mutual():
     with pytest.raises(InputDataError, match="same feature type"):
         match_descriptors(a, b.astype(np.uint8), 0.8, True)
     assert match_descriptors(a[:1], b, 0.8, True).shape == (0, 2)
+
+
+def test_block_sums_equal_area_averaging():
+    from frontend.surf import _block_sums
+
+    img = _texture(6, (240, 320))
+    sums = _block_sums(img, 2)
+    assert sums.dtype == np.uint16 and sums.shape == (120, 160)
+    area = cv2.resize(img.astype(np.float32), (160, 120), interpolation=cv2.INTER_AREA)
+    assert np.allclose(sums / 4.0, area, atol=1e-4)
+    assert _block_sums(img, 1) is img
+
+
+def test_integer_working_image_gives_the_float_responses():
+    # fast_hessian on exact integer block sums (value_scale) must equal it on the [0, 1] image
+    from frontend.surf import _block_sums, fast_hessian
+
+    img = _texture(7, (240, 320))
+    ints = _block_sums(img, 2)
+    floats = ints.astype(np.float32) / np.float32(4 * 255)
+    p = SurfParams(hessian_threshold=1e-4)
+    a = fast_hessian(floats, p)
+    b = fast_hessian(ints, p, value_scale=1.0 / (4 * 255))
+    assert a[0].shape == b[0].shape and a[0].shape[0] > 10
+    assert np.allclose(a[0], b[0], atol=1e-3)
+    assert np.allclose(a[2], b[2], rtol=1e-4)
+    assert np.array_equal(a[3], b[3])
+
+
+def test_haar_bank_matches_box_sums_at_pixels():
+    # dx = (right half - left half) of a 2h x 2h window centred between pixels, read by remap
+    from frontend.surf import _HaarBank
+
+    img = _texture(8, (120, 160)).astype(np.float32)
+    bank = _HaarBank(img)
+    ii = cv2.integral(img, sdepth=cv2.CV_64F)
+
+    def box(y0, y1, x0, x1):  # rows y0..y1-1, cols x0..x1-1
+        return ii[y1, x1] - ii[y0, x1] - ii[y1, x0] + ii[y0, x0]
+
+    # sides 4 and 6 are read on the image itself; side 8 on the half-resolution level, whose
+    # (area-averaged) box sums are a quarter of the image's for windows on even pixel bounds
+    for half, unit in ((2, 1.0), (3, 1.0), (4, 0.25)):
+        # a window of side 2h centred at pixel-centre coordinate c covers pixels c-h+0.5 .. c+h-0.5
+        for cx, cy in ((59.5, 49.5), (71.5, 41.5), (80.0, 60.0)):
+            x0, y0 = int(round(cx - half + 0.5)), int(round(cy - half + 0.5))
+            if abs((cx - half + 0.5) - x0) > 1e-9 or abs((cy - half + 0.5) - y0) > 1e-9:
+                continue  # only windows aligned with pixels have an exact box sum
+            dx_ref = unit * (box(y0, y0 + 2 * half, x0 + half, x0 + 2 * half) - box(y0, y0 + 2 * half, x0, x0 + half))
+            dy_ref = unit * (box(y0 + half, y0 + 2 * half, x0, x0 + 2 * half) - box(y0, y0 + half, x0, x0 + 2 * half))
+            dx, dy = bank.sample(2.0 * half, np.array([[cx]]), np.array([[cy]]))
+            assert abs(dx[0, 0] - dx_ref) < 1e-3 * max(1.0, abs(dx_ref)), (half, cx, cy)
+            assert abs(dy[0, 0] - dy_ref) < 1e-3 * max(1.0, abs(dy_ref)), (half, cx, cy)
