@@ -1,7 +1,10 @@
 """Time one 1920x1200 pair through the registration, on one core, split by stage.
 
 Stages: features on both frames (detect + describe), matching, lift + RANSAC, ICP cloud
-preparation (organised subsample, voxel grid, covariances), ICP, information/verification.
+preparation (organised subsample, voxel grid, KD-trees, normals/covariances of the ICP subsets),
+ICP, information/verification. The split is process CPU time per stage (the registrar's
+``last_cpu_timings_s``); the total is printed as wall and CPU time, because the machine is shared
+and wall time counts the other processes too.
 Frames are ray-cast synthetic frames (:mod:`frontend.synthetic_frames`); each repetition uses
 fresh Frame objects so nothing is cached between repetitions. SURF (the project's) is the
 subject; SIFT and ORB run on the same pair as peers.
