@@ -6,7 +6,7 @@ STAMP := $(VENV)/.fpp-graph-installed
 .PHONY: setup demo test lint bench clean
 
 $(STAMP): pyproject.toml scripts/bootstrap.sh
-	bash scripts/bootstrap.sh dev,eval
+	bash scripts/bootstrap.sh dev,eval,dask
 	touch $@
 
 setup: $(STAMP)

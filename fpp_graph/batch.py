@@ -1,78 +1,152 @@
 """Many sequences at once: a ``concurrent.futures`` executor, or Dask distributed.
 
 The same :func:`run_batch` serves one machine (``ProcessPoolExecutor``) and a cluster
-(``dask.distributed.Client(address).get_executor()``, from the ``dask`` extra): only plain
-paths and dicts cross process boundaries.
+(``dask.distributed.Client(address).get_executor()``, from the ``dask`` extra). Only plain
+values cross process boundaries: each task receives path strings and flags, and returns a
+summary row of ``str``/``int``/``float``/``None`` (checked by :func:`plain_row`); frames, maps and
+graphs stay on the worker and go to disk. On a cluster, the sequence and ``--out`` paths must
+therefore be visible to every worker under the same names (a shared file system).
+
+A sequence is a folder any registered source reads, or a ``.g2o`` pose graph (back-end only, as
+in ``fpp-slam run``). A failing sequence yields a row with an ``error`` and never stops the
+others.
 """
 
 from __future__ import annotations
 
 import logging
+import math
 import multiprocessing
 import traceback
 from concurrent.futures import Executor, ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from fpp_graph.errors import FppError, InputDataError
 
 log = logging.getLogger(__name__)
 
+#: keys of a row taken from the run's metrics, when the run reports them
+ROW_METRICS = ("frames", "keyframes", "loops_accepted", "loops_rejected", "edges", "seconds")
+
+
+def results_name(sequence: str | Path) -> str:
+    """The sub-folder of ``--out`` a sequence's results go to: its folder name, or a graph's stem."""
+    path = Path(sequence)
+    return path.stem if path.suffix.lower() == ".g2o" else path.name
+
+
+def plain_row(row: dict[str, Any]) -> dict[str, Any]:
+    """``row`` with numpy scalars made Python numbers; anything else non-plain is an error.
+
+    Rows are what a worker sends back (pickled by ``concurrent.futures`` or Dask): they must not
+    carry arrays, results objects or anything that needs this package to unpickle.
+    """
+    out: dict[str, Any] = {}
+    for key, value in row.items():
+        if isinstance(value, np.generic):
+            value = value.item()
+        if value is not None and not isinstance(value, (str, int, float, bool)):
+            raise TypeError(f"batch row {key!r} is a {type(value).__name__}; rows carry only str/int/float/bool/None")
+        if isinstance(value, float) and not math.isfinite(value):
+            value = None
+        out[str(key)] = value
+    return out
+
 
 def run_one(sequence: str, out: str, config_path: str | None, resume: bool, overwrite: bool) -> dict[str, Any]:
-    """Run one sequence; returns its summary, or ``{"error": ...}`` instead of raising."""
+    """Run one sequence into ``out``; returns its summary row, or one with ``error``, never raises."""
     from fpp_graph.config import config_from_dict, load_config
-    from fpp_graph.pipeline import Pipeline
-    from fpp_graph.sources import open_source
 
+    row: dict[str, Any] = {"sequence": sequence, "results": out}
     try:
         config = load_config(config_path)
         # one sequence per worker: decode inside it serially, the batch supplies the parallelism
+        # (a Dask worker is a daemon process and could not start a pool of its own anyway)
         config = config_from_dict({**config.model_dump(mode="json"), "run": {**config.run.model_dump(mode="json"), "workers": 1}})
-        report = Pipeline(open_source(sequence, config), config, Path(out), resume=resume, overwrite=overwrite).run()
-        return {"sequence": sequence, "results": out, **{k: report.metrics[k] for k in ("frames", "keyframes", "loops_accepted", "loops_rejected", "seconds")}}
+        if Path(sequence).suffix.lower() == ".g2o":
+            from fpp_graph.pipeline import prepare_results_dir
+            from fpp_graph.run_graph import run_graph_file
+
+            if not Path(sequence).is_file():
+                raise InputDataError(f"pose graph {sequence} does not exist")
+            metrics = run_graph_file(Path(sequence), config, prepare_results_dir(Path(out), resume, overwrite))
+        else:
+            from fpp_graph.pipeline import Pipeline
+            from fpp_graph.sources import open_source
+
+            metrics = Pipeline(open_source(sequence, config), config, Path(out), resume=resume, overwrite=overwrite).run().metrics
+        row.update({k: metrics[k] for k in ROW_METRICS if k in metrics})
     except FppError as exc:
-        return {"sequence": sequence, "results": out, "error": str(exc)}
+        row["error"] = str(exc)
     except Exception as exc:  # a bug in one sequence must not lose the others' results
         log.error("sequence %s crashed:\n%s", sequence, traceback.format_exc())
-        return {"sequence": sequence, "results": out, "error": f"internal error {type(exc).__name__}: {exc}"}
+        row["error"] = f"internal error {type(exc).__name__}: {exc}"
+    return plain_row(row)
 
 
-def make_executor(workers: int, scheduler: str | None) -> tuple[Executor, Any]:
-    """A ProcessPoolExecutor, or a Dask executor when ``scheduler`` is an address or 'local'."""
+def make_executor(workers: int, scheduler: str | None, connect_timeout_s: float = 10.0) -> tuple[Executor, list[Any]]:
+    """A ProcessPoolExecutor, or a Dask executor when ``scheduler`` is an address or 'local'.
+
+    Returns the executor and the Dask objects (client, local cluster) to close after it.
+    """
     if scheduler is None:
         # spawn: forking a parent that holds library threads can deadlock the child
-        return ProcessPoolExecutor(max_workers=max(1, workers), mp_context=multiprocessing.get_context("spawn")), None
+        return ProcessPoolExecutor(max_workers=max(1, workers), mp_context=multiprocessing.get_context("spawn")), []
     try:
         from dask.distributed import Client, LocalCluster
     except ImportError:
         raise InputDataError("--scheduler needs Dask: pip install 'fpp-graph[dask]'") from None
     if scheduler == "local":
-        client = Client(LocalCluster(n_workers=max(1, workers), threads_per_worker=1, processes=True))
-    else:
+        # no dashboard: its fixed port would clash between batches run at once on one machine
+        cluster = LocalCluster(n_workers=max(1, workers), threads_per_worker=1, processes=True, dashboard_address=None)
         try:
-            client = Client(scheduler, timeout=10)
-        except OSError as exc:
-            raise InputDataError(f"cannot reach the Dask scheduler at {scheduler}: {exc}") from None
-    return client.get_executor(), client
+            client = Client(cluster)
+        except BaseException:
+            cluster.close()
+            raise
+        return client.get_executor(), [client, cluster]
+    try:
+        client = Client(scheduler, timeout=connect_timeout_s)
+    except (OSError, ValueError, TypeError) as exc:  # TimeoutError is an OSError
+        detail = " ".join(str(exc).split()) or type(exc).__name__
+        raise InputDataError(
+            f"cannot reach the Dask scheduler at {scheduler!r} within {connect_timeout_s:g} s ({detail}); "
+            "check the address (e.g. tcp://host:8786) and that `dask scheduler` runs there, or use --scheduler local"
+        ) from None
+    return client.get_executor(), [client]
+
+
+def _result_or_error(future: Any, sequence: str, out: str) -> dict[str, Any]:
+    """A task's row; a task that died with its worker process becomes an error row too."""
+    try:
+        return future.result()
+    except Exception as exc:  # BrokenProcessPool, Dask's KilledWorker, a lost connection...
+        log.error("sequence %s: its worker failed: %s", sequence, exc)
+        return {"sequence": sequence, "results": out, "error": f"worker failed ({type(exc).__name__}: {exc})"}
 
 
 def run_batch(
     sequences: list[Path], out: Path, config_path: Path | None, workers: int = 1,
     scheduler: str | None = None, resume: bool = False, overwrite: bool = False,
+    connect_timeout_s: float = 10.0,
 ) -> list[dict[str, Any]]:
     """Run every sequence into ``out/<name>``; returns one summary row per sequence, in order."""
-    names = [Path(s).name for s in sequences]
+    names = [results_name(s) for s in sequences]
     if len(set(names)) != len(names):
-        raise InputDataError("two sequences share a folder name; their results would collide in --out")
-    executor, client = make_executor(workers, scheduler)
+        duplicated = sorted({n for n in names if names.count(n) > 1})
+        raise InputDataError(f"two sequences share the name {duplicated[0]!r}; their results would collide in {out}: rename one")
+    config_arg = str(Path(config_path).resolve()) if config_path else None
+    # absolute paths: a worker's current directory is not the caller's
+    tasks = [(str(Path(seq).resolve()), str((Path(out) / name).resolve())) for seq, name in zip(sequences, names, strict=True)]
+    executor, dask_objects = make_executor(workers, scheduler, connect_timeout_s)
     try:
-        futures = [
-            executor.submit(run_one, str(seq), str(Path(out) / Path(seq).name), str(config_path) if config_path else None, resume, overwrite)
-            for seq in sequences
-        ]
-        return [f.result() for f in futures]
+        futures = [executor.submit(run_one, seq, seq_out, config_arg, bool(resume), bool(overwrite)) for seq, seq_out in tasks]
+        rows = [_result_or_error(f, seq, seq_out) for f, (seq, seq_out) in zip(futures, tasks, strict=True)]
+        return [{**row, "sequence": str(seq)} for row, seq in zip(rows, sequences, strict=True)]  # as the user named it
     finally:
         executor.shutdown(wait=True)
-        if client is not None:
-            client.close()
+        for obj in dask_objects:
+            obj.close()

@@ -1,10 +1,10 @@
 #!/usr/bin/env bash
 # Set up a fresh Debian/Ubuntu machine for fpp-graph: the system library Open3D needs, a .venv
 # with Python >= 3.11, and the package installed editable with the extras given as arguments.
-# Usage: scripts/bootstrap.sh [EXTRAS]   e.g. scripts/bootstrap.sh dev,eval
+# Usage: scripts/bootstrap.sh [EXTRAS]   e.g. scripts/bootstrap.sh dev,eval,dask (the default: what `make test` needs)
 set -euo pipefail
 cd "$(dirname "$0")/.."
-extras="${1:-dev,eval}"
+extras="${1:-dev,eval,dask}"
 
 # Open3D's wheels link libusb-1.0 dynamically; without it `import open3d` fails.
 if ! ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; then
