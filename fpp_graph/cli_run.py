@@ -144,7 +144,7 @@ def _print_table(metrics: dict) -> None:
 
 @app.command()
 def batch(
-    sequences: Annotated[list[Path], typer.Argument(help="Sequence folders.")],
+    sequences: Annotated[list[Path], typer.Argument(help="Sequence folders or .g2o pose graphs (as for run).")],
     out: Annotated[Path, typer.Option("--out", "-o", help="Parent folder of the results.")] = Path("results/batch"),
     config: ConfigOption = None,
     workers: Annotated[int, typer.Option("--workers", help="Sequences run at once (processes).")] = 1,

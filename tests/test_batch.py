@@ -5,6 +5,7 @@ without stopping the others; plain values only cross process boundaries."""
 from __future__ import annotations
 
 import json
+import multiprocessing
 import pickle
 import socket
 import sys
@@ -117,6 +118,7 @@ def test_local_cluster_via_cli_matches_process_pool(sequences, process_pool_run,
     code = cli_main(["batch", *map(str, paths), "--out", str(out), "--scheduler", "local", "--workers", "1"])
     captured = capsys.readouterr()
     assert code == 2  # one sequence failed
+    assert multiprocessing.active_children() == []  # the local cluster's worker processes are gone
     rows = [json.loads(line) for line in captured.out.splitlines() if line.startswith("{")]
     check_rows(rows, paths, sims, out)
     assert without_seconds(rows) == without_seconds(pool_rows)
