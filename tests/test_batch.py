@@ -39,6 +39,14 @@ def sequences(tmp_path_factory):
     return paths, sims
 
 
+@pytest.fixture(scope="module")
+def config_file(tmp_path_factory):
+    """Every batch here runs with this file (it must reach the workers): a coarse map, no mesh."""
+    path = tmp_path_factory.mktemp("batch_config") / "coarse.yaml"
+    path.write_text("fusion:\n  voxel_size_m: 0.004\n  tsdf_voxel_m: 0.008\n  tsdf_truncation_m: 0.032\n  mesh: false\n")
+    return path
+
+
 def folder_contents(folder: Path) -> dict[str, object]:
     """Every file of a results folder; metrics.json without its wall-clock ``seconds``."""
     contents: dict[str, object] = {}
@@ -78,10 +86,10 @@ def check_rows(rows: list[dict], paths: list[Path], sims: dict, out: Path) -> No
 
 
 @pytest.fixture(scope="module")
-def process_pool_run(sequences, tmp_path_factory):
+def process_pool_run(sequences, config_file, tmp_path_factory):
     paths, _ = sequences
     out = tmp_path_factory.mktemp("batch_pool") / "out"
-    return out, run_batch(paths, out, None, workers=2)
+    return out, run_batch(paths, out, config_file, workers=2)
 
 
 def test_process_pool_batch(sequences, process_pool_run):
@@ -92,13 +100,15 @@ def test_process_pool_batch(sequences, process_pool_run):
     assert {"trajectory.tum", "graph.g2o", "metrics.json", "config.yaml"} <= {p.name for p in (out / "corridor_a").iterdir()}
 
 
-def test_batch_refuses_existing_results_per_sequence(sequences, process_pool_run, tmp_path):
+def test_batch_refuses_existing_results_per_sequence(sequences, config_file, process_pool_run):
     """Rerunning into the same --out: every sequence refuses on its own row; --overwrite redoes them."""
     paths, _ = sequences
     out, first = process_pool_run
-    again = run_batch(paths[:1], out, None)
+    first_contents = folder_contents(out / "corridor_a")
+    again = run_batch(paths[:1], out, config_file)
     assert "already holds results" in again[0]["error"]
-    redone = run_batch(paths[:1], out, None, overwrite=True)
+    redone = run_batch(paths[:1], out, config_file, overwrite=True)
+    assert folder_contents(out / "corridor_a") == first_contents
     assert without_seconds(redone) == without_seconds(first[:1])
 
 
@@ -110,12 +120,12 @@ needs_dask = pytest.mark.skipif(dask_distributed is None, reason="the dask extra
 
 
 @needs_dask
-def test_local_cluster_via_cli_matches_process_pool(sequences, process_pool_run, tmp_path, capsys):
+def test_local_cluster_via_cli_matches_process_pool(sequences, config_file, process_pool_run, tmp_path, capsys):
     """``fpp-slam batch ... --scheduler local``: rows on stdout, one-line error, same folders."""
     paths, sims = sequences
     pool_out, pool_rows = process_pool_run
     out = tmp_path / "out"
-    code = cli_main(["batch", *map(str, paths), "--out", str(out), "--scheduler", "local", "--workers", "1"])
+    code = cli_main(["batch", *map(str, paths), "--out", str(out), "--scheduler", "local", "--workers", "1", "--config", str(config_file)])
     captured = capsys.readouterr()
     assert code == 2  # one sequence failed
     assert multiprocessing.active_children() == []  # the local cluster's worker processes are gone
@@ -128,16 +138,33 @@ def test_local_cluster_via_cli_matches_process_pool(sequences, process_pool_run,
         assert folder_contents(out / name) == folder_contents(pool_out / name)
 
 
+@pytest.fixture(scope="module")
+def fpp_sequence(tmp_path_factory):
+    """Two simulated turntable views, 15 degrees apart, at the 640x400 preview resolution."""
+    simulator = pytest.importorskip("frontend.simulator")
+    root = tmp_path_factory.mktemp("fpp_in")
+    scene = {"scene": "turntable", "turntable": {"turns": 1, "views_per_turn": 24}}
+    return simulator.simulate_sequence(scene, root / "turntable", preview=True, max_frames=2)
+
+
 @needs_dask
-def test_scheduler_address_matches_process_pool(sequences, process_pool_run, tmp_path):
-    """A scheduler the test starts itself (one worker process: every task and row is pickled)."""
+def test_scheduler_address_matches_process_pool(sequences, config_file, process_pool_run, fpp_sequence, tmp_path):
+    """A scheduler the test starts itself (one worker process: every task and row is pickled).
+    A simulated FPP sequence goes through the whole pipeline inside the (daemonic) Dask worker."""
     paths, sims = sequences
     pool_out, pool_rows = process_pool_run
     out = tmp_path / "out"
     with dask_distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
-        rows = run_batch(paths, out, None, scheduler=cluster.scheduler_address)
+        rows = run_batch([*paths, fpp_sequence], out, config_file, scheduler=cluster.scheduler_address)
         with dask_distributed.Client(cluster.scheduler_address) as client:  # the work ran on that worker
-            assert sum(client.run(lambda dask_worker: dask_worker.state.transition_counter).values()) >= 3 * 3
+            assert sum(client.run(lambda dask_worker: dask_worker.state.transition_counter).values()) >= 4 * 3
+    rows, fpp_row = rows[:3], rows[3]
+    assert "error" not in fpp_row and fpp_row["frames"] == 2 and fpp_row["keyframes"] >= 1
+    assert json.loads(json.dumps(fpp_row)) == fpp_row
+    fpp_out = out / "turntable"
+    assert {"trajectory.tum", "graph.g2o", "map.ply", "metrics.json"} <= {p.name for p in fpp_out.iterdir()}
+    assert "mesh.ply" not in {p.name for p in fpp_out.iterdir()}  # the config file reached the worker
+    assert len(read_tum(fpp_out / "trajectory.tum")) == 2
     check_rows(rows, paths, sims, out)
     assert without_seconds(rows) == without_seconds(pool_rows)
     for name in ("corridor_a", "corridor_b", "broken"):
