@@ -51,9 +51,9 @@ from fpp_graph.config import RegistrationConfig, read_yaml_file  # noqa: E402
 from fpp_graph.errors import ConfigError  # noqa: E402
 from fpp_graph.geometry import invert, pose_error, se3_log  # noqa: E402
 from fpp_graph.types import ConstraintKind, Frame  # noqa: E402
-from frontend.fpp_sensor import FppSensor  # noqa: E402
-from frontend.localization import localize_dlt, localize_dense  # noqa: E402
 from frontend.features import match_descriptors  # noqa: E402
+from frontend.fpp_sensor import FppSensor  # noqa: E402
+from frontend.localization import localize_dense, localize_dlt  # noqa: E402
 from frontend.registration import FppPairRegistrar, lift_keypoints  # noqa: E402
 from frontend.simulator import FppSimulator, load_simulation, look_at_pose  # noqa: E402
 
