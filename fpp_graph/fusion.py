@@ -128,6 +128,13 @@ class VoxelMapFuser:
         Mesh only voxels observed with at least this TSDF weight (frames).
     tsdf_block_count : int
         Initial capacity of the TSDF block hash map (it grows on demand).
+    surface_smoothing : bool
+        After averaging, move each voxel's point onto the weighted plane fitted to its 3x3x3
+        voxel neighbourhood (:func:`project_to_local_planes`). The voxel grid sorts noisy points
+        by the sign of their error where the noise is not far below the voxel size (a point
+        too far along its ray lands in the voxel behind the surface), so plain voxel means keep
+        about the per-point noise; the plane fit averages across those voxels. Voxels whose
+        neighbourhood is not planar (edges, thin parts) or too sparse keep their mean.
     grazing_weight : bool
         Weight each point of a frame with an organised ``xyz_map`` by ``cos(angle)`` between its
         surface normal and the viewing ray (:func:`grazing_weights`), so head-on views of a surface
@@ -145,6 +152,7 @@ class VoxelMapFuser:
         tsdf_min_weight: float = 1.0,
         tsdf_block_count: int = 1000,
         grazing_weight: bool = True,
+        surface_smoothing: bool = True,
     ) -> None:
         for name, value in (("voxel_size_m", voxel_size_m), ("tsdf_voxel_m", tsdf_voxel_m), ("tsdf_truncation_m", tsdf_truncation_m)):
             if not (np.isfinite(value) and value > 0):
@@ -157,6 +165,7 @@ class VoxelMapFuser:
         self.tsdf_min_weight = float(tsdf_min_weight)
         self.tsdf_block_count = int(tsdf_block_count)
         self.grazing_weight = bool(grazing_weight)
+        self.surface_smoothing = bool(surface_smoothing)
         self.reset()
 
     def reset(self) -> None:
@@ -274,6 +283,8 @@ class VoxelMapFuser:
         self._merge()
         w = self._sums[:, 6]
         points = self._sums[:, :3] / w[:, None]
+        if self.surface_smoothing and len(points):
+            points = project_to_local_planes(self._keys, points, w, self.voxel_size_m)
         colors = np.clip(self._sums[:, 3:6] / w[:, None], 0.0, 1.0)
         vertices = triangles = vertex_colors = None
         if self.mesh:
@@ -309,6 +320,95 @@ class VoxelMapFuser:
         raw fringe images are not decoded again.
         """
         return self.fuse(frames, new_poses_world_sensor)
+
+
+def _neighbour_indices(keys: NDArray[np.int64]):
+    """Yield ``(i, j)`` index arrays of the occupied 3x3x3 voxel neighbours (sorted ``keys``)."""
+    n = len(keys)
+    for dx in (-1, 0, 1):
+        for dy in (-1, 0, 1):
+            for dz in (-1, 0, 1):
+                # the packed key of a neighbour is the key plus the packed offset (the fields
+                # never overflow for voxels inside the map's range)
+                target = keys + ((dx << (2 * _KEY_BITS)) + (dy << _KEY_BITS) + dz)
+                pos = np.minimum(np.searchsorted(keys, target), n - 1)
+                i = np.flatnonzero(keys[pos] == target)
+                yield i, pos[i]
+
+
+def project_to_local_planes(
+    keys: NDArray[np.int64],
+    points: NDArray[np.float64],
+    weights: NDArray[np.float64],
+    voxel_size_m: float,
+    min_neighbours: int = 8,
+    max_flatness: float = 0.05,
+) -> NDArray[np.float64]:
+    """Move each voxel point onto the local surface fitted to its 3x3x3 voxel neighbourhood.
+
+    ``keys`` are the sorted voxel keys of :func:`voxel_keys` (one per point). A weighted plane
+    (through the neighbourhood's centroid, normal along the smallest eigenvector of the weighted
+    covariance) gives a local frame; in it a weighted quadratic height field
+    ``h = a + b u + c v + d u^2 + e u v + f v^2`` is fitted around the point, so curved surfaces
+    are not flattened, and the point moves along the normal to ``h(0, 0) = a``. Points whose
+    neighbourhood has fewer than ``min_neighbours`` occupied voxels or is not a surface
+    (smallest eigenvalue above ``max_flatness`` times the middle one: edges, thin parts, noise)
+    keep their voxel mean.
+    """
+    n = len(keys)
+    out = points.copy()
+    if n == 0:
+        return out
+    s_w = np.zeros(n)
+    s_p = np.zeros((n, 3))
+    s_pp = np.zeros((n, 3, 3))
+    count = np.zeros(n, dtype=np.int64)
+    for i, j in _neighbour_indices(keys):
+        wj, pj = weights[j], points[j]
+        s_w[i] += wj
+        s_p[i] += wj[:, None] * pj
+        s_pp[i] += wj[:, None, None] * (pj[:, :, None] * pj[:, None, :])
+        count[i] += 1
+    ok = count >= min_neighbours
+    if not np.any(ok):
+        return out
+    mean = s_p[ok] / s_w[ok, None]
+    cov = s_pp[ok] / s_w[ok, None, None] - mean[:, :, None] * mean[:, None, :]
+    eigval, eigvec = np.linalg.eigh(cov)
+    surface = eigval[:, 0] <= max_flatness * np.maximum(eigval[:, 1], 1e-30)
+    idx = np.flatnonzero(ok)[surface]
+    if len(idx) == 0:
+        return out
+    frame = np.zeros((n, 3, 3))  # rows: tangent u, tangent v, normal
+    frame[idx, 0] = eigvec[surface, :, 2]
+    frame[idx, 1] = eigvec[surface, :, 1]
+    frame[idx, 2] = eigvec[surface, :, 0]
+    use = np.zeros(n, dtype=bool)
+    use[idx] = True
+    # weighted least squares of the quadratic height field around each point, in its frame
+    ata = np.zeros((n, 6, 6))
+    atb = np.zeros((n, 6))
+    for i, j in _neighbour_indices(keys):
+        keep = use[i]
+        i, j = i[keep], j[keep]
+        local = np.einsum("nab,nb->na", frame[i], points[j] - points[i]) / voxel_size_m  # unitless, O(1)
+        u, v, h = local[:, 0], local[:, 1], local[:, 2]
+        a = np.stack([np.ones_like(u), u, v, u * u, u * v, v * v], axis=1)
+        wa = weights[j][:, None] * a
+        ata[i] += wa[:, :, None] * a[:, None, :]
+        atb[i] += wa * h[:, None]
+    ata, atb = ata[idx], atb[idx]
+    # a tiny ridge keeps sparse neighbourhoods solvable (quadratic terms only, scaled to the data)
+    scale = np.einsum("nii->n", ata)[:, None] * 1e-9
+    ata[:, 3:, 3:] += scale[:, :, None] * np.eye(3)
+    try:
+        coef = np.linalg.solve(ata, atb[:, :, None])[:, :, 0]
+    except np.linalg.LinAlgError:
+        return out
+    offset = coef[:, 0] * voxel_size_m
+    good = np.isfinite(offset)
+    out[idx[good]] = points[idx[good]] + offset[good, None] * frame[idx[good], 2]
+    return out
 
 
 def grazing_weights(xyz_map: NDArray[np.float64], floor: float = 0.05) -> NDArray[np.float64]:
