@@ -361,7 +361,13 @@ class _HaarBank:
 
     def read(self, k: int, half: int, mx: NDArray[np.float32], my: NDArray[np.float32]) -> NDArray[np.float32]:
         """``(rows, cols, 2)`` responses at level read positions ``mx, my`` (``(rows, cols)`` float32)."""
-        return cv2.remap(self.responses(k, half), mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        resp = self.responses(k, half)
+        rows = 16384  # cv2.remap needs fewer than 32767 rows/columns per call
+        parts = [
+            cv2.remap(resp, mx[i : i + rows], my[i : i + rows], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+            for i in range(0, mx.shape[0], rows)
+        ]
+        return parts[0] if len(parts) == 1 else np.concatenate(parts)
 
 
 def _scale_bands(scale: NDArray) -> NDArray[np.int64]:
