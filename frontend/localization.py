@@ -628,8 +628,9 @@ def track_affine_photometric(
         Iy = _bilinear(gy, xs, ys) * g[:, None].astype(np.float32)
         res = (g[:, None] * Iq + h[:, None] - T).astype(np.float32)
         J = np.stack([Ix, Iy, Ix * ox, Ix * oy, Iy * ox, Iy * oy, Iq, np.ones_like(Iq)], axis=2)  # (n, m, 8)
-        JtJ = np.einsum("nmi,nmj->nij", J, J, dtype=np.float64)
-        Jtr = np.einsum("nmi,nm->ni", J, res, dtype=np.float64)
+        Jt = J.transpose(0, 2, 1)
+        JtJ = (Jt @ J).astype(np.float64)  # batched BLAS; float32 sums over <= a few thousand samples
+        Jtr = (Jt @ res[..., None])[..., 0].astype(np.float64)
         JtJ += 1e-9 * np.eye(8)[None] * np.trace(JtJ, axis1=1, axis2=2)[:, None, None]
         try:
             d = -np.linalg.solve(JtJ, Jtr[..., None])[..., 0]
@@ -656,3 +657,52 @@ def track_affine_photometric(
     inside_q = (xs.min(axis=1) >= 0) & (ys.min(axis=1) >= 0) & (xs.max(axis=1) < W - 1) & (ys.max(axis=1) < H - 1)
     ok = good & inside_q & (step < 0.01) & (ncc >= min_ncc)
     return c, ok, ncc
+
+
+def shading_corrected_texture(texture: NDArray, xyz_map: NDArray, projector_centre_m: NDArray, normal_step_px: int = 6) -> NDArray[np.uint8]:
+    """An albedo-like texture: the FPP texture divided by the projector's irradiance at each pixel.
+
+    The texture of an FPP frame is ``albedo * (ambient + E)`` with the projector irradiance
+    ``E ~ cos(theta) / d^2`` (``theta`` between the surface normal and the direction to the
+    projector, ``d`` the distance to it). The projector moves with the camera, so ``E`` of a
+    surface point changes between views and shifts tracked positions; the frame's own 3D points
+    give ``E`` (normals from the organised map), and the quotient keeps mostly the albedo.
+
+    Parameters
+    ----------
+    texture : (H, W) uint8
+    xyz_map : (H, W, 3) float64
+        The same frame's points, camera frame, NaN where invalid.
+    projector_centre_m : (3,)
+        The projector's centre in the camera frame (``-R^T t`` of ``T_projector_camera``).
+
+    Returns
+    -------
+    (H, W) uint8
+        Scaled so the median valid pixel is 100; 0 where the map is invalid.
+    """
+    xyz = np.asarray(xyz_map, dtype=np.float64)
+    tex = np.asarray(texture)
+    if xyz.shape[:2] != tex.shape or xyz.ndim != 3:
+        raise InputDataError(f"shading correction needs a texture and an xyz map of one frame, got {tex.shape} and {xyz.shape}")
+    k = int(normal_step_px)
+    du = np.full_like(xyz, np.nan)
+    dv = np.full_like(xyz, np.nan)
+    du[:, k:-k] = xyz[:, 2 * k:] - xyz[:, : -2 * k]
+    dv[k:-k] = xyz[2 * k:] - xyz[: -2 * k]
+    n = np.cross(du, dv)
+    n /= np.linalg.norm(n, axis=2, keepdims=True)
+    to_p = np.asarray(projector_centre_m, dtype=np.float64).reshape(1, 1, 3) - xyz
+    d = np.linalg.norm(to_p, axis=2)
+    cos = np.abs(np.sum(n * to_p, axis=2)) / d
+    E = cos / d**2
+    ok = np.isfinite(E) & (cos > 0.1)
+    # E is smooth on a surface; smooth away the normals' noise (normalised convolution)
+    sigma = 2.0 * k
+    num = cv2.GaussianBlur(np.where(ok, E, 0.0).astype(np.float32), (0, 0), sigma)
+    den = cv2.GaussianBlur(ok.astype(np.float32), (0, 0), sigma)
+    E = np.where(ok, num / np.maximum(den, 1e-6), np.nan)
+    out = np.zeros(tex.shape, np.float32)
+    out[ok] = tex[ok].astype(np.float32) / E[ok].astype(np.float32)
+    med = float(np.median(out[ok])) if ok.any() else 1.0
+    return cv2.convertScaleAbs(out, alpha=100.0 / max(med, 1e-12))

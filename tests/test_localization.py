@@ -16,6 +16,7 @@ from frontend.localization import (
     localize_dense,
     localize_dense_map,
     localize_dlt,
+    shading_corrected_texture,
     track_affine_photometric,
 )
 from frontend.registration import FppPairRegistrar, lift_keypoints
@@ -143,10 +144,32 @@ def test_dense_localisation_on_synthetic_frames():
     T_init = invert(Tb @ se3_exp(np.array([0.001, -0.001, 0.0, 0.002, 0.001, -0.001])))  # 0.06 deg, 2.4 mm off
     refs = [DenseReference(frames[i].xyz_map, frames[i].texture, T) for i, T in ((0, Ta), (2, Tc))]
     for tracker in ("klt", "affine"):
-        res = localize_dense_map(refs, frames[1].texture, T_init, Km, tracker=tracker)
+        res = localize_dense_map(refs, frames[1].texture, T_init, Km, tracker=tracker, max_points=400)
         assert res.success and res.num_inliers >= 200, tracker
-        assert np.linalg.norm(res.camera_centre_world_m - Tb[:3, 3]) < 2e-4, tracker
+        assert np.linalg.norm(res.camera_centre_world_m - Tb[:3, 3]) < 5e-4, tracker  # 640x400, 400 corners per frame
     # one reference whose frame is the world
-    res1 = localize_dense(frames[0].xyz_map, frames[0].texture, frames[1].texture, invert(invert(Ta) @ Tb) @ invert(se3_exp(np.full(6, 5e-4))), Km)
+    res1 = localize_dense(frames[0].xyz_map, frames[0].texture, frames[1].texture, invert(invert(Ta) @ Tb) @ invert(se3_exp(np.full(6, 5e-4))), Km, max_points=400)
     assert res1.success
     assert np.linalg.norm(res1.camera_centre_world_m - (invert(Ta) @ Tb)[:3, 3]) < 5e-4
+
+
+def test_shading_correction_removes_projector_irradiance():
+    # a tilted plane at 0.5 m lit by a projector 0.13 m to the side: texture = albedo * E
+    h, w = 120, 160
+    v, u = np.mgrid[0:h, 0:w].astype(float)
+    rays = np.stack([(u - 79.5) / 200.0, (v - 59.5) / 200.0, np.ones_like(u)], axis=2)
+    n = np.array([0.3, 0.0, -1.0]) / np.linalg.norm([0.3, 0.0, -1.0])
+    depth = -0.5 / (rays @ n)
+    xyz = rays * depth[..., None]
+    proj = np.array([0.13, 0.0, 0.0])
+    to_p = proj - xyz
+    d = np.linalg.norm(to_p, axis=2)
+    E = np.abs(to_p @ n) / d**3
+    albedo = 0.5 + 0.3 * np.sin(u / 7.0) * np.cos(v / 9.0)
+    tex = np.clip(albedo * E / E.max() * 200, 0, 255).astype(np.uint8)
+    out = shading_corrected_texture(tex, xyz, proj).astype(float)
+    inner = (slice(20, -20), slice(20, -20))
+    ratio = out[inner] / albedo[inner]
+    assert np.std(ratio) / np.mean(ratio) < 0.02  # E varies by ~25 % over the image; the quotient by < 2 %
+    with pytest.raises(InputDataError, match="one frame"):
+        shading_corrected_texture(tex[:10], xyz, proj)
