@@ -8,7 +8,9 @@
    where the four neighbouring pixels are valid and on one surface, else skipped);
 3. :func:`ransac_rigid`: ``T_target_source`` from 3-point samples by the closed-form SVD solution
    (:func:`kabsch`, the paper's eq. 10) inside RANSAC, refitted on all inliers;
-4. :func:`refine_icp`: GICP or point-to-plane ICP (small_gicp) on voxel-downsampled clouds;
+4. :func:`refine_icp`: GICP or point-to-plane ICP (small_gicp) on evenly strided subsets of the
+   voxel-downsampled clouds (:class:`IcpCloud`); on geometrically weak pairs whose ICP pose
+   disagrees with the keypoints, :func:`joint_keypoint_step` to the joint optimum;
 5. :func:`information_from_icp`: 6x6 information in ``[rot, trans]`` order from the point-to-plane
    correspondences, scaled by the NEES-calibrated ``information_scale``;
 6. verification with explicit reasons (too few matches/inliers, ICP leaving the RANSAC basin,
@@ -912,6 +914,7 @@ __all__ = [
     "FppPairRegistrar",
     "IcpCloud",
     "IcpResult",
+    "IcpRole",
     "RansacResult",
     "check_degeneracy",
     "information_from_icp",
