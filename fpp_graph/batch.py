@@ -18,7 +18,9 @@ import logging
 import math
 import multiprocessing
 import traceback
+from collections.abc import Iterator
 from concurrent.futures import Executor, ProcessPoolExecutor
+from contextlib import ExitStack, contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -100,8 +102,8 @@ def make_executor(workers: int, scheduler: str | None, connect_timeout_s: float 
     except ImportError:
         raise InputDataError("--scheduler needs Dask: pip install 'fpp-graph[dask]'") from None
     if scheduler == "local":
-        # no dashboard: its fixed port would clash between batches run at once on one machine
-        cluster = LocalCluster(n_workers=max(1, workers), threads_per_worker=1, processes=True, dashboard_address=None)
+        # the scheduler's HTTP server on a free port: a fixed one clashes between batches run at once
+        cluster = LocalCluster(n_workers=max(1, workers), threads_per_worker=1, processes=True, dashboard_address=":0")
         try:
             client = Client(cluster)
         except BaseException:
@@ -117,6 +119,22 @@ def make_executor(workers: int, scheduler: str | None, connect_timeout_s: float 
             "check the address (e.g. tcp://host:8786) and that `dask scheduler` runs there, or use --scheduler local"
         ) from None
     return client.get_executor(), [client]
+
+
+@contextmanager
+def _dask_logs_at_caller_level() -> Iterator[None]:
+    """Dask sets its ``distributed`` logger to INFO; hold it to the caller's level meanwhile."""
+    try:
+        import distributed  # noqa: F401  (its import configures that logger: first, then override)
+    except ImportError:
+        pass  # make_executor says how to install it
+    dask_log = logging.getLogger("distributed")
+    before = dask_log.level
+    dask_log.setLevel(max(before, logging.getLogger().getEffectiveLevel()))
+    try:
+        yield
+    finally:
+        dask_log.setLevel(before)
 
 
 def _result_or_error(future: Any, sequence: str, out: str) -> dict[str, Any]:
@@ -141,12 +159,13 @@ def run_batch(
     config_arg = str(Path(config_path).resolve()) if config_path else None
     # absolute paths: a worker's current directory is not the caller's
     tasks = [(str(Path(seq).resolve()), str((Path(out) / name).resolve())) for seq, name in zip(sequences, names, strict=True)]
-    executor, dask_objects = make_executor(workers, scheduler, connect_timeout_s)
-    try:
+    with ExitStack() as stack:
+        if scheduler is not None:
+            stack.enter_context(_dask_logs_at_caller_level())
+        executor, dask_objects = make_executor(workers, scheduler, connect_timeout_s)
+        for obj in reversed(dask_objects):  # closed last-in first-out: the client, then the local cluster
+            stack.callback(obj.close)
+        stack.callback(executor.shutdown, wait=True)
         futures = [executor.submit(run_one, seq, seq_out, config_arg, bool(resume), bool(overwrite)) for seq, seq_out in tasks]
         rows = [_result_or_error(f, seq, seq_out) for f, (seq, seq_out) in zip(futures, tasks, strict=True)]
-        return [{**row, "sequence": str(seq)} for row, seq in zip(rows, sequences, strict=True)]  # as the user named it
-    finally:
-        executor.shutdown(wait=True)
-        for obj in dask_objects:
-            obj.close()
+    return [{**row, "sequence": str(seq)} for row, seq in zip(rows, sequences, strict=True)]  # as the user named it

@@ -132,6 +132,7 @@ def test_local_cluster_via_cli_matches_process_pool(sequences, config_file, proc
     rows = [json.loads(line) for line in captured.out.splitlines() if line.startswith("{")]
     check_rows(rows, paths, sims, out)
     assert without_seconds(rows) == without_seconds(pool_rows)
+    assert "Scheduler at" not in captured.err and "Nanny" not in captured.err  # Dask's INFO chatter stays quiet
     error_lines = [line for line in captured.err.splitlines() if "sequences failed" in line]
     assert len(error_lines) == 1 and "1 of 3 sequences failed" in error_lines[0]
     for name in ("corridor_a", "corridor_b", "broken"):
