@@ -9,12 +9,13 @@ import multiprocessing
 import pickle
 import socket
 import sys
+from concurrent.futures import Future
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from fpp_graph.batch import plain_row, results_name, run_batch, run_one
+from fpp_graph.batch import _result_or_error, plain_row, results_name, run_batch, run_one
 from fpp_graph.cli import main as cli_main
 from fpp_graph.errors import InputDataError
 from fpp_graph.g2o import write_g2o
@@ -215,3 +216,11 @@ def test_batch_input_errors(sequences, tmp_path, monkeypatch):
     monkeypatch.setitem(sys.modules, "dask.distributed", None)  # as if the dask extra were absent
     with pytest.raises(InputDataError, match=r"pip install 'fpp-graph\[dask\]'"):
         run_batch(paths[:1], tmp_path / "out2", None, scheduler="local")
+
+
+def test_dead_worker_becomes_an_error_row():
+    """A task whose worker died (BrokenProcessPool, Dask's KilledWorker) is a row, not a crash."""
+    future: Future = Future()
+    future.set_exception(RuntimeError("worker process exited"))
+    row = _result_or_error(future, "seq", "out/seq")
+    assert row == {"sequence": "seq", "results": "out/seq", "error": "worker failed (RuntimeError: worker process exited)"}
