@@ -217,7 +217,7 @@ def report_accuracy(rows: list[dict]) -> None:
                       f"err mm p50/p90/max {pct([r[key + '_err_mm'] for r in s])}  vs registration mm {pct([r[key + '_vs_reg_mm'] for r in s if key + '_vs_reg_mm' in r])}")
 
 
-def run_map_localisation(frames: SimulatedFrames, n_triples: int) -> list[dict]:
+def run_map_localisation(frames: SimulatedFrames, n_triples: int, max_points: int = 4000, min_distance_px: int | None = None) -> list[dict]:
     """Line 4 with a map: frame k located against frames k-1 and k+1 (true poses) of a pass.
 
     Initial pose: DLT on descriptor matches against frame k-1; then :func:`localize_dense_map`
@@ -251,7 +251,7 @@ def run_map_localisation(frames: SimulatedFrames, n_triples: int) -> list[dict]:
         for name, tex in (("raw", {j: F[j].texture for j in F}), ("shading", {j: shading_corrected_texture(F[j].texture, F[j].xyz_map, proj_centre) for j in F})):
             t0 = time.process_time()
             refs = [DenseReference(F[j].xyz_map, tex[j], P[j]) for j in (k - 1, k + 1)]
-            r = localize_dense_map(refs, tex[k], loc.T_camera_world, frames.K, frames.dist, tracker="klt")
+            r = localize_dense_map(refs, tex[k], loc.T_camera_world, frames.K, frames.dist, tracker="klt", max_points=max_points, min_distance_px=min_distance_px)
             row[f"{name}_cpu_s"] = time.process_time() - t0
             if r.success:
                 row[f"{name}_inliers"] = r.num_inliers
@@ -363,6 +363,8 @@ def main() -> None:
     ap.add_argument("--rejection-frames", type=int, default=16, help="corridor frames for the no-overlap tries")
     ap.add_argument("--lookalike-offsets", type=int, default=10, help="look-alike pose pairs per wall")
     ap.add_argument("--map-triples", type=int, default=12, help="corridor frames located against their two neighbours")
+    ap.add_argument("--dense-max-points", type=int, default=4000, help="corners per map frame for the dense localisation")
+    ap.add_argument("--dense-min-distance-px", type=int, default=None, help="their spacing (default: image width / 160)")
     ap.add_argument("--skip-rejection", action="store_true")
     ap.add_argument("--no-dlt", action="store_true")
     ap.add_argument("--seed", type=int, default=0)
@@ -398,7 +400,7 @@ def main() -> None:
     result = {"resolution": res_name, "rows": rows}
     if args.map_triples > 0 and not args.no_dlt:
         frames = SimulatedFrames(ROOT / "datasets" / "corridor.yaml", args.preview)
-        result["map_localisation"] = run_map_localisation(frames, args.map_triples)
+        result["map_localisation"] = run_map_localisation(frames, args.map_triples, args.dense_max_points, args.dense_min_distance_px)
     if not args.skip_rejection:
         frames = SimulatedFrames(ROOT / "datasets" / "corridor.yaml", args.preview)
         result["rejection"] = run_rejection(frames, args.rejection_frames, args.lookalike_offsets, args.seed)
