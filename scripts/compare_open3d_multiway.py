@@ -10,7 +10,9 @@ For each scene the sequence is simulated (640x400 preview unless ``--full``), th
   decoded frames* (our run's frame cache, so the peer pays no decoding), each cloud voxel-
   downsampled to our ICP voxel with normals (radius 2 voxels); pairwise multiscale point-to-plane
   ICP (coarse 15 voxels then fine 1.5 voxels, the tutorial's settings), information from
-  ``get_information_matrix_from_point_clouds``; odometry edges between consecutive frames
+  ``get_information_matrix_from_point_clouds``; each pair starts both from a guess and from the
+  global-registration tutorial's FPFH + RANSAC result (features on a 5-voxel cloud), keeping the
+  ICP result of higher fitness; odometry edges between consecutive frames
   (initialised by constant velocity), loop edges (``uncertain=True``) on exactly the candidate
   pairs our loop detector proposed (``loops.json``), initialised from the odometry chain;
   ``global_optimization`` (Levenberg-Marquardt, ``max_correspondence_distance`` 1.5 voxels,
@@ -90,12 +92,37 @@ def open3d_multiway(ours_dir: Path, seq: Path, out: Path) -> dict:
         pcd.orient_normals_towards_camera_location(np.zeros(3))
         clouds.append(pcd)
     coarse, fine = 15 * voxel, 1.5 * voxel
+    # global registration (the tutorial's FPFH + RANSAC, features on a 5x coarser cloud) gives
+    # every pair a second starting point: the peer does not depend on our odometry being right
+    feature_voxel = 5 * voxel
+    feature_clouds, features = [], []
+    for pcd in clouds:
+        down = pcd.voxel_down_sample(feature_voxel)
+        down.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2 * feature_voxel, max_nn=30))
+        feature_clouds.append(down)
+        features.append(reg.compute_fpfh_feature(down, o3d.geometry.KDTreeSearchParamHybrid(radius=5 * feature_voxel, max_nn=100)))
 
-    def pairwise(source, target, init):
-        icp_coarse = reg.registration_icp(source, target, coarse, init, reg.TransformationEstimationPointToPlane())
-        icp_fine = reg.registration_icp(source, target, fine, icp_coarse.transformation, reg.TransformationEstimationPointToPlane())
-        info = reg.get_information_matrix_from_point_clouds(source, target, fine, icp_fine.transformation)
-        return icp_fine.transformation, info
+    def global_guess(s: int, t: int):
+        d = 1.5 * feature_voxel
+        return reg.registration_ransac_based_on_feature_matching(
+            feature_clouds[s], feature_clouds[t], features[s], features[t], True, d,
+            reg.TransformationEstimationPointToPoint(False), 3,
+            [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9), reg.CorrespondenceCheckerBasedOnDistance(d)],
+            reg.RANSACConvergenceCriteria(100000, 0.999),
+        ).transformation
+
+    def pairwise(s: int, t: int, init):
+        """The tutorial's multiscale point-to-plane ICP of source s into target t, from ``init``
+        and from the global guess; the result with the higher fine fitness wins."""
+        source, target = clouds[s], clouds[t]
+        best = None
+        for start in (init, global_guess(s, t)):
+            icp_coarse = reg.registration_icp(source, target, coarse, start, reg.TransformationEstimationPointToPlane())
+            icp_fine = reg.registration_icp(source, target, fine, icp_coarse.transformation, reg.TransformationEstimationPointToPlane())
+            if best is None or icp_fine.fitness > best.fitness:
+                best = icp_fine
+        info = reg.get_information_matrix_from_point_clouds(source, target, fine, best.transformation)
+        return best.transformation, info
 
     graph = reg.PoseGraph()
     T_world_k = [np.eye(4)]
@@ -103,7 +130,7 @@ def open3d_multiway(ours_dir: Path, seq: Path, out: Path) -> dict:
     velocity = np.eye(4)  # T_{k}_{k-1} of the previous step
     for k in range(1, len(frames)):
         # edge source k-1 -> target k (the tutorial's order: transformation maps source into target)
-        T_k_km1, info = pairwise(clouds[k - 1], clouds[k], velocity)
+        T_k_km1, info = pairwise(k - 1, k, velocity)
         velocity = T_k_km1
         T_world_k.append(T_world_k[-1] @ invert(T_k_km1))
         graph.nodes.append(reg.PoseGraphNode(T_world_k[-1]))
@@ -112,7 +139,7 @@ def open3d_multiway(ours_dir: Path, seq: Path, out: Path) -> dict:
     for match, query in pairs:
         s, t = index[match], index[query]  # source = the earlier frame, target = the revisit
         init = invert(T_world_k[t]) @ T_world_k[s]
-        T, info = pairwise(clouds[s], clouds[t], init)
+        T, info = pairwise(s, t, init)
         graph.edges.append(reg.PoseGraphEdge(s, t, T, info, uncertain=True))
     option = reg.GlobalOptimizationOption(
         max_correspondence_distance=fine, edge_prune_threshold=0.25, preference_loop_closure=2.0, reference_node=0
