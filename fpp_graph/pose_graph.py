@@ -682,22 +682,13 @@ class _Problem:
         self.is_loop = np.array([e.kind is ConstraintKind.LOOP for e in self.edges], dtype=bool)
 
     # -- graphs ----------------------------------------------------------------------------
-    def gaussian_graph(self, active: NDArray[np.bool_], anchor_stiffness: float | None = None) -> gtsam.NonlinearFactorGraph:
-        """Anchors, priors and the active edges, Gaussian noise.
-
-        ``anchor_stiffness`` overrides :data:`ANCHOR_STIFFNESS` (chordal initialisation wants
-        anchors as stiff as the edges: its linear solve sees a 1e8 ratio as indeterminate).
-        """
+    def gaussian_graph(self, active: NDArray[np.bool_]) -> gtsam.NonlinearFactorGraph:
+        """Anchors, priors and the active edges, Gaussian noise."""
         import gtsam
 
         graph = gtsam.NonlinearFactorGraph()
-        if anchor_stiffness is None:
-            for f in self.anchor_factors:
-                graph.add(f)
-        else:
-            noise = gtsam.noiseModel.Isotropic.Precision(6, anchor_stiffness * self.stiffest)
-            for k in self.anchors:
-                graph.add(gtsam.PriorFactorPose3(k, gtsam.Pose3(self.anchor_poses[k]), noise))
+        for f in self.anchor_factors:
+            graph.add(f)
         for f in self.prior_factors:
             graph.add(f)
         for i in np.flatnonzero(active):
@@ -720,13 +711,38 @@ class _Problem:
                 graph.add(self.gaussian[i])
         return graph
 
+    def chordal_graph(self, active: NDArray[np.bool_]) -> gtsam.NonlinearFactorGraph:
+        """Anchors, priors and active edges with every information divided by the stiffest one.
+
+        ``InitializePose3`` adds unit-precision priors of its own (its anchor orientation and
+        pose); next to edges of precision ~1e8 and more (sub-mm, sub-mrad ICP constraints) its
+        linear solves report an indeterminate system. Its result does not change under a common
+        scaling of all information, so the graph is normalised to a largest precision of 1 and
+        the anchors are given that precision.
+        """
+        import gtsam
+
+        scale = 1.0 / self.stiffest
+        graph = gtsam.NonlinearFactorGraph()
+        anchor_noise = gtsam.noiseModel.Isotropic.Precision(6, 1.0)
+        for k in self.anchors:
+            graph.add(gtsam.PriorFactorPose3(k, gtsam.Pose3(self.anchor_poses[k]), anchor_noise))
+        for p in self.priors:
+            noise = gtsam.noiseModel.Gaussian.Information(scale * p.information_rot_trans)
+            graph.add(gtsam.PriorFactorPose3(p.key, gtsam.Pose3(p.T_world_sensor), noise))
+        for i in np.flatnonzero(active):
+            e = self.edges[i]
+            noise = gtsam.noiseModel.Gaussian.Information(scale * self.model_information[i])
+            graph.add(gtsam.BetweenFactorPose3(e.target_id, e.source_id, self.measured[i], noise))
+        return graph
+
     def chordal(self, active: NDArray[np.bool_]) -> tuple[gtsam.Values | None, str]:
         """Chordal initialisation (``gtsam.InitializePose3``) over the active edges, anchors
         held exactly; ``(None, reason)`` when it fails."""
         import gtsam
 
         try:
-            values = gtsam.InitializePose3.initialize(self.gaussian_graph(active, anchor_stiffness=1.0))
+            values = gtsam.InitializePose3.initialize(self.chordal_graph(active))
             poses = _poses_from(values, self.given_poses)
         except Exception as exc:  # gtsam raises RuntimeError/ValueError subclasses from C++
             return None, _short(exc)
