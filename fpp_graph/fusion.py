@@ -322,15 +322,15 @@ class VoxelMapFuser:
         return self.fuse(frames, new_poses_world_sensor)
 
 
-def _neighbour_indices(keys: NDArray[np.int64]):
-    """Yield ``(i, j)`` index arrays of the occupied 3x3x3 voxel neighbours (sorted ``keys``)."""
+def _neighbour_indices(keys: NDArray[np.int64], query: NDArray[np.int64]):
+    """Yield ``(i, j)``: ``query[i]``'s occupied 3x3x3 voxel neighbour is ``keys[j]`` (sorted ``keys``)."""
     n = len(keys)
     for dx in (-1, 0, 1):
         for dy in (-1, 0, 1):
             for dz in (-1, 0, 1):
                 # the packed key of a neighbour is the key plus the packed offset (the fields
                 # never overflow for voxels inside the map's range)
-                target = keys + ((dx << (2 * _KEY_BITS)) + (dy << _KEY_BITS) + dz)
+                target = query + ((dx << (2 * _KEY_BITS)) + (dy << _KEY_BITS) + dz)
                 pos = np.minimum(np.searchsorted(keys, target), n - 1)
                 i = np.flatnonzero(keys[pos] == target)
                 yield i, pos[i]
@@ -343,6 +343,28 @@ def project_to_local_planes(
     voxel_size_m: float,
     min_neighbours: int = 8,
     max_flatness: float = 0.05,
+    chunk: int = 200_000,
+) -> NDArray[np.float64]:
+    """Move each voxel point onto the local surface fitted to its 3x3x3 voxel neighbourhood.
+
+    See :func:`_project_chunk`; the map is processed ``chunk`` voxels at a time so the work
+    arrays stay bounded (about 100 bytes x 36 per voxel of a chunk) whatever the map's size.
+    """
+    out = np.asarray(points, dtype=np.float64).copy()
+    for start in range(0, len(keys), chunk):
+        sl = slice(start, start + chunk)
+        out[sl] = _project_chunk(keys, points, weights, voxel_size_m, np.arange(start, min(start + chunk, len(keys))), min_neighbours, max_flatness)
+    return out
+
+
+def _project_chunk(
+    keys: NDArray[np.int64],
+    points: NDArray[np.float64],
+    weights: NDArray[np.float64],
+    voxel_size_m: float,
+    rows: NDArray[np.int64],
+    min_neighbours: int,
+    max_flatness: float,
 ) -> NDArray[np.float64]:
     """Move each voxel point onto the local surface fitted to its 3x3x3 voxel neighbourhood.
 
@@ -353,17 +375,18 @@ def project_to_local_planes(
     are not flattened, and the point moves along the normal to ``h(0, 0) = a``. Points whose
     neighbourhood has fewer than ``min_neighbours`` occupied voxels or is not a surface
     (smallest eigenvalue above ``max_flatness`` times the middle one: edges, thin parts, noise)
-    keep their voxel mean.
+    keep their voxel mean. Returns the new points of ``rows``.
     """
-    n = len(keys)
-    out = points.copy()
+    n = len(rows)
+    query = keys[rows]
+    out = points[rows].copy()
     if n == 0:
         return out
     s_w = np.zeros(n)
     s_p = np.zeros((n, 3))
     s_pp = np.zeros((n, 3, 3))
     count = np.zeros(n, dtype=np.int64)
-    for i, j in _neighbour_indices(keys):
+    for i, j in _neighbour_indices(keys, query):
         wj, pj = weights[j], points[j]
         s_w[i] += wj
         s_p[i] += wj[:, None] * pj
@@ -374,6 +397,7 @@ def project_to_local_planes(
         return out
     mean = s_p[ok] / s_w[ok, None]
     cov = s_pp[ok] / s_w[ok, None, None] - mean[:, :, None] * mean[:, None, :]
+    del s_pp
     eigval, eigvec = np.linalg.eigh(cov)
     surface = eigval[:, 0] <= max_flatness * np.maximum(eigval[:, 1], 1e-30)
     idx = np.flatnonzero(ok)[surface]
@@ -385,20 +409,21 @@ def project_to_local_planes(
     frame[idx, 2] = eigvec[surface, :, 0]
     use = np.zeros(n, dtype=bool)
     use[idx] = True
+    own = points[rows]
     # weighted least squares of the quadratic height field around each point, in its frame
     ata = np.zeros((n, 6, 6))
     atb = np.zeros((n, 6))
-    for i, j in _neighbour_indices(keys):
+    for i, j in _neighbour_indices(keys, query):
         keep = use[i]
         i, j = i[keep], j[keep]
-        local = np.einsum("nab,nb->na", frame[i], points[j] - points[i]) / voxel_size_m  # unitless, O(1)
+        local = np.einsum("nab,nb->na", frame[i], points[j] - own[i]) / voxel_size_m  # unitless, O(1)
         u, v, h = local[:, 0], local[:, 1], local[:, 2]
         a = np.stack([np.ones_like(u), u, v, u * u, u * v, v * v], axis=1)
         wa = weights[j][:, None] * a
         ata[i] += wa[:, :, None] * a[:, None, :]
         atb[i] += wa * h[:, None]
     ata, atb = ata[idx], atb[idx]
-    # a tiny ridge keeps sparse neighbourhoods solvable (quadratic terms only, scaled to the data)
+    # a tiny ridge keeps sparse neighbourhoods solvable (quadratic terms only)
     scale = np.einsum("nii->n", ata)[:, None] * 1e-9
     ata[:, 3:, 3:] += scale[:, :, None] * np.eye(3)
     try:
@@ -407,7 +432,7 @@ def project_to_local_planes(
         return out
     offset = coef[:, 0] * voxel_size_m
     good = np.isfinite(offset)
-    out[idx[good]] = points[idx[good]] + offset[good, None] * frame[idx[good], 2]
+    out[idx[good]] = own[idx[good]] + offset[good, None] * frame[idx[good], 2]
     return out
 
 
