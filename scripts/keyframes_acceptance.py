@@ -174,7 +174,7 @@ def same_angle_pairs(slam, views: int) -> dict:
     return {"true": len(truth), "proposed": len(proposed), "verified": len(verified), "accepted": len(accepted), "refused_because": reasons}
 
 
-def run_sequence(name: str, resolution: str, results_root: Path) -> dict:
+def run_sequence(name: str, resolution: str, results_root: Path, voxel_mm: float | None = None) -> dict:
     from fpp_graph.config import load_config
     from fpp_graph.pipeline import Pipeline
     from fpp_graph.sources import open_source
@@ -182,6 +182,9 @@ def run_sequence(name: str, resolution: str, results_root: Path) -> dict:
     seq = sequence_dir(name, resolution)
     cfg = load_config(None)
     cfg = cfg.model_copy(update={"run": cfg.run.model_copy(update={"workers": 1})})
+    if voxel_mm:  # map resolution (a 6 m corridor at 1 mm is ~12 M voxels)
+        v = voxel_mm * 1e-3
+        cfg = cfg.model_copy(update={"fusion": cfg.fusion.model_copy(update={"voxel_size_m": v, "tsdf_voxel_m": 2 * v, "tsdf_truncation_m": 8 * v})})
     source = open_source(seq, cfg)
     out = results_root / f"{name}_{resolution}"
     wall, cpu = time.perf_counter(), time.process_time()
@@ -202,7 +205,7 @@ def run_sequence(name: str, resolution: str, results_root: Path) -> dict:
     views = source.describe().get("views_per_turn")
     if views:
         res["same_angle_pairs"] = same_angle_pairs(slam, int(views))
-    res["map"] = map_figures(out, source, slam, max(cfg.fusion.voxel_size_m, 0.001))
+    res["map"] = map_figures(out, source, slam, cfg.fusion.voxel_size_m)
     return res
 
 
@@ -260,6 +263,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--resolution", choices=("preview", "mid", "full"), default="mid")
     parser.add_argument("--only", default="turntable13,turntable24,corridor,badinput", help="comma-separated parts")
     parser.add_argument("--out", type=Path, default=ROOT / "results" / "keyframes_acceptance")
+    parser.add_argument("--voxel-mm", type=float, default=None, help="map voxel (TSDF voxel twice that); default: the config's")
     parser.add_argument("--fix-registrar-cache", action="store_true", help="work around the registrar's frame leak (see doc)")
     args = parser.parse_args(argv)
     resolution = "preview" if args.preview else args.resolution
@@ -268,7 +272,7 @@ def main(argv: list[str] | None = None) -> int:
         fix_registrar_cache()
         print("NOTE: registrar feature-cache work-around ON (frames are not kept alive by FppPairRegistrar)")
     args.out.mkdir(parents=True, exist_ok=True)
-    summary: dict = {"resolution": resolution, "registrar_cache_fix": args.fix_registrar_cache}
+    summary: dict = {"resolution": resolution, "registrar_cache_fix": args.fix_registrar_cache, "voxel_mm": args.voxel_mm}
     for part in [p.strip() for p in args.only.split(",") if p.strip()]:
         if part == "badinput":
             r = bad_input(args.out, resolution, (30, 42))
@@ -277,11 +281,12 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"  chain broke at frame {b['frame']} (after keyframe {b['after_keyframe']}): {b['reason']}")
             print(f"  {len(r['components'])} connected part(s) [first, last, keyframes]: {r['components']}; poses for {r['poses']} frames")
         else:
-            r = run_sequence(part, resolution, args.out)
+            r = run_sequence(part, resolution, args.out, args.voxel_mm)
+            r["map_voxel_mm"] = args.voxel_mm or 1.0
             print_run(f"{part} ({resolution})", r)
         summary[part] = r
-        (args.out / f"summary_{resolution}.json").write_text(json.dumps(summary, indent=1, default=float))
-    print(f"\nsummary: {args.out / f'summary_{resolution}.json'}")
+        (args.out / f"summary_{resolution}_{'_'.join(sorted(k for k in summary if k not in ('resolution', 'registrar_cache_fix', 'voxel_mm')))}.json").write_text(json.dumps(summary, indent=1, default=float))
+    print(f"\nsummaries in {args.out}")
     return 0
 
 
