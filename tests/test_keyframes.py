@@ -203,3 +203,37 @@ def test_frame_store_opens_an_existing_folder(tmp_path, rng):
 
     with pytest.raises(InputDataError, match="does not exist"):
         FrameStore.open(tmp_path / "nope")
+
+
+def test_loop_evaluation_precision_recall_per_stage(rng):
+    from fpp_graph.loop_evaluation import evaluate_loops, ground_truth_overlaps
+
+    # 12 keyframes along a wall, 0.2 m apart, each seeing a 0.3 m patch: neighbours overlap,
+    # and 0/10 and 1/11 see the same wall section again (revisits)
+    xs = [0.2 * i for i in range(10)] + [0.0, 0.2]
+    poses = {i: make_pose(np.eye(3), [x, 0.0, 0.0]) for i, x in enumerate(xs)}
+    patch = np.column_stack([rng.uniform(-0.15, 0.15, 2000), rng.uniform(-0.1, 0.1, 2000), np.full(2000, 0.5)])
+    points = {i: patch for i in poses}
+    kf = sorted(poses)
+    overlaps = ground_truth_overlaps(points, poses)
+    assert overlaps[(0, 10)] > 0.9 and overlaps[(0, 1)] == pytest.approx(1 / 3, abs=0.05) and overlaps[(0, 5)] == 0.0
+    rows = [
+        {"query": 10, "match": 0, "stage": "proximity+appearance", "verified": True, "rejected_by_backend": False},
+        {"query": 11, "match": 1, "stage": "appearance", "verified": True, "rejected_by_backend": False},
+        {"query": 11, "match": 5, "stage": "appearance", "verified": False, "rejected_by_backend": False},  # look-alike
+        {"query": 10, "match": 4, "stage": "proximity", "verified": True, "rejected_by_backend": True},  # false, GNC removed it
+    ]
+    T_wrong = make_pose(np.eye(3), [0.05, 0.0, 0.0])
+    ev = evaluate_loops(rows, kf, overlaps, poses, {(10, 0): np.eye(4), (11, 1): T_wrong}, min_overlap=0.1, min_separation=5)
+    # true loops among pairs >= 5 keyframes apart: (0, 10), (1, 11) and, 0.2 m apart (overlap 1/3),
+    # (0, 11), (1, 10), (2, 11)
+    assert ev.true_loops == 5
+    st = ev.stages
+    assert (st["proposed"].pairs, st["proposed"].true_pairs) == (4, 2)
+    assert (st["appearance"].pairs, st["proximity"].pairs) == (3, 2)
+    # (11, 1) overlaps but was registered 5 cm off: a false verified loop, and it stayed in
+    assert st["verified"].pairs == 3 and st["verified"].true_pairs == 1
+    assert st["accepted"].pairs == 2 and st["accepted"].precision == 0.5 and st["accepted"].recall == 0.2
+    assert [(f["query"], f["match"]) for f in ev.false_accepted] == [(11, 1)]
+    assert {(f["query"], f["match"]) for f in ev.false_verified} == {(11, 1), (10, 4)}
+    assert ev.as_dict()["stages"]["accepted"]["precision"] == 0.5
