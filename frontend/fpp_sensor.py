@@ -12,7 +12,6 @@ from collections.abc import Sequence
 
 import numpy as np
 from numpy.typing import NDArray
-
 from scipy import ndimage
 
 from fpp_graph.config import DecodeConfig

@@ -118,9 +118,9 @@ class RssSampler:
 def map_figures(out: Path, source, slam, voxel_m: float) -> dict:
     """Map accuracy against the ground-truth mesh before (odometry only) and after loop closure."""
     from fpp_graph.evaluation import ate_rpe, load_mesh, point_to_mesh_distances
-    from fpp_graph.plots import plot_map_before_after
     from fpp_graph.frame_store import FrameStore
     from fpp_graph.pipeline import fuse_points_only, odometry_only_poses
+    from fpp_graph.plots import plot_map_before_after
     from fpp_graph.trajectory import read_tum
 
     estimate = read_tum(out / "trajectory.tum")
