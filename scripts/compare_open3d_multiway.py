@@ -47,14 +47,14 @@ def cpu_seconds() -> float:
     return time.process_time() + children.ru_utime + children.ru_stime
 
 
-def run_ours(seq: Path, out: Path) -> dict:
+def run_ours(seq: Path, out: Path, config_path: Path | None = None) -> dict:
     from fpp_graph.cli_run import run_sequence
     from fpp_graph.config import load_config
     from fpp_graph.run_evaluation import evaluate_results
     from fpp_graph.sources import open_source
 
     wall0, cpu0 = time.perf_counter(), cpu_seconds()
-    run_sequence(seq, None, out, resume=False, overwrite=True, kind=None, show_progress=False)
+    run_sequence(seq, config_path, out, resume=False, overwrite=True, kind=None, show_progress=False)
     wall, cpu = time.perf_counter() - wall0, cpu_seconds() - cpu0
     metrics = evaluate_results(out, open_source(seq, load_config(None)))
     return {"wall_s": wall, "cpu_s": cpu, **metrics}
@@ -182,6 +182,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--scenes", nargs="+", default=["turntable", "corridor"], choices=["turntable", "bunny", "corridor"])
     parser.add_argument("--full", action="store_true", help="1920x1200 instead of the 640x400 preview")
     parser.add_argument("--frames", type=int, default=None, help="only the first N frames of each sequence")
+    parser.add_argument("--config", type=Path, default=None, help="fpp-slam config file for our runs (e.g. preview-sized registration gates)")
     parser.add_argument("--out", type=Path, default=Path("results/compare_open3d"))
     parser.add_argument("--reuse-ours", action="store_true", help="keep an earlier run of ours in --out (its time is then read from metrics.json)")
     args = parser.parse_args(argv)
@@ -201,7 +202,7 @@ def main(argv: list[str] | None = None) -> int:
             ours = evaluate_results(folder / "ours", open_source(seq, load_config(None)))
             ours.update(wall_s=ours["run_seconds"], cpu_s=float("nan"))
         else:
-            ours = run_ours(seq, folder / "ours")
+            ours = run_ours(seq, folder / "ours", args.config)
         peer = open3d_multiway(folder / "ours", seq, folder / "open3d")
         rows.append((name, ours, peer))
         print(f"{name}: ours ATE {ours['ate_rmse_mm']:.4f} mm, map {ours.get('map_rmse_mm', float('nan')):.4f} mm, "
@@ -226,6 +227,8 @@ def main(argv: list[str] | None = None) -> int:
             a, b = peer.get(key, float("nan")), ours.get(key, float("nan"))
             return a / b if b else float("nan")
         lines.append(f"| {name} | {ratio('ate_rmse_mm'):.2f} | {ratio('map_rmse_mm'):.2f} | {ratio('wall_s'):.2f} | {ratio('cpu_s'):.2f} |")
+    if args.config:
+        lines += ["", f"Our runs used the config {args.config}: {' '.join(args.config.read_text().split())}"]
     counts = ", ".join(f"{n}: {p['loop_edges']} proposed, {p['loop_edges_kept']} kept" for n, _, p in rows)
     lines += ["", "Ours includes decoding and features; the peer starts from our decoded clouds. "
               f"Open3D loop edges on the same candidate pairs as ours ({counts})."]

@@ -31,7 +31,7 @@ COLUMNS = [
 ]
 
 
-def run_one(scene: str, seed: int, folder: Path, full: bool, frames: int | None) -> dict:
+def run_one(scene: str, seed: int, folder: Path, full: bool, frames: int | None, config_path: Path | None = None) -> dict:
     from fpp_graph.cli_run import run_sequence
     from fpp_graph.config import load_config
     from fpp_graph.run_evaluation import evaluate_results
@@ -39,7 +39,7 @@ def run_one(scene: str, seed: int, folder: Path, full: bool, frames: int | None)
     from frontend.demo import simulate_once
 
     seq = simulate_once(scene, folder / "sequence", full, frames, seed)
-    report = run_sequence(seq, None, folder / "results", resume=False, overwrite=True, kind=None, show_progress=False)
+    report = run_sequence(seq, config_path, folder / "results", resume=False, overwrite=True, kind=None, show_progress=False)
     m = evaluate_results(folder / "results", open_source(seq, load_config(None)))
     run = report.metrics
     row = {
@@ -82,6 +82,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     parser.add_argument("--full", action="store_true", help="1920x1200 instead of the 640x400 preview")
     parser.add_argument("--frames", type=int, default=None, help="only the first N frames of each sequence")
+    parser.add_argument("--config", type=Path, default=None, help="fpp-slam config file for our runs (e.g. preview-sized registration gates)")
     parser.add_argument("--out", type=Path, default=Path("results/loop_closure_accuracy"))
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.ERROR, format="%(levelname)s %(name)s: %(message)s")
@@ -89,12 +90,15 @@ def main(argv: list[str] | None = None) -> int:
     start = time.perf_counter()
     for scene in args.scenes:
         for seed in args.seeds:
-            row = run_one(scene, seed, args.out / f"{scene}_seed{seed}", args.full, args.frames)
+            row = run_one(scene, seed, args.out / f"{scene}_seed{seed}", args.full, args.frames, args.config)
             rows.append(row)
             print(json.dumps(row, default=float), flush=True)
     res = "1920x1200" if args.full else "640x400 preview"
     text = markdown(rows, f"Loop-closure accuracy ({res}, noise seeds {', '.join(map(str, args.seeds))})")
-    text += f"\nTotal {time.perf_counter() - start:.0f} s wall.\n"
+    text += f"\nTotal {time.perf_counter() - start:.0f} s wall."
+    if args.config:
+        text += f" Config {args.config}: {' '.join(args.config.read_text().split())}"
+    text += "\n"
     print(text)
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "loop_closure_accuracy.md").write_text(text)
