@@ -209,7 +209,7 @@ def report_accuracy(rows: list[dict]) -> None:
     d = [r for r in rows if "dlt_err_mm" in r and r["dlt_inliers"] >= 50]
     dd = [r for r in rows if "dense_err_mm" in r and r["dense_inliers"] >= 50]
     print("\n== line 4: DLT camera centre (source camera in the target frame), pairs with >= 50 inliers")
-    for name, sel, key in (("descriptor matches", d, "dlt"), ("dense KLT", dd, "dense")):
+    for name, sel, key in (("descriptor matches", d, "dlt"), ("dense (affine KLT)", dd, "dense")):
         for g in groups + [None]:
             s = [r for r in sel if g is None or r["group"] == g]
             if s:
