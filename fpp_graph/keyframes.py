@@ -89,12 +89,17 @@ class KeyframeManager:
         store: FrameStore | None = None,
         loop_detector: ProximityAppearanceLoopDetector | None = None,
         on_loop: Callable[[LoopRecord], None] | None = None,
+        proximity_across_parts: bool = False,
     ) -> None:
         self.registrar = registrar
         self.config = config or Config()
         self.store = store if store is not None else FrameStore()
         self.loop_detector = loop_detector if loop_detector is not None else ProximityAppearanceLoopDetector(self.config.loop_closure)
         self.on_loop = on_loop
+        # After a chain break the new part's poses are unrelated to the older parts' (it starts
+        # at the last keyframe's pose), so by default only appearance proposes candidates across
+        # parts. True restores proximity across parts (their pose guess is then arbitrary).
+        self.proximity_across_parts = bool(proximity_across_parts)
         try:
             params = inspect.signature(registrar.register).parameters
             self._registrar_takes_kind = "kind" in params or any(p.kind is p.VAR_KEYWORD for p in params.values())
@@ -200,7 +205,7 @@ class KeyframeManager:
         # Proximity means something only within the query's connected part: after a chain break
         # the new part's poses are unrelated to the older parts' (unless the frame brings a prior
         # pose), so across parts only appearance proposes candidates.
-        if frame.T_world_sensor_guess is None:
+        if frame.T_world_sensor_guess is None and not self.proximity_across_parts:
             root = self._find(frame.id)
             poses = {k: T for k, T in self.T_world_keyframe.items() if self._find(k) == root}
         else:
