@@ -94,7 +94,7 @@ def lift_keypoints(
     ok = np.all(np.isfinite(corners), axis=(1, 2))
     z = corners[..., 2]
     with np.errstate(invalid="ignore"):
-        ok &= (np.nanmax(z, axis=1) - np.nanmin(z, axis=1)) <= max_depth_step_m
+        ok &= (z.max(axis=1) - z.min(axis=1)) <= max_depth_step_m
     fu = (u[idx] - a)[:, None]
     fv = (v[idx] - b)[:, None]
     interp = (1 - fv) * ((1 - fu) * p00 + fu * p10) + fv * ((1 - fu) * p01 + fu * p11)
@@ -713,7 +713,9 @@ class FppPairRegistrar:
         if cached is not None:
             return cached
         if frame.keypoints_uv is not None and frame.metadata.get("feature") == self.config.feature:
-            described = frame
+            # already described: nothing to cache (a WeakKeyDictionary holding the frame as its
+            # own value would keep every frame alive for the registrar's lifetime)
+            return frame
         else:
             if self._detector is None:
                 self._detector = make_detector(self.config)
@@ -874,6 +876,10 @@ class FppPairRegistrar:
             # Weak in the dense geometry (one plane, an object on a table): acceptable only if the
             # keypoints pin those directions down to within max_weak_sigma_m.
             weak_sigma_m = _weak_direction_sigma_m(info, deg, icp.source_points)
+            # the same directions from the dense geometry alone (no keypoints), for diagnosis: on
+            # a plane, noisy normals make point-to-plane information claim ~0.1 mm in-plane, so it
+            # cannot tell relief from a plane and is not used to admit loops
+            meta["weak_direction_geometry_sigma_m"] = _weak_direction_sigma_m(info_icp, deg, icp.source_points)
             meta["geometrically_weak"] = deg.unconstrained
             meta["weak_direction_sigma_m"] = weak_sigma_m
             if ConstraintKind(kind) is ConstraintKind.LOOP and T_guess is None:
@@ -884,7 +890,7 @@ class FppPairRegistrar:
                     + " and no pose guess (appearance-only candidate)",
                     metadata={**meta, "unconstrained_directions": deg.directions}, **quality,
                 )
-            if ConstraintKind(kind) is ConstraintKind.LOOP:
+            if ConstraintKind(kind) is ConstraintKind.LOOP and T_guess is not None:
                 meta["weak_loop_guess_deviation_m"] = float(np.linalg.norm(T[:3, 3] - np.asarray(T_guess, dtype=np.float64)[:3, 3]))
             if not weak_sigma_m <= cfg.max_weak_sigma_m:
                 return reject(

@@ -22,6 +22,7 @@ from frontend.registration import (
     lift_keypoints,
     prepare_icp_cloud,
     ransac_rigid,
+    with_features,
 )
 from frontend.synthetic_frames import bumpy_wall_scene, render_frame, wall_pose
 
@@ -250,3 +251,20 @@ def test_icp_cloud_roles_are_strided_subsets_computed_once():
     assert np.array_equal(s.points, cloud.points[:: s.stride])
     assert np.allclose(np.abs(t.normals[:, 2]), 1.0, atol=0.2)
     assert cloud.target is t and cloud.source is s
+
+
+def test_registrar_does_not_keep_frames_alive(pair):
+    """Frames that arrive already described (as the pipeline's workers send them) must be freed
+    when the caller drops them: the registrar's per-frame caches are weak."""
+    import gc
+    import weakref
+
+    a, b, _ = pair
+    reg = FppPairRegistrar(RegistrationConfig())
+    da, db = with_features(dataclasses.replace(a), reg.config), with_features(dataclasses.replace(b), reg.config)
+    assert reg.register(da, db).accepted
+    refs = [weakref.ref(da), weakref.ref(db)]
+    del da, db
+    gc.collect()
+    assert all(r() is None for r in refs)
+    assert len(reg._features) == 0 and len(reg._clouds) == 0
