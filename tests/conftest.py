@@ -21,3 +21,20 @@ def shared_data_path(*parts: str) -> Path:
     if not path.exists():
         pytest.skip(f"real data {path} is absent (it lives beside the repo in ../shared/data)")
     return path
+
+
+def run_in_threads(fn, count: int = 4) -> list:
+    """``fn()`` called from ``count`` threads at once (shared-object thread safety); the results."""
+    import threading
+
+    results: list = [None] * count
+
+    def work(i: int) -> None:
+        results[i] = fn()
+
+    threads = [threading.Thread(target=work, args=(i,)) for i in range(count)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    return results

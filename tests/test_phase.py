@@ -3,13 +3,12 @@
 from __future__ import annotations
 
 import runpy
-import threading
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
-from conftest import shared_data_path
+from conftest import run_in_threads, shared_data_path
 
 from fpp_graph.config import DecodeConfig
 from fpp_graph.errors import InputDataError
@@ -175,17 +174,7 @@ def test_band_size_and_threads_do_not_change_results(scene) -> None:
     images = render_captures(spec, u, v, PW, PH, noise_sigma=2.0, blur_sigma_px=1.0)
     reference = Decoder(spec, PW, PH, band_rows=0).decode(images)
     shared = Decoder(spec, PW, PH, band_rows=7)
-    results = [None] * 4
-
-    def work(i: int) -> None:
-        results[i] = shared.decode(images)
-
-    threads = [threading.Thread(target=work, args=(i,)) for i in range(4)]
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join()
-    for r in results:
+    for r in run_in_threads(lambda: shared.decode(images)):
         assert np.array_equal(r.u_projector_px, reference.u_projector_px, equal_nan=True)
         assert np.array_equal(r.mask, reference.mask)
         assert np.array_equal(r.fringe_order, reference.fringe_order)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
+from conftest import run_in_threads
 from scipy.spatial.transform import Rotation
 
 from fpp_graph.errors import CalibrationError, InputDataError
@@ -208,7 +209,6 @@ def test_float32_out_buffer_and_bad_out():
 def test_bands_threads_and_bound_paths_agree():
     """Band size, shared use from threads, per-pixel vs scalar depth bounds: identical maps."""
     import pickle
-    import threading
 
     cal = make_rig()
     X = sphere_scene(cal)
@@ -226,17 +226,7 @@ def test_bands_threads_and_bound_paths_agree():
     assert np.array_equal(per_pixel.triangulate(u_p, mask), reference, equal_nan=True)
     assert np.array_equal(per_pixel.depth(u_p, mask), reference[..., 2], equal_nan=True)
     shared = pickle.loads(pickle.dumps(Triangulator(cal, band_rows=16)))
-    results = [None] * 4
-
-    def work(i: int) -> None:
-        results[i] = shared.triangulate(u_p, mask)
-
-    threads = [threading.Thread(target=work, args=(i,)) for i in range(4)]
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join()
-    for r in results:
+    for r in run_in_threads(lambda: shared.triangulate(u_p, mask)):
         assert np.array_equal(r, reference, equal_nan=True)
 
 
