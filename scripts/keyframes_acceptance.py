@@ -17,10 +17,6 @@ truth per stage (:mod:`fpp_graph.loop_evaluation`); for turntables the same-angl
 found; ATE; map accuracy against the ground-truth mesh (Open3D RaycastingScene) before
 (odometry only) and after loop closure; RSS at frame counts and per stage. ``badinput`` re-runs
 the turntable24 keyframes with a block of views left out (no overlap across the gap).
-
-``--fix-registrar-cache`` works around a leak in ``frontend.registration.FppPairRegistrar``
-(its weak per-frame feature cache stores the frame itself as the value, so no frame it has
-seen is ever freed); the run says when the work-around is on.
 """
 
 from __future__ import annotations
@@ -65,21 +61,6 @@ def sequence_dir(name: str, resolution: str) -> Path:
         simulate_sequence(scene_config(name, resolution), path, preview=resolution == "preview", overwrite=True)
         print(f"  simulated in {time.perf_counter() - start:.0f} s", flush=True)
     return path
-
-
-def fix_registrar_cache() -> None:
-    """Do not keep a frame alive through the registrar's weak feature cache (see module doc)."""
-    from frontend import registration
-
-    original = registration.FppPairRegistrar.describe
-
-    def describe(self, frame):
-        described = original(self, frame)
-        if described is frame:
-            self._features.pop(frame, None)
-        return described
-
-    registration.FppPairRegistrar.describe = describe
 
 
 class RssSampler:
@@ -264,15 +245,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--only", default="turntable13,turntable24,corridor,badinput", help="comma-separated parts")
     parser.add_argument("--out", type=Path, default=ROOT / "results" / "keyframes_acceptance")
     parser.add_argument("--voxel-mm", type=float, default=None, help="map voxel (TSDF voxel twice that); default: the config's")
-    parser.add_argument("--fix-registrar-cache", action="store_true", help="work around the registrar's frame leak (see doc)")
     args = parser.parse_args(argv)
     resolution = "preview" if args.preview else args.resolution
     logging.basicConfig(level=logging.ERROR, format="%(levelname)s %(name)s: %(message)s")
-    if args.fix_registrar_cache:
-        fix_registrar_cache()
-        print("NOTE: registrar feature-cache work-around ON (frames are not kept alive by FppPairRegistrar)")
     args.out.mkdir(parents=True, exist_ok=True)
-    summary: dict = {"resolution": resolution, "registrar_cache_fix": args.fix_registrar_cache, "voxel_mm": args.voxel_mm}
+    summary: dict = {"resolution": resolution, "voxel_mm": args.voxel_mm}
     for part in [p.strip() for p in args.only.split(",") if p.strip()]:
         if part == "badinput":
             r = bad_input(args.out, resolution, (30, 42))
@@ -285,7 +262,7 @@ def main(argv: list[str] | None = None) -> int:
             r["map_voxel_mm"] = args.voxel_mm or 1.0
             print_run(f"{part} ({resolution})", r)
         summary[part] = r
-        (args.out / f"summary_{resolution}_{'_'.join(sorted(k for k in summary if k not in ('resolution', 'registrar_cache_fix', 'voxel_mm')))}.json").write_text(json.dumps(summary, indent=1, default=float))
+        (args.out / f"summary_{resolution}_{'_'.join(sorted(k for k in summary if k not in ('resolution', 'voxel_mm')))}.json").write_text(json.dumps(summary, indent=1, default=float))
     print(f"\nsummaries in {args.out}")
     return 0
 
