@@ -41,7 +41,7 @@ class RegistrationConfig(StrictModel):
     feature: Literal["surf", "sift", "orb", "akaze"] = "surf"
     max_features: int = Field(4000, gt=0)
     feature_max_width_px: int = Field(1024, ge=0, description="wider textures are reduced by an integer factor before detection (0: never)")
-    ratio_test: float = Field(0.8, gt=0, le=1)
+    ratio_test: float = Field(0.9, gt=0, le=1)
     mutual_check: bool = True
     ransac_threshold_m: float = Field(0.002, gt=0)
     ransac_iterations: int = Field(2000, gt=0)
