@@ -193,25 +193,38 @@ def _l2_nearest(a: NDArray[np.float32], b: NDArray[np.float32], ratio: float, ch
     bb = np.einsum("ij,ij->i", b, b)
     col_d = np.full(nb, np.inf, np.float32)
     col_i = np.zeros(nb, np.int64)
+    cols = np.arange(nb)
     ia, ib, score = [], [], []
     for r0 in range(0, na, chunk_rows):
         A = a[r0 : r0 + chunk_rows]
-        D = A @ b.T
-        D *= np.float32(-2.0)
+        # -2 a.b with the factor on the small operand (scaling by a power of two is exact)
+        D = (A * np.float32(-2.0)) @ b.T
         D += bb[None, :]
         D += aa[r0 : r0 + A.shape[0], None]
-        np.maximum(D, np.float32(0.0), out=D)
         rows = np.arange(A.shape[0])
         j1 = np.argmin(D, axis=1)
-        d1 = D[rows, j1].copy()
-        # column minima before the row minima are masked for the second-nearest search
-        ci = np.argmin(D, axis=0)
-        cd = D[ci, np.arange(nb)]
+        d1 = D[rows, j1]
+        # column minima before the row minima are masked for the second-nearest search.
+        # argmin along axis 0 is a strided scan (4x slower than the whole matrix product here):
+        # take the contiguous min, then the first row holding it from the flat positions of
+        # the equal entries (one per column but for exact ties)
+        cd = D.min(axis=0)
+        flat = np.flatnonzero(D == cd)
+        fj, first = np.unique(flat % nb, return_index=True)
+        ci = np.zeros(nb, np.int64)
+        ci[fj] = flat[first] // nb
+        if fj.size < nb:  # a NaN column (no entry equals its min): the plain scan
+            rest = np.setdiff1d(cols, fj)
+            ci[rest] = np.argmin(D[:, rest], axis=0)
+            cd[rest] = D[ci[rest], rest]
         better = cd < col_d
         col_d[better] = cd[better]
         col_i[better] = ci[better] + r0
         D[rows, j1] = np.inf
         d2 = D.min(axis=1)
+        # rounding can leave a tiny negative squared distance for near-identical descriptors
+        np.maximum(d1, np.float32(0.0), out=d1)
+        np.maximum(d2, np.float32(0.0), out=d2)
         with np.errstate(divide="ignore", invalid="ignore"):
             r = np.sqrt(d1 / np.maximum(d2, np.float32(1e-30)))
         ok = r < ratio

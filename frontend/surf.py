@@ -23,13 +23,13 @@ Speed comes from whole-array work: the working image holds exact integer sums of
 ``cv2.boxFilter`` sums, later octaves read all box sums of one filter size at once by strided
 slicing of the integral image, and only det(H) is kept per layer (the Laplacian sign is read at
 the keypoints). The Haar responses of steps 2 and 3 are dense images (two box sums ``half``
-apart, per wavelet size, on the pyramid level where the wavelet spans 4-8 pixels) stored as one
-2-channel image and read at all keypoints' rotated sample points by one ``cv2.remap`` per scale
-band; the sample positions come from one small matrix product, the 4x4 sub-region sums from one
-product with a (400, 16) weight matrix. The dense-band sampling replaces the exact
-per-sample integral-image lookups by bilinear interpolation of the same box sums, a sub-sample
-approximation of the same wavelet. On a 1920x1200 texture (960x600 working image, ~1800
-keypoints) detection + description takes about 55-70 ms of one core
+apart, per wavelet size, on the pyramid level where the wavelet spans 4-8 pixels), ``dx`` and
+``dy`` as two 1-channel images read at all keypoints' rotated sample points by one
+``cv2.remap`` each per scale band; the sample positions come from one small matrix product, the
+4x4 sub-region sums from one product with a (400, 16) weight matrix. The dense-band sampling
+replaces the exact per-sample integral-image lookups by bilinear interpolation of the same box
+sums, a sub-sample approximation of the same wavelet. On a 1920x1200 texture (960x600 working
+image, ~1800 keypoints) detection + description takes about 50-60 ms of one core
 (``scripts/bench_registration.py``).
 
 Images wider than ``max_working_width`` are first reduced by an integer factor with area
@@ -111,70 +111,120 @@ class SurfKeypoints:
         return int(self.uv.shape[0])
 
 
-def _box_grid(ii: NDArray, y0: int, x0: int, step: int, ny: int, nx: int, r0: int, r1: int, c0: int, c1: int) -> NDArray:
-    """Sums of the boxes rows ``y+r0..y+r1``, cols ``x+c0..x+c1`` (inclusive) at the grid
-    ``y = y0 + step*i, x = x0 + step*j`` of a padded integral image ``ii``."""
-    ya, yb = y0 + r0, y0 + r1 + 1
-    xa, xb = x0 + c0, x0 + c1 + 1
-    sl = slice  # local alias keeps the four reads on one line each
-    A = ii[sl(ya, ya + step * ny, step), sl(xa, xa + step * nx, step)]
-    B = ii[sl(ya, ya + step * ny, step), sl(xb, xb + step * nx, step)]
-    C = ii[sl(yb, yb + step * ny, step), sl(xa, xa + step * nx, step)]
-    D = ii[sl(yb, yb + step * ny, step), sl(xb, xb + step * nx, step)]
-    return D - B - C + A
-
-
 def _hessian_layer(
     ii: NDArray, pad: int, step: int, ny: int, nx: int, L: int, with_sign: bool = True, value_scale: float = 1.0
 ) -> tuple[NDArray, NDArray | None]:
     """det(H) (float32) and, if asked, the trace sign of one filter size over the sampling grid
-    (``value_scale`` converts the image's values to [0, 1])."""
+    ``y = pad + step i, x = pad + step j`` of the integral image ``ii`` of the image padded by
+    ``pad`` (``value_scale`` converts the image's values to [0, 1]). ``ii`` is float64, or int32
+    holding exact integer sums (see :func:`_integral`): half the memory traffic of the strided
+    reads, and the products are then formed in float32 like the dense layers'.
+
+    The box sums are separable differences of ``ii``: first across the boxes' columns at the
+    grid's columns, for every integral row the boxes reach (boxes sharing their columns share
+    this strip), then along the rows at the grid's rows; Dxx likewise transposed: about 30%
+    fewer element operations than four corner reads per box."""
     lobe = L // 3
     half_long = (3 * lobe - 1) // 2
     half_short = lobe - 1
     half_mid = (lobe - 1) // 2
-    # Dyy: a (2l-1) wide, 3l tall box minus 3x its middle third
-    dyy = _box_grid(ii, pad, pad, step, ny, nx, -half_long, half_long, -half_short, half_short)
-    dyy -= 3.0 * _box_grid(ii, pad, pad, step, ny, nx, -half_mid, half_mid, -half_short, half_short)
-    dxx = _box_grid(ii, pad, pad, step, ny, nx, -half_short, half_short, -half_long, half_long)
-    dxx -= 3.0 * _box_grid(ii, pad, pad, step, ny, nx, -half_short, half_short, -half_mid, half_mid)
-    dxy = _box_grid(ii, pad, pad, step, ny, nx, -lobe, -1, -lobe, -1)
-    dxy += _box_grid(ii, pad, pad, step, ny, nx, 1, lobe, 1, lobe)
-    dxy -= _box_grid(ii, pad, pad, step, ny, nx, -lobe, -1, 1, lobe)
-    dxy -= _box_grid(ii, pad, pad, step, ny, nx, 1, lobe, -lobe, -1)
+    # integral rows (columns) pad - half_long .. pad + step (n - 1) + half_long + 1 hold every
+    # corner: offsets -half_long .. half_long + 1 around the grid (half_long >= lobe)
+    lo = pad - half_long
+    y_hi, x_hi = pad + step * (ny - 1) + half_long + 2, pad + step * (nx - 1) + half_long + 2
+
+    def cols(c: int) -> slice:  # integral columns x + c at the grid
+        return slice(pad + c, pad + c + step * nx, step)
+
+    def rows(r: int) -> slice:
+        return slice(pad + r, pad + r + step * ny, step)
+
+    def at_rows(strip: NDArray, r: int) -> NDArray:  # a column strip (rows lo..) at grid rows y + r
+        return strip[slice(r + half_long, r + half_long + step * ny, step)]
+
+    def at_cols(strip: NDArray, c: int) -> NDArray:
+        return strip[:, slice(c + half_long, c + half_long + step * nx, step)]
+
+    band = ii[lo:y_hi]
+    # Dyy: a (2l-1) wide, 3l tall box minus 3x its middle third (same columns)
+    strip = band[:, cols(half_short + 1)] - band[:, cols(-half_short)]
+    dyy = at_rows(strip, half_long + 1) - at_rows(strip, -half_long)
+    mid = at_rows(strip, half_mid + 1) - at_rows(strip, -half_mid)
+    mid *= 3
+    dyy -= mid
+    # Dxx: the same transposed
+    strip = ii[rows(half_short + 1), lo:x_hi] - ii[rows(-half_short), lo:x_hi]
+    dxx = at_cols(strip, half_long + 1) - at_cols(strip, -half_long)
+    mid = at_cols(strip, half_mid + 1) - at_cols(strip, -half_mid)
+    mid *= 3
+    dxx -= mid
+    # Dxy: +1 on the quadrants rows/cols -l..-1 and 1..l alike, -1 on the mixed ones. With the
+    # row sums left (cols -l..-1) minus right (cols 1..l) g(r) = ii[r, 0] - ii[r, -l] -
+    # (ii[r, l+1] - ii[r, 1]), it is g(0) - g(-l) - g(l+1) + g(1).
+    strip = band[:, cols(0)] - band[:, cols(-lobe)]
+    strip -= band[:, cols(lobe + 1)]
+    strip += band[:, cols(1)]
+    dxy = at_rows(strip, 0) - at_rows(strip, -lobe)
+    dxy -= at_rows(strip, lobe + 1)
+    dxy += at_rows(strip, 1)
+    sign = np.sign(dxx + dyy).astype(np.int8) if with_sign else None
+    if ii.dtype.kind == "i":
+        norm = np.float32(value_scale / float(L) ** 2)  # each filter normalised by L^2
+        dxx, dyy, dxy = (np.multiply(f, norm, dtype=np.float32) for f in (dxx, dyy, dxy))
+        det = dxx * dyy
+        dxy *= dxy
+        dxy *= np.float32(0.81)
+        det -= dxy
+        return det, sign
     norm2 = (value_scale / float(L) ** 2) ** 2  # each filter normalised by L^2
     det = dxx * dyy
     dxy *= dxy
     det -= 0.81 * dxy
     det *= norm2
-    return det.astype(np.float32), (np.sign(dxx + dyy).astype(np.int8) if with_sign else None)
+    return det.astype(np.float32), sign
 
 
-def _hessian_layer_dense(img: NDArray, L: int, with_sign: bool = True, value_scale: float = 1.0) -> tuple[NDArray, NDArray | None]:
+def _hessian_layer_dense(
+    img: NDArray, L: int, with_sign: bool = True, value_scale: float = 1.0, padded: tuple[NDArray, int] | None = None
+) -> tuple[NDArray, NDArray | None]:
     """det(H) and (if asked) the trace sign at every pixel (sampling step 1) with cv2.boxFilter;
     equals :func:`_hessian_layer` with ``step = 1`` but runs on SIMD box filters. ``img`` is
     float32, or uint8/uint16 (exact integer box sums, twice as fast) with ``value_scale``
-    converting its values to [0, 1]."""
+    converting its values to [0, 1]. ``padded`` may pass ``(img padded by P, P)`` with
+    ``P >= L // 3`` (replicated border), shared by the layers of an octave."""
     lobe = L // 3
     rep = cv2.BORDER_REPLICATE
-
-    def bf(size: tuple[int, int]) -> NDArray[np.float32]:
-        return cv2.boxFilter(img, cv2.CV_32F, size, normalize=False, borderType=rep)
-
-    wide, short = 2 * lobe - 1, lobe
-    dyy = cv2.scaleAdd(bf((wide, short)), -3.0, bf((wide, 3 * lobe)))  # -3 * middle + whole
-    dxx = cv2.scaleAdd(bf((short, wide)), -3.0, bf((3 * lobe, wide)))
-    q = bf((lobe, lobe))
-    c = (lobe + 1) // 2
-    qp = cv2.copyMakeBorder(q, c, c, c, c, rep)
     H, W = img.shape
-    dxy = cv2.add(qp[:H, :W], qp[2 * c :, 2 * c :])
-    dxy -= qp[:H, 2 * c :]
-    dxy -= qp[2 * c :, :W]
+    wide = 2 * lobe - 1
+    # All three filters from one lobe-sized box sum each, on the image padded by (at least) a
+    # lobe: the 3-lobe box is three stacked 1-lobe boxes, so "whole - 3 x middle" = upper +
+    # lower - 2 x middle (three box filters instead of five). Padding first gives the
+    # replicated border's sums.
+    if padded is None or padded[1] < lobe:
+        padded = (cv2.copyMakeBorder(img, lobe, lobe, lobe, lobe, rep), lobe)
+    imgp, P = padded
+    u, d = P - lobe, P + lobe  # rows (columns) of the upper (left) and lower (right) boxes
+    # three full-size float32 buffers and one padded one (dxx's is returned as det): fresh
+    # arrays cost page faults, which on this scale are a fair part of the arithmetic's time
+    s = cv2.boxFilter(imgp, cv2.CV_32F, (wide, lobe), normalize=False, borderType=rep)
+    dyy = cv2.add(s[u : u + H, P : P + W], s[d : d + H, P : P + W])
+    cv2.scaleAdd(s[P : P + H, P : P + W], -2.0, dyy, dst=dyy)
+    cv2.boxFilter(imgp, cv2.CV_32F, (lobe, wide), dst=s, normalize=False, borderType=rep)
+    dxx = cv2.add(s[P : P + H, u : u + W], s[P : P + H, d : d + W])
+    cv2.scaleAdd(s[P : P + H, P : P + W], -2.0, dxx, dst=dxx)
+    # Dxy: the lobe x lobe box sums at the four quadrant centres (+-c, +-c)
+    cv2.boxFilter(imgp, cv2.CV_32F, (lobe, lobe), dst=s, normalize=False, borderType=rep)
+    c = (lobe + 1) // 2
+    o, e = P - c, P + c
+    dxy = cv2.add(s[o : o + H, o : o + W], s[e : e + H, e : e + W])
+    dxy -= s[o : o + H, e : e + W]
+    dxy -= s[e : e + H, o : o + W]
+    sign = np.sign(dxx + dyy).astype(np.int8) if with_sign else None
     norm2 = (value_scale / float(L) ** 2) ** 2  # each filter normalised by L^2
-    det = cv2.multiply(dxx, dyy, scale=norm2)
-    det -= cv2.multiply(dxy, dxy, scale=0.81 * norm2)
-    return det, (np.sign(dxx + dyy).astype(np.int8) if with_sign else None)
+    cv2.multiply(dxy, dxy, dst=dxy, scale=0.81 * norm2)
+    det = cv2.multiply(dxx, dyy, dst=dxx, scale=norm2)
+    det -= dxy
+    return det, sign
 
 
 def _trace_sign_at(ii: NDArray, pad: int, y: NDArray, x: NDArray, L: int) -> NDArray[np.int8]:
@@ -184,15 +234,30 @@ def _trace_sign_at(ii: NDArray, pad: int, y: NDArray, x: NDArray, L: int) -> NDA
     half_long = (3 * lobe - 1) // 2
     half_short = lobe - 1
     half_mid = (lobe - 1) // 2
-    yy = y.astype(np.int64) + pad
-    xx = x.astype(np.int64) + pad
+    width = ii.shape[1]
+    flat = ii.ravel()  # flat reads: 2-D fancy indexing costs twice as much
+    base = (y.astype(np.int64) + pad) * width + (x.astype(np.int64) + pad)
+
+    def at(r: int, c: int) -> NDArray:
+        return flat[base + (r * width + c)].astype(np.float64)
 
     def box(r0: int, r1: int, c0: int, c1: int) -> NDArray:
-        return ii[yy + r1 + 1, xx + c1 + 1] - ii[yy + r0, xx + c1 + 1] - ii[yy + r1 + 1, xx + c0] + ii[yy + r0, xx + c0]
+        return at(r1 + 1, c1 + 1) - at(r0, c1 + 1) - at(r1 + 1, c0) + at(r0, c0)
 
     dyy = box(-half_long, half_long, -half_short, half_short) - 3.0 * box(-half_mid, half_mid, -half_short, half_short)
     dxx = box(-half_short, half_short, -half_long, half_long) - 3.0 * box(-half_short, half_short, -half_mid, half_mid)
     return np.sign(dxx + dyy).astype(np.int8)
+
+
+def _integral(padded: NDArray, max_filter: int) -> NDArray:
+    """Integral image of ``padded``: int32 for an integer image whose total and whose largest
+    filter's combined box sums fit (exact), else float64."""
+    ii = cv2.integral(padded, sdepth=cv2.CV_64F)
+    if padded.dtype.kind == "u":
+        peak = float(padded.max())
+        if peak * padded.size < 2**31 and 4.0 * peak * max_filter**2 < 2**31:
+            return ii.astype(np.int32)
+    return ii
 
 
 def _filter_size(octave: int, interval: int) -> int:
@@ -210,9 +275,10 @@ def fast_hessian(image01: NDArray, params: SurfParams, value_scale: float = 1.0)
     max_L = _filter_size(params.n_octaves - 1, params.n_intervals - 1)
     pad = max_L // 2 + 2
     padded = cv2.copyMakeBorder(image01, pad, pad, pad, pad, cv2.BORDER_REPLICATE)
-    integral = cv2.integral(padded, sdepth=cv2.CV_64F)
+    integral = _integral(padded, max_L)
     out_uv, out_s, out_r, out_sign = [], [], [], []
     computed: dict[int, tuple[int, NDArray]] = {}
+    dense_padded: tuple[NDArray, int] | None = None
     thr = np.float32(params.hessian_threshold)
     for o in range(params.n_octaves):
         step = 2**o
@@ -231,12 +297,14 @@ def fast_hessian(image01: NDArray, params: SurfParams, value_scale: float = 1.0)
                 layers.append(np.ascontiguousarray(det_prev[::k, ::k][:ny, :nx]))
                 continue
             if step == 1:
-                det, _ = _hessian_layer_dense(image01, L, with_sign=False, value_scale=value_scale)
+                if dense_padded is None:  # one replicated border for the octave's layers
+                    P = max(sizes) // 3
+                    dense_padded = (cv2.copyMakeBorder(image01, P, P, P, P, cv2.BORDER_REPLICATE), P)
+                det, _ = _hessian_layer_dense(image01, L, with_sign=False, value_scale=value_scale, padded=dense_padded)
             else:
                 det, _ = _hessian_layer(integral, pad, step, ny, nx, L, with_sign=False, value_scale=value_scale)
             computed[L] = (step, det)
             layers.append(det)
-        dil = [cv2.dilate(layer, _NMS_KERNEL) for layer in layers]
         for i in range(1, params.n_intervals - 1):
             L = sizes[i]
             # a keypoint's filter must lie inside the (unpadded) image
@@ -245,36 +313,53 @@ def fast_hessian(image01: NDArray, params: SurfParams, value_scale: float = 1.0)
                 continue
             inner = (slice(b, ny - b), slice(b, nx - b))
             centre = layers[i][inner]
-            nb = np.maximum(dil[i - 1][inner], dil[i + 1][inner])
-            np.maximum(nb, dil[i][inner], out=nb)
+            # 3x3x3 maximum: the 3x3 dilation of the three layers' pointwise maximum (one
+            # dilation per interval instead of one per layer and two maxima of dilations)
+            nb = np.maximum(layers[i - 1], layers[i])
+            np.maximum(nb, layers[i + 1], out=nb)
+            nb = cv2.dilate(nb, _NMS_KERNEL)[inner]
             cand = centre >= nb
             cand &= centre > thr
-            ys, xs = np.nonzero(cand)
+            # flatnonzero + divmod: np.nonzero on a 2-D mask is ~15x slower
+            ys, xs = np.divmod(np.flatnonzero(cand), cand.shape[1])
             if ys.size == 0:
                 continue
             ys += b
             xs += b
 
-            # quadratic interpolation in (x, y, s): offset = -H^-1 g
-            def v(ds: int, dy: int, dx: int, i: int = i, ys: NDArray = ys, xs: NDArray = xs, layers: list = layers) -> NDArray:
-                return layers[i + ds][ys + dy, xs + dx].astype(np.float64)
+            # quadratic interpolation in (x, y, s): offset = -H^-1 g, from the 19 distinct
+            # values of the 3x3x3 cube (flat reads), H inverted in closed form (symmetric 3x3)
+            flat = ys * nx + xs
+            lo, mid, hi = (layers[i + d].ravel() for d in (-1, 0, 1))
 
-            c = v(0, 0, 0)
-            g = np.stack([(v(0, 0, 1) - v(0, 0, -1)) / 2, (v(0, 1, 0) - v(0, -1, 0)) / 2, (v(1, 0, 0) - v(-1, 0, 0)) / 2], axis=1)
-            hxx = v(0, 0, 1) + v(0, 0, -1) - 2 * c
-            hyy = v(0, 1, 0) + v(0, -1, 0) - 2 * c
-            hss = v(1, 0, 0) + v(-1, 0, 0) - 2 * c
-            hxy = (v(0, 1, 1) - v(0, 1, -1) - v(0, -1, 1) + v(0, -1, -1)) / 4
-            hxs = (v(1, 0, 1) - v(1, 0, -1) - v(-1, 0, 1) + v(-1, 0, -1)) / 4
-            hys = (v(1, 1, 0) - v(1, -1, 0) - v(-1, 1, 0) + v(-1, -1, 0)) / 4
-            Hm = np.stack(
-                [np.stack([hxx, hxy, hxs], 1), np.stack([hxy, hyy, hys], 1), np.stack([hxs, hys, hss], 1)], axis=1
-            )
-            det_h = np.linalg.det(Hm)
+            def at(layer: NDArray, dy: int, dx: int, flat: NDArray = flat, nx: int = nx) -> NDArray:
+                return layer[flat + (dy * nx + dx)].astype(np.float64)
+
+            c = at(mid, 0, 0)
+            x_p, x_m, y_p, y_m, s_p, s_m = at(mid, 0, 1), at(mid, 0, -1), at(mid, 1, 0), at(mid, -1, 0), at(hi, 0, 0), at(lo, 0, 0)
+            gx, gy, gs = (x_p - x_m) / 2, (y_p - y_m) / 2, (s_p - s_m) / 2
+            hxx = x_p + x_m - 2 * c
+            hyy = y_p + y_m - 2 * c
+            hss = s_p + s_m - 2 * c
+            hxy = (at(mid, 1, 1) - at(mid, 1, -1) - at(mid, -1, 1) + at(mid, -1, -1)) / 4
+            hxs = (at(hi, 0, 1) - at(hi, 0, -1) - at(lo, 0, 1) + at(lo, 0, -1)) / 4
+            hys = (at(hi, 1, 0) - at(hi, -1, 0) - at(lo, 1, 0) + at(lo, -1, 0)) / 4
+            # cofactors (the adjugate of a symmetric matrix is symmetric)
+            a00 = hyy * hss - hys * hys
+            a01 = hys * hxs - hxy * hss
+            a02 = hxy * hys - hyy * hxs
+            a11 = hxx * hss - hxs * hxs
+            a12 = hxy * hxs - hxx * hys
+            a22 = hxx * hyy - hxy * hxy
+            det_h = hxx * a00 + hxy * a01 + hxs * a02
             ok = np.abs(det_h) > 1e-20
-            off = np.zeros_like(g)
-            off[ok] = -np.linalg.solve(Hm[ok], g[ok][..., None])[..., 0]
-            ok &= np.all(np.abs(off) < 0.5, axis=1)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                inv_det = -1.0 / det_h
+                off = np.stack(
+                    [(a00 * gx + a01 * gy + a02 * gs) * inv_det, (a01 * gx + a11 * gy + a12 * gs) * inv_det, (a02 * gx + a12 * gy + a22 * gs) * inv_det],
+                    axis=1,
+                )
+                ok &= np.all(np.abs(off) < 0.5, axis=1)
             if not np.any(ok):
                 continue
             x_img = (xs[ok] + off[ok, 0]) * step
@@ -283,7 +368,7 @@ def fast_hessian(image01: NDArray, params: SurfParams, value_scale: float = 1.0)
             L_interp = L + off[ok, 2] * filter_step
             out_uv.append(np.stack([x_img, y_img], axis=1))
             out_s.append(_SCALE_PER_FILTER * L_interp)
-            out_r.append(c[ok] + 0.5 * np.einsum("ij,ij->i", g[ok], off[ok]))
+            out_r.append(c[ok] + 0.5 * (gx[ok] * off[ok, 0] + gy[ok] * off[ok, 1] + gs[ok] * off[ok, 2]))
             out_sign.append(_trace_sign_at(integral, pad, ys[ok] * step, xs[ok] * step, L))
     if not out_uv:
         return np.zeros((0, 2)), np.zeros(0), np.zeros(0), np.zeros(0, np.int8)
@@ -296,25 +381,24 @@ class _HaarBank:
     A wavelet of side ``size_px`` is evaluated on the pyramid level ``k`` where it spans 4-8
     level pixels, as ``2 half`` level pixels (half = 2, 3 or 4: the side is rounded by at most
     one level pixel, as SURF rounds it to whole image pixels). Its x response is the difference of two
-    ``half x 2 half`` box sums (``cv2.boxFilter``) ``half`` apart, the y response likewise; both
-    are stored as one 2-channel image shifted by whole pixels, so that one ``cv2.remap`` reads
-    ``(dx, dy)`` at any set of positions (bilinear interpolation is linear, so the difference of
-    interpolated box sums is the interpolated difference).
+    ``half x 2 half`` box sums ``half`` apart, one separable filter (``cv2.sepFilter2D``: a
+    -1/+1 step across, a box along), the y response likewise; ``cv2.remap`` reads ``dx`` and
+    ``dy`` at any set of positions (bilinear interpolation is linear, so the difference of
+    interpolated box sums is the interpolated difference). They are two 1-channel images, not
+    one 2-channel one: OpenCV remaps 1-channel float32 with exact float weights on SIMD, 2-channel
+    float32 with 1/32-pixel fixed-point weights per element, 3x slower for both channels.
     """
 
-    _PAD = 8  # level border for the shifted box sums (half <= 4 -> shifts <= 3)
-
     def __init__(self, image: NDArray):
-        self._pyramid = [image]
-        self._padded: dict[int, NDArray[np.float32]] = {}
-        self._cache: dict[tuple[int, int], NDArray[np.float32]] = {}
+        # float32 levels (an integer level would round its averages; float32 filters run faster
+        # than integer ones here); each keypoint reads one level and its descriptor is
+        # normalised, so units do not matter
+        self._pyramid = [image if image.dtype == np.float32 else image.astype(np.float32)]
+        self._cache: dict[tuple[int, int], tuple[NDArray[np.float32], NDArray[np.float32]]] = {}
 
     def _level(self, k: int) -> NDArray:
         while len(self._pyramid) <= k:
-            # levels from 1 on in float32 (an integer level would round its averages); each
-            # keypoint reads one level and its descriptor is normalised, so units do not matter
-            src = self._pyramid[-1] if self._pyramid[-1].dtype == np.float32 else self._pyramid[-1].astype(np.float32)
-            self._pyramid.append(cv2.resize(src, None, fx=0.5, fy=0.5, interpolation=cv2.INTER_AREA))
+            self._pyramid.append(cv2.resize(self._pyramid[-1], None, fx=0.5, fy=0.5, interpolation=cv2.INTER_AREA))
         return self._pyramid[k]
 
     @staticmethod
@@ -323,29 +407,21 @@ class _HaarBank:
         k = max(0, int(math.floor(math.log2(max(size_px, 1.0) / 4.0))))
         return k, max(1, int(round(size_px / 2.0**k / 2.0)))
 
-    def responses(self, k: int, half: int) -> NDArray[np.float32]:
-        """(H_k, W_k, 2) ``(dx, dy)`` of side ``2 half`` on level ``k``, to be read at
+    def responses(self, k: int, half: int) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+        """``dx, dy`` (H_k, W_k) of side ``2 half`` on level ``k``, to be read at
         ``(X - 0.5, Y - 0.5)`` for a wavelet centred at level coordinates ``(X, Y)``."""
         key = (k, half)
         if key not in self._cache:
             img = self._level(k)
-            H, W = img.shape
-            P = self._PAD
-            if k not in self._padded:
-                self._padded[k] = cv2.copyMakeBorder(img, P, P, P, P, cv2.BORDER_REPLICATE)
-            padded = self._padded[k]
-            # cv2.boxFilter anchors an even side at its middle pixel: the right (lower) box of a
-            # wavelet centred at X sits p pixels after the anchor column, the left (upper) one q
-            # before, p + q = half; the remaining half-pixel offsets go into the read position
-            p = half // 2 + 1
-            q = half - p
-            assert max(p, q) < P, "wavelet wider than the level border"
-            bx = cv2.boxFilter(padded, cv2.CV_32F, (half, 2 * half), normalize=False, borderType=cv2.BORDER_REPLICATE)
-            by = cv2.boxFilter(padded, cv2.CV_32F, (2 * half, half), normalize=False, borderType=cv2.BORDER_REPLICATE)
-            out = np.empty((H, W, 2), np.float32)
-            np.subtract(bx[P + 1 : P + 1 + H, P + p : P + p + W], bx[P + 1 : P + 1 + H, P - q : P - q + W], out=out[..., 0])
-            np.subtract(by[P + p : P + p + H, P + 1 : P + 1 + W], by[P - q : P - q + H, P + 1 : P + 1 + W], out=out[..., 1])
-            self._cache[key] = out
+            step = np.concatenate([-np.ones(half), np.ones(half)]).astype(np.float32)
+            box = np.ones(2 * half, np.float32)
+            # the filters are correlations anchored at tap half - 1: output pixel X holds the
+            # window over X - half + 1 .. X + half, centred at X + 0.5
+            a = (half - 1, half - 1)
+            rep = cv2.BORDER_REPLICATE
+            dx = cv2.sepFilter2D(img, cv2.CV_32F, step, box, anchor=a, borderType=rep)
+            dy = cv2.sepFilter2D(img, cv2.CV_32F, box, step, anchor=a, borderType=rep)
+            self._cache[key] = (dx, dy)
         return self._cache[key]
 
     def sample(self, size_px: float, x: NDArray, y: NDArray) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
@@ -356,18 +432,20 @@ class _HaarBank:
         # level coordinates X = (x + 0.5) / f - 0.5, read at X - 0.5 (see responses)
         mx = (np.asarray(x, np.float32).reshape(shape[0], -1) * np.float32(1.0 / f)) + np.float32(0.5 / f - 1.0)
         my = (np.asarray(y, np.float32).reshape(shape[0], -1) * np.float32(1.0 / f)) + np.float32(0.5 / f - 1.0)
-        out = self.read(k, half, mx, my)
-        return out[..., 0].reshape(shape), out[..., 1].reshape(shape)
+        dx, dy = self.read(k, half, mx, my)
+        return dx.reshape(shape), dy.reshape(shape)
 
-    def read(self, k: int, half: int, mx: NDArray[np.float32], my: NDArray[np.float32]) -> NDArray[np.float32]:
-        """``(rows, cols, 2)`` responses at level read positions ``mx, my`` (``(rows, cols)`` float32)."""
-        resp = self.responses(k, half)
+    def read(self, k: int, half: int, mx: NDArray[np.float32], my: NDArray[np.float32]) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+        """``dx, dy`` (``(rows, cols)`` float32 each) at level read positions ``mx, my`` (``(rows, cols)`` float32)."""
         rows = 16384  # cv2.remap needs fewer than 32767 rows/columns per call
-        parts = [
-            cv2.remap(resp, mx[i : i + rows], my[i : i + rows], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-            for i in range(0, mx.shape[0], rows)
-        ]
-        return parts[0] if len(parts) == 1 else np.concatenate(parts)
+        out = []
+        for resp in self.responses(k, half):
+            parts = [
+                cv2.remap(resp, mx[i : i + rows], my[i : i + rows], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+                for i in range(0, mx.shape[0], rows)
+            ]
+            out.append(parts[0] if len(parts) == 1 else np.concatenate(parts))
+        return out[0], out[1]
 
 
 def _scale_bands(scale: NDArray) -> NDArray[np.int64]:
@@ -375,29 +453,41 @@ def _scale_bands(scale: NDArray) -> NDArray[np.int64]:
     return np.round(4.0 * np.log2(scale / 1.2)).astype(np.int64)
 
 
-def _read_positions(uv: NDArray, scale: NDArray, theta: NDArray | None, grid: NDArray[np.float32], k: int) -> tuple[NDArray, NDArray]:
-    """Level-``k`` read positions (see :meth:`_HaarBank.responses`) of a sample grid ``(2, m)`` in
-    units of the keypoint scale, rotated by ``theta``, for keypoints ``uv``: ``(n, m)`` each, by
-    one small float32 matrix product per coordinate."""
+def _read_positions(uv: NDArray, scale: NDArray, theta: NDArray | None, basis: NDArray[np.float32], k: int) -> tuple[NDArray, NDArray]:
+    """Level-``k`` read positions (see :meth:`_HaarBank.responses`) of a sample grid in units of
+    the keypoint scale, rotated by ``theta``, for keypoints ``uv``: ``(n, m)`` each, by one small
+    float32 matrix product per coordinate. ``basis`` is ``(3, m)``: rows 1, u, v of the grid."""
     f = 2.0**k
     c = uv / f + (0.5 / f - 1.0)  # (n, 2) level read position of the centre
     a = scale / f
     co = a * (np.cos(theta) if theta is not None else 1.0)
     si = a * (np.sin(theta) if theta is not None else 0.0)
-    basis = np.vstack([np.ones((1, grid.shape[1]), np.float32), grid]).astype(np.float32)  # (3, m): 1, u, v
     ax = np.stack([c[:, 0], co, -si], axis=1).astype(np.float32)  # x = cx + co u - si v
     ay = np.stack([c[:, 1], si, co], axis=1).astype(np.float32)  # y = cy + si u + co v
     return ax @ basis, ay @ basis
 
 
+def _grid_basis(grid: NDArray) -> NDArray[np.float32]:
+    """``(3, m)`` float32 rows 1, u, v of a ``(2, m)`` sample grid (see :func:`_read_positions`)."""
+    return np.vstack([np.ones((1, grid.shape[1])), grid]).astype(np.float32)
+
+
 _ORI_I, _ORI_J = np.meshgrid(np.arange(-6, 7), np.arange(-6, 7))
 _ORI_MASK = _ORI_I**2 + _ORI_J**2 < 36
 _ORI_I, _ORI_J = _ORI_I[_ORI_MASK].astype(np.float64), _ORI_J[_ORI_MASK].astype(np.float64)  # 109 samples
-_ORI_GRID = np.stack([_ORI_I, _ORI_J]).astype(np.float32)
+_ORI_BASIS = _grid_basis(np.stack([_ORI_I, _ORI_J]))
 _ORI_W = np.exp(-(_ORI_I**2 + _ORI_J**2) / (2 * 2.0**2)).astype(np.float32)
+_ORI_BINS = 72
+# (72, 72) 0/1: column j sums the pi/3 window of bins j+1 .. j+12 (mod 72) of atan2 + pi; the
+# rows are rolled by half a turn because the bins come from cv2.phase, in [0, 2 pi)
+_ORI_WINDOW = np.roll(
+    ((np.arange(_ORI_BINS)[:, None] - np.arange(_ORI_BINS)[None, :] - 1) % _ORI_BINS < _ORI_BINS // 6).astype(np.float64),
+    -(_ORI_BINS // 2),
+    axis=0,
+)
 _DESC_C = np.arange(-10, 10) + 0.5
 _DESC_U, _DESC_V = np.meshgrid(_DESC_C, _DESC_C)  # (20, 20): u along x (columns), v along y (rows)
-_DESC_GRID = np.stack([_DESC_U.ravel(), _DESC_V.ravel()]).astype(np.float32)  # (2, 400), row-major
+_DESC_BASIS = _grid_basis(np.stack([_DESC_U.ravel(), _DESC_V.ravel()]))  # (3, 400), row-major
 _DESC_W = np.exp(-(_DESC_U**2 + _DESC_V**2) / (2 * 3.3**2)).ravel()
 # (400, 16): Gaussian weight of each sample in its 5x5 sub-region (row-major 4x4 sub-regions)
 _DESC_SUM = np.zeros((400, 16), np.float32)
@@ -407,24 +497,24 @@ _DESC_SUM[np.arange(400), (np.arange(400) // 20 // 5) * 4 + (np.arange(400) % 20
 def _orientations(bank: _HaarBank, uv: NDArray, scale: NDArray) -> NDArray:
     out = np.zeros(uv.shape[0])
     bands = _scale_bands(scale)
-    n_bins = 72
+    n_bins = _ORI_BINS
     for b in np.unique(bands):
         sel = np.flatnonzero(bands == b)
         k, half = bank.level_of(4.0 * 1.2 * 2.0 ** (b / 4.0))
-        mx, my = _read_positions(uv[sel], scale[sel], None, _ORI_GRID, k)
-        resp = bank.read(k, half, mx, my)
-        dx = resp[..., 0] * _ORI_W
-        dy = resp[..., 1] * _ORI_W
-        ang = np.arctan2(dy, dx)
-        bins = ((ang + np.float32(np.pi)) * np.float32(n_bins / (2 * np.pi))).astype(np.int64) % n_bins
-        flat = bins + n_bins * np.arange(sel.size)[:, None]
-        hx = np.bincount(flat.ravel(), weights=dx.ravel(), minlength=sel.size * n_bins).reshape(sel.size, n_bins)
-        hy = np.bincount(flat.ravel(), weights=dy.ravel(), minlength=sel.size * n_bins).reshape(sel.size, n_bins)
-        win = n_bins // 6  # pi/3 sliding window
-        cx = np.cumsum(np.concatenate([hx, hx[:, :win]], axis=1), axis=1)
-        cy = np.cumsum(np.concatenate([hy, hy[:, :win]], axis=1), axis=1)
-        sx = cx[:, win:] - cx[:, :-win]
-        sy = cy[:, win:] - cy[:, :-win]
+        mx, my = _read_positions(uv[sel], scale[sel], None, _ORI_BASIS, k)
+        dx, dy = bank.read(k, half, mx, my)
+        dx *= _ORI_W
+        dy *= _ORI_W
+        # direction bins from cv2.phase (SIMD, within 2e-4 rad of atan2 against 0.087 rad bins);
+        # numpy's float32 arctan2 is ~30x slower
+        bins = (cv2.phase(dx, dy) * np.float32(n_bins / (2 * np.pi))).astype(np.int32)
+        np.minimum(bins, n_bins - 1, out=bins)  # a phase rounded up to 2 pi
+        bins += (n_bins * np.arange(sel.size, dtype=np.int32))[:, None]
+        hx = np.bincount(bins.ravel(), weights=dx.ravel(), minlength=sel.size * n_bins).reshape(sel.size, n_bins)
+        hy = np.bincount(bins.ravel(), weights=dy.ravel(), minlength=sel.size * n_bins).reshape(sel.size, n_bins)
+        # pi/3 sliding-window sums of all 72 windows: one small product each
+        sx = hx @ _ORI_WINDOW
+        sy = hy @ _ORI_WINDOW
         best = np.argmax(sx**2 + sy**2, axis=1)
         r = np.arange(sel.size)
         out[sel] = np.arctan2(sy[r, best], sx[r, best])
@@ -438,21 +528,24 @@ def _descriptors(bank: _HaarBank, uv: NDArray, scale: NDArray, theta: NDArray) -
         sel = np.flatnonzero(bands == b)
         n = sel.size
         k, half = bank.level_of(2.0 * 1.2 * 2.0 ** (b / 4.0))
-        mx, my = _read_positions(uv[sel], scale[sel], theta[sel], _DESC_GRID, k)
-        resp = bank.read(k, half, mx, my)  # (n, 400, 2): image-axis dx, dy
+        mx, my = _read_positions(uv[sel], scale[sel], theta[sel], _DESC_BASIS, k)
+        dx, dy = bank.read(k, half, mx, my)  # (n, 400) each: image-axis responses
         co = np.cos(theta[sel]).astype(np.float32)[:, None]
         si = np.sin(theta[sel]).astype(np.float32)[:, None]
-        dx, dy = resp[..., 0], resp[..., 1]
-        # responses in the keypoint frame, as rows (rx of keypoint 0, ry of keypoint 0, rx of 1, ...)
+        # responses in the keypoint frame, as rows (rx of keypoint 0, ry of keypoint 0, rx of 1, ...):
+        # rx = dx co + dy si, ry = dy co - dx si, in place (dx, dy are this band's own arrays)
         rt = np.empty((n, 2, 400), np.float32)
-        np.multiply(dx, co, out=rt[:, 0])
-        rt[:, 0] += dy * si
-        np.multiply(dy, co, out=rt[:, 1])
-        rt[:, 1] -= dx * si
+        rx, ry = rt[:, 0], rt[:, 1]
+        np.multiply(dy, si, out=ry)
+        np.multiply(dx, co, out=rx)
+        rx += ry
+        np.multiply(dy, co, out=ry)
+        dx *= si
+        ry -= dx
         rt = rt.reshape(2 * n, 400)
         # Gaussian-weighted sums per 4x4 sub-region of sum r and sum |r|: one matrix product each
         sums = (rt @ _DESC_SUM).reshape(n, 2, 16)
-        abs_sums = (np.abs(rt) @ _DESC_SUM).reshape(n, 2, 16)
+        abs_sums = (np.abs(rt, out=rt) @ _DESC_SUM).reshape(n, 2, 16)
         # per sub-region (sum dx, sum dy, sum |dx|, sum |dy|), sub-regions row-major
         d = np.concatenate([sums, abs_sums], axis=1).transpose(0, 2, 1).reshape(n, 64)
         norm = np.linalg.norm(d, axis=1, keepdims=True)
@@ -466,11 +559,13 @@ def _block_sums(img: NDArray[np.uint8], factor: int) -> NDArray:
     if factor == 1:
         return img
     H, W = img.shape[0] // factor * factor, img.shape[1] // factor * factor
-    out = img[0:H:factor, 0:W:factor].astype(np.uint16 if factor <= 16 else np.float32)
-    for dy in range(factor):
-        for dx in range(factor):
-            if dy or dx:
-                out += img[dy:H:factor, dx:W:factor]
+    # rows first (whole contiguous rows), then the strided columns of the 1/factor-high result
+    rows = np.add(img[0:H:factor, :W], img[1:H:factor, :W], dtype=np.uint16 if factor <= 16 else np.float32)
+    for dy in range(2, factor):
+        rows += img[dy:H:factor, :W]
+    out = np.add(rows[:, 0::factor], rows[:, 1::factor])
+    for dx in range(2, factor):
+        out += rows[:, dx::factor]
     return out
 
 

@@ -268,3 +268,21 @@ def test_registrar_does_not_keep_frames_alive(pair):
     gc.collect()
     assert all(r() is None for r in refs)
     assert len(reg._features) == 0 and len(reg._clouds) == 0
+
+
+def test_organised_subsample_keeps_the_valid_strided_pixels():
+    from frontend.registration import organised_subsample
+
+    yy, xx = np.mgrid[0:200, 0:300]
+    xyz = np.stack([xx * 1e-4, yy * 1e-4, np.full(xx.shape, 0.5)], axis=-1)  # 0.1 mm pixels
+    full = organised_subsample(xyz, 0.002)  # step 10 px: half a voxel
+    assert full.shape == (20 * 30, 3) and np.array_equal(full, xyz[::10, ::10].reshape(-1, 3))
+    xyz[::20, ::20, 1] = np.nan
+    xyz[10::20, ::20, 2] = np.inf
+    sub = organised_subsample(xyz, 0.002)
+    ref = xyz[::10, ::10].reshape(-1, 3)
+    assert np.array_equal(sub, ref[np.all(np.isfinite(ref), axis=1)]) and sub.shape[0] == 600 - 300
+    # a map fine enough for step 1 still gives a copy, not a view of the frame's map
+    coarse = np.stack([xx * 2e-3, yy * 2e-3, np.full(xx.shape, 0.5)], axis=-1)
+    out = organised_subsample(coarse, 0.002)
+    assert out.shape == (200 * 300, 3) and not np.shares_memory(out, coarse)

@@ -160,3 +160,59 @@ def test_haar_bank_matches_box_sums_at_pixels():
             dx, dy = bank.sample(2.0 * half, np.array([[cx]]), np.array([[cy]]))
             assert abs(dx[0, 0] - dx_ref) < 1e-3 * max(1.0, abs(dx_ref)), (half, cx, cy)
             assert abs(dy[0, 0] - dy_ref) < 1e-3 * max(1.0, abs(dy_ref)), (half, cx, cy)
+
+
+def test_l2_nearest_matches_brute_force_with_ties_and_chunks():
+    # the column nearest neighbours come from the column minima and the first row holding them
+    from frontend.features import _l2_nearest
+
+    rng = np.random.default_rng(9)
+    a = rng.normal(size=(70, 8)).astype(np.float32)
+    b = rng.normal(size=(90, 8)).astype(np.float32)
+    b[:6] = a[:6]  # exact matches
+    a[10] = a[11]  # two rows equally near every column: the first must win
+    D = ((a[:, None, :].astype(np.float64) - b[None, :, :]) ** 2).sum(axis=2)
+    for chunk in (2048, 16):
+        ia, ib, score, nn_ba = _l2_nearest(a, b, 0.9, chunk_rows=chunk)
+        assert np.array_equal(nn_ba, np.argmin(D, axis=0))
+        assert np.array_equal(ib, np.argmin(D, axis=1)[ia])
+        srt = np.sort(D, axis=1)
+        np.testing.assert_allclose(score, np.sqrt(srt[ia, 0] / srt[ia, 1]), atol=1e-3)
+        assert set(range(6)) <= set(ia.tolist())
+
+
+def test_integer_integral_gives_the_float_hessian_layers():
+    # octaves >= 2 read an int32 integral image when the sums fit; same det(H) as float64
+    from frontend.surf import _block_sums, _integral
+
+    img = _block_sums(_texture(10, (240, 320)), 2)
+    pad = 40
+    padded = cv2.copyMakeBorder(img, pad, pad, pad, pad, cv2.BORDER_REPLICATE)
+    ii32 = _integral(padded, 51)
+    ii64 = cv2.integral(padded, sdepth=cv2.CV_64F)
+    assert ii32.dtype == np.int32 and np.array_equal(ii32, ii64)
+    for step, L in ((2, 39), (2, 51), (4, 51)):
+        ny, nx = img.shape[0] // step, img.shape[1] // step
+        a, sa = _hessian_layer(ii32, pad, step, ny, nx, L, value_scale=1 / 1020)
+        b, sb = _hessian_layer(ii64, pad, step, ny, nx, L, value_scale=1 / 1020)
+        assert a.dtype == b.dtype == np.float32
+        assert np.abs(a - b).max() < 1e-5 * np.abs(b).max()
+        assert np.array_equal(sa, sb)
+    # sums that could overflow int32 stay float64
+    assert _integral(np.full((200, 200), 60000, np.uint16), 195).dtype == np.float64
+
+
+def test_dense_layer_with_shared_padding_is_the_same():
+    img = _block_sums_of(11)
+    P = 9
+    padded = (cv2.copyMakeBorder(img, P, P, P, P, cv2.BORDER_REPLICATE), P)
+    for L in (9, 15, 27):
+        a, sa = _hessian_layer_dense(img, L, value_scale=1 / 1020)
+        b, sb = _hessian_layer_dense(img, L, value_scale=1 / 1020, padded=padded)
+        assert np.array_equal(a, b) and np.array_equal(sa, sb)
+
+
+def _block_sums_of(seed: int) -> np.ndarray:
+    from frontend.surf import _block_sums
+
+    return _block_sums(_texture(seed, (240, 320)), 2)
