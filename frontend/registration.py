@@ -777,7 +777,9 @@ class FppPairRegistrar:
                 return reject(f"{role} frame {frame.id} has no xyz_map: keypoints cannot be lifted to 3D")
             if frame.texture is None:
                 return reject(f"{role} frame {frame.id} has no texture image: no keypoints")
-            if not np.any(np.isfinite(frame.xyz_map[..., 2])):
+            # the frame's point list is the map's valid pixels: checking it is O(1), a scan of
+            # the full map costs ~5 ms per 1920x1200 frame (the map is scanned only without points)
+            if frame.points.shape[0] == 0 and not np.any(np.isfinite(frame.xyz_map[..., 2])):
                 return reject(f"{role} frame {frame.id} has no valid 3D points")
             if min(frame.texture.shape) < 32:
                 return reject(f"{role} frame {frame.id}: texture {frame.texture.shape} too small for keypoints")

@@ -179,6 +179,10 @@ def test_bad_input_frames(pair):
     empty = Frame(id=7, timestamp=0.0, points=np.zeros((0, 3)), xyz_map=np.full((H, W, 3), np.nan), texture=a.texture)
     c = reg.register(a, empty)
     assert not c.accepted and "no valid 3D points" in c.rejection_reason
+    # points listed but a map with no valid pixel (inconsistent frame): still a clean rejection
+    nan_map = dataclasses.replace(a, xyz_map=np.full_like(a.xyz_map, np.nan))
+    c = reg.register(nan_map, b)
+    assert not c.accepted and c.rejection_reason
     no_map = Frame(id=8, timestamp=0.0, points=a.points, texture=a.texture)
     assert "no xyz_map" in reg.register(no_map, b).rejection_reason
     blank = dataclasses.replace(a, texture=np.zeros((H, W), np.uint8), id=9)
