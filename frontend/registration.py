@@ -549,6 +549,35 @@ def information_from_keypoints(T_target_source: NDArray, source_points: NDArray,
     return info / sigma2
 
 
+def drop_sensor_fixed_matches(
+    matches: NDArray, uv_target: NDArray, uv_source: NDArray, image_width_px: int, max_fraction: float = 0.5
+) -> tuple[Array, int]:
+    """Drop matches whose keypoints sit at the same image position in both frames, unless most do.
+
+    The texture of an FPP frame is lit by the projector, which moves with the camera: the edge
+    and corners of its illuminated field (and any projector hot spot) stay at fixed image
+    positions on a wall at constant distance, and SURF finds them in every frame with the same
+    descriptor. Their 3D points agree under the identity motion, so on 1920x1200 corridor frames
+    (~100 such matches of ~300) RANSAC chose "no motion" over the true 0.31 m step. A match that
+    moved less than ``image_width_px / 640`` pixels (1 px at 640x400, 3 px at 1920x1200) is such a
+    sensor-fixed feature when most matches moved; when most did not, the sensor is standing still
+    and every match is kept.
+
+    Returns
+    -------
+    matches : (M', 2) int64
+    dropped : int
+    """
+    m = np.asarray(matches, dtype=np.int64).reshape(-1, 2)
+    if m.shape[0] == 0:
+        return m, 0
+    moved_px = np.linalg.norm(np.asarray(uv_target)[m[:, 0]] - np.asarray(uv_source)[m[:, 1]], axis=1)
+    fixed = moved_px < max(1.0, image_width_px / 640.0)
+    if not fixed.any() or fixed.mean() > max_fraction:
+        return m, 0
+    return m[~fixed], int(fixed.sum())
+
+
 _CHI2_6DOF_999 = 22.458  # chi-square quantile, 6 degrees of freedom, probability 0.999
 
 
@@ -793,8 +822,9 @@ class FppPairRegistrar:
             timings["match"], cpu_timings["match"] = time.perf_counter() - t0, time.process_time() - c0
         except FppError as exc:
             return reject(f"features failed: {exc}")
+        matches, static_dropped = drop_sensor_fixed_matches(matches, tgt.keypoints_uv, src.keypoints_uv, target.texture.shape[1])
         if matches.shape[0] < cfg.min_inliers:
-            return reject(f"too few matches ({matches.shape[0]} < {cfg.min_inliers})", metadata={"matches": int(matches.shape[0])})
+            return reject(f"too few matches ({matches.shape[0]} < {cfg.min_inliers})", metadata={"matches": int(matches.shape[0]), "sensor_fixed_matches_dropped": static_dropped})
         t0, c0 = time.perf_counter(), time.process_time()
         Pt, vt = lift_keypoints(target.xyz_map, tgt.keypoints_uv[matches[:, 0]])
         Ps, vs = lift_keypoints(source.xyz_map, src.keypoints_uv[matches[:, 1]])
@@ -809,6 +839,7 @@ class FppPairRegistrar:
         timings["ransac"], cpu_timings["ransac"] = time.perf_counter() - t0, time.process_time() - c0
         meta: dict[str, Any] = {
             "matches": int(matches.shape[0]),
+            "sensor_fixed_matches_dropped": static_dropped,
             "matches_3d": int(Pt.shape[0]),
             "ransac_inliers": ransac.num_inliers,
             "ransac_iterations": ransac.iterations,
@@ -929,6 +960,7 @@ __all__ = [
     "IcpRole",
     "RansacResult",
     "check_degeneracy",
+    "drop_sensor_fixed_matches",
     "information_from_icp",
     "joint_keypoint_step",
     "kabsch",

@@ -290,3 +290,23 @@ def test_organised_subsample_keeps_the_valid_strided_pixels():
     coarse = np.stack([xx * 2e-3, yy * 2e-3, np.full(xx.shape, 0.5)], axis=-1)
     out = organised_subsample(coarse, 0.002)
     assert out.shape == (200 * 300, 3) and not np.shares_memory(out, coarse)
+
+
+def test_sensor_fixed_matches_are_dropped_unless_most_are_fixed():
+    from frontend.registration import drop_sensor_fixed_matches
+
+    rng = np.random.default_rng(3)
+    uv_target = rng.uniform(0, 1900, size=(100, 2))
+    uv_source = uv_target + np.array([250.0, 4.0])  # the scene moved 250 px
+    uv_source[:30] = uv_target[:30] + rng.normal(0, 0.5, size=(30, 2))  # a projector-field corner: fixed in the image
+    matches = np.stack([np.arange(100), np.arange(100)], axis=1)
+    kept, dropped = drop_sensor_fixed_matches(matches, uv_target, uv_source, image_width_px=1920)
+    assert dropped == 30 and kept.shape == (70, 2) and kept[:, 0].min() == 30
+    # a sensor standing still: every match is static and every match is kept
+    kept, dropped = drop_sensor_fixed_matches(matches, uv_target, uv_target + 0.2, image_width_px=1920)
+    assert dropped == 0 and kept.shape == (100, 2)
+    # the threshold scales with the image: 2 px is fixed at 1920 px wide, moved at 640
+    mixed = uv_target + np.array([250.0, 4.0])
+    mixed[:10] = uv_target[:10] + 2.0
+    assert drop_sensor_fixed_matches(matches, uv_target, mixed, 1920)[1] == 10
+    assert drop_sensor_fixed_matches(matches, uv_target, mixed, 640)[1] == 0
