@@ -38,7 +38,7 @@ from numpy.typing import NDArray
 
 from fpp_graph.config import RegistrationConfig
 from fpp_graph.errors import FppError
-from fpp_graph.geometry import invert, kabsch, se3_exp
+from fpp_graph.geometry import invert, kabsch, se3_exp, se3_log
 from fpp_graph.types import Constraint, ConstraintKind, Frame
 from frontend.features import Detector, detect_and_describe, make_detector, match_descriptors
 
@@ -619,6 +619,51 @@ def joint_keypoint_step(
     return xi
 
 
+def without_weak_directions(information: NDArray, deg: Degeneracy, source_points: NDArray) -> Array:
+    """``information`` with its curvature along ``deg.directions`` removed (set to zero).
+
+    On a plane the point-to-plane information still claims in-plane precision from the scatter
+    of the estimated normals (~0.05 mm on a 1920x1200 wall pair), which is not information about
+    the pose: left in, it biases the joint pose with the keypoints and makes the covariance
+    overconfident along exactly the directions the keypoints must fix. The directions are those
+    of :func:`check_degeneracy` (centred, length-normalised coordinates); the projection is done
+    there and mapped back.
+    """
+    info = np.asarray(information, dtype=np.float64)
+    V = np.asarray(deg.directions, dtype=np.float64).reshape(-1, 6)
+    if V.shape[0] == 0:
+        return info.copy()
+    P = np.asarray(source_points, dtype=np.float64).reshape(-1, 3)
+    c = P.mean(axis=0) if P.size else np.zeros(3)
+    radius = max(float(np.sqrt(np.mean(np.sum((P - c) ** 2, axis=1)))) if P.size else 1.0, 1e-6)
+    A = np.eye(6)
+    A[3:, :3] = np.array([[0.0, c[2], -c[1]], [-c[2], 0.0, c[0]], [c[1], -c[0], 0.0]])
+    M = A @ np.diag([1.0 / radius] * 3 + [1.0] * 3)
+    info_c = M.T @ info @ M
+    Q, _ = np.linalg.qr(V.T)  # orthonormal basis of the weak subspace
+    proj = np.eye(6) - Q @ Q.T
+    info_c = proj @ info_c @ proj
+    M_inv = np.linalg.inv(M)
+    out = M_inv.T @ info_c @ M_inv
+    return 0.5 * (out + out.T)
+
+
+def _weak_directions_from(T_icp: NDArray, T_other: NDArray, deg: Degeneracy, source_points: NDArray) -> Array:
+    """``T_icp`` moved to ``T_other`` along ``deg.directions`` only (centred, length-normalised
+    coordinates of :func:`check_degeneracy`), kept along the others."""
+    V = np.asarray(deg.directions, dtype=np.float64).reshape(-1, 6)
+    P = np.asarray(source_points, dtype=np.float64).reshape(-1, 3)
+    c = P.mean(axis=0) if P.size else np.zeros(3)
+    radius = max(float(np.sqrt(np.mean(np.sum((P - c) ** 2, axis=1)))) if P.size else 1.0, 1e-6)
+    A = np.eye(6)
+    A[3:, :3] = np.array([[0.0, c[2], -c[1]], [-c[2], 0.0, c[0]], [c[1], -c[0], 0.0]])
+    M = A @ np.diag([1.0 / radius] * 3 + [1.0] * 3)
+    xi = se3_log(invert(T_icp) @ np.asarray(T_other, dtype=np.float64))
+    xi_c = np.linalg.solve(M, xi)  # xi = M xi_c
+    Q, _ = np.linalg.qr(V.T)
+    return np.asarray(T_icp, dtype=np.float64) @ se3_exp(M @ (Q @ (Q.T @ xi_c)))
+
+
 def _weak_direction_sigma_m(information: NDArray, deg: Degeneracy, source_points: NDArray) -> float:
     """Largest standard deviation (m, rotations as arc length at the cloud's RMS radius) along the weak directions."""
     try:
@@ -635,7 +680,9 @@ def _weak_direction_sigma_m(information: NDArray, deg: Degeneracy, source_points
     M = np.linalg.inv(A @ S)
     cov_c = M @ cov @ M.T
     variances = [float(v @ cov_c @ v) for v in deg.directions]
-    return float(np.sqrt(max(variances))) if variances and min(np.isfinite(variances)) else float("inf")
+    worst = max(variances) if variances and all(np.isfinite(variances)) else float("nan")
+    # a non-positive variance is an inverse of a numerically singular matrix: unconstrained
+    return float(np.sqrt(worst)) if np.isfinite(worst) and worst > 0 else float("inf")
 
 
 @dataclass(frozen=True)
@@ -865,6 +912,7 @@ class FppPairRegistrar:
         meta.update({"icp_iterations": icp.iterations, "icp_converged": icp.converged, "icp_correspondences": icp.num_correspondences})
         if not np.all(np.isfinite(T)):
             return reject("ICP diverged (non-finite pose)", metadata=meta, **quality)
+        drop_weak: Degeneracy | None = None
         # where ICP moved the keypoint inliers: a large move means it left RANSAC's basin
         Ps_in = Ps[ransac.inliers]
         shift = np.linalg.norm((Ps_in @ T[:3, :3].T + T[:3, 3]) - (Ps_in @ ransac.T_target_source[:3, :3].T + ransac.T_target_source[:3, 3]), axis=1)
@@ -873,6 +921,29 @@ class FppPairRegistrar:
         kp_inliers = int(np.sum(res_kp < cfg.ransac_threshold_m))
         meta["keypoint_inliers_after_icp"] = kp_inliers
         meta["matches_used"] = matches3d[res_kp < cfg.ransac_threshold_m]
+        if meta["icp_shift_m"] > cfg.max_icp_shift_m or kp_inliers < cfg.min_inliers:
+            # ICP lost the keypoints. On weak geometry (a wall) that is ICP drifting along the
+            # directions its cost is flat in, not a wrong pair: take ICP's pose along the
+            # directions it constrains and RANSAC's (the keypoints') along the others, with
+            # ICP's information along those removed (normal scatter makes it claim ~0.05 mm
+            # in-plane on a wall, which is not information about the pose).
+            info_icp_raw = information_from_icp(icp, scale=cfg.information_scale)
+            deg_icp = check_degeneracy(info_icp_raw, icp.source_points, cfg.degeneracy_ratio)
+            if deg_icp.degenerate:
+                T_fb = _weak_directions_from(T, ransac.T_target_source, deg_icp, icp.source_points)
+                Ps_in_fb = Ps_in @ T_fb[:3, :3].T + T_fb[:3, 3]
+                shift_fb = np.linalg.norm(Ps_in_fb - (Ps_in @ ransac.T_target_source[:3, :3].T + ransac.T_target_source[:3, 3]), axis=1)
+                res_fb = np.linalg.norm(Pt - (Ps @ T_fb[:3, :3].T + T_fb[:3, 3]), axis=1)
+                if float(shift_fb.max()) <= cfg.max_icp_shift_m and int(np.sum(res_fb < cfg.ransac_threshold_m)) >= cfg.min_inliers:
+                    icp = refine_icp(self.icp_cloud(target), self.icp_cloud(source), T_fb, "none", cfg.icp_max_correspondence_m, 0)
+                    T = T_fb
+                    meta.update({"icp_shift_m": float(shift_fb.max()), "weak_directions_from_keypoints": deg_icp.unconstrained, "icp_drift_m": meta["icp_shift_m"]})
+                    res_kp = res_fb
+                    kp_inliers = int(np.sum(res_kp < cfg.ransac_threshold_m))
+                    meta["keypoint_inliers_after_icp"] = kp_inliers
+                    meta["matches_used"] = matches3d[res_kp < cfg.ransac_threshold_m]
+                    quality = {"fitness": icp.fitness, "inlier_rmse_m": icp.inlier_rmse_m, "inlier_count": ransac.num_inliers, "overlap": icp.overlap}
+                    drop_weak = deg_icp
         if meta["icp_shift_m"] > cfg.max_icp_shift_m:
             return reject(f"ICP left the RANSAC basin (moved keypoint inliers by {1e3 * meta['icp_shift_m']:.2f} mm > {1e3 * cfg.max_icp_shift_m:.2f} mm)", metadata=meta, **quality)
         if kp_inliers < cfg.min_inliers:
@@ -885,6 +956,8 @@ class FppPairRegistrar:
             return reject(f"high inlier RMSE ({1e3 * icp.inlier_rmse_m:.3f} mm > {1e3 * cfg.max_inlier_rmse_m:.3f} mm)", metadata=meta, **quality)
         t0, c0 = time.perf_counter(), time.process_time()
         info_icp = information_from_icp(icp, scale=cfg.information_scale)
+        if drop_weak is not None:
+            info_icp = without_weak_directions(info_icp, drop_weak, icp.source_points)
         # Where the dense geometry is weak (an object on a big table plane, a wall), ICP's cost
         # is flat: the keypoints' point-to-point information constrains exactly those directions.
         kp_mask = res_kp < cfg.ransac_threshold_m
@@ -970,4 +1043,5 @@ __all__ = [
     "ransac_rigid",
     "refine_icp",
     "with_features",
+    "without_weak_directions",
 ]

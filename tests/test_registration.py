@@ -310,3 +310,28 @@ def test_sensor_fixed_matches_are_dropped_unless_most_are_fixed():
     mixed[:10] = uv_target[:10] + 2.0
     assert drop_sensor_fixed_matches(matches, uv_target, mixed, 1920)[1] == 10
     assert drop_sensor_fixed_matches(matches, uv_target, mixed, 640)[1] == 0
+
+
+def test_weak_directions_come_from_the_keypoints_and_lose_icp_information():
+    from fpp_graph.geometry import make_pose
+    from frontend.registration import Degeneracy, _weak_directions_from, without_weak_directions
+
+    rng = np.random.default_rng(0)
+    wall = np.column_stack([rng.uniform(-0.2, 0.2, 500), rng.uniform(-0.1, 0.1, 500), np.full(500, 0.5)])
+    wall -= [wall[:, 0].mean(), wall[:, 1].mean(), 0.0]  # centroid on the optical axis
+    # a wall leaves the in-plane shifts and the spin about its normal to the keypoints
+    dirs = np.array([[0, 0, 0, 1, 0, 0], [0, 0, 0, 0, 1, 0], [0, 0, 1, 0, 0, 0]], dtype=float)
+    deg = Degeneracy(True, np.zeros(6), ["x", "y", "spin"], dirs)
+    T_icp = make_pose(np.eye(3), [0.002, 0.001, 0.0001])  # ICP drifted 2 mm in-plane, normal right
+    T_keypoints = make_pose(np.eye(3), [0.0, 0.0, 0.0005])  # keypoints right in-plane, 0.5 mm off the normal
+    T = _weak_directions_from(T_icp, T_keypoints, deg, wall)
+    np.testing.assert_allclose(T[:3, 3], [0.0, 0.0, 0.0001], atol=1e-9)
+    np.testing.assert_allclose(T[:3, :3], np.eye(3), atol=1e-12)
+    # ICP's information keeps the normal, the tilts, and nothing along the weak directions
+    info = np.diag([4.0, 5.0, 6.0, 1.0, 2.0, 3.0]) * 1e6
+    clean = without_weak_directions(info, deg, wall)
+    assert clean[3, 3] == pytest.approx(0.0, abs=1e-6) and clean[4, 4] == pytest.approx(0.0, abs=1e-6)
+    assert clean[5, 5] == pytest.approx(3e6)
+    tilt_about_centroid = np.array([1.0, 0, 0, 0, 0.5, 0])  # rotation about x through the wall's centroid (0, 0, 0.5)
+    assert tilt_about_centroid @ clean @ tilt_about_centroid == pytest.approx(tilt_about_centroid @ info @ tilt_about_centroid)
+    assert np.all(np.linalg.eigvalsh(clean) > -1e-6)
