@@ -74,7 +74,12 @@ def scene_definition(name: str, seed: int | None = None) -> dict:
     if name == "turntable":
         scene = copy.deepcopy(DEFAULT_SCENE)
     else:
-        scene = yaml.safe_load(Path(files.get(name, name)).read_text())
+        path = Path(files.get(name, name))
+        scene = yaml.safe_load(path.read_text())
+        # a mesh path in the file is relative to the file; the dict no longer knows where it came from
+        obj = (scene.get("turntable") or {}).get("object")
+        if isinstance(obj, str) and obj != "doll" and not Path(obj).is_absolute():
+            scene["turntable"]["object"] = str((path.parent / obj).resolve())
     if seed is not None:
         scene["render"] = {**(scene.get("render") or {}), "seed": int(seed)}
     return scene

@@ -216,3 +216,15 @@ def test_vertex_colour_albedo_from_a_mesh_file(tmp_path):
     assert hit.sum() > 1000
     np.testing.assert_allclose(gt.albedo[hit], 0.2, atol=1e-3)
     assert np.all(gt.albedo[~hit] == 0)
+
+
+def test_scene_definition_keeps_mesh_paths_relative_to_their_file(tmp_path):
+    from frontend.demo import scene_definition
+
+    folder = tmp_path / "scenes"
+    folder.mkdir()
+    (folder / "mine.yaml").write_text("scene: turntable\nturntable:\n  object: meshes/thing.obj\n")
+    scene = scene_definition(str(folder / "mine.yaml"), seed=4)
+    assert scene["turntable"]["object"] == str((folder / "meshes" / "thing.obj").resolve())
+    assert scene["render"]["seed"] == 4
+    assert scene_definition("turntable")["turntable"].get("object", "doll") == "doll"  # the built-in doll is left alone
