@@ -10,9 +10,9 @@ from __future__ import annotations
 import logging
 from collections.abc import Sequence
 
+import cv2
 import numpy as np
 from numpy.typing import NDArray
-from scipy import ndimage
 
 from fpp_graph.config import DecodeConfig
 from fpp_graph.errors import InputDataError
@@ -126,6 +126,9 @@ class FppSensor:
         )
 
 
+_KERNEL_3x3 = np.ones((3, 3), np.uint8)
+
+
 def edge_filter_mask(
     xyz_map: NDArray[np.float64], focal_px: float, max_angle_deg: float = 75.0, noise_floor_m: float = 0.0005
 ) -> NDArray[np.bool_]:
@@ -164,20 +167,23 @@ def edge_filter_mask(
     z_hi = np.where(valid, z, np.float32(np.inf))
     z_lo = np.where(valid, z, np.float32(-np.inf))
     # an invalid neighbour makes the range infinite: hole and shadow edges go with the jumps
-    z_range = ndimage.maximum_filter(z_hi, size=3, mode="nearest") - ndimage.minimum_filter(z_lo, size=3, mode="nearest")
+    # (3x3 max/min as OpenCV dilate/erode with replicated borders: ~10x faster than ndimage)
+    z_range = cv2.dilate(z_hi, _KERNEL_3x3, borderType=cv2.BORDER_REPLICATE) - cv2.erode(z_lo, _KERNEL_3x3, borderType=cv2.BORDER_REPLICATE)
     tan_max = np.float32(np.tan(np.radians(max_angle_deg)))
     with np.errstate(invalid="ignore"):
         bound = np.float32(2.0 * np.sqrt(2.0) / focal_px) * tan_max * z + np.float32(noise_floor_m)
         keep = valid & (z_range <= bound)
     keep[0, :] = keep[-1, :] = keep[:, 0] = keep[:, -1] = False
-    # normal from central differences (all 8 neighbours are valid where keep holds)
-    du = xyz[1:-1, 2:] - xyz[1:-1, :-2]
-    dv = xyz[2:, 1:-1] - xyz[:-2, 1:-1]
-    normal = np.cross(du, dv)
-    ray = xyz[1:-1, 1:-1]
-    with np.errstate(invalid="ignore", divide="ignore"):
-        cos = np.abs(np.einsum("ijk,ijk->ij", normal, ray)) / (
-            np.linalg.norm(normal, axis=2) * np.linalg.norm(ray, axis=2)
-        )
-        keep[1:-1, 1:-1] &= cos >= np.float32(np.cos(np.radians(max_angle_deg)))
+    # normal from central differences (all 8 neighbours are valid where keep holds), per
+    # component: |n . r| >= cos(max) |n| |r| compared squared, without (H, W, 3) temporaries
+    dux, duy, duz = (xyz[1:-1, 2:, k] - xyz[1:-1, :-2, k] for k in range(3))
+    dvx, dvy, dvz = (xyz[2:, 1:-1, k] - xyz[:-2, 1:-1, k] for k in range(3))
+    nx = duy * dvz - duz * dvy
+    ny = duz * dvx - dux * dvz
+    nz = dux * dvy - duy * dvx
+    rx, ry, rz = (xyz[1:-1, 1:-1, k] for k in range(3))
+    dot = nx * rx + ny * ry + nz * rz
+    cos2 = np.float32(np.cos(np.radians(max_angle_deg)) ** 2)
+    with np.errstate(invalid="ignore", over="ignore"):
+        keep[1:-1, 1:-1] &= dot * dot >= cos2 * (nx * nx + ny * ny + nz * nz) * (rx * rx + ry * ry + rz * rz)
     return keep
