@@ -223,7 +223,7 @@ def main(argv: list[str] | None = None) -> int:
     lines += ["", "Ratios Open3D / ours (> 1: ours better or faster):", "",
               "| scene | ATE | map RMSE | wall time | CPU time |", "|---|---|---|---|---|"]
     for name, ours, peer in rows:
-        def ratio(key):
+        def ratio(key, ours=ours, peer=peer):
             a, b = peer.get(key, float("nan")), ours.get(key, float("nan"))
             return a / b if b else float("nan")
         lines.append(f"| {name} | {ratio('ate_rmse_mm'):.2f} | {ratio('map_rmse_mm'):.2f} | {ratio('wall_s'):.2f} | {ratio('cpu_s'):.2f} |")

@@ -164,7 +164,6 @@ _FPP_SLAM = [sys.executable, "-c", "import sys; from fpp_graph.cli import main; 
 
 def _cli(*args: str, **kwargs):
     import subprocess
-    import sys
 
     return subprocess.run([*_FPP_SLAM, *args], capture_output=True, text=True, timeout=600, **kwargs)
 
@@ -269,7 +268,6 @@ def test_kill_9_mid_run_then_resume(tmp_path):
     import os
     import signal
     import subprocess
-    import sys
     import time
 
     seq = write_tum_rgbd_sequence(tmp_path / "seq", xs=np.linspace(-0.25, 0.25, 14).tolist())
@@ -303,7 +301,12 @@ def test_kill_9_mid_run_then_resume(tmp_path):
 def test_colour_is_resampled_onto_the_depth_grid():
     """A colour dot seen by a camera 2.5 cm to the side with another focal length lands on the
     depth pixel of the same surface point (7-Scenes colour is not registered to depth)."""
-    from frontend.rgbd import KINECT_V1_COLOR_K, KINECT_V1_T_COLOR_DEPTH, depth_to_xyz_map, register_color_to_depth
+    from frontend.rgbd import (
+        KINECT_V1_COLOR_K,
+        KINECT_V1_T_COLOR_DEPTH,
+        depth_to_xyz_map,
+        register_color_to_depth,
+    )
 
     K_depth = np.array([[585.0, 0, 320], [0, 585.0, 240], [0, 0, 1]])
     xyz = depth_to_xyz_map(np.full((480, 640), 2.0), K_depth)
