@@ -41,17 +41,18 @@ class RegistrationConfig(StrictModel):
     feature: Literal["surf", "sift", "orb", "akaze"] = "surf"
     max_features: int = Field(4000, gt=0)
     feature_max_width_px: int = Field(1024, ge=0, description="wider textures are reduced by an integer factor before detection (0: never)")
+    surf_hessian_threshold: float = Field(3e-6, gt=0, description="SURF det(H) threshold on the contrast-stretched image in [0, 1]; low, so bland walls still yield keypoints (max_features keeps the strongest)")
     ratio_test: float = Field(0.9, gt=0, le=1)
     mutual_check: bool = True
     ransac_threshold_m: float = Field(0.002, gt=0)
-    ransac_iterations: int = Field(2000, gt=0)
+    ransac_iterations: int = Field(10000, gt=0)
     ransac_confidence: float = Field(0.9999, gt=0, lt=1)
     min_inliers: int = Field(15, ge=3)
     icp_method: Literal["gicp", "point_to_plane", "none"] = "gicp"
     icp_voxel_m: float = Field(0.002, gt=0)
     icp_max_correspondence_m: float = Field(0.004, gt=0)
     icp_max_iterations: int = Field(50, gt=0)
-    min_fitness: float = Field(0.2, ge=0, le=1)
+    min_fitness: float = Field(0.1, ge=0, le=1)
     max_inlier_rmse_m: float = Field(0.002, gt=0)
     min_overlap: float = Field(0.1, ge=0, le=1)
     degeneracy_ratio: float = Field(0.02, gt=0, description="information eigenvalue over the trace of its translation block (length-normalised) below which a direction is unconstrained")

@@ -74,7 +74,7 @@ def make_detector(config: RegistrationConfig) -> Detector:
     n = int(config.max_features)
     width = int(config.feature_max_width_px)
     if config.feature == "surf":
-        params = SurfParams(max_features=n, max_working_width=width)
+        params = SurfParams(hessian_threshold=float(config.surf_hessian_threshold), max_features=n, max_working_width=width)
 
         def surf(image: NDArray[np.uint8]) -> tuple[NDArray[np.float64], NDArray]:
             kp = surf_detect_and_compute(image, params)
@@ -90,6 +90,15 @@ def make_detector(config: RegistrationConfig) -> Detector:
         factory = getattr(cv2, "AKAZE_create", None) or cv2.xfeatures2d.AKAZE_create
         return _opencv_detector(lambda: factory(threshold=5e-4), n, width)
     raise InputDataError(f"unknown feature type {config.feature!r}; use surf, sift, orb or akaze")  # pragma: no cover
+
+
+def feature_signature(config: RegistrationConfig) -> str:
+    """What the keypoints of a frame were computed with: frames cached by an earlier run are
+    re-described when any detector setting differs, not just the feature type."""
+    sig = f"{config.feature}:n={int(config.max_features)}:w={int(config.feature_max_width_px)}"
+    if config.feature == "surf":
+        sig += f":h={float(config.surf_hessian_threshold):.3g}"
+    return sig
 
 
 def _check_texture(frame: Frame) -> NDArray[np.uint8]:
@@ -133,6 +142,7 @@ def detect_and_describe(frame: Frame, config: RegistrationConfig, detector: Dete
     uv, desc = detect(np.ascontiguousarray(stretch_contrast(texture)))
     meta = dict(frame.metadata)
     meta["feature"] = config.feature
+    meta["feature_signature"] = feature_signature(config)
     return dataclasses.replace(frame, keypoints_uv=uv, descriptors=desc, metadata=meta)
 
 

@@ -40,7 +40,7 @@ from fpp_graph.config import RegistrationConfig
 from fpp_graph.errors import FppError
 from fpp_graph.geometry import invert, kabsch, se3_exp, se3_log
 from fpp_graph.types import Constraint, ConstraintKind, Frame
-from frontend.features import Detector, detect_and_describe, make_detector, match_descriptors
+from frontend.features import Detector, detect_and_describe, feature_signature, make_detector, match_descriptors
 
 log = logging.getLogger(__name__)
 
@@ -201,14 +201,18 @@ def ransac_rigid(
     log_fail = math.log(max(1.0 - confidence, 1e-300))
     while drawn < min(needed, max_iterations):
         b = min(batch, max_iterations - drawn)
-        idx = np.stack([rng.choice(n, 3, replace=False) for _ in range(b)])
+        # vectorised draw; a sample repeating an index is dropped by the spread test below
+        idx = rng.integers(0, n, size=(b, 3))
         drawn += b
         st, ss = Pt[idx], Ps[idx]  # (b, 3, 3)
         ok = np.ones(b, dtype=bool)
         for i, j in ((0, 1), (0, 2), (1, 2)):
             dt = np.linalg.norm(st[:, i] - st[:, j], axis=1)
             ds = np.linalg.norm(ss[:, i] - ss[:, j], axis=1)
-            ok &= (np.abs(dt - ds) < 2 * threshold_m) & (ds > 10 * threshold_m)
+            # 5 thresholds apart (10 mm at the default): a triangle that small is still well
+            # conditioned at FPP noise (~0.1 mm), and a larger minimum threw away the few
+            # all-inlier samples of a corridor pair whose 34 inliers sit on one poster
+            ok &= (np.abs(dt - ds) < 2 * threshold_m) & (ds > 5 * threshold_m)
         if not np.any(ok):
             continue
         R, t = _kabsch_batch(st[ok], ss[ok])
@@ -781,6 +785,7 @@ class FppPairRegistrar:
         self.config = config or RegistrationConfig()
         self.seed = seed
         self._detector: Detector | None = None
+        self._feature_signature = feature_signature(self.config)
         self._features: weakref.WeakKeyDictionary[Frame, Frame] = weakref.WeakKeyDictionary()
         self._clouds: weakref.WeakKeyDictionary[Frame, IcpCloud] = weakref.WeakKeyDictionary()
         self.last_timings_s: dict[str, float] = {}
@@ -792,7 +797,7 @@ class FppPairRegistrar:
         cached = self._features.get(frame)
         if cached is not None:
             return cached
-        if frame.keypoints_uv is not None and frame.metadata.get("feature") == self.config.feature:
+        if frame.keypoints_uv is not None and frame.metadata.get("feature_signature") == self._feature_signature:
             # already described: nothing to cache (a WeakKeyDictionary holding the frame as its
             # own value would keep every frame alive for the registrar's lifetime)
             return frame
