@@ -57,6 +57,7 @@ class RegistrationConfig(StrictModel):
     min_overlap: float = Field(0.1, ge=0, le=1)
     degeneracy_ratio: float = Field(0.02, gt=0, description="information eigenvalue over the trace of its translation block (length-normalised) below which a direction is unconstrained")
     max_weak_sigma_m: float = Field(0.002, gt=0, description="geometrically weak directions are accepted when the joint ICP + keypoint information constrains them to this standard deviation (appearance-only loops on weak geometry are refused regardless)")
+    min_texture_agreement: float = Field(0.9, ge=0, le=1, description="an appearance-only loop on weak geometry is accepted only when this share of its overlap's texture blocks correlate (look-alike places fail)")
     max_icp_shift_m: float = Field(0.003, gt=0, description="ICP moving RANSAC's keypoint inliers further than this means a wrong basin: reject")
     information_scale: float = Field(1.0, gt=0, description="multiplies the correspondence information; calibrated by NEES over simulated pairs")
 

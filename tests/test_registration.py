@@ -22,9 +22,10 @@ from frontend.registration import (
     lift_keypoints,
     prepare_icp_cloud,
     ransac_rigid,
+    texture_agreement,
     with_features,
 )
-from frontend.synthetic_frames import bumpy_wall_scene, render_frame, wall_pose
+from frontend.synthetic_frames import ProceduralAlbedo, bumpy_wall_scene, render_frame, wall_pose
 
 W, H = 640, 400
 
@@ -198,18 +199,65 @@ def test_guess_is_only_a_hypothesis(pair):
     assert c.accepted and pose_error(c.T_target_source, T_true)[1] < 2e-5
 
 
-def test_look_alike_loop_on_a_plane_is_rejected():
-    # Texture repeating every 0.6 m on one plane: two places 0.6 m apart look the same. As
-    # odometry the keypoints would "pin" a wrong pose; as an appearance-only loop candidate (no
-    # pose guess) the registrar refuses it. (Proximity candidates carry a guess; a false one that
-    # slips through is the robust back-end's to remove.)
-    scene = bumpy_wall_scene(seed=5, flat=True, texture_period_m=0.6)
-    a = render_frame(scene, wall_pose(-0.3), W, H, frame_id=0)
-    b = render_frame(scene, wall_pose(0.3), W, H, frame_id=1)
+class _PosterTwins:
+    """Wall albedo with one poster pattern repeated at two places (a look-alike pair)."""
+
+    def __init__(self, centres_x_m, half_width_m=0.14, half_height_m=0.2):
+        self.wall = ProceduralAlbedo(seed=11)
+        self.poster = ProceduralAlbedo(seed=12, cell_m=(0.004, 0.01, 0.025))
+        self.centres_x_m = centres_x_m
+        self.half = (half_width_m, half_height_m)
+
+    def __call__(self, points_world):
+        p = np.asarray(points_world, dtype=np.float64)
+        out = self.wall(p)
+        for cx in self.centres_x_m:
+            inside = (np.abs(p[:, 0] - cx) < self.half[0]) & (np.abs(p[:, 1]) < self.half[1])
+            out[inside] = self.poster(p[inside] - np.array([cx, 0.0, 0.0]))
+        return out
+
+
+@pytest.fixture(scope="module")
+def poster_wall():
+    scene = bumpy_wall_scene(seed=5, flat=True)
+    return dataclasses.replace(scene, albedo=_PosterTwins([-0.5, 0.5]))
+
+
+def test_look_alike_loop_on_a_plane_is_rejected(poster_wall):
+    # Two copies of a poster on a flat wall, 1 m apart; the view (0.47 m wide) shows the poster
+    # (0.28 m) and the differing wall beside it. As an appearance-only loop candidate (no pose
+    # guess) the keypoints agree on the poster, but the textures over the whole overlap do not.
+    a = render_frame(poster_wall, wall_pose(-0.5 + 0.02), W, H, frame_id=0)
+    b = render_frame(poster_wall, wall_pose(0.5 + 0.02), W, H, frame_id=1)
     reg = FppPairRegistrar(RegistrationConfig())
+    as_odometry = reg.register(a, b)  # keypoints alone are fooled: this is what the guard is for
+    assert as_odometry.accepted and abs(as_odometry.T_target_source[0, 3]) < 0.05
+    agreement = texture_agreement(a, b, as_odometry.T_target_source)
+    assert agreement.blocks >= 20 and agreement.fraction < 0.8
     loop = reg.register(a, b, kind="loop")
     assert not loop.accepted
-    assert "loop" in loop.rejection_reason or "inliers" in loop.rejection_reason
+    assert "look-alike" in loop.rejection_reason
+    assert loop.metadata["texture_agreement"] == pytest.approx(agreement.fraction)
+
+
+def test_true_revisit_on_a_plane_is_accepted_as_appearance_only_loop(poster_wall):
+    # The same place seen again (3 cm and 2 cm off): the textures agree over the whole overlap.
+    a = render_frame(poster_wall, wall_pose(-0.5), W, H, frame_id=0)
+    b = render_frame(poster_wall, wall_pose(-0.5 + 0.03, 0.02, yaw_deg=1.0), W, H, frame_id=1)
+    T_true = invert(wall_pose(-0.5)) @ wall_pose(-0.5 + 0.03, 0.02, yaw_deg=1.0)
+    assert texture_agreement(a, b, T_true).fraction > 0.95
+    loop = FppPairRegistrar(RegistrationConfig()).register(a, b, kind="loop")
+    assert loop.accepted, loop.rejection_reason
+    assert loop.metadata["texture_agreement"] > 0.9
+    assert pose_error(loop.T_target_source, T_true)[1] < 1e-3
+
+
+def test_texture_agreement_without_overlap_or_maps_is_nan(pair):
+    a, b, T_true = pair
+    far = T_true.copy()
+    far[0, 3] += 5.0  # moved off the target entirely
+    assert texture_agreement(a, b, far).blocks == 0
+    assert np.isnan(texture_agreement(dataclasses.replace(a, xyz_map=None), b, T_true).fraction)
 
 
 def test_joint_keypoint_step_fills_the_directions_icp_leaves_flat():
