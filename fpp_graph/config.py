@@ -58,8 +58,10 @@ class RegistrationConfig(StrictModel):
     degeneracy_ratio: float = Field(0.02, gt=0, description="information eigenvalue over the trace of its translation block (length-normalised) below which a direction is unconstrained")
     max_weak_sigma_m: float = Field(0.002, gt=0, description="geometrically weak directions are accepted when the joint ICP + keypoint information constrains them to this standard deviation (appearance-only loops on weak geometry are refused regardless)")
     min_texture_agreement: float = Field(0.9, ge=0, le=1, description="an appearance-only loop on weak geometry is accepted only when this share of its overlap's texture blocks correlate (look-alike places fail)")
+    min_texture_overlap: float = Field(0.7, ge=0, le=1, description="... and its overlap must cover this share of the source view (a look-alike's overlap can be the repeated object alone)")
     max_icp_shift_m: float = Field(0.003, gt=0, description="ICP moving RANSAC's keypoint inliers further than this means a wrong basin: reject")
     information_scale: float = Field(1.0, gt=0, description="multiplies the correspondence information; calibrated by NEES over simulated pairs")
+    keypoint_information_scale: float = Field(0.1, gt=0, le=1, description="multiplies the keypoints' share of the constraint information (their errors are correlated); the acceptance gates use it unscaled")
 
 
 class KeyframeConfig(StrictModel):

@@ -15,6 +15,7 @@ from frontend.registration import (
     FppPairRegistrar,
     IcpResult,
     check_degeneracy,
+    fit_pinhole,
     information_from_icp,
     information_from_keypoints,
     joint_keypoint_step,
@@ -25,7 +26,13 @@ from frontend.registration import (
     texture_agreement,
     with_features,
 )
-from frontend.synthetic_frames import ProceduralAlbedo, bumpy_wall_scene, render_frame, wall_pose
+from frontend.synthetic_frames import (
+    ProceduralAlbedo,
+    bumpy_wall_scene,
+    camera_matrix,
+    render_frame,
+    wall_pose,
+)
 
 W, H = 640, 400
 
@@ -249,7 +256,20 @@ def test_true_revisit_on_a_plane_is_accepted_as_appearance_only_loop(poster_wall
     loop = FppPairRegistrar(RegistrationConfig()).register(a, b, kind="loop")
     assert loop.accepted, loop.rejection_reason
     assert loop.metadata["texture_agreement"] > 0.9
+    assert loop.metadata["texture_agreement_overlap"] > 0.8
     assert pose_error(loop.T_target_source, T_true)[1] < 1e-3
+
+
+def test_fit_pinhole_recovers_the_renderer_camera(pair):
+    a, _, _ = pair
+    K = camera_matrix(W, H)
+    fit = fit_pinhole(a.xyz_map)
+    assert fit is not None
+    (fx, fy, cx, cy), rms_px = fit
+    assert rms_px < 0.1
+    assert fx == pytest.approx(K[0, 0], rel=1e-3) and fy == pytest.approx(K[1, 1], rel=1e-3)
+    assert cx == pytest.approx(K[0, 2], abs=0.5) and cy == pytest.approx(K[1, 2], abs=0.5)
+    assert fit_pinhole(np.full((40, 40, 3), np.nan)) is None
 
 
 def test_texture_agreement_without_overlap_or_maps_is_nan(pair):
