@@ -768,6 +768,19 @@ def joint_keypoint_step(
     return xi
 
 
+def _centred_coordinates(source_points: NDArray) -> Array:
+    """``M`` with ``xi = M xi_c``: ``xi`` in ``[rot, trans]`` about the origin, ``xi_c`` about the
+    centroid of ``source_points`` with rotations as arc length at their RMS radius (the
+    coordinates :func:`check_degeneracy` compares directions in)."""
+    P = np.asarray(source_points, dtype=np.float64).reshape(-1, 3)
+    c = P.mean(axis=0) if P.size else np.zeros(3)
+    radius = max(float(np.sqrt(np.mean(np.sum((P - c) ** 2, axis=1)))) if P.size else 1.0, 1e-6)
+    # about the centroid: v = v_c - omega x c
+    A = np.eye(6)
+    A[3:, :3] = np.array([[0.0, c[2], -c[1]], [-c[2], 0.0, c[0]], [c[1], -c[0], 0.0]])  # -[c]x
+    return A @ np.diag([1.0 / radius] * 3 + [1.0] * 3)  # omega = arc / radius
+
+
 def without_weak_directions(information: NDArray, deg: Degeneracy, source_points: NDArray) -> Array:
     """``information`` with its curvature along ``deg.directions`` removed (set to zero).
 
@@ -782,12 +795,7 @@ def without_weak_directions(information: NDArray, deg: Degeneracy, source_points
     V = np.asarray(deg.directions, dtype=np.float64).reshape(-1, 6)
     if V.shape[0] == 0:
         return info.copy()
-    P = np.asarray(source_points, dtype=np.float64).reshape(-1, 3)
-    c = P.mean(axis=0) if P.size else np.zeros(3)
-    radius = max(float(np.sqrt(np.mean(np.sum((P - c) ** 2, axis=1)))) if P.size else 1.0, 1e-6)
-    A = np.eye(6)
-    A[3:, :3] = np.array([[0.0, c[2], -c[1]], [-c[2], 0.0, c[0]], [c[1], -c[0], 0.0]])
-    M = A @ np.diag([1.0 / radius] * 3 + [1.0] * 3)
+    M = _centred_coordinates(source_points)
     info_c = M.T @ info @ M
     Q, _ = np.linalg.qr(V.T)  # orthonormal basis of the weak subspace
     proj = np.eye(6) - Q @ Q.T
@@ -801,12 +809,7 @@ def _weak_directions_from(T_icp: NDArray, T_other: NDArray, deg: Degeneracy, sou
     """``T_icp`` moved to ``T_other`` along ``deg.directions`` only (centred, length-normalised
     coordinates of :func:`check_degeneracy`), kept along the others."""
     V = np.asarray(deg.directions, dtype=np.float64).reshape(-1, 6)
-    P = np.asarray(source_points, dtype=np.float64).reshape(-1, 3)
-    c = P.mean(axis=0) if P.size else np.zeros(3)
-    radius = max(float(np.sqrt(np.mean(np.sum((P - c) ** 2, axis=1)))) if P.size else 1.0, 1e-6)
-    A = np.eye(6)
-    A[3:, :3] = np.array([[0.0, c[2], -c[1]], [-c[2], 0.0, c[0]], [c[1], -c[0], 0.0]])
-    M = A @ np.diag([1.0 / radius] * 3 + [1.0] * 3)
+    M = _centred_coordinates(source_points)
     xi = se3_log(invert(T_icp) @ np.asarray(T_other, dtype=np.float64))
     xi_c = np.linalg.solve(M, xi)  # xi = M xi_c
     Q, _ = np.linalg.qr(V.T)
@@ -819,14 +822,8 @@ def _weak_direction_sigma_m(information: NDArray, deg: Degeneracy, source_points
         cov = np.linalg.inv(information)
     except np.linalg.LinAlgError:
         return float("inf")
-    P = np.asarray(source_points, dtype=np.float64).reshape(-1, 3)
-    c = P.mean(axis=0)
-    radius = max(float(np.sqrt(np.mean(np.sum((P - c) ** 2, axis=1)))), 1e-6)
-    A = np.eye(6)
-    A[3:, :3] = np.array([[0.0, c[2], -c[1]], [-c[2], 0.0, c[0]], [c[1], -c[0], 0.0]])
-    S = np.diag([1.0 / radius] * 3 + [1.0] * 3)
     # covariance in the centred, length-normalised coordinates of check_degeneracy
-    M = np.linalg.inv(A @ S)
+    M = np.linalg.inv(_centred_coordinates(source_points))
     cov_c = M @ cov @ M.T
     variances = [float(v @ cov_c @ v) for v in deg.directions]
     worst = max(variances) if variances and all(np.isfinite(variances)) else float("nan")
@@ -877,15 +874,8 @@ def check_degeneracy(information: NDArray, source_points: NDArray, ratio: float 
     Degeneracy
     """
     info = np.asarray(information, dtype=np.float64)
-    P = np.asarray(source_points, dtype=np.float64).reshape(-1, 3)
-    c = P.mean(axis=0) if P.size else np.zeros(3)
-    radius = float(np.sqrt(np.mean(np.sum((P - c) ** 2, axis=1)))) if P.size else 1.0
-    radius = max(radius, 1e-6)
-    # xi about the origin = A xi_c with xi_c = [omega, v_c] about the centroid: v = v_c - omega x c
-    A = np.eye(6)
-    A[3:, :3] = np.array([[0.0, c[2], -c[1]], [-c[2], 0.0, c[0]], [c[1], -c[0], 0.0]])  # -[c]x
-    S = np.diag([1.0 / radius] * 3 + [1.0] * 3)  # omega = arc / radius
-    info_c = S @ A.T @ info @ A @ S
+    M = _centred_coordinates(source_points)
+    info_c = M.T @ info @ M
     info_c = 0.5 * (info_c + info_c.T)
     w, V = np.linalg.eigh(info_c)
     # normalise by the trace of the translation block: the translational eigenvalues then sum
