@@ -56,6 +56,7 @@ class RegistrationConfig(StrictModel):
     max_inlier_rmse_m: float = Field(0.002, gt=0)
     min_overlap: float = Field(0.1, ge=0, le=1)
     degeneracy_ratio: float = Field(0.02, gt=0, description="information eigenvalue over the trace of its translation block (length-normalised) below which a direction is unconstrained")
+    plane_from_keypoints: bool = Field(True, description="on plane-like pairs (two or more weak ICP directions) the in-plane shifts and the spin come from the keypoints, the normal shift and tilts from ICP")
     max_weak_sigma_m: float = Field(0.002, gt=0, description="geometrically weak directions are accepted when the joint ICP + keypoint information constrains them to this standard deviation (appearance-only loops on weak geometry are refused regardless)")
     min_texture_agreement: float = Field(0.9, ge=0, le=1, description="an appearance-only loop on weak geometry is accepted only when this share of its overlap's texture blocks correlate (look-alike places fail)")
     min_texture_overlap: float = Field(0.7, ge=0, le=1, description="... and its overlap must cover this share of the source view (a look-alike's overlap can be the repeated object alone)")
