@@ -1144,8 +1144,7 @@ class FppPairRegistrar:
             else:
                 # the keypoints' optimum given ICP's normal shift and tilts (RANSAC's own in-plane
                 # estimate carries its tilt error through the lever arm of a narrow overlap strip)
-                ransac_in = ransac.inliers
-                T_fb = T @ se3_exp(joint_keypoint_step(T, without_weak_directions(info_icp_raw, weak, icp.source_points), Ps[ransac_in], Pt[ransac_in], iterations=5))
+                T_fb = T @ se3_exp(joint_keypoint_step(T, without_weak_directions(info_icp_raw, weak, icp.source_points), Ps_in, Pt[ransac.inliers], iterations=5))
             Ps_in_fb = Ps_in @ T_fb[:3, :3].T + T_fb[:3, 3]
             shift_fb = np.linalg.norm(Ps_in_fb - (Ps_in @ ransac.T_target_source[:3, :3].T + ransac.T_target_source[:3, 3]), axis=1)
             res_fb = np.linalg.norm(Pt - (Ps @ T_fb[:3, :3].T + T_fb[:3, 3]), axis=1)
@@ -1170,9 +1169,10 @@ class FppPairRegistrar:
         if not icp.inlier_rmse_m <= cfg.max_inlier_rmse_m:
             return reject(f"high inlier RMSE ({1e3 * icp.inlier_rmse_m:.3f} mm > {1e3 * cfg.max_inlier_rmse_m:.3f} mm)", metadata=meta, **quality)
         t0, c0 = time.perf_counter(), time.process_time()
-        info_icp = information_from_icp(icp, scale=cfg.information_scale)
+        # ICP's information at the final pose: the one computed above unless the pose moved
+        info_icp = info_icp_raw
         if drop_weak is not None:
-            info_icp = without_weak_directions(info_icp, drop_weak, icp.source_points)
+            info_icp = without_weak_directions(information_from_icp(icp, scale=cfg.information_scale), drop_weak, icp.source_points)
         # Where the dense geometry is weak (an object on a big table plane, a wall), ICP's cost
         # is flat: the keypoints' point-to-point information constrains exactly those directions.
         kp_mask = res_kp < cfg.ransac_threshold_m
