@@ -37,6 +37,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from fpp_graph.errors import InputDataError
+from fpp_graph.geometry import se3_exp
 
 log = logging.getLogger(__name__)
 
@@ -542,6 +543,255 @@ def localize_dense_map(
     return result
 
 
+@dataclass(frozen=True, eq=False)
+class PhotometricLocalizationResult:
+    """Outcome of :func:`localize_photometric`.
+
+    Attributes
+    ----------
+    T_camera_world : (4, 4) float64
+    camera_centre_world_m : (3,) float64
+    pixels_used : int
+        Reference pixels with a non-zero robust weight at the last iteration.
+    photometric_sigma_grey : float
+        Robust (MAD) spread of the intensity residuals at the last iteration, grey levels.
+    ambient_ratio : float
+        Fitted ambient light relative to the projector irradiance (``k`` of the shading model).
+    iterations : int
+        Gauss-Newton steps over all pyramid levels.
+    success : bool
+        Enough pixels, finite pose, converged at full resolution.
+    """
+
+    T_camera_world: Array
+    camera_centre_world_m: Array
+    pixels_used: int
+    photometric_sigma_grey: float
+    ambient_ratio: float
+    iterations: int
+    success: bool
+
+    @property
+    def num_inliers(self) -> int:
+        return self.pixels_used
+
+
+def _photometric_reference_pixels(
+    ref: DenseReference, projector_centre_m: Array | None, max_pixels: int, normal_step_px: int
+) -> tuple[NDArray[np.int64], Array, Array, Array, NDArray[np.bool_]]:
+    """Flat pixel index, world points, world normals and projector irradiance of the usable pixels of one
+    reference: valid, on a smooth surface (no depth edge in a 5x5 window), not saturated or black,
+    the ``max_pixels`` with the strongest texture gradient."""
+    xyz = np.asarray(ref.xyz_map, dtype=np.float64)
+    tex = np.asarray(ref.texture)
+    if xyz.ndim != 3 or xyz.shape[2] != 3 or tex.shape != xyz.shape[:2]:
+        raise InputDataError(f"photometric localisation needs an (H, W, 3) xyz map and an H x W texture of one frame, got {xyz.shape} and {tex.shape}")
+    T = np.asarray(ref.T_world_reference, dtype=np.float64)
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        raise InputDataError("photometric localisation: T_world_reference must be a finite 4x4 pose")
+    z = xyz[..., 2]
+    finite = np.isfinite(z)
+    kernel = np.ones((5, 5), np.uint8)
+    zf = np.where(finite, z, 0.0).astype(np.float32)
+    dz = cv2.dilate(zf, kernel) - cv2.erode(np.where(finite, zf, np.float32(1e9)).astype(np.float32), kernel)
+    intensity = tex.astype(np.float32)
+    smooth = finite & (cv2.erode(finite.astype(np.uint8), kernel) > 0) & (dz < 0.004 * np.float32(np.nanmedian(z) if finite.any() else 1.0))
+    smooth &= (intensity > 2) & (intensity < 250)
+    grad = np.abs(cv2.Sobel(intensity, cv2.CV_32F, 1, 0, ksize=3)) + np.abs(cv2.Sobel(intensity, cv2.CV_32F, 0, 1, ksize=3))
+    idx = np.flatnonzero(smooth.ravel())
+    if idx.size > max_pixels:
+        g = grad.ravel()[idx]
+        idx = idx[np.argpartition(g, idx.size - max_pixels)[idx.size - max_pixels:]]
+    X = xyz.reshape(-1, 3)[idx]
+    if projector_centre_m is None:
+        E = np.ones(idx.size)
+        n_world = np.full((idx.size, 3), np.nan)
+        has_normal = np.zeros(idx.size, bool)
+    else:
+        n = organised_normals(xyz, normal_step_px).reshape(-1, 3)[idx]
+        to_p = projector_centre_m - X
+        d = np.linalg.norm(to_p, axis=1)
+        E = np.abs(np.sum(n * to_p, axis=1)) / d**3  # cos(theta) / d^2
+        has_normal = np.isfinite(E) & (E > 0)
+        n_world = n @ T[:3, :3].T
+    return idx, X @ T[:3, :3].T + T[:3, 3], n_world, E, has_normal
+
+
+def localize_photometric(
+    references: Sequence[DenseReference],
+    texture_query: NDArray,
+    T_query_world_init: NDArray,
+    K: NDArray,
+    dist: NDArray | None = None,
+    projector_centre_m: NDArray | None = None,
+    valid_query: NDArray | None = None,
+    max_pixels: int = 150_000,
+    levels: int = 3,
+    iterations: Sequence[int] = (10, 8, 20),
+    normal_step_px: int = 4,
+    min_pixels: int = 2000,
+) -> PhotometricLocalizationResult:
+    """Refine a camera pose by direct photometric alignment of FPP map pixels (after the DLT).
+
+    Every textured pixel of the reference frames carries an FPP point; the query pose is the one
+    under which those points, projected into the query texture, show the reference's intensities.
+    Gauss-Newton on the 6-DoF pose (coarse-to-fine over an image pyramid, Tukey weights on the
+    residuals with a MAD scale), hundreds of thousands of pixels instead of tens of keypoints.
+
+    The texture of an FPP frame is ``albedo * (ambient + E)`` with the projector's irradiance
+    ``E = cos(theta) / d^2`` of the surface point (normal from the organised map, ``d`` the
+    distance to the projector, which moves with the camera); the model predicts the query
+    intensity as ``g * I_ref * (k + E_query) / (k + E_ref) + h`` with a global gain ``g``, offset
+    ``h`` and ambient ratio ``k`` estimated with the pose. Without ``projector_centre_m`` only ``g``
+    and ``h`` are fitted (a camera under fixed lighting). ``valid_query`` (the query frame's
+    decoded pixels) keeps points that the projector does not light in the query out of the fit.
+
+    Parameters
+    ----------
+    references : sequence of DenseReference
+        Map frames (xyz map, texture, pose in the world).
+    texture_query : (H, W) uint8
+    T_query_world_init : (4, 4)
+        Initial ``T_camera_world`` (e.g. :func:`localize_dlt`), good to a few pixels.
+    K, dist : the query camera's intrinsics and OpenCV distortion.
+    projector_centre_m : (3,), optional
+        The projector's centre in the sensor (camera) frame, shared by references and query.
+    valid_query : (H, W) bool, optional
+        Query pixels lit by the projector (e.g. ``isfinite(xyz_map[..., 2])``).
+    max_pixels : int
+        Pixels per reference (the strongest gradients).
+    levels, iterations
+        Pyramid levels and Gauss-Newton steps per level, coarsest first.
+
+    Returns
+    -------
+    PhotometricLocalizationResult
+
+    Raises
+    ------
+    InputDataError
+        Images or maps of the wrong type or size, non-finite poses, a malformed K.
+    """
+    q = np.asarray(texture_query)
+    T = np.asarray(T_query_world_init, dtype=np.float64).copy()
+    Km = np.asarray(K, dtype=np.float64)
+    if q.ndim != 2 or q.dtype != np.uint8:
+        raise InputDataError(f"photometric localisation needs an H x W uint8 query texture, got {q.dtype} {q.shape}")
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        raise InputDataError("photometric localisation needs a finite 4x4 initial pose (run localize_dlt first)")
+    if Km.shape != (3, 3) or not np.all(np.isfinite(Km)) or Km[0, 0] <= 0 or Km[1, 1] <= 0:
+        raise InputDataError(f"photometric localisation needs a finite 3x3 K with positive focal lengths, got {Km.tolist()}")
+    if not references:
+        raise InputDataError("photometric localisation needs at least one reference frame")
+    if valid_query is not None and np.asarray(valid_query).shape != q.shape:
+        raise InputDataError(f"photometric localisation: valid_query must be {q.shape}, got {np.asarray(valid_query).shape}")
+    if len(iterations) != levels:
+        raise InputDataError(f"photometric localisation: {levels} levels need {levels} iteration counts, got {list(iterations)}")
+    c_proj = None if projector_centre_m is None else np.asarray(projector_centre_m, dtype=np.float64).reshape(3)
+    failed = PhotometricLocalizationResult(np.full((4, 4), np.nan), np.full(3, np.nan), 0, float("nan"), float("nan"), 0, False)
+    H, W = q.shape
+    parts = [_photometric_reference_pixels(r, c_proj, max_pixels, normal_step_px) for r in references]
+    X_world = np.concatenate([p[1] for p in parts])
+    n_world = np.concatenate([p[2] for p in parts])
+    E_ref = np.concatenate([p[3] for p in parts])
+    has_normal = np.concatenate([p[4] for p in parts])
+    if X_world.shape[0] < min_pixels:
+        return failed
+    # the query on the pinhole K (one resampling), so projection and its Jacobian stay closed-form
+    dist_arr = np.zeros(0) if dist is None else np.asarray(dist, dtype=np.float64).reshape(-1)
+    Q = q.astype(np.float32)
+    # pixels a sample may use: lit in the query (when known) and inside the image after undistortion
+    V = np.ones((H, W), np.uint8) if valid_query is None else np.asarray(valid_query, dtype=bool).astype(np.uint8)
+    if dist_arr.size and np.any(dist_arr != 0):
+        m1, m2 = cv2.initUndistortRectifyMap(Km, dist_arr, None, Km, (W, H), cv2.CV_32FC1)
+        Q = cv2.remap(Q, m1, m2, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        V = cv2.remap(V, m1, m2, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    V = cv2.erode(V, np.ones((3, 3), np.uint8))  # bilinear samples and gradients only inside
+    g, h, k_amb = 1.0, 0.0, 0.3 if c_proj is not None else 0.0
+    steps = 0
+    sigma = float("nan")
+    used = 0
+    step_rad = step_m = float("inf")
+    for level, n_iter in zip(range(levels - 1, -1, -1), iterations, strict=True):
+        s = 2**level
+        Ql = Q
+        for _ in range(level):
+            Ql = cv2.pyrDown(Ql)
+        Hl, Wl = Ql.shape
+        Vl = V.astype(bool) if level == 0 else cv2.resize(V.astype(np.float32), (Wl, Hl), interpolation=cv2.INTER_AREA) > 0.999
+        gx = cv2.Sobel(Ql, cv2.CV_32F, 1, 0, ksize=1, scale=0.5)
+        gy = cv2.Sobel(Ql, cv2.CV_32F, 0, 1, ksize=1, scale=0.5)
+        fx, fy = Km[0, 0] / s, Km[1, 1] / s
+        cx, cy = (Km[0, 2] + 0.5) / s - 0.5, (Km[1, 2] + 0.5) / s - 0.5
+        skew = Km[0, 1] / s
+        # the reference intensities at the blur of the pyramid level (pyrDown ~ Gaussian sigma 0.85 s)
+        I_lev = np.concatenate([
+            (cv2.GaussianBlur(np.asarray(r.texture, dtype=np.float32), (0, 0), 0.85 * s) if level else np.asarray(r.texture, dtype=np.float32)).ravel()[p[0]]
+            for r, p in zip(references, parts, strict=True)
+        ]).astype(np.float64)
+        for _ in range(n_iter):
+            P = X_world @ T[:3, :3].T + T[:3, 3]
+            z = P[:, 2]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                u = fx * P[:, 0] / z + skew * P[:, 1] / z + cx
+                v = fy * P[:, 1] / z + cy
+            sel = np.flatnonzero((z > 0) & (u >= 1) & (v >= 1) & (u < Wl - 2) & (v < Hl - 2))
+            sel = sel[Vl[np.rint(v[sel]).astype(np.int64), np.rint(u[sel]).astype(np.int64)]]
+            if sel.size < min_pixels:
+                return failed
+            if c_proj is not None:
+                T_world_query = np.linalg.inv(T)
+                to_q = (T_world_query[:3, :3] @ c_proj + T_world_query[:3, 3]) - X_world[sel]
+                d_q = np.linalg.norm(to_q, axis=1)
+                E_q = np.abs(np.sum(n_world[sel] * to_q, axis=1)) / d_q**3
+                ok_n = has_normal[sel] & np.isfinite(E_q)
+                E_r = np.where(ok_n, E_ref[sel], 1.0)
+                E_q = np.where(ok_n, E_q, 1.0)
+                rho = (k_amb + E_q) / (k_amb + E_r)
+                drho_dk = (E_r - E_q) / (k_amb + E_r) ** 2
+            else:
+                rho = np.ones(sel.size)
+                drho_dk = np.zeros(sel.size)
+            us, vs = u[sel].astype(np.float32), v[sel].astype(np.float32)
+            I_q = _bilinear(Ql, us, vs).astype(np.float64)
+            Gx = _bilinear(gx, us, vs).astype(np.float64)
+            Gy = _bilinear(gy, us, vs).astype(np.float64)
+            pred = rho * I_lev[sel]
+            res = I_q - (g * pred + h)
+            sigma = 1.4826 * float(np.median(np.abs(res - np.median(res)))) + 1e-6
+            c = 4.685 * sigma
+            w = np.where(np.abs(res) < c, (1.0 - (res / c) ** 2) ** 2, 0.0)
+            Ps = P[sel]
+            zs = Ps[:, 2]
+            # d I / d P (camera frame), then a left perturbation T <- exp(xi) T: dP = omega x P + v
+            dI_dP = np.column_stack([Gx * fx / zs, Gx * skew / zs + Gy * fy / zs, -(Gx * (fx * Ps[:, 0] + skew * Ps[:, 1]) + Gy * fy * Ps[:, 1]) / zs**2])
+            J = np.column_stack([np.cross(Ps, dI_dP), dI_dP, -pred, -np.ones(sel.size), -g * I_lev[sel] * drho_dk])
+            n_par = 9 if c_proj is not None else 8
+            J = J[:, :n_par]
+            Jw = J * w[:, None]
+            A = Jw.T @ J
+            b = Jw.T @ res
+            A += 1e-9 * np.trace(A) * np.eye(n_par)
+            try:
+                delta = -np.linalg.solve(A, b)
+            except np.linalg.LinAlgError:
+                return failed
+            T = se3_exp(delta[:6]) @ T
+            g += float(delta[6])
+            h += float(delta[7])
+            if n_par == 9:
+                k_amb = max(0.0, k_amb + float(delta[8]))
+            steps += 1
+            used = int(np.count_nonzero(w))
+            step_rad, step_m = float(np.linalg.norm(delta[:3])), float(np.linalg.norm(delta[3:6]))
+            if step_rad < 1e-7 and step_m < 1e-7:
+                break
+    # converged: the last full-resolution step moved the pose by under a micrometre / microradian
+    ok = bool(np.all(np.isfinite(T)) and used >= min_pixels and step_rad < 1e-6 and step_m < 1e-6)
+    log.debug("photometric localisation: %d pixels, sigma %.2f grey, k %.3f, %d steps, last step %.2g rad %.2g m", used, sigma, k_amb, steps, step_rad, step_m)
+    return PhotometricLocalizationResult(T, -T[:3, :3].T @ T[:3, 3], used, sigma, k_amb, steps, ok)
+
+
 def _bilinear(image: NDArray[np.float32], x: NDArray, y: NDArray) -> NDArray[np.float32]:
     """Bilinear samples of ``image`` at float coordinates (clamped to the border)."""
     H, W = image.shape
@@ -659,6 +909,22 @@ def track_affine_photometric(
     return c, ok, ncc
 
 
+def organised_normals(xyz_map: NDArray, step_px: int = 4) -> Array:
+    """Unit normals ``(H, W, 3)`` of an organised point map from central differences ``step_px``
+    pixels apart along u and v (NaN within ``step_px`` of the border or an invalid point).
+    Their sign is arbitrary (callers use ``|n . d|``)."""
+    xyz = np.asarray(xyz_map, dtype=np.float64)
+    k = int(step_px)
+    du = np.full_like(xyz, np.nan)
+    dv = np.full_like(xyz, np.nan)
+    du[:, k:-k] = xyz[:, 2 * k:] - xyz[:, : -2 * k]
+    dv[k:-k] = xyz[2 * k:] - xyz[: -2 * k]
+    n = np.cross(du, dv)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        n /= np.linalg.norm(n, axis=2, keepdims=True)
+    return n
+
+
 def shading_corrected_texture(texture: NDArray, xyz_map: NDArray, projector_centre_m: NDArray, normal_step_px: int = 6) -> NDArray[np.uint8]:
     """An albedo-like texture: the FPP texture divided by the projector's irradiance at each pixel.
 
@@ -686,12 +952,7 @@ def shading_corrected_texture(texture: NDArray, xyz_map: NDArray, projector_cent
     if xyz.shape[:2] != tex.shape or xyz.ndim != 3:
         raise InputDataError(f"shading correction needs a texture and an xyz map of one frame, got {tex.shape} and {xyz.shape}")
     k = int(normal_step_px)
-    du = np.full_like(xyz, np.nan)
-    dv = np.full_like(xyz, np.nan)
-    du[:, k:-k] = xyz[:, 2 * k:] - xyz[:, : -2 * k]
-    dv[k:-k] = xyz[2 * k:] - xyz[: -2 * k]
-    n = np.cross(du, dv)
-    n /= np.linalg.norm(n, axis=2, keepdims=True)
+    n = organised_normals(xyz, k)
     to_p = np.asarray(projector_centre_m, dtype=np.float64).reshape(1, 1, 3) - xyz
     d = np.linalg.norm(to_p, axis=2)
     cos = np.abs(np.sum(n * to_p, axis=2)) / d
