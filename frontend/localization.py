@@ -380,6 +380,19 @@ class DenseReference:
     T_world_reference: NDArray = field(default_factory=lambda: np.eye(4))
 
 
+def _smooth_surface_mask(depth_m: NDArray, window_px: int, max_step_fraction: float) -> NDArray[np.bool_]:
+    """Pixels whose whole ``window_px`` window is valid and spans less depth than
+    ``max_step_fraction`` of the median depth (no depth edge, no mixed pixel under it)."""
+    z = np.asarray(depth_m)
+    finite = np.isfinite(z)
+    if not finite.any():
+        return finite
+    kernel = np.ones((window_px, window_px), np.uint8)
+    zf = np.where(finite, z, 0.0).astype(np.float32)
+    dz = cv2.dilate(zf, kernel) - cv2.erode(np.where(finite, zf, np.float32(1e9)).astype(np.float32), kernel)
+    return (cv2.erode(finite.astype(np.uint8), kernel) > 0) & (dz < max_step_fraction * float(np.median(z[finite])))
+
+
 def _reference_points(ref: DenseReference, win: int, mind: int, max_points: int) -> tuple[Array, Array, NDArray[np.uint8]]:
     """Corner pixels on smooth valid surface, their world points ``(N, 5, 3)`` (the point, then
     its neighbours half a window away along +u, -u, +v, -v), and the local-contrast image."""
@@ -398,12 +411,7 @@ def _reference_points(ref: DenseReference, win: int, mind: int, max_points: int)
     empty = (np.zeros((0, 2)), np.zeros((0, 5, 3)), tex)
     if not finite.any():
         return empty
-    valid = finite.astype(np.uint8)
-    zf = np.where(finite, z, 0.0).astype(np.float32)
-    kernel = np.ones((win, win), np.uint8)
-    valid_win = cv2.erode(valid, kernel) > 0
-    dz = cv2.dilate(zf, kernel) - cv2.erode(np.where(finite, zf, np.float32(1e9)).astype(np.float32), kernel)
-    mask = (valid_win & (dz < 0.01 * float(np.median(z[finite])))).astype(np.uint8) * 255
+    mask = _smooth_surface_mask(z, win, 0.01).astype(np.uint8) * 255
     contrast = _local_contrast(tex, win)
     if not mask.any():
         return empty[0], empty[1], contrast
@@ -589,14 +597,8 @@ def _photometric_reference_pixels(
     T = np.asarray(ref.T_world_reference, dtype=np.float64)
     if T.shape != (4, 4) or not np.all(np.isfinite(T)):
         raise InputDataError("photometric localisation: T_world_reference must be a finite 4x4 pose")
-    z = xyz[..., 2]
-    finite = np.isfinite(z)
-    kernel = np.ones((5, 5), np.uint8)
-    zf = np.where(finite, z, 0.0).astype(np.float32)
-    dz = cv2.dilate(zf, kernel) - cv2.erode(np.where(finite, zf, np.float32(1e9)).astype(np.float32), kernel)
     intensity = tex.astype(np.float32)
-    smooth = finite & (cv2.erode(finite.astype(np.uint8), kernel) > 0) & (dz < 0.004 * np.float32(np.nanmedian(z) if finite.any() else 1.0))
-    smooth &= (intensity > 2) & (intensity < 250)
+    smooth = _smooth_surface_mask(xyz[..., 2], 5, 0.004) & (intensity > 2) & (intensity < 250)
     grad = np.abs(cv2.Sobel(intensity, cv2.CV_32F, 1, 0, ksize=3)) + np.abs(cv2.Sobel(intensity, cv2.CV_32F, 0, 1, ksize=3))
     idx = np.flatnonzero(smooth.ravel())
     if idx.size > max_pixels:
