@@ -20,8 +20,11 @@ near-planar sample (thinnest spread < 2 % of the widest) is solved by SQPnP inst
 near-planar inlier set keeps the best sample's pose for the LM.
 
 :func:`localize_dense` refines a pose with the FPP's own 3D points at exact reference pixels,
-tracked into the query image by KLT (hundreds to thousands of correspondences at a few
-hundredths of a pixel instead of tens of descriptor matches at ~0.5 px).
+tracked into the query image by KLT (hundreds to thousands of correspondences instead of tens
+of descriptor matches at ~0.5 px). :func:`localize_photometric` aligns every textured map pixel
+directly (the pose minimises intensity residuals), with the FPP texture's shading model: the
+projector that lights the texture moves with the camera, so a surface point's brightness
+changes between views by a ratio its normal and distances predict.
 """
 
 from __future__ import annotations
