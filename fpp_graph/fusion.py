@@ -36,7 +36,7 @@ from numpy.typing import NDArray
 
 from fpp_graph.atomic import atomic_open
 from fpp_graph.errors import InputDataError, OutputError
-from fpp_graph.geometry import invert
+from fpp_graph.geometry import invert, transform_points
 from fpp_graph.types import Frame
 
 log = logging.getLogger(__name__)
@@ -215,7 +215,7 @@ class VoxelMapFuser:
             if np.count_nonzero(valid) == len(points):
                 weights = weights * grazing_weights(frame.xyz_map)[valid]
         keep = np.all(np.isfinite(points), axis=1) & (weights > 0)
-        points_world = points[keep] @ T[:3, :3].T + T[:3, 3]
+        points_world = transform_points(T, points[keep])
         w = weights[keep]
         if len(points_world):
             columns = np.empty((len(w), 7))

@@ -40,7 +40,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from fpp_graph.errors import InputDataError
-from fpp_graph.geometry import se3_exp
+from fpp_graph.geometry import se3_exp, transform_points
 
 log = logging.getLogger(__name__)
 
@@ -631,8 +631,8 @@ def _photometric_reference_pixels(
         d = np.linalg.norm(to_p, axis=1)
         E = np.abs(np.sum(n * to_p, axis=1)) / d**3  # cos(theta) / d^2
         has_normal = np.isfinite(E) & (E > 0)
-        n_world = n @ T[:3, :3].T
-    return idx, X @ T[:3, :3].T + T[:3, 3], n_world, E, has_normal
+        n_world = n @ np.ascontiguousarray(T[:3, :3].T)
+    return idx, transform_points(T, X), n_world, E, has_normal
 
 
 def localize_photometric(
@@ -754,7 +754,7 @@ def localize_photometric(
             for r, p in zip(references, parts, strict=True)
         ]).astype(np.float64)
         for _ in range(n_iter):
-            P = X_world @ T[:3, :3].T + T[:3, 3]
+            P = transform_points(T, X_world)
             z = P[:, 2]
             with np.errstate(divide="ignore", invalid="ignore"):
                 u = fx * P[:, 0] / z + skew * P[:, 1] / z + cx

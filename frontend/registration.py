@@ -41,7 +41,7 @@ from numpy.typing import NDArray
 
 from fpp_graph.config import RegistrationConfig
 from fpp_graph.errors import FppError
-from fpp_graph.geometry import invert, kabsch, se3_exp, se3_log
+from fpp_graph.geometry import invert, kabsch, se3_exp, se3_log, transform_points
 from fpp_graph.types import Constraint, ConstraintKind, Frame
 from frontend.features import (
     Detector,
@@ -477,7 +477,7 @@ def refine_icp(
     # the source voxels (the information is scaled to the count ICP aligned)
     stride = max(1, src.size // analysis_points)
     Ps = src.points[::stride]
-    moved = Ps @ T[:3, :3].T + T[:3, 3]
+    moved = transform_points(T, Ps)
     idx, sq = tgt.tree.batch_nearest_neighbor_search(moved, num_threads=1)
     idx = np.asarray(idx, dtype=np.int64).reshape(-1)
     sq = np.asarray(sq, dtype=np.float64).reshape(-1)
@@ -488,7 +488,7 @@ def refine_icp(
     # target -> source direction for the overlap (a small source fully inside a large target
     # has fitness 1 but overlap limited by the target side)
     back = invert(T)
-    moved_t = tgt.points[:: max(1, tgt.size // analysis_points)] @ back[:3, :3].T + back[:3, 3]
+    moved_t = transform_points(back, tgt.points[:: max(1, tgt.size // analysis_points)])
     _, sq_t = src.tree.batch_nearest_neighbor_search(moved_t, num_threads=1)
     sq_t = np.asarray(sq_t, dtype=np.float64).reshape(-1)
     frac_t = float(np.mean(sq_t <= max_correspondence_m**2)) if sq_t.size else 0.0
@@ -684,7 +684,7 @@ def texture_agreement(
     valid_s = np.isfinite(xyz_s[:, 0] + xyz_s[:, 1] + xyz_s[:, 2])
     H_t, W_t = target.xyz_map.shape[:2]
     idx = np.flatnonzero(valid_s)
-    moved = xyz_s[idx] @ T[:3, :3].T + T[:3, 3]
+    moved = transform_points(T, xyz_s[idx])
     front = moved[:, 2] > 1e-6
     idx, moved = idx[front], moved[front]
     u = np.rint(fx * moved[:, 0] / moved[:, 2] + cx).astype(np.int64)
