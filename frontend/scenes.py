@@ -38,6 +38,7 @@ from scipy import ndimage
 from scipy.spatial.transform import Rotation
 
 from fpp_graph.errors import ConfigError, InputDataError
+from fpp_graph.geometry import transform_points
 
 log = logging.getLogger(__name__)
 
@@ -733,7 +734,7 @@ def frame_overlap(xyz_a_sensor: NDArray, T_world_a: NDArray, depth_b: NDArray, T
     if pts.shape[0] == 0:
         return 0.0
     T_b_a = np.linalg.inv(T_world_b) @ T_world_a
-    p = pts @ T_b_a[:3, :3].T + T_b_a[:3, 3]
+    p = transform_points(T_b_a, pts)
     H, W = depth_b.shape
     with np.errstate(divide="ignore", invalid="ignore"):
         u = K[0, 0] * p[:, 0] / p[:, 2] + K[0, 2]

@@ -168,7 +168,7 @@ def render_frame(
     u, v = np.meshgrid(np.arange(width, dtype=np.float64), np.arange(height, dtype=np.float64))
     rays_c = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], axis=-1).reshape(-1, 3)
     rays_c /= np.linalg.norm(rays_c, axis=1, keepdims=True)
-    dirs_w = rays_c @ T[:3, :3].T
+    dirs_w = rays_c @ np.ascontiguousarray(T[:3, :3].T)
     origins = np.broadcast_to(T[:3, 3], dirs_w.shape)
     t_hit, normals_w = scene.cast(np.ascontiguousarray(origins), dirs_w)
     hit = np.isfinite(t_hit) & (t_hit < max_range_m)
@@ -184,7 +184,7 @@ def render_frame(
         for du in offs:
             r = np.stack([(u + du - K[0, 2]) / K[0, 0], (v + dv - K[1, 2]) / K[1, 1], np.ones_like(u)], axis=-1).reshape(-1, 3)
             r /= np.linalg.norm(r, axis=1, keepdims=True)
-            d_w = r @ T[:3, :3].T
+            d_w = r @ np.ascontiguousarray(T[:3, :3].T)
             t_s, n_s = scene.cast(np.ascontiguousarray(origins), d_w)
             h = np.isfinite(t_s) & (t_s < max_range_m)
             p_world = T[:3, 3] + d_w[h] * t_s[h, None]

@@ -165,7 +165,7 @@ def project_to_projector(calibration: RigCalibration, points_camera_m: ArrayLike
         raise InputDataError(f"project_to_projector: points must have shape (..., 3), got {P.shape}")
     R = calibration.T_projector_camera[:3, :3]
     t = calibration.T_projector_camera[:3, 3]
-    X = P @ R.T + t
+    X = P @ np.ascontiguousarray(R.T) + t  # contiguous R^T: numpy's BLAS path
     z = X[..., 2]
     with np.errstate(divide="ignore", invalid="ignore"):
         x = np.where(z > 0, X[..., 0] / z, np.nan)
@@ -600,7 +600,7 @@ class Triangulator:
 
         # Crossing of every pixel's epipolar line with the central column (or row).
         epipole = K_p @ T[:3, 3]
-        vanishing = self.rays @ (K_p @ T[:3, :3]).T
+        vanishing = self.rays @ np.ascontiguousarray((K_p @ T[:3, :3]).T)
         lines = np.cross(epipole, vanishing)
         with np.errstate(divide="ignore", invalid="ignore"):
             ell = -(lines[..., self._row] * center + lines[..., 2]) / lines[..., other]
