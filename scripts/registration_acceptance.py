@@ -20,12 +20,15 @@ Groups of pairs (target = earlier frame, source = next):
 Printed: per feature (surf = the project's, sift, orb) and group the rotation/translation error
 distribution, inliers and time (wall and CPU); NEES of the predicted covariance; the rejection
 rate with reasons; DLT camera-centre errors (descriptor matches only, and after the dense KLT
-refinement) against the truth and against the registration.
+refinement) against the truth and against the registration; with ``--map-triples N``, N frames per
+``--map-groups`` scene located against their two neighbours (true poses): DLT on keypoints, KLT
+corners, and :func:`frontend.localization.localize_photometric` against one and both neighbours.
 
 Usage::
 
     .venv/bin/python scripts/registration_acceptance.py            # full resolution, all lines
     .venv/bin/python scripts/registration_acceptance.py --quick    # 640x400, few pairs (minutes)
+    .venv/bin/python scripts/registration_acceptance.py --groups "" --features surf --map-triples 12 --skip-rejection  # localisation only
 """
 
 from __future__ import annotations
