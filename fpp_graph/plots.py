@@ -131,7 +131,7 @@ def plot_trajectory_top_view(
     poses_world_sensor : {frame id: (4, 4)} or (N, 4, 4)
         Estimated poses (an array is keyed 0..N-1).
     odometry_edges, loop_edges_accepted, loop_edges_rejected : sequences of (id, id)
-        Drawn grey, green and red dashed; edges to unknown ids are skipped.
+        Drawn grey, green, and faint red dashed underneath; edges to unknown ids are skipped.
     gt_poses : {frame id: (4, 4)} or (N, 4, 4), optional
         Ground truth, drawn dashed black after an SE(3) alignment onto the estimate over the
         shared ids (the two world frames need not agree).
@@ -163,7 +163,9 @@ def plot_trajectory_top_view(
     edge_styles = (
         (odometry_edges, "odometry", {"colors": "0.45", "linewidths": 1.2, "zorder": 2}),
         (loop_edges_accepted, "loop, accepted", {"colors": "tab:green", "linewidths": 1.4, "zorder": 3}),
-        (loop_edges_rejected, "loop, rejected", {"colors": "tab:red", "linewidths": 1.0, "linestyles": "--", "zorder": 3}),
+        # refused candidates can outnumber the accepted loops several times (look-alike places):
+        # thin and faint underneath, so the graph's edges stay visible
+        (loop_edges_rejected, "loop candidate, refused", {"colors": "tab:red", "linewidths": 0.6, "linestyles": "--", "alpha": 0.3, "zorder": 1.5}),
     )
     for edges, name, style in edge_styles:
         segments = _edge_segments(edges, positions, view)
