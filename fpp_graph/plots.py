@@ -165,7 +165,7 @@ def plot_trajectory_top_view(
         (loop_edges_accepted, "loop, accepted", {"colors": "tab:green", "linewidths": 1.4, "zorder": 3}),
         # refused candidates can outnumber the accepted loops several times (look-alike places):
         # thin and faint underneath, so the graph's edges stay visible
-        (loop_edges_rejected, "loop candidate, refused", {"colors": "tab:red", "linewidths": 0.6, "linestyles": "--", "alpha": 0.3, "zorder": 1.5}),
+        (loop_edges_rejected, "loop candidate, refused", {"colors": "lightcoral", "linewidths": 0.8, "linestyles": "--", "zorder": 1.5}),
     )
     for edges, name, style in edge_styles:
         segments = _edge_segments(edges, positions, view)

@@ -31,6 +31,7 @@ def pixels_like(path, rgb, tol=0.12):
 
 GREEN = (0.17, 0.63, 0.17)  # tab:green
 RED = (0.84, 0.15, 0.16)  # tab:red
+LIGHT_RED = (0.94, 0.50, 0.50)  # lightcoral: refused loop candidates
 
 
 def test_top_view_drops_the_up_axis():
@@ -60,13 +61,13 @@ def test_trajectory_plot_shows_edges_and_ground_truth(tmp_path):
     path = tmp_path / "out" / "trajectory.png"
     odometry = [(i, i + 1) for i in range(39)]
     plot_trajectory_top_view(path, est, odometry, [], [], title="no loops")
-    assert pixels_like(path, GREEN) == 0 and pixels_like(path, RED) == 0
+    assert pixels_like(path, GREEN) == 0 and pixels_like(path, LIGHT_RED) == 0
     plot_trajectory_top_view(
         path, est, odometry, [(39, 0), (30, 10)], [(25, 3), (99, 0)], gt_poses=gt, title="with loops"
     )
     image = matplotlib.image.imread(str(path))
     assert image.shape[0] > 500 and image.shape[1] > 500
-    assert pixels_like(path, GREEN) > 50 and pixels_like(path, RED) > 50
+    assert pixels_like(path, GREEN) > 50 and pixels_like(path, LIGHT_RED) > 50
     assert sorted(p.name for p in path.parent.iterdir()) == ["trajectory.png"]  # no temp files
 
 
