@@ -22,6 +22,7 @@ from numpy.typing import NDArray
 
 from fpp_graph.atomic import atomic_open
 from fpp_graph.errors import InputDataError
+from fpp_graph.geometry import kabsch, transform_points
 
 log = logging.getLogger(__name__)
 
@@ -98,15 +99,6 @@ def _as_pose_dict(poses: Mapping[int, NDArray] | NDArray | Sequence[NDArray]) ->
     return out
 
 
-def _align_rigid(src: NDArray[np.float64], dst: NDArray[np.float64]) -> tuple[NDArray, NDArray]:
-    """R, t minimising ||dst - (R src + t)|| (Kabsch, no scale) via scipy."""
-    from scipy.spatial.transform import Rotation
-
-    mu_s, mu_d = src.mean(axis=0), dst.mean(axis=0)
-    R = Rotation.align_vectors(dst - mu_d, src - mu_s)[0].as_matrix()
-    return R, mu_d - R @ mu_s
-
-
 def _edge_segments(edges, positions: dict[int, NDArray], view: TopView) -> NDArray[np.float64]:
     segs = [(positions[a], positions[b]) for a, b in edges if a in positions and b in positions]
     if not segs:
@@ -150,9 +142,10 @@ def plot_trajectory_top_view(
         common = [k for k in ids if k in gt]
         if len(common) >= 3:
             src = np.array([gt[k][:3, 3] for k in common])
-            R, t = _align_rigid(src, np.array([positions[k] for k in common]))
-            gt_ids = sorted(gt)
-            gt_xyz = np.array([gt[k][:3, 3] for k in gt_ids]) @ R.T + t
+            # SE(3) alignment of the ground truth onto the estimate (a straight trajectory leaves the
+            # roll about it free; any solution draws the same)
+            T_est_gt = kabsch(np.array([positions[k] for k in common]), src)
+            gt_xyz = transform_points(T_est_gt, np.array([gt[k][:3, 3] for k in sorted(gt)]))
         else:
             log.warning("plot %s: ground truth shares %d ids with the estimate; not drawn", path, len(common))
     view = top_view(est_xyz if gt_xyz is None else np.vstack([est_xyz, gt_xyz]))
