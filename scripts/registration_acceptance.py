@@ -222,7 +222,8 @@ def report_accuracy(rows: list[dict]) -> None:
 
 
 def run_map_localisation(group: str, frames: SimulatedFrames, triples: list[tuple[int, int, int]], max_points: int = 4000,
-                         min_distance_px: int | None = None, photometric_pixels: int = 200_000) -> list[dict]:
+                         min_distance_px: int | None = None, photometric_pixels: int = 200_000,
+                         photometric_smoothing_px: float | None = None) -> list[dict]:
     """Line 4 with a map: frame k located against frames k-1 and k+1 (true poses).
 
     Initial pose: DLT on descriptor matches against frame k-1. Then, against both neighbours:
@@ -257,7 +258,8 @@ def run_map_localisation(group: str, frames: SimulatedFrames, triples: list[tupl
         refs = {j: DenseReference(F[j].xyz_map, F[j].texture, P[j]) for j in (km1, kp1)}
         valid_query = np.isfinite(F[k].xyz_map[..., 2])
         photometric = functools.partial(localize_photometric, texture_query=F[k].texture, T_query_world_init=loc.T_camera_world, K=frames.K,
-                                        dist=frames.dist, projector_centre_m=proj_centre, valid_query=valid_query, max_pixels=photometric_pixels)
+                                        dist=frames.dist, projector_centre_m=proj_centre, valid_query=valid_query, max_pixels=photometric_pixels,
+                                        range_smoothing_px=photometric_smoothing_px)
         runs = {
             "klt": functools.partial(localize_dense_map, [refs[km1], refs[kp1]], F[k].texture, loc.T_camera_world, frames.K, frames.dist,
                                      tracker="klt", max_points=max_points, min_distance_px=min_distance_px),
@@ -381,6 +383,7 @@ def main() -> None:
     ap.add_argument("--lookalike-offsets", type=int, default=10, help="look-alike pose pairs per wall")
     ap.add_argument("--map-triples", type=int, default=12, help="frames per map group located against their two neighbours")
     ap.add_argument("--map-groups", default="corridor,turntable", help="scenes of the map-localisation triples")
+    ap.add_argument("--photometric-smoothing-px", type=float, default=None, help="smoothing of the map points along their rays (default: width / 960)")
     ap.add_argument("--photometric-pixels", type=int, default=200_000, help="map pixels per reference frame for the photometric localisation")
     ap.add_argument("--dense-max-points", type=int, default=4000, help="corners per map frame for the dense localisation")
     ap.add_argument("--dense-min-distance-px", type=int, default=None, help="their spacing (default: image width / 160)")
@@ -434,7 +437,8 @@ def main() -> None:
                 triples = triples[:: max(1, len(triples) // args.map_triples)][: args.map_triples]
             else:
                 raise SystemExit(f"unknown map group {group!r}")
-            result["map_localisation"] += run_map_localisation(group, frames, triples, args.dense_max_points, args.dense_min_distance_px, args.photometric_pixels)
+            result["map_localisation"] += run_map_localisation(group, frames, triples, args.dense_max_points, args.dense_min_distance_px, args.photometric_pixels,
+                                                             args.photometric_smoothing_px)
     if not args.skip_rejection:
         frames = SimulatedFrames(ROOT / "datasets" / "corridor.yaml", args.preview)
         result["rejection"] = run_rejection(frames, args.rejection_frames, args.lookalike_offsets, args.seed)
