@@ -730,7 +730,7 @@ def localize_photometric(
     c_proj = None if projector_centre_m is None else np.asarray(projector_centre_m, dtype=np.float64).reshape(3)
     failed = PhotometricLocalizationResult(np.full((4, 4), np.nan), np.full(3, np.nan), 0, float("nan"), float("nan"), 0, False)
     H, W = q.shape
-    smoothing_px = q.shape[1] / 960.0 if range_smoothing_px is None else float(range_smoothing_px)
+    smoothing_px = W / 960.0 if range_smoothing_px is None else float(range_smoothing_px)
     parts = [_photometric_reference_pixels(r, c_proj, max_pixels, normal_step_px, smoothing_px) for r in references]
     X_world = np.concatenate([p[1] for p in parts])
     n_world = np.concatenate([p[2] for p in parts])
@@ -749,6 +749,7 @@ def localize_photometric(
         V = cv2.remap(V, m1, m2, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
     V = cv2.erode(V, np.ones((3, 3), np.uint8))  # bilinear samples and gradients only inside
     g, h, k_amb = 1.0, 0.0, 0.3 if c_proj is not None else 0.0
+    n_par = 9 if c_proj is not None else 8  # pose, gain, offset (+ ambient ratio with the shading model)
     steps = 0
     sigma = float("nan")
     used = 0
@@ -806,9 +807,7 @@ def localize_photometric(
             zs = Ps[:, 2]
             # d I / d P (camera frame), then a left perturbation T <- exp(xi) T: dP = omega x P + v
             dI_dP = np.column_stack([Gx * fx / zs, Gx * skew / zs + Gy * fy / zs, -(Gx * (fx * Ps[:, 0] + skew * Ps[:, 1]) + Gy * fy * Ps[:, 1]) / zs**2])
-            J = np.column_stack([np.cross(Ps, dI_dP), dI_dP, -pred, -np.ones(sel.size), -g * I_lev[sel] * drho_dk])
-            n_par = 9 if c_proj is not None else 8
-            J = J[:, :n_par]
+            J = np.column_stack([np.cross(Ps, dI_dP), dI_dP, -pred, -np.ones(sel.size), -g * I_lev[sel] * drho_dk])[:, :n_par]
             Jw = J * w[:, None]
             A = Jw.T @ J
             b = Jw.T @ res
