@@ -123,6 +123,7 @@ class RenderSettings(_Strict):
     max_blur_sigma_px: float = Field(4.0, gt=0, description="cap of the defocus blur sigma")
     shadow_offset_m: float = Field(1e-4, gt=0, description="shadow-ray start offset along the normal (avoids self-hits)")
     min_lit_cosine: float = Field(0.02, ge=0, lt=1, description="grazing projector light below this cosine is treated as unlit")
+    smooth_shading: bool = Field(False, description="projector irradiance from normals interpolated across each triangle (smooth surfaces) instead of the flat triangle normal (faceted shading)")
     seed: int = Field(0, description="noise seed; frame k uses (seed, k)")
 
 
@@ -381,6 +382,17 @@ class FppSimulator:
             self._gid_to_part[int(gid)] = i
         T_cp = np.linalg.inv(calibration.T_projector_camera)
         self._projector_centre_sensor = T_cp[:3, 3].copy()
+        # area-weighted vertex normals, for smooth shading
+        self._vertex_normals: list[NDArray[np.float32]] = []
+        if self.settings.smooth_shading:
+            for part in self._parts:
+                v, f = part.vertices, part.triangles
+                face = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+                vn = np.zeros_like(v)
+                for k in range(3):
+                    np.add.at(vn, f[:, k], face)
+                vn /= np.maximum(np.linalg.norm(vn, axis=1, keepdims=True), 1e-30)
+                self._vertex_normals.append(vn.astype(np.float32))
 
     def _map(self, fn, n: int) -> list:
         """Run ``fn(slice)`` over ``n`` items split into one chunk per thread."""
@@ -448,6 +460,10 @@ class FppSimulator:
             to_proj = c_proj_world - pts_world
             dist_p = np.sqrt(np.einsum("ij,ij->i", to_proj, to_proj))
             cos_p = np.einsum("ij,ij->i", nrm, to_proj) / dist_p
+            cos_shade = cos_p
+            if self._vertex_normals:
+                smooth_n = self._interpolated_normals(gids[idx], tris_all[idx], bary_all[idx], nrm)
+                cos_shade = np.maximum(np.einsum("ij,ij->i", smooth_n, to_proj) / dist_p, np.float32(0.0))
             lit = inside & (cos_p > s.min_lit_cosine)
             cand = np.flatnonzero(lit)
             if cand.size:
@@ -457,7 +473,7 @@ class FppSimulator:
                 occluded = self._raycaster.test_occlusions(o3d.core.Tensor(shadow), tnear=0.0, tfar=0.999, nthreads=1).numpy().astype(bool)
                 lit[cand[occluded]] = False
             falloff = (np.float32(s.irradiance_reference_m) / dist_p) ** 2 if s.inverse_square else np.float32(1.0)
-            out["irradiance"][sl] = np.where(lit, np.float32(s.projector_irradiance_grey) * cos_p * falloff, np.float32(0.0))
+            out["irradiance"][sl] = np.where(lit, np.float32(s.projector_irradiance_grey) * cos_shade * falloff, np.float32(0.0))
             out["lit"][sl] = lit
             out["u_p"][sl] = u_p
             out["v_p"][sl] = v_p
@@ -489,6 +505,22 @@ class FppSimulator:
         out["index"] = index
         out["depth"] = out["pts_cam"][:, 2]
         return gt, out
+
+    def _interpolated_normals(self, gids: NDArray, tris: NDArray, bary: NDArray, face_normals: NDArray) -> NDArray[np.float32]:
+        """Vertex normals interpolated at the hits (barycentric ``(u, v)`` of Open3D: weights
+        ``1 - u - v, u, v``), turned to the side of the (camera-facing) face normals."""
+        out = face_normals.copy()
+        for gid in np.unique(gids):
+            sel = np.flatnonzero(gids == gid)
+            pi = self._gid_to_part[int(gid)]
+            corners = self._vertex_normals[pi][self._parts[pi].triangles[tris[sel].astype(np.int64)]]  # (k, 3, 3)
+            u, v = bary[sel, 0:1], bary[sel, 1:2]
+            n = (1.0 - u - v) * corners[:, 0] + u * corners[:, 1] + v * corners[:, 2]
+            n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+            flip = np.einsum("ij,ij->i", n, face_normals[sel]) < 0
+            n[flip] *= -1.0
+            out[sel] = n
+        return out
 
     def _check_sensor_outside(self, backfacing: NDArray, n: int, T_world_sensor: NDArray, where: str) -> None:
         frac_back = float(np.count_nonzero(backfacing)) / n if n else 0.0

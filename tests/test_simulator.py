@@ -80,6 +80,26 @@ def test_noise_free_settings_give_noise_free_images(rig, spec):
     assert np.array_equal(a, b)
 
 
+def test_smooth_shading_removes_facets_from_the_texture(rig, spec):
+    import cv2
+
+    # a coarse white ball: flat triangle normals make the projector's irradiance step at every
+    # edge; interpolated normals give a smooth shading over the same geometry
+    ball = scenes.sphere_scene(0.45, radius_m=0.05, resolution=12)
+    images = {}
+    sensor = FppSensor(rig, spec)
+    for smooth in (False, True):
+        quiet = RenderSettings(read_noise_grey=0.0, shot_noise_gain=0.0, blur_sigma_px=0.0, smooth_shading=smooth)
+        frame = FppSimulator(rig, spec, ball, quiet).render(np.eye(4), 0)
+        images[smooth] = sensor.frame_from_images(0, 0.0, frame.images).texture.astype(np.float32)
+        lit = frame.ground_truth.lit_mask
+    inner = cv2.erode(lit.astype(np.uint8), np.ones((7, 7), np.uint8)) > 0
+    roughness = {k: float(np.abs(cv2.Laplacian(v, cv2.CV_32F))[inner].mean()) for k, v in images.items()}
+    assert roughness[True] < 0.5 * roughness[False]
+    # the same mean brightness: only the facets go
+    assert abs(images[True][inner].mean() - images[False][inner].mean()) < 0.03 * images[False][inner].mean()
+
+
 def test_occluder_casts_a_projector_shadow(rig, spec):
     plane = scenes.plane_scene(0.5, tilt_deg=0.0)
     blocker = scenes.box("blocker", [-0.03, -0.03, 0.38], [0.03, 0.03, 0.42], scenes.ProceduralMaterial())
