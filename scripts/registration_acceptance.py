@@ -68,6 +68,7 @@ from frontend.registration import FppPairRegistrar, lift_keypoints  # noqa: E402
 from frontend.simulator import FppSimulator, load_simulation, look_at_pose  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
+RENDER_OVERRIDES: dict = {}  # RenderSettings fields set from the command line (--smooth-shading)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -85,7 +86,8 @@ class SimulatedFrames:
         if kind == "turntable" and "object" in cfg[kind] and not Path(cfg[kind]["object"]).is_absolute() and cfg[kind]["object"] != "doll":
             cfg[kind]["object"] = str((yaml_path.parent / cfg[kind]["object"]).resolve())
         self.setup = load_simulation(cfg, preview=preview)
-        self.sim = FppSimulator(self.setup.calibration, self.setup.spec, self.setup.scene, self.setup.settings, threads=1)
+        settings = self.setup.settings.model_copy(update=RENDER_OVERRIDES)
+        self.sim = FppSimulator(self.setup.calibration, self.setup.spec, self.setup.scene, settings, threads=1)
         self.sensor = FppSensor(self.setup.calibration, self.setup.spec)
         self.poses = self.setup.poses_world_sensor
         self.K = self.setup.calibration.camera.K
@@ -383,6 +385,7 @@ def main() -> None:
     ap.add_argument("--lookalike-offsets", type=int, default=10, help="look-alike pose pairs per wall")
     ap.add_argument("--map-triples", type=int, default=12, help="frames per map group located against their two neighbours")
     ap.add_argument("--map-groups", default="corridor,turntable", help="scenes of the map-localisation triples")
+    ap.add_argument("--smooth-shading", action="store_true", help="render with RenderSettings.smooth_shading (interpolated normals)")
     ap.add_argument("--photometric-smoothing-px", type=float, default=None, help="smoothing of the map points along their rays (default: width / 960)")
     ap.add_argument("--photometric-pixels", type=int, default=200_000, help="map pixels per reference frame for the photometric localisation")
     ap.add_argument("--dense-max-points", type=int, default=4000, help="corners per map frame for the dense localisation")
@@ -395,6 +398,8 @@ def main() -> None:
     if args.quick:
         args.preview, args.pairs, args.rejection_frames, args.lookalike_offsets, args.map_triples = True, 6, 6, 2, 3
     cv2.setNumThreads(1)
+    if args.smooth_shading:
+        RENDER_OVERRIDES["smooth_shading"] = True
     res_name = "640x400" if args.preview else "1920x1200"
     print(f"fringe-simulator frames at {res_name}, features {args.features}")
     t_start = time.time()
