@@ -382,17 +382,13 @@ class FppSimulator:
             self._gid_to_part[int(gid)] = i
         T_cp = np.linalg.inv(calibration.T_projector_camera)
         self._projector_centre_sensor = T_cp[:3, 3].copy()
-        # area-weighted vertex normals, for smooth shading
+        # vertex normals (Open3D's, area-weighted), for smooth shading
         self._vertex_normals: list[NDArray[np.float32]] = []
         if self.settings.smooth_shading:
             for part in self._parts:
-                v, f = part.vertices, part.triangles
-                face = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
-                vn = np.zeros_like(v)
-                for k in range(3):
-                    np.add.at(vn, f[:, k], face)
-                vn /= np.maximum(np.linalg.norm(vn, axis=1, keepdims=True), 1e-30)
-                self._vertex_normals.append(vn.astype(np.float32))
+                mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(part.vertices), o3d.utility.Vector3iVector(part.triangles.astype(np.int32)))
+                mesh.compute_vertex_normals()
+                self._vertex_normals.append(np.asarray(mesh.vertex_normals, dtype=np.float32))
 
     def _map(self, fn, n: int) -> list:
         """Run ``fn(slice)`` over ``n`` items split into one chunk per thread."""
