@@ -123,7 +123,7 @@ def plot_trajectory_top_view(
     poses_world_sensor : {frame id: (4, 4)} or (N, 4, 4)
         Estimated poses (an array is keyed 0..N-1).
     odometry_edges, loop_edges_accepted, loop_edges_rejected : sequences of (id, id)
-        Drawn grey, green, and faint red dashed underneath; edges to unknown ids are skipped.
+        Drawn grey, green, and light red dashed underneath; edges to unknown ids are skipped.
     gt_poses : {frame id: (4, 4)} or (N, 4, 4), optional
         Ground truth, drawn dashed black after an SE(3) alignment onto the estimate over the
         shared ids (the two world frames need not agree).
