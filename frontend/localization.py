@@ -587,6 +587,15 @@ class PhotometricLocalizationResult:
         return self.pixels_used
 
 
+def _projector_irradiance(normals: Array, to_projector: Array) -> tuple[Array, Array]:
+    """The FPP texture's shading model: irradiance ``E = cos(theta) / d^2`` of surface points with
+    unit ``normals`` from a projector at ``to_projector`` (point to projector, metres), and
+    ``cos(theta)``; over the last axis, any leading shape."""
+    d = np.linalg.norm(to_projector, axis=-1)
+    cos = np.abs(np.sum(normals * to_projector, axis=-1)) / d
+    return cos / d**2, cos
+
+
 def _smoothed_along_rays(xyz_map: Array, sigma_px: float) -> Array:
     """Organised points moved along their rays to a smoothed depth, without the smoothing's bias.
 
@@ -645,9 +654,7 @@ def _photometric_reference_pixels(
         has_normal = np.zeros(idx.size, bool)
     else:
         n = organised_normals(xyz, normal_step_px).reshape(-1, 3)[idx]
-        to_p = projector_centre_m - X
-        d = np.linalg.norm(to_p, axis=1)
-        E = np.abs(np.sum(n * to_p, axis=1)) / d**3  # cos(theta) / d^2
+        E, _ = _projector_irradiance(n, projector_centre_m - X)
         has_normal = np.isfinite(E) & (E > 0)
         n_world = n @ np.ascontiguousarray(T[:3, :3].T)
     return idx, transform_points(T, X), n_world, E, has_normal
@@ -754,11 +761,12 @@ def localize_photometric(
     sigma = float("nan")
     used = 0
     step_rad = step_m = float("inf")
+    pyramid = [Q]  # each level once (cv2.buildPyramid is not in the Python bindings)
+    for _ in range(levels - 1):
+        pyramid.append(cv2.pyrDown(pyramid[-1]))
     for level, n_iter in zip(range(levels - 1, -1, -1), iterations, strict=True):
         s = 2**level
-        Ql = Q
-        for _ in range(level):
-            Ql = cv2.pyrDown(Ql)
+        Ql = pyramid[level]
         Hl, Wl = Ql.shape
         Vl = V.astype(bool) if level == 0 else cv2.resize(V.astype(np.float32), (Wl, Hl), interpolation=cv2.INTER_AREA) > 0.999
         gx = cv2.Sobel(Ql, cv2.CV_32F, 1, 0, ksize=1, scale=0.5)
@@ -783,9 +791,7 @@ def localize_photometric(
                 return failed
             if c_proj is not None:
                 T_world_query = np.linalg.inv(T)
-                to_q = (T_world_query[:3, :3] @ c_proj + T_world_query[:3, 3]) - X_world[sel]
-                d_q = np.linalg.norm(to_q, axis=1)
-                E_q = np.abs(np.sum(n_world[sel] * to_q, axis=1)) / d_q**3
+                E_q, _ = _projector_irradiance(n_world[sel], (T_world_query[:3, :3] @ c_proj + T_world_query[:3, 3]) - X_world[sel])
                 ok_n = has_normal[sel] & np.isfinite(E_q)
                 E_r = np.where(ok_n, E_ref[sel], 1.0)
                 E_q = np.where(ok_n, E_q, 1.0)
@@ -994,10 +1000,7 @@ def shading_corrected_texture(texture: NDArray, xyz_map: NDArray, projector_cent
         raise InputDataError(f"shading correction needs a texture and an xyz map of one frame, got {tex.shape} and {xyz.shape}")
     k = int(normal_step_px)
     n = organised_normals(xyz, k)
-    to_p = np.asarray(projector_centre_m, dtype=np.float64).reshape(1, 1, 3) - xyz
-    d = np.linalg.norm(to_p, axis=2)
-    cos = np.abs(np.sum(n * to_p, axis=2)) / d
-    E = cos / d**2
+    E, cos = _projector_irradiance(n, np.asarray(projector_centre_m, dtype=np.float64).reshape(1, 1, 3) - xyz)
     ok = np.isfinite(E) & (cos > 0.1)
     # E is smooth on a surface; smooth away the normals' noise (normalised convolution)
     sigma = 2.0 * k
