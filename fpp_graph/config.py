@@ -62,6 +62,12 @@ class RegistrationConfig(StrictModel):
     min_texture_overlap: float = Field(0.7, ge=0, le=1, description="... and its overlap must cover this share of the source view (a look-alike's overlap can be the repeated object alone)")
     max_icp_shift_m: float = Field(0.003, gt=0, description="ICP moving RANSAC's keypoint inliers further than this means a wrong basin: reject")
     information_scale: float = Field(1.0, gt=0, description="multiplies the correspondence information; calibrated by NEES over simulated pairs")
+    dense_refinement: bool = Field(True, description="after ICP, align every dense_stride_px-th pixel of the two organised maps point-to-plane both ways (frames without an xyz_map skip it)")
+    dense_stride_px: int = Field(2, ge=1, description="pixel stride of the dense alignment's final iterations (1: every pixel, about 4x slower)")
+    dense_coarse_stride_px: int = Field(4, ge=1, description="pixel stride of its first iterations")
+    dense_coarse_iterations: int = Field(4, ge=0)
+    dense_fine_iterations: int = Field(2, ge=1)
+    dense_information_scale: float = Field(0.15, gt=0, description="multiplies the dense alignment's information (neighbouring pixels' errors are correlated); calibrated by NEES over simulated pairs")
     keypoint_information_scale: float = Field(0.1, gt=0, le=1, description="multiplies the keypoints' share of the constraint information (their errors are correlated); the acceptance gates use it unscaled")
 
 
