@@ -154,7 +154,7 @@ class OrganisedSurface:
         n = sample_bilinear(self.normals_binned, (np.asarray(u_px, np.float32) - 0.5) * 0.5, (np.asarray(v_px, np.float32) - 0.5) * 0.5)
         return n / np.linalg.norm(n, axis=1, keepdims=True)
 
-    def lookup(self, points_m: Array, corrections: int = 2) -> tuple[Array, Array]:
+    def lookup(self, points_m: Array, corrections: int = 3) -> tuple[Array, Array]:
         """Surface point and normal where each point's ray meets this map (NaN off the surface).
 
         Parameters
