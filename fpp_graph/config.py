@@ -65,6 +65,7 @@ class RegistrationConfig(StrictModel):
     dense_refinement: bool = Field(True, description="after ICP, align every dense_stride_px-th pixel of the two organised maps point-to-plane both ways (frames without an xyz_map skip it)")
     dense_stride_px: int = Field(2, ge=1, description="pixel stride of the dense alignment's final iterations (1: every pixel, about 4x slower)")
     dense_coarse_stride_px: int = Field(4, ge=1, description="pixel stride of its first iterations")
+    dense_max_points: int = Field(160000, ge=100, description="both strides grow until the final iterations sample at most this many pixels per map (a full-view wall has 4x the doll's pixels)")
     dense_coarse_iterations: int = Field(4, ge=0)
     dense_fine_iterations: int = Field(2, ge=1)
     dense_information_scale: float = Field(0.15, gt=0, description="multiplies the dense alignment's information (neighbouring pixels' errors are correlated); calibrated by NEES over simulated pairs")

@@ -258,6 +258,7 @@ def align_dense(
     prior_information: NDArray | None = None,
     coarse_stride_px: int = 4,
     fine_stride_px: int = 1,
+    max_points: int | None = None,
     max_iterations: int = 12,
     fine_iterations: int = 2,
     max_distance_m: float = 0.004,
@@ -276,6 +277,10 @@ def align_dense(
     prior_information : (6, 6), optional
         ``[rot, trans]`` information of a Gaussian prior centred on ``T_init``.
     coarse_stride_px, fine_stride_px : int
+    max_points : int, optional
+        Both strides grow (in the same proportion) until the finer one samples at most this
+        many pixels of the larger map: the cost of an iteration is linear in the samples, and a
+        wall filling a 1920x1200 view has four times the doll's pixels.
         Pixel strides of the coarse iterations and of the last ``fine_iterations``.
     max_distance_m : float
         Initial residual gate; it shrinks to six robust sigmas as the fit converges.
@@ -325,6 +330,10 @@ def align_dense(
         small = float(np.linalg.norm(xi[:3])) < step_tolerance and float(np.linalg.norm(xi[3:])) < step_tolerance
         return small, info, sigma, int(np.count_nonzero(w)), used
 
+    if max_points:
+        grow = math.ceil(math.sqrt(max(target.num_valid, source.num_valid) / (fine_stride_px**2 * max(int(max_points), 1))))
+        if grow > 1:
+            coarse_stride_px, fine_stride_px = coarse_stride_px * grow, fine_stride_px * grow
     for _ in range(max_iterations if coarse_stride_px != fine_stride_px else 0):
         if iterate(coarse_stride_px)[0]:
             break

@@ -1046,7 +1046,7 @@ class FppPairRegistrar:
             dense = align_dense(
                 self.dense_surface(target), self.dense_surface(source), T_target_source, prior_information=prior,
                 coarse_stride_px=cfg.dense_coarse_stride_px, fine_stride_px=cfg.dense_stride_px,
-                max_iterations=cfg.dense_coarse_iterations, fine_iterations=cfg.dense_fine_iterations,
+                max_iterations=cfg.dense_coarse_iterations, fine_iterations=cfg.dense_fine_iterations, max_points=cfg.dense_max_points,
                 max_distance_m=cfg.icp_max_correspondence_m,
             )
         except FppError as exc:
