@@ -17,7 +17,11 @@
 5. :func:`information_from_icp`: 6x6 information in ``[rot, trans]`` order from the point-to-plane
    correspondences, scaled by the NEES-calibrated ``information_scale``;
 6. verification with explicit reasons (too few matches/inliers, ICP leaving the RANSAC basin,
-   low fitness/overlap, high inlier RMSE, degenerate geometry via :func:`check_degeneracy`).
+   low fitness/overlap, high inlier RMSE, degenerate geometry via :func:`check_degeneracy`);
+7. :meth:`FppPairRegistrar.refine_dense`: dense point-to-plane alignment of every
+   ``dense_stride_px``-th pixel of both organised maps (:mod:`frontend.dense_alignment`) with the
+   keypoints as prior; its information (scaled by ``dense_information_scale``) replaces ICP's.
+   Plane-like pairs (three weak directions) keep step 4's pose.
 
 A pair that fails any check returns ``Constraint.rejected(...)`` with the reason; a pair that
 cannot be attempted at all (no texture, no 3D points) is rejected the same way, so a caller
