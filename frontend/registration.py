@@ -1264,16 +1264,25 @@ class FppPairRegistrar:
         # relief (the doll's spin about the turntable axis, where GICP's error was) is left to
         # the dense fit; a plane is not refined (below).
         weak_dense = drop_weak
+        T_start = T
+        if drop_weak is not None and drop_weak is not deg_icp:
+            # The plane rule (step 4) read the pair as a plane from ICP's voxels and took the
+            # in-plane directions from the keypoints. A doll on a turntable looks like that to
+            # ICP (the table dominates), and ORB keypoints 1.4 mm off then replaced ICP's
+            # 0.04 mm pose. Every pixel decides: from ICP's own pose, unpinned; if the dense
+            # information is not plane-like the relief constrains the plane's directions.
+            weak_dense, T_start = None, meta["T_icp"]
         if len(deg_icp.unconstrained) >= 3:
             dense, why_not = None, "plane-like geometry (ICP: " + "; ".join(deg_icp.unconstrained) + ")"
         else:
-            dense, why_not = self.refine_dense(target, source, T, info_kp, weak_dense, icp.source_points)
+            dense, why_not = self.refine_dense(target, source, T_start, info_kp, weak_dense, icp.source_points)
         if weak_dense is not None:
             meta["dense_pinned"] = list(weak_dense.unconstrained)
         if dense is not None:
             dense_deg = check_degeneracy(dense.information, dense.source_points, cfg.degeneracy_ratio)
             meta["dense_eigenvalue_ratios"] = dense_deg.eigenvalue_ratios
-            shift_dense = float(np.max(np.linalg.norm(transform_points(dense.T_target_source, Ps_in) - transform_points(T, Ps_in), axis=1))) if Ps_in.size else 0.0
+            # (against RANSAC's pose, as ICP's shift is: the keypoints' basin)
+            shift_dense = float(np.max(np.linalg.norm(transform_points(dense.T_target_source, Ps_in) - transform_points(ransac.T_target_source, Ps_in), axis=1))) if Ps_in.size else 0.0
             meta.update({"dense_shift_m": shift_dense, "dense_iterations": dense.iterations, "dense_residuals": dense.num_residuals, "dense_sigma_m": dense.sigma_m})
             if len(dense_deg.unconstrained) >= 3:
                 # a plane even to every pixel (a wall: ratios <= 0.016 where the doll's are >= 0.2):
