@@ -11,7 +11,7 @@ pairs it is 0.005-0.02 deg off even on the simulator's exact points, where this 
 How (projective data association, as in KinectFusion, but on the FPP map's own rays):
 
 * A point ``X`` in a frame's camera is associated with the pixel whose ray passes through it.
-  The pixel is found from a pinhole fitted to the map (:func:`frontend.registration.fit_pinhole`)
+  The pixel is found from a pinhole fitted to the map (:func:`fit_pinhole`)
   and then corrected with the map's own per-pixel ray directions (``x/z, y/z`` of each decoded
   point: a triangulated point lies on its pixel's ray whatever its range error, so this map is
   noise-free and carries the lens distortion). No calibration has to travel with a frame.
@@ -68,6 +68,36 @@ def sample_bilinear(image: NDArray[np.float32], u_px: NDArray, v_px: NDArray) ->
     return out.reshape(rows * _REMAP_ROW, channels)[:n]
 
 
+def fit_pinhole(xyz_map: NDArray, step_px: int = 8) -> tuple[NDArray[np.float64], float] | None:
+    """Pinhole ``(fx, fy, cx, cy)`` of an organised map by least squares (``u = fx X/Z + cx``), and its RMS in pixels.
+
+    The map's pixels are the camera's, so the projection comes from the frame itself: no
+    calibration has to travel with a Frame. Lens distortion shows up in the RMS.
+    """
+    sub = np.asarray(xyz_map[::step_px, ::step_px], dtype=np.float64)
+    v, u = np.mgrid[0 : sub.shape[0], 0 : sub.shape[1]] * float(step_px)
+    ok = np.isfinite(sub[..., 0] + sub[..., 1] + sub[..., 2]) & (sub[..., 2] > 0)
+    if int(ok.sum()) < 20:
+        return None
+    X, Y, Z = sub[ok, 0], sub[ok, 1], sub[ok, 2]
+    params, res2 = [], 0.0
+    for coord, pix in ((X / Z, u[ok]), (Y / Z, v[ok])):
+        A = np.stack([coord, np.ones_like(coord)], axis=1)
+        sol, *_ = np.linalg.lstsq(A, pix, rcond=None)
+        params.append(sol)
+        res2 += float(np.sum((A @ sol - pix) ** 2))
+    (fx, cx), (fy, cy) = params
+    if not (np.isfinite([fx, fy, cx, cy]).all() and abs(fx) > 1 and abs(fy) > 1):
+        return None
+    return np.array([fx, fy, cx, cy]), float(np.sqrt(res2 / (2 * X.size)))
+
+
+def point_to_plane_jacobian(T_target_source: Array, source_points: Array, target_normals: Array) -> Array:
+    """Rows ``d r / d [omega, v]`` of ``r = n . (T Exp(xi) p - q)`` at ``xi = 0``: ``[p x m, m]``, ``m = R^T n``."""
+    m = target_normals @ T_target_source[:3, :3]  # rows: R^T n
+    return np.concatenate([np.cross(source_points, m), m], axis=1)
+
+
 class OrganisedSurface:
     """A frame's organised map prepared for dense alignment (as target and as source).
 
@@ -86,8 +116,6 @@ class OrganisedSurface:
     """
 
     def __init__(self, xyz_map: NDArray, normal_window_px: int | None = None):
-        from frontend.registration import fit_pinhole  # registration imports this module
-
         xyz = np.asarray(xyz_map)
         if xyz.ndim != 3 or xyz.shape[2] != 3:
             raise InputDataError(f"dense alignment needs an (H, W, 3) xyz map, got shape {xyz.shape}")
@@ -145,8 +173,7 @@ class OrganisedSurface:
             keep = np.flatnonzero(np.isfinite(P[:, 2] + N[:, 0]))
             N = N[keep]
             N /= np.linalg.norm(N, axis=1, keepdims=True)
-            ok = np.ones(keep.size, dtype=bool)
-            self._samples[s] = (P[keep[ok]].astype(np.float64), N[ok].astype(np.float64))
+            self._samples[s] = (P[keep].astype(np.float64), N.astype(np.float64))
         return self._samples[s]
 
     def normals_at(self, u_px: NDArray, v_px: NDArray) -> NDArray[np.float32]:
@@ -221,8 +248,8 @@ def _normal_equations(
     gate_m: float,
     min_cos: float,
     symmetric: bool,
-) -> tuple[Array, Array, Array, Array]:
-    """Jacobian rows and residuals of both directions at ``T`` (gated)."""
+) -> tuple[Array, Array, Array]:
+    """Jacobian rows, residuals (both directions, gated) and the source points that took part."""
     R, t = T[:3, :3], T[:3, 3]
     Rt = np.ascontiguousarray(R.T)
     Ps, Ns = source.samples(stride_px)
@@ -231,8 +258,7 @@ def _normal_equations(
     with np.errstate(invalid="ignore"):
         r = np.einsum("ij,ij->i", n, X - q)
         ok = (np.abs(r) < gate_m) & (np.einsum("ij,ij->i", n, Ns @ Rt) > min_cos)
-    m = n[ok] @ R  # R^T n per row
-    J = np.concatenate([np.cross(Ps[ok], m), m], axis=1)
+    J = point_to_plane_jacobian(T, Ps[ok], n[ok])
     res = r[ok]
     used_source = Ps[ok]
     if symmetric:
@@ -248,7 +274,7 @@ def _normal_equations(
         y, nn = Y[ok2], n2[ok2]
         J = np.concatenate([J, np.concatenate([np.cross(nn, y), -nn], axis=1)])
         res = np.concatenate([res, r2[ok2]])
-    return J, res, used_source, np.asarray(ok)
+    return J, res, used_source
 
 
 def align_dense(
@@ -305,7 +331,7 @@ def align_dense(
 
     def iterate(stride: int) -> tuple[bool, Array, float, int, Array]:
         T = state["T"]
-        J, r, used, _ = _normal_equations(target, source, T, stride, state["gate"], min_cos, symmetric)
+        J, r, used = _normal_equations(target, source, T, stride, state["gate"], min_cos, symmetric)
         if r.size < 6:
             raise InputDataError(
                 f"dense alignment: {r.size} correspondences within {1e3 * state['gate']:.2f} mm; the pose is too far off or the views do not overlap"
@@ -347,4 +373,4 @@ def align_dense(
     return DenseAlignment(T, info, sigma, n_used, iterations, converged, used)
 
 
-__all__ = ["DenseAlignment", "OrganisedSurface", "align_dense", "sample_bilinear"]
+__all__ = ["DenseAlignment", "OrganisedSurface", "align_dense", "fit_pinhole", "point_to_plane_jacobian", "sample_bilinear"]

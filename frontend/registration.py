@@ -47,7 +47,13 @@ from fpp_graph.config import RegistrationConfig
 from fpp_graph.errors import FppError
 from fpp_graph.geometry import invert, kabsch, se3_exp, se3_log, transform_points
 from fpp_graph.types import Constraint, ConstraintKind, Frame
-from frontend.dense_alignment import DenseAlignment, OrganisedSurface, align_dense
+from frontend.dense_alignment import (
+    DenseAlignment,
+    OrganisedSurface,
+    align_dense,
+    fit_pinhole,
+    point_to_plane_jacobian,
+)
 from frontend.features import (
     Detector,
     detect_and_describe,
@@ -513,12 +519,6 @@ def refine_icp(
     )
 
 
-def _point_to_plane_jacobian(T_target_source: Array, source_points: Array, target_normals: Array) -> Array:
-    """Rows ``d r / d [omega, v]`` of ``r = n . (T Exp(xi) p - q)`` at ``xi = 0``: ``[p x m, m]``, ``m = R^T n``."""
-    m = target_normals @ T_target_source[:3, :3]  # rows: R^T n
-    return np.concatenate([np.cross(source_points, m), m], axis=1)
-
-
 def information_from_icp(icp: IcpResult, scale: float = 1.0, min_sigma_m: float = 1e-6) -> Array:
     """6x6 information of ``T_target_source`` in ``[rot, trans]`` order from point-to-plane terms.
 
@@ -537,7 +537,7 @@ def information_from_icp(icp: IcpResult, scale: float = 1.0, min_sigma_m: float 
     n = icp.residuals_m.size
     if n < 7:
         return np.zeros((6, 6))
-    J = _point_to_plane_jacobian(icp.T_target_source, icp.source_points, icp.target_normals_matched)
+    J = point_to_plane_jacobian(icp.T_target_source, icp.source_points, icp.target_normals_matched)
     sigma2 = max(float(np.sum(icp.residuals_m**2)) / (n - 6), min_sigma_m**2)
     # the residuals are a sample of all correspondences: scale back to the full count
     info = scale * (icp.num_correspondences / n) * (J.T @ J) / sigma2
@@ -615,30 +615,6 @@ class TextureAgreement:
     fraction: float
     blocks: int
     overlap: float = float("nan")
-
-
-def fit_pinhole(xyz_map: NDArray, step_px: int = 8) -> tuple[NDArray[np.float64], float] | None:
-    """Pinhole ``(fx, fy, cx, cy)`` of an organised map by least squares (``u = fx X/Z + cx``), and its RMS in pixels.
-
-    The map's pixels are the camera's, so the projection comes from the frame itself: no
-    calibration has to travel with a Frame. Lens distortion shows up in the RMS.
-    """
-    sub = np.asarray(xyz_map[::step_px, ::step_px], dtype=np.float64)
-    v, u = np.mgrid[0 : sub.shape[0], 0 : sub.shape[1]] * float(step_px)
-    ok = np.isfinite(sub[..., 0] + sub[..., 1] + sub[..., 2]) & (sub[..., 2] > 0)
-    if int(ok.sum()) < 20:
-        return None
-    X, Y, Z = sub[ok, 0], sub[ok, 1], sub[ok, 2]
-    params, res2 = [], 0.0
-    for coord, pix in ((X / Z, u[ok]), (Y / Z, v[ok])):
-        A = np.stack([coord, np.ones_like(coord)], axis=1)
-        sol, *_ = np.linalg.lstsq(A, pix, rcond=None)
-        params.append(sol)
-        res2 += float(np.sum((A @ sol - pix) ** 2))
-    (fx, cx), (fy, cy) = params
-    if not (np.isfinite([fx, fy, cx, cy]).all() and abs(fx) > 1 and abs(fy) > 1):
-        return None
-    return np.array([fx, fy, cx, cy]), float(np.sqrt(res2 / (2 * X.size)))
 
 
 def texture_agreement(
@@ -790,6 +766,14 @@ def _centred_coordinates(source_points: NDArray) -> Array:
     return A @ np.diag([1.0 / radius] * 3 + [1.0] * 3)  # omega = arc / radius
 
 
+def _weak_basis(deg: Degeneracy) -> Array | None:
+    """Orthonormal basis (6, k) of ``deg.directions`` (centred coordinates), None when there are none."""
+    V = np.asarray(deg.directions, dtype=np.float64).reshape(-1, 6)
+    if V.shape[0] == 0:
+        return None
+    return np.linalg.qr(V.T)[0]
+
+
 def without_weak_directions(information: NDArray, deg: Degeneracy, source_points: NDArray) -> Array:
     """``information`` with its curvature along ``deg.directions`` removed (set to zero).
 
@@ -801,12 +785,11 @@ def without_weak_directions(information: NDArray, deg: Degeneracy, source_points
     there and mapped back.
     """
     info = np.asarray(information, dtype=np.float64)
-    V = np.asarray(deg.directions, dtype=np.float64).reshape(-1, 6)
-    if V.shape[0] == 0:
+    Q = _weak_basis(deg)
+    if Q is None:
         return info.copy()
     M = _centred_coordinates(source_points)
     info_c = M.T @ info @ M
-    Q, _ = np.linalg.qr(V.T)  # orthonormal basis of the weak subspace
     proj = np.eye(6) - Q @ Q.T
     info_c = proj @ info_c @ proj
     M_inv = np.linalg.inv(M)
@@ -818,10 +801,9 @@ def weak_direction_pin(deg: Degeneracy, source_points: NDArray, strength: float)
     """An information matrix of ``strength`` along ``deg.directions`` only (centred,
     length-normalised coordinates of :func:`check_degeneracy`, mapped back to ``[rot, trans]``
     about the origin): a prior that holds those directions and leaves the others free."""
-    V = np.asarray(deg.directions, dtype=np.float64).reshape(-1, 6)
-    if V.shape[0] == 0:
+    Q = _weak_basis(deg)
+    if Q is None:
         return np.zeros((6, 6))
-    Q, _ = np.linalg.qr(V.T)
     M_inv = np.linalg.inv(_centred_coordinates(source_points))
     out = M_inv.T @ (float(strength) * (Q @ Q.T)) @ M_inv
     return 0.5 * (out + out.T)
@@ -857,11 +839,12 @@ def plane_directions(information: NDArray, source_points: NDArray) -> Degeneracy
 def _weak_directions_from(T_icp: NDArray, T_other: NDArray, deg: Degeneracy, source_points: NDArray) -> Array:
     """``T_icp`` moved to ``T_other`` along ``deg.directions`` only (centred, length-normalised
     coordinates of :func:`check_degeneracy`), kept along the others."""
-    V = np.asarray(deg.directions, dtype=np.float64).reshape(-1, 6)
+    Q = _weak_basis(deg)
+    if Q is None:
+        return np.asarray(T_icp, dtype=np.float64).copy()
     M = _centred_coordinates(source_points)
     xi = se3_log(invert(T_icp) @ np.asarray(T_other, dtype=np.float64))
     xi_c = np.linalg.solve(M, xi)  # xi = M xi_c
-    Q, _ = np.linalg.qr(V.T)
     return np.asarray(T_icp, dtype=np.float64) @ se3_exp(M @ (Q @ (Q.T @ xi_c)))
 
 
@@ -1272,6 +1255,7 @@ class FppPairRegistrar:
             # 0.04 mm pose. Every pixel decides: from ICP's own pose, unpinned; if the dense
             # information is not plane-like the relief constrains the plane's directions.
             weak_dense, T_start = None, meta["T_icp"]
+            meta["dense_rechecks_plane_rule"] = True
         if len(deg_icp.unconstrained) >= 3:
             dense, why_not = None, "plane-like geometry (ICP: " + "; ".join(deg_icp.unconstrained) + ")"
         else:
