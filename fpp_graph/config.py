@@ -66,8 +66,8 @@ class RegistrationConfig(StrictModel):
     dense_stride_px: int = Field(2, ge=1, description="pixel stride of the dense alignment's final iterations (1: every pixel, about 4x slower)")
     dense_coarse_stride_px: int = Field(4, ge=1, description="pixel stride of its first iterations")
     dense_max_points: int = Field(160000, ge=100, description="both strides grow until the final iterations sample at most this many pixels per map (a full-view wall has 4x the doll's pixels)")
-    dense_coarse_iterations: int = Field(4, ge=0)
-    dense_fine_iterations: int = Field(2, ge=1)
+    dense_coarse_iterations: int = Field(2, ge=0)
+    dense_fine_iterations: int = Field(1, ge=1)
     dense_information_scale: float = Field(0.15, gt=0, description="multiplies the dense alignment's information (neighbouring pixels' errors are correlated); calibrated by NEES over simulated pairs")
     keypoint_information_scale: float = Field(0.1, gt=0, le=1, description="multiplies the keypoints' share of the constraint information (their errors are correlated); the acceptance gates use it unscaled")
 

@@ -119,67 +119,120 @@ class OrganisedSurface:
         xyz = np.asarray(xyz_map)
         if xyz.ndim != 3 or xyz.shape[2] != 3:
             raise InputDataError(f"dense alignment needs an (H, W, 3) xyz map, got shape {xyz.shape}")
+        source_map = xyz
         xyz = np.ascontiguousarray(xyz, dtype=np.float32)
         H, W = xyz.shape[:2]
         self.height, self.width = H, W
-        valid = np.isfinite(xyz[..., 0] + xyz[..., 1] + xyz[..., 2]) & (xyz[..., 2] > 0)
-        self.num_valid = int(valid.sum())
+        # Full-resolution work is kept to the float32 copy and two scans of z: every further
+        # full-size temporary costs ~5-10 ms per 1920x1200 map (page faults included).
+        z = xyz[..., 2]
+        with np.errstate(invalid="ignore"):
+            self.num_valid = int(np.count_nonzero(z > 0))  # NaN compares False
+        if self.num_valid != int(np.count_nonzero(np.isfinite(z))):
+            # points on or behind the camera are not surface samples (never from a decoder)
+            if np.shares_memory(xyz, source_map):
+                xyz = xyz.copy()  # never write into the caller's frame
+            with np.errstate(invalid="ignore"):
+                xyz[~(xyz[..., 2] > 0)] = np.nan
+        # (a point with NaN x or y only is dropped where it is sampled: samples() and lookup())
         cam = fit_pinhole(xyz) if self.num_valid >= 20 else None
         if cam is None:
             raise InputDataError(f"dense alignment: only {self.num_valid} valid pixels in a {W}x{H} map; a surface needs more")
         self.fx, self.fy, self.cx, self.cy = (float(c) for c in cam[0])
-        self.xyz = xyz if valid.sum() == np.isfinite(xyz[..., 2]).sum() else np.where(valid[..., None], xyz, np.float32(np.nan))
-        # Normals on a 2x-binned map: they come from a box-smoothed map anyway, and binning
-        # quarters the cost of the full-map arithmetic (a quarter of a second per 1920x1200 map).
-        zero = np.where(valid[..., None], xyz, np.float32(0.0))
+        self.xyz = xyz
+        # Normals and rays on a 2x-binned map: normals come from a box-smoothed map anyway, and a
+        # pixel's ray is smooth across pixels (the lens), so bilinear on 2 px is exact to ~1e-6 px.
         Hb, Wb = H // 2, W // 2
-        # 2x2 means (INTER_AREA at exactly half size), i.e. sums / 4 and valid fractions
-        sums = cv2.resize(zero[: 2 * Hb, : 2 * Wb], (Wb, Hb), interpolation=cv2.INTER_AREA)
-        counts = cv2.resize(valid[: 2 * Hb, : 2 * Wb].astype(np.float32), (Wb, Hb), interpolation=cv2.INTER_AREA)
+        # 2x2 means (INTER_AREA at exactly half size); NaN where any of the four is invalid
+        binned = cv2.resize(xyz[: 2 * Hb, : 2 * Wb], (Wb, Hb), interpolation=cv2.INTER_AREA)
+        valid_b = np.isfinite(binned[..., 2])
+        # the mean ray of a bin is mean(x)/mean(z) up to the bin's relative depth noise (~1e-3 of
+        # the ray's change across the bin): negligible
+        self.rays_binned = np.ascontiguousarray(binned[..., :2] / binned[..., 2:3])
+        self._fill_rays_near_surface(valid_b)
         r = int(normal_window_px) if normal_window_px else max(2, round(5 * W / 1920))
         k = 2 * max(1, r // 2) + 1
-        count = cv2.boxFilter(counts, -1, (k, k), normalize=False, borderType=cv2.BORDER_CONSTANT)
-        smooth = cv2.boxFilter(sums, -1, (k, k), normalize=False, borderType=cv2.BORDER_CONSTANT)
-        full = count >= k * k - 0.1  # the whole window valid: no mixing across depth edges or holes
-        smooth /= np.maximum(count, 1e-3)[..., None]
-        smooth[~full] = np.nan
+        count = cv2.boxFilter(valid_b.astype(np.float32), -1, (k, k), normalize=False, borderType=cv2.BORDER_CONSTANT)
+        np.copyto(binned, np.float32(0.0), where=~valid_b[..., None])
+        smooth = cv2.boxFilter(binned, -1, (k, k), normalize=True, borderType=cv2.BORDER_CONSTANT)
+        # the whole window valid: no mixing across depth edges or holes
+        np.copyto(smooth, np.float32(np.nan), where=(count < k * k - 0.1)[..., None])
         h = max(1, k // 4)
-        du = np.full_like(smooth, np.nan)
-        dv = np.full_like(smooth, np.nan)
-        du[:, h:-h] = smooth[:, 2 * h :] - smooth[:, : -2 * h]
-        dv[h:-h] = smooth[2 * h :] - smooth[: -2 * h]
-        n = np.empty_like(smooth)
-        n[..., 0] = du[..., 1] * dv[..., 2] - du[..., 2] * dv[..., 1]
-        n[..., 1] = du[..., 2] * dv[..., 0] - du[..., 0] * dv[..., 2]
-        n[..., 2] = du[..., 0] * dv[..., 1] - du[..., 1] * dv[..., 0]
-        norm = np.sqrt(n[..., 0] ** 2 + n[..., 1] ** 2 + n[..., 2] ** 2)
+        # cross product of central differences, on contiguous planes (np.cross on (H, W, 3) is 5x slower)
+        sx, sy, sz = cv2.split(smooth)
+        def differences(plane: NDArray[np.float32]) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+            du = np.full_like(plane, np.nan)
+            dv = np.full_like(plane, np.nan)
+            np.subtract(plane[:, 2 * h :], plane[:, : -2 * h], out=du[:, h:-h])
+            np.subtract(plane[2 * h :], plane[: -2 * h], out=dv[h:-h])
+            return du, dv
+        (ux, vx), (uy, vy), (uz, vz) = differences(sx), differences(sy), differences(sz)
+        nx, ny, nz = uy * vz - uz * vy, uz * vx - ux * vz, ux * vy - uy * vx
+        norm = cv2.magnitude(cv2.magnitude(nx, ny), nz)
         # towards the camera (the map's image axes may be mirrored relative to the sensor's)
-        facing = n[..., 0] * smooth[..., 0] + n[..., 1] * smooth[..., 1] + n[..., 2] * smooth[..., 2]
-        n /= np.where(facing > 0, -norm, norm)[..., None]
+        facing = nx * sx + ny * sy + nz * sz
+        norm[facing > 0] *= -1.0
+        n = cv2.merge([nx / norm, ny / norm, nz / norm])
         self.normals_binned = n
-        z = self.xyz[..., 2]
-        self.rays = cv2.merge([cv2.divide(np.ascontiguousarray(self.xyz[..., 0]), z), cv2.divide(np.ascontiguousarray(self.xyz[..., 1]), z)])
         self._samples: dict[int, tuple[Array, Array]] = {}
+
+    def _fill_rays_near_surface(self, valid_b: NDArray[np.bool_], degree: int = 5, ring_bins: int = 8) -> None:
+        """Rays for invalid bins within ``ring_bins`` of the surface, from a polynomial lens model.
+
+        A lookup starts at the fitted pinhole's pixel, which near a silhouette can be an invalid
+        pixel (up to ~2 px off at a Brown k1 = -0.075 lens corner); without a ray there it would
+        stay uncorrected. The map's rays minus the pinhole's are smooth (radial and tangential
+        distortion are polynomials of degree <= 5 in the normalised coordinates): a least-squares
+        fit over the valid bins fills the ring.
+        """
+        Hb, Wb = valid_b.shape
+        ring = cv2.dilate(valid_b.astype(np.uint8), np.ones((2 * ring_bins + 1,) * 2, np.uint8)).astype(bool) & ~valid_b
+        if not ring.any():
+            return
+        def pinhole_rays(rows: NDArray, cols: NDArray) -> tuple[NDArray, NDArray]:
+            return (2.0 * cols + 0.5 - self.cx) / self.fx, (2.0 * rows + 0.5 - self.cy) / self.fy
+        def monomials(x: NDArray, y: NDArray) -> NDArray:
+            return np.stack([x**i * y**j for i in range(degree + 1) for j in range(degree + 1 - i)], axis=1)
+        rows, cols = np.nonzero(valid_b[::4, ::4])
+        rows, cols = 4 * rows, 4 * cols
+        x, y = pinhole_rays(rows, cols)
+        A = monomials(x, y)
+        if rows.size < 3 * A.shape[1]:
+            return
+        scale = np.abs(A).max(axis=0) + 1e-12  # conditioning of the high powers
+        residual = self.rays_binned[rows, cols].astype(np.float64) - np.stack([x, y], axis=1)
+        coef, *_ = np.linalg.lstsq(A / scale, residual, rcond=None)
+        # the model is smooth: evaluated every 8th bin and resized (bilinear) to the binned grid
+        step = 8
+        gr, gc = np.mgrid[0 : Hb + step : step, 0 : Wb + step : step]
+        x, y = pinhole_rays(gr.ravel(), gc.ravel())
+        model = (np.stack([x, y], axis=1) + (monomials(x, y) / scale) @ coef).astype(np.float32).reshape(gr.shape + (2,))
+        # bin (r, c) is grid point (r / step, c / step)
+        dense_model = cv2.warpAffine(model, np.array([[1.0 / step, 0, 0], [0, 1.0 / step, 0]]), (Wb, Hb), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
+        self.rays_binned[ring] = dense_model[ring]
 
     def samples(self, stride_px: int) -> tuple[Array, Array]:
         """Points and normals (N, 3) of every ``stride_px``-th pixel with both (cached)."""
         s = max(1, int(stride_px))
         if s not in self._samples:
             P = self.xyz[::s, ::s].reshape(-1, 3)
-            # the binned normals resized to full resolution (cv2's pixel-centre convention is
-            # normals_at's): one resize instead of a bilinear lookup per pixel
-            full = cv2.resize(self.normals_binned, (self.width, self.height), interpolation=cv2.INTER_LINEAR)
-            N = full[::s, ::s].reshape(-1, 3)
-            keep = np.flatnonzero(np.isfinite(P[:, 2] + N[:, 0]))
+            rows, cols = -(-self.height // s), -(-self.width // s)
+            # normals at full-resolution pixels (s i, s j) = binned positions (s/2 j - 1/4, s/2 i - 1/4):
+            # one affine warp of the binned map instead of a lookup per pixel
+            M = np.array([[0.5 * s, 0.0, -0.25], [0.0, 0.5 * s, -0.25]])
+            N = cv2.warpAffine(self.normals_binned, M, (cols, rows), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                               borderMode=cv2.BORDER_CONSTANT, borderValue=(float("nan"),) * 4).reshape(-1, 3)
+            keep = np.flatnonzero(np.isfinite(P[:, 0] + P[:, 1] + P[:, 2] + N[:, 0]))
             N = N[keep]
-            N /= np.linalg.norm(N, axis=1, keepdims=True)
+            N /= np.sqrt(np.einsum("ij,ij->i", N, N))[:, None]
             self._samples[s] = (P[keep].astype(np.float64), N.astype(np.float64))
         return self._samples[s]
 
     def normals_at(self, u_px: NDArray, v_px: NDArray) -> NDArray[np.float32]:
         """Unit normals (N, 3) at full-resolution pixel positions (bilinear on the binned map)."""
         n = sample_bilinear(self.normals_binned, (np.asarray(u_px, np.float32) - 0.5) * 0.5, (np.asarray(v_px, np.float32) - 0.5) * 0.5)
-        return n / np.linalg.norm(n, axis=1, keepdims=True)
+        n /= np.sqrt(np.einsum("ij,ij->i", n, n))[:, None]
+        return n
 
     def lookup(self, points_m: Array, corrections: int = 3) -> tuple[Array, Array]:
         """Surface point and normal where each point's ray meets this map (NaN off the surface).
@@ -199,11 +252,17 @@ class OrganisedSurface:
             ay = (points_m[:, 1] / z).astype(np.float32)
         u = np.float32(self.fx) * ax + np.float32(self.cx)
         v = np.float32(self.fy) * ay + np.float32(self.cy)
+        fx, fy = np.float32(self.fx), np.float32(self.fy)
         for _ in range(corrections):
-            ray = sample_bilinear(self.rays, u, v)
-            ok = np.isfinite(ray[:, 0])
-            u = np.where(ok, u + np.float32(self.fx) * (ax - ray[:, 0]), u)
-            v = np.where(ok, v + np.float32(self.fy) * (ay - ray[:, 1]), v)
+            ray = sample_bilinear(self.rays_binned, (u - np.float32(0.5)) * np.float32(0.5), (v - np.float32(0.5)) * np.float32(0.5))
+            du = np.nan_to_num(fx * (ax - ray[:, 0]), nan=0.0)
+            dv = np.nan_to_num(fy * (ay - ray[:, 1]), nan=0.0)
+            u += du
+            v += dv
+            # the fixed point converges by the lens's distortion gradient per step; cv2.remap
+            # quantises positions to 1/32 of a binned pixel (1/16 px here): smaller steps are noise
+            if max(float(np.max(np.abs(du), initial=0.0)), float(np.max(np.abs(dv), initial=0.0))) < 0.1:
+                break
         q = sample_bilinear(self.xyz, u, v).astype(np.float64)
         n = self.normals_at(u, v).astype(np.float64)
         behind = ~(z > 0)
