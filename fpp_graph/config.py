@@ -66,6 +66,7 @@ class RegistrationConfig(StrictModel):
     dense_stride_px: int = Field(2, ge=1, description="pixel stride of the dense alignment's final iterations (1: every pixel, about 4x slower)")
     dense_coarse_stride_px: int = Field(4, ge=1, description="pixel stride of its first iterations")
     dense_max_points: int = Field(160000, ge=100, description="both strides grow until the final iterations sample at most this many pixels per map (a full-view wall has 4x the doll's pixels)")
+    dense_icp_voxel_m: float = Field(0.004, gt=0, description="voxel size of ICP when the dense refinement follows (ICP then only has to reach its basin and tell relief from a plane); plane-like pairs are redone on icp_voxel_m")
     dense_coarse_iterations: int = Field(2, ge=0)
     dense_fine_iterations: int = Field(1, ge=1)
     dense_information_scale: float = Field(0.15, gt=0, description="multiplies the dense alignment's information (neighbouring pixels' errors are correlated); calibrated by NEES over simulated pairs")

@@ -46,6 +46,7 @@ log = logging.getLogger(__name__)
 
 Array = NDArray[np.float64]
 
+_BIN_PX = 2  # normals and rays live on b x b bins (see OrganisedSurface)
 _REMAP_ROW = 1024  # cv2.remap needs maps below 32767 rows: queries are laid out 1024 per row
 
 
@@ -106,8 +107,8 @@ class OrganisedSurface:
     xyz_map : (H, W, 3)
         Sensor-frame points in metres, NaN where invalid.
     normal_window_px : int, optional
-        Half-width of the box that smooths the map before normals are taken; default scales
-        with the image (5 px at 1920 wide: a 2.75 mm window at 0.5 m).
+        Width of the box that smooths the map before normals are taken; default scales
+        with the image (10 px at 1920 wide: a 2.75 mm window at 0.5 m).
 
     Raises
     ------
@@ -140,18 +141,20 @@ class OrganisedSurface:
             raise InputDataError(f"dense alignment: only {self.num_valid} valid pixels in a {W}x{H} map; a surface needs more")
         self.fx, self.fy, self.cx, self.cy = (float(c) for c in cam[0])
         self.xyz = xyz
-        # Normals and rays on a 2x-binned map: normals come from a box-smoothed map anyway, and a
-        # pixel's ray is smooth across pixels (the lens), so bilinear on 2 px is exact to ~1e-6 px.
-        Hb, Wb = H // 2, W // 2
-        # 2x2 means (INTER_AREA at exactly half size); NaN where any of the four is invalid
-        binned = cv2.resize(xyz[: 2 * Hb, : 2 * Wb], (Wb, Hb), interpolation=cv2.INTER_AREA)
+        # Normals and rays on a b x b binned map: normals come from a box-smoothed map anyway, and a
+        # pixel's ray is smooth across pixels (the lens), so bilinear on 2 px is exact to ~1e-6 px
+        # (4 px bins were tried: turntable pairs 10% worse).
+        b = self.bin_px = _BIN_PX
+        Hb, Wb = H // b, W // b
+        # b x b means (INTER_AREA at an integer factor); NaN where any of them is invalid
+        binned = cv2.resize(xyz[: b * Hb, : b * Wb], (Wb, Hb), interpolation=cv2.INTER_AREA)
         valid_b = np.isfinite(binned[..., 2])
         # the mean ray of a bin is mean(x)/mean(z) up to the bin's relative depth noise (~1e-3 of
         # the ray's change across the bin): negligible
         self.rays_binned = np.ascontiguousarray(binned[..., :2] / binned[..., 2:3])
         self._fill_rays_near_surface(valid_b)
-        r = int(normal_window_px) if normal_window_px else max(2, round(5 * W / 1920))
-        k = 2 * max(1, r // 2) + 1
+        window_px = int(normal_window_px) if normal_window_px else max(4, round(10 * W / 1920))
+        k = max(3, 2 * (round(window_px / b) // 2) + 1)  # odd, in bins
         count = cv2.boxFilter(valid_b.astype(np.float32), -1, (k, k), normalize=False, borderType=cv2.BORDER_CONSTANT)
         np.copyto(binned, np.float32(0.0), where=~valid_b[..., None])
         smooth = cv2.boxFilter(binned, -1, (k, k), normalize=True, borderType=cv2.BORDER_CONSTANT)
@@ -190,7 +193,8 @@ class OrganisedSurface:
         if not ring.any():
             return
         def pinhole_rays(rows: NDArray, cols: NDArray) -> tuple[NDArray, NDArray]:
-            return (2.0 * cols + 0.5 - self.cx) / self.fx, (2.0 * rows + 0.5 - self.cy) / self.fy
+            c0 = 0.5 * (self.bin_px - 1)  # a bin's centre in pixels
+            return (self.bin_px * cols + c0 - self.cx) / self.fx, (self.bin_px * rows + c0 - self.cy) / self.fy
         def monomials(x: NDArray, y: NDArray) -> NDArray:
             return np.stack([x**i * y**j for i in range(degree + 1) for j in range(degree + 1 - i)], axis=1)
         rows, cols = np.nonzero(valid_b[::4, ::4])
@@ -219,7 +223,8 @@ class OrganisedSurface:
             rows, cols = -(-self.height // s), -(-self.width // s)
             # normals at full-resolution pixels (s i, s j) = binned positions (s/2 j - 1/4, s/2 i - 1/4):
             # one affine warp of the binned map instead of a lookup per pixel
-            M = np.array([[0.5 * s, 0.0, -0.25], [0.0, 0.5 * s, -0.25]])
+            b = self.bin_px
+            M = np.array([[s / b, 0.0, -0.5 * (b - 1) / b], [0.0, s / b, -0.5 * (b - 1) / b]])
             N = cv2.warpAffine(self.normals_binned, M, (cols, rows), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
                                borderMode=cv2.BORDER_CONSTANT, borderValue=(float("nan"),) * 4).reshape(-1, 3)
             keep = np.flatnonzero(np.isfinite(P[:, 0] + P[:, 1] + P[:, 2] + N[:, 0]))
@@ -228,11 +233,41 @@ class OrganisedSurface:
             self._samples[s] = (P[keep].astype(np.float64), N.astype(np.float64))
         return self._samples[s]
 
+    def _binned_position(self, u_px: NDArray[np.float32], v_px: NDArray[np.float32]) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+        """Full-resolution pixel positions on the binned maps (bin j covers pixels b j .. b j + b - 1)."""
+        scale, offset = np.float32(1.0 / self.bin_px), np.float32(0.5 * (self.bin_px - 1))
+        return (u_px - offset) * scale, (v_px - offset) * scale
+
     def normals_at(self, u_px: NDArray, v_px: NDArray) -> NDArray[np.float32]:
         """Unit normals (N, 3) at full-resolution pixel positions (bilinear on the binned map)."""
-        n = sample_bilinear(self.normals_binned, (np.asarray(u_px, np.float32) - 0.5) * 0.5, (np.asarray(v_px, np.float32) - 0.5) * 0.5)
+        n = sample_bilinear(self.normals_binned, *self._binned_position(np.asarray(u_px, np.float32), np.asarray(v_px, np.float32)))
         n /= np.sqrt(np.einsum("ij,ij->i", n, n))[:, None]
         return n
+
+    def project(self, points_m: Array, corrections: int = 3) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+        """Pixel ``(u, v)`` (float32, full resolution) whose ray passes through each point (camera frame).
+
+        The fitted pinhole's pixel, corrected with the map's own rays (lens distortion included);
+        where the map has no ray nearby the pinhole's pixel is returned.
+        """
+        z = points_m[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ax = (points_m[:, 0] / z).astype(np.float32)
+            ay = (points_m[:, 1] / z).astype(np.float32)
+        u = np.float32(self.fx) * ax + np.float32(self.cx)
+        v = np.float32(self.fy) * ay + np.float32(self.cy)
+        fx, fy = np.float32(self.fx), np.float32(self.fy)
+        for _ in range(corrections):
+            ray = sample_bilinear(self.rays_binned, *self._binned_position(u, v))
+            du = np.nan_to_num(fx * (ax - ray[:, 0]), nan=0.0)
+            dv = np.nan_to_num(fy * (ay - ray[:, 1]), nan=0.0)
+            u += du
+            v += dv
+            # the fixed point converges by the lens's distortion gradient per step; cv2.remap
+            # quantises positions to 1/32 of a bin (b/32 px): steps below ~1.6 quanta are that noise
+            if max(float(np.max(np.abs(du), initial=0.0)), float(np.max(np.abs(dv), initial=0.0))) < self.bin_px / 20.0:
+                break
+        return u, v
 
     def lookup(self, points_m: Array, corrections: int = 3) -> tuple[Array, Array]:
         """Surface point and normal where each point's ray meets this map (NaN off the surface).
@@ -247,22 +282,7 @@ class OrganisedSurface:
         surface_points_m, normals : (N, 3) float64
         """
         z = points_m[:, 2]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            ax = (points_m[:, 0] / z).astype(np.float32)
-            ay = (points_m[:, 1] / z).astype(np.float32)
-        u = np.float32(self.fx) * ax + np.float32(self.cx)
-        v = np.float32(self.fy) * ay + np.float32(self.cy)
-        fx, fy = np.float32(self.fx), np.float32(self.fy)
-        for _ in range(corrections):
-            ray = sample_bilinear(self.rays_binned, (u - np.float32(0.5)) * np.float32(0.5), (v - np.float32(0.5)) * np.float32(0.5))
-            du = np.nan_to_num(fx * (ax - ray[:, 0]), nan=0.0)
-            dv = np.nan_to_num(fy * (ay - ray[:, 1]), nan=0.0)
-            u += du
-            v += dv
-            # the fixed point converges by the lens's distortion gradient per step; cv2.remap
-            # quantises positions to 1/32 of a binned pixel (1/16 px here): smaller steps are noise
-            if max(float(np.max(np.abs(du), initial=0.0)), float(np.max(np.abs(dv), initial=0.0))) < 0.1:
-                break
+        u, v = self.project(points_m, corrections)
         q = sample_bilinear(self.xyz, u, v).astype(np.float64)
         n = self.normals_at(u, v).astype(np.float64)
         behind = ~(z > 0)
