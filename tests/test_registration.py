@@ -22,6 +22,7 @@ from frontend.registration import (
     information_from_keypoints,
     joint_keypoint_step,
     kabsch,
+    keypoint_inliers,
     lift_keypoints,
     plane_directions,
     prepare_icp_cloud,
@@ -328,6 +329,44 @@ def test_joint_keypoint_step_fills_the_directions_icp_leaves_flat():
     assert np.all(np.abs(xi[[0, 1, 4, 5]]) < 1e-6)
     # where ICP's information dominates in every direction the step is negligible
     assert np.linalg.norm(joint_keypoint_step(np.eye(4), 1e16 * np.eye(6), P, Q)) < 1e-8
+
+
+def test_keypoint_inliers_trims_mismatches_inside_the_ransac_threshold():
+    rng = np.random.default_rng(7)
+    good = np.linalg.norm(rng.normal(0, 2e-4, (400, 3)), axis=1)  # 0.2 mm per-axis scatter
+    bad = rng.uniform(1.2e-3, 1.9e-3, 40)  # mismatches RANSAC's 2 mm threshold lets through
+    r = np.concatenate([good, bad, [5e-3]])
+    keep = keypoint_inliers(r, 2e-3)
+    assert not keep[400:].any()
+    assert 0.97 < keep[:400].mean() <= 1.0  # ~1 % of Gaussian scatter beyond ~3.4 sigma
+    # too few to estimate a spread: only the threshold applies
+    assert keypoint_inliers(np.array([1e-4, 5e-4, 3e-3]), 2e-3).tolist() == [True, True, False]
+
+
+def test_joint_keypoint_step_is_not_pulled_by_mismatches():
+    # plane z = 0.5 seen by ICP (constrains z, roll, pitch); keypoints with 0.2 mm scatter give the
+    # in-plane shift and spin, 10 % of them mismatched by 1-1.9 mm in one direction (a repeated
+    # pattern): the step stays within the clean points' statistical error
+    rng = np.random.default_rng(8)
+    n = 300
+    P = np.column_stack([rng.uniform(-0.1, 0.1, (n, 2)), np.zeros(n)]) + [0, 0, 0.5]
+    T_truth = se3_exp(np.array([0, 0, 2e-4, 3e-4, -1e-4, 0]))
+    Q = P @ T_truth[:3, :3].T + T_truth[:3, 3] + rng.normal(0, 2e-4, (n, 3))
+    bad = rng.choice(n, n // 10, replace=False)
+    Q[bad, 0] += rng.uniform(1e-3, 1.9e-3, bad.size)
+    info_icp = np.zeros((6, 6))
+    for p in P:
+        j = np.concatenate([np.cross(p, [0, 0, 1.0]), [0, 0, 1.0]])
+        info_icp += np.outer(j, j) / (5e-5) ** 2
+    xi = joint_keypoint_step(np.eye(4), info_icp, P, Q, iterations=5)
+    clean = np.setdiff1d(np.arange(n), bad)
+    xi_clean = joint_keypoint_step(np.eye(4), info_icp, P[clean], Q[clean], iterations=5)
+    # standard errors of the clean fit: x, y shifts 0.2 mm / sqrt(270) = 0.012 mm, spin 0.2 mm /
+    # (sqrt(270) 0.058 m) = 0.2 mrad; the mismatches' least-squares pull on x would be 0.14 mm
+    assert abs(xi_clean[3] - 3e-4) < 6e-5 and abs(xi_clean[4] + 1e-4) < 6e-5
+    assert abs(xi[3] - xi_clean[3]) < 5e-6
+    assert abs(xi[4] - xi_clean[4]) < 5e-6
+    assert abs(xi[2] - xi_clean[2]) < 5e-5
 
 
 def test_information_from_keypoints_matches_numeric_jacobian():
