@@ -1175,11 +1175,12 @@ class FppPairRegistrar:
             timings["icp"] += time.perf_counter() - t0
             cpu_timings["icp"] += time.process_time() - c0
             meta["icp_voxel_m"] = voxel
-            if voxel == cfg.icp_voxel_m or not np.all(np.isfinite(icp.T_target_source)):
-                break
-            coarse = check_degeneracy(information_from_icp(icp, scale=cfg.information_scale), icp.source_points, cfg.degeneracy_ratio)
-            if len(coarse.unconstrained) < 3:
-                break  # not a plane: the dense refinement takes it from here (below)
+            if not np.all(np.isfinite(icp.T_target_source)):
+                break  # rejected below
+            info_icp_raw = information_from_icp(icp, scale=cfg.information_scale)
+            deg_icp = check_degeneracy(info_icp_raw, icp.source_points, cfg.degeneracy_ratio)
+            if voxel == cfg.icp_voxel_m or len(deg_icp.unconstrained) < 3:
+                break  # (coarse and not a plane: the dense refinement takes it from here, below)
             meta["coarse_icp_plane_like"] = True
         T = icp.T_target_source
         meta["T_icp"] = T
@@ -1210,8 +1211,6 @@ class FppPairRegistrar:
         #   it is the more precise (a turntable pair: ICP 0.045 mm, keypoints 1.5 mm, m2 16.9).
         # - otherwise, when ICP lost the keypoints on weak geometry (drifted along its flat
         #   directions rather than a wrong pair): those flat directions from RANSAC's pose.
-        info_icp_raw = information_from_icp(icp, scale=cfg.information_scale)
-        deg_icp = check_degeneracy(info_icp_raw, icp.source_points, cfg.degeneracy_ratio)
         meta["icp_eigenvalue_ratios"] = deg_icp.eigenvalue_ratios
         lost_keypoints = meta["icp_shift_m"] > cfg.max_icp_shift_m or kp_inliers < cfg.min_inliers
         weak: Degeneracy | None = None
