@@ -380,7 +380,7 @@ def _normal_equations(
         residuals.append(r2[ok2])
     JT = np.empty((6, sum(len(res) for res in residuals)))
     start = 0
-    for (left, right, sign), res in zip(blocks, residuals):
+    for (left, right, sign), res in zip(blocks, residuals, strict=True):
         stop = start + len(res)
         _cross_rows(left, right, JT[:3, start:stop])
         # the translation rows: m for the source block, -n for the target block
