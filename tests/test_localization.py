@@ -270,3 +270,72 @@ def test_smoothing_along_rays_keeps_planes_and_curvature_and_removes_noise():
     holes = plane.copy()
     holes[50:55, 70:75] = np.nan
     assert np.all(np.isnan(_smoothed_along_rays(holes, 2.0)[50:55, 70:75]))
+
+
+def _rays(h: int, w: int, f: float) -> np.ndarray:
+    v, u = np.mgrid[0:h, 0:w].astype(float)
+    rays = np.stack([(u - (w - 1) / 2) / f, (v - (h - 1) / 2) / f, np.ones_like(u)], axis=2)
+    return rays / np.linalg.norm(rays, axis=2, keepdims=True)
+
+
+def test_depth_edge_mask_keeps_steep_planes_and_drops_edges_and_holes():
+    from frontend.localization import _depth_edge_free_mask
+
+    h, w = 200, 260
+    dirs = _rays(h, w, 300.0)
+    rng = np.random.default_rng(3)
+    inner = (slice(10, -10), slice(10, -10))
+    # a plane tilted 60 degrees to the optical axis (80 at the image side), 0.25 mm range noise: no edge anywhere
+    n = np.array([np.sin(np.radians(60)), 0.0, -np.cos(np.radians(60))])
+    t = -0.15 / (dirs @ n)
+    assert np.all(t > 0)
+    steep = dirs * (t * (1 + rng.normal(0, 0.25e-3 / 0.5, (h, w))))[..., None]
+    assert _depth_edge_free_mask(steep[..., 2], 5)[inner].mean() > 0.97
+    # noise-free: the floor keeps the threshold above zero
+    assert _depth_edge_free_mask((dirs * t[..., None])[..., 2], 5)[inner].mean() > 0.97
+    # a 20 mm step between two walls at column 130, and a hole: gone within the reach, kept beyond
+    z = np.where(np.arange(w)[None, :] < 130, 0.5, 0.52) * np.ones((h, w))
+    z = z * (1 + rng.normal(0, 0.25e-3 / 0.5, (h, w)))
+    z[60:70, 40:50] = np.nan
+    mask = _depth_edge_free_mask(z, 5)
+    assert not mask[:, 124:136].any()
+    assert mask[20:-20, 137:-20].all() and mask[100:-20, 20:118].all()
+    assert not mask[60:70, 36:54].any() and not mask[56:74, 40:50].any() and mask[80:90, 40:50].all()
+    assert not _depth_edge_free_mask(np.full((h, w), np.nan), 5).any()
+
+
+def test_adaptive_smoothing_is_wide_on_planes_and_narrow_on_relief():
+    from frontend.localization import _adaptively_smoothed_along_rays, _smoothed_along_rays
+
+    h, w = 240, 320
+    dirs = _rays(h, w, 400.0)
+    n = np.array([0.3, -0.2, -1.0]) / np.linalg.norm([0.3, -0.2, -1.0])
+    t_plane = -0.5 / (dirs @ n)
+    c, r = np.array([0.0, 0.0, 0.45]), 0.04  # a ball in front of the wall (35 px radius)
+    b = dirs @ c
+    disc = b**2 - (c @ c - r**2)
+    t_ball = np.where(disc > 0, b - np.sqrt(np.maximum(disc, 0)), np.inf)
+    t = np.minimum(t_plane, t_ball)
+    ball = t_ball < t_plane
+    far_plane = np.zeros((h, w), bool)
+    far_plane[30:-30, 30:-30] = True
+    far_plane &= cv2.distanceTransform((~ball).astype(np.uint8), cv2.DIST_L2, 5) > 25
+    core = cv2.distanceTransform(ball.astype(np.uint8), cv2.DIST_L2, 5) > 12
+    rng = np.random.default_rng(1)
+    noisy = dirs * (t * (1 + rng.normal(0, 0.25e-3 / 0.5, (h, w))))[..., None]
+    noisy[5:9, 5:9] = np.nan
+
+    def errors_mm(xyz):
+        return 1e3 * (np.linalg.norm(xyz, axis=2) - t)
+
+    narrow, wide = errors_mm(_smoothed_along_rays(noisy, 2.0)), errors_mm(_smoothed_along_rays(noisy, 6.0))
+    out = _adaptively_smoothed_along_rays(noisy, 2.0, 6.0)
+    adaptive = errors_mm(out)
+    rms = lambda e, m: float(np.sqrt(np.mean(e[m] ** 2)))  # noqa: E731
+    # on the wall it removes the noise as the wide smoothing does (about half of the narrow one's)
+    assert rms(adaptive, far_plane) < 1.25 * rms(wide, far_plane)
+    assert rms(adaptive, far_plane) < 0.65 * rms(narrow, far_plane)
+    # on the ball the wide one is biased by a millimetre (it reaches the wall behind); the adaptive one is not
+    assert abs(np.mean(wide[core])) > 0.5
+    assert abs(np.mean(adaptive[core])) < 0.01
+    assert np.all(np.isnan(out[5:9, 5:9]))
