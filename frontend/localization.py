@@ -41,7 +41,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from fpp_graph.errors import InputDataError
-from fpp_graph.geometry import se3_exp, transform_points
+from fpp_graph.geometry import invert, se3_exp, se3_log, transform_points
 
 log = logging.getLogger(__name__)
 
@@ -573,6 +573,10 @@ class PhotometricLocalizationResult:
         Gauss-Newton steps over all pyramid levels.
     success : bool
         Enough pixels, finite pose, converged at full resolution.
+    information : (6, 6) float64
+        Gauss-Newton information of the pose at the last iteration (``sum w J^T J / sigma^2``,
+        ``[rot, trans]`` of a left perturbation ``Exp(xi) T_camera_world``, prior excluded); pixel
+        residuals are treated as independent, so scale it down before use. NaN when it failed.
     """
 
     T_camera_world: Array
@@ -582,6 +586,7 @@ class PhotometricLocalizationResult:
     ambient_ratio: float
     iterations: int
     success: bool
+    information: Array = field(default_factory=lambda: np.full((6, 6), np.nan))
 
     @property
     def num_inliers(self) -> int:
@@ -751,7 +756,7 @@ def _photometric_reference_pixels(
         n_world = np.full((idx.size, 3), np.nan)
         has_normal = np.zeros(idx.size, bool)
     else:
-        n = organised_normals(xyz, normal_step_px).reshape(-1, 3)[idx]
+        n = _organised_normals_at(xyz, idx, normal_step_px)
         E, _ = _projector_irradiance(n, projector_centre_m - X)
         has_normal = np.isfinite(E) & (E > 0)
         n_world = n @ np.ascontiguousarray(T[:3, :3].T)
@@ -773,6 +778,7 @@ def localize_photometric(
     range_smoothing_px: float | None = None,
     max_range_smoothing_px: float | None = None,
     min_pixels: int = 2000,
+    prior_information: NDArray | None = None,
 ) -> PhotometricLocalizationResult:
     """Refine a camera pose by direct photometric alignment of FPP map pixels (after the DLT).
 
@@ -812,6 +818,11 @@ def localize_photometric(
         Wider smoothing where the map is locally indistinguishable from a plane at that width
         (:func:`_adaptively_smoothed_along_rays`); default 3 x ``range_smoothing_px``; at or below
         ``range_smoothing_px`` it is off.
+    prior_information : (6, 6), optional
+        Information of a Gaussian prior on the pose at ``T_query_world_init`` (``[rot, trans]`` of a
+        left perturbation, as ``information``). With a large one along some directions they are
+        held where the start put them: a pair's registrar holds what the geometry fixes (a wall's
+        tilts and distance) and lets the texture set the rest (its in-plane shifts and spin).
 
     Returns
     -------
@@ -838,6 +849,14 @@ def localize_photometric(
     if len(iterations) != levels:
         raise InputDataError(f"photometric localisation: {levels} levels need {levels} iteration counts, got {list(iterations)}")
     c_proj = None if projector_centre_m is None else np.asarray(projector_centre_m, dtype=np.float64).reshape(3)
+    Lambda = None
+    if prior_information is not None:
+        Lambda = np.asarray(prior_information, dtype=np.float64)
+        if Lambda.shape != (6, 6) or not np.all(np.isfinite(Lambda)):
+            raise InputDataError(f"photometric localisation: prior_information must be a finite 6 x 6 matrix, got shape {Lambda.shape}")
+        Lambda = 0.5 * (Lambda + Lambda.T)
+    T_init = T.copy()
+    information = np.full((6, 6), np.nan)
     failed = PhotometricLocalizationResult(np.full((4, 4), np.nan), np.full(3, np.nan), 0, float("nan"), float("nan"), 0, False)
     H, W = q.shape
     smoothing_px = W / 960.0 if range_smoothing_px is None else float(range_smoothing_px)
@@ -917,11 +936,16 @@ def localize_photometric(
             zs = Ps[:, 2]
             # d I / d P (camera frame), then a left perturbation T <- exp(xi) T: dP = omega x P + v
             dI_dP = np.column_stack([Gx * fx / zs, Gx * skew / zs + Gy * fy / zs, -(Gx * (fx * Ps[:, 0] + skew * Ps[:, 1]) + Gy * fy * Ps[:, 1]) / zs**2])
-            J = np.column_stack([np.cross(Ps, dI_dP), dI_dP, -pred, -np.ones(sel.size), -g * I_lev[sel] * drho_dk])[:, :n_par]
+            J = np.column_stack([_cross_rows(Ps, dI_dP), dI_dP, -pred, -np.ones(sel.size), -g * I_lev[sel] * drho_dk])[:, :n_par]
             Jw = J * w[:, None]
             A = Jw.T @ J
             b = Jw.T @ res
             A += 1e-9 * np.trace(A) * np.eye(n_par)
+            information = A[:6, :6] / sigma**2
+            if Lambda is not None:
+                # in information units: the photometric normal equations are in grey levels
+                A[:6, :6] += sigma**2 * Lambda
+                b[:6] += sigma**2 * (Lambda @ se3_log(T @ invert(T_init)))
             try:
                 delta = -np.linalg.solve(A, b)
             except np.linalg.LinAlgError:
@@ -940,7 +964,7 @@ def localize_photometric(
     # (a fifth of the precision this reaches; the steps creep at the micrometre level on some frames)
     ok = bool(np.all(np.isfinite(T)) and used >= min_pixels and step_rad < 1e-5 and step_m < 1e-5)
     log.debug("photometric localisation: %d pixels, sigma %.2f grey, k %.3f, %d steps, last step %.2g rad %.2g m", used, sigma, k_amb, steps, step_rad, step_m)
-    return PhotometricLocalizationResult(T, -T[:3, :3].T @ T[:3, 3], used, sigma, k_amb, steps, ok)
+    return PhotometricLocalizationResult(T, -T[:3, :3].T @ T[:3, 3], used, sigma, k_amb, steps, ok, 0.5 * (information + information.T))
 
 
 def _bilinear(image: NDArray[np.float32], x: NDArray, y: NDArray) -> NDArray[np.float32]:
@@ -1074,6 +1098,32 @@ def organised_normals(xyz_map: NDArray, step_px: int = 4) -> Array:
     with np.errstate(invalid="ignore", divide="ignore"):
         n /= np.linalg.norm(n, axis=2, keepdims=True)
     return n
+
+
+def _organised_normals_at(xyz_map: NDArray, flat_index: NDArray, step_px: int) -> Array:
+    """:func:`organised_normals` at some pixels only (``flat_index`` into the H x W grid), (N, 3)."""
+    xyz = np.asarray(xyz_map, dtype=np.float64)
+    H, W = xyz.shape[:2]
+    k = int(step_px)
+    r, c = np.divmod(np.asarray(flat_index, dtype=np.int64), W)
+    inside = (c >= k) & (c < W - k) & (r >= k) & (r < H - k)
+    r, c = np.clip(r, k, max(k, H - k - 1)), np.clip(c, k, max(k, W - k - 1))
+    du = xyz[r, np.minimum(c + k, W - 1)] - xyz[r, c - k]
+    dv = xyz[np.minimum(r + k, H - 1), c] - xyz[r - k, c]
+    n = _cross_rows(du, dv)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        n /= np.linalg.norm(n, axis=1, keepdims=True)
+    n[~inside] = np.nan
+    return n
+
+
+def _cross_rows(a: Array, b: Array) -> Array:
+    """Row-wise cross product of (N, 3) arrays (np.cross is several times slower on long arrays)."""
+    out = np.empty_like(a)
+    out[:, 0] = a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1]
+    out[:, 1] = a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2]
+    out[:, 2] = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
+    return out
 
 
 def shading_corrected_texture(texture: NDArray, xyz_map: NDArray, projector_centre_m: NDArray, normal_step_px: int = 6) -> NDArray[np.uint8]:
