@@ -72,7 +72,7 @@ class RegistrationConfig(StrictModel):
     dense_information_scale: float = Field(0.15, gt=0, description="multiplies the dense alignment's information (neighbouring pixels' errors are correlated); calibrated by NEES over simulated pairs")
     photometric_plane_refinement: bool = Field(True, description="on plane-like pairs (a wall) whose in-plane shifts and spin came from the keypoints, align the source's texture to the target's FPP map photometrically along those directions only (needs the rig, FppPairRegistrar(texture_camera=...), and dense_refinement, which gives the tilts and distance held meanwhile)")
     photometric_max_pixels: int = Field(100000, ge=1000, description="target pixels (the strongest texture gradients) in the photometric refinement")
-    photometric_information_scale: float = Field(0.05, gt=0, description="multiplies the photometric refinement's information along the plane's directions (neighbouring pixels' errors are correlated); calibrated by NEES over simulated pairs")
+    photometric_information_scale: float = Field(0.01, gt=0, description="multiplies the photometric refinement's information (all six directions) (neighbouring pixels' errors are correlated); calibrated by NEES over simulated pairs")
     keypoint_information_scale: float = Field(0.1, gt=0, le=1, description="multiplies the keypoints' share of the constraint information (their errors are correlated); the acceptance gates use it unscaled")
 
 

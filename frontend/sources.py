@@ -67,9 +67,10 @@ class FppSequenceSource:
         return detect_and_describe(frame, self.config.registration)
 
     def make_registrar(self):
-        from frontend.registration import FppPairRegistrar
+        from frontend.registration import FppPairRegistrar, TextureCamera
 
-        return FppPairRegistrar(self.config.registration)
+        # the rig's camera and projector: plane-like pairs (walls) get their in-plane directions from the texture
+        return FppPairRegistrar(self.config.registration, texture_camera=TextureCamera.from_rig(self.sequence.calibration))
 
     def ground_truth(self) -> Trajectory | None:
         return self.sequence.ground_truth

@@ -64,7 +64,7 @@ from frontend.localization import (  # noqa: E402
     localize_dlt,
     localize_photometric,
 )
-from frontend.registration import FppPairRegistrar, lift_keypoints  # noqa: E402
+from frontend.registration import FppPairRegistrar, TextureCamera, lift_keypoints  # noqa: E402
 from frontend.simulator import FppSimulator, load_simulation, look_at_pose  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -149,7 +149,8 @@ def dlt_rows(reg: FppPairRegistrar, c, a: Frame, b: Frame, T_true: np.ndarray, K
 
 
 def run_pairs(group: str, frames: SimulatedFrames, pairs: list[tuple[int, int]], features: list[str], with_dlt: bool) -> list[dict]:
-    regs = {f: FppPairRegistrar(RegistrationConfig(feature=f)) for f in features}
+    camera = TextureCamera.from_rig(frames.setup.calibration)  # as the pipeline's FPP source builds it
+    regs = {f: FppPairRegistrar(RegistrationConfig(feature=f), texture_camera=camera) for f in features}
     rows = []
     cache: dict[int, Frame] = {}
     for i, j in pairs:
@@ -330,7 +331,7 @@ def corridor_lookalike_poses(frames: SimulatedFrames, offsets: list[tuple[float,
 
 
 def run_rejection(frames: SimulatedFrames, n_frames: int, n_lookalike_offsets: int, seed: int) -> dict:
-    reg = FppPairRegistrar(RegistrationConfig())
+    reg = FppPairRegistrar(RegistrationConfig(), texture_camera=TextureCamera.from_rig(frames.setup.calibration))
     poses = frames.poses
     centres = poses[:, :3, 3]
     looks = poses[:, :3, 2]

@@ -1,0 +1,73 @@
+"""The photometric refinement of plane-like pairs (FppPairRegistrar with a TextureCamera)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from fpp_graph.config import RegistrationConfig
+from fpp_graph.geometry import invert, pose_error, se3_exp, se3_log
+from frontend.localization import DenseReference, localize_photometric
+from frontend.registration import FppPairRegistrar, TextureCamera
+
+
+@pytest.fixture(scope="module")
+def wall_pair():
+    """Two fringe-simulator frames (640x400) of a textured flat wall, the camera moved along it."""
+    from frontend import scenes
+    from frontend.fpp_sensor import FppSensor
+    from frontend.simulator import FppSimulator, default_pattern_spec, default_rig, look_at_pose
+
+    rig, spec = default_rig(preview=True), default_pattern_spec()
+    scene = scenes.plane_scene(0.55, tilt_deg=12.0, albedo=0.6, contrast=0.7)
+    sim, sensor = FppSimulator(rig, spec, scene), FppSensor(rig, spec)
+    poses = [look_at_pose(np.array([x, 0.004 * i, 0.0]), np.array([x + 0.01, 0.0, 0.55])) for i, x in enumerate((-0.03, 0.03))]
+    frames = [sensor.frame_from_images(i, float(i), sim.render(P, frame_index=i).images) for i, P in enumerate(poses)]
+    return rig, poses, frames
+
+
+def test_texture_sets_a_walls_in_plane_directions(wall_pair):
+    rig, poses, frames = wall_pair
+    T_true = invert(poses[0]) @ poses[1]
+    plain = FppPairRegistrar(RegistrationConfig()).register(frames[0], frames[1])
+    photo_reg = FppPairRegistrar(RegistrationConfig(), texture_camera=TextureCamera.from_rig(rig))
+    photo = photo_reg.register(frames[0], frames[1])
+    assert plain.accepted and photo.accepted
+    assert "T_before_photometric" in photo.metadata, photo.metadata.get("photometric_not_used")
+    assert "T_before_photometric" not in plain.metadata and "photometric" in photo_reg.last_cpu_timings_s
+    _, trans_plain = pose_error(plain.T_target_source, T_true)
+    rot_photo, trans_photo = pose_error(photo.T_target_source, T_true)
+    # the keypoints put the in-plane shifts to some 0.1 mm at 640x400; every textured pixel does better
+    assert trans_photo < 0.5 * trans_plain and trans_photo < 0.05e-3, (trans_plain, trans_photo)
+    assert np.degrees(rot_photo) < 0.01
+    # the wall's distance and tilts are the dense fit's, held: the photometric step moves only
+    # along the plane (the source points' motion is parallel to the wall)
+    T_held = photo.metadata["T_before_photometric"]
+    P = frames[1].points[:: max(1, len(frames[1].points) // 2000)]
+    moved = (P @ photo.T_target_source[:3, :3].T + photo.T_target_source[:3, 3]) - (P @ T_held[:3, :3].T + T_held[:3, 3])
+    normal = np.linalg.svd(frames[0].points - frames[0].points.mean(0), full_matrices=False)[2][2]
+    assert np.max(np.abs(moved @ normal)) < 0.2 * max(np.max(np.linalg.norm(moved, axis=1)), 1e-9) + 1e-6
+    # covariance along the plane is no longer the keypoints' alone
+    e = se3_log(invert(T_true) @ photo.T_target_source)
+    assert float(e @ photo.information @ e) < 60.0  # NEES of one pair, 6 dof: not absurdly overconfident
+
+
+def test_photometric_prior_holds_directions(wall_pair):
+    rig, poses, frames = wall_pair
+    cam = TextureCamera.from_rig(rig)
+    ref = DenseReference(frames[0].xyz_map, frames[0].texture, poses[0])
+    T_start = se3_exp([0.0005, -0.0004, 0.0003, 2e-4, -1e-4, 1e-4]) @ invert(poses[1])
+    lit = np.isfinite(frames[1].xyz_map[..., 2])
+    free = localize_photometric([ref], frames[1].texture, T_start, cam.K, cam.dist, cam.projector_centre_m, lit, max_pixels=40_000)
+    held = localize_photometric([ref], frames[1].texture, T_start, cam.K, cam.dist, cam.projector_centre_m, lit, max_pixels=40_000,
+                                prior_information=1e16 * np.eye(6))
+    assert free.success and np.all(np.isfinite(free.information)) and free.information[3, 3] > 0
+    assert np.linalg.norm(se3_log(free.T_camera_world @ invert(T_start))) > 1e-4  # it moved towards the truth
+    assert np.linalg.norm(se3_log(held.T_camera_world @ invert(T_start))) < 1e-7  # everything held
+    # translation held, rotation free: the translation of T stays, the rotation moves
+    Lam = np.diag([0.0, 0.0, 0.0, 1e16, 1e16, 1e16])
+    part = localize_photometric([ref], frames[1].texture, T_start, cam.K, cam.dist, cam.projector_centre_m, lit, max_pixels=40_000, prior_information=Lam)
+    step = se3_log(part.T_camera_world @ invert(T_start))
+    assert np.linalg.norm(step[3:]) < 1e-7 and np.linalg.norm(step[:3]) > 1e-5
+    with pytest.raises(Exception, match="prior_information"):
+        localize_photometric([ref], frames[1].texture, T_start, cam.K, prior_information=np.eye(5))
