@@ -5,7 +5,10 @@ preparation (organised subsample, voxel grid, KD-trees, normals/covariances of t
 ICP, information/verification, dense point-to-plane refinement. The bench wall's bumps are
 shallow enough to count as plane-like under the default ``degeneracy_ratio`` (the dense stage is
 then skipped), so SURF also runs with ``--dense-ratio`` (default 0.01) to time the dense stage,
-and with ``dense_refinement`` off as the peer without it. The split is process CPU time per stage (the registrar's
+and with ``dense_refinement`` off as the peer without it. A flat wall (same poses) times the
+plane-like path: with the rig's camera (``TextureCamera``) the dense fit holds the tilts and
+distance while the texture sets the in-plane directions (stage ``photometric``); without it the
+keypoints set them. The split is process CPU time per stage (the registrar's
 ``last_cpu_timings_s``); the total is printed as wall and CPU time, because the machine is shared
 and wall time counts the other processes too.
 Frames are ray-cast synthetic frames (:mod:`frontend.synthetic_frames`); each repetition uses
@@ -32,8 +35,8 @@ import numpy as np  # noqa: E402
 
 from fpp_graph.config import RegistrationConfig  # noqa: E402
 from fpp_graph.geometry import invert, pose_error  # noqa: E402
-from frontend.registration import FppPairRegistrar  # noqa: E402
-from frontend.synthetic_frames import bumpy_wall_scene, render_frame, wall_pose  # noqa: E402
+from frontend.registration import FppPairRegistrar, TextureCamera  # noqa: E402
+from frontend.synthetic_frames import bumpy_wall_scene, camera_matrix, render_frame, wall_pose  # noqa: E402
 
 
 def fa_kp(reg: FppPairRegistrar, frame) -> np.ndarray:
@@ -49,6 +52,7 @@ def main() -> None:
     ap.add_argument("--width", type=int, default=1920)
     ap.add_argument("--height", type=int, default=1200)
     ap.add_argument("--voxel-m", type=float, default=None, help="override registration.icp_voxel_m")
+    ap.add_argument("--no-flat", action="store_true", help="skip the flat-wall rows (plane-like path with and without the photometric refinement)")
     ap.add_argument("--dense-ratio", type=float, default=0.01, help="degeneracy_ratio of the surf+dense row (the dense stage runs on this wall)")
     args = ap.parse_args()
     cv2.setNumThreads(1)
@@ -59,17 +63,29 @@ def main() -> None:
     b = render_frame(scene, Tb, args.width, args.height, frame_id=1, supersampling=1)
     print(f"rendered a {args.width}x{args.height} pair in {time.time() - t0:.1f} s; timing on one thread (cv2, OpenMP, BLAS); load average {os.getloadavg()[0]:.1f}")
     T_true = invert(Ta) @ Tb
-    stages = ["features", "match", "ransac", "icp_prepare", "icp", "information", "dense"]
+    stages = ["features", "match", "ransac", "icp_prepare", "icp", "information", "dense", "photometric"]
     totals = {}
     rows = [(f, f, {}) for f in args.features.split(",")]
+    pairs = {"relief": (a, b)}
+    camera = None
     if "surf" in args.features.split(","):
         rows += [("surf+dense", "surf", {"degeneracy_ratio": args.dense_ratio}), ("surf-nodense", "surf", {"dense_refinement": False, "degeneracy_ratio": args.dense_ratio})]
+        if not args.no_flat:
+            # a flat wall with the rig's camera: the plane-like path (dense fit holding the tilts and
+            # distance, the texture setting the in-plane directions); the light sits at the camera
+            flat = bumpy_wall_scene(seed=0, flat=True)
+            pairs["flat"] = tuple(render_frame(flat, T, args.width, args.height, frame_id=i, supersampling=1) for i, T in enumerate((Ta, Tb)))
+            camera = TextureCamera(camera_matrix(args.width, args.height), np.zeros(5), np.zeros(3))
+            rows += [("surf flat wall+photometric", "surf", {"_pair": "flat", "_camera": True}), ("surf flat wall, no camera", "surf", {"_pair": "flat"})]
     for name, feat, overrides in rows:
+        overrides = dict(overrides)
+        pa, pb = pairs[overrides.pop("_pair", "relief")]
+        with_camera = overrides.pop("_camera", False)
         extra = {} if args.voxel_m is None else {"icp_voxel_m": args.voxel_m}
-        reg = FppPairRegistrar(RegistrationConfig(feature=feat, **extra, **overrides))
+        reg = FppPairRegistrar(RegistrationConfig(feature=feat, **extra, **overrides), texture_camera=camera if with_camera else None)
         runs = []
         for _ in range(args.repeat):
-            fa, fb = dataclasses.replace(a), dataclasses.replace(b)  # fresh objects: no cache hits
+            fa, fb = dataclasses.replace(pa), dataclasses.replace(pb)  # fresh objects: no cache hits
             t, cpu = time.perf_counter(), time.process_time()
             c = reg.register(fa, fb)
             total, cpu = time.perf_counter() - t, time.process_time() - cpu
@@ -79,7 +95,7 @@ def main() -> None:
         rot, trans = pose_error(c.T_target_source, T_true) if c.accepted else (float("nan"), float("nan"))
         split = "  ".join(f"{s} {1e3 * timings.get(s, 0.0):.0f}" for s in stages)  # CPU ms per stage
         print(
-            f"{name:12s} total {1e3 * total:6.0f} ms wall, {1e3 * cpu:4.0f} ms CPU (best of {args.repeat}; median wall {1e3 * np.median([r[0] for r in runs]):.0f})"
+            f"{name:26s} total {1e3 * total:6.0f} ms wall, {1e3 * cpu:4.0f} ms CPU (best of {args.repeat}; median wall {1e3 * np.median([r[0] for r in runs]):.0f})"
             f"  [CPU {split}] ms  keypoints {len(fa_kp(reg, fa))}/{len(fa_kp(reg, fb))} matches {c.metadata.get('matches', 0)}"
             f"  inliers {c.inlier_count}  err {np.degrees(rot):.4f} deg {1e3 * trans:.4f} mm  {'' if c.accepted else c.rejection_reason}"
         )
