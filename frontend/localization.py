@@ -622,12 +622,18 @@ def _smoothed_along_rays(xyz_map: Array, sigma_px: float) -> Array:
     surface a Gaussian of variance s^2 shifts it by s^2/2 times its Laplacian; "twicing"
     (``2 G(f) - G(G(f))``) cancels that term (a doll frame with exact points: plain smoothing puts
     the located camera 0.029 mm off, twicing 0.012 mm, the raw exact points 0.013 mm)."""
-    z = xyz_map[..., 2]
+    return xyz_map * _smoothing_scale(xyz_map[..., 2], sigma_px)[..., None]
+
+
+def _smoothing_scale(depth_m: Array, sigma_px: float) -> Array:
+    """The factor ``smoothed depth / depth`` of :func:`_smoothed_along_rays` per pixel (NaN where invalid):
+    callers that need a few pixels scale just those (the full (H, W, 3) product costs ~0.1 s)."""
+    z = depth_m
     ok = np.isfinite(z)
     inv_z = np.where(ok, 1.0 / np.where(ok, z, 1.0), 0.0)
     twice = _twice_smoothed_inverse_depth(inv_z, ok, sigma_px)
     with np.errstate(invalid="ignore", divide="ignore"):
-        return xyz_map * (1.0 / (twice * np.where(ok, z, np.nan)))[..., None]
+        return 1.0 / (twice * np.where(ok, z, np.nan))
 
 
 @functools.lru_cache(maxsize=16)
@@ -659,7 +665,12 @@ def _adaptively_smoothed_along_rays(xyz_map: Array, small_px: float, large_px: f
     On 12 simulated corridor frames located against their two neighbours (start 0.5 mm off the
     truth) it took the median camera-centre error from 0.058 to 0.045 mm on its own.
     """
-    z = xyz_map[..., 2]
+    return xyz_map * _adaptive_smoothing_scale(xyz_map[..., 2], small_px, large_px, kappa)[..., None]
+
+
+def _adaptive_smoothing_scale(depth_m: Array, small_px: float, large_px: float, kappa: float = 3.0) -> Array:
+    """The per-pixel factor of :func:`_adaptively_smoothed_along_rays` (as :func:`_smoothing_scale`)."""
+    z = depth_m
     ok = np.isfinite(z)
     inv_z = np.where(ok, 1.0 / np.where(ok, z, 1.0), 0.0)
     narrow = _twice_smoothed_inverse_depth(inv_z, ok, small_px)
@@ -682,7 +693,7 @@ def _adaptively_smoothed_along_rays(xyz_map: Array, small_px: float, large_px: f
     smoothed = np.where(use_wide, wide, narrow)
     log.debug("adaptive range smoothing: %.0f%% of %d pixels at %.1f px, the rest at %.1f px", 100.0 * use_wide.sum() / max(int(ok.sum()), 1), int(ok.sum()), large_px, small_px)
     with np.errstate(invalid="ignore", divide="ignore"):
-        return xyz_map * (1.0 / (smoothed * np.where(ok, z, np.nan)))[..., None]
+        return 1.0 / (smoothed * np.where(ok, z, np.nan))
 
 
 def _depth_edge_free_mask(depth_m: NDArray, reach_px: int, kappa: float = 8.0, relative_floor: float = 1e-4) -> NDArray[np.bool_]:
@@ -704,11 +715,13 @@ def _depth_edge_free_mask(depth_m: NDArray, reach_px: int, kappa: float = 8.0, r
         return finite
     d2u = np.full(z.shape, np.nan, np.float32)
     d2v = np.full(z.shape, np.nan, np.float32)
-    d2u[:, 1:-1] = inv_z[:, 2:] - 2.0 * inv_z[:, 1:-1] + inv_z[:, :-2]
-    d2v[1:-1] = inv_z[2:] - 2.0 * inv_z[1:-1] + inv_z[:-2]
+    for d2, ahead, here, behind in ((d2u[:, 1:-1], inv_z[:, 2:], inv_z[:, 1:-1], inv_z[:, :-2]), (d2v[1:-1], inv_z[2:], inv_z[1:-1], inv_z[:-2])):
+        np.add(ahead, behind, out=d2)  # in place: full-size temporaries cost more than the arithmetic
+        d2 -= here
+        d2 -= here
     sample = np.abs(np.concatenate([d2u[::3].ravel(), d2v[:, ::3].ravel()]))
     sample = sample[np.isfinite(sample)]
-    floor = relative_floor * float(np.median(inv_z[finite]))
+    floor = relative_floor * float(np.median(inv_z[::3, ::3][finite[::3, ::3]])) if finite[::3, ::3].any() else 0.0
     threshold = max(kappa * 1.4826 * float(np.median(sample)) if sample.size else 0.0, floor)
     with np.errstate(invalid="ignore"):
         smooth = finite & (np.abs(d2u) < threshold) & (np.abs(d2v) < threshold)  # NaN (border, holes) fails
@@ -740,23 +753,26 @@ def _photometric_reference_pixels(
     intensity = tex.astype(np.float32)
     # the smoothing's reach: past ~2.5 sigma a Gaussian's weights are below 5 % of its peak
     smooth = _depth_edge_free_mask(xyz[..., 2], max(2, math.ceil(2.5 * range_smoothing_px))) & (intensity > 2) & (intensity < 250)
+    scale = None
     if range_smoothing_px > 0 and smooth.any():
         if max_range_smoothing_px > range_smoothing_px:
-            xyz = _adaptively_smoothed_along_rays(xyz, range_smoothing_px, max_range_smoothing_px)
+            scale = _adaptive_smoothing_scale(xyz[..., 2], range_smoothing_px, max_range_smoothing_px)
         else:
-            xyz = _smoothed_along_rays(xyz, range_smoothing_px)
+            scale = _smoothing_scale(xyz[..., 2], range_smoothing_px)
     grad = np.abs(cv2.Sobel(intensity, cv2.CV_32F, 1, 0, ksize=3)) + np.abs(cv2.Sobel(intensity, cv2.CV_32F, 0, 1, ksize=3))
     idx = np.flatnonzero(smooth.ravel())
     if idx.size > max_pixels:
         g = grad.ravel()[idx]
         idx = idx[np.argpartition(g, idx.size - max_pixels)[idx.size - max_pixels:]]
     X = xyz.reshape(-1, 3)[idx]
+    if scale is not None:
+        X = X * scale.ravel()[idx, None]
     if projector_centre_m is None:
         E = np.ones(idx.size)
         n_world = np.full((idx.size, 3), np.nan)
         has_normal = np.zeros(idx.size, bool)
     else:
-        n = _organised_normals_at(xyz, idx, normal_step_px)
+        n = _organised_normals_at(xyz, idx, normal_step_px, scale)
         E, _ = _projector_irradiance(n, projector_centre_m - X)
         has_normal = np.isfinite(E) & (E > 0)
         n_world = n @ np.ascontiguousarray(T[:3, :3].T)
@@ -1100,16 +1116,20 @@ def organised_normals(xyz_map: NDArray, step_px: int = 4) -> Array:
     return n
 
 
-def _organised_normals_at(xyz_map: NDArray, flat_index: NDArray, step_px: int) -> Array:
-    """:func:`organised_normals` at some pixels only (``flat_index`` into the H x W grid), (N, 3)."""
+def _organised_normals_at(xyz_map: NDArray, flat_index: NDArray, step_px: int, scale: NDArray | None = None) -> Array:
+    """:func:`organised_normals` at some pixels only (``flat_index`` into the H x W grid), (N, 3),
+    of ``xyz_map * scale[..., None]`` when a per-pixel ``scale`` is given."""
     xyz = np.asarray(xyz_map, dtype=np.float64)
     H, W = xyz.shape[:2]
     k = int(step_px)
     r, c = np.divmod(np.asarray(flat_index, dtype=np.int64), W)
     inside = (c >= k) & (c < W - k) & (r >= k) & (r < H - k)
     r, c = np.clip(r, k, max(k, H - k - 1)), np.clip(c, k, max(k, W - k - 1))
-    du = xyz[r, np.minimum(c + k, W - 1)] - xyz[r, c - k]
-    dv = xyz[np.minimum(r + k, H - 1), c] - xyz[r - k, c]
+    def at(rows: NDArray, cols: NDArray) -> Array:
+        return xyz[rows, cols] if scale is None else xyz[rows, cols] * scale[rows, cols][:, None]
+
+    du = at(r, np.minimum(c + k, W - 1)) - at(r, c - k)
+    dv = at(np.minimum(r + k, H - 1), c) - at(r - k, c)
     n = _cross_rows(du, dv)
     with np.errstate(invalid="ignore", divide="ignore"):
         n /= np.linalg.norm(n, axis=1, keepdims=True)
