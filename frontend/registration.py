@@ -21,7 +21,13 @@
 7. :meth:`FppPairRegistrar.refine_dense`: dense point-to-plane alignment of every
    ``dense_stride_px``-th pixel of both organised maps (:mod:`frontend.dense_alignment`) with the
    keypoints as prior; its information (scaled by ``dense_information_scale``) replaces ICP's.
-   Plane-like pairs (three weak directions) keep step 4's pose.
+   Plane-like pairs (three weak directions) keep step 4's pose, unless:
+8. with the rig's :class:`TextureCamera` (``FppPairRegistrar(texture_camera=...)``), plane-like
+   pairs take every plane-like ICP pose through the keypoints' in-plane optimum (step 4), a dense
+   fit with the in-plane directions held gives the tilts and the distance, and
+   :meth:`FppPairRegistrar.refine_plane_photometric` sets the in-plane shifts and spin from the
+   texture (:func:`frontend.localization.localize_photometric` with the FPP shading model, the
+   geometry's directions held). Its information joins the constraint, not the gates of step 6.
 
 A pair that fails any check returns ``Constraint.rejected(...)`` with the reason; a pair that
 cannot be attempted at all (no texture, no 3D points) is rejected the same way, so a caller
