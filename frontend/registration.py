@@ -1398,12 +1398,11 @@ class FppPairRegistrar:
             # information is not plane-like the relief constrains the plane's directions.
             weak_dense, T_start = None, meta["T_icp"]
             meta["dense_rechecks_plane_rule"] = True
-        if plane_dense is not None:
-            pass
-        elif len(deg_icp.unconstrained) >= 3:
-            dense, why_not = None, "plane-like geometry (ICP: " + "; ".join(deg_icp.unconstrained) + ")"
-        else:
-            dense, why_not = self.refine_dense(target, source, T_start, info_kp, weak_dense, icp.source_points)
+        if plane_dense is None:
+            if len(deg_icp.unconstrained) >= 3:
+                dense, why_not = None, "plane-like geometry (ICP: " + "; ".join(deg_icp.unconstrained) + ")"
+            else:
+                dense, why_not = self.refine_dense(target, source, T_start, info_kp, weak_dense, icp.source_points)
         if weak_dense is not None:
             meta["dense_pinned"] = list(weak_dense.unconstrained)
         if dense is not None:
