@@ -42,6 +42,7 @@ from numpy.typing import NDArray
 
 from fpp_graph.errors import InputDataError
 from fpp_graph.geometry import invert, se3_exp, se3_log, transform_points
+from frontend.dense_alignment import cross_rows
 
 log = logging.getLogger(__name__)
 
@@ -602,10 +603,11 @@ def _projector_irradiance(normals: Array, to_projector: Array) -> tuple[Array, A
     return cos / d**2, cos
 
 
-def _twice_smoothed_inverse_depth(inv_z: NDArray, ok: NDArray[np.bool_], sigma_px: float) -> Array:
-    """``2 G(f) - G(G(f))`` of inverse depth by normalised Gaussian convolution over the ``ok`` pixels."""
-    den = cv2.GaussianBlur(ok.astype(np.float32), (0, 0), sigma_px)
-    den = np.maximum(den, np.float32(1e-6))
+def _twice_smoothed_inverse_depth(inv_z: NDArray, ok: NDArray[np.bool_], sigma_px: float, den: NDArray | None = None) -> Array:
+    """``2 G(f) - G(G(f))`` of inverse depth by normalised Gaussian convolution over the ``ok`` pixels
+    (``den``: the normalisation ``max(G(ok), 1e-6)`` when the caller has it already)."""
+    if den is None:
+        den = np.maximum(cv2.GaussianBlur(ok.astype(np.float32), (0, 0), sigma_px), np.float32(1e-6))
 
     def blur(f: Array) -> Array:
         return cv2.GaussianBlur(np.where(ok, f, 0.0).astype(np.float32), (0, 0), sigma_px).astype(np.float64) / den
@@ -673,11 +675,11 @@ def _adaptive_smoothing_scale(depth_m: Array, small_px: float, large_px: float, 
     z = depth_m
     ok = np.isfinite(z)
     inv_z = np.where(ok, 1.0 / np.where(ok, z, 1.0), 0.0)
+    # the wide smoother and the local means below share one normalisation
+    den = np.maximum(cv2.GaussianBlur(ok.astype(np.float32), (0, 0), large_px), np.float32(1e-6))
     narrow = _twice_smoothed_inverse_depth(inv_z, ok, small_px)
-    wide = _twice_smoothed_inverse_depth(inv_z, ok, large_px)
+    wide = _twice_smoothed_inverse_depth(inv_z, ok, large_px, den)
     gain_residual, gain_difference, gain_averaged = _smoother_noise_gains(float(small_px), float(large_px))
-    okf = ok.astype(np.float32)
-    den = np.maximum(cv2.GaussianBlur(okf, (0, 0), large_px).astype(np.float64), 1e-6)
 
     def local_mean(f: Array) -> Array:
         return cv2.GaussianBlur(np.where(ok, f, 0.0).astype(np.float32), (0, 0), large_px).astype(np.float64) / den
@@ -952,7 +954,7 @@ def localize_photometric(
             zs = Ps[:, 2]
             # d I / d P (camera frame), then a left perturbation T <- exp(xi) T: dP = omega x P + v
             dI_dP = np.column_stack([Gx * fx / zs, Gx * skew / zs + Gy * fy / zs, -(Gx * (fx * Ps[:, 0] + skew * Ps[:, 1]) + Gy * fy * Ps[:, 1]) / zs**2])
-            J = np.column_stack([_cross_rows(Ps, dI_dP), dI_dP, -pred, -np.ones(sel.size), -g * I_lev[sel] * drho_dk])[:, :n_par]
+            J = np.column_stack([cross_rows(Ps, dI_dP).T, dI_dP, -pred, -np.ones(sel.size), -g * I_lev[sel] * drho_dk])[:, :n_par]
             Jw = J * w[:, None]
             A = Jw.T @ J
             b = Jw.T @ res
@@ -1130,20 +1132,11 @@ def _organised_normals_at(xyz_map: NDArray, flat_index: NDArray, step_px: int, s
 
     du = at(r, np.minimum(c + k, W - 1)) - at(r, c - k)
     dv = at(np.minimum(r + k, H - 1), c) - at(r - k, c)
-    n = _cross_rows(du, dv)
+    n = cross_rows(du, dv).T
     with np.errstate(invalid="ignore", divide="ignore"):
         n /= np.linalg.norm(n, axis=1, keepdims=True)
     n[~inside] = np.nan
     return n
-
-
-def _cross_rows(a: Array, b: Array) -> Array:
-    """Row-wise cross product of (N, 3) arrays (np.cross is several times slower on long arrays)."""
-    out = np.empty_like(a)
-    out[:, 0] = a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1]
-    out[:, 1] = a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2]
-    out[:, 2] = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
-    return out
 
 
 def shading_corrected_texture(texture: NDArray, xyz_map: NDArray, projector_centre_m: NDArray, normal_step_px: int = 6) -> NDArray[np.uint8]:

@@ -842,6 +842,13 @@ def weak_direction_pin(deg: Degeneracy, source_points: NDArray, strength: float,
     return 0.5 * (out + out.T)
 
 
+def _max_motion_m(T_a: NDArray, T_b: NDArray, points: NDArray) -> float:
+    """Largest distance between ``points`` moved by ``T_a`` and by ``T_b`` (0 without points)."""
+    if not points.size:
+        return 0.0
+    return float(np.max(np.linalg.norm(transform_points(T_a, points) - transform_points(T_b, points), axis=1)))
+
+
 @dataclass(frozen=True)
 class TextureCamera:
     """What predicting one FPP frame's texture from another needs: the camera's ``K`` and
@@ -1338,6 +1345,14 @@ class FppPairRegistrar:
         # Where the dense geometry is weak (an object on a big table plane, a wall), ICP's cost
         # is flat: the keypoints' point-to-point information constrains exactly those directions.
         kp_mask = keypoint_inliers(res_kp, cfg.ransac_threshold_m)
+
+        def at_pose(T: NDArray, info_geometry: NDArray) -> tuple[NDArray, NDArray, Degeneracy]:
+            """The keypoints' information at ``T`` (the inlier set stays), the joint information and its degeneracy."""
+            res = np.linalg.norm(Pt - (Ps @ T[:3, :3].T + T[:3, 3]), axis=1)
+            info_k = information_from_keypoints(T, Ps[kp_mask], res[kp_mask])
+            joint = info_geometry + info_k
+            return info_k, joint, check_degeneracy(joint, icp.source_points, cfg.degeneracy_ratio)
+
         info_kp = information_from_keypoints(T, Ps[kp_mask], res_kp[kp_mask])
         info = info_icp + info_kp
         deg = check_degeneracy(info, icp.source_points, cfg.degeneracy_ratio)
@@ -1355,10 +1370,7 @@ class FppPairRegistrar:
             if m2 > _CHI2_6DOF_999:
                 T = T @ se3_exp(step)
                 meta["moved_to_joint_optimum"] = True
-                res_kp = np.linalg.norm(Pt - (Ps @ T[:3, :3].T + T[:3, 3]), axis=1)
-                info_kp = information_from_keypoints(T, Ps[kp_mask], res_kp[kp_mask])
-                info = info_icp + info_kp
-                deg = check_degeneracy(info, icp.source_points, cfg.degeneracy_ratio)
+                info_kp, info, deg = at_pose(T, info_icp)
         timings["information"], cpu_timings["information"] = time.perf_counter() - t0, time.process_time() - c0
         t0, c0 = time.perf_counter(), time.process_time()
         # Every pixel instead of 2 mm voxels: on simulated turntable pairs the median error fell
@@ -1377,18 +1389,14 @@ class FppPairRegistrar:
             # relief after all (a doll on a table) the unheld re-check below decides instead.
             held, _ = self.refine_dense(target, source, T, info_kp, drop_weak, icp.source_points)
             if held is not None and len(check_degeneracy(held.information, held.source_points, cfg.degeneracy_ratio).unconstrained) >= 3:
-                shift_held = float(np.max(np.linalg.norm(transform_points(held.T_target_source, Ps_in) - transform_points(ransac.T_target_source, Ps_in), axis=1))) if Ps_in.size else 0.0
-                if shift_held <= cfg.max_icp_shift_m:
+                if _max_motion_m(held.T_target_source, ransac.T_target_source, Ps_in) <= cfg.max_icp_shift_m:
                     plane_dense = held
         if plane_dense is not None:
             meta.update({"T_before_dense": T, "dense_pinned": list(drop_weak.unconstrained), "dense_iterations": plane_dense.iterations,
                          "dense_residuals": plane_dense.num_residuals, "dense_sigma_m": plane_dense.sigma_m})
             T = plane_dense.T_target_source
             info_icp = without_weak_directions(cfg.dense_information_scale * plane_dense.information, drop_weak, icp.source_points)
-            res_kp = np.linalg.norm(Pt - (Ps @ T[:3, :3].T + T[:3, 3]), axis=1)
-            info_kp = information_from_keypoints(T, Ps[kp_mask], res_kp[kp_mask])
-            info = info_icp + info_kp
-            deg = check_degeneracy(info, icp.source_points, cfg.degeneracy_ratio)
+            info_kp, info, deg = at_pose(T, info_icp)
             dense, why_not = None, ""
         elif drop_weak is not None and drop_weak is not deg_icp:
             # The plane rule (step 4) read the pair as a plane from ICP's voxels and took the
@@ -1409,7 +1417,7 @@ class FppPairRegistrar:
             dense_deg = check_degeneracy(dense.information, dense.source_points, cfg.degeneracy_ratio)
             meta["dense_eigenvalue_ratios"] = dense_deg.eigenvalue_ratios
             # (against RANSAC's pose, as ICP's shift is: the keypoints' basin)
-            shift_dense = float(np.max(np.linalg.norm(transform_points(dense.T_target_source, Ps_in) - transform_points(ransac.T_target_source, Ps_in), axis=1))) if Ps_in.size else 0.0
+            shift_dense = _max_motion_m(dense.T_target_source, ransac.T_target_source, Ps_in)
             meta.update({"dense_shift_m": shift_dense, "dense_iterations": dense.iterations, "dense_residuals": dense.num_residuals, "dense_sigma_m": dense.sigma_m})
             if len(dense_deg.unconstrained) >= 3:
                 # a plane even to every pixel (a wall: ratios <= 0.016 where the doll's are >= 0.2):
@@ -1426,10 +1434,7 @@ class FppPairRegistrar:
                     info_dense = without_weak_directions(info_dense, weak_dense, icp.source_points)
                 # the dense term replaces ICP's (the same surfaces, measured densely)
                 info_icp = info_dense
-                res_kp = np.linalg.norm(Pt - (Ps @ T[:3, :3].T + T[:3, 3]), axis=1)
-                info_kp = information_from_keypoints(T, Ps[kp_mask], res_kp[kp_mask])
-                info = info_icp + info_kp
-                deg = check_degeneracy(info, icp.source_points, cfg.degeneracy_ratio)
+                info_kp, info, deg = at_pose(T, info_icp)
         if why_not and why_not != "off":
             meta["dense_not_used"] = why_not
             log.debug("pair %d->%d: dense refinement not used: %s", source.id, target.id, why_not)
@@ -1440,17 +1445,14 @@ class FppPairRegistrar:
             t0, c0 = time.perf_counter(), time.process_time()
             T_photo, info_photo, why_not_photo = self.refine_plane_photometric(target, source, T, drop_weak, info_icp, icp.source_points)
             if T_photo is not None:
-                shift_photo = float(np.max(np.linalg.norm(transform_points(T_photo, Ps_in) - transform_points(T, Ps_in), axis=1))) if Ps_in.size else 0.0
+                shift_photo = _max_motion_m(T_photo, T, Ps_in)
                 meta["photometric_shift_m"] = shift_photo
                 if shift_photo > cfg.ransac_threshold_m:
                     why_not_photo = f"moved the keypoint inliers by {1e3 * shift_photo:.2f} mm"
                 else:
                     meta["T_before_photometric"] = T
                     T = T_photo
-                    res_kp = np.linalg.norm(Pt - (Ps @ T[:3, :3].T + T[:3, 3]), axis=1)
-                    info_kp = information_from_keypoints(T, Ps[kp_mask], res_kp[kp_mask])
-                    info = info_icp + info_kp
-                    deg = check_degeneracy(info, icp.source_points, cfg.degeneracy_ratio)
+                    info_kp, info, deg = at_pose(T, info_icp)
                     # carried by the constraint only: the gates below (a plane is admitted when the
                     # keypoints pin it; look-alike places) stay on the geometry and the keypoints
                     info_photometric = info_photo
