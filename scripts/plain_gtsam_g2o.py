@@ -1,0 +1,53 @@
+"""The peer: a plain gtsam script (chordal initialisation + Levenberg-Marquardt) on a g2o file.
+
+It does not import fpp_graph: it is what a user would write in 25 lines, and what the back-end's
+default ``fpp-slam optimize`` is measured against (``scripts/bench_pose_graph_peer.py``). The
+noise model is SE-Sync's isotropic one (tau, kappa from the information blocks, the same model as
+``--noise-model isotropic``); the file is parsed with numpy because ``gtsam.readG2o`` alters
+information matrices that are not positive definite. Prints one JSON line: poses, edges, the
+SE-Sync objective F at the solution, the LM iterations and the solve time.
+
+    python scripts/plain_gtsam_g2o.py GRAPH.g2o
+"""
+
+import json
+import sys
+import time
+
+import gtsam
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+start = time.perf_counter()
+rows = [line.split() for line in open(sys.argv[1]) if line.strip()]
+vertices = {int(r[1]): np.array(r[2:9], float) for r in rows if r[0] == "VERTEX_SE3:QUAT"}
+edges = [(int(r[1]), int(r[2]), np.array(r[3:31], float)) for r in rows if r[0] == "EDGE_SE3:QUAT"]
+graph, initial = gtsam.NonlinearFactorGraph(), gtsam.Values()
+for key, v in vertices.items():
+    initial.insert(key, gtsam.Pose3(gtsam.Rot3(Rotation.from_quat(v[3:]).as_matrix()), v[:3]))
+upper, tau, kappa, measured = np.triu_indices(6), [], [], []
+for i, j, v in edges:
+    info = np.zeros((6, 6))
+    info[upper] = v[7:]
+    info = info + np.triu(info, 1).T  # g2o order [trans, rot]
+    tau.append(3.0 / np.trace(np.linalg.inv(info[:3, :3])))
+    kappa.append(3.0 / (2.0 * np.trace(np.linalg.inv(info[3:, 3:]))))
+    measured.append((Rotation.from_quat(v[3:7]).as_matrix(), v[:3]))
+    precisions = np.array([4 * kappa[-1]] * 3 + [2 * tau[-1]] * 3)  # GTSAM [rot, trans]
+    graph.add(gtsam.BetweenFactorPose3(i, j, gtsam.Pose3(gtsam.Rot3(measured[-1][0]), measured[-1][1]),
+                                       gtsam.noiseModel.Diagonal.Precisions(precisions)))
+graph.add(gtsam.PriorFactorPose3(min(vertices), initial.atPose3(min(vertices)), gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)))
+params = gtsam.LevenbergMarquardtParams()
+params.setRelativeErrorTol(1e-10)
+params.setAbsoluteErrorTol(0.0)
+params.setErrorTol(0.0)
+params.setMaxIterations(100)
+optimizer = gtsam.LevenbergMarquardtOptimizer(graph, gtsam.InitializePose3.initialize(graph), params)
+result = optimizer.optimize()
+F = 0.0
+for (i, j, _), (R_ij, t_ij), ta, ka in zip(edges, measured, tau, kappa, strict=True):
+    Ti, Tj = result.atPose3(i), result.atPose3(j)
+    F += ka * np.sum((Tj.rotation().matrix() - Ti.rotation().matrix() @ R_ij) ** 2)
+    F += ta * np.sum((Tj.translation() - Ti.translation() - Ti.rotation().matrix() @ t_ij) ** 2)
+print(json.dumps({"poses": len(vertices), "edges": len(edges), "sesync_objective": F,
+                  "iterations": optimizer.iterations(), "seconds": time.perf_counter() - start}))
