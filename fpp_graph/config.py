@@ -103,12 +103,14 @@ class PoseGraphConfig(StrictModel):
     initialization: Literal["chordal", "given"] = "chordal"
     noise_model: Literal["file", "isotropic"] = Field("file", description="edge information as given, or SE-Sync's isotropic tau/kappa model")
     robust: Literal["none", "cauchy", "gnc"] = "gnc"
-    gnc_inlier_probability: float = Field(0.999, gt=0, lt=1)
+    loop_false_alarm: float = Field(
+        0.01, gt=0, lt=1,
+        description="probability that a graph without outliers has any loop flagged (family-wise chi-square bound)",
+    )
     cauchy_scale: float = Field(1.0, gt=0)
     max_iterations: int = Field(100, gt=0)
     relative_error_tol: float = Field(1e-10, gt=0)
-    consistency_probability: float = Field(0.999, gt=0, lt=1)
-    remove_inconsistent_loops: bool = True
+    remove_inconsistent_loops: bool = False
 
 
 class FusionConfig(StrictModel):

@@ -32,7 +32,7 @@ import logging
 import math
 import time
 from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -41,6 +41,13 @@ from numpy.typing import ArrayLike, NDArray
 from fpp_graph.config import PoseGraphConfig
 from fpp_graph.errors import GraphError
 from fpp_graph.graph_diagnostics import check_constrained, connected_parts
+from fpp_graph.outliers import (
+    CycleCheck,
+    LoopScreen,
+    describe_scale,
+    family_bound,
+    odometry_cycle_chi2,
+)
 from fpp_graph.types import Constraint, ConstraintKind
 
 if TYPE_CHECKING:  # gtsam is imported lazily so that importing this module stays cheap
@@ -58,8 +65,8 @@ _ORTHONORMAL_ATOL = 1e-12
 _RIGID_ATOL = 1e-5
 #: Inner LM tolerance during GNC's outer iterations; a tight LM polish follows GNC.
 _GNC_INNER_RELATIVE_TOL = 1e-6
-#: Most loop edges removed one by one by the consistency check before giving up.
-_MAX_CONSISTENCY_ROUNDS = 100
+#: Rounds of re-admitting loops under the bound after GNC (each re-solves; 1-2 suffice).
+_MAX_READMISSION_ROUNDS = 5
 
 
 # ----------------------------------------------------------------------------------------------
@@ -122,18 +129,27 @@ class PoseGraphResult:
     seconds : float
         Wall time of the whole call (checks, initialisation, solving, consistency check).
     rejected_loops : list of (source_id, target_id)
-        Loop edges left out of the solution: by GNC or removed by the consistency check.
+        Every loop edge left out of the solution: by truncated least squares (GNC) or removed
+        by the consistency check.
     inconsistent_loops : list of (source_id, target_id)
-        Loop edges whose whitened residual exceeded the chi-square bound: those removed (one
-        at a time, worst first, re-optimising after each, when ``remove_inconsistent_loops``
-        is set) and those left in (removal off, or the loop alone ties part of the graph to
-        its anchor).
+        Loop edges whose whitened squared residual exceeded the bound: those removed (one at
+        a time, worst first, re-optimising after each, when ``remove_inconsistent_loops`` is
+        set) and those left in (removal off, or the loop alone ties part of the graph to its
+        anchor).
     initialization : str
         ``"chordal"`` or ``"given"``, with the reason when chordal initialisation failed.
     initialized_cost : float
         The cost at the initial values handed to the solver (after initialisation).
     noise_model, robust, solver : str
         The options used.
+    removed_loops : list of (source_id, target_id)
+        The loops of ``rejected_loops`` removed by the consistency check (not by GNC).
+    variance_factor : float
+        Measured scale of the information (>= 1; 1 when no loop needed it, see
+        :mod:`fpp_graph.outliers`): the edges' errors are ``sqrt`` of it times the stated sigma.
+    loop_bound : float
+        The bound on a loop's whitened squared residual (family-wise chi-square at the variance
+        factor); NaN for a graph without loops.
     """
 
     poses_world_sensor: dict[int, Array]
@@ -148,6 +164,9 @@ class PoseGraphResult:
     noise_model: str = "file"
     robust: str = "none"
     solver: str = "lm"
+    removed_loops: list[tuple[int, int]] = field(default_factory=list)
+    variance_factor: float = 1.0
+    loop_bound: float = math.nan
 
 
 # ----------------------------------------------------------------------------------------------
@@ -477,9 +496,13 @@ class PoseGraph:
         """Optimise the graph; the stored poses become the solution.
 
         Steps: structure check (raises :class:`GraphError` naming unconstrained parts),
-        initialisation (chordal or given), solve (LM, or iSAM2 batch; GNC or Cauchy on loop
-        edges), consistency check of loop edges (chi-square bound on the whitened residual;
-        the worst offender removed and the graph re-solved, one at a time, when configured).
+        initialisation (chordal or given), least squares over every edge (LM, or iSAM2 batch;
+        the Cauchy loss on loops with ``robust="cauchy"``), then with ``robust="gnc"`` the
+        robust stage of :mod:`fpp_graph.outliers`: only when a loop's residual is evidence of
+        an outlier (family-wise chi-square test at the measured information scale) does
+        truncated least squares (GNC) run. A graph without outliers is returned as least
+        squares gives it. Optionally (``remove_inconsistent_loops``) loops still over the bound
+        are removed one at a time, worst first, re-solving after each.
 
         Parameters
         ----------
@@ -492,52 +515,25 @@ class PoseGraph:
         anchors = list(self._fixed) + ([auto_anchor] if auto_anchor is not None else [])
         problem = _Problem(self, anchors, cfg)
         given = _values_from(self._poses)
-        initial_cost = problem.cost(given, np.ones(problem.num_edges, dtype=bool))
-
         active = np.ones(problem.num_edges, dtype=bool)
+        initial_cost = problem.cost(given, active)
         initial, initialization = self._initialize(problem, active, given, cfg)
         initialized_cost = problem.cost(initial, active)
         log.debug("initial cost %.6g (given), %.6g (%s)", initial_cost, initialized_cost, initialization)
 
-        values, iterations, gnc_rejected = problem.solve(initial, active, cfg)
-        rejected = sorted(gnc_rejected)
-        active[list(gnc_rejected)] = False
-
-        removed: list[int] = []  # inconsistent loops taken out, worst first, one per re-solve
-        kept_flagged: list[int] = []  # inconsistent loops left in (removal off, or needed)
-        for _ in range(_MAX_CONSISTENCY_ROUNDS):
-            flagged = problem.inconsistent_loops(values, active, cfg.consistency_probability)
-            if not flagged:
-                break
-            if not cfg.remove_inconsistent_loops:
-                kept_flagged = [i for i, _ in flagged]
-                break
-            needed = problem.necessary_loops(active)
-            removable = [(i, r2) for i, r2 in flagged if i not in needed]
-            if not removable:
-                kept_flagged = [i for i, _ in flagged]
-                log.warning(
-                    "inconsistent loop edge(s) %s are the only links of part of the graph to its anchor; kept",
-                    [problem.edges[i].pair for i in kept_flagged],
-                )
-                break
-            worst, r2 = removable[0]
-            log.info(
-                "loop edge %d->%d is inconsistent (whitened residual^2 %.3g > chi-square bound %.3g); "
-                "removing it and re-optimising",
-                *problem.edges[worst].pair, r2, problem.chi2_bound(cfg.consistency_probability),
-            )
-            removed.append(worst)
-            active[worst] = False
-            values, more, _ = problem.solve(values, active, cfg, robust="none" if cfg.robust == "gnc" else cfg.robust)
+        values, iterations = problem.solve(initial, active, cfg)
+        rejected: list[int] = []
+        screen = problem.screen(values, active, cfg) if np.any(problem.is_loop) else None
+        if cfg.robust == "gnc" and screen is not None and screen.flagged().size:
+            log.info("%d loop edge(s) over the bound at the least-squares solution: truncated least squares",
+                     screen.flagged().size)
+            values, more, rejected = problem.solve_tls(values, active, screen, cfg)
             iterations += more
-        else:
-            kept_flagged = [i for i, _ in problem.inconsistent_loops(values, active, cfg.consistency_probability)]
-            log.warning("consistency check stopped after %d removals; %d loop edge(s) remain inconsistent",
-                        _MAX_CONSISTENCY_ROUNDS, len(kept_flagged))
+            active[rejected] = False
+            screen = problem.screen(values, active, cfg)
+        values, removed, kept_flagged, more = self._remove_inconsistent(problem, values, active, screen, cfg)
+        iterations += more
 
-        # The gauge move is rigid (cost unchanged) and anchors move by ~1e-8 sigma at most, so
-        # the cost at the solver's values is the cost of the returned poses.
         final_cost = problem.cost(values, active)
         poses = problem.poses_with_gauge(values, self._poses, anchors, bool(self._priors))
         self._poses.update(poses)
@@ -545,27 +541,62 @@ class PoseGraph:
         self._solution_graph = problem.gaussian_graph(active)
         self._marginals = None
 
+        pairs = [e.pair for e in problem.edges]
         result = PoseGraphResult(
             poses_world_sensor={k: T.copy() for k, T in poses.items()},
             initial_cost=float(initial_cost),
             final_cost=float(final_cost),
             iterations=int(iterations),
             seconds=time.perf_counter() - start,
-            rejected_loops=[problem.edges[i].pair for i in sorted(set(rejected) | set(removed))],
-            inconsistent_loops=[problem.edges[i].pair for i in [*removed, *kept_flagged]],
+            rejected_loops=[pairs[i] for i in sorted(set(rejected) | set(removed))],
+            inconsistent_loops=[pairs[i] for i in [*removed, *kept_flagged]],
             initialization=initialization,
             initialized_cost=float(initialized_cost),
             noise_model=cfg.noise_model,
             robust=cfg.robust,
             solver=cfg.solver,
+            removed_loops=[pairs[i] for i in removed],
+            variance_factor=screen.variance_factor if screen is not None else 1.0,
+            loop_bound=screen.bound if screen is not None else math.nan,
         )
         log.info(
             "pose graph: %d poses, %d edges, cost %.6g -> %.6g in %d iterations, %.3f s (%s init, %s noise, robust %s); "
-            "%d loop(s) rejected, %d inconsistent",
+            "%d loop(s) rejected, %d removed, %d inconsistent",
             self.num_poses, self.num_edges, result.initial_cost, result.final_cost, result.iterations, result.seconds,
-            initialization.split(" ")[0], cfg.noise_model, cfg.robust, len(result.rejected_loops), len(result.inconsistent_loops),
+            initialization.split(" ")[0], cfg.noise_model, cfg.robust, len(rejected), len(removed), len(result.inconsistent_loops),
         )
         return result
+
+    @staticmethod
+    def _remove_inconsistent(
+        problem: _Problem, values: gtsam.Values, active: NDArray[np.bool_], screen: LoopScreen | None, cfg: PoseGraphConfig
+    ) -> tuple[gtsam.Values, list[int], list[int], int]:
+        """Loops over the screen's bound at the solution: removed worst first, or reported.
+
+        Returns the values, the removed loops, the flagged loops left in (removal off, or the
+        loop alone ties part of the graph to its anchor) and the iterations spent.
+        """
+        removed: list[int] = []
+        iterations = 0
+        while screen is not None:
+            flagged = [int(i) for i in screen.flagged()]
+            if not flagged or not cfg.remove_inconsistent_loops:
+                return values, removed, flagged, iterations
+            needed = problem.necessary_loops(active)
+            removable = [i for i in flagged if i not in needed]
+            if not removable:
+                log.warning("inconsistent loop edge(s) %s are the only links of part of the graph to its anchor; kept",
+                            [problem.edges[i].pair for i in flagged])
+                return values, removed, flagged, iterations
+            worst = removable[0]
+            log.info("loop edge %d->%d is inconsistent (whitened squared residual %.3g > bound %.3g); removing it and re-solving",
+                     *problem.edges[worst].pair, 2.0 * problem.gaussian[worst].error(values), screen.bound)
+            removed.append(worst)
+            active[worst] = False
+            values, more = problem.solve(values, active, cfg, robust="none" if cfg.robust == "gnc" else cfg.robust)
+            iterations += more
+            screen = problem.screen(values, active, cfg)
+        return values, removed, [], iterations
 
     def marginal_covariance(self, key: int) -> Array:
         """6x6 marginal covariance of a pose at the last solution, ``[rot, trans]`` order.
@@ -759,21 +790,39 @@ class _Problem:
             total += self.gaussian[i].error(values)
         return float(total)
 
-    @staticmethod
-    def chi2_bound(probability: float) -> float:
-        from scipy.special import chdtri  # scipy.stats would add ~0.8 s of import
+    # -- loop statistics -------------------------------------------------------------------
+    def loop_chi2(self, values: gtsam.Values, loops: NDArray[np.int64]) -> Array:
+        """Whitened squared residuals (``2 x`` GTSAM's error) of edges ``loops`` at ``values``."""
+        return np.array([2.0 * self.gaussian[i].error(values) for i in loops], dtype=np.float64)
 
-        return float(chdtri(6, 1.0 - probability))
+    def cycle_check(self, active: NDArray[np.bool_]) -> CycleCheck:
+        """The active loops against the odometry paths between their ends."""
+        idx = np.flatnonzero(active)
+        check = odometry_cycle_chi2(
+            list(self.given_poses),
+            np.array([self.edges[i].pair for i in idx], dtype=np.int64).reshape(-1, 2),
+            np.stack([self.edges[i].T_target_source for i in idx]),
+            self.model_information[idx],
+            self.is_loop[idx],
+            [*self.anchors, *(p.key for p in self.priors)],
+        )
+        return CycleCheck(idx[check.loop_index], check.chi2)
 
-    def inconsistent_loops(self, values: gtsam.Values, active: NDArray[np.bool_], probability: float) -> list[tuple[int, float]]:
-        """Active loop edges with whitened residual^2 above the chi-square bound, worst first."""
-        bound = self.chi2_bound(probability)
-        flagged = []
-        for i in np.flatnonzero(active & self.is_loop):
-            r2 = 2.0 * self.gaussian[i].error(values)
-            if r2 > bound:
-                flagged.append((int(i), r2))
-        return sorted(flagged, key=lambda item: -item[1])
+    def screen(self, values: gtsam.Values, active: NDArray[np.bool_], cfg: PoseGraphConfig) -> LoopScreen:
+        """The evidence against each active loop at ``values`` (see :mod:`fpp_graph.outliers`).
+
+        The information's scale is measured (odometry cycles) only when some loop exceeds the
+        bound at unit scale: it can only widen the bound, so otherwise nothing is flagged.
+        """
+        loops = np.flatnonzero(active & self.is_loop)
+        unit_bound = family_bound(len(loops), cfg.loop_false_alarm)
+        r2 = self.loop_chi2(values, loops)
+        if len(loops) == 0 or r2.max() <= unit_bound:
+            return LoopScreen(loops, r2, 1.0, unit_bound, None)
+        cycles = self.cycle_check(active)
+        s2 = cycles.variance_factor()
+        log.info("%s", describe_scale(s2, s2 * unit_bound, len(cycles.chi2)))
+        return LoopScreen(loops, r2, s2, s2 * unit_bound, cycles)
 
     def necessary_loops(self, active: NDArray[np.bool_]) -> set[int]:
         """Active loop edges whose removal would leave part of the graph without an anchor.
@@ -805,104 +854,116 @@ class _Problem:
     # -- solving ---------------------------------------------------------------------------
     def solve(
         self, initial: gtsam.Values, active: NDArray[np.bool_], cfg: PoseGraphConfig, robust: str | None = None
-    ) -> tuple[gtsam.Values, int, list[int]]:
-        """Solve from ``initial``; returns values, iterations and the edges GNC rejected."""
+    ) -> tuple[gtsam.Values, int]:
+        """Least squares (or the Cauchy loss on loops) over the active edges from ``initial``."""
         robust = cfg.robust if robust is None else robust
         try:
-            if robust == "gnc" and np.any(active & self.is_loop):
-                return self._solve_gnc(initial, active, cfg)
             graph = self.robust_graph(active, cfg.cauchy_scale) if robust == "cauchy" else self.gaussian_graph(active)
             if cfg.solver == "isam2":
-                values, iterations = _isam2_batch(graph, initial, cfg)
-            else:
-                values, iterations = _lm(graph, initial, cfg.max_iterations, cfg.relative_error_tol)
-            return values, iterations, []
+                return _isam2_batch(graph, initial, cfg)
+            return _lm(graph, initial, cfg.max_iterations, cfg.relative_error_tol)
         except RuntimeError as exc:
             raise _solver_error(exc) from None
 
-    def _known_inliers_span(self, inliers: NDArray[np.bool_]) -> bool:
-        """True when odometry and priors alone tie every pose to an anchor."""
-        parts = connected_parts(self.given_poses, (self.edges[i].pair for i in np.flatnonzero(inliers)))
-        anchored = set(self.anchors) | {p.key for p in self.priors}
-        return all(anchored.intersection(part) for part in parts)
+    def solve_tls(
+        self, values: gtsam.Values, active: NDArray[np.bool_], screen: LoopScreen, cfg: PoseGraphConfig
+    ) -> tuple[gtsam.Values, int, list[int]]:
+        """Truncated least squares on loop edges (GNC), run only on evidence of an outlier.
 
-    def _solve_gnc(self, initial: gtsam.Values, active: NDArray[np.bool_], cfg: PoseGraphConfig) -> tuple[gtsam.Values, int, list[int]]:
-        """Truncated least squares on loop edges by graduated non-convexity.
-
-        1. Least squares over all edges from ``initial``: when every loop then costs less
-           than the inlier threshold, that solution is already a truncated-least-squares
-           optimum (all weights 1) and GNC is skipped (the common, outlier-free case).
-        2. Otherwise GNC (odometry and priors known inliers) from a chordal initialisation
-           over the known inliers alone: loops may be outliers, and a least-squares start
-           over them spreads their error over the graph while every GNC inner solve restarts
-           from the initial values.
-        3. A tight LM polish on the inliers, a chordal restart over the inliers (kept when
-           better), and re-admission of rejected loops whose cost at the solution is under
-           the threshold (truncated least squares counts them as inliers there).
+        ``values`` is the least-squares solution over all edges, which the outliers bend. GNC
+        starts instead from a least-squares solution over the odometry, the priors and the
+        loops consistent with the odometry (cycle test under the same bound): false loops are
+        rarely consistent with the odometry, and true ones tie the start together where the
+        odometry drifted. Odometry, priors and loops the graph cannot do without are known
+        inliers; the truncation threshold is the screen's bound. Afterwards the inlier set is
+        made self-consistent: a rejected loop whose residual at the solution is under the bound
+        is an inlier by the definition of truncated least squares, and is re-admitted.
         """
         import gtsam
 
-        threshold = 0.5 * self.chi2_bound(cfg.gnc_inlier_probability)  # GTSAM's barcSq
-        graph = self.gaussian_graph(active)
-        loops = np.flatnonzero(active & self.is_loop)
-        values, iterations = _lm(graph, initial, cfg.max_iterations, cfg.relative_error_tol)
-        if all(self.gaussian[i].error(values) <= threshold for i in loops):
-            return values, iterations, []
-        start = initial
-        needed = self.necessary_loops(active)
-        inliers = active & ~self.is_loop
-        inliers[list(needed)] = True
-        if cfg.initialization == "chordal" and self._known_inliers_span(inliers):
-            restart, failure = self.chordal(inliers)
-            if restart is not None:
-                start = restart
-            else:
-                log.debug("chordal initialisation over odometry failed (%s); GNC starts from the initial values", failure)
-        n_fixed = len(self.anchor_factors) + len(self.prior_factors)
-        edge_of_factor = np.flatnonzero(active)
-        known_inliers = list(range(n_fixed)) + [
-            n_fixed + j for j, i in enumerate(edge_of_factor) if not self.is_loop[i] or i in needed
-        ]
-        params = gtsam.GncLMParams(_lm_params(cfg.max_iterations, max(cfg.relative_error_tol, _GNC_INNER_RELATIVE_TOL)))
-        params.setLossType(gtsam.GncLossType.TLS)
-        params.setKnownInliers(known_inliers)
-        optimizer = gtsam.GncLMOptimizer(graph, start, params)
-        optimizer.setInlierCostThresholdsAtProbability(float(cfg.gnc_inlier_probability))
-        values = optimizer.optimize()
-        weights = np.asarray(optimizer.getWeights(), dtype=np.float64)
-        rejected = [int(edge_of_factor[j]) for j in range(len(edge_of_factor)) if weights[n_fixed + j] < 0.5]
+        try:
+            needed = self.necessary_loops(active)
+            start, iterations = self._consistent_start(values, active, screen, needed, cfg)
+            graph = self.gaussian_graph(active)
+            n_fixed = len(self.anchor_factors) + len(self.prior_factors)
+            edge_of_factor = np.flatnonzero(active)
+            known_inliers = list(range(n_fixed)) + [
+                n_fixed + j for j, i in enumerate(edge_of_factor) if not self.is_loop[i] or i in needed
+            ]
+            params = gtsam.GncLMParams(_lm_params(cfg.max_iterations, max(cfg.relative_error_tol, _GNC_INNER_RELATIVE_TOL)))
+            params.setLossType(gtsam.GncLossType.TLS)
+            params.setKnownInliers(known_inliers)
+            optimizer = gtsam.GncLMOptimizer(graph, start, params)
+            optimizer.setInlierCostThresholds(0.5 * screen.bound)  # GTSAM's barcSq is on 0.5 r^2
+            values = optimizer.optimize()
+            weights = np.asarray(optimizer.getWeights(), dtype=np.float64)
+            rejected = [int(edge_of_factor[j]) for j in range(len(edge_of_factor)) if weights[n_fixed + j] < 0.5]
+            kept = active.copy()
+            kept[rejected] = False
+            values, more = _lm(self.gaussian_graph(kept), values, cfg.max_iterations, cfg.relative_error_tol)
+            iterations += more
+            values, rejected, more = self._settle_inliers(values, kept, rejected, screen.bound, cfg)
+            iterations += more
+        except RuntimeError as exc:
+            raise _solver_error(exc) from None
         for i in rejected:
-            log.info("GNC rejected loop edge %d->%d", *self.edges[i].pair)
-        # Polish on the inliers with a tight LM: GNC's inner solves use a looser tolerance.
-        kept = active.copy()
-        kept[rejected] = False
-        graph = self.gaussian_graph(kept)
-        values, more = _lm(graph, values, cfg.max_iterations, cfg.relative_error_tol)
-        iterations += more
-        # GNC's inner solves all start from the initial values (loops left out of the chordal
-        # initialisation), which can leave the inliers in a poor basin. With outliers gone,
-        # chordal initialisation over the inliers is safe: keep whichever solution is better.
+            log.info("loop edge %d->%d rejected: whitened squared residual %.3g > bound %.3g at the robust solution",
+                     *self.edges[i].pair, 2.0 * self.gaussian[i].error(values), screen.bound)
+        return values, iterations, rejected
+
+    def _consistent_start(
+        self, values: gtsam.Values, active: NDArray[np.bool_], screen: LoopScreen, needed: set[int], cfg: PoseGraphConfig
+    ) -> tuple[gtsam.Values, int]:
+        """Least squares over odometry, priors, needed loops and loops consistent with odometry."""
+        consistent = active & ~self.is_loop
+        consistent[list(needed)] = True
+        if screen.cycles is not None:
+            consistent[screen.cycles.loop_index[screen.cycles.chi2 <= screen.bound]] = True
+        if not self._spans(consistent):
+            return values, 0
+        start = values
+        if cfg.initialization == "chordal":
+            chordal, failure = self.chordal(consistent)
+            if chordal is None:
+                log.debug("chordal initialisation over the consistent edges failed (%s)", failure)
+            else:
+                start = chordal
+        return _lm(self.gaussian_graph(consistent), start, cfg.max_iterations, max(cfg.relative_error_tol, _GNC_INNER_RELATIVE_TOL))
+
+    def _settle_inliers(
+        self, values: gtsam.Values, kept: NDArray[np.bool_], rejected: list[int], bound: float, cfg: PoseGraphConfig
+    ) -> tuple[gtsam.Values, list[int], int]:
+        """Re-admit rejected loops under the bound and re-solve, until the inlier set is stable.
+
+        With the outliers gone, chordal initialisation over the inliers is safe and can leave a
+        poorer basin GNC's inner solves ended in: the better of the two solutions is kept.
+        """
+        iterations = 0
         if cfg.initialization == "chordal" and rejected:
             restart, _ = self.chordal(kept)
             if restart is not None:
-                candidate, more = _lm(graph, restart, cfg.max_iterations, cfg.relative_error_tol)
+                candidate, more = _lm(self.gaussian_graph(kept), restart, cfg.max_iterations, cfg.relative_error_tol)
                 iterations += more
                 if self.cost(candidate, kept) < self.cost(values, kept):
                     values = candidate
-        # GNC's weights can end at 0 for a borderline true loop. Truncated least squares counts
-        # a measurement as an inlier when its cost at the solution is under the threshold, so
-        # re-admit such loops and re-solve until the inlier set is stable.
-        for _ in range(5):
-            back = [i for i in rejected if self.gaussian[i].error(values) < threshold]
+        for _ in range(_MAX_READMISSION_ROUNDS):
+            back = [i for i in rejected if 2.0 * self.gaussian[i].error(values) <= bound]
             if not back:
                 break
             for i in back:
-                log.info("loop edge %d->%d re-admitted after GNC (cost %.3g < %.3g at the solution)", *self.edges[i].pair, self.gaussian[i].error(values), threshold)
+                log.info("loop edge %d->%d re-admitted (whitened squared residual %.3g <= bound %.3g at the solution)",
+                         *self.edges[i].pair, 2.0 * self.gaussian[i].error(values), bound)
             rejected = [i for i in rejected if i not in back]
             kept[back] = True
             values, more = _lm(self.gaussian_graph(kept), values, cfg.max_iterations, cfg.relative_error_tol)
             iterations += more
-        return values, iterations, rejected
+        return values, rejected, iterations
+
+    def _spans(self, inliers: NDArray[np.bool_]) -> bool:
+        """True when the edges ``inliers`` and the priors tie every pose to an anchor."""
+        parts = connected_parts(self.given_poses, (self.edges[i].pair for i in np.flatnonzero(inliers)))
+        anchored = set(self.anchors) | {p.key for p in self.priors}
+        return all(anchored.intersection(part) for part in parts)
 
     # -- gauge -----------------------------------------------------------------------------
     def poses_with_gauge(self, values: gtsam.Values, given: Mapping[int, Array], anchors: Sequence[int], has_priors: bool) -> dict[int, Array]:
