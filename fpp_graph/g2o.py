@@ -15,10 +15,19 @@ row) of the 6x6 information matrix in g2o's ``[trans, rot]`` order; the project 
 g2o has no edge kinds: on read, an edge between vertices adjacent in sorted id order is
 odometry (a known inlier for GNC), any other edge a loop.
 
-Reading is strict: a truncated line, an unknown tag, a non-number, NaN, a zero or non-unit
-quaternion (norm off by more than 1e-3), a duplicate vertex, an edge to a missing vertex or an
-information matrix that is not positive definite raises
-:class:`~fpp_graph.errors.InputDataError` naming the file and line. Writing uses the shortest
+Reading is strict: a truncated line, an unknown tag, a non-number, NaN or infinity, a zero or
+non-unit quaternion (norm off by more than 1e-3), a duplicate vertex, an edge to a missing vertex
+or an information matrix whose rotation or translation block is not positive definite raises
+:class:`~fpp_graph.errors.InputDataError` naming the file, the line and the block. (The file
+holds the upper triangle only, so the matrix is symmetric by construction.)
+
+Some standard benchmark files (SE-Sync's cubicle.g2o, among others) hold edges whose full 6x6
+information is indefinite, through large rotation-translation coupling terms, while both 3x3
+diagonal blocks are positive definite. SE-Sync's own reader uses only the blocks. Such edges are
+read with the coupling dropped (see :func:`read_g2o`), with one warning per file; the ``isotropic``
+noise model (SE-Sync's tau and kappa) depends on the blocks only and is exact for them. The
+Python API (:meth:`~fpp_graph.pose_graph.PoseGraph.add_edge`) still refuses an indefinite
+information matrix. Writing uses the shortest
 repr that parses back to the same double (``gtsam.writeG2o`` keeps 6 digits), and quaternions
 read from a file are written back as read, so write-then-read reproduces poses bit for bit.
 """
@@ -90,11 +99,78 @@ def _rotations_from_quats(quats_xyzw: NDArray[np.float64], lines: list[int], pat
     return Rotation.from_quat(quats_xyzw).as_matrix()
 
 
-def _eigenvalues_or_nan(matrix: NDArray[np.float64]) -> NDArray[np.float64]:
-    try:
-        return np.linalg.eigvalsh(matrix)
-    except np.linalg.LinAlgError:
-        return np.full(6, np.nan)
+def _eigenvalues(matrices: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Ascending eigenvalues of a stack of symmetric matrices, NaN for any that does not converge."""
+    n = matrices.shape[-1]
+    if len(matrices) == 0:
+        return np.zeros((0, n))
+    with np.errstate(all="ignore"):
+        try:
+            return np.linalg.eigvalsh(matrices)
+        except np.linalg.LinAlgError:  # no convergence on absurd magnitudes: find the matrix
+            out = np.full((len(matrices), n), np.nan)
+            for k, m in enumerate(matrices):
+                try:
+                    out[k] = np.linalg.eigvalsh(m)
+                except np.linalg.LinAlgError:
+                    pass
+            return out
+
+
+def _is_definite(eig: NDArray[np.float64]) -> NDArray[np.bool_]:
+    """Rows of ascending eigenvalues of a positive-definite matrix (not singular in double)."""
+    # written so that NaN eigenvalues (overflow on ~1e308 entries) count as not definite
+    return (eig[:, 0] > _MIN_EIGENVALUE_RATIO * np.abs(eig[:, -1])) & np.isfinite(eig[:, -1])
+
+
+def _checked_information(info: NDArray[np.float64], lines: list[int], path: Path) -> NDArray[np.float64]:
+    """The edges' ``[rot, trans]`` information, made positive definite where the file's is not.
+
+    An edge whose full matrix is positive definite is kept as is. One whose full matrix is not
+    but whose rotation and translation blocks both are gets its rotation-translation coupling
+    set to zero: a block-diagonal matrix is positive definite exactly when its diagonal blocks
+    are, so this is the projection that keeps everything the file states about each block
+    (which is all SE-Sync's isotropic model reads) and needs no threshold. Anything else is an
+    error naming the first such line and the block at fault. One warning is logged per file.
+    Eigenvalues are computed batched; blocks only for the edges whose full matrix failed.
+    """
+    full_ok = _is_definite(_eigenvalues(info))
+    suspect = np.flatnonzero(~full_ok)
+    if len(suspect) == 0:
+        return info
+    eig_rot = _eigenvalues(info[suspect, :3, :3])
+    eig_trans = _eigenvalues(info[suspect, 3:, 3:])
+    rot_ok, trans_ok = _is_definite(eig_rot), _is_definite(eig_trans)
+    # the projection's eigenvalues are the blocks' together: it must pass the same test
+    eig_both = np.sort(np.concatenate([eig_rot, eig_trans], axis=1), axis=1)
+    both_ok = rot_ok & trans_ok & _is_definite(eig_both)
+    if not both_ok.all():
+        k = int(np.flatnonzero(~both_ok)[0])
+        blocks = {
+            "rotation": (eig_rot[k], rot_ok[k]),
+            "translation": (eig_trans[k], trans_ok[k]),
+        }
+        named = {name: f"{name} block (eigenvalues {eig[0]:.3g} .. {eig[-1]:.3g})" for name, (eig, _) in blocks.items()}
+        failed = [named[name] for name, (_, ok) in blocks.items() if not ok]
+        if not failed:
+            problem = (
+                f"{named['rotation']} and {named['translation']} of the information matrix differ in scale by a "
+                f"factor above {1 / _MIN_EIGENVALUE_RATIO:.0e}: the matrix is singular in double precision"
+            )
+        else:
+            verb = "is" if len(failed) == 1 else "are"
+            problem = f"{' and '.join(failed)} of the information matrix {verb} not positive definite"
+        raise _fail(path, lines[int(suspect[k])], f"{problem}; an edge must constrain all 6 degrees of freedom")
+    info = info.copy()
+    info[suspect, :3, 3:] = 0.0
+    info[suspect, 3:, :3] = 0.0
+    log.warning(
+        "%s: %d edge(s) have an information matrix that is not positive definite although its rotation and "
+        "translation blocks are (first on line %d); their rotation-translation coupling is dropped "
+        "(the isotropic noise model uses only the blocks and is unaffected)",
+        path, len(suspect), lines[int(suspect[0])],
+    )
+    return info
 
 
 def read_g2o(path: str | os.PathLike[str]) -> PoseGraph:
@@ -103,6 +179,15 @@ def read_g2o(path: str | os.PathLike[str]) -> PoseGraph:
     Vertices become poses (initial values), ``FIX`` lines fixed poses, edges edges with
     information converted to ``[rot, trans]`` order. Raises
     :class:`~fpp_graph.errors.InputDataError` naming the line of any malformed record.
+
+    An edge's information must be positive definite in its rotation block and in its
+    translation block. When only the full 6x6 matrix is not (the rotation-translation coupling
+    makes it indefinite, as in some SE-Sync benchmark files), the edge keeps the two diagonal
+    blocks and loses the coupling: a block-diagonal matrix is positive definite exactly when its
+    blocks are, so this projection keeps all the file says about each block (all that SE-Sync's
+    reader and the ``isotropic`` noise model use) and needs no eigenvalue clipping threshold.
+    One warning per file gives the number of such edges and the first line; writing the graph
+    back writes the projected matrices.
     """
     path = Path(path)
     try:
@@ -185,21 +270,7 @@ def read_g2o(path: str | os.PathLike[str]) -> PoseGraph:
     info_g2o[:, _UPPER[0], _UPPER[1]] = e[:, 7:]
     info_g2o = info_g2o + np.transpose(np.triu(info_g2o, 1), (0, 2, 1))
     info = info_g2o[:, _G2O_FROM_ROT_TRANS][:, :, _G2O_FROM_ROT_TRANS]
-    if len(info):
-        with np.errstate(all="ignore"):
-            try:
-                eig = np.linalg.eigvalsh(info)
-            except np.linalg.LinAlgError:  # no convergence on absurd magnitudes: find the edge
-                eig = np.array([_eigenvalues_or_nan(m) for m in info])
-        # written so that NaN eigenvalues (overflow on ~1e308 entries) count as bad too
-        bad = np.flatnonzero(~(eig[:, 0] > _MIN_EIGENVALUE_RATIO * np.abs(eig[:, -1])) | ~np.isfinite(eig[:, -1]))
-        if len(bad):
-            i = int(bad[0])
-            raise _fail(
-                path, e_lines[i],
-                f"information matrix is not positive definite (eigenvalues {eig[i, 0]:.3g} .. {eig[i, -1]:.3g}); "
-                "an edge must constrain all 6 degrees of freedom",
-            )
+    info = _checked_information(info, e_lines, path)
 
     for key, lineno in fixed:
         if key not in vertex_line:

@@ -1,5 +1,6 @@
 """g2o read/write: conventions (cross-checked with gtsam.readG2o), bit-exact round trips, strict
-errors naming the line, a hypothesis fuzz of the reader, and the ``fpp-slam optimize`` command."""
+errors naming the line, indefinite information with definite blocks (projected, one warning), a
+hypothesis fuzz of the reader, and the ``fpp-slam optimize`` command."""
 
 from __future__ import annotations
 
@@ -19,7 +20,12 @@ from fpp_graph.config import PoseGraphConfig
 from fpp_graph.errors import GraphError, InputDataError
 from fpp_graph.g2o import read_g2o, write_g2o
 from fpp_graph.geometry import is_rigid
-from fpp_graph.pose_graph import PoseGraph, sesync_objective
+from fpp_graph.pose_graph import (
+    PoseGraph,
+    isotropic_information,
+    sesync_objective,
+    sesync_tau_kappa,
+)
 from fpp_graph.synthetic_graphs import corridor_trajectory
 from fpp_graph.types import ConstraintKind
 
@@ -147,6 +153,111 @@ def test_shared_graph_round_trip_and_gtsam_agreement(tmp_path):
     assert_same_graph(graph, read_g2o(tmp_path / "s.g2o"))
 
 
+# -- indefinite full information with definite blocks (SE-Sync benchmark files) ---------------------
+# As in cubicle.g2o: rotation and translation blocks close to diagonal, large rotation-translation
+# coupling (a lever arm) that pushes an eigenvalue of the full 6x6 matrix below zero.
+ROT_BLOCK = np.array([[417.5, -3.3, 6.1], [-3.3, 389.0, 2.4], [6.1, 2.4, 455.8]])
+TRANS_BLOCK = np.array([[112.3, 4.1, -2.7], [4.1, 98.6, 1.9], [-2.7, 1.9, 143.2]])
+COUPLING_ROT_TRANS = np.array([[0.0, 236.0, -11.2], [-241.5, 0.0, 8.7], [14.9, -6.4, 0.0]])
+COUPLED = np.block([[ROT_BLOCK, COUPLING_ROT_TRANS], [COUPLING_ROT_TRANS.T, TRANS_BLOCK]])  # [rot, trans]
+G2O_ORDER = [3, 4, 5, 0, 1, 2]
+
+
+def info_21(information_rot_trans: np.ndarray) -> str:
+    """The 21 upper-triangle numbers of a ``[rot, trans]`` matrix, in g2o's ``[trans, rot]`` order."""
+    m = np.asarray(information_rot_trans)[G2O_ORDER][:, G2O_ORDER]
+    return " ".join(repr(float(x)) for x in m[np.triu_indices(6)])
+
+
+def _with_block(information_rot_trans: np.ndarray, rot=None, trans=None) -> np.ndarray:
+    out = np.array(information_rot_trans, dtype=np.float64)
+    if rot is not None:
+        out[:3, :3] = rot
+    if trans is not None:
+        out[3:, 3:] = trans
+    return out
+
+
+def test_coupled_example_is_indefinite_with_definite_blocks():
+    np.testing.assert_allclose(np.linalg.eigvalsh(COUPLED)[:2], [-31.747, -23.559], atol=1e-3)  # not round-off
+    assert np.linalg.eigvalsh(ROT_BLOCK).min() > 380 and np.linalg.eigvalsh(TRANS_BLOCK).min() > 90
+
+
+def test_indefinite_information_with_definite_blocks_is_projected(tmp_path, caplog):
+    text = replace_line(VALID, 7, line(VALID, 7).replace(INFO_21, info_21(COUPLED)))
+    text = replace_line(text, 9, line(text, 9).replace(INFO_21, info_21(COUPLED)))
+    path = write(tmp_path, text)
+    with caplog.at_level("WARNING", logger="fpp_graph.g2o"):
+        graph = read_g2o(path)
+    edges = graph.edges()
+    projected = COUPLED.copy()
+    projected[:3, 3:] = projected[3:, :3] = 0.0
+    for n in (1, 3):  # lines 7 and 9
+        np.testing.assert_array_equal(edges[n].information_rot_trans, projected)
+        assert np.linalg.eigvalsh(edges[n].information_rot_trans).min() == pytest.approx(
+            min(np.linalg.eigvalsh(ROT_BLOCK).min(), np.linalg.eigvalsh(TRANS_BLOCK).min()), rel=1e-12)
+        # the isotropic model reads the blocks only: identical to the file's matrix
+        np.testing.assert_array_equal(isotropic_information(edges[n].information_rot_trans), isotropic_information(COUPLED))
+        tau, kappa = sesync_tau_kappa(edges[n].information_rot_trans)
+        assert tau == pytest.approx(3 / np.trace(np.linalg.inv(TRANS_BLOCK)), rel=1e-12)
+        assert kappa == pytest.approx(1.5 / np.trace(np.linalg.inv(ROT_BLOCK)), rel=1e-12)
+    # the other edges keep their (definite, coupled) matrices untouched
+    untouched = read_g2o(write(tmp_path, VALID, "valid.g2o")).edges()
+    for n in (0, 2, 4):
+        np.testing.assert_array_equal(edges[n].information_rot_trans, untouched[n].information_rot_trans)
+    warnings = [r for r in caplog.records if r.name == "fpp_graph.g2o" and r.levelname == "WARNING"]
+    assert len(warnings) == 1
+    message = warnings[0].getMessage()
+    assert f"{path}: 2 edge(s)" in message and "first on line 7" in message and "coupling is dropped" in message
+
+
+def test_python_api_still_refuses_indefinite_information():
+    graph = PoseGraph()
+    graph.add_pose(0, np.eye(4))
+    graph.add_pose(1, np.eye(4))
+    with pytest.raises(GraphError, match=r"not positive definite \(smallest eigenvalue -"):
+        graph.add_edge(0, 1, np.eye(4), COUPLED)
+
+
+def test_definite_information_reads_without_warning(tmp_path, caplog):
+    with caplog.at_level("WARNING", logger="fpp_graph.g2o"):
+        read_g2o(write(tmp_path, VALID))
+    assert not [r for r in caplog.records if r.name == "fpp_graph.g2o"]
+
+
+@pytest.mark.parametrize("noise_model", ["file", "isotropic"])
+def test_graph_with_projected_edges_optimises(tmp_path, caplog, noise_model):
+    sim = corridor_trajectory(laps=2, side_poses=(10, 4), min_separation=8, loop_every=1, rng=np.random.default_rng(5))
+    src = tmp_path / "sim.g2o"
+    write_g2o(src, sim.graph(include_false=False))
+    # every third edge gets the simulation's precisions (rot 1/0.005^2, trans 1/0.02^2) with a
+    # coupling large enough to make the full matrix indefinite
+    coupled = np.diag([40000.0] * 3 + [2500.0] * 3)
+    coupled[0, 4] = coupled[4, 0] = 1.2e4  # 1.2e4^2 > 40000 * 2500
+    coupled[2, 3] = coupled[3, 2] = -1.1e4
+    assert np.linalg.eigvalsh(coupled).min() < 0
+    lines = src.read_text().splitlines()
+    edge_lines = [n for n, text in enumerate(lines) if text.startswith("EDGE_SE3:QUAT")]
+    for n in edge_lines[::3]:
+        lines[n] = " ".join(lines[n].split()[:10]) + " " + info_21(coupled)
+    path = write(tmp_path, "\n".join(lines) + "\n", "coupled.g2o")
+    with caplog.at_level("WARNING", logger="fpp_graph.g2o"):
+        graph = read_g2o(path)
+    (warning,) = [r for r in caplog.records if r.name == "fpp_graph.g2o"]
+    assert f"{len(edge_lines[::3])} edge(s)" in warning.getMessage()
+    assert f"first on line {edge_lines[0] + 1}" in warning.getMessage()
+    config = PoseGraphConfig(noise_model=noise_model)
+    result = graph.optimize(config)
+    # half a chi-square of 6 dof per edge, less the poses' dof: below 3 per edge when consistent
+    assert result.final_cost < 3 * graph.num_edges < result.initial_cost
+    # the projection is the simulation's own diagonal information: the same solution as the
+    # file without coupling
+    reference = read_g2o(src).optimize(config)
+    assert result.final_cost == pytest.approx(reference.final_cost, rel=1e-9)
+    for k, T in reference.poses_world_sensor.items():
+        np.testing.assert_allclose(result.poses_world_sensor[k], T, atol=1e-9)
+
+
 # -- strict errors ----------------------------------------------------------------------------------
 def replace_line(text: str, lineno: int, new: str) -> str:
     lines = text.splitlines()
@@ -179,8 +290,16 @@ def line(text: str, lineno: int) -> str:
         (5, "VERTEX_SE3:QUAT 2 0 0 0 0 0 0 1", "vertex 2 is defined twice (first on line 4)"),
         (7, line(VALID, 7).replace("EDGE_SE3:QUAT 1 2", "EDGE_SE3:QUAT 1 7"), "refers to vertex 7"),
         (7, line(VALID, 7).replace("EDGE_SE3:QUAT 1 2", "EDGE_SE3:QUAT 2 2"), "links a vertex to itself"),
-        (7, line(VALID, 7).replace(INFO_21, INFO_21.replace("100 1 0", "-100 1 0", 1)), "not positive definite"),
-        (7, line(VALID, 7).replace(INFO_21, "0 " * 20 + "0"), "not positive definite"),
+        (7, line(VALID, 7).replace(INFO_21, INFO_21.replace("100 1 0", "-100 1 0", 1)),
+         "translation block (eigenvalues -100 .. 100) of the information matrix is not positive definite"),
+        (7, line(VALID, 7).replace(INFO_21, "0 " * 20 + "0"),
+         "rotation block (eigenvalues 0 .. 0) and translation block (eigenvalues 0 .. 0) of the information matrix are not"),
+        (7, line(VALID, 7).replace(INFO_21, info_21(_with_block(COUPLED, rot=np.diag([417.5, 389.0, -2.0])))),
+         "rotation block (eigenvalues -2 .. 418) of the information matrix is not positive definite"),
+        (7, line(VALID, 7).replace(INFO_21, info_21(_with_block(COUPLED, trans=np.diag([112.3, -0.5, 143.2])))),
+         "translation block (eigenvalues -0.5 .. 143) of the information matrix is not positive definite"),
+        (7, line(VALID, 7).replace(INFO_21, INFO_21.replace("25 0.5", "nan 0.5", 1)), "EDGE_SE3:QUAT: NaN or infinite"),
+        (7, line(VALID, 7).replace(INFO_21, info_21(np.diag([1e-10] * 3 + [1e6] * 3))), "differ in scale"),
         (7, line(VALID, 7).replace("0.0998334166 0.9950041653", "0.5 0.5"), "quaternion norm 0.707"),
         (8, line(VALID, 8).replace("0.95", "inf"), "NaN or infinite"),
         (11, "FIX 12", "FIX refers to vertex 12"),
