@@ -289,7 +289,7 @@ def data_from_graph(graph: PoseGraph, poses: Mapping[int, ArrayLike] | None = No
     GraphError
         No edges, a pose missing from ``poses``, poses not connected by edges.
     """
-    from fpp_graph.pose_graph import _as_pose, sesync_tau_kappa
+    from fpp_graph.pose_graph import sesync_tau_kappa
 
     edges = graph.edges()
     if not edges:
@@ -307,7 +307,7 @@ def data_from_graph(graph: PoseGraph, poses: Mapping[int, ArrayLike] | None = No
             "one connected graph: certify each part as its own subgraph"
         )
     index = {int(k): n for n, k in enumerate(keys)}
-    T = np.stack([_as_pose(current[int(k)], f"certify: pose {int(k)}") for k in keys])
+    T = _stacked_poses(current, keys)
     target = np.array([index[e.target_id] for e in edges])
     source = np.array([index[e.source_id] for e in edges])
     M_ts = np.stack([e.T_target_source for e in edges])
@@ -316,6 +316,32 @@ def data_from_graph(graph: PoseGraph, poses: Mapping[int, ArrayLike] | None = No
     anchor = index[fixed[0]] if fixed else 0
     data = build_data(keys, target, source, M_ts[:, :3, :3], M_ts[:, :3, 3], tau, kappa, grounded=anchor)
     return data, T, anchor
+
+
+def _stacked_poses(poses: Mapping[int, ArrayLike], keys: NDArray[np.int64]) -> Array:
+    """(n, 4, 4) rigid transforms in ``keys`` order, validated at once (rotations projected)."""
+    try:
+        T = np.stack([np.asarray(poses[int(k)], dtype=np.float64) for k in keys])
+    except ValueError:
+        shapes = {int(k): np.shape(poses[int(k)]) for k in keys if np.shape(poses[int(k)]) != (4, 4)}
+        raise GraphError(f"certify: poses must be 4x4 matrices; got shapes {dict(list(shapes.items())[:5])}") from None
+    if T.shape[1:] != (4, 4):
+        raise GraphError(f"certify: poses must be 4x4 matrices, got shape {T.shape[1:]}")
+    R = T[:, :3, :3]
+    deviation = np.abs(np.transpose(R, (0, 2, 1)) @ R - np.eye(3)).max(axis=(1, 2))
+    bad = ~np.isfinite(T).all(axis=(1, 2)) | ~(deviation <= 1e-5) | (np.abs(np.linalg.det(R) - 1.0) > 1e-5)
+    if bad.any():
+        raise GraphError(
+            f"certify: pose(s) {keys[bad][:10].tolist()} are not rigid transforms (rotation off SO(3), "
+            "or NaN); pass 4x4 [R t; 0 0 0 1] with orthonormal R"
+        )
+    T = T.copy()
+    off = deviation > 1e-12  # as PoseGraph: rotations orthonormal to 1e-12 are used as given
+    if off.any():
+        U, _, Vt = np.linalg.svd(R[off])
+        T[off, :3, :3] = U @ Vt
+    T[:, 3] = (0.0, 0.0, 0.0, 1.0)
+    return T
 
 
 # ----------------------------------------------------------------------------------------------
@@ -546,64 +572,77 @@ def _newton(
     rows_rot = (er[None, None, :, None] * size + 3 * np.arange(n)[:, None, None, None] + e3[None, None, None, :])
     rows_rot = np.broadcast_to(rows_rot, (n, P, r, 3)).ravel()
     cols_rot = np.broadcast_to((np.arange(n)[:, None] * P + np.arange(P)[None, :])[:, :, None, None], (n, P, r, 3)).ravel()
+    def coordinates_gradient(X: Array, B: Array) -> Array:
+        G = 2.0 * half_gradient(data, X)
+        return np.r_[np.einsum("nac,npac->np", _rotation_blocks(G, n), B).ravel(), G[:, 3 * n :].T.ravel()]
+
+    def step(X: Array, B: Array, lu: spla.SuperLU, g_free: Array) -> Array | None:
+        """The retracted point of the step solving ``lu`` (None if it leaves SO(3))."""
+        xi = np.zeros(dim)
+        xi[free] = -lu.solve(g_free)
+        Y_new = _polar(_rotation_blocks(X, n) + np.einsum("np,npac->nac", xi[: n * P].reshape(n, P), B))
+        if r == 3 and np.any(np.linalg.det(Y_new) < 0):
+            return None
+        return np.hstack([_stack_blocks(Y_new), X[:, 3 * n :] + xi[n * P :].reshape(n, r).T])
+
     F = objective(data, X)
     mu = 0.0
-    gradient_norm = math.inf
+    previous_lu: spla.SuperLU | None = None  # undamped factorisation of the last step
+    previous_gradient = math.inf
     iterations = 0
     for iterations in range(1, max_iterations + 1):  # noqa: B007
         Y = _rotation_blocks(X, n)
         B = _tangent_basis(Y)  # (n, P, r, 3)
-        XM = half_gradient(data, X)
-        G = 2.0 * XM
-        g = np.r_[np.einsum("nac,npac->np", _rotation_blocks(G, n), B).ravel(), G[:, 3 * n :].T.ravel()]
+        g = coordinates_gradient(X, B)
         gradient_norm = float(np.linalg.norm(g))
         grad_scale = data.spectral_scale * math.sqrt(n) * max(1.0, float(np.abs(X[:, 3 * n :]).max()))
         log.debug("newton (r=%d) iteration %d: F %.15g, |grad| %.3g (stop at %.3g), mu %.3g",
                   r, iterations, F, gradient_norm, _GRADIENT_RTOL * grad_scale, mu)
         if gradient_norm <= _GRADIENT_RTOL * grad_scale:
             break
-        Lambda = np.einsum("nri,nrj->nij", Y, _rotation_blocks(XM, n))
-        Lambda = 0.5 * (Lambda + Lambda.transpose(0, 2, 1))
-        S_full = (data.M - _block_diagonal(Lambda, size)).tocsr()
-        J = sp.csr_matrix(
-            (np.r_[B.ravel(), np.ones(n * r)], (np.r_[rows_rot, t_rows], np.r_[cols_rot, t_cols])),
-            shape=(r * size, dim),
-        )
-        H = 2.0 * (J.T @ sp.kron(sp.identity(r, format="csr"), S_full, format="csr") @ J)
-        H = H.tocsr()[free][:, free]
-        H = (0.5 * (H + H.T)).tocsc()
         g_free = g[free]
-        h_scale = float(np.abs(H.diagonal()).max())
-        accepted = False
-        for _ in range(40):
-            lu, negatives = _symmetric_lu(H + mu * sp.identity(len(free), format="csc") if mu else H)
-            if lu is None or negatives != 0:
+        X_new = None
+        # Near convergence the Hessian barely changes: reuse the last factorisation (a chord
+        # step, linear convergence at a tiny rate) and save one sparse factorisation.
+        if previous_lu is not None and gradient_norm <= 1e-3 * previous_gradient:
+            X_new = step(X, B, previous_lu, g_free)
+            F_new = objective(data, X_new) if X_new is not None else math.inf
+            if F_new > F + 1e-15 * abs(F):
+                X_new = None
+        previous_gradient = gradient_norm
+        if X_new is None:
+            XM = half_gradient(data, X)
+            Lambda = np.einsum("nri,nrj->nij", Y, _rotation_blocks(XM, n))
+            Lambda = 0.5 * (Lambda + Lambda.transpose(0, 2, 1))
+            S_full = (data.M - _block_diagonal(Lambda, size)).tocsr()
+            J = sp.csr_matrix(
+                (np.r_[B.ravel(), np.ones(n * r)], (np.r_[rows_rot, t_rows], np.r_[cols_rot, t_cols])),
+                shape=(r * size, dim),
+            )
+            H = 2.0 * (J.T @ sp.kron(sp.identity(r, format="csr"), S_full, format="csr") @ J)
+            H = H.tocsr()[free][:, free]
+            H = (0.5 * (H + H.T)).tocsc()
+            h_scale = float(np.abs(H.diagonal()).max())
+            previous_lu = None
+            for _ in range(40):
+                lu, negatives = _symmetric_lu(H + mu * sp.identity(len(free), format="csc") if mu else H)
+                if lu is not None and negatives == 0:
+                    X_new = step(X, B, lu, g_free)
+                    F_new = objective(data, X_new) if X_new is not None else math.inf
+                    if F_new <= F + 1e-15 * abs(F):
+                        previous_lu = lu if mu == 0.0 else None
+                        break
+                    X_new = None
                 mu = max(10.0 * mu, 1e-9 * h_scale)
-                continue
-            xi = np.zeros(dim)
-            xi[free] = -lu.solve(g_free)
-            step_rot = xi[: n * P].reshape(n, P)
-            Y_new = _polar(Y + np.einsum("np,npac->nac", step_rot, B))
-            if r == 3 and np.any(np.linalg.det(Y_new) < 0):
-                mu = max(10.0 * mu, 1e-9 * h_scale)
-                continue
-            X_new = np.hstack([_stack_blocks(Y_new), X[:, 3 * n :] + xi[n * P :].reshape(n, r).T])
-            F_new = objective(data, X_new)
-            if F_new <= F + 1e-15 * abs(F):
-                accepted = True
+            if X_new is None:
+                log.debug("newton (r=%d): no decreasing step at F=%.12g; stopping", r, F)
                 break
-            mu = max(10.0 * mu, 1e-9 * h_scale)
-        if not accepted:
-            log.debug("newton (r=%d): no decreasing step at F=%.12g; stopping", r, F)
-            break
+            mu = 0.0 if mu <= 1e-6 * h_scale else mu / 10.0
         decrease = F - F_new
         X, F = X_new, F_new
-        mu = 0.0 if mu <= 1e-6 * h_scale else mu / 10.0
         if decrease <= 1e-15 * abs(F) and iterations > 1:
             break
-    Y = _rotation_blocks(X, n)
-    G = 2.0 * half_gradient(data, X)
-    g = np.r_[np.einsum("nac,npac->np", _rotation_blocks(G, n), _tangent_basis(Y)).ravel(), G[:, 3 * n :].ravel()]
+    g = coordinates_gradient(X, _tangent_basis(_rotation_blocks(X, n)))
     return X, F, float(np.linalg.norm(g)), iterations
 
 
@@ -662,7 +701,10 @@ def _tolerance(data: SESyncData, F: float, relative_suboptimality: float, numeri
 
 
 def _certify_point(data: SESyncData, X: Array, eta: float) -> tuple[bool, Array, Array]:
-    return _CertificateMatrix(data, multipliers(data, X)).smallest(eta)
+    # S depends on the rotations only (Q has the translations marginalised): Lambda is taken
+    # with exactly optimal positions, not with the solver's (optimal to its tolerance).
+    exact = optimal_translations(data, X[:, : 3 * data.n])
+    return _CertificateMatrix(data, multipliers(data, exact)).smallest(eta)
 
 
 def certify_arrays(
