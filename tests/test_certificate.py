@@ -98,7 +98,7 @@ def test_optimum_of_a_small_grid_is_certified(rng, config):
     cert = graph.certify()
 
     assert cert.certified
-    assert not cert.escaped and cert.method == "refine"
+    assert not cert.escaped and cert.method == "refine" and np.isnan(cert.relaxation_objective)
     # lambda_min is a gauge eigenvalue: zero to rounding; the first non-gauge one is clearly positive
     assert abs(cert.certificate_min_eigenvalue) < 1e-9
     assert cert.spectral_gap > 100.0
@@ -164,6 +164,8 @@ def test_the_staircase_escapes_to_the_certified_optimum():
     assert cert.objective == pytest.approx(0.50735, rel=1e-4)
     assert cert.objective < 1e-2 * cert.input_objective
     assert abs(cert.certificate_min_eigenvalue) < 1e-9
+    # the relaxation is exact here: the rounded poses reach the lifted (SDP) optimum
+    assert cert.relaxation_objective == pytest.approx(cert.objective, rel=1e-9)
     for T in cert.poses_world_sensor.values():  # rounded blocks are proper rotations
         np.testing.assert_allclose(T[:3, :3].T @ T[:3, :3], np.eye(3), atol=1e-12)
         assert np.linalg.det(T[:3, :3]) == pytest.approx(1.0, abs=1e-12)
