@@ -40,7 +40,9 @@ Suboptimality bound (weak duality). For any ``X`` feasible for SE-Sync's SDP rel
 ``SO(3)^n``), ``tr(Lambda X) = tr(Lambda) = tr(Q R^T R) = F(R)`` because ``Lambda`` is block
 diagonal. Hence ``tr(Q X) = tr(S X) + F(R) >= lambda_min(S) tr X + F(R) = F(R) - 3n
 |lambda_min(S)|`` when ``lambda_min < 0``: ``F(R) - F* <= 3n max(0, -lambda_min(S))``. With
-``lambda_min >= -eta`` proven by the inertia test, the bound is at most ``3n eta``.
+``lambda_min >= -eta`` proven by the inertia test, the bound is at most ``3n eta``. The bound
+holds at any ``R`` (``tr(Lambda) = F(R)`` needs no criticality); it is tight only at a critical
+point, hence the refinement first.
 
 Tolerance. ``eta`` is relative to the problem, not absolute: ``eta = max(relative_suboptimality *
 F / (3n), numerical_floor * s)`` where ``s`` is the largest diagonal entry of the rotation block of
@@ -86,7 +88,7 @@ NUMERICAL_FLOOR = 1e-11
 MAX_RANK = 8
 #: Newton stops when the Riemannian gradient norm is below this times the gradient scale.
 _GRADIENT_RTOL = 1e-14
-_MAX_NEWTON_ITERATIONS = 50
+_MAX_NEWTON_ITERATIONS = 100
 #: Matrices of S up to this size are decomposed densely (ARPACK needs k < size).
 _DENSE_EIGEN_SIZE = 30
 #: Eigenpairs computed: the 3 gauge ones and the first non-gauge one (the spectral gap).
@@ -651,6 +653,9 @@ def _newton(
         if decrease <= 1e-15 * abs(F) and iterations > 1:
             break
     g = coordinates_gradient(X, _tangent_basis(_rotation_blocks(X, n)))
+    if iterations == max_iterations:
+        log.warning("newton (r=%d): %d iterations without converging (|grad| %.3g): not a critical point",
+                    r, iterations, float(np.linalg.norm(g)))
     return X, F, float(np.linalg.norm(g)), iterations
 
 
