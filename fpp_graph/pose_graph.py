@@ -53,6 +53,8 @@ from fpp_graph.types import Constraint, ConstraintKind
 if TYPE_CHECKING:  # gtsam is imported lazily so that importing this module stays cheap
     import gtsam
 
+    from fpp_graph.certificate import Certificate
+
 log = logging.getLogger(__name__)
 
 Array = NDArray[np.float64]
@@ -619,6 +621,45 @@ class PoseGraph:
             except RuntimeError as exc:
                 raise _solver_error(exc) from None
         return np.array(self._marginals.marginalCovariance(key), dtype=np.float64)
+
+    def certify(
+        self,
+        poses: Mapping[int, ArrayLike] | None = None,
+        *,
+        escape: bool = True,
+        max_rank: int = 8,
+        relative_suboptimality: float = 1e-6,
+        numerical_floor: float = 1e-11,
+    ) -> Certificate:
+        """Certify poses as a global optimum of SE-Sync's objective ``F`` (Rosen et al., IJRR 2019).
+
+        A thin wrapper of :func:`fpp_graph.certificate.certify_graph` (see there and the module
+        docstring for the method, the tolerance and the suboptimality bound). The certificate is
+        for SE-Sync's isotropic model of the relative edges whatever noise model was used to
+        optimise; priors are ignored and the anchor (first fixed pose, else the smallest key)
+        keeps its value. The graph's stored poses are not changed: the refined (and, after an
+        escape, improved) poses are in ``Certificate.poses_world_sensor``.
+
+        Parameters
+        ----------
+        poses : dict[int, (4, 4)], optional
+            ``T_world_sensor`` to certify (default: the current poses, e.g. after :meth:`optimize`).
+        escape : bool
+            Run the Riemannian staircase from a non-certified critical point.
+        max_rank : int
+            Highest rank of the staircase.
+        relative_suboptimality, numerical_floor : float
+            Define the eigenvalue tolerance ``eta``.
+
+        Raises
+        ------
+        GraphError
+            No edges, a missing pose, or edges that do not connect all poses.
+        """
+        from fpp_graph.certificate import certify_graph
+
+        return certify_graph(self, poses, escape=escape, max_rank=max_rank,
+                             relative_suboptimality=relative_suboptimality, numerical_floor=numerical_floor)
 
     # -- internals -------------------------------------------------------------------------
     def _anchored_keys(self) -> set[int]:
