@@ -67,6 +67,14 @@ _ORTHONORMAL_ATOL = 1e-12
 _RIGID_ATOL = 1e-5
 #: Inner LM tolerance during GNC's outer iterations; a tight LM polish follows GNC.
 _GNC_INNER_RELATIVE_TOL = 1e-6
+#: LM iterations before loops flagged at the initial values are screened again.
+_SCREEN_AGAIN_AFTER = 5
+#: GNC-TLS: growth of the control parameter per round (Yang et al. 2020), most rounds, LM
+#: iterations per round (warm-started), and how close to 0/1 every weight must be to stop.
+_GNC_MU_STEP = 1.4
+_GNC_MAX_ROUNDS = 100
+_GNC_INNER_ITERATIONS = 3
+_GNC_BINARY_TOL = 1e-3
 #: Rounds of re-admitting loops under the bound after GNC (each re-solves; 1-2 suffice).
 _MAX_READMISSION_ROUNDS = 5
 
@@ -523,9 +531,22 @@ class PoseGraph:
         initialized_cost = problem.cost(initial, active)
         log.debug("initial cost %.6g (given), %.6g (%s)", initial_cost, initialized_cost, initialization)
 
-        values, iterations = problem.solve(initial, active, cfg)
+        # The loops are screened early: on a graph with gross outliers LM crawls for its whole
+        # budget (minutes at 10^4 edges) before a screen after it could see them. A clean graph
+        # is flagged at worst at its (approximate) initial values; a few LM iterations clear it.
+        # Loops still flagged go to the robust stage, which ends in least squares over every loop
+        # it cannot refute; otherwise least squares runs to convergence and is screened again.
+        iterations = 0
+        values = initial
+        screen = problem.screen(initial, active, cfg) if cfg.robust == "gnc" and np.any(problem.is_loop) else None
+        if screen is not None and screen.flagged().size:
+            values, iterations = problem.solve(initial, active, cfg.model_copy(update={"max_iterations": _SCREEN_AGAIN_AFTER}))
+            screen = problem.screen(values, active, cfg)
+        if screen is None or not screen.flagged().size:
+            values, more = problem.solve(values, active, cfg)
+            iterations += more
+            screen = problem.screen(values, active, cfg) if np.any(problem.is_loop) else None
         rejected: list[int] = []
-        screen = problem.screen(values, active, cfg) if np.any(problem.is_loop) else None
         if cfg.robust == "gnc" and screen is not None and screen.flagged().size:
             log.info("%d loop edge(s) over the bound at the least-squares solution: truncated least squares",
                      screen.flagged().size)
@@ -909,40 +930,34 @@ class _Problem:
     def solve_tls(
         self, values: gtsam.Values, active: NDArray[np.bool_], screen: LoopScreen, cfg: PoseGraphConfig
     ) -> tuple[gtsam.Values, int, list[int]]:
-        """Truncated least squares on loop edges (GNC), run only on evidence of an outlier.
+        """Truncated least squares on loop edges, run only on evidence of an outlier.
 
-        ``values`` is the least-squares solution over all edges, which the outliers bend. GNC
-        starts instead from a least-squares solution over the odometry, the priors and the
-        loops consistent with the odometry (cycle test under the same bound): false loops are
-        rarely consistent with the odometry, and true ones tie the start together where the
-        odometry drifted. Odometry, priors and loops the graph cannot do without are known
-        inliers; the truncation threshold is the screen's bound. Afterwards the inlier set is
-        made self-consistent: a rejected loop whose residual at the solution is under the bound
-        is an inlier by the definition of truncated least squares, and is re-admitted.
+        ``values`` is the least-squares solution over all edges, which the outliers bend.
+
+        1. Loops whose cycle with the odometry is over the bound disagree with the odometry
+           beyond what the noise (the path's propagated covariance included) explains: they
+           start as outliers (Kimera-RPGO's odometry check, at the family-wise bound).
+        2. Least squares over the odometry, the priors and the other loops (chordal start): a
+           start that the gross outliers did not bend.
+        3. GNC with the truncated-least-squares loss on those loops from that start when one of
+           them is over the bound there (odometry, priors and loops the graph cannot do without
+           are known inliers; the truncation threshold is the screen's bound).
+        4. The inlier set is made self-consistent: any left-out loop whose residual at the
+           solution is under the bound is an inlier by the definition of truncated least
+           squares (a true loop the first-order cycle test was too strict for comes back).
         """
-        import gtsam
-
         try:
             needed = self.necessary_loops(active)
-            start, iterations = self._consistent_start(values, active, screen, needed, cfg)
-            graph = self.gaussian_graph(active)
-            n_fixed = len(self.anchor_factors) + len(self.prior_factors)
-            edge_of_factor = np.flatnonzero(active)
-            known_inliers = list(range(n_fixed)) + [
-                n_fixed + j for j, i in enumerate(edge_of_factor) if not self.is_loop[i] or i in needed
-            ]
-            params = gtsam.GncLMParams(_lm_params(cfg.max_iterations, max(cfg.relative_error_tol, _GNC_INNER_RELATIVE_TOL)))
-            params.setLossType(gtsam.GncLossType.TLS)
-            params.setKnownInliers(known_inliers)
-            optimizer = gtsam.GncLMOptimizer(graph, start, params)
-            optimizer.setInlierCostThresholds(0.5 * screen.bound)  # GTSAM's barcSq is on 0.5 r^2
-            values = optimizer.optimize()
-            weights = np.asarray(optimizer.getWeights(), dtype=np.float64)
-            rejected = [int(edge_of_factor[j]) for j in range(len(edge_of_factor)) if weights[n_fixed + j] < 0.5]
+            candidates = active.copy()
+            if screen.cycles is not None:
+                inconsistent = screen.cycles.loop_index[screen.cycles.chi2 > screen.bound]
+                candidates[[i for i in inconsistent if i not in needed]] = False
+            log.info("%d loop(s) inconsistent with the odometry are left out of the start", int(np.sum(active & ~candidates)))
+            start, iterations = self._start(values, candidates, cfg)
+            values, more, rejected = self._gnc_tls(start, active, needed, screen.bound, cfg)
+            iterations += more
             kept = active.copy()
             kept[rejected] = False
-            values, more = _lm(self.gaussian_graph(kept), values, cfg.max_iterations, cfg.relative_error_tol)
-            iterations += more
             values, rejected, more = self._settle_inliers(values, kept, rejected, screen.bound, cfg)
             iterations += more
         except RuntimeError as exc:
@@ -952,34 +967,66 @@ class _Problem:
                      *self.edges[i].pair, 2.0 * self.gaussian[i].error(values), screen.bound)
         return values, iterations, rejected
 
-    def _consistent_start(
-        self, values: gtsam.Values, active: NDArray[np.bool_], screen: LoopScreen, needed: set[int], cfg: PoseGraphConfig
-    ) -> tuple[gtsam.Values, int]:
-        """Least squares over odometry, priors, needed loops and loops consistent with odometry."""
-        consistent = active & ~self.is_loop
-        consistent[list(needed)] = True
-        if screen.cycles is not None:
-            consistent[screen.cycles.loop_index[screen.cycles.chi2 <= screen.bound]] = True
-        if not self._spans(consistent):
-            return values, 0
+    def _start(self, values: gtsam.Values, edges: NDArray[np.bool_], cfg: PoseGraphConfig) -> tuple[gtsam.Values, int]:
+        """Least squares over ``edges`` and the priors from a chordal start (or from ``values``)."""
         start = values
-        if cfg.initialization == "chordal":
-            chordal, failure = self.chordal(consistent)
+        if cfg.initialization == "chordal" and self._spans(edges):
+            chordal, failure = self.chordal(edges)
             if chordal is None:
                 log.debug("chordal initialisation over the consistent edges failed (%s)", failure)
             else:
                 start = chordal
-        return _lm(self.gaussian_graph(consistent), start, cfg.max_iterations, max(cfg.relative_error_tol, _GNC_INNER_RELATIVE_TOL))
+        return _lm(self.gaussian_graph(edges), start, cfg.max_iterations, cfg.relative_error_tol)
+
+    def _gnc_tls(
+        self, start: gtsam.Values, active: NDArray[np.bool_], needed: set[int], bound: float, cfg: PoseGraphConfig
+    ) -> tuple[gtsam.Values, int, list[int]]:
+        """Graduated non-convexity for truncated least squares (Yang et al., RA-L 2020).
+
+        The TLS weights of loop edges are updated from their whitened squared residuals ``r2``
+        with the surrogate's control parameter ``mu`` growing by 1.4 per round (from the convex
+        end); odometry, priors and ``needed`` loops keep weight 1. Each round's weighted least
+        squares is warm-started from the previous round: GTSAM's ``GncOptimizer`` restarts every
+        inner solve from the initial values, which costs minutes on graphs of 10^4 edges.
+        Returns the values, the LM iterations and the loops whose weight ended below 0.5.
+        """
+        import gtsam
+
+        loops = np.array([i for i in np.flatnonzero(active & self.is_loop) if i not in needed], dtype=np.int64)
+        fixed = active.copy()
+        fixed[loops] = False
+        base = self.gaussian_graph(fixed)
+        values, iterations = start, 0
+        r2 = self.loop_chi2(values, loops)
+        worst = float(r2.max()) if len(r2) else 0.0
+        mu = bound / max(2.0 * worst - bound, 1e-12 * bound)
+        weights = np.ones(len(loops))
+        for _ in range(_GNC_MAX_ROUNDS):
+            weights = _tls_weights(r2, bound, mu)
+            graph = gtsam.NonlinearFactorGraph(base)
+            for i, w in zip(loops, weights, strict=True):
+                if w > 0.0:
+                    e = self.edges[i]
+                    noise = gtsam.noiseModel.Gaussian.Information(w * self.model_information[i])
+                    graph.add(gtsam.BetweenFactorPose3(e.target_id, e.source_id, self.measured[i], noise))
+            values, more = _lm(graph, values, _GNC_INNER_ITERATIONS, _GNC_INNER_RELATIVE_TOL)
+            iterations += more
+            r2 = self.loop_chi2(values, loops)
+            log.debug("GNC round: mu %.3g, %d LM iterations, %d loops with weight < 0.5", mu, more, int(np.sum(weights < 0.5)))
+            if np.all((weights < _GNC_BINARY_TOL) | (weights > 1.0 - _GNC_BINARY_TOL)) and mu > 1.0:
+                break
+            mu *= _GNC_MU_STEP
+        weights = _tls_weights(r2, bound, mu)
+        return values, iterations, [int(i) for i in loops[weights < 0.5]]
 
     def _settle_inliers(
         self, values: gtsam.Values, kept: NDArray[np.bool_], rejected: list[int], bound: float, cfg: PoseGraphConfig
     ) -> tuple[gtsam.Values, list[int], int]:
-        """Re-admit rejected loops under the bound and re-solve, until the inlier set is stable.
-
-        With the outliers gone, chordal initialisation over the inliers is safe and can leave a
-        poorer basin GNC's inner solves ended in: the better of the two solutions is kept.
-        """
-        iterations = 0
+        """A tight least-squares polish on ``kept`` (and a chordal restart), then re-admit
+        left-out loops under the bound and re-solve, until the inlier set is stable."""
+        values, iterations = _lm(self.gaussian_graph(kept), values, cfg.max_iterations, cfg.relative_error_tol)
+        # GNC can end in a poorer basin than chordal initialisation over its inliers reaches (with
+        # the outliers gone, chordal initialisation is safe): the better solution is kept.
         if cfg.initialization == "chordal" and rejected:
             restart, _ = self.chordal(kept)
             if restart is not None:
@@ -1030,6 +1077,13 @@ class _Problem:
         for key in anchors:
             poses[key] = given[key].copy()
         return poses
+
+
+def _tls_weights(r2: Array, bound: float, mu: float) -> Array:
+    """Weights of GNC's truncated-least-squares surrogate at control parameter ``mu``."""
+    w = np.sqrt(bound * mu * (mu + 1.0) / np.maximum(r2, 1e-300)) - mu
+    w = np.where(r2 <= mu / (mu + 1.0) * bound, 1.0, w)
+    return np.clip(np.where(r2 >= (mu + 1.0) / mu * bound, 0.0, w), 0.0, 1.0)
 
 
 def _lm(graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values, max_iterations: int, relative_error_tol: float) -> tuple[gtsam.Values, int]:
