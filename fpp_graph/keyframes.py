@@ -43,7 +43,7 @@ from numpy.typing import NDArray
 
 from fpp_graph.config import Config
 from fpp_graph.frame_store import FrameStore
-from fpp_graph.geometry import compose, invert, rotation_angle_rad
+from fpp_graph.geometry import adjoint, compose, invert, rotation_angle_rad
 from fpp_graph.loop_closure import ProximityAppearanceLoopDetector
 from fpp_graph.pose_graph import IncrementalPoseGraph
 from fpp_graph.types import Constraint, ConstraintKind, Frame, LoopCandidate, PairRegistrar
@@ -129,7 +129,8 @@ class KeyframeManager:
         self.T_world_keyframe: dict[int, NDArray[np.float64]] = {}
         self.T_keyframe_frame: dict[int, tuple[int, NDArray[np.float64]]] = {}
         self._drift_var_m2: dict[int, float] = {}
-        self._drift_rot_var: dict[int, float] = {}  # rad^2, summed over the three axes
+        # 6x6 [rot, trans] covariance (body frame) of each keyframe relative to its last closure
+        self._drift_cov: dict[int, NDArray[np.float64]] = {}
         self._parent: dict[int, int] = {}  # union-find over keyframes joined by odometry or loops
         # The running estimate: one iSAM2 graph per connected part, shared by its keyframes.
         self._incremental: dict[int, IncrementalPoseGraph] = {}
@@ -164,7 +165,7 @@ class KeyframeManager:
                 np.linalg.norm(odometry.T_target_source[:3, 3]) ** 2 * _rotation_variance(odometry)
             )
             self._add_keyframe(frame, T_world, odometry, self._drift_var_m2[kf_id] + step_var,
-                               self._drift_rot_var[kf_id] + _rotation_variance(odometry))
+                               transport_covariance(self._drift_cov[kf_id], odometry.T_target_source, _covariance(odometry)))
             self._close_loops(frame)
             self._keyframe_done(frame.id)
             return True
@@ -212,7 +213,7 @@ class KeyframeManager:
         self._parent[self._find(a)] = self._find(b)
 
     def _add_keyframe(
-        self, frame: Frame, T_world: NDArray, odometry: Constraint | None, drift_var: float, drift_rot_var: float = 0.0
+        self, frame: Frame, T_world: NDArray, odometry: Constraint | None, drift_var: float, drift_cov: NDArray | None = None
     ) -> None:
         self._parent.setdefault(frame.id, frame.id)
         if odometry is not None:
@@ -221,7 +222,7 @@ class KeyframeManager:
         self.keyframe_ids.append(frame.id)
         self.T_world_keyframe[frame.id] = np.asarray(T_world, dtype=np.float64)
         self._drift_var_m2[frame.id] = drift_var
-        self._drift_rot_var[frame.id] = drift_rot_var
+        self._drift_cov[frame.id] = np.zeros((6, 6)) if drift_cov is None else drift_cov
         if odometry is None:  # first keyframe of a segment: a graph of its own, anchored there
             graph = self._new_incremental()
         else:
@@ -326,7 +327,9 @@ class KeyframeManager:
         if matched:
             # The closure ties this keyframe to an older one: its drift is now that keyframe's.
             self._drift_var_m2[frame.id] = min(self._drift_var_m2[m] for m in matched)
-            self._drift_rot_var[frame.id] = min(self._drift_rot_var[m] for m in matched)
+            T_q = self.T_world_keyframe[frame.id]
+            moved = [transport_covariance(self._drift_cov[m], invert(self.T_world_keyframe[m]) @ T_q) for m in matched]
+            self._drift_cov[frame.id] = min(moved, key=lambda c: float(np.trace(c)))
 
     def _add_to_running_estimate(self, loop: Constraint) -> bool:
         """Put a verified loop into iSAM2 unless its innovation test fails; whether it went in.
@@ -340,10 +343,11 @@ class KeyframeManager:
         false loop (a look-alike place, a wrong ICP basin) sits many sigmas off. The relative
         pose's covariance matters: after a long stretch of odometry it dwarfs an ICP loop's,
         and the loop's covariance alone would hold out every first closure. ``Sigma_rel`` is
-        bounded by the drift both keyframes accumulated since their last closure (the same
-        figures that widen the proximity gate), summed as if independent: an overestimate,
-        so the test errs towards letting a loop in (GNC at the batch solve has the last
-        word), and free, unlike iSAM2's joint marginal of the two keyframes.
+        bounded by the drift both keyframes accumulated since their last closure (odometry
+        covariances propagated along the chain, :func:`transport_covariance`), summed as if
+        independent: an overestimate, so the test errs towards letting a loop in (GNC at the
+        batch solve has the last word), and free, unlike iSAM2's joint marginal of the two
+        keyframes (a Bayes-tree shortcut per loop, milliseconds to tens of milliseconds).
 
         A loop that joins two parts is not tested (nothing else relates them): it merges the
         two iSAM2 graphs.
@@ -361,9 +365,8 @@ class KeyframeManager:
             self.T_world_keyframe.update(keep.estimate())
             log.info("loop %d->%d joins two parts of the trajectory: their running estimates are merged", q, m)
             return True
-        rot_var = (self._drift_rot_var[q] + self._drift_rot_var[m]) / 3.0
-        trans_var = (self._drift_var_m2[q] + self._drift_var_m2[m]) / 3.0
-        sigma_rel = np.diag([rot_var] * 3 + [trans_var] * 3)
+        T_m_q = invert(self.T_world_keyframe[m]) @ self.T_world_keyframe[q]
+        sigma_rel = self._drift_cov[q] + transport_covariance(self._drift_cov[m], T_m_q)
         d2 = graph.loop_innovation(loop, relative_covariance=sigma_rel)
         bound = _chi2_bound_6dof(self.config.pose_graph.consistency_probability)
         if d2 > bound:
@@ -463,6 +466,31 @@ class KeyframeManager:
             optimization=stats,
             held_out_loops=list(self.held_out_loops),
         )
+
+
+def transport_covariance(
+    cov_a: NDArray[np.float64], T_a_b: NDArray[np.float64], step_cov: NDArray[np.float64] | None = None
+) -> NDArray[np.float64]:
+    """A pose covariance carried from frame a to frame b rigidly attached to it (plus ``step_cov``).
+
+    ``cov_a``: 6x6 ``[rot, trans]`` covariance of ``T_world_a`` (right perturbation, a's
+    frame); ``T_a_b``: 4x4 pose of b in a (metres). Returns the covariance of
+    ``T_world_b = T_world_a T_a_b`` in b's frame, ``Ad(T_a_b^-1) cov_a Ad(T_a_b^-1)^T``, plus
+    ``step_cov`` when the step itself is uncertain (odometry). The lever arm turns rotation
+    drift into position drift, which a sum of per-step variances misses.
+    """
+    A = adjoint(invert(T_a_b))
+    out = A @ cov_a @ A.T
+    if step_cov is not None:
+        out = out + step_cov
+    return 0.5 * (out + out.T)
+
+
+def _covariance(c: Constraint) -> NDArray[np.float64]:
+    try:
+        return np.linalg.inv(c.information)
+    except np.linalg.LinAlgError:
+        return np.zeros((6, 6))
 
 
 def _chi2_bound_6dof(probability: float) -> float:
