@@ -82,6 +82,8 @@ class KeyframeConfig(StrictModel):
     min_translation_m: float = Field(0.0, ge=0)
     min_rotation_deg: float = Field(0.0, ge=0)
     max_overlap: float = Field(1.0, gt=0, le=1, description="a frame overlapping the last keyframe more than this is skipped")
+    loop_check_probability: float = Field(0.999, gt=0, lt=1, description="a verified loop whose innovation against the running estimate exceeds this chi-square quantile is held out of it (not dropped: the batch solve decides)")
+    batch_every: int = Field(0, ge=0, description="run the robust batch pose-graph solve every this many keyframes as well as at the end, restarting the running (iSAM2) estimate from it (0: only at the end)")
 
 
 class LoopClosureConfig(StrictModel):

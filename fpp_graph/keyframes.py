@@ -10,12 +10,23 @@
    that widens with the drift accumulated since the last closure, and appearance), verifies each
    through the ``PairRegistrar``, and logs every accepted and rejected candidate with its reason
    and figures;
-4. after a loop is accepted, re-optimises the pose graph so later proximity gates use corrected
-   poses.
+4. keeps its running estimate with iSAM2 (:class:`~fpp_graph.pose_graph.IncrementalPoseGraph`,
+   one per connected part): the keyframe and its odometry go in, each verified loop goes in as
+   a Gaussian factor after a per-edge innovation test (a loop that fails it is held out of the
+   running estimate only, logged and counted, and still reaches the final solve), and one
+   iSAM2 update follows, so later proximity gates use corrected poses at a cost that does not
+   grow with the map.
 
 :meth:`KeyframeManager.finish` runs the final robust optimisation (GNC by default: odometry edges
-are known inliers, loops may be false) per connected component and returns poses for every frame.
+are known inliers, loops may be false) per connected component and returns poses for every frame;
+``keyframes.batch_every`` can run it every K keyframes as well (0, the default: never).
 Only keyframes are kept (bounded by the :class:`~fpp_graph.frame_store.FrameStore`).
+
+Chain breaks: a new segment starts its own iSAM2 graph anchored at its first keyframe's pose
+(the last keyframe's pose, or the frame's pose guess); a loop that joins two parts merges their
+graphs (:meth:`~fpp_graph.pose_graph.IncrementalPoseGraph.absorb`, the newer part moved rigidly
+onto the loop). Such a joining loop is accepted without the innovation test: it is the only link
+between the parts, so nothing can confirm or refute it yet (the batch solve treats it the same way).
 """
 
 from __future__ import annotations
@@ -32,8 +43,9 @@ from numpy.typing import NDArray
 
 from fpp_graph.config import Config
 from fpp_graph.frame_store import FrameStore
-from fpp_graph.geometry import compose, invert, rotation_angle_rad
+from fpp_graph.geometry import adjoint, compose, invert, rotation_angle_rad
 from fpp_graph.loop_closure import ProximityAppearanceLoopDetector
+from fpp_graph.pose_graph import IncrementalPoseGraph
 from fpp_graph.types import Constraint, ConstraintKind, Frame, LoopCandidate, PairRegistrar
 
 log = logging.getLogger(__name__)
@@ -53,6 +65,7 @@ class LoopRecord:
     inlier_rmse_m: float
     inlier_count: int
     rejected_by_backend: bool = False
+    held_out: bool = False  # verified, but failed the innovation test: kept out of the running estimate
 
 
 @dataclass(frozen=True)
@@ -77,6 +90,7 @@ class SlamResult:
     components: list[list[int]]
     rejected_loops: list[tuple[int, int]]
     optimization: dict = field(default_factory=dict)
+    held_out_loops: list[tuple[int, int]] = field(default_factory=list)  # (query, match), see LoopRecord.held_out
 
 
 class KeyframeManager:
@@ -115,7 +129,13 @@ class KeyframeManager:
         self.T_world_keyframe: dict[int, NDArray[np.float64]] = {}
         self.T_keyframe_frame: dict[int, tuple[int, NDArray[np.float64]]] = {}
         self._drift_var_m2: dict[int, float] = {}
+        # 6x6 [rot, trans] covariance (body frame) of each keyframe relative to its last closure
+        self._drift_cov: dict[int, NDArray[np.float64]] = {}
         self._parent: dict[int, int] = {}  # union-find over keyframes joined by odometry or loops
+        # The running estimate: one iSAM2 graph per connected part, shared by its keyframes.
+        self._incremental: dict[int, IncrementalPoseGraph] = {}
+        self.held_out_loops: list[tuple[int, int]] = []
+        self.batch_solves = 0
 
     # -- per frame -------------------------------------------------------------------------
     def process(self, frame: Frame) -> bool:
@@ -125,6 +145,7 @@ class KeyframeManager:
             self._add_keyframe(frame, np.array(T0), odometry=None, drift_var=0.0)
             self.segment_starts.append(frame.id)
             self.loop_detector.add(frame)
+            self._keyframe_done(frame.id)
             return True
         odometry = self._register_to_recent(frame)
         if odometry is None:
@@ -135,6 +156,7 @@ class KeyframeManager:
             self._add_keyframe(frame, T_start, odometry=None, drift_var=0.0)
             self.segment_starts.append(frame.id)
             self._close_loops(frame)  # appearance may rejoin the new segment to an older one
+            self._keyframe_done(frame.id)
             return True
         kf_id = odometry.target_id
         if self._is_keyframe(odometry):
@@ -142,8 +164,10 @@ class KeyframeManager:
             step_var = _translation_variance_m2(odometry) + (
                 np.linalg.norm(odometry.T_target_source[:3, 3]) ** 2 * _rotation_variance(odometry)
             )
-            self._add_keyframe(frame, T_world, odometry, self._drift_var_m2[kf_id] + step_var)
+            self._add_keyframe(frame, T_world, odometry, self._drift_var_m2[kf_id] + step_var,
+                               transport_covariance(self._drift_cov[kf_id], odometry.T_target_source, _covariance(odometry)))
             self._close_loops(frame)
+            self._keyframe_done(frame.id)
             return True
         self.T_keyframe_frame[frame.id] = (kf_id, odometry.T_target_source.copy())
         return False
@@ -188,7 +212,9 @@ class KeyframeManager:
     def _join(self, a: int, b: int) -> None:
         self._parent[self._find(a)] = self._find(b)
 
-    def _add_keyframe(self, frame: Frame, T_world: NDArray, odometry: Constraint | None, drift_var: float) -> None:
+    def _add_keyframe(
+        self, frame: Frame, T_world: NDArray, odometry: Constraint | None, drift_var: float, drift_cov: NDArray | None = None
+    ) -> None:
         self._parent.setdefault(frame.id, frame.id)
         if odometry is not None:
             self._join(frame.id, odometry.target_id)
@@ -196,8 +222,54 @@ class KeyframeManager:
         self.keyframe_ids.append(frame.id)
         self.T_world_keyframe[frame.id] = np.asarray(T_world, dtype=np.float64)
         self._drift_var_m2[frame.id] = drift_var
-        if odometry is not None:
+        self._drift_cov[frame.id] = np.zeros((6, 6)) if drift_cov is None else drift_cov
+        if odometry is None:  # first keyframe of a segment: a graph of its own, anchored there
+            graph = self._new_incremental()
+        else:
             self.odometry.append(odometry)
+            graph = self._incremental[odometry.target_id]
+        graph.add_keyframe(frame.id, self.T_world_keyframe[frame.id], odometry)
+        self._incremental[frame.id] = graph
+
+    def _new_incremental(self) -> IncrementalPoseGraph:
+        return IncrementalPoseGraph(self.config.pose_graph)
+
+    def _keyframe_done(self, frame_id: int) -> None:
+        """One iSAM2 update of the keyframe's part; the estimate feeds later proximity gates.
+
+        Every ``keyframes.batch_every`` keyframes (when set) the robust batch solve runs as well
+        and the iSAM2 graphs restart from its solution.
+        """
+        every = self.config.keyframes.batch_every
+        if every and len(self.keyframe_ids) % every == 0:
+            self._batch_and_restart()
+            return
+        try:
+            estimate = self._incremental[frame_id].update()
+        except Exception as exc:  # keep tracking on the uncorrected chain rather than stop the run
+            log.warning("iSAM2 update failed at keyframe %d (%s); continuing with the previous estimate", frame_id, exc)
+            return
+        self.T_world_keyframe.update(estimate)
+
+    def _batch_and_restart(self) -> None:
+        """The batch robust solve now (all parts); iSAM2 restarts from its solution, without
+        the loops it rejected and with the held-out loops it accepted."""
+        try:
+            poses, rejected, _ = self._optimize_components()
+        except Exception as exc:
+            log.warning("periodic batch optimisation failed (%s); keeping the iSAM2 estimate", exc)
+            return
+        self.batch_solves += 1
+        self.T_world_keyframe.update(poses)
+        rejected_set = set(rejected)
+        kept = [c for c in self.loops if (c.source_id, c.target_id) not in rejected_set]
+        for comp in self.components():
+            members = set(comp)
+            edges = [c for c in [*self.odometry, *kept] if c.source_id in members and c.target_id in members]
+            graph = IncrementalPoseGraph.from_constraints({k: self.T_world_keyframe[k] for k in comp}, edges, self.config.pose_graph)
+            for k in comp:
+                self._incremental[k] = graph
+            self.T_world_keyframe.update(graph.estimate())
 
     # -- loops -----------------------------------------------------------------------------
     def _close_loops(self, frame: Frame) -> None:
@@ -214,7 +286,7 @@ class KeyframeManager:
             self.loop_detector.candidates(frame, poses, position_sigma_m=sigma)
         )
         self.loop_detector.add(frame)
-        matched: list[int] = []
+        matched: list[int] = []  # loops that entered the running estimate
         for cand in candidates:
             target = self.store.get(cand.match_id)
             T_guess = invert(self.T_world_keyframe[cand.match_id]) @ self.T_world_keyframe[frame.id]
@@ -234,33 +306,79 @@ class KeyframeManager:
                 inlier_rmse_m=constraint.inlier_rmse_m,
                 inlier_count=constraint.inlier_count,
             )
-            self.loop_records.append(record)
-            if self.on_loop is not None:
-                self.on_loop(record)
             if constraint.accepted:
                 log.info(
                     "loop %d->%d (%s, score %.3f) accepted: fitness %.3f, rmse %.3f mm, %d inliers",
                     frame.id, cand.match_id, cand.source, cand.score, constraint.fitness,
                     constraint.inlier_rmse_m * 1e3, constraint.inlier_count,
                 )
-                self.loops.append(replace(constraint, kind=ConstraintKind.LOOP))
-                matched.append(cand.match_id)
+                loop = replace(constraint, kind=ConstraintKind.LOOP)
+                self.loops.append(loop)  # every verified loop reaches the final batch solve
                 self._join(frame.id, cand.match_id)
+                if self._add_to_running_estimate(loop):
+                    matched.append(cand.match_id)
+                else:
+                    record = replace(record, held_out=True)
             else:
                 log.info("loop %d->%d (%s, score %.3f) rejected: %s", frame.id, cand.match_id, cand.source, cand.score, constraint.rejection_reason)
+            self.loop_records.append(record)
+            if self.on_loop is not None:
+                self.on_loop(record)
         if matched:
-            self._reoptimize()
             # The closure ties this keyframe to an older one: its drift is now that keyframe's.
             self._drift_var_m2[frame.id] = min(self._drift_var_m2[m] for m in matched)
+            T_q = self.T_world_keyframe[frame.id]
+            moved = [transport_covariance(self._drift_cov[m], invert(self.T_world_keyframe[m]) @ T_q) for m in matched]
+            self._drift_cov[frame.id] = min(moved, key=lambda c: float(np.trace(c)))
 
-    def _reoptimize(self) -> None:
-        """Batch-optimise the current graph so later proximity gates use corrected poses."""
-        try:
-            poses, _, _ = self._optimize_components()
-        except Exception as exc:  # keep tracking on the uncorrected chain rather than stop the run
-            log.warning("intermediate loop optimisation failed (%s); continuing with the odometry chain", exc)
-            return
-        self.T_world_keyframe.update(poses)
+    def _add_to_running_estimate(self, loop: Constraint) -> bool:
+        """Put a verified loop into iSAM2 unless its innovation test fails; whether it went in.
+
+        The test: ``d2 = r^T (Sigma_loop + Sigma_rel)^-1 r <= chi2_6(p)``, ``r`` the loop's
+        residual at the current estimate (``Log(T_target_source^-1 T_world_target^-1
+        T_world_source)``, 6 dof), ``p = keyframes.loop_check_probability``. Why: for a true
+        loop and an unbiased estimate, ``r`` is zero-mean Gaussian with the loop's covariance
+        plus that of the estimated relative pose, so ``d2`` is chi-square with 6 degrees of
+        freedom and the test holds out a true loop with probability ``1 - p`` only, whereas a
+        false loop (a look-alike place, a wrong ICP basin) sits many sigmas off. The relative
+        pose's covariance matters: after a long stretch of odometry it dwarfs an ICP loop's,
+        and the loop's covariance alone would hold out every first closure. ``Sigma_rel`` is
+        bounded by the drift both keyframes accumulated since their last closure (odometry
+        covariances propagated along the chain, :func:`transport_covariance`), summed as if
+        independent: an overestimate, so the test errs towards letting a loop in (GNC at the
+        batch solve has the last word), and free, unlike iSAM2's joint marginal of the two
+        keyframes (a Bayes-tree shortcut per loop, milliseconds to tens of milliseconds).
+
+        A loop that joins two parts is not tested (nothing else relates them): it merges the
+        two iSAM2 graphs.
+        """
+        q, m = loop.source_id, loop.target_id
+        graph, other = self._incremental[q], self._incremental[m]
+        if graph is not other:
+            # the part that started first keeps its anchor (the run's frame for the first part)
+            order = {k: i for i, k in enumerate(self.segment_starts)}
+            keep, gone = (graph, other) if order[graph.anchor] < order[other.anchor] else (other, graph)
+            moved = gone.keys()
+            keep.absorb(gone, loop)
+            for k in moved:
+                self._incremental[k] = keep
+            self.T_world_keyframe.update(keep.estimate())
+            log.info("loop %d->%d joins two parts of the trajectory: their running estimates are merged", q, m)
+            return True
+        T_m_q = invert(self.T_world_keyframe[m]) @ self.T_world_keyframe[q]
+        sigma_rel = self._drift_cov[q] + transport_covariance(self._drift_cov[m], T_m_q)
+        d2 = graph.loop_innovation(loop, relative_covariance=sigma_rel)
+        bound = _chi2_bound_6dof(self.config.keyframes.loop_check_probability)
+        if d2 > bound:
+            self.held_out_loops.append((q, m))
+            log.warning(
+                "loop %d->%d held out of the running estimate: innovation d2 %.3g > chi-square bound %.3g "
+                "(it stays in the final robust solve); %d loop(s) held out so far",
+                q, m, d2, bound, len(self.held_out_loops),
+            )
+            return False
+        graph.add_loop(loop)
+        return True
 
     # -- final -----------------------------------------------------------------------------
     def components(self) -> list[list[int]]:
@@ -316,6 +434,11 @@ class KeyframeManager:
             self.T_world_keyframe.update(poses)
         else:
             rejected, stats = [], {}
+        stats["held_out_loops"] = len(self.held_out_loops)
+        stats["periodic_batch_solves"] = self.batch_solves
+        if self.held_out_loops:
+            log.info("%d loop(s) were held out of the running estimate by the innovation test: %s",
+                     len(self.held_out_loops), self.held_out_loops)
         rejected_set = set(rejected)
         self.loop_records = [
             replace(r, rejected_by_backend=(r.query_id, r.match_id) in rejected_set) if r.verified else r
@@ -341,7 +464,39 @@ class KeyframeManager:
             components=components,
             rejected_loops=rejected,
             optimization=stats,
+            held_out_loops=list(self.held_out_loops),
         )
+
+
+def transport_covariance(
+    cov_a: NDArray[np.float64], T_a_b: NDArray[np.float64], step_cov: NDArray[np.float64] | None = None
+) -> NDArray[np.float64]:
+    """A pose covariance carried from frame a to frame b rigidly attached to it (plus ``step_cov``).
+
+    ``cov_a``: 6x6 ``[rot, trans]`` covariance of ``T_world_a`` (right perturbation, a's
+    frame); ``T_a_b``: 4x4 pose of b in a (metres). Returns the covariance of
+    ``T_world_b = T_world_a T_a_b`` in b's frame, ``Ad(T_a_b^-1) cov_a Ad(T_a_b^-1)^T``, plus
+    ``step_cov`` when the step itself is uncertain (odometry). The lever arm turns rotation
+    drift into position drift, which a sum of per-step variances misses.
+    """
+    A = adjoint(invert(T_a_b))
+    out = A @ cov_a @ A.T
+    if step_cov is not None:
+        out = out + step_cov
+    return 0.5 * (out + out.T)
+
+
+def _covariance(c: Constraint) -> NDArray[np.float64]:
+    try:
+        return np.linalg.inv(c.information)
+    except np.linalg.LinAlgError:
+        return np.zeros((6, 6))
+
+
+def _chi2_bound_6dof(probability: float) -> float:
+    from scipy.special import chdtri  # scipy.stats would add ~0.8 s of import
+
+    return float(chdtri(6, 1.0 - probability))
 
 
 def _translation_variance_m2(c: Constraint) -> float:

@@ -32,7 +32,7 @@ import logging
 import math
 import time
 from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -1153,19 +1153,34 @@ class IncrementalPoseGraph:
 
     The first keyframe is the anchor. Each later keyframe comes with its odometry constraint
     (to any keyframe already in the graph); loops join between updates. :meth:`update` runs
-    one iSAM2 step (a few when a loop arrived). After a loop closes, :meth:`polish` runs the
-    batch optimiser (GNC by default) on the whole graph and restarts iSAM2 from its solution
-    without the loops GNC rejected.
+    one iSAM2 step (a few when a loop arrived). :meth:`loop_innovation` tests a loop against
+    the current estimate before it goes in; :meth:`absorb` joins another graph through a loop
+    (a chain break rejoined); :meth:`polish` runs the batch optimiser (GNC by default) on the
+    whole graph and restarts iSAM2 from its solution without the loops GNC rejected.
+
+    Constant cost per update. iSAM2 re-eliminates the cliques between the variables a new
+    factor touches and the root of the Bayes tree. Left to itself, its incremental
+    constrained COLAMD puts *every* key a new factor observes last, so each loop pulls an old
+    keyframe up to the root and the tree's top grows with the map (on 20 laps of a 50-keyframe
+    circuit with a loop per keyframe the re-eliminated variables grow from ~30 to ~120 and the
+    update time about tenfold over 1000 keyframes). Here the last ``ordering_window``
+    keyframes form the last ordering group instead: the active region stays at the root, old
+    keyframes a loop touches are eliminated below it, and the re-eliminated part stays bounded
+    by the window.
 
     Parameters
     ----------
     config : PoseGraphConfig, optional
-        Used by :meth:`polish`; ``robust == "cauchy"`` also puts a Cauchy loss on loop edges
-        inside iSAM2 (GNC is batch-only: iSAM2 keeps loops Gaussian until the polish).
+        Used by :meth:`polish` and for the noise model (``noise_model``); ``robust ==
+        "cauchy"`` also puts a Cauchy loss on loop edges inside iSAM2 (GNC is batch-only:
+        iSAM2 keeps loops Gaussian until the batch solve).
     relinearize_threshold : float
-        iSAM2 re-linearises a variable whose update exceeds this (tangent units, rad/m).
+        iSAM2 re-linearises a variable whose linear update exceeds this (tangent units, rad/m).
     loop_extra_updates : int
         Additional iSAM2 steps after an update that brought loops (re-linearisation settles).
+    ordering_window : int
+        The most recent keyframes kept last in the elimination order (see above); 0 leaves
+        iSAM2's default ordering.
     """
 
     def __init__(
@@ -1174,12 +1189,15 @@ class IncrementalPoseGraph:
         *,
         relinearize_threshold: float = 0.01,
         loop_extra_updates: int = 2,
+        ordering_window: int = 100,
     ) -> None:
         self.config = config or PoseGraphConfig()
         self.relinearize_threshold = float(relinearize_threshold)
         self.loop_extra_updates = int(loop_extra_updates)
+        self.ordering_window = int(ordering_window)
         self._graph = PoseGraph()  # bookkeeping of what iSAM2 holds: poses (guesses), edges
         self._rejected: list[tuple[int, int]] = []
+        self._order: list[int] = []  # keys in the order they were added
         self._reset_isam()
         self._estimate: dict[int, Array] = {}
         self._pending_loops = False
@@ -1194,6 +1212,7 @@ class IncrementalPoseGraph:
         self._new_factors = gtsam.NonlinearFactorGraph()
         self._new_values = gtsam.Values()
         self._anchor_key: int | None = None
+        self._in_isam: set[int] = set()
 
     # -- building --------------------------------------------------------------------------
     @property
@@ -1205,9 +1224,28 @@ class IncrementalPoseGraph:
         return self._graph.num_edges
 
     @property
+    def anchor(self) -> int | None:
+        """The anchored (first) keyframe."""
+        return self._anchor_key
+
+    @property
     def rejected_loops(self) -> list[tuple[int, int]]:
         """Loops dropped by earlier :meth:`polish` calls."""
         return list(self._rejected)
+
+    def __contains__(self, key: object) -> bool:
+        return key in self._graph
+
+    def keys(self) -> list[int]:
+        """Keyframe keys in the order they were added."""
+        return list(self._order)
+
+    def constraints(self) -> list[Constraint]:
+        """The edges iSAM2 holds, as constraints (odometry and loops)."""
+        return [
+            Constraint(e.source_id, e.target_id, e.T_target_source, e.information_rot_trans, kind=e.kind)
+            for e in self._graph._edges
+        ]
 
     def add_keyframe(self, key: int, T_world_sensor_guess: ArrayLike | None = None, odometry: Constraint | None = None) -> None:
         """Add a keyframe with its initial guess and its odometry constraint.
@@ -1251,6 +1289,7 @@ class IncrementalPoseGraph:
         self._graph.add_pose(key, guess)
         T = self._graph._poses[key]
         self._new_values.insert(int(key), gtsam.Pose3(T))
+        self._order.append(int(key))
         if first:
             self._graph.fix_pose(key)
             self._anchor_key = int(key)
@@ -1266,6 +1305,9 @@ class IncrementalPoseGraph:
         self._add_edge(constraint, ConstraintKind.LOOP)
         self._pending_loops = True
 
+    def _information(self, info: Array) -> Array:
+        return isotropic_information(info) if self.config.noise_model == "isotropic" else info
+
     def _add_edge(self, constraint: Constraint, kind: ConstraintKind) -> None:
         import gtsam
 
@@ -1274,9 +1316,7 @@ class IncrementalPoseGraph:
         edge = self._graph._edges[-1]
         if kind is not edge.kind:
             self._graph._edges[-1] = PoseGraphEdge(edge.source_id, edge.target_id, edge.T_target_source, edge.information_rot_trans, kind)
-        info = edge.information_rot_trans
-        if self.config.noise_model == "isotropic":
-            info = isotropic_information(info)
+        info = self._information(edge.information_rot_trans)
         noise = gtsam.noiseModel.Gaussian.Information(info)
         if kind is ConstraintKind.LOOP and self.config.robust == "cauchy":
             noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(self.config.cauchy_scale), noise)
@@ -1297,6 +1337,21 @@ class IncrementalPoseGraph:
         return self._estimate.get(int(key), self._graph._poses[int(key)])
 
     # -- solving ---------------------------------------------------------------------------
+    def _update_params(self):
+        """iSAM2 update parameters: the most recent keyframes last in the elimination order."""
+        import gtsam
+
+        params = gtsam.ISAM2UpdateParams()
+        recent = [k for k in self._order[-self.ordering_window:] if k in self._in_isam or self._new_values.exists(k)]
+        # Constraint groups must be consecutive from 0 and fewer than the variables iSAM2
+        # re-orders (CCOLAMD's rule); with two or more present, group 1 always qualifies.
+        if self.ordering_window > 0 and len(recent) >= 2:
+            groups = gtsam.KeyGroupMap()
+            for k in recent:
+                groups.insert2(k, 1)
+            params.constrainedKeys = groups
+        return params
+
     def update(self) -> dict[int, Array]:
         """One iSAM2 step with everything added since the last call.
 
@@ -1307,20 +1362,22 @@ class IncrementalPoseGraph:
         """
         if self._graph.num_edges and (self._new_factors.size() or self._new_values.size()):
             try:
-                self._isam.update(self._new_factors, self._new_values)
+                self._isam.update(self._new_factors, self._new_values, self._update_params())
                 if self._pending_loops:
                     for _ in range(self.loop_extra_updates):
                         self._isam.update()
             except RuntimeError as exc:
                 raise _solver_error(exc) from None
+            self._in_isam.update(int(k) for k in self._new_values.keys())
             self._new_factors.resize(0)
             self._new_values.clear()
             self._pending_loops = False
-            # the anchor is a stiff prior: move the estimate rigidly so it holds to the bit
+            # The anchor is a prior 1e8 times stiffer than any edge: it moves by ~1e-8 of an
+            # edge's sigma, so its given value is restored and the rest left as solved (a rigid
+            # move of all poses, as the batch solver does, costs O(n) per update).
             anchor = self._anchor_key
-            self._estimate = _Problem.poses_with_gauge_values(
-                _poses_from(self._isam.calculateEstimate()), {anchor: self._graph._poses[anchor]}, [anchor], False
-            )
+            self._estimate = _poses_from(self._isam.calculateEstimate())
+            self._estimate[anchor] = self._graph._poses[anchor]
         return dict(self._estimate)
 
     def estimate(self) -> dict[int, Array]:
@@ -1333,6 +1390,124 @@ class IncrementalPoseGraph:
         if int(key) not in self._estimate:
             raise GraphError(f"marginal_covariance: keyframe {key} is not in the graph")
         return np.array(self._isam.marginalCovariance(int(key)), dtype=np.float64)
+
+    def loop_innovation(self, constraint: Constraint, relative_covariance: ArrayLike | None = None) -> float:
+        """Squared Mahalanobis norm of a loop's innovation at the current estimate.
+
+        ``d2 = r^T (Sigma_z + Sigma_rel)^-1 r`` with ``r = Log(T_target_source^-1 *
+        T_world_target^-1 * T_world_source)`` (GTSAM's between-factor error, ``[rot, trans]``
+        in the source frame), ``Sigma_z`` the loop's covariance (the graph's noise model) and
+        ``Sigma_rel`` the covariance of the estimated relative pose, from the joint marginal
+        of the two keyframes in iSAM2's Bayes tree (right perturbations: ``delta_rel = xi_s -
+        Ad(T_target_source_est^-1) xi_t``). For a true loop and a consistent estimate, ``d2``
+        follows a chi-square law with 6 degrees of freedom. Brings pending keyframes in first
+        (one :meth:`update`), so both ends are in the tree.
+
+        Parameters
+        ----------
+        constraint : Constraint
+            The loop (both keyframes in the graph).
+        relative_covariance : (6, 6), optional
+            ``Sigma_rel`` (``[rot, trans]``, source frame) when the caller has a bound of its
+            own; the joint marginal is exact but costs a Bayes-tree shortcut from the older
+            keyframe to the root (milliseconds to tens of milliseconds on 1000 keyframes).
+        """
+        import gtsam
+
+        from fpp_graph.geometry import adjoint, se3_log
+
+        s, t = int(constraint.source_id), int(constraint.target_id)
+        for k in (s, t):
+            if k not in self._graph:
+                raise GraphError(f"loop {s}->{t}: keyframe {k} is not in the graph")
+        if relative_covariance is None and self._new_values.size() and self._graph.num_edges:
+            self.update()
+        T_ts_est = np.linalg.inv(self._current(t)) @ self._current(s)
+        r = se3_log(np.linalg.inv(np.asarray(constraint.T_target_source, dtype=np.float64)) @ T_ts_est)
+        cov = np.linalg.inv(self._information(_as_information(constraint.information, f"loop {s}->{t}")))
+        if relative_covariance is not None:
+            cov = cov + np.asarray(relative_covariance, dtype=np.float64).reshape(6, 6)
+        elif s in self._in_isam and t in self._in_isam:
+            try:
+                joint = self._isam.jointMarginalCovariance(gtsam.KeyVector([t, s]))
+                J = np.hstack([-adjoint(np.linalg.inv(T_ts_est)), np.eye(6)])
+                blocks = np.block([[joint.at(t, t), joint.at(t, s)], [joint.at(s, t), joint.at(s, s)]])
+                cov = cov + J @ blocks @ J.T
+            except RuntimeError as exc:
+                log.warning("loop %d->%d: no joint marginal from iSAM2 (%s); testing against the loop's covariance alone", s, t, _short(exc))
+        cov = 0.5 * (cov + cov.T)
+        return float(r @ np.linalg.solve(cov, r))
+
+    def absorb(self, other: IncrementalPoseGraph, loop: Constraint) -> None:
+        """Join ``other`` (a separate part, e.g. after a chain break) to this graph through ``loop``.
+
+        ``other``'s estimate is moved rigidly so that ``loop`` holds exactly, its poses and
+        edges join this graph with ``loop``, and iSAM2 restarts from the joint estimate (one
+        batch elimination: a rare event). This graph's anchor stays; ``other`` is left empty.
+        """
+        s, t = int(loop.source_id), int(loop.target_id)
+        if (s in self) == (t in self) or (s in other) == (t in other):
+            raise GraphError(f"absorb: loop {s}->{t} must join a keyframe of this graph to one of the other graph")
+        mine = self.update()
+        theirs = other.update()
+        T_ts = np.asarray(loop.T_target_source, dtype=np.float64)
+        if t in self:  # T_world_source in this graph's frame, from the loop
+            correction = mine[t] @ T_ts @ np.linalg.inv(theirs[s])
+        else:
+            correction = mine[s] @ np.linalg.inv(T_ts) @ np.linalg.inv(theirs[t])
+        correction = _as_pose(correction, "absorb: rigid correction")
+        poses = dict(mine)
+        for k in other.keys():
+            poses[k] = correction @ theirs[k]
+        loop = replace(loop, kind=ConstraintKind.LOOP)
+        edges = [*self.constraints(), *other.constraints(), loop]
+        order = [*self._order, *other._order]
+        self._restart(poses, order, edges)
+        other._graph, other._order, other._estimate = PoseGraph(), [], {}
+        other._reset_isam()
+
+    @classmethod
+    def from_constraints(
+        cls, poses: Mapping[int, ArrayLike], constraints: Sequence[Constraint], config: PoseGraphConfig | None = None, **kwargs
+    ) -> IncrementalPoseGraph:
+        """A graph holding ``poses`` (initial values, the first key anchored) and ``constraints``
+        at once (one batch iSAM2 step), to grow from there.
+
+        Parameters
+        ----------
+        poses : dict[int, (4, 4)]
+            ``T_world_sensor`` per keyframe, in the order keyframes were added.
+        constraints : sequence of Constraint
+            Odometry and loops between those keyframes; they must connect them all.
+        config, **kwargs
+            As for the constructor.
+        """
+        graph = cls(config, **kwargs)
+        order = [int(k) for k in poses]
+        if not order:
+            return graph
+        graph.add_keyframe(order[0], poses[order[0]])
+        graph._restart(poses, order, constraints)
+        return graph
+
+    def _restart(self, poses: Mapping[int, Array], order: Sequence[int], edges: Sequence[Constraint]) -> None:
+        """Start iSAM2 afresh on ``poses`` and ``edges`` (anchor kept): one batch step."""
+        import gtsam
+
+        anchor = self._anchor_key
+        self._graph = PoseGraph()
+        self._order = [int(k) for k in order]
+        self._reset_isam()
+        for key in self._order:
+            self._graph.add_pose(key, poses[key])
+            self._new_values.insert(int(key), gtsam.Pose3(self._graph._poses[key]))
+        self._anchor_key = anchor
+        self._graph.fix_pose(anchor)
+        for c in edges:
+            self._add_edge(c, ConstraintKind(c.kind))
+        self._pending_loops = any(ConstraintKind(c.kind) is ConstraintKind.LOOP for c in edges)
+        self._estimate = {k: self._graph._poses[k].copy() for k in self._order}
+        self.update()
 
     def to_pose_graph(self) -> PoseGraph:
         """A batch :class:`PoseGraph` at the current estimate (first keyframe fixed)."""
@@ -1350,26 +1525,10 @@ class IncrementalPoseGraph:
 
         Loops rejected by the batch pass leave the incremental graph for good.
         """
-        import gtsam
-
         self.update()
         result = self.to_pose_graph().optimize(config or self.config)
         rejected = set(result.rejected_loops)
         self._rejected.extend(sorted(rejected))
-        kept = [e for e in self._graph._edges if not (e.kind is ConstraintKind.LOOP and e.pair in rejected)]
-        old = self._graph
-        self._graph = PoseGraph()
-        anchor = self._anchor_key
-        self._reset_isam()
-        for key in old._poses:
-            self._graph.add_pose(key, result.poses_world_sensor[key])
-            self._new_values.insert(int(key), gtsam.Pose3(self._graph._poses[key]))
-        self._anchor_key = anchor
-        self._graph.fix_pose(anchor)
-        for e in kept:
-            c = Constraint(e.source_id, e.target_id, e.T_target_source, e.information_rot_trans, kind=e.kind)
-            self._add_edge(c, e.kind)
-        self._pending_loops = False
-        self._estimate = {k: T.copy() for k, T in result.poses_world_sensor.items()}
-        self.update()
+        kept = [c for c in self.constraints() if not (c.kind is ConstraintKind.LOOP and (c.source_id, c.target_id) in rejected)]
+        self._restart(result.poses_world_sensor, self._order, kept)
         return result

@@ -5,6 +5,8 @@
   starts Levenberg-Marquardt in a bad local minimum and chordal initialisation is needed.
 - :func:`corridor_trajectory`: a robot walking laps of a rectangular corridor loop, the shape
   of an indoor sequence, with loops wherever it revisits a place.
+- :func:`circuit_laps`: several laps of one circuit, every keyframe of a lap looping to the
+  corresponding keyframe of the previous lap (a loop at every keyframe after the first lap).
 - :func:`add_false_loops`: wrong loop edges (perceptual aliasing) to test robust back-ends.
 
 Measurements are ``T_target_source_true @ Exp(n)`` with ``n ~ N(0, diag(sigmas^2))`` in
@@ -154,6 +156,64 @@ def corridor_trajectory(
             if candidates % loop_every == 0:
                 t = int(close[np.argmin(d[close])])
                 sim.edges.append((s, t, _measure(invert(poses[t]) @ poses[s], sigmas, rng), info, ConstraintKind.LOOP))
+    return sim
+
+
+def circuit_laps(
+    laps: int = 20,
+    per_lap: int = 50,
+    spacing_m: float = 0.3,
+    rot_sigma_rad: float = 0.004,
+    trans_sigma_m: float = 0.004,
+    loop_rot_sigma_rad: float = 0.003,
+    loop_trans_sigma_m: float = 0.003,
+    path_jitter_m: float = 0.05,
+    rng: np.random.Generator | None = None,
+) -> SyntheticGraph:
+    """``laps`` laps of a closed circuit of ``per_lap`` keyframes ``spacing_m`` apart (metres).
+
+    The circuit is a rounded rectangle (two straights and two half-turns, about 10 x 2.5 m for
+    the defaults) walked at a hand-held sensor's height with gentle pitch, roll and height
+    wiggles; each lap runs ``path_jitter_m`` (lateral and vertical, standard deviation) off the
+    previous one, as a person does not retrace a path exactly. Odometry joins consecutive
+    keyframes; from the second lap on, keyframe ``k`` loops to ``k - per_lap`` (the same place on
+    the previous lap), like a real revisit. The defaults are RGB-D-like: 4 mm / 4 mrad odometry
+    noise per 0.3 m step (about 1.5 % drift), 3 mm / 3 mrad on loops. Keys are ``0 ..
+    laps * per_lap - 1`` in visiting order; measurements as in the module docstring.
+    """
+    rng = rng or np.random.default_rng(0)
+    odo_sigmas = np.array([rot_sigma_rad] * 3 + [trans_sigma_m] * 3)
+    loop_sigmas = np.array([loop_rot_sigma_rad] * 3 + [loop_trans_sigma_m] * 3)
+    perimeter = per_lap * spacing_m
+    radius = perimeter / (2 * math.pi + 8.0)  # straights 4 radii long, two half circles
+    straight = 4.0 * radius
+    poses: dict[int, Array] = {}
+    for lap in range(laps):
+        offset = rng.normal(scale=path_jitter_m, size=2)  # lateral, vertical offset of this lap
+        for i in range(per_lap):
+            k = lap * per_lap + i
+            s = i * spacing_m
+            if s < straight:  # bottom straight, heading +x
+                xy, heading = np.array([s - straight / 2, -radius]), 0.0
+            elif s < straight + math.pi * radius:  # right half-turn
+                a = (s - straight) / radius
+                xy, heading = np.array([straight / 2 + radius * math.sin(a), -radius * math.cos(a)]), a
+            elif s < 2 * straight + math.pi * radius:  # top straight, heading -x
+                xy, heading = np.array([straight / 2 - (s - straight - math.pi * radius), radius]), math.pi
+            else:  # left half-turn
+                a = (s - 2 * straight - math.pi * radius) / radius
+                xy, heading = np.array([-straight / 2 - radius * math.sin(a), radius * math.cos(a)]), math.pi + a
+            normal = np.array([-math.sin(heading), math.cos(heading)])
+            centre = np.array([*(xy + offset[0] * normal), 1.4 + offset[1] + 0.03 * math.sin(0.5 * k)])
+            R = Rotation.from_euler("zyx", [heading, 0.03 * math.sin(0.3 * k), 0.02 * math.cos(0.4 * k)]).as_matrix()
+            poses[k] = make_pose(R, centre)
+    sim = SyntheticGraph(poses)
+    odo_info, loop_info = np.diag(1.0 / odo_sigmas**2), np.diag(1.0 / loop_sigmas**2)
+    for k in range(1, laps * per_lap):
+        sim.edges.append((k, k - 1, _measure(invert(poses[k - 1]) @ poses[k], odo_sigmas, rng), odo_info, ConstraintKind.ODOMETRY))
+        if k >= per_lap:
+            t = k - per_lap
+            sim.edges.append((k, t, _measure(invert(poses[t]) @ poses[k], loop_sigmas, rng), loop_info, ConstraintKind.LOOP))
     return sim
 
 

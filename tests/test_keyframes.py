@@ -237,3 +237,97 @@ def test_loop_evaluation_precision_recall_per_stage(rng):
     assert [(f["query"], f["match"]) for f in ev.false_accepted] == [(11, 1)]
     assert {(f["query"], f["match"]) for f in ev.false_verified} == {(11, 1), (10, 4)}
     assert ev.as_dict()["stages"]["accepted"]["precision"] == 0.5
+
+
+# -- running estimate (iSAM2) ---------------------------------------------------------------------
+def _chain_pose(result_or_manager_odometry, key: int) -> np.ndarray:
+    """Pose of ``key`` from composing the odometry constraints from keyframe 0 (at identity)."""
+    by_source = {c.source_id: c for c in result_or_manager_odometry}
+    T = np.eye(4)
+    path = []
+    while key != 0:
+        c = by_source[key]
+        path.append(c.T_target_source)
+        key = c.target_id
+    for step in reversed(path):
+        T = T @ step
+    return T
+
+
+def test_loops_go_to_isam2_and_the_batch_solve_runs_once_at_finish(rng, monkeypatch):
+    from fpp_graph.pose_graph import PoseGraph
+
+    calls = []
+    original = PoseGraph.optimize
+    monkeypatch.setattr(PoseGraph, "optimize", lambda self, cfg=None: calls.append(self.num_poses) or original(self, cfg))
+    poses = turntable_poses(turns=2)
+    manager = KeyframeManager(MockRegistrar(poses, rng), Config())
+    frames = make_frames(len(poses), rng)
+    for f in frames[:VIEWS + 1]:
+        manager.process(f)
+    # keyframe 13 revisits keyframe 0: the running estimate is corrected, without a batch solve
+    assert any(c.source_id == VIEWS and c.target_id == 0 for c in manager.loops) and calls == []
+    chain_err = pose_error(poses[0] @ _chain_pose(manager.odometry, VIEWS), poses[VIEWS])[1]
+    isam_err = pose_error(poses[0] @ manager.T_world_keyframe[VIEWS], poses[VIEWS])[1]
+    assert isam_err < 0.5 * chain_err, (isam_err, chain_err)
+    for f in frames[VIEWS + 1:]:
+        manager.process(f)
+    assert calls == []
+    result = manager.finish()
+    assert calls == [len(poses)]  # one component, one batch solve
+    assert len(result.loops) >= VIEWS and result.held_out_loops == [] and result.optimization["held_out_loops"] == 0
+
+
+class WrongLoopRegistrar(MockRegistrar):
+    """As MockRegistrar, but one loop pair comes back 3 cm off (a wrong ICP basin)."""
+
+    def __init__(self, poses, rng, wrong):
+        super().__init__(poses, rng)
+        self.wrong = wrong
+
+    def register(self, target: Frame, source: Frame, T_guess=None) -> Constraint:
+        c = super().register(target, source, T_guess)
+        if (source.id, target.id) == self.wrong and c.accepted:
+            return Constraint(c.source_id, c.target_id, c.T_target_source @ make_pose(translation=[0.03, 0.0, 0.0]), c.information,
+                              fitness=0.9, inlier_rmse_m=5e-5, inlier_count=200, overlap=0.6)
+        return c
+
+
+def test_a_loop_failing_the_innovation_test_is_held_out_but_reaches_the_final_solve(rng, caplog):
+    poses = turntable_poses(turns=3)
+    wrong = (2 * VIEWS + 4, VIEWS + 4)
+    manager = KeyframeManager(WrongLoopRegistrar(poses, rng, wrong), Config())
+    with caplog.at_level("WARNING", logger="fpp_graph.keyframes"):
+        for f in make_frames(len(poses), rng):
+            manager.process(f)
+    assert any("held out of the running estimate" in r.message for r in caplog.records)
+    # the running estimate was not pulled by the wrong loop
+    errs = [pose_error(poses[0] @ manager.T_world_keyframe[i], poses[i])[1] for i in range(len(poses))]
+    assert max(errs) < 10 * TRANS_SIGMA * math.sqrt(VIEWS)
+    result = manager.finish()
+    # the wrong loop is held out; a true loop may fail the 0.999 test by chance (here 13->0 at d2 25.3)
+    assert wrong in result.held_out_loops and len(result.held_out_loops) <= 2
+    assert result.optimization["held_out_loops"] == len(result.held_out_loops)
+    assert wrong in [(c.source_id, c.target_id) for c in result.loops]  # still handed to the batch solve
+    record = next(r for r in result.loop_records if (r.query_id, r.match_id) == wrong)
+    assert record.verified and record.held_out
+    assert wrong in result.rejected_loops and record.rejected_by_backend  # ... which rejects it
+    errs = [pose_error(poses[0] @ result.poses_world_sensor[i], poses[i])[1] for i in range(len(poses))]
+    assert max(errs) < 10 * TRANS_SIGMA * math.sqrt(VIEWS)
+
+
+def test_periodic_batch_solve_every_k_keyframes(rng, monkeypatch):
+    from fpp_graph.pose_graph import PoseGraph
+
+    calls = []
+    original = PoseGraph.optimize
+    monkeypatch.setattr(PoseGraph, "optimize", lambda self, cfg=None: calls.append(self.num_poses) or original(self, cfg))
+    poses = turntable_poses(turns=2)
+    manager = KeyframeManager(MockRegistrar(poses, rng), config_from_dict({"keyframes": {"batch_every": 10}}))
+    for f in make_frames(len(poses), rng):
+        manager.process(f)
+    assert calls == [10, 20] and manager.batch_solves == 2
+    result = manager.finish()
+    assert calls == [10, 20, len(poses)]
+    errs = [pose_error(poses[0] @ result.poses_world_sensor[i], poses[i])[1] for i in range(len(poses))]
+    assert max(errs) < 10 * TRANS_SIGMA * math.sqrt(VIEWS)
