@@ -113,6 +113,7 @@ class PoseGraphConfig(StrictModel):
     max_iterations: int = Field(100, gt=0)
     relative_error_tol: float = Field(1e-10, gt=0)
     remove_inconsistent_loops: bool = False
+    certify: bool = Field(False, description="check global optimality (SE-Sync certificate) and escape a local minimum")
 
 
 class FusionConfig(StrictModel):

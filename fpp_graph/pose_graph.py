@@ -160,6 +160,9 @@ class PoseGraphResult:
     loop_bound : float
         The bound on a loop's whitened squared residual (family-wise chi-square at the variance
         factor); NaN for a graph without loops.
+    certificate : Certificate or None
+        With ``certify``: the global-optimality certificate of the returned poses (its
+        ``suboptimality_bound`` is of their SE-Sync objective).
     """
 
     poses_world_sensor: dict[int, Array]
@@ -177,6 +180,7 @@ class PoseGraphResult:
     removed_loops: list[tuple[int, int]] = field(default_factory=list)
     variance_factor: float = 1.0
     loop_bound: float = math.nan
+    certificate: Certificate | None = None
 
 
 # ----------------------------------------------------------------------------------------------
@@ -557,6 +561,10 @@ class PoseGraph:
         values, removed, kept_flagged, more = self._remove_inconsistent(problem, values, active, screen, cfg)
         iterations += more
 
+        certificate = None
+        if cfg.certify:
+            values, certificate, more = self._certified(problem, values, active, cfg)
+            iterations += more
         final_cost = problem.cost(values, active)
         poses = problem.poses_with_gauge(values, self._poses, anchors, bool(self._priors))
         self._poses.update(poses)
@@ -581,6 +589,7 @@ class PoseGraph:
             removed_loops=[pairs[i] for i in removed],
             variance_factor=screen.variance_factor if screen is not None else 1.0,
             loop_bound=screen.bound if screen is not None else math.nan,
+            certificate=certificate,
         )
         log.info(
             "pose graph: %d poses, %d edges, cost %.6g -> %.6g in %d iterations, %.3f s (%s init, %s noise, robust %s); "
@@ -589,6 +598,37 @@ class PoseGraph:
             initialization.split(" ")[0], cfg.noise_model, cfg.robust, len(rejected), len(removed), len(result.inconsistent_loops),
         )
         return result
+
+    def _certified(
+        self, problem: _Problem, values: gtsam.Values, active: NDArray[np.bool_], cfg: PoseGraphConfig
+    ) -> tuple[gtsam.Values, Certificate, int]:
+        """Certify the solution over the kept edges; escape a local minimum and polish with LM.
+
+        The certificate is of SE-Sync's objective at a critical point next to the solution
+        (:mod:`fpp_graph.certificate`); its suboptimality bound is re-stated for the returned
+        poses (which minimise GTSAM's log-map cost, not ``F``): ``F(returned) - F*``.
+        """
+        kept = self.subgraph(self._poses) if bool(np.all(active)) else self._kept_graph(problem, active)
+        poses = _poses_from(values, self._poses)
+        certificate = kept.certify(poses)
+        iterations = 0
+        if certificate.escaped:
+            log.info("the solution was a local minimum (lambda_min %.3g): escaped by the staircase (%s); polishing",
+                     certificate.certificate_min_eigenvalue, certificate.method)
+            values, iterations = problem.solve(_values_from(certificate.poses_world_sensor), active, cfg, robust="none")
+            poses = _poses_from(values, self._poses)
+            certificate = kept.certify(poses, escape=False)
+        returned = sesync_objective(kept, poses)
+        bound = certificate.suboptimality_bound + max(0.0, returned - certificate.objective)
+        return values, replace(certificate, suboptimality_bound=bound), iterations
+
+    @staticmethod
+    def _kept_graph(problem: _Problem, active: NDArray[np.bool_]) -> PoseGraph:
+        graph = PoseGraph()
+        graph._poses = dict(problem.given_poses)
+        graph._fixed = list(problem.anchors)
+        graph._edges = [problem.edges[i] for i in np.flatnonzero(active)]
+        return graph
 
     @staticmethod
     def _remove_inconsistent(
