@@ -1008,7 +1008,11 @@ class _Problem:
         return values, iterations, rejected
 
     def _start(self, values: gtsam.Values, edges: NDArray[np.bool_], cfg: PoseGraphConfig) -> tuple[gtsam.Values, int]:
-        """Least squares over ``edges`` and the priors from a chordal start (or from ``values``)."""
+        """GNC's start: chordal initialisation over ``edges`` and the priors, a few LM steps.
+
+        Only a few: outliers the cycle test let through make LM crawl (minutes at 10^4 edges),
+        and GNC's first rounds are least squares anyway.
+        """
         start = values
         if cfg.initialization == "chordal" and self._spans(edges):
             chordal, failure = self.chordal(edges)
@@ -1016,7 +1020,7 @@ class _Problem:
                 log.debug("chordal initialisation over the consistent edges failed (%s)", failure)
             else:
                 start = chordal
-        return _lm(self.gaussian_graph(edges), start, cfg.max_iterations, cfg.relative_error_tol)
+        return _lm(self.gaussian_graph(edges), start, _SCREEN_AGAIN_AFTER, _GNC_INNER_RELATIVE_TOL)
 
     def _gnc_tls(
         self, start: gtsam.Values, active: NDArray[np.bool_], needed: set[int], bound: float, cfg: PoseGraphConfig
