@@ -12,9 +12,11 @@ The robust stage may only drop a loop on evidence. The rule (used by
    odometry: each loop's squared Mahalanobis error against the odometry path between its ends
    (:func:`odometry_cycle_chi2`, first-order propagation along the odometry spanning tree, the
    check Kimera-RPGO's PCM starts from) is ``s2 * chi2(6)`` under the model, so
-   ``s2 = median(c) / median(chi2(6))``. The median keeps it valid while fewer than half of the
-   loops are false, and it does not depend on the least-squares solution (which outliers bend).
-   It is never taken below 1: the test is never stricter than the information claims.
+   ``s2 = q25(c) / q25(chi2(6))`` with ``q25`` the lower quartile. False loops only make cycle
+   errors larger, so the lower quartile stays on true loops while fewer than three in four
+   loops are false (a median would break at one in two), and it does not depend on the
+   least-squares solution (which outliers bend). It is never taken below 1: the test is never
+   stricter than the information claims.
 3. **A family-wise test.** A loop is evidence of an outlier when its whitened squared residual
    at the least-squares solution exceeds ``s2 * chi2_6(1 - alpha / L)`` for ``L`` loops
    (Bonferroni): a graph without outliers sees any loop flagged with probability at most
@@ -44,11 +46,12 @@ log = logging.getLogger(__name__)
 
 Array = NDArray[np.float64]
 
-#: Median of the chi-square distribution with 6 degrees of freedom.
+#: Median and lower quartile of the chi-square distribution with 6 degrees of freedom.
 CHI2_6_MEDIAN = 5.348120627447122
-#: Fewest odometry cycles from which a median variance factor is taken (one outlier among
-#: three still leaves the median on an inlier); below it the information is trusted (s2 = 1).
-MIN_CYCLES_FOR_SCALE = 3
+CHI2_6_LOWER_QUARTILE = 3.4545988357210384
+#: Fewest odometry cycles from which the variance factor is taken (with four, one true loop
+#: holds the lower quartile against three false ones); below it the information is trusted.
+MIN_CYCLES_FOR_SCALE = 4
 
 
 def chi2_6_quantile(probability: float) -> float:
@@ -102,10 +105,10 @@ class CycleCheck:
     chi2: Array
 
     def variance_factor(self) -> float:
-        """Median-based variance factor ``max(1, median(chi2) / median(chi2_6))``."""
+        """Quartile-based variance factor ``max(1, q25(chi2) / q25(chi2_6))``."""
         if len(self.chi2) < MIN_CYCLES_FOR_SCALE:
             return 1.0
-        return max(1.0, float(np.median(self.chi2)) / CHI2_6_MEDIAN)
+        return max(1.0, float(np.percentile(self.chi2, 25)) / CHI2_6_LOWER_QUARTILE)
 
 
 def odometry_cycle_chi2(

@@ -1,0 +1,174 @@
+"""The robust stage does no harm: clean graphs come out as least squares gives them, loops are
+dropped only on evidence, at the information's measured scale, and the standard benchmarks reach
+their certified optima."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from conftest import shared_data_path
+from scipy.spatial.transform import Rotation
+
+from fpp_graph.config import PoseGraphConfig
+from fpp_graph.geometry import invert, make_pose, se3_exp
+from fpp_graph.outliers import CHI2_6_MEDIAN, adjoint, family_bound, odometry_cycle_chi2
+from fpp_graph.pose_graph import PoseGraph, sesync_objective
+from fpp_graph.synthetic_graphs import add_false_loops, corridor_trajectory, torus_graph
+from fpp_graph.types import ConstraintKind
+
+LEAST_SQUARES = PoseGraphConfig(robust="none")
+
+
+def _copy(graph: PoseGraph, information_scale: float = 1.0) -> PoseGraph:
+    out = PoseGraph()
+    for key, T in graph.poses().items():
+        out.add_pose(key, T)
+    for key in graph.fixed_poses():
+        out.fix_pose(key)
+    for e in graph.edges():
+        out.add_edge(e.source_id, e.target_id, e.T_target_source, information_scale * e.information_rot_trans, e.kind)
+    return out
+
+
+def _pose_gap(a: dict, b: dict) -> float:
+    return max(float(np.abs(a[k] - b[k]).max()) for k in a)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_clean_graph_is_returned_as_least_squares_gives_it(seed):
+    sim = torus_graph(rings=12, per_ring=15, rot_sigma_rad=0.02, trans_sigma_m=0.03, rng=np.random.default_rng(seed))
+    reference = sim.graph().optimize(LEAST_SQUARES)
+    robust = sim.graph().optimize(PoseGraphConfig())
+    assert robust.rejected_loops == [] and robust.removed_loops == []
+    assert _pose_gap(robust.poses_world_sensor, reference.poses_world_sensor) < 1e-9
+    assert robust.final_cost == pytest.approx(reference.final_cost, rel=1e-9)
+
+
+def test_overconfident_information_keeps_every_true_loop():
+    """Information 1000x too confident (as ICP's often is): the variance factor measures it."""
+    sim = corridor_trajectory(rng=np.random.default_rng(3))
+    honest = sim.graph()
+    result = _copy(honest, information_scale=1000.0).optimize(PoseGraphConfig())
+    assert result.rejected_loops == []
+    assert result.variance_factor == pytest.approx(1000.0, rel=0.35)
+    reference = honest.optimize(LEAST_SQUARES)
+    assert _pose_gap(result.poses_world_sensor, reference.poses_world_sensor) < 1e-6
+
+
+def test_trusting_the_scale_would_reject_true_loops():
+    """The failure the variance factor prevents: at unit scale most true loops exceed the bound."""
+    sim = corridor_trajectory(rng=np.random.default_rng(3))
+    graph = _copy(sim.graph(), information_scale=1000.0)
+    solved = graph.optimize(LEAST_SQUARES)
+    loops = [e for e in graph.edges() if e.kind is ConstraintKind.LOOP]
+    bound = family_bound(len(loops), 0.01)
+    over = 0
+    for e in loops:
+        T_pred = invert(solved.poses_world_sensor[e.target_id]) @ solved.poses_world_sensor[e.source_id]
+        import gtsam
+
+        err = gtsam.Pose3.Logmap(gtsam.Pose3(invert(e.T_target_source) @ T_pred))
+        over += float(err @ e.information_rot_trans @ err) > bound
+    assert over > len(loops) // 4
+
+
+@pytest.mark.parametrize("fraction", [0.1, 0.3])
+def test_random_false_loops_all_out_no_true_loop_out(fraction):
+    sim = corridor_trajectory(rng=np.random.default_rng(7))
+    clean = sim.graph().optimize(LEAST_SQUARES)
+    true_graph = sim.graph()
+    F_clean = sesync_objective(true_graph, clean.poses_world_sensor)
+    add_false_loops(sim, fraction, rng=np.random.default_rng(70))
+    result = sim.graph().optimize(PoseGraphConfig())
+    out, false = set(result.rejected_loops), set(sim.false_loops)
+    assert false <= out
+    assert out - false == set()
+    assert sesync_objective(true_graph, result.poses_world_sensor) == pytest.approx(F_clean, rel=1e-3)
+
+
+def test_group_of_mutually_consistent_false_loops_is_rejected():
+    """Five wrong edges that agree with each other (a look-alike place seen from 5 poses)."""
+    sim = corridor_trajectory(rng=np.random.default_rng(11))
+    info = next(e[3] for e in sim.edges if e[4] is ConstraintKind.LOOP)
+    clean = sim.graph().optimize(LEAST_SQUARES)
+    true_graph = sim.graph()
+    wrong = make_pose(Rotation.from_euler("z", 0.4).as_matrix(), [0.8, -0.5, 0.1])  # a wrong A->B offset
+    for k in range(5):
+        a, b = 30 + 2 * k, 150 + 2 * k
+        T_b_a = invert(sim.poses_true[b]) @ sim.poses_true[150] @ wrong @ invert(sim.poses_true[30]) @ sim.poses_true[a]
+        sim.edges.append((a, b, T_b_a, info, ConstraintKind.LOOP))
+        sim.false_loops.append((a, b))
+    result = sim.graph().optimize(PoseGraphConfig())
+    assert set(sim.false_loops) <= set(result.rejected_loops)
+    assert set(result.rejected_loops) - set(sim.false_loops) == set()
+    assert sesync_objective(true_graph, result.poses_world_sensor) == pytest.approx(
+        sesync_objective(true_graph, clean.poses_world_sensor), rel=1e-3)
+
+
+def _cycle_check(graph: PoseGraph, information_scale: float = 1.0):
+    edges = graph.edges()
+    return odometry_cycle_chi2(
+        list(graph.poses()),
+        np.array([e.pair for e in edges]),
+        np.stack([e.T_target_source for e in edges]),
+        information_scale * np.stack([e.information_rot_trans for e in edges]),
+        np.array([e.kind is ConstraintKind.LOOP for e in edges]),
+        [0],
+    )
+
+
+def test_cycle_chi2_is_chi_square_on_short_cycles():
+    """Monte Carlo on a 30-pose helix with two loops: the mean cycle chi-square is 6."""
+    rng = np.random.default_rng(0)
+    sigmas = np.array([0.02] * 3 + [0.01] * 3)
+    true = [make_pose(Rotation.from_euler("z", 0.2 * k).as_matrix(), [2 * np.cos(0.2 * k), 2 * np.sin(0.2 * k), 0.1 * k])
+            for k in range(30)]
+    chi2 = []
+    for _ in range(300):
+        graph = PoseGraph()
+        for k, T in enumerate(true):
+            graph.add_pose(k, T)
+        for s, t, kind in [*((k, k - 1, "odometry") for k in range(1, 30)), (29, 0, "loop"), (15, 0, "loop")]:
+            noisy = invert(true[t]) @ true[s] @ se3_exp(rng.normal(size=6) * sigmas)
+            graph.add_edge(s, t, noisy, np.diag(1 / sigmas**2), kind)
+        chi2.append(_cycle_check(graph).chi2)
+    assert np.mean(chi2, axis=0) == pytest.approx([6.0, 6.0], rel=0.12)
+
+
+def test_variance_factor_measures_the_scale_and_never_goes_below_one():
+    sim = corridor_trajectory(rng=np.random.default_rng(5), loop_every=1)
+    graph = sim.graph()
+    check = _cycle_check(graph)
+    assert len(check.chi2) == sum(e.kind is ConstraintKind.LOOP for e in graph.edges()) > 50
+    assert np.median(check.chi2) == pytest.approx(CHI2_6_MEDIAN, rel=0.35)
+    # long cycles (up to 300 steps) are a little over their first-order covariance
+    assert 1.0 <= check.variance_factor() < 2.0
+    assert _cycle_check(graph, information_scale=100.0).variance_factor() == pytest.approx(100 * check.variance_factor(), rel=1e-6)
+    assert _cycle_check(graph, information_scale=0.1).variance_factor() == 1.0
+
+
+def test_adjoint_matches_gtsam():
+    import gtsam
+
+    T = make_pose(Rotation.from_euler("xyz", [0.3, -0.2, 1.1]).as_matrix(), [1.0, -2.0, 0.5])
+    np.testing.assert_allclose(adjoint(T), gtsam.Pose3(T).AdjointMap(), atol=1e-12)
+
+
+@pytest.mark.parametrize(
+    "name, published",
+    [("smallGrid3D.g2o", None), ("parking-garage.g2o", 1.263), ("sphere2500.g2o", 1.687e3)],
+)
+def test_benchmarks_reach_the_certified_optimum_with_default_flags(name, published):
+    from fpp_graph.g2o import read_g2o
+
+    path = shared_data_path("posegraphs", name)
+    plain = read_g2o(path).optimize(PoseGraphConfig(noise_model="isotropic", robust="none"))
+    graph = read_g2o(path)
+    result = graph.optimize(PoseGraphConfig(noise_model="isotropic", certify=True))
+    assert result.rejected_loops == [] and result.removed_loops == []
+    F = sesync_objective(graph, result.poses_world_sensor)
+    assert F == pytest.approx(sesync_objective(graph, plain.poses_world_sensor), rel=1e-6)
+    if published is not None:
+        assert float(f"{F:.4g}") == published
+    assert result.certificate is not None and result.certificate.certified
+    assert result.certificate.suboptimality_bound <= 1e-3 * F
