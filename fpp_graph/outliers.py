@@ -104,11 +104,16 @@ class CycleCheck:
     loop_index: NDArray[np.int64]
     chi2: Array
 
-    def variance_factor(self) -> float:
-        """Quartile-based variance factor ``max(1, q25(chi2) / q25(chi2_6))``."""
+    def measured_scale(self) -> float:
+        """``q25(chi2) / q25(chi2_6)``: the scale the loops show, below 1 when the information is
+        conservative (1 with fewer than ``MIN_CYCLES_FOR_SCALE`` cycles)."""
         if len(self.chi2) < MIN_CYCLES_FOR_SCALE:
             return 1.0
-        return max(1.0, float(np.percentile(self.chi2, 25)) / CHI2_6_LOWER_QUARTILE)
+        return float(np.percentile(self.chi2, 25)) / CHI2_6_LOWER_QUARTILE
+
+    def variance_factor(self) -> float:
+        """The variance factor of the bound: ``max(1, measured_scale)``."""
+        return max(1.0, self.measured_scale())
 
 
 def odometry_cycle_chi2(

@@ -974,9 +974,10 @@ class _Problem:
 
         ``values`` is the least-squares solution over all edges, which the outliers bend.
 
-        1. Loops whose cycle with the odometry is over the bound disagree with the odometry
-           beyond what the noise (the path's propagated covariance included) explains: they
-           start as outliers (Kimera-RPGO's odometry check, at the family-wise bound).
+        1. Loops whose cycle with the odometry is over the family-wise bound at the scale the
+           loops show disagree with the odometry beyond what the noise (the path's propagated
+           covariance included) explains: they are left out of the start (Kimera-RPGO's
+           odometry check).
         2. Least squares over the odometry, the priors and the other loops (chordal start): a
            start that the gross outliers did not bend.
         3. GNC with the truncated-least-squares loss on those loops from that start when one of
@@ -990,7 +991,11 @@ class _Problem:
             needed = self.necessary_loops(active)
             candidates = active.copy()
             if screen.cycles is not None:
-                inconsistent = screen.cycles.loop_index[screen.cycles.chi2 > screen.bound]
+                # The start may use the scale the loops show even where it is below the stated
+                # one (conservative information lets gross outliers pass at unit scale): it only
+                # chooses where GNC starts, and every loop left out is re-decided after it.
+                start_bound = screen.bound / screen.variance_factor * screen.cycles.measured_scale()
+                inconsistent = screen.cycles.loop_index[screen.cycles.chi2 > start_bound]
                 candidates[[i for i in inconsistent if i not in needed]] = False
             log.info("%d loop(s) inconsistent with the odometry are left out of the start", int(np.sum(active & ~candidates)))
             start, iterations = self._start(values, candidates, cfg)
