@@ -980,9 +980,11 @@ class _Problem:
            odometry check).
         2. Least squares over the odometry, the priors and the other loops (chordal start): a
            start that the gross outliers did not bend.
-        3. GNC with the truncated-least-squares loss on those loops from that start when one of
-           them is over the bound there (odometry, priors and loops the graph cannot do without
-           are known inliers; the truncation threshold is the screen's bound).
+        3. GNC with the truncated-least-squares loss on those loops from that start (odometry,
+           priors and loops the graph cannot do without are known inliers; the truncation
+           threshold is the screen's bound); the loops left out of the start stay out of it:
+           at GNC's convex end every loop weighs in, and a few hundred gross outliers then pull
+           the solution out of the start's basin.
         4. The inlier set is made self-consistent: any left-out loop whose residual at the
            solution is under the bound is an inlier by the definition of truncated least
            squares (a true loop the first-order cycle test was too strict for comes back).
@@ -999,11 +1001,12 @@ class _Problem:
                 candidates[[i for i in inconsistent if i not in needed]] = False
             log.info("%d loop(s) inconsistent with the odometry are left out of the start", int(np.sum(active & ~candidates)))
             start, iterations = self._start(values, candidates, cfg)
-            values, more, rejected = self._gnc_tls(start, active, needed, screen.bound, cfg)
+            values, more, rejected = self._gnc_tls(start, candidates, needed, screen.bound, cfg)
             iterations += more
-            kept = active.copy()
+            kept = candidates.copy()
             kept[rejected] = False
-            values, rejected, more = self._settle_inliers(values, kept, rejected, screen.bound, cfg)
+            left_out = sorted(set(rejected) | {int(i) for i in np.flatnonzero(active & ~candidates)})
+            values, rejected, more = self._settle_inliers(values, kept, left_out, screen.bound, cfg)
             iterations += more
         except RuntimeError as exc:
             raise _solver_error(exc) from None
