@@ -11,7 +11,8 @@ regime; and the same with 10x the rotation noise).
 
 Each command runs ``--runs`` times, project and peer alternating, as separate processes (Python
 start-up, imports, reading the file and solving all count); a tool stops repeating on a graph
-once its runs there have taken ``--budget`` seconds (at least one run). Printed per graph: poses,
+once its runs there have taken ``--budget`` seconds (at least one run), and a run longer than
+``--timeout`` seconds is stopped and reported (that graph's ratio is then unbounded). Printed per graph: poses,
 edges, the SE-Sync objective F of each result (6 s.f.), whether they agree to 4 significant
 figures (difference at most half a unit of the 4th figure), the loops the project rejected
 (``rejected_loops``) and removed (``removed_loops``, when the JSON has that key), min and median
@@ -20,7 +21,7 @@ Last line: the worst ratio. Acceptance target: ratio <= 1.2 on every graph.
 
 Run from the repository root::
 
-    PYTHONPATH=. .venv/bin/python scripts/bench_pose_graph_peer.py [--runs 5] [--budget 120]
+    PYTHONPATH=. .venv/bin/python scripts/bench_pose_graph_peer.py [--runs 5] [--budget 120] [--timeout 900]
 """
 
 from __future__ import annotations
@@ -57,12 +58,16 @@ def peer_command(path: Path) -> list[str]:
     return [sys.executable, str(PEER), str(path)]
 
 
-def run_json(command: list[str]) -> tuple[float, dict]:
-    """Wall seconds of the whole process and the JSON object on its last stdout line."""
+def run_json(command: list[str], timeout: float) -> tuple[float, dict | None]:
+    """Wall seconds of the whole process and the JSON object on its last stdout line; ``None``
+    (and ``timeout`` seconds) when the process was stopped at the time limit."""
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join(p for p in (str(REPO), env.get("PYTHONPATH", "")) if p)
     start = time.perf_counter()
-    done = subprocess.run(command, capture_output=True, text=True, env=env, check=False)
+    try:
+        done = subprocess.run(command, capture_output=True, text=True, env=env, check=False, timeout=timeout)
+    except subprocess.TimeoutExpired:
+        return timeout, None
     seconds = time.perf_counter() - start
     if done.returncode != 0:
         raise RuntimeError(f"{' '.join(command)} exited with {done.returncode}: {done.stderr.strip()[-500:]}")
@@ -100,6 +105,7 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--runs", type=int, default=5, help="runs of each command per graph")
     parser.add_argument("--budget", type=float, default=120.0, help="seconds per tool and graph after which it stops repeating")
+    parser.add_argument("--timeout", type=float, default=900.0, help="a run taking longer is stopped and reported as such")
     args = parser.parse_args()
 
     header = (f"{'graph':<18}{'poses':>6}{'edges':>6}{'F project':>13}{'F peer':>13}{'4 s.f.':>7}{'rej':>5}{'rem':>5}"
@@ -110,15 +116,21 @@ def main() -> int:
         print(header)
         for name, path in cases:
             times: dict[str, list[float]] = {"project": [], "peer": []}
-            results: dict[str, dict] = {}
+            results: dict[str, dict | None] = {}
             for _ in range(args.runs):
                 for tool, command in (("project", project_command(path)), ("peer", peer_command(path))):
-                    if times[tool] and sum(times[tool]) >= args.budget:
+                    if times[tool] and (sum(times[tool]) >= args.budget or results[tool] is None):
                         continue
-                    seconds, result = run_json(command)
+                    seconds, result = run_json(command, args.timeout)
                     times[tool].append(seconds)
                     results[tool] = result
             proj, peer = results["project"], results["peer"]
+            if proj is None or peer is None:
+                late = " and ".join(tool for tool, r in results.items() if r is None)
+                print(f"{name:<18}{'':>12}{late} stopped after {args.timeout:.0f} s (--timeout): ratio > "
+                      f"{min(times['project']) / min(times['peer']):.1f}", flush=True)
+                ratios.append((math.inf, math.inf, name))
+                continue
             f_proj, f_peer = float(proj["sesync_objective"]), float(peer["sesync_objective"])
             rejected = len(proj.get("rejected_loops", []))
             removed = str(len(proj["removed_loops"])) if "removed_loops" in proj else "-"
