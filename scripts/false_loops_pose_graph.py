@@ -25,7 +25,8 @@ robust stage, every loop kept) on the clean graph for context.
 
 Run from the repository root::
 
-    PYTHONPATH=. .venv/bin/python scripts/false_loops_pose_graph.py [--torus-poses 1500] [--torus5000] [--seed 0]
+    PYTHONPATH=. .venv/bin/python scripts/false_loops_pose_graph.py [--torus-poses 1500] [--torus5000] [--seed 0] \
+        [--graphs sphere2500 parking-garage torus] [--cases random0.1 random0.3 group3x5]
 """
 
 from __future__ import annotations
@@ -48,6 +49,7 @@ SHARED_POSEGRAPHS = Path(__file__).resolve().parents[2] / "shared" / "data" / "p
 CONFIG = PoseGraphConfig(noise_model="isotropic")
 PLAIN = PoseGraphConfig(noise_model="isotropic", robust="none", remove_inconsistent_loops=False)
 OBJECTIVE_TOLERANCE = 1e-3  # 0.1 %
+GRAPHS = ("sphere2500", "parking-garage", "torus")
 CASES = (("random 0.1", "random", 0.1), ("random 0.3", "random", 0.3), ("group 3x5", "group", None))
 
 
@@ -64,15 +66,15 @@ def solve(graph: PoseGraph, config: PoseGraphConfig) -> tuple[PoseGraphResult, f
     return result, time.perf_counter() - start
 
 
-def inputs(torus_poses: list[int], seed: int) -> list[tuple[str, PoseGraph, dict | None]]:
+def inputs(names: list[str], torus_poses: list[int], seed: int) -> list[tuple[str, PoseGraph, dict | None]]:
     out: list[tuple[str, PoseGraph, dict | None]] = []
-    for name in ("sphere2500", "parking-garage"):
+    for name in (n for n in ("sphere2500", "parking-garage") if n in names):
         path = SHARED_POSEGRAPHS / f"{name}.g2o"
         if path.exists():
             out.append((name, read_g2o(path), None))
         else:
             print(f"skipped {name}: {path} is absent")
-    for n in torus_poses:
+    for n in torus_poses if "torus" in names else []:
         sim = torus_graph(n, rng=np.random.default_rng(seed))
         out.append((f"torus{n}", sim.graph(), sim.poses_true))
     return out
@@ -83,6 +85,9 @@ def main() -> int:
     parser.add_argument("--torus-poses", type=int, default=1500, help="poses of the small synthetic torus")
     parser.add_argument("--torus5000", action="store_true", help="also the 5000-pose torus")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--graphs", nargs="+", choices=GRAPHS, default=list(GRAPHS), help="graphs to run (default: all)")
+    parser.add_argument("--cases", nargs="+", choices=[c[0].replace(" ", "") for c in CASES],
+                        default=None, help="cases to run: random0.1 random0.3 group3x5 (default: all)")
     args = parser.parse_args()
     logging.basicConfig(level=logging.ERROR)
 
@@ -91,7 +96,8 @@ def main() -> int:
               f"{'F true edges':>14}{'F0 clean':>13}{'rel diff':>11}{'s':>8}  verdict")
     print(header, flush=True)
     passes = fails = 0
-    for name, graph, truth in inputs(sizes, args.seed):
+    cases = [c for c in CASES if args.cases is None or c[0].replace(" ", "") in args.cases]
+    for name, graph, truth in inputs(args.graphs, sizes, args.seed):
         loops = sum(e.kind is ConstraintKind.LOOP for e in graph.edges())
         clean, clean_s = solve(graph, CONFIG)
         f0 = sesync_objective(graph, clean.poses_world_sensor)
@@ -101,7 +107,7 @@ def main() -> int:
               f"{len(loops_out(clean)):>9}{f0:>14.6g}{f0:>13.6g}{'-':>11}{clean_s:>8.2f}"
               f"  clean default solve; plain least squares F {f_plain:.6g} ({(f0 - f_plain) / f_plain:+.2e})", flush=True)
         reference = truth if truth is not None else clean.poses_world_sensor
-        for label, mode, fraction in CASES:
+        for label, mode, fraction in cases:
             rng = np.random.default_rng(1000 * args.seed + len(label) + (0 if fraction is None else int(fraction * 100)))
             if mode == "group":
                 corrupted, false = add_false_loops_to_graph(graph, 0.0, rng, "group", groups=3, group_size=5,
