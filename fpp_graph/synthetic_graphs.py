@@ -1,13 +1,20 @@
 """Synthetic pose graphs with ground truth, for tests and the pose-graph benchmarks.
 
-- :func:`torus_graph`: poses on a torus, odometry along the rings and loops between
-  neighbouring rings (like SE-Sync's torus3D); with enough rotation noise, the odometry chain
-  starts Levenberg-Marquardt in a bad local minimum and chordal initialisation is needed.
+- :func:`torus_graph`: a robot winding around a torus (like SE-Sync's torus3D: 5000 poses,
+  9048 edges), odometry between consecutive poses and loops to the nearest pose of an earlier
+  winding, with sphere2500's noise regime; :func:`torus_graph_high_rotation_noise` is the
+  same with 10x the rotation noise.
+- :func:`torus_rings_graph`: poses on a torus, odometry along the rings and loops between
+  neighbouring rings; with enough rotation noise, the odometry chain starts
+  Levenberg-Marquardt in a bad local minimum and chordal initialisation is needed.
 - :func:`corridor_trajectory`: a robot walking laps of a rectangular corridor loop, the shape
   of an indoor sequence, with loops wherever it revisits a place.
 - :func:`circuit_laps`: several laps of one circuit, every keyframe of a lap looping to the
   corresponding keyframe of the previous lap (a loop at every keyframe after the first lap).
 - :func:`add_false_loops`: wrong loop edges (perceptual aliasing) to test robust back-ends.
+- :func:`add_false_loops_to_graph`: wrong loop edges added to any :class:`PoseGraph` (e.g. a
+  benchmark file): random ones, or groups of mutually consistent ones (the hard case for
+  pairwise-consistency checks).
 
 Measurements are ``T_target_source_true @ Exp(n)`` with ``n ~ N(0, diag(sigmas^2))`` in
 ``[rot, trans]``, so their information is exactly ``diag(1 / sigmas^2)``.
@@ -16,14 +23,19 @@ Measurements are ``T_target_source_true @ Exp(n)`` with ``n ~ N(0, diag(sigmas^2
 from __future__ import annotations
 
 import math
+import os
+from collections.abc import Mapping
 from dataclasses import dataclass, field
+from typing import Literal
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
+from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
+from fpp_graph.errors import GraphError
 from fpp_graph.geometry import invert, make_pose, se3_exp
-from fpp_graph.pose_graph import PoseGraph
+from fpp_graph.pose_graph import PoseGraph, sesync_tau_kappa
 from fpp_graph.types import ConstraintKind
 
 Array = NDArray[np.float64]
@@ -61,12 +73,19 @@ class SyntheticGraph:
                 graph.add_edge(s, t, T, info, kind)
         return graph
 
+    def write_g2o(self, path: str | os.PathLike[str], *, include_false: bool = True) -> None:
+        """Write the graph as a benchmark-style g2o file: vertices at the odometry chain, every
+        edge, and no ``FIX`` record (readers anchor the smallest id, as with SE-Sync's files)."""
+        from fpp_graph.g2o import write_g2o
+
+        write_g2o(path, self.graph(include_false=include_false, fix_first=False))
+
 
 def _measure(T_true: Array, sigmas: Array, rng: np.random.Generator) -> Array:
     return T_true @ se3_exp(rng.normal(size=6) * sigmas)
 
 
-def torus_graph(
+def torus_rings_graph(
     rings: int = 20,
     per_ring: int = 20,
     major_radius_m: float = 5.0,
@@ -107,6 +126,144 @@ def torus_graph(
                 continue
             sim.edges.append((s, t, _measure(invert(poses[t]) @ poses[s], sigmas, rng), info, ConstraintKind.LOOP))
     return sim
+
+
+# Noise regime of SE-Sync's sphere2500.g2o, measured from the file (scripts/bench_pose_graph_peer.py
+# and tests/test_synthetic_graphs.py use it): every edge has translation information 10 I3 (tau = 10,
+# sigma 0.316 m per axis) and rotation information about diag(400, 400, 99.2) (kappa = 99.0, the
+# isotropic sigma sqrt(1 / (2 kappa)) = 0.0711 rad per axis); the median odometry step is 4.54 m
+# and turns 0.128 rad. Translation noise is therefore 0.0696 of the step length.
+SPHERE2500_KAPPA = 99.0
+SPHERE2500_TAU = 10.0
+SPHERE2500_MEDIAN_STEP_M = 4.54
+SPHERE2500_ROTATION_SIGMA_RAD = math.sqrt(1.0 / (2.0 * SPHERE2500_KAPPA))  # 0.0711
+SPHERE2500_TRANSLATION_SIGMA_PER_STEP = math.sqrt(1.0 / SPHERE2500_TAU) / SPHERE2500_MEDIAN_STEP_M  # 0.0696
+#: SE-Sync's torus3D: 5000 poses, 9048 edges, i.e. 4049 loops (0.81 per pose).
+TORUS3D_LOOPS_PER_POSE = 4049 / 5000
+
+
+def torus_graph(
+    num_poses: int = 5000,
+    rotation_sigma_rad: float = SPHERE2500_ROTATION_SIGMA_RAD,
+    translation_sigma_m: float | None = None,
+    rng: np.random.Generator | None = None,
+    *,
+    step_m: float = 1.0,
+    loops_per_pose: float = TORUS3D_LOOPS_PER_POSE,
+    rings: int | None = None,
+    per_ring: int | None = None,
+    major_radius_m: float | None = None,
+    minor_radius_m: float | None = None,
+    rot_sigma_rad: float | None = None,
+    trans_sigma_m: float | None = None,
+) -> SyntheticGraph:
+    """A robot winding around a torus, like SE-Sync's torus3D (5000 poses, 9048 edges).
+
+    The robot goes round the tube ``P = round(sqrt(num_poses / 2))`` poses per winding while
+    advancing slowly round the torus's axis, one full turn over all poses (so the last winding
+    comes back next to the first). The tube radius makes the step ``step_m`` and the torus
+    radius is twice it, which puts neighbouring windings about one step apart (0.5 to 1.5 steps
+    from the inner to the outer equator). Each pose looks along its direction of travel (x)
+    with z along the surface's outward normal, so an odometry step turns about 2 pi / P rad
+    (0.126 rad for 5000 poses, sphere2500's median is 0.128).
+
+    Odometry links consecutive poses. Loop candidates join each pose to its nearest pose at
+    least half a winding earlier, when closer than two steps (one per pose except the first
+    winding); ``round(loops_per_pose * num_poses)`` of them are kept, drawn at random (all of
+    them if there are fewer). With the defaults: 5000 poses, 4999 odometry edges, 4049 loops,
+    9048 edges, as torus3D.
+
+    Noise defaults to sphere2500's regime as stated by its information matrices (see
+    ``SPHERE2500_*``): kappa 99 (rotation sigma 0.0711 rad per axis) and translation sigma
+    0.0696 of the step length (tau 10 at its 4.54 m median step), i.e. 0.0696 m per axis for
+    the default 1 m step. (sphere2500's own residuals at its optimum are about 4x smaller than
+    its information says: its measurements are less noisy than stated; here they are exactly
+    as stated.) Measurements are ``T_target_source_true @ Exp(n)``, ``n ~ N(0, diag(sigma^2))``
+    in ``[rot, trans]`` with information ``diag(1 / sigma^2)``, so the whitened residual at the
+    truth is chi-square with 6 degrees of freedom.
+
+    Parameters
+    ----------
+    num_poses : int
+        At least 8.
+    rotation_sigma_rad : float
+        Rotation noise per axis (rad).
+    translation_sigma_m : float, optional
+        Translation noise per axis (m); default ``0.0696 * step_m``.
+    rng : numpy Generator, optional
+        Default ``np.random.default_rng(0)``.
+    step_m : float
+        Length of an odometry step (m, approximately: the speed varies slightly with the
+        distance to the axis).
+    loops_per_pose : float
+        Loop edges kept per pose.
+    rings, per_ring, major_radius_m, minor_radius_m, rot_sigma_rad, trans_sigma_m
+        The earlier ring-by-ring torus: when any of these is given the call is
+        :func:`torus_rings_graph` with these arguments (and ``rng``); kept for old callers.
+
+    Returns
+    -------
+    SyntheticGraph
+        ``graph()`` is the :class:`PoseGraph` (initial values = odometry composed from the first
+        true pose, which is fixed), ``poses_true`` the truth, ``write_g2o(path)`` the g2o file.
+    """
+    legacy = {
+        "rings": rings, "per_ring": per_ring, "major_radius_m": major_radius_m,
+        "minor_radius_m": minor_radius_m, "rot_sigma_rad": rot_sigma_rad, "trans_sigma_m": trans_sigma_m,
+    }
+    if any(v is not None for v in legacy.values()):
+        return torus_rings_graph(**{k: v for k, v in legacy.items() if v is not None}, rng=rng)
+    if num_poses < 8:
+        raise ValueError(f"torus_graph: num_poses must be at least 8, got {num_poses}")
+    rng = rng or np.random.default_rng(0)
+    if translation_sigma_m is None:
+        translation_sigma_m = SPHERE2500_TRANSLATION_SIGMA_PER_STEP * step_m
+    sigmas = np.array([rotation_sigma_rad] * 3 + [translation_sigma_m] * 3, dtype=np.float64)
+    info = np.diag(1.0 / sigmas**2)
+
+    per_winding = max(4, round(math.sqrt(num_poses / 2)))
+    minor = step_m * per_winding / (2 * math.pi)
+    major = 2.0 * minor
+    k = np.arange(num_poses, dtype=np.float64)
+    v = 2 * math.pi * k / per_winding  # round the tube
+    u = 2 * math.pi * k / num_poses  # round the axis
+    ring = major + minor * np.cos(v)
+    centres = np.stack([ring * np.cos(u), ring * np.sin(u), minor * np.sin(v)], axis=1)
+    normal = np.stack([np.cos(v) * np.cos(u), np.cos(v) * np.sin(u), np.sin(v)], axis=1)
+    dv, du = 2 * math.pi / per_winding, 2 * math.pi / num_poses
+    velocity = dv * np.stack([-minor * np.sin(v) * np.cos(u), -minor * np.sin(v) * np.sin(u), minor * np.cos(v)], axis=1)
+    velocity += du * np.stack([-ring * np.sin(u), ring * np.cos(u), np.zeros_like(u)], axis=1)
+    x = velocity - np.sum(velocity * normal, axis=1, keepdims=True) * normal
+    x /= np.linalg.norm(x, axis=1, keepdims=True)
+    y = np.cross(normal, x)
+    poses: dict[int, Array] = {}
+    for i in range(num_poses):
+        poses[i] = make_pose(np.stack([x[i], y[i], normal[i]], axis=1), centres[i])
+
+    sim = SyntheticGraph(poses)
+    for i in range(1, num_poses):
+        sim.edges.append((i, i - 1, _measure(invert(poses[i - 1]) @ poses[i], sigmas, rng), info, ConstraintKind.ODOMETRY))
+    # loop candidates: each pose's nearest pose at least half a winding back, within 2 steps
+    tree = cKDTree(centres)
+    neighbours = min(num_poses, 4 * per_winding)
+    dist, idx = tree.query(centres, k=neighbours, distance_upper_bound=2.0 * step_m)
+    candidates: list[tuple[int, int]] = []
+    for s in range(num_poses):
+        ok = (idx[s] < num_poses) & (idx[s] <= s - per_winding // 2)
+        if np.any(ok):
+            candidates.append((s, int(idx[s][np.flatnonzero(ok)[0]])))
+    count = min(len(candidates), round(loops_per_pose * num_poses))
+    chosen = np.sort(rng.choice(len(candidates), size=count, replace=False))
+    for c in chosen:
+        s, t = candidates[int(c)]
+        sim.edges.append((s, t, _measure(invert(poses[t]) @ poses[s], sigmas, rng), info, ConstraintKind.LOOP))
+    return sim
+
+
+def torus_graph_high_rotation_noise(num_poses: int = 5000, rng: np.random.Generator | None = None, **kwargs: float) -> SyntheticGraph:
+    """:func:`torus_graph` with 10x sphere2500's rotation noise (0.711 rad per axis), the same
+    translation noise; other keyword arguments as :func:`torus_graph`."""
+    return torus_graph(num_poses, rotation_sigma_rad=10.0 * SPHERE2500_ROTATION_SIGMA_RAD, rng=rng, **kwargs)
 
 
 def corridor_trajectory(
@@ -243,6 +400,146 @@ def add_false_loops(sim: SyntheticGraph, fraction: float, rng: np.random.Generat
         existing.add((s, t))
         added += 1
     return sim
+
+
+FalseLoopMode = Literal["random", "group"]
+
+
+def typical_loop_information(graph: PoseGraph) -> Array:
+    """The information of a typical loop edge: the loop (else any edge) of median kappa."""
+    edges = [e for e in graph.edges() if e.kind is ConstraintKind.LOOP] or graph.edges()
+    if not edges:
+        raise GraphError("the graph has no edges: no typical information to copy")
+    _, kappa = sesync_tau_kappa(np.stack([e.information_rot_trans for e in edges]))
+    return np.array(edges[int(np.argsort(kappa, kind="stable")[len(edges) // 2])].information_rot_trans)
+
+
+def _typical_length_m(graph: PoseGraph) -> float:
+    """Median translation length of the loop edges (of all edges when there is no loop)."""
+    edges = [e for e in graph.edges() if e.kind is ConstraintKind.LOOP] or graph.edges()
+    return float(np.median([np.linalg.norm(e.T_target_source[:3, 3]) for e in edges]))
+
+
+def _random_relative_pose(rng: np.random.Generator, scale_m: float) -> Array:
+    """Uniform rotation; translation in a uniform direction, length uniform in [0, 2 scale]."""
+    direction = rng.normal(size=3)
+    direction /= np.linalg.norm(direction)
+    R = Rotation.random(random_state=int(rng.integers(2**31))).as_matrix()
+    return make_pose(R, direction * rng.uniform(0.0, 2.0 * scale_m))
+
+
+def add_false_loops_to_graph(
+    graph: PoseGraph,
+    fraction: float,
+    rng: np.random.Generator | None = None,
+    mode: FalseLoopMode = "random",
+    *,
+    groups: int | None = None,
+    group_size: int = 5,
+    min_separation: int = 20,
+    reference_poses: Mapping[int, ArrayLike] | None = None,
+) -> tuple[PoseGraph, set[tuple[int, int]]]:
+    """A copy of ``graph`` with wrong loop edges added; the input is not changed.
+
+    Parameters
+    ----------
+    graph : PoseGraph
+        Any graph (a benchmark file, a synthetic graph).
+    fraction : float
+        Number of false loops as a fraction of the graph's loop edges (of all its edges when it
+        has no loop): ``round(fraction * loops)``. In ``"group"`` mode it sets the number of
+        groups, ``max(1, round(fraction * loops / group_size))``, unless ``groups`` is given.
+    rng : numpy Generator, optional
+        Default ``np.random.default_rng(1)``.
+    mode : {"random", "group"}
+        ``"random"``: pairs of poses drawn at random (at least ``min_separation`` apart in key
+        order, not already joined), each with its own random relative pose: uniform rotation,
+        translation in a uniform direction with length uniform in [0, 2 L], L the median
+        translation of the graph's loop edges. ``"group"``: ``groups`` groups of
+        ``group_size`` mutually consistent wrong edges. A group picks two regions far apart
+        (anchor poses ``a_0``, ``b_0`` at least ``min_separation`` apart in key order and
+        more than 4 L apart in space, when such pairs exist), one wrong transform ``W``
+        (random as above) and joins ``a_i`` to ``b_i``, the ``i``-th pose after each anchor in
+        key order, with ``T_a_i_b_i = T_a_i_a_0 W T_b_0_b_i Exp(n)``: the true local offsets
+        around one wrong ``a_0``-``b_0`` transform, plus noise ``n`` drawn from the edges'
+        information. Every pairwise-consistency (PCM) test between the group's edges passes.
+    groups, group_size : int
+        Group mode only.
+    min_separation : int
+        Fewest positions in sorted key order between the two ends of a false loop.
+    reference_poses : mapping int -> (4, 4), optional
+        Where the local offsets and distances come from: pass the ground truth (synthetic
+        graphs) or the clean optimum (benchmark files). Default: the graph's current poses.
+
+    Returns
+    -------
+    graph : PoseGraph
+        The copy with the false loops appended (kind ``loop``, with the information of the
+        loop edge of median kappa).
+    false_loops : set of (source_id, target_id)
+        The added edges, as :attr:`PoseGraphEdge.pair` (and ``rejected_loops``) name them.
+    """
+    rng = rng or np.random.default_rng(1)
+    keys = sorted(graph.poses())
+    out = graph.subgraph(keys)
+    info = typical_loop_information(graph)
+    info_cov = np.linalg.inv(info)
+    scale = _typical_length_m(graph)
+    poses = graph.poses() if reference_poses is None else {int(k): np.asarray(T, dtype=np.float64) for k, T in reference_poses.items()}
+    existing = {frozenset(e.pair) for e in graph.edges()}
+    base = sum(e.kind is ConstraintKind.LOOP for e in graph.edges()) or graph.num_edges
+    n = len(keys)
+    false: set[tuple[int, int]] = set()
+
+    def free(s: int, t: int) -> bool:
+        return frozenset((s, t)) not in existing
+
+    def add(s: int, t: int, T: Array) -> None:
+        out.add_edge(s, t, T, info, ConstraintKind.LOOP)
+        existing.add(frozenset((s, t)))
+        false.add((s, t))
+
+    if mode == "random":
+        count = round(fraction * base)
+        if n <= min_separation + 1 and count:
+            raise GraphError(f"add_false_loops_to_graph: {n} poses cannot hold loops {min_separation} apart")
+        attempts = 0
+        while len(false) < count:
+            attempts += 1
+            if attempts > 1000 * max(count, 1):
+                raise GraphError(f"add_false_loops_to_graph: found only {len(false)} of {count} free pose pairs")
+            i, j = (int(x) for x in rng.choice(n, size=2, replace=False))
+            s, t = keys[i], keys[j]
+            if abs(i - j) < min_separation or not free(s, t):
+                continue
+            add(s, t, _random_relative_pose(rng, scale))
+    elif mode == "group":
+        count = groups if groups is not None else max(1, round(fraction * base / group_size))
+        if n < 2 * group_size + min_separation:
+            raise GraphError(f"add_false_loops_to_graph: {n} poses are too few for groups of {group_size}")
+        centres = np.array([poses[k][:3, 3] for k in keys])
+        used: set[int] = set()  # key positions already in a group's region
+        for g in range(count):
+            for attempt in range(10000):
+                i, j = (int(x) for x in rng.integers(0, n - group_size + 1, size=2))
+                a = list(range(i, i + group_size))
+                b = list(range(j, j + group_size))
+                far_enough = attempt >= 5000 or np.linalg.norm(centres[i] - centres[j]) > 4.0 * scale
+                if (abs(i - j) >= min_separation + group_size and far_enough and not used & {*a, *b}
+                        and all(free(keys[p], keys[q]) for p, q in zip(a, b, strict=True))):
+                    break
+            else:
+                raise GraphError(f"add_false_loops_to_graph: no room for group {g + 1} of {count}")
+            used |= {*a, *b}
+            W = _random_relative_pose(rng, scale)
+            T_w_a0, T_w_b0 = poses[keys[i]], poses[keys[j]]
+            for p, q in zip(a, b, strict=True):
+                noise = rng.multivariate_normal(np.zeros(6), info_cov)
+                T = invert(poses[keys[p]]) @ T_w_a0 @ W @ invert(T_w_b0) @ poses[keys[q]] @ se3_exp(noise)
+                add(keys[q], keys[p], T)  # source b_i, target a_i
+    else:
+        raise ValueError(f"add_false_loops_to_graph: mode must be 'random' or 'group', got {mode!r}")
+    return out, false
 
 
 def ate_rmse_m(poses: dict[int, Array], reference: dict[int, Array]) -> float:
