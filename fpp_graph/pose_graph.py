@@ -75,8 +75,9 @@ _GNC_MU_STEP = 1.4
 _GNC_MAX_ROUNDS = 100
 _GNC_INNER_ITERATIONS = 3
 _GNC_BINARY_TOL = 1e-3
-#: Rounds of re-admitting loops under the bound after GNC (each re-solves; 1-2 suffice).
-_MAX_READMISSION_ROUNDS = 5
+#: Most rounds of re-admitting loops under the bound after GNC (each re-solves from the last;
+#: a round can bring the next loops under the bound, on noisy graphs for a dozen rounds).
+_MAX_READMISSION_ROUNDS = 50
 
 
 # ----------------------------------------------------------------------------------------------
@@ -1074,30 +1075,54 @@ class _Problem:
     def _settle_inliers(
         self, values: gtsam.Values, kept: NDArray[np.bool_], rejected: list[int], bound: float, cfg: PoseGraphConfig
     ) -> tuple[gtsam.Values, list[int], int]:
-        """A tight least-squares polish on ``kept`` (and a chordal restart), then re-admit
-        left-out loops under the bound and re-solve, until the inlier set is stable."""
-        values, iterations = _lm(self.gaussian_graph(kept), values, cfg.max_iterations, cfg.relative_error_tol)
-        # GNC can end in a poorer basin than chordal initialisation over its inliers reaches (with
-        # the outliers gone, chordal initialisation is safe): the better solution is kept.
-        if cfg.initialization == "chordal" and rejected:
+        """The truncated-least-squares solution near GNC's: polish, re-admit, and compare with a
+        chordal restart over the same inliers by the truncated cost.
+
+        From each of two starts (GNC's solution; chordal initialisation over its inliers, safe
+        once the outliers are gone, and the better basin when GNC ended in a poorer one) least
+        squares over the inliers runs, then loops left out whose residual is under the bound are
+        re-admitted (an inlier by the definition of truncated least squares) and the solve is
+        repeated until the inlier set is stable. The solution with the lower truncated cost
+        (least squares over odometry and priors, ``min(r2, bound)`` per loop) is returned.
+        """
+        active = kept.copy()
+        active[rejected] = True
+        best_values, best_rejected, iterations = self._readmit(values, kept.copy(), list(rejected), bound, cfg)
+        if cfg.initialization == "chordal" and best_rejected:
             restart, _ = self.chordal(kept)
             if restart is not None:
-                candidate, more = _lm(self.gaussian_graph(kept), restart, cfg.max_iterations, cfg.relative_error_tol)
+                other, other_rejected, more = self._readmit(restart, kept.copy(), list(rejected), bound, cfg)
                 iterations += more
-                if self.cost(candidate, kept) < self.cost(values, kept):
-                    values = candidate
+                if self.truncated_cost(other, active, bound) < self.truncated_cost(best_values, active, bound):
+                    best_values, best_rejected = other, other_rejected
+        kept[:] = active
+        kept[best_rejected] = False
+        return best_values, best_rejected, iterations
+
+    def _readmit(
+        self, values: gtsam.Values, kept: NDArray[np.bool_], rejected: list[int], bound: float, cfg: PoseGraphConfig
+    ) -> tuple[gtsam.Values, list[int], int]:
+        """Least squares over ``kept`` from ``values``, re-admitting loops under the bound."""
+        values, iterations = _lm(self.gaussian_graph(kept), values, cfg.max_iterations, cfg.relative_error_tol)
         for _ in range(_MAX_READMISSION_ROUNDS):
             back = [i for i in rejected if 2.0 * self.gaussian[i].error(values) <= bound]
             if not back:
                 break
-            for i in back:
-                log.info("loop edge %d->%d re-admitted (whitened squared residual %.3g <= bound %.3g at the solution)",
-                         *self.edges[i].pair, 2.0 * self.gaussian[i].error(values), bound)
+            log.debug("%d loop(s) re-admitted (whitened squared residual under the bound %.3g)", len(back), bound)
             rejected = [i for i in rejected if i not in back]
             kept[back] = True
             values, more = _lm(self.gaussian_graph(kept), values, cfg.max_iterations, cfg.relative_error_tol)
             iterations += more
         return values, rejected, iterations
+
+    def truncated_cost(self, values: gtsam.Values, active: NDArray[np.bool_], bound: float) -> float:
+        """Truncated least-squares cost: ``0.5 sum`` of whitened squares over priors and active
+        odometry, ``0.5 sum min(r2, bound)`` over active loops."""
+        total = sum(f.error(values) for f in self.prior_factors)
+        for i in np.flatnonzero(active):
+            error = self.gaussian[i].error(values)
+            total += min(error, 0.5 * bound) if self.is_loop[i] else error
+        return float(total)
 
     def _spans(self, inliers: NDArray[np.bool_]) -> bool:
         """True when the edges ``inliers`` and the priors tie every pose to an anchor."""
