@@ -1360,12 +1360,15 @@ class IncrementalPoseGraph:
         dict[int, (4, 4) float64]
             The current estimate ``T_world_sensor`` of every keyframe (read-only arrays).
         """
+        import gtsam
+
         if self._graph.num_edges and (self._new_factors.size() or self._new_values.size()):
             try:
-                self._isam.update(self._new_factors, self._new_values, self._update_params())
+                params = self._update_params()
+                self._isam.update(self._new_factors, self._new_values, params)
                 if self._pending_loops:
                     for _ in range(self.loop_extra_updates):
-                        self._isam.update()
+                        self._isam.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), params)
             except RuntimeError as exc:
                 raise _solver_error(exc) from None
             self._in_isam.update(int(k) for k in self._new_values.keys())
