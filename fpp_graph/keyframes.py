@@ -244,12 +244,16 @@ class KeyframeManager:
         if every and len(self.keyframe_ids) % every == 0:
             self._batch_and_restart()
             return
+        graph = self._incremental[frame_id]
         try:
-            estimate = self._incremental[frame_id].update()
+            estimate = graph.update()
         except Exception as exc:  # keep tracking on the uncorrected chain rather than stop the run
             log.warning("iSAM2 update failed at keyframe %d (%s); continuing with the previous estimate", frame_id, exc)
             return
-        self.T_world_keyframe.update(estimate)
+        # only the poses iSAM2's update re-read (the active part and a round robin of older
+        # keyframes, see IncrementalPoseGraph): copying every pose would cost O(map) per keyframe
+        for k in graph.refreshed_keys:
+            self.T_world_keyframe[k] = estimate[k]
 
     def _batch_and_restart(self) -> None:
         """The batch robust solve now (all parts); iSAM2 restarts from its solution, without
@@ -396,6 +400,12 @@ class KeyframeManager:
         poses: dict[int, NDArray[np.float64]] = {}
         rejected: list[tuple[int, int]] = []
         stats: dict = {"components": []}
+        # the mirror copies only the poses each update re-read: start from iSAM2's full estimate
+        for graph in {id(g): g for g in self._incremental.values()}.values():
+            try:
+                self.T_world_keyframe.update(graph.estimate())
+            except Exception as exc:
+                log.warning("reading the iSAM2 estimate failed (%s); the batch solve starts from the mirrored poses", exc)
         for comp in self.components():
             members = set(comp)
             graph = PoseGraph()

@@ -23,7 +23,6 @@ from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
 from fpp_graph.config import LoopClosureConfig
-from fpp_graph.geometry import invert
 from fpp_graph.types import Frame, LoopCandidate
 
 log = logging.getLogger(__name__)
@@ -140,8 +139,10 @@ class ProximityAppearanceLoopDetector:
         self.config = config or LoopClosureConfig()
         self.appearance = AppearanceIndex()
         self._order: list[int] = []
+        self._index: dict[int, int] = {}  # frame id -> its (last) position in self._order
 
     def add(self, frame: Frame) -> None:
+        self._index[frame.id] = len(self._order)
         self._order.append(frame.id)
         self.appearance.add(frame.id, frame.descriptors)
 
@@ -154,26 +155,29 @@ class ProximityAppearanceLoopDetector:
         cfg = self.config
         if not cfg.enabled:
             return []
-        index_of = {fid: i for i, fid in enumerate(self._order)}
+        index_of = self._index
         position_in_sequence = index_of.get(frame.id, len(self._order))
-        too_close = {
-            fid for fid, i in index_of.items() if abs(position_in_sequence - i) < cfg.min_frame_separation
-        }
+        sep = cfg.min_frame_separation
+        near = self._order[max(0, position_in_sequence - sep + 1): max(0, position_in_sequence + sep)]
+        too_close = {fid for fid in near if abs(position_in_sequence - index_of[fid]) < sep}
         too_close.add(frame.id)
         found: dict[int, LoopCandidate] = {}
         T_world_query = poses_world_sensor.get(frame.id)
         if T_world_query is not None:
             radius = cfg.proximity_radius_m + cfg.proximity_sigma * max(0.0, position_sigma_m)
-            for fid in self._order:
-                T_world_other = poses_world_sensor.get(fid)
-                if fid in too_close or T_world_other is None:
-                    continue
-                T_other_query = invert(T_world_other) @ T_world_query
-                distance = float(np.linalg.norm(T_other_query[:3, 3]))
-                facing = float(T_other_query[2, 2])  # cosine between the two optical (+z) axes
-                if distance <= radius and facing > 0.0:
-                    score = 1.0 - distance / max(radius, 1e-12)
-                    found[fid] = LoopCandidate(frame.id, fid, score, "proximity")
+            # One vectorised pass over the keyframes (a 4x4 inverse per keyframe in Python cost
+            # ~7 ms per query at 1000 keyframes): with T_other_query = T_world_other^-1
+            # T_world_query, its translation's norm is the distance between the two positions
+            # and its [2, 2] entry the cosine between the two optical (+z) axes.
+            fids = [fid for fid in self._order if fid not in too_close and fid in poses_world_sensor]
+            if fids:
+                T = np.stack([np.asarray(poses_world_sensor[fid], dtype=np.float64) for fid in fids])
+                Tq = np.asarray(T_world_query, dtype=np.float64)
+                distance = np.linalg.norm(T[:, :3, 3] - Tq[:3, 3], axis=1)
+                facing = T[:, :3, 2] @ Tq[:3, 2]
+                for i in np.flatnonzero((distance <= radius) & (facing > 0.0)):
+                    score = 1.0 - float(distance[i]) / max(radius, 1e-12)
+                    found[fids[i]] = LoopCandidate(frame.id, fids[i], score, "proximity")
         proximity = sorted(found.values(), key=lambda c: -c.score)
         appearance: list[LoopCandidate] = []
         for fid, score in self.appearance.query(frame.descriptors, cfg.appearance_top_k, exclude=too_close):

@@ -33,6 +33,7 @@ import math
 import time
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
+from types import MappingProxyType
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -1243,7 +1244,13 @@ class IncrementalPoseGraph:
     update time about tenfold over 1000 keyframes). Here the last ``ordering_window``
     keyframes form the last ordering group instead: the active region stays at the root, old
     keyframes a loop touches are eliminated below it, and the re-eliminated part stays bounded
-    by the window.
+    by the window. Every iSAM2 step of an update needs that ordering: the extra steps after a
+    loop used to run with iSAM2's default, which re-ordered the re-eliminated top by plain
+    COLAMD and left old keyframes (one per lap, a cut across the whole map) in the root clique,
+    so the update time grew with the map again (6.6x from the first to the last 100 keyframes
+    of the 1000-keyframe circuit). What remains is the problem's own frontier: the keyframes
+    loops may still reach (a lap on the circuit) form the top of the tree, so the cost rises
+    while that frontier forms (the first three laps there) and is flat after it.
 
     Parameters
     ----------
@@ -1257,7 +1264,25 @@ class IncrementalPoseGraph:
         Additional iSAM2 steps after an update that brought loops (re-linearisation settles).
     ordering_window : int
         The most recent keyframes kept last in the elimination order (see above); 0 leaves
-        iSAM2's default ordering.
+        iSAM2's default ordering. The extra steps after a loop keep the same ordering (with
+        iSAM2's default there, old keyframes drift up to the root and the cost grows again).
+    refresh_per_update : int
+        Older keyframes whose cached pose each :meth:`update` re-reads from iSAM2, round robin
+        (see "Reading the estimate").
+
+    Reading the estimate. ``calculateEstimate()`` back-substitutes and copies every variable,
+    O(map) per update; :meth:`update` instead re-reads from iSAM2 (one
+    ``calculateEstimatePose3`` each) only the keys it re-solved: the new keyframes, the keys
+    the new factors observe and those iSAM2 re-linearised (its marked keys), the last
+    ``max(ordering_window, 1)`` keyframes (the top of the Bayes tree, where a new keyframe and
+    its loops land), and ``refresh_per_update`` older keyframes in turn. The rest of the cache
+    can lag iSAM2 by the small corrections its back-substitution carries below the top of the
+    tree (refreshed within ``n / refresh_per_update`` updates); when iSAM2 re-eliminated more
+    variables than were re-read (a large loop, a reorder), the whole estimate is read at once
+    (that update was O(map) anyway), and so it is while the map has fewer than about five
+    times as many keyframes as are re-read (one read of all is then the cheaper; above that
+    the read-out no longer grows with the map). :meth:`estimate` reads every pose, so
+    it is exact; :meth:`loop_innovation` re-reads the loop's two keyframes.
     """
 
     def __init__(
@@ -1267,16 +1292,21 @@ class IncrementalPoseGraph:
         relinearize_threshold: float = 0.01,
         loop_extra_updates: int = 2,
         ordering_window: int = 100,
+        refresh_per_update: int = 64,
     ) -> None:
         self.config = config or PoseGraphConfig()
         self.relinearize_threshold = float(relinearize_threshold)
         self.loop_extra_updates = int(loop_extra_updates)
         self.ordering_window = int(ordering_window)
+        self.refresh_per_update = int(refresh_per_update)
         self._graph = PoseGraph()  # bookkeeping of what iSAM2 holds: poses (guesses), edges
         self._rejected: list[tuple[int, int]] = []
         self._order: list[int] = []  # keys in the order they were added
         self._reset_isam()
         self._estimate: dict[int, Array] = {}
+        self._stale = False  # some cached poses may lag iSAM2 (see "Reading the estimate")
+        self._sweep = 0  # round-robin position over self._order for the refresh of older keys
+        self._refreshed: list[int] = []
         self._pending_loops = False
 
     def _reset_isam(self) -> None:
@@ -1285,11 +1315,18 @@ class IncrementalPoseGraph:
         params = gtsam.ISAM2Params()
         params.setRelinearizeThreshold(self.relinearize_threshold)
         params.relinearizeSkip = 1
+        # The relinearisation check descends from the root and stops at cliques whose
+        # variables stay under the threshold, instead of testing every variable: an old
+        # keyframe deep in the tree no longer drags its whole path to the root into the
+        # update (on 40 laps x 50 keyframes the last 100 updates cost 5.2 ms instead of 7.7,
+        # and the end estimate is as close to the batch optimum).
+        params.enablePartialRelinearizationCheck = True
         self._isam = gtsam.ISAM2(params)
         self._new_factors = gtsam.NonlinearFactorGraph()
         self._new_values = gtsam.Values()
         self._anchor_key: int | None = None
         self._in_isam: set[int] = set()
+        self._stale_all = True  # the next update reads the whole estimate (a fresh iSAM2)
 
     # -- building --------------------------------------------------------------------------
     @property
@@ -1437,29 +1474,98 @@ class IncrementalPoseGraph:
         dict[int, (4, 4) float64]
             The current estimate ``T_world_sensor`` of every keyframe (read-only arrays).
         """
+        import gtsam
+
+        self._refreshed = []
         if self._graph.num_edges and (self._new_factors.size() or self._new_values.size()):
+            new_keys = [int(k) for k in self._new_values.keys()]
             try:
-                self._isam.update(self._new_factors, self._new_values, self._update_params())
+                params = self._update_params()
+                results = [self._isam.update(self._new_factors, self._new_values, params)]
                 if self._pending_loops:
                     for _ in range(self.loop_extra_updates):
-                        self._isam.update()
+                        results.append(self._isam.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), params))
             except RuntimeError as exc:
                 raise _solver_error(exc) from None
-            self._in_isam.update(int(k) for k in self._new_values.keys())
+            self._in_isam.update(new_keys)
             self._new_factors.resize(0)
             self._new_values.clear()
             self._pending_loops = False
-            # The anchor is a prior 1e8 times stiffer than any edge: it moves by ~1e-8 of an
-            # edge's sigma, so its given value is restored and the rest left as solved (a rigid
-            # move of all poses, as the batch solver does, costs O(n) per update).
-            anchor = self._anchor_key
-            self._estimate = _poses_from(self._isam.calculateEstimate())
-            self._estimate[anchor] = self._graph._poses[anchor]
-        return dict(self._estimate)
+            self._refresh(new_keys, results)
+        return MappingProxyType(self._estimate)
+
+    # A pose read one at a time costs about as much as five read together by calculateEstimate():
+    # below that map size the whole estimate is read (measured with scripts/bench_incremental.py).
+    _FULL_READ_RATIO = 5
+
+    def _refresh(self, new_keys: list[int], results: list) -> None:
+        """Re-read from iSAM2 the poses the last update re-solved (see the class notes)."""
+        n = len(self._order)
+        keys = dict.fromkeys(new_keys)
+        for r in results:
+            keys.update(dict.fromkeys(int(k) for k in r.getMarkedKeys()))
+        keys.update(dict.fromkeys(self._order[-max(self.ordering_window, 1):]))
+        reeliminated = max(r.getVariablesReeliminated() for r in results)
+        if self._stale_all or any(r.getBatchReorderTriggered() for r in results) or reeliminated > len(keys) or n <= self._FULL_READ_RATIO * (len(keys) + self.refresh_per_update):
+            self._read_all()
+            return
+        older = n - max(self.ordering_window, 1)
+        if older > 0 and self.refresh_per_update > 0:
+            start = self._sweep % older
+            stop = start + min(self.refresh_per_update, older)
+            sweep = self._order[start:stop] + self._order[: max(stop - older, 0)]
+            self._sweep = stop % older
+            keys.update(dict.fromkeys(sweep))
+        self._read(keys)
+        self._stale = True
+
+    def _read(self, keys: Iterable[int]) -> None:
+        isam, estimate, anchor = self._isam, self._estimate, self._anchor_key
+        refreshed = self._refreshed
+        for k in keys:
+            if k == anchor or k not in self._in_isam:
+                continue
+            T = isam.calculateEstimatePose3(k).matrix()
+            T.setflags(write=False)
+            estimate[k] = T
+            refreshed.append(k)
+        # The anchor is a prior 1e8 times stiffer than any edge: it moves by ~1e-8 of an
+        # edge's sigma, so its given value stands and the rest is left as solved (a rigid
+        # move of all poses, as the batch solver does, costs O(n) per update).
+        if anchor is not None:
+            estimate[anchor] = self._graph._poses[anchor]
+
+    def _read_all(self) -> None:
+        """Every pose from iSAM2 at once (one back-substitution, vectorised extraction)."""
+        anchor = self._anchor_key
+        poses = _poses_from(self._isam.calculateEstimate())
+        if anchor is not None and anchor in poses:
+            poses[anchor] = self._graph._poses[anchor]
+        self._estimate.update(poses)
+        self._refreshed = list(poses)
+        self._stale = self._stale_all = False
+
+    @property
+    def refreshed_keys(self) -> list[int]:
+        """Keys whose pose the last :meth:`update` re-read from iSAM2 (all of them after a
+        full read); a caller mirroring the estimate copies these instead of every pose."""
+        return list(self._refreshed)
 
     def estimate(self) -> dict[int, Array]:
-        """The estimate after the last :meth:`update` (guesses for keyframes added since)."""
+        """The estimate after the last :meth:`update` (guesses for keyframes added since),
+        every pose read from iSAM2 (O(map) when some cached poses lag)."""
+        if self._stale and self._in_isam:
+            self._read_all()
         return dict(self._estimate)
+
+    def pose(self, key: int) -> Array:
+        """The current estimate of one keyframe (fresh from iSAM2; the guess before its first update)."""
+        key = int(key)
+        if key not in self._graph:
+            raise GraphError(f"pose: keyframe {key} is not in the graph")
+        if self._stale and key in self._in_isam:
+            self._read([key])
+        return self._current(key)
 
     def marginal_covariance(self, key: int) -> Array:
         """6x6 ``[rot, trans]`` marginal covariance (body frame) from iSAM2's Bayes tree."""
@@ -1499,7 +1605,7 @@ class IncrementalPoseGraph:
                 raise GraphError(f"loop {s}->{t}: keyframe {k} is not in the graph")
         if relative_covariance is None and self._new_values.size() and self._graph.num_edges:
             self.update()
-        T_ts_est = np.linalg.inv(self._current(t)) @ self._current(s)
+        T_ts_est = np.linalg.inv(self.pose(t)) @ self.pose(s)
         r = se3_log(np.linalg.inv(np.asarray(constraint.T_target_source, dtype=np.float64)) @ T_ts_est)
         cov = np.linalg.inv(self._information(_as_information(constraint.information, f"loop {s}->{t}")))
         if relative_covariance is not None:
@@ -1525,8 +1631,9 @@ class IncrementalPoseGraph:
         s, t = int(loop.source_id), int(loop.target_id)
         if (s in self) == (t in self) or (s in other) == (t in other):
             raise GraphError(f"absorb: loop {s}->{t} must join a keyframe of this graph to one of the other graph")
-        mine = self.update()
-        theirs = other.update()
+        self.update()
+        other.update()
+        mine, theirs = self.estimate(), other.estimate()
         T_ts = np.asarray(loop.T_target_source, dtype=np.float64)
         if t in self:  # T_world_source in this graph's frame, from the loop
             correction = mine[t] @ T_ts @ np.linalg.inv(theirs[s])
@@ -1589,6 +1696,8 @@ class IncrementalPoseGraph:
     def to_pose_graph(self) -> PoseGraph:
         """A batch :class:`PoseGraph` at the current estimate (first keyframe fixed)."""
         graph = PoseGraph()
+        if self._stale and self._in_isam:
+            self._read_all()
         for key in self._graph._poses:
             graph.add_pose(key, self._current(key))
         if self._anchor_key is not None:
