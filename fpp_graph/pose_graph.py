@@ -544,7 +544,7 @@ class PoseGraph:
         # it cannot refute; otherwise least squares runs to convergence and is screened again.
         iterations = 0
         values = initial
-        screen = problem.screen(initial, active, cfg) if cfg.robust == "gnc" and np.any(problem.is_loop) else None
+        screen = problem.screen(initial, active, cfg, measure_scale=False) if cfg.robust == "gnc" and np.any(problem.is_loop) else None
         if screen is not None and screen.flagged().size:
             values, iterations = problem.solve(initial, active, cfg.model_copy(update={"max_iterations": _SCREEN_AGAIN_AFTER}))
             screen = problem.screen(values, active, cfg)
@@ -912,16 +912,19 @@ class _Problem:
         )
         return CycleCheck(idx[check.loop_index], check.chi2)
 
-    def screen(self, values: gtsam.Values, active: NDArray[np.bool_], cfg: PoseGraphConfig) -> LoopScreen:
+    def screen(
+        self, values: gtsam.Values, active: NDArray[np.bool_], cfg: PoseGraphConfig, measure_scale: bool = True
+    ) -> LoopScreen:
         """The evidence against each active loop at ``values`` (see :mod:`fpp_graph.outliers`).
 
         The information's scale is measured (odometry cycles) only when some loop exceeds the
         bound at unit scale: it can only widen the bound, so otherwise nothing is flagged.
+        ``measure_scale=False`` skips that measurement (a first look at approximate values).
         """
         loops = np.flatnonzero(active & self.is_loop)
         unit_bound = family_bound(len(loops), cfg.loop_false_alarm)
         r2 = self.loop_chi2(values, loops)
-        if len(loops) == 0 or r2.max() <= unit_bound:
+        if len(loops) == 0 or r2.max() <= unit_bound or not measure_scale:
             return LoopScreen(loops, r2, 1.0, unit_bound, None)
         cycles = self.cycle_check(active)
         s2 = cycles.variance_factor()
@@ -1076,35 +1079,26 @@ class _Problem:
     def _settle_inliers(
         self, values: gtsam.Values, kept: NDArray[np.bool_], rejected: list[int], bound: float, cfg: PoseGraphConfig
     ) -> tuple[gtsam.Values, list[int], int]:
-        """The truncated-least-squares solution near GNC's: polish, re-admit, and compare with a
-        chordal restart over the same inliers by the truncated cost.
-
-        From each of two starts (GNC's solution; chordal initialisation over its inliers, safe
-        once the outliers are gone, and the better basin when GNC ended in a poorer one) least
-        squares over the inliers runs, then loops left out whose residual is under the bound are
-        re-admitted (an inlier by the definition of truncated least squares) and the solve is
-        repeated until the inlier set is stable. The solution with the lower truncated cost
-        (least squares over odometry and priors, ``min(r2, bound)`` per loop) is returned.
-        """
-        active = kept.copy()
-        active[rejected] = True
-        best_values, best_rejected, iterations = self._readmit(values, kept.copy(), list(rejected), bound, cfg)
-        if cfg.initialization == "chordal" and best_rejected:
+        """Least squares over GNC's inliers (and a chordal restart over them, safe once the
+        outliers are gone: the better of the two by their cost), then loops left out whose
+        residual is under the bound are re-admitted (an inlier by the definition of truncated
+        least squares) and the solve repeated until the inlier set is stable."""
+        values, iterations = _lm(self.gaussian_graph(kept), values, cfg.max_iterations, cfg.relative_error_tol)
+        if cfg.initialization == "chordal" and rejected:
             restart, _ = self.chordal(kept)
             if restart is not None:
-                other, other_rejected, more = self._readmit(restart, kept.copy(), list(rejected), bound, cfg)
+                candidate, more = _lm(self.gaussian_graph(kept), restart, cfg.max_iterations, cfg.relative_error_tol)
                 iterations += more
-                if self.truncated_cost(other, active, bound) < self.truncated_cost(best_values, active, bound):
-                    best_values, best_rejected = other, other_rejected
-        kept[:] = active
-        kept[best_rejected] = False
-        return best_values, best_rejected, iterations
+                if self.cost(candidate, kept) < self.cost(values, kept):
+                    values = candidate
+        values, rejected, more = self._readmit(values, kept, rejected, bound, cfg)
+        return values, rejected, iterations + more
 
     def _readmit(
         self, values: gtsam.Values, kept: NDArray[np.bool_], rejected: list[int], bound: float, cfg: PoseGraphConfig
     ) -> tuple[gtsam.Values, list[int], int]:
-        """Least squares over ``kept`` from ``values``, re-admitting loops under the bound."""
-        values, iterations = _lm(self.gaussian_graph(kept), values, cfg.max_iterations, cfg.relative_error_tol)
+        """Re-admit loops under the bound at ``values`` and re-solve over ``kept``, until stable."""
+        iterations = 0
         for _ in range(_MAX_READMISSION_ROUNDS):
             back = [i for i in rejected if 2.0 * self.gaussian[i].error(values) <= bound]
             if not back:
@@ -1116,14 +1110,6 @@ class _Problem:
             iterations += more
         return values, rejected, iterations
 
-    def truncated_cost(self, values: gtsam.Values, active: NDArray[np.bool_], bound: float) -> float:
-        """Truncated least-squares cost: ``0.5 sum`` of whitened squares over priors and active
-        odometry, ``0.5 sum min(r2, bound)`` over active loops."""
-        total = sum(f.error(values) for f in self.prior_factors)
-        for i in np.flatnonzero(active):
-            error = self.gaussian[i].error(values)
-            total += min(error, 0.5 * bound) if self.is_loop[i] else error
-        return float(total)
 
     def _spans(self, inliers: NDArray[np.bool_]) -> bool:
         """True when the edges ``inliers`` and the priors tie every pose to an anchor."""
