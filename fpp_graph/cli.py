@@ -126,7 +126,7 @@ def optimize_graph(
         "inconsistent_loops": [list(pair) for pair in result.inconsistent_loops],
         "variance_factor": result.variance_factor,
         "loop_bound": result.loop_bound,
-        "certified": None if cert is None else cert.certified,
+        "certified": None if not certify else (cert is not None and cert.certified),
         "certificate_min_eigenvalue": None if cert is None else cert.certificate_min_eigenvalue,
         "suboptimality_bound": None if cert is None else cert.suboptimality_bound,
         "certificate_method": None if cert is None else cert.method,

@@ -548,9 +548,11 @@ class PoseGraph:
         if screen is not None and screen.flagged().size:
             values, iterations = problem.solve(initial, active, cfg.model_copy(update={"max_iterations": _SCREEN_AGAIN_AFTER}))
             screen = problem.screen(values, active, cfg)
+        converged = True
         if screen is None or not screen.flagged().size:
             values, more = problem.solve(values, active, cfg)
             iterations += more
+            converged = more < cfg.max_iterations
             screen = problem.screen(values, active, cfg) if np.any(problem.is_loop) else None
         rejected: list[int] = []
         if cfg.robust == "gnc" and screen is not None and screen.flagged().size:
@@ -564,7 +566,12 @@ class PoseGraph:
         iterations += more
 
         certificate = None
-        if cfg.certify:
+        if cfg.certify and not converged:
+            # A certificate needs a critical point; far from one its Newton refinement and the
+            # staircase cost minutes and decide nothing (seen on a torus with 0.7 rad noise).
+            log.warning("least squares stopped at its %d-iteration limit without converging: not certified "
+                        "(raise pose_graph.max_iterations)", cfg.max_iterations)
+        elif cfg.certify:
             values, certificate, more = self._certified(problem, values, active, cfg)
             iterations += more
         final_cost = problem.cost(values, active)
