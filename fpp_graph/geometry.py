@@ -29,12 +29,13 @@ def make_pose(rotation: ArrayLike | None = None, translation: ArrayLike | None =
 
 
 def invert(T_a_b: ArrayLike) -> Array:
-    """Return ``T_b_a`` for a rigid ``T_a_b`` (exact inverse using R^T, no general inversion)."""
+    """Return ``T_b_a`` for a rigid ``T_a_b``, (4, 4) or a stack (..., 4, 4) (exact, using R^T)."""
     T = np.asarray(T_a_b, dtype=np.float64)
-    R = T[:3, :3]
-    out = np.eye(4)
-    out[:3, :3] = R.T
-    out[:3, 3] = -R.T @ T[:3, 3]
+    Rt = np.swapaxes(T[..., :3, :3], -1, -2)
+    out = np.zeros(T.shape)
+    out[..., :3, :3] = Rt
+    out[..., :3, 3] = -(Rt @ T[..., :3, 3, None])[..., 0]
+    out[..., 3, 3] = 1.0
     return out
 
 
@@ -122,13 +123,18 @@ def is_rigid(T: ArrayLike, atol: float = 1e-6) -> bool:
 
 
 def adjoint(T: ArrayLike) -> Array:
-    """6x6 adjoint of a pose in ``[rot, trans]`` tangent order (GTSAM's Pose3.AdjointMap)."""
+    """6x6 adjoint of a pose, or (..., 6, 6) of a stack (..., 4, 4), in ``[rot, trans]`` tangent
+    order (GTSAM's Pose3.AdjointMap)."""
     T = np.asarray(T, dtype=np.float64)
-    R, t = T[:3, :3], T[:3, 3]
-    Ad = np.zeros((6, 6))
-    Ad[:3, :3] = R
-    Ad[3:, 3:] = R
-    Ad[3:, :3] = _skew(t) @ R
+    R, t = T[..., :3, :3], T[..., :3, 3]
+    skew = np.zeros(T.shape[:-2] + (3, 3))
+    skew[..., 0, 1], skew[..., 0, 2] = -t[..., 2], t[..., 1]
+    skew[..., 1, 0], skew[..., 1, 2] = t[..., 2], -t[..., 0]
+    skew[..., 2, 0], skew[..., 2, 1] = -t[..., 1], t[..., 0]
+    Ad = np.zeros(T.shape[:-2] + (6, 6))
+    Ad[..., :3, :3] = R
+    Ad[..., 3:, 3:] = R
+    Ad[..., 3:, :3] = skew @ R
     return Ad
 
 

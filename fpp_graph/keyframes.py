@@ -45,6 +45,7 @@ from fpp_graph.config import Config
 from fpp_graph.frame_store import FrameStore
 from fpp_graph.geometry import adjoint, compose, invert, rotation_angle_rad
 from fpp_graph.loop_closure import ProximityAppearanceLoopDetector
+from fpp_graph.outliers import chi2_6_quantile
 from fpp_graph.pose_graph import IncrementalPoseGraph
 from fpp_graph.types import Constraint, ConstraintKind, Frame, LoopCandidate, PairRegistrar
 
@@ -372,7 +373,7 @@ class KeyframeManager:
         T_m_q = invert(self.T_world_keyframe[m]) @ self.T_world_keyframe[q]
         sigma_rel = self._drift_cov[q] + transport_covariance(self._drift_cov[m], T_m_q)
         d2 = graph.loop_innovation(loop, relative_covariance=sigma_rel)
-        bound = _chi2_bound_6dof(self.config.keyframes.loop_check_probability)
+        bound = chi2_6_quantile(self.config.keyframes.loop_check_probability)
         if d2 > bound:
             self.held_out_loops.append((q, m))
             log.warning(
@@ -503,10 +504,6 @@ def _covariance(c: Constraint) -> NDArray[np.float64]:
         return np.zeros((6, 6))
 
 
-def _chi2_bound_6dof(probability: float) -> float:
-    from scipy.special import chdtri  # scipy.stats would add ~0.8 s of import
-
-    return float(chdtri(6, 1.0 - probability))
 
 
 def _translation_variance_m2(c: Constraint) -> float:

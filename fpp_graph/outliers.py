@@ -36,11 +36,13 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
+
+from fpp_graph.geometry import adjoint, invert
 
 log = logging.getLogger(__name__)
 
@@ -72,21 +74,6 @@ def family_bound(num_loops: int, false_alarm: float) -> float:
         Probability that any loop of a graph without outliers exceeds the bound.
     """
     return chi2_6_quantile(1.0 - false_alarm / max(int(num_loops), 1))
-
-
-def adjoint(T: Array) -> Array:
-    """``(..., 6, 6)`` adjoint of ``(..., 4, 4)`` poses in GTSAM's ``[rot, trans]`` order."""
-    R = T[..., :3, :3]
-    t = T[..., :3, 3]
-    skew = np.zeros(T.shape[:-2] + (3, 3))
-    skew[..., 0, 1], skew[..., 0, 2] = -t[..., 2], t[..., 1]
-    skew[..., 1, 0], skew[..., 1, 2] = t[..., 2], -t[..., 0]
-    skew[..., 2, 0], skew[..., 2, 1] = -t[..., 1], t[..., 0]
-    out = np.zeros(T.shape[:-2] + (6, 6))
-    out[..., :3, :3] = R
-    out[..., 3:, 3:] = R
-    out[..., 3:, :3] = skew @ R
-    return out
 
 
 @dataclass(frozen=True)
@@ -176,7 +163,7 @@ def odometry_cycle_chi2(
             i = graph.edges[parent, child]["edge"]
             s = index[int(source_target[i, 0])]
             M = T_target_source[i]
-            P[child] = P[parent] @ (M if parent == index[int(source_target[i, 1])] else _inverse(M))
+            P[child] = P[parent] @ (M if parent == index[int(source_target[i, 1])] else invert(M))
             A = adjoint(P[s])
             S[child] = S[parent] + A @ covariance[i] @ A.T
             tree_of[child] = len(trees)
@@ -200,39 +187,15 @@ def odometry_cycle_chi2(
         found = dict(nx.tree_all_pairs_lowest_common_ancestor(tree, root=tree_roots[n_tree], pairs=pairs))
         lca[members] = [found[p] for p in pairs]
 
-    T_pred = _inverse(P[tgt]) @ P[src]
+    T_pred = invert(P[tgt]) @ P[src]
     error = np.array([
-        gtsam.Pose3.Logmap(gtsam.Pose3(_inverse(T_target_source[i]) @ T)) for i, T in zip(loops, T_pred, strict=True)
+        gtsam.Pose3.Logmap(gtsam.Pose3(invert(T_target_source[i]) @ T)) for i, T in zip(loops, T_pred, strict=True)
     ])
-    A = adjoint(_inverse(P[src]))
+    A = adjoint(invert(P[src]))
     D = S[src] + S[tgt] - 2.0 * S[lca]
     C = covariance[loops] + A @ D @ np.swapaxes(A, 1, 2)
     chi2 = np.einsum("ni,ni->n", error, np.linalg.solve(C, error[..., None])[..., 0])
     return CycleCheck(loops.astype(np.int64), chi2)
-
-
-def _inverse(T: Array) -> Array:
-    out = np.zeros_like(T)
-    Rt = np.swapaxes(T[..., :3, :3], -1, -2)
-    out[..., :3, :3] = Rt
-    out[..., :3, 3] = -(Rt @ T[..., :3, 3, None])[..., 0]
-    out[..., 3, 3] = 1.0
-    return out
-
-
-def whitened_chi2(
-    poses: Mapping[int, Array], source_target: NDArray[np.int64], T_target_source: Array, information_rot_trans: Array
-) -> Array:
-    """``(M,)`` whitened squared residuals ``e^T W e`` of edges at ``poses`` (GTSAM's between error)."""
-    import gtsam
-
-    if len(source_target) == 0:
-        return np.zeros(0)
-    T_s = np.stack([poses[int(s)] for s, _ in source_target])
-    T_t = np.stack([poses[int(t)] for _, t in source_target])
-    E = _inverse(T_target_source) @ _inverse(T_t) @ T_s
-    error = np.array([gtsam.Pose3.Logmap(gtsam.Pose3(M)) for M in E])
-    return np.einsum("ni,nij,nj->n", error, information_rot_trans, error)
 
 
 def describe_scale(s2: float, bound: float, num_cycles: int) -> str:

@@ -617,7 +617,7 @@ class PoseGraph:
         (:mod:`fpp_graph.certificate`); its suboptimality bound is re-stated for the returned
         poses (which minimise GTSAM's log-map cost, not ``F``): ``F(returned) - F*``.
         """
-        kept = self.subgraph(self._poses) if bool(np.all(active)) else self._kept_graph(problem, active)
+        kept = self._kept_graph(problem, active)
         poses = _poses_from(values, self._poses)
         certificate = kept.certify(poses)
         iterations = 0

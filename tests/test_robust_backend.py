@@ -10,8 +10,8 @@ from conftest import shared_data_path
 from scipy.spatial.transform import Rotation
 
 from fpp_graph.config import PoseGraphConfig
-from fpp_graph.geometry import invert, make_pose, se3_exp
-from fpp_graph.outliers import CHI2_6_MEDIAN, adjoint, family_bound, odometry_cycle_chi2
+from fpp_graph.geometry import adjoint, invert, make_pose, se3_exp
+from fpp_graph.outliers import CHI2_6_MEDIAN, family_bound, odometry_cycle_chi2
 from fpp_graph.pose_graph import PoseGraph, sesync_objective
 from fpp_graph.synthetic_graphs import add_false_loops, corridor_trajectory, torus_graph
 from fpp_graph.types import ConstraintKind
@@ -147,11 +147,14 @@ def test_variance_factor_measures_the_scale_and_never_goes_below_one():
     assert _cycle_check(graph, information_scale=0.1).variance_factor() == 1.0
 
 
-def test_adjoint_matches_gtsam():
+def test_adjoint_and_inverse_of_stacks_match_gtsam():
     import gtsam
 
     T = make_pose(Rotation.from_euler("xyz", [0.3, -0.2, 1.1]).as_matrix(), [1.0, -2.0, 0.5])
     np.testing.assert_allclose(adjoint(T), gtsam.Pose3(T).AdjointMap(), atol=1e-12)
+    stack = np.stack([T, invert(T)])
+    np.testing.assert_allclose(adjoint(stack)[1], gtsam.Pose3(invert(T)).AdjointMap(), atol=1e-12)
+    np.testing.assert_allclose(invert(stack)[0] @ T, np.eye(4), atol=1e-12)
 
 
 @pytest.mark.parametrize(
