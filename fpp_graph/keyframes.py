@@ -44,9 +44,9 @@ from numpy.typing import NDArray
 from fpp_graph.config import Config
 from fpp_graph.frame_store import FrameStore
 from fpp_graph.geometry import adjoint, compose, invert, rotation_angle_rad
+from fpp_graph.incremental import IncrementalPoseGraph
 from fpp_graph.loop_closure import ProximityAppearanceLoopDetector
 from fpp_graph.outliers import chi2_6_quantile
-from fpp_graph.pose_graph import IncrementalPoseGraph
 from fpp_graph.types import Constraint, ConstraintKind, Frame, LoopCandidate, PairRegistrar
 
 log = logging.getLogger(__name__)

@@ -34,8 +34,9 @@ import time
 import numpy as np
 
 from fpp_graph.config import PoseGraphConfig
+from fpp_graph.incremental import IncrementalPoseGraph
 from fpp_graph.keyframes import transport_covariance
-from fpp_graph.pose_graph import IncrementalPoseGraph, PoseGraph
+from fpp_graph.pose_graph import PoseGraph
 from fpp_graph.synthetic_graphs import SyntheticGraph, ate_rmse_m, circuit_laps
 from fpp_graph.types import Constraint, ConstraintKind
 

@@ -33,8 +33,8 @@ import numpy as np
 
 from fpp_graph.config import PoseGraphConfig
 from fpp_graph.g2o import read_g2o
+from fpp_graph.incremental import IncrementalPoseGraph
 from fpp_graph.pose_graph import (
-    IncrementalPoseGraph,
     PoseGraph,
     isotropic_information,
     sesync_objective,

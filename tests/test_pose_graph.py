@@ -10,8 +10,8 @@ from scipy.spatial.transform import Rotation
 from fpp_graph.config import PoseGraphConfig
 from fpp_graph.errors import FppError, GraphError
 from fpp_graph.geometry import invert, make_pose, se3_exp
+from fpp_graph.incremental import IncrementalPoseGraph
 from fpp_graph.pose_graph import (
-    IncrementalPoseGraph,
     PoseGraph,
     isotropic_information,
     sesync_objective,
