@@ -214,7 +214,7 @@ def torus_graph(
     if any(v is not None for v in legacy.values()):
         return torus_rings_graph(**{k: v for k, v in legacy.items() if v is not None}, rng=rng)
     if num_poses < 8:
-        raise ValueError(f"torus_graph: num_poses must be at least 8, got {num_poses}")
+        raise GraphError(f"torus_graph: num_poses must be at least 8, got {num_poses}; ask for a larger torus")
     rng = rng or np.random.default_rng(0)
     if translation_sigma_m is None:
         translation_sigma_m = SPHERE2500_TRANSLATION_SIGMA_PER_STEP * step_m
@@ -538,7 +538,7 @@ def add_false_loops_to_graph(
                 T = invert(poses[keys[p]]) @ T_w_a0 @ W @ invert(T_w_b0) @ poses[keys[q]] @ se3_exp(noise)
                 add(keys[q], keys[p], T)  # source b_i, target a_i
     else:
-        raise ValueError(f"add_false_loops_to_graph: mode must be 'random' or 'group', got {mode!r}")
+        raise GraphError(f"add_false_loops_to_graph: mode must be 'random' or 'group', got {mode!r}")
     return out, false
 
 

@@ -161,9 +161,9 @@ def test_group_false_loops_are_consistent_and_wrong(torus_sim):
 
 def test_false_loop_errors():
     sim = torus_graph(60, rng=np.random.default_rng(8))
-    with pytest.raises(ValueError, match="mode"):
+    with pytest.raises(GraphError, match="mode"):
         add_false_loops_to_graph(sim.graph(), 0.1, np.random.default_rng(0), "clustered")
-    with pytest.raises(ValueError, match="num_poses"):
+    with pytest.raises(GraphError, match="num_poses"):
         torus_graph(3)
     tiny = torus_graph(10, rng=np.random.default_rng(0), loops_per_pose=0.5).graph()
     with pytest.raises(GraphError):
