@@ -424,11 +424,20 @@ def test_cli_optimize_json(tmp_path, capsys):
     summary = json.loads(capsys.readouterr().out)
     for key in ("poses", "edges", "initial_cost", "final_cost", "sesync_objective", "iterations", "seconds", "rejected_loops"):
         assert key in summary
+    # a clean graph: no loop out, certified by default with a bound of the returned poses
+    assert summary["rejected_loops"] == [] and summary["removed_loops"] == []
+    assert summary["certified"] is True
+    assert abs(summary["certificate_min_eigenvalue"]) < 1e-6
+    assert 0.0 <= summary["suboptimality_bound"] < 1e-3 * summary["sesync_objective"]
     assert summary["poses"] == graph.num_poses and summary["edges"] == graph.num_edges
     assert summary["noise_model"] == "isotropic" and summary["robust"] == "gnc"
     assert summary["final_cost"] < summary["initial_cost"]
     optimised = read_g2o(out)
     assert sesync_objective(optimised) == pytest.approx(summary["sesync_objective"], rel=1e-12)
+    code = cli_main(["optimize", str(src), "--noise-model", "isotropic", "--no-certify", "--json"])
+    assert code == 0
+    unchecked = json.loads(capsys.readouterr().out)
+    assert unchecked["certified"] is None and unchecked["suboptimality_bound"] is None
 
 
 def test_cli_optimize_errors_are_one_line(tmp_path, capsys):
