@@ -29,7 +29,6 @@ from __future__ import annotations
 import logging
 import os
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
@@ -37,7 +36,10 @@ from numpy.typing import NDArray
 from fpp_graph.atomic import atomic_open
 from fpp_graph.errors import InputDataError, OutputError
 from fpp_graph.geometry import invert, transform_points
-from fpp_graph.types import Frame
+from fpp_graph.types import (  # FusedMap: the MapFuser protocol's result type, re-exported here
+    Frame,
+    FusedMap,
+)
 
 log = logging.getLogger(__name__)
 
@@ -46,38 +48,6 @@ log = logging.getLogger(__name__)
 _KEY_BITS = 21
 _KEY_OFFSET = 1 << (_KEY_BITS - 1)
 _KEY_MASK = (1 << _KEY_BITS) - 1
-
-
-@dataclass(frozen=True, eq=False)
-class FusedMap:
-    """A fused global map in the world frame.
-
-    Attributes
-    ----------
-    points_world_m : (N, 3) float64
-        Weighted mean point of each occupied voxel, metres, world frame.
-    colors : (N, 3) float64
-        Weighted mean colour of each voxel, in [0, 1].
-    weights : (N,) float64
-        Sum of the weights (by default the number of points) that fell in each voxel.
-    mesh_vertices : (V, 3) float64 or None
-        TSDF mesh vertices, metres, world frame (None when the mesh was not asked for).
-    mesh_triangles : (F, 3) int64 or None
-        Vertex indices of each triangle.
-    mesh_vertex_colors : (V, 3) float64 or None
-        Vertex colours in [0, 1].
-    """
-
-    points_world_m: NDArray[np.float64]
-    colors: NDArray[np.float64]
-    weights: NDArray[np.float64]
-    mesh_vertices: NDArray[np.float64] | None = None
-    mesh_triangles: NDArray[np.int64] | None = None
-    mesh_vertex_colors: NDArray[np.float64] | None = None
-
-    @property
-    def num_points(self) -> int:
-        return int(self.points_world_m.shape[0])
 
 
 def voxel_keys(points_m: NDArray[np.float64], voxel_size_m: float) -> NDArray[np.int64]:

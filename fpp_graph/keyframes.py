@@ -31,7 +31,6 @@ between the parts, so nothing can confirm or refute it yet (the batch solve trea
 
 from __future__ import annotations
 
-import inspect
 import logging
 import math
 from collections.abc import Callable
@@ -47,7 +46,14 @@ from fpp_graph.geometry import adjoint, compose, invert, rotation_angle_rad
 from fpp_graph.incremental import IncrementalPoseGraph
 from fpp_graph.loop_closure import ProximityAppearanceLoopDetector
 from fpp_graph.outliers import chi2_6_quantile
-from fpp_graph.types import Constraint, ConstraintKind, Frame, LoopCandidate, PairRegistrar
+from fpp_graph.types import (
+    Constraint,
+    ConstraintKind,
+    Frame,
+    LoopCandidate,
+    LoopDetector,
+    PairRegistrar,
+)
 
 log = logging.getLogger(__name__)
 
@@ -102,7 +108,7 @@ class KeyframeManager:
         registrar: PairRegistrar,
         config: Config | None = None,
         store: FrameStore | None = None,
-        loop_detector: ProximityAppearanceLoopDetector | None = None,
+        loop_detector: LoopDetector | None = None,
         on_loop: Callable[[LoopRecord], None] | None = None,
         proximity_across_parts: bool = False,
     ) -> None:
@@ -115,11 +121,6 @@ class KeyframeManager:
         # at the last keyframe's pose), so by default only appearance proposes candidates across
         # parts. True restores proximity across parts (their pose guess is then arbitrary).
         self.proximity_across_parts = bool(proximity_across_parts)
-        try:
-            params = inspect.signature(registrar.register).parameters
-            self._registrar_takes_kind = "kind" in params or any(p.kind is p.VAR_KEYWORD for p in params.values())
-        except (TypeError, ValueError):
-            self._registrar_takes_kind = False
         self.keyframe_ids: list[int] = []
         self.odometry: list[Constraint] = []
         self.loops: list[Constraint] = []
@@ -180,7 +181,7 @@ class KeyframeManager:
             T_guess = None
             if frame.T_world_sensor_guess is not None and target.T_world_sensor_guess is not None:
                 T_guess = invert(target.T_world_sensor_guess) @ frame.T_world_sensor_guess
-            constraint = self.registrar.register(target, frame, T_guess)
+            constraint = self.registrar.register(target, frame, T_guess, kind=ConstraintKind.ODOMETRY)
             if constraint.accepted:
                 return replace(constraint, kind=ConstraintKind.ODOMETRY)
             reasons.append(f"to keyframe {kf_id}: {constraint.rejection_reason}")
@@ -296,10 +297,7 @@ class KeyframeManager:
             target = self.store.get(cand.match_id)
             T_guess = invert(self.T_world_keyframe[cand.match_id]) @ self.T_world_keyframe[frame.id]
             guess = T_guess if "proximity" in cand.source else None
-            if self._registrar_takes_kind:
-                constraint = self.registrar.register(target, frame, guess, kind=ConstraintKind.LOOP)
-            else:  # a third-party registrar written against the three-argument protocol
-                constraint = self.registrar.register(target, frame, guess)
+            constraint = self.registrar.register(target, frame, guess, kind=ConstraintKind.LOOP)
             record = LoopRecord(
                 query_id=frame.id,
                 match_id=cand.match_id,

@@ -38,7 +38,7 @@ from fpp_graph.geometry import compose
 from fpp_graph.keyframes import KeyframeManager, SlamResult
 from fpp_graph.sources import FrameSource
 from fpp_graph.trajectory import Trajectory, write_tum
-from fpp_graph.types import Frame
+from fpp_graph.types import Frame, FusedMap, MapFuser
 
 log = logging.getLogger(__name__)
 
@@ -229,23 +229,29 @@ def write_trajectory_and_graph(out: Path, result: SlamResult, timestamps: dict[i
 
 
 # -- step 5: map ----------------------------------------------------------------------------
-def fuse_map(out: Path, result: SlamResult, store: FrameStore, config: Config, progress: ProgressCallback | None = None):
-    """Re-fuse keyframes under the optimised poses; writes ``map.ply`` and ``mesh.ply``."""
+def fuse_map(
+    out: Path, result: SlamResult, store: FrameStore, config: Config, progress: ProgressCallback | None = None,
+    fuser: MapFuser | None = None,
+) -> FusedMap:
+    """Re-fuse keyframes under the optimised poses with ``fuser`` (default: a
+    :class:`~fpp_graph.fusion.VoxelMapFuser` from ``config.fusion``); writes ``map.ply`` and,
+    when the map has a mesh, ``mesh.ply``."""
     from fpp_graph.fusion import VoxelMapFuser, write_mesh_ply, write_point_cloud_ply
 
-    fuser = VoxelMapFuser(
-        voxel_size_m=config.fusion.voxel_size_m,
-        tsdf_voxel_m=config.fusion.tsdf_voxel_m,
-        tsdf_truncation_m=config.fusion.tsdf_truncation_m,
-        mesh=config.fusion.mesh,
-    )
+    if fuser is None:
+        fuser = VoxelMapFuser(
+            voxel_size_m=config.fusion.voxel_size_m,
+            tsdf_voxel_m=config.fusion.tsdf_voxel_m,
+            tsdf_truncation_m=config.fusion.tsdf_truncation_m,
+            mesh=config.fusion.mesh,
+        )
     for i, kf in enumerate(result.keyframe_ids):
         fuser.integrate(store.get(kf), result.poses_world_sensor[kf])
         if progress:
             progress("fuse", i + 1, len(result.keyframe_ids))
     fused = fuser.result()
     write_point_cloud_ply(out / "map.ply", fused.points_world_m, fused.colors)
-    if fused.mesh_vertices is not None and len(fused.mesh_triangles):
+    if fused.mesh_vertices is not None and fused.mesh_triangles is not None and len(fused.mesh_triangles):
         write_mesh_ply(out / "mesh.ply", fused.mesh_vertices, fused.mesh_triangles, fused.mesh_vertex_colors)
     return fused
 
@@ -326,12 +332,13 @@ class Pipeline:
         overwrite: bool = False,
         executor: Executor | None = None,
         progress: ProgressCallback | None = None,
+        map_fuser: MapFuser | None = None,
     ) -> None:
+        """``map_fuser`` fuses the global map (default: :class:`~fpp_graph.fusion.VoxelMapFuser`
+        from ``config.fusion``)."""
         self.source = source
-        # a source may carry its own defaults (an RGB-D room is metres wide, an FPP scene
-        # centimetres): ``resolve_config(config) -> Config`` is optional on a FrameSource
-        resolve = getattr(source, "resolve_config", None)
-        self.config = resolve(config) if callable(resolve) else config
+        self.config = source.resolve_config(config)
+        self.map_fuser = map_fuser
         self.out = Path(out)
         self.resume = resume
         self.overwrite = overwrite
@@ -364,7 +371,7 @@ class Pipeline:
             write_trajectory_and_graph(out, report.slam, timestamps)
             write_loop_log(out, report.slam)
         with self._timed(report, "fuse"):
-            fused = fuse_map(out, report.slam, store, self.config, self.progress)
+            fused = fuse_map(out, report.slam, store, self.config, self.progress, self.map_fuser)
         with self._timed(report, "plots"):
             before = fuse_points_only(odometry_only_poses(report.slam), report.slam.keyframe_ids, store, max(self.config.fusion.voxel_size_m, 0.002))
             gt = self.source.ground_truth()

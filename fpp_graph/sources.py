@@ -63,6 +63,12 @@ class FrameSource(Protocol):
         """A few facts for the results (sensor, image size, frame count)."""
         ...
 
+    def resolve_config(self, config: Config) -> Config:
+        """The run's configuration for this sensor: ``config`` with the source's own defaults
+        applied (an RGB-D room is metres wide, an FPP scene centimetres), or ``config`` itself
+        when the sensor needs none. Called once, before any frame is loaded."""
+        ...
+
 
 def available_sources() -> dict[str, type]:
     """Registered source classes by name."""

@@ -188,7 +188,12 @@ class Constraint:
 
 @runtime_checkable
 class PairRegistrar(Protocol):
-    """Estimates the relative pose of two frames (the FPP front-end implements it)."""
+    """Estimates the relative pose of two frames (the FPP and RGB-D front-ends implement it).
+
+    The keyframe manager calls ``register(target, source, T_guess, kind=...)`` with ``kind``
+    always given (keyword): ``ODOMETRY`` for a new frame against a recent keyframe, ``LOOP``
+    for a revisit candidate. An implementation that treats both alike still takes the argument.
+    """
 
     def register(
         self,
@@ -199,8 +204,10 @@ class PairRegistrar(Protocol):
     ) -> Constraint:
         """Return a Constraint ``T_target_source``; a rejected one says why, never raises on bad overlap.
 
-        ``kind`` tells the registrar what the pair is for: a loop candidate may deserve stricter
-        verification (look-alike places) than consecutive frames.
+        ``T_guess`` is ``T_target_source`` from the current estimate (None when unknown, e.g. an
+        appearance-only loop candidate). ``kind`` tells the registrar what the pair is for: a
+        loop candidate may deserve stricter verification (look-alike places) than consecutive
+        frames.
         """
         ...
 
@@ -212,28 +219,79 @@ class LoopCandidate:
     query_id: int
     match_id: int
     score: float
-    source: str  # which stage proposed it: "proximity" or "appearance"
+    source: str  # which stage proposed it, e.g. "proximity", "appearance"; "proximity" in it means
+    # the pose estimate is trusted enough to serve as the registration's initial guess
 
 
 @runtime_checkable
 class LoopDetector(Protocol):
-    """Proposes revisit candidates for a new keyframe."""
+    """Proposes revisit candidates for a new keyframe (the keyframe manager verifies them)."""
 
     def add(self, frame: Frame) -> None:
-        """Remember a keyframe so later frames can be matched against it."""
+        """Remember a keyframe so later frames can be matched against it (called once per keyframe,
+        after :meth:`candidates` for that keyframe)."""
         ...
 
     def candidates(
-        self, frame: Frame, poses_world_sensor: Mapping[int, NDArray[np.float64]]
+        self,
+        frame: Frame,
+        poses_world_sensor: Mapping[int, NDArray[np.float64]],
+        position_sigma_m: float = 0.0,
     ) -> Sequence[LoopCandidate]:
-        """Candidates for ``frame`` among remembered keyframes, best first."""
+        """Candidates for ``frame`` among remembered keyframes, best first.
+
+        ``poses_world_sensor`` holds the current estimate of the keyframes that may be matched
+        by position (it may include ``frame.id``); ``position_sigma_m`` is the standard deviation
+        of the query's position relative to its last loop closure (drift), for a proximity gate
+        that widens with it. A detector that does not use positions ignores both.
+        """
         ...
+
+
+@dataclass(frozen=True, eq=False)
+class FusedMap:
+    """A fused global map in the world frame (numpy arrays only: it pickles across processes).
+
+    Attributes
+    ----------
+    points_world_m : (N, 3) float64
+        Map points, metres, world frame (e.g. the weighted mean point of each occupied voxel).
+    colors : (N, 3) float64
+        Colour of each point, RGB in [0, 1].
+    weights : (N,) float64 or None
+        Evidence behind each point (e.g. the number of points that fell in its voxel), if known.
+    mesh_vertices : (V, 3) float64 or None
+        Surface mesh vertices, metres, world frame (None without a mesh).
+    mesh_triangles : (F, 3) int64 or None
+        Vertex indices of each triangle.
+    mesh_vertex_colors : (V, 3) float64 or None
+        Vertex colours, RGB in [0, 1].
+    """
+
+    points_world_m: NDArray[np.float64]
+    colors: NDArray[np.float64]
+    weights: NDArray[np.float64] | None = None
+    mesh_vertices: NDArray[np.float64] | None = None
+    mesh_triangles: NDArray[np.int64] | None = None
+    mesh_vertex_colors: NDArray[np.float64] | None = None
+
+    @property
+    def num_points(self) -> int:
+        return int(self.points_world_m.shape[0])
 
 
 @runtime_checkable
 class MapFuser(Protocol):
-    """Fuses frames under (optimised) poses into a global map."""
+    """Fuses frames under (optimised) poses into a global map, one frame at a time.
 
-    def fuse(self, frames: Sequence[Frame], poses_world_sensor: Mapping[int, NDArray[np.float64]]) -> Any:
-        """Return the fused map (point cloud and/or mesh) in the world frame."""
+    The pipeline streams keyframes from its frame store (a long sequence does not fit in
+    memory at once): ``integrate`` each, then ``result`` once.
+    """
+
+    def integrate(self, frame: Frame, T_world_sensor: NDArray[np.float64]) -> None:
+        """Add one frame's points (``frame.points``, sensor frame) under ``T_world_sensor``."""
+        ...
+
+    def result(self) -> FusedMap:
+        """The map fused so far."""
         ...

@@ -66,6 +66,10 @@ class FppSequenceSource:
         )
         return detect_and_describe(frame, self.config.registration)
 
+    def resolve_config(self, config: Config) -> Config:
+        """The FPP defaults are the packaged ones (an FPP scene is what they describe)."""
+        return config
+
     def make_registrar(self):
         from frontend.registration import FppPairRegistrar, TextureCamera
 

@@ -24,7 +24,7 @@ from fpp_graph.config import config_from_dict
 from fpp_graph.geometry import invert, make_pose, se3_exp
 from fpp_graph.keyframes import KeyframeManager
 from fpp_graph.trajectory import Trajectory, write_tum
-from fpp_graph.types import Constraint, Frame
+from fpp_graph.types import Constraint, ConstraintKind, Frame
 
 
 class NoisyOracleRegistrar:
@@ -34,7 +34,8 @@ class NoisyOracleRegistrar:
         self.truth, self.rng = truth, np.random.default_rng(seed)
         self.sigmas = np.array([sigma_rot] * 3 + [sigma_trans] * 3)
 
-    def register(self, target: Frame, source: Frame, T_guess=None) -> Constraint:
+    def register(self, target: Frame, source: Frame, T_guess=None, kind=ConstraintKind.ODOMETRY) -> Constraint:
+        # the protocol passes kind (odometry or loop); this stand-in verifies both alike
         T_true = invert(self.truth[target.id]) @ self.truth[source.id]
         if np.linalg.norm(Rotation.from_matrix(T_true[:3, :3]).as_rotvec()) > math.radians(45):
             return Constraint.rejected(source.id, target.id, "low overlap (views more than 45 deg apart)")

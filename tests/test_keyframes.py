@@ -13,7 +13,7 @@ from fpp_graph.frame_store import FrameStore, load_frame, save_frame
 from fpp_graph.geometry import invert, make_pose, pose_error, se3_exp
 from fpp_graph.keyframes import KeyframeManager
 from fpp_graph.loop_closure import AppearanceIndex
-from fpp_graph.types import Constraint, Frame
+from fpp_graph.types import Constraint, ConstraintKind, Frame
 
 VIEWS = 13
 ROT_SIGMA = 2e-4  # rad per odometry step
@@ -43,7 +43,7 @@ class MockRegistrar:
         self.broken = {frozenset(p) for p in broken}
         self.calls = 0
 
-    def register(self, target: Frame, source: Frame, T_guess=None) -> Constraint:
+    def register(self, target: Frame, source: Frame, T_guess=None, kind=ConstraintKind.ODOMETRY) -> Constraint:
         self.calls += 1
         T_true = invert(self.poses[target.id]) @ self.poses[source.id]
         angle = np.linalg.norm(Rotation.from_matrix(T_true[:3, :3]).as_rotvec())
@@ -285,8 +285,8 @@ class WrongLoopRegistrar(MockRegistrar):
         super().__init__(poses, rng)
         self.wrong = wrong
 
-    def register(self, target: Frame, source: Frame, T_guess=None) -> Constraint:
-        c = super().register(target, source, T_guess)
+    def register(self, target: Frame, source: Frame, T_guess=None, kind=ConstraintKind.ODOMETRY) -> Constraint:
+        c = super().register(target, source, T_guess, kind)
         if (source.id, target.id) == self.wrong and c.accepted:
             return Constraint(c.source_id, c.target_id, c.T_target_source @ make_pose(translation=[0.03, 0.0, 0.0]), c.information,
                               fitness=0.9, inlier_rmse_m=5e-5, inlier_count=200, overlap=0.6)

@@ -49,6 +49,9 @@ class WallSource:
         frame = synthetic_frames.render_frame(self.scene, self.poses[frame_id], width=480, height=300, frame_id=frame_id, supersampling=1)
         return detect_and_describe(frame, config().registration)
 
+    def resolve_config(self, config):
+        return config
+
     def make_registrar(self):
         from frontend.registration import FppPairRegistrar
 
