@@ -18,9 +18,11 @@ if ! ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; then
   fi
 fi
 
+# Probe each interpreter by running it, quietly: a pyenv shim exists for every version pyenv
+# knows of and fails ("pyenv: python3.13: command not found") when that version is not selected.
 python_bin=""
 for candidate in python3.13 python3.12 python3.11 python3; do
-  if command -v "$candidate" >/dev/null && "$candidate" -c 'import sys; sys.exit(sys.version_info < (3, 11))'; then
+  if "$candidate" -c 'import sys; sys.exit(sys.version_info < (3, 11))' >/dev/null 2>&1; then
     python_bin="$candidate"; break
   fi
 done
