@@ -75,6 +75,7 @@ def optimize_graph(
 ) -> None:
     """Optimise a g2o pose graph: chordal init, LM, robust loops on evidence, certificate."""
     import json
+    import math
     import time
     import typing
 
@@ -127,8 +128,9 @@ def optimize_graph(
         "variance_factor": result.variance_factor,
         "loop_bound": result.loop_bound,
         "certified": None if not certify else (cert is not None and cert.certified),
-        "certificate_min_eigenvalue": None if cert is None else cert.certificate_min_eigenvalue,
-        "suboptimality_bound": None if cert is None else cert.suboptimality_bound,
+        # an undecided certificate (not attempted) has NaN / inf here: JSON null, not NaN/Infinity
+        "certificate_min_eigenvalue": None if cert is None or not math.isfinite(cert.certificate_min_eigenvalue) else cert.certificate_min_eigenvalue,
+        "suboptimality_bound": None if cert is None or not math.isfinite(cert.suboptimality_bound) else cert.suboptimality_bound,
         "certificate_method": None if cert is None else cert.method,
     }
     if as_json:

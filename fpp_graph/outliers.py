@@ -5,6 +5,14 @@ The robust stage may only drop a loop on evidence. The rule (used by
 
 1. **Least squares first.** The graph is solved with every edge (chordal initialisation +
    Levenberg-Marquardt): a graph without outliers comes out exactly as plain gtsam gives it.
+   The one shortcut: when loops are over the bound at the initial values and some loop is
+   refuted by its odometry cycle (below; evidence that does not depend on any solution), the
+   loops are screened again after a few iterations instead of at convergence, so that gross
+   outliers do not make LM crawl through its budget first. Residuals at approximate values alone
+   are no evidence: a clean graph that converges slowly (0.7 rad rotation noise per step) has
+   thousands of loops over the bound after a few iterations. The cycle test is first-order; it
+   counts only where an odometry step's rotation error is small (at such noise true loops show
+   cycle chi-squares in the hundreds).
 2. **The information's scale is measured, not trusted.** Front-ends state information that is
    often too confident by a constant factor (ICP's information ignores correlated depth errors;
    a g2o file may carry any scale). The *variance factor* ``s2`` (the a-posteriori variance
@@ -16,7 +24,10 @@ The robust stage may only drop a loop on evidence. The rule (used by
    errors larger, so the lower quartile stays on true loops while fewer than three in four
    loops are false (a median would break at one in two), and it does not depend on the
    least-squares solution (which outliers bend). It is never taken below 1: the test is never
-   stricter than the information claims.
+   stricter than the information claims. Where the first-order cycle test does not hold (an
+   odometry step's rotation error beyond 0.1 rad at the cycles' scale) the cycles measure
+   nothing; the scale is then the a-posteriori variance factor ``2 cost / redundancy`` of the
+   least-squares residuals (never below 1).
 3. **A family-wise test.** A loop is evidence of an outlier when its whitened squared residual
    at the least-squares solution exceeds ``s2 * chi2_6(1 - alpha / L)`` for ``L`` loops
    (Bonferroni): a graph without outliers sees any loop flagged with probability at most

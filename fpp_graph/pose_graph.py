@@ -68,6 +68,9 @@ _RIGID_ATOL = 1e-5
 _GNC_INNER_RELATIVE_TOL = 1e-6
 #: LM iterations before loops flagged at the initial values are screened again.
 _SCREEN_AGAIN_AFTER = 5
+#: Largest median rotation error (rad, standard deviation at the measured scale) of an odometry
+#: step for which the first-order odometry-cycle test counts as evidence against a loop.
+_CYCLE_LINEAR_STEP_RAD = 0.1
 #: GNC-TLS: growth of the control parameter per round (Yang et al. 2020), most rounds, LM
 #: iterations per round (warm-started), and how close to 0/1 every weight must be to stop.
 _GNC_MU_STEP = 1.4
@@ -162,7 +165,9 @@ class PoseGraphResult:
         factor); NaN for a graph without loops.
     certificate : Certificate or None
         With ``certify``: the global-optimality certificate of the returned poses (its
-        ``suboptimality_bound`` is of their SE-Sync objective).
+        ``suboptimality_bound`` is of their SE-Sync objective). When least squares stopped at
+        its iteration limit the certificate is not attempted: ``certified`` is False, the bound
+        is inf and ``method`` says why.
     """
 
     poses_world_sensor: dict[int, Array]
@@ -514,8 +519,9 @@ class PoseGraph:
         the Cauchy loss on loops with ``robust="cauchy"``), then with ``robust="gnc"`` the
         robust stage of :mod:`fpp_graph.outliers`: only when a loop's residual is evidence of
         an outlier (family-wise chi-square test at the measured information scale) does
-        truncated least squares (GNC) run. A graph without outliers is returned as least
-        squares gives it. Optionally (``remove_inconsistent_loops``) loops still over the bound
+        truncated least squares (GNC) run; residuals are judged at convergence, or after a few
+        iterations when a loop is also refuted by its odometry cycle (gross outliers). A graph
+        without outliers is returned as least squares gives it. Optionally (``remove_inconsistent_loops``) loops still over the bound
         are removed one at a time, worst first, re-solving after each.
 
         Parameters
@@ -535,23 +541,39 @@ class PoseGraph:
         initialized_cost = problem.cost(initial, active)
         log.debug("initial cost %.6g (given), %.6g (%s)", initial_cost, initialized_cost, initialization)
 
-        # The loops are screened early: on a graph with gross outliers LM crawls for its whole
-        # budget (minutes at 10^4 edges) before a screen after it could see them. A clean graph
-        # is flagged at worst at its (approximate) initial values; a few LM iterations clear it.
-        # Loops still flagged go to the robust stage, which ends in least squares over every loop
-        # it cannot refute; otherwise least squares runs to convergence and is screened again.
+        # Early screen: on a graph with gross outliers LM crawls for its whole budget (minutes at
+        # 10^4 edges) before a screen after it could see them, so such a graph goes to the robust
+        # stage after a few iterations. "Gross" is decided by evidence that does not depend on how
+        # far LM got: a loop refuted by its cycle with the odometry (outliers.odometry_cycle_chi2,
+        # over the same family-wise bound). Residuals at approximate values are no such evidence:
+        # a clean graph that converges slowly (a torus with 0.7 rad rotation noise) still has
+        # thousands of loops over the bound after 5 iterations, and GNC started there rejects
+        # true loops. Without a refuted loop, least squares runs to convergence (or its budget)
+        # and the screen there decides, as for a graph that nothing flagged at its start.
         iterations = 0
         values = initial
-        screen = problem.screen(initial, active, cfg, measure_scale=False) if cfg.robust == "gnc" and np.any(problem.is_loop) else None
-        if screen is not None and screen.flagged().size:
-            values, iterations = problem.solve(initial, active, cfg.model_copy(update={"max_iterations": _SCREEN_AGAIN_AFTER}))
-            screen = problem.screen(values, active, cfg)
+        screen = None
+        cycles = None  # solution-independent; computed once for the full edge set
+        if cfg.robust == "gnc" and np.any(problem.is_loop):
+            screen = problem.screen(initial, active, cfg, measure_scale=False)
+            if screen.flagged().size:
+                cycles = problem.cycle_check(active)
+                refuted = problem.refuted_by_cycles(cycles, len(screen.loop_index), cfg)
+                if refuted.size:
+                    log.info("%d loop(s) refuted by their odometry cycle: screening again after %d iterations",
+                             refuted.size, _SCREEN_AGAIN_AFTER)
+                    values, iterations = problem.solve(initial, active, cfg.model_copy(update={"max_iterations": _SCREEN_AGAIN_AFTER}))
+                    screen = problem.screen(values, active, cfg, cycles=cycles)
+                else:
+                    log.info("%d loop(s) over the bound at the initial values, none refuted by its odometry cycle: "
+                             "least squares to convergence first", screen.flagged().size)
+                    screen = None
         converged = True
         if screen is None or not screen.flagged().size:
             values, more = problem.solve(values, active, cfg)
             iterations += more
             converged = more < cfg.max_iterations
-            screen = problem.screen(values, active, cfg) if np.any(problem.is_loop) else None
+            screen = problem.screen(values, active, cfg, cycles=cycles) if np.any(problem.is_loop) else None
         rejected: list[int] = []
         if cfg.robust == "gnc" and screen is not None and screen.flagged().size:
             log.info("%d loop edge(s) over the bound at the least-squares solution: truncated least squares",
@@ -567,8 +589,10 @@ class PoseGraph:
         if cfg.certify and not converged:
             # A certificate needs a critical point; far from one its Newton refinement and the
             # staircase cost minutes and decide nothing (seen on a torus with 0.7 rad noise).
-            log.warning("least squares stopped at its %d-iteration limit without converging: not certified "
-                        "(raise pose_graph.max_iterations)", cfg.max_iterations)
+            reason = (f"not attempted: least squares stopped at its {cfg.max_iterations}-iteration limit "
+                      "without converging (not a critical point); raise pose_graph.max_iterations")
+            log.warning("%s", reason)
+            certificate = self._undecided(problem, values, active, reason)
         elif cfg.certify:
             values, certificate, more = self._certified(problem, values, active, cfg)
             iterations += more
@@ -628,6 +652,19 @@ class PoseGraph:
         returned = sesync_objective(kept, poses)
         bound = certificate.suboptimality_bound + max(0.0, returned - certificate.objective)
         return values, replace(certificate, suboptimality_bound=bound), iterations
+
+    def _undecided(self, problem: _Problem, values: gtsam.Values, active: NDArray[np.bool_], reason: str) -> Certificate:
+        """A certificate that decides nothing: not certified, bound unknown (inf), ``reason`` as method."""
+        from fpp_graph.certificate import NUMERICAL_FLOOR, RELATIVE_SUBOPTIMALITY, Certificate
+
+        poses = _poses_from(values, self._poses)
+        F = sesync_objective(self._kept_graph(problem, active), poses)
+        return Certificate(
+            certified=False, certificate_min_eigenvalue=math.nan, spectral_gap=math.nan, suboptimality_bound=math.inf,
+            objective=F, input_objective=F, poses_world_sensor=poses, seconds=0.0, escaped=False, method=reason,
+            eta=math.nan, relative_suboptimality=RELATIVE_SUBOPTIMALITY, numerical_floor=NUMERICAL_FLOOR,
+            gradient_norm=math.nan,
+        )
 
     @staticmethod
     def _kept_graph(problem: _Problem, active: NDArray[np.bool_]) -> PoseGraph:
@@ -917,22 +954,65 @@ class _Problem:
         )
         return CycleCheck(idx[check.loop_index], check.chi2)
 
+    def cycle_step_rad(self, cycles: CycleCheck) -> float:
+        """Median rotation error (rad, standard deviation) of an odometry step at the scale the
+        cycles show: the first-order cycle test is accurate only where it is small."""
+        odometry = self.model_information[~self.is_loop]
+        if not len(odometry):
+            return 0.0
+        rotation_variance = np.linalg.eigvalsh(np.linalg.inv(odometry)[:, :3, :3])[:, -1]
+        return math.sqrt(cycles.measured_scale() * float(np.median(rotation_variance)))
+
+    def refuted_by_cycles(self, cycles: CycleCheck, num_loops: int, cfg: PoseGraphConfig) -> NDArray[np.int64]:
+        """Loops refuted by their odometry cycle: evidence against them that no solution enters.
+
+        A loop is refuted when its cycle's chi-square exceeds the family-wise bound at the scale
+        the cycles show (:meth:`~fpp_graph.outliers.CycleCheck.measured_scale`, below 1 when the
+        information is conservative: the same scale GNC's start uses). The test propagates the
+        odometry's covariance to first order; it is evidence only where that is accurate, i.e.
+        where an odometry step's rotation error at that scale is small (:meth:`cycle_step_rad`
+        at most ``_CYCLE_LINEAR_STEP_RAD``; the neglected second-order terms are about half the
+        angle relative to the first-order ones). Beyond it (a torus with 0.7 rad rotation noise
+        per step) true loops show cycle chi-squares in the hundreds, and nothing is refuted.
+        """
+        step_rad = self.cycle_step_rad(cycles)
+        if step_rad > _CYCLE_LINEAR_STEP_RAD:
+            log.info("odometry steps' rotation error %.2g rad (at the cycles' scale %.3g) is beyond the first-order "
+                     "cycle test: no loop refuted by it", step_rad, cycles.measured_scale())
+            return np.zeros(0, dtype=np.int64)
+        bound = cycles.measured_scale() * family_bound(num_loops, cfg.loop_false_alarm)
+        return cycles.loop_index[cycles.chi2 > bound]
+
     def screen(
-        self, values: gtsam.Values, active: NDArray[np.bool_], cfg: PoseGraphConfig, measure_scale: bool = True
+        self,
+        values: gtsam.Values,
+        active: NDArray[np.bool_],
+        cfg: PoseGraphConfig,
+        measure_scale: bool = True,
+        cycles: CycleCheck | None = None,
     ) -> LoopScreen:
         """The evidence against each active loop at ``values`` (see :mod:`fpp_graph.outliers`).
 
         The information's scale is measured (odometry cycles) only when some loop exceeds the
         bound at unit scale: it can only widen the bound, so otherwise nothing is flagged.
-        ``measure_scale=False`` skips that measurement (a first look at approximate values).
+        ``measure_scale=False`` skips that measurement (a first look at approximate values);
+        ``cycles`` is the odometry-cycle check of ``active`` when already computed. Where the
+        first-order cycle test does not hold (:meth:`refuted_by_cycles`) its scale is not a
+        measurement either; the scale is then the a-posteriori variance factor of the
+        least-squares residuals (``2 cost / redundancy``), never below 1.
         """
         loops = np.flatnonzero(active & self.is_loop)
         unit_bound = family_bound(len(loops), cfg.loop_false_alarm)
         r2 = self.loop_chi2(values, loops)
         if len(loops) == 0 or r2.max() <= unit_bound or not measure_scale:
             return LoopScreen(loops, r2, 1.0, unit_bound, None)
-        cycles = self.cycle_check(active)
-        s2 = cycles.variance_factor()
+        cycles = self.cycle_check(active) if cycles is None else cycles
+        if self.cycle_step_rad(cycles) > _CYCLE_LINEAR_STEP_RAD:
+            redundancy = 6 * (int(np.sum(active)) + len(self.priors) + len(self.anchors) - len(self.given_poses))
+            s2 = max(1.0, 2.0 * self.cost(values, active) / redundancy) if redundancy > 0 else 1.0
+            log.info("odometry cycles beyond first order: variance factor %.3g from the residuals (redundancy %d)", s2, redundancy)
+        else:
+            s2 = cycles.variance_factor()
         log.info("%s", describe_scale(s2, s2 * unit_bound, len(cycles.chi2)))
         return LoopScreen(loops, r2, s2, s2 * unit_bound, cycles)
 

@@ -13,7 +13,7 @@ from fpp_graph.config import PoseGraphConfig
 from fpp_graph.geometry import adjoint, invert, make_pose, se3_exp
 from fpp_graph.outliers import CHI2_6_MEDIAN, family_bound, odometry_cycle_chi2
 from fpp_graph.pose_graph import PoseGraph, sesync_objective
-from fpp_graph.synthetic_graphs import add_false_loops, corridor_trajectory, torus_graph
+from fpp_graph.synthetic_graphs import add_false_loops, corridor_trajectory, torus_graph, torus_graph_high_rotation_noise
 from fpp_graph.types import ConstraintKind
 
 LEAST_SQUARES = PoseGraphConfig(robust="none")
@@ -42,6 +42,21 @@ def test_clean_graph_is_returned_as_least_squares_gives_it(seed):
     assert robust.rejected_loops == [] and robust.removed_loops == []
     assert _pose_gap(robust.poses_world_sensor, reference.poses_world_sensor) < 1e-9
     assert robust.final_cost == pytest.approx(reference.final_cost, rel=1e-9)
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_clean_graph_converging_slowly_is_not_sent_to_the_robust_stage(seed):
+    # 0.7 rad rotation noise per axis: after a few LM iterations many true loops are still far
+    # over the bound, and the first-order odometry-cycle test "refutes" some true loops (both
+    # seeds sent the graph to GNC, which rejected true loops, before the rule required evidence
+    # that no solution enters and that the cycle test can give).
+    graph = torus_graph_high_rotation_noise(60, rng=np.random.default_rng(seed)).graph()
+    config = PoseGraphConfig(noise_model="isotropic")
+    reference = _copy(graph).optimize(config.model_copy(update={"robust": "none"}))
+    result = graph.optimize(config)
+    assert result.rejected_loops == [] and result.inconsistent_loops == []
+    assert result.iterations == reference.iterations
+    assert _pose_gap(result.poses_world_sensor, reference.poses_world_sensor) < 1e-9
 
 
 def test_overconfident_information_keeps_every_true_loop():
