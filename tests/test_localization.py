@@ -1,4 +1,4 @@
-"""DLT localisation (frontend.localization)."""
+"""Localisation (frontend.localization): DLT, photometric refinement, and the map-surface helpers."""
 
 from __future__ import annotations
 
@@ -15,6 +15,11 @@ from frontend.localization import (
     dlt_projection_matrix,
     localize_dlt,
     localize_photometric,
+)
+from frontend.localization.surface import (
+    adaptively_smoothed_along_rays,
+    depth_edge_free_mask,
+    smoothed_along_rays,
 )
 from frontend.registration import FppPairRegistrar, lift_keypoints
 from frontend.synthetic_frames import bumpy_wall_scene, render_frame, wall_pose
@@ -170,8 +175,6 @@ def test_photometric_localisation_bad_input(fringe_triple):
 
 
 def test_smoothing_along_rays_keeps_planes_and_curvature_and_removes_noise():
-    from frontend.localization import _smoothed_along_rays
-
     h, w, f = 120, 160, 200.0
     v, u = np.mgrid[0:h, 0:w].astype(float)
     rays = np.stack([(u - 79.5) / f, (v - 59.5) / f, np.ones_like(u)], axis=2)
@@ -179,7 +182,7 @@ def test_smoothing_along_rays_keeps_planes_and_curvature_and_removes_noise():
     # a tilted plane n . X = d: unchanged (inverse depth is affine in the pixels)
     n, d = np.array([0.3, -0.2, -1.0]) / np.linalg.norm([0.3, -0.2, -1.0]), -0.5
     plane = rays * (d / (rays @ n))[..., None]
-    assert np.max(np.abs(_smoothed_along_rays(plane, 2.0) - plane)[inner]) < 2e-7
+    assert np.max(np.abs(smoothed_along_rays(plane, 2.0) - plane)[inner]) < 2e-7
     # a ball (radius 10 cm, 0.5 m away, 50 px radius in the image): the Gaussian's curvature
     # bias is cancelled by twicing
     c, r = np.array([0.0, 0.0, 0.5]), 0.1
@@ -188,7 +191,7 @@ def test_smoothing_along_rays_keeps_planes_and_curvature_and_removes_noise():
     disc = b**2 - (c @ c - r**2)
     ball = dirs * np.where(disc > 0, b - np.sqrt(np.maximum(disc, 0)), np.nan)[..., None]
     core = (slice(45, 75), slice(65, 95))
-    err = np.linalg.norm(_smoothed_along_rays(ball, 3.0) - ball, axis=2)[core]
+    err = np.linalg.norm(smoothed_along_rays(ball, 3.0) - ball, axis=2)[core]
     z = ball[..., 2]
     ok = np.isfinite(z)
     weight = np.maximum(cv2.GaussianBlur(ok.astype(np.float32), (0, 0), 3.0), 1e-6)
@@ -198,12 +201,12 @@ def test_smoothing_along_rays_keeps_planes_and_curvature_and_removes_noise():
     # noise along the rays: 0.25 mm per pixel -> under 0.1 mm after a 2 px smoothing
     rng = np.random.default_rng(7)
     noisy = plane * (1.0 + rng.normal(0, 0.25e-3 / 0.5, (h, w)))[..., None]
-    resid = np.linalg.norm(_smoothed_along_rays(noisy, 2.0) - plane, axis=2)[inner]
+    resid = np.linalg.norm(smoothed_along_rays(noisy, 2.0) - plane, axis=2)[inner]
     assert np.sqrt(np.mean(resid**2)) < 0.1e-3
     # invalid points stay invalid
     holes = plane.copy()
     holes[50:55, 70:75] = np.nan
-    assert np.all(np.isnan(_smoothed_along_rays(holes, 2.0)[50:55, 70:75]))
+    assert np.all(np.isnan(smoothed_along_rays(holes, 2.0)[50:55, 70:75]))
 
 
 def _rays(h: int, w: int, f: float) -> np.ndarray:
@@ -213,8 +216,6 @@ def _rays(h: int, w: int, f: float) -> np.ndarray:
 
 
 def test_depth_edge_mask_keeps_steep_planes_and_drops_edges_and_holes():
-    from frontend.localization import _depth_edge_free_mask
-
     h, w = 200, 260
     dirs = _rays(h, w, 300.0)
     rng = np.random.default_rng(3)
@@ -224,23 +225,21 @@ def test_depth_edge_mask_keeps_steep_planes_and_drops_edges_and_holes():
     t = -0.15 / (dirs @ n)
     assert np.all(t > 0)
     steep = dirs * (t * (1 + rng.normal(0, 0.25e-3 / 0.5, (h, w))))[..., None]
-    assert _depth_edge_free_mask(steep[..., 2], 5)[inner].mean() > 0.97
+    assert depth_edge_free_mask(steep[..., 2], 5)[inner].mean() > 0.97
     # noise-free: the floor keeps the threshold above zero
-    assert _depth_edge_free_mask((dirs * t[..., None])[..., 2], 5)[inner].mean() > 0.97
+    assert depth_edge_free_mask((dirs * t[..., None])[..., 2], 5)[inner].mean() > 0.97
     # a 20 mm step between two walls at column 130, and a hole: gone within the reach, kept beyond
     z = np.where(np.arange(w)[None, :] < 130, 0.5, 0.52) * np.ones((h, w))
     z = z * (1 + rng.normal(0, 0.25e-3 / 0.5, (h, w)))
     z[60:70, 40:50] = np.nan
-    mask = _depth_edge_free_mask(z, 5)
+    mask = depth_edge_free_mask(z, 5)
     assert not mask[:, 124:136].any()
     assert mask[20:-20, 137:-20].all() and mask[100:-20, 20:118].all()
     assert not mask[60:70, 36:54].any() and not mask[56:74, 40:50].any() and mask[80:90, 40:50].all()
-    assert not _depth_edge_free_mask(np.full((h, w), np.nan), 5).any()
+    assert not depth_edge_free_mask(np.full((h, w), np.nan), 5).any()
 
 
 def test_adaptive_smoothing_is_wide_on_planes_and_narrow_on_relief():
-    from frontend.localization import _adaptively_smoothed_along_rays, _smoothed_along_rays
-
     h, w = 240, 320
     dirs = _rays(h, w, 400.0)
     n = np.array([0.3, -0.2, -1.0]) / np.linalg.norm([0.3, -0.2, -1.0])
@@ -262,8 +261,8 @@ def test_adaptive_smoothing_is_wide_on_planes_and_narrow_on_relief():
     def errors_mm(xyz):
         return 1e3 * (np.linalg.norm(xyz, axis=2) - t)
 
-    narrow, wide = errors_mm(_smoothed_along_rays(noisy, 2.0)), errors_mm(_smoothed_along_rays(noisy, 6.0))
-    out = _adaptively_smoothed_along_rays(noisy, 2.0, 6.0)
+    narrow, wide = errors_mm(smoothed_along_rays(noisy, 2.0)), errors_mm(smoothed_along_rays(noisy, 6.0))
+    out = adaptively_smoothed_along_rays(noisy, 2.0, 6.0)
     adaptive = errors_mm(out)
     rms = lambda e, m: float(np.sqrt(np.mean(e[m] ** 2)))  # noqa: E731
     # on the wall it removes the noise as the wide smoothing does (about half of the narrow one's)

@@ -20,12 +20,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from fpp_graph.errors import InputDataError
-from frontend.localization import (
-    DenseReference,
-    LocalizationResult,
-    localize_dlt,
-    sample_bilinear_clamped,
-)
+from frontend.localization import DenseReference, LocalizationResult, localize_dlt
+from frontend.localization.photometric import sample_bilinear_clamped
 
 log = logging.getLogger(__name__)
 
