@@ -224,6 +224,30 @@ def localize_dlt(
     InputDataError
         Mismatched shapes, non-finite inputs, or a malformed K.
     """
+    X, uv_raw, Km = _checked_dlt_inputs(points_world_m, keypoints_uv, K)
+    n = X.shape[0]
+    dist_arr = np.zeros(0) if dist is None else np.asarray(dist, dtype=np.float64).reshape(-1)
+    if n < 6:
+        return _failed_localization(n, 0)
+    if dist_arr.size and np.any(dist_arr != 0):
+        uv = cv2.undistortPoints(uv_raw.reshape(-1, 1, 2), Km, dist_arr, P=Km).reshape(-1, 2)
+    else:
+        uv = uv_raw
+    best_T, best_count, drawn = _ransac_pose(X, uv, Km, ransac_threshold_px, max_iterations, confidence, rng or np.random.default_rng(0))
+    if best_T is None or best_count < max(6, min_inliers):
+        return _failed_localization(n, drawn)
+    T, inl = _refit_on_inliers(best_T, X, uv, Km, ransac_threshold_px)
+    if refine:
+        T, inl = _refine_reprojection(T, inl, X, uv, uv_raw, Km, dist_arr, ransac_threshold_px)
+    err = _reprojection_errors(T, X, uv, Km)
+    rms = float(np.sqrt(np.mean(err[inl] ** 2))) if inl.any() else float("nan")
+    centre = -T[:3, :3].T @ T[:3, 3]
+    success = bool(inl.sum() >= max(6, min_inliers) and np.all(np.isfinite(T)))
+    return LocalizationResult(T, centre, inl, rms, drawn, success)
+
+
+def _checked_dlt_inputs(points_world_m: NDArray, keypoints_uv: NDArray, K: NDArray) -> tuple[Array, Array, Array]:
+    """``(X, uv, K)`` as float64 arrays, or :class:`InputDataError` saying which one is malformed."""
     X = np.asarray(points_world_m, dtype=np.float64)
     uv_raw = np.asarray(keypoints_uv, dtype=np.float64)
     Km = np.asarray(K, dtype=np.float64)
@@ -233,61 +257,70 @@ def localize_dlt(
         raise InputDataError(f"localize_dlt needs a finite 3x3 K with positive focal lengths, got {Km.tolist()}")
     if not (np.all(np.isfinite(X)) and np.all(np.isfinite(uv_raw))):
         raise InputDataError("localize_dlt: points and keypoints must be finite (drop invalid lifts first)")
+    return X, uv_raw, Km
+
+
+def _failed_localization(n: int, drawn: int) -> LocalizationResult:
+    return LocalizationResult(np.full((4, 4), np.nan), np.full(3, np.nan), np.zeros(n, bool), float("nan"), drawn, False)
+
+
+def _ransac_pose(
+    X: Array, uv: Array, K: Array, threshold_px: float, max_iterations: int, confidence: float, rng: np.random.Generator,
+) -> tuple[Array | None, int, int]:
+    """The 6-point-sample pose (:func:`_sample_pose`) with the most inliers, their count, and the samples
+    drawn (stopping once ``confidence`` says an all-inlier sample has been seen)."""
     n = X.shape[0]
-    dist_arr = np.zeros(0) if dist is None else np.asarray(dist, dtype=np.float64).reshape(-1)
-    nan_pose = np.full((4, 4), np.nan)
-    failed = LocalizationResult(nan_pose, np.full(3, np.nan), np.zeros(n, bool), float("nan"), 0, False)
-    if n < 6:
-        return failed
-    if dist_arr.size and np.any(dist_arr != 0):
-        uv = cv2.undistortPoints(uv_raw.reshape(-1, 1, 2), Km, dist_arr, P=Km).reshape(-1, 2)
-    else:
-        uv = uv_raw
-    rng = rng or np.random.default_rng(0)
     best_count, best_T, drawn, needed = 0, None, 0, max_iterations
     log_fail = math.log(max(1.0 - confidence, 1e-300))
     while drawn < min(needed, max_iterations):
         drawn += 1
         idx = rng.choice(n, 6, replace=False)
         try:
-            T = _sample_pose(X[idx], uv[idx], Km)
+            T = _sample_pose(X[idx], uv[idx], K)
         except (np.linalg.LinAlgError, cv2.error):
             continue
         if not np.all(np.isfinite(T)):
             continue
-        count = int(np.sum(_reprojection_errors(T, X, uv, Km) < ransac_threshold_px))
+        count = int(np.sum(_reprojection_errors(T, X, uv, K) < threshold_px))
         if count > best_count:
             best_count, best_T = count, T
             w = count / n
             p_all = w**6
             # log1p keeps tiny sample-success probabilities from rounding to log(1) = 0
             needed = drawn if p_all >= 1.0 else int(min(max_iterations, math.ceil(log_fail / math.log1p(-p_all)))) if p_all > 0 else max_iterations
-    if best_T is None or best_count < max(6, min_inliers):
-        return LocalizationResult(nan_pose, np.full(3, np.nan), np.zeros(n, bool), float("nan"), drawn, False)
-    inl = _reprojection_errors(best_T, X, uv, Km) < ransac_threshold_px
-    T = decompose_projection(dlt_projection_matrix(X[inl], uv[inl]), Km, X[inl]) if not _near_planar(X[inl]) else best_T
+    return best_T, best_count, drawn
+
+
+def _refit_on_inliers(best_T: Array, X: Array, uv: Array, K: Array, threshold_px: float) -> tuple[Array, NDArray[np.bool_]]:
+    """The DLT refitted on the best sample's inliers, kept when it keeps at least as many of them (a
+    near-planar inlier set keeps the sample's pose), and its inliers."""
+    inl = _reprojection_errors(best_T, X, uv, K) < threshold_px
+    T = decompose_projection(dlt_projection_matrix(X[inl], uv[inl]), K, X[inl]) if not _near_planar(X[inl]) else best_T
     if not np.all(np.isfinite(T)):
         T = best_T
-    new_inl = _reprojection_errors(T, X, uv, Km) < ransac_threshold_px
+    new_inl = _reprojection_errors(T, X, uv, K) < threshold_px
     if new_inl.sum() >= inl.sum():
         inl = new_inl
     else:
         T = best_T
-    if refine:
-        for _ in range(2):
-            rvec, _ = cv2.Rodrigues(T[:3, :3])
-            tvec = T[:3, 3].reshape(3, 1).copy()
-            rvec, tvec = cv2.solvePnPRefineLM(
-                X[inl].reshape(-1, 1, 3), uv_raw[inl].reshape(-1, 1, 2), Km, dist_arr if dist_arr.size else None, rvec, tvec,
-                (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 50, 1e-12),
-            )
-            T = np.eye(4)
-            T[:3, :3] = cv2.Rodrigues(rvec)[0]
-            T[:3, 3] = tvec.ravel()
-            err = _reprojection_errors(T, X, uv, Km)
-            inl = err < ransac_threshold_px
-    err = _reprojection_errors(T, X, uv, Km)
-    rms = float(np.sqrt(np.mean(err[inl] ** 2))) if inl.any() else float("nan")
-    centre = -T[:3, :3].T @ T[:3, 3]
-    success = bool(inl.sum() >= max(6, min_inliers) and np.all(np.isfinite(T)))
-    return LocalizationResult(T, centre, inl, rms, drawn, success)
+    return T, inl
+
+
+def _refine_reprojection(
+    T: Array, inl: NDArray[np.bool_], X: Array, uv: Array, uv_raw: Array, K: Array, dist: Array, threshold_px: float,
+) -> tuple[Array, NDArray[np.bool_]]:
+    """Levenberg-Marquardt on the inliers' reprojection error (the raw keypoints with the lens
+    distortion), twice, the inliers re-selected after each round."""
+    for _ in range(2):
+        rvec, _ = cv2.Rodrigues(T[:3, :3])
+        tvec = T[:3, 3].reshape(3, 1).copy()
+        rvec, tvec = cv2.solvePnPRefineLM(
+            X[inl].reshape(-1, 1, 3), uv_raw[inl].reshape(-1, 1, 2), K, dist if dist.size else None, rvec, tvec,
+            (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 50, 1e-12),
+        )
+        T = np.eye(4)
+        T[:3, :3] = cv2.Rodrigues(rvec)[0]
+        T[:3, 3] = tvec.ravel()
+        err = _reprojection_errors(T, X, uv, K)
+        inl = err < threshold_px
+    return T, inl
