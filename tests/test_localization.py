@@ -272,3 +272,18 @@ def test_adaptive_smoothing_is_wide_on_planes_and_narrow_on_relief():
     assert abs(np.mean(wide[core])) > 0.5
     assert abs(np.mean(adaptive[core])) < 0.01
     assert np.all(np.isnan(out[5:9, 5:9]))
+
+
+def test_clamped_bilinear_sampling_is_exact_on_affine_images_and_clamps_at_the_border():
+    from frontend.localization.photometric import sample_bilinear_clamped
+
+    v, u = np.mgrid[0:40, 0:60].astype(np.float32)
+    image = 3.0 * u - 2.0 * v + 7.0  # bilinear interpolation reproduces an affine image exactly
+    x = np.array([[0.25, 10.5], [58.9, 33.125]], np.float32)
+    y = np.array([[0.75, 20.25], [38.5, 1.0]], np.float32)
+    out = sample_bilinear_clamped(image, x, y)
+    assert out.shape == x.shape and out.dtype == np.float32
+    assert np.allclose(out, 3.0 * x - 2.0 * y + 7.0, atol=1e-3)
+    # outside the image: the nearest inside position (just short of the last column and row)
+    far = sample_bilinear_clamped(image, np.array([-5.0, 500.0]), np.array([-5.0, 500.0]))
+    assert np.allclose(far, [7.0, 3.0 * 58.999 - 2.0 * 38.999 + 7.0], atol=1e-2)
