@@ -57,15 +57,10 @@ from fpp_graph.geometry import invert, pose_error, se3_log  # noqa: E402
 from fpp_graph.types import ConstraintKind, Frame  # noqa: E402
 from frontend.features import match_descriptors  # noqa: E402
 from frontend.fpp_sensor import FppSensor  # noqa: E402
-from frontend.localization import (  # noqa: E402
-    DenseReference,
-    localize_dense,
-    localize_dense_map,
-    localize_dlt,
-    localize_photometric,
-)
+from frontend.localization import DenseReference, localize_dlt, localize_photometric  # noqa: E402
 from frontend.registration import FppPairRegistrar, TextureCamera, lift_keypoints  # noqa: E402
 from frontend.simulator import FppSimulator, load_simulation, look_at_pose  # noqa: E402
+from scripts.experimental.dense_localization import localize_dense, localize_dense_map  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 RENDER_OVERRIDES: dict = {}  # RenderSettings fields set from the command line (--smooth-shading)

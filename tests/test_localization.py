@@ -1,4 +1,4 @@
-"""DLT localisation (frontend.localization)."""
+"""Localisation (frontend.localization): DLT, photometric refinement, and the map-surface helpers."""
 
 from __future__ import annotations
 
@@ -13,12 +13,13 @@ from frontend.localization import (
     DenseReference,
     decompose_projection,
     dlt_projection_matrix,
-    localize_dense,
-    localize_dense_map,
     localize_dlt,
     localize_photometric,
-    shading_corrected_texture,
-    track_affine_photometric,
+)
+from frontend.localization.surface import (
+    adaptively_smoothed_along_rays,
+    depth_edge_free_mask,
+    smoothed_along_rays,
 )
 from frontend.registration import FppPairRegistrar, lift_keypoints
 from frontend.synthetic_frames import bumpy_wall_scene, render_frame, wall_pose
@@ -114,68 +115,6 @@ def test_dlt_planar_points_use_pnp_samples():
     assert np.linalg.norm(res.camera_centre_world_m - Tw[:3, 3]) < 1e-3
 
 
-def _smooth_texture(rng, h=240, w=320):
-    img = cv2.GaussianBlur(rng.normal(0, 1, (h, w)).astype(np.float32), (0, 0), 3.0)
-    img = 120 + 60 * img / img.std()
-    return np.clip(img, 0, 255).astype(np.float32)
-
-
-def test_affine_photometric_tracking_recovers_warp_and_gain():
-    rng = np.random.default_rng(4)
-    ref = _smooth_texture(rng)
-    # query = 0.7 * ref seen through an affine warp + 15 grey: q = A p + t
-    A = np.array([[0.85, 0.08], [-0.05, 1.1]])
-    t = np.array([12.3, -7.6])
-    query = cv2.warpAffine(ref, np.hstack([A, t[:, None]]), (320, 240), flags=cv2.INTER_CUBIC) * 0.7 + 15
-    p = np.array([[100, 80], [160, 120], [200, 100], [120, 150]], dtype=float)
-    truth = p @ A.T + t
-    start = truth + rng.uniform(-1.0, 1.0, truth.shape)
-    uv, ok, ncc = track_affine_photometric(ref, query, p, start, np.tile(np.eye(2), (4, 1, 1)), window_px=31)
-    assert ok.all() and np.all(ncc > 0.99)
-    assert np.max(np.linalg.norm(uv - truth, axis=1)) < 0.02
-    with pytest.raises(InputDataError, match="finite 4x4"):
-        localize_dense(np.zeros((240, 320, 3)), ref.astype(np.uint8), query.astype(np.uint8), np.full((4, 4), np.nan), K)
-
-
-def test_dense_localisation_on_synthetic_frames():
-    scene = bumpy_wall_scene(seed=6)
-    Ta, Tb, Tc = wall_pose(-0.08), wall_pose(0.0, 0.01, yaw_deg=2), wall_pose(0.08, roll_deg=2)
-    frames = [render_frame(scene, T, 640, 400, frame_id=i) for i, T in enumerate((Ta, Tb, Tc))]
-    Km = frames[0].metadata["K"]
-    T_init = invert(Tb @ se3_exp(np.array([0.001, -0.001, 0.0, 0.002, 0.001, -0.001])))  # 0.06 deg, 2.4 mm off
-    refs = [DenseReference(frames[i].xyz_map, frames[i].texture, T) for i, T in ((0, Ta), (2, Tc))]
-    for tracker in ("klt", "affine"):
-        res = localize_dense_map(refs, frames[1].texture, T_init, Km, tracker=tracker, max_points=400)
-        assert res.success and res.num_inliers >= 200, tracker
-        assert np.linalg.norm(res.camera_centre_world_m - Tb[:3, 3]) < 5e-4, tracker  # 640x400, 400 corners per frame
-    # one reference whose frame is the world
-    res1 = localize_dense(frames[0].xyz_map, frames[0].texture, frames[1].texture, invert(invert(Ta) @ Tb) @ invert(se3_exp(np.full(6, 5e-4))), Km, max_points=400)
-    assert res1.success
-    assert np.linalg.norm(res1.camera_centre_world_m - (invert(Ta) @ Tb)[:3, 3]) < 5e-4
-
-
-def test_shading_correction_removes_projector_irradiance():
-    # a tilted plane at 0.5 m lit by a projector 0.13 m to the side: texture = albedo * E
-    h, w = 120, 160
-    v, u = np.mgrid[0:h, 0:w].astype(float)
-    rays = np.stack([(u - 79.5) / 200.0, (v - 59.5) / 200.0, np.ones_like(u)], axis=2)
-    n = np.array([0.3, 0.0, -1.0]) / np.linalg.norm([0.3, 0.0, -1.0])
-    depth = -0.5 / (rays @ n)
-    xyz = rays * depth[..., None]
-    proj = np.array([0.13, 0.0, 0.0])
-    to_p = proj - xyz
-    d = np.linalg.norm(to_p, axis=2)
-    E = np.abs(to_p @ n) / d**3
-    albedo = 0.5 + 0.3 * np.sin(u / 7.0) * np.cos(v / 9.0)
-    tex = np.clip(albedo * E / E.max() * 200, 0, 255).astype(np.uint8)
-    out = shading_corrected_texture(tex, xyz, proj).astype(float)
-    inner = (slice(20, -20), slice(20, -20))
-    ratio = out[inner] / albedo[inner]
-    assert np.std(ratio) / np.mean(ratio) < 0.02  # E varies by ~25 % over the image; the quotient by < 2 %
-    with pytest.raises(InputDataError, match="one frame"):
-        shading_corrected_texture(tex[:10], xyz, proj)
-
-
 @pytest.fixture(scope="module")
 def fringe_triple():
     """Three fringe-simulator frames (640x400) of a textured tilted plate with a ball in front:
@@ -236,8 +175,6 @@ def test_photometric_localisation_bad_input(fringe_triple):
 
 
 def test_smoothing_along_rays_keeps_planes_and_curvature_and_removes_noise():
-    from frontend.localization import _smoothed_along_rays
-
     h, w, f = 120, 160, 200.0
     v, u = np.mgrid[0:h, 0:w].astype(float)
     rays = np.stack([(u - 79.5) / f, (v - 59.5) / f, np.ones_like(u)], axis=2)
@@ -245,7 +182,7 @@ def test_smoothing_along_rays_keeps_planes_and_curvature_and_removes_noise():
     # a tilted plane n . X = d: unchanged (inverse depth is affine in the pixels)
     n, d = np.array([0.3, -0.2, -1.0]) / np.linalg.norm([0.3, -0.2, -1.0]), -0.5
     plane = rays * (d / (rays @ n))[..., None]
-    assert np.max(np.abs(_smoothed_along_rays(plane, 2.0) - plane)[inner]) < 2e-7
+    assert np.max(np.abs(smoothed_along_rays(plane, 2.0) - plane)[inner]) < 2e-7
     # a ball (radius 10 cm, 0.5 m away, 50 px radius in the image): the Gaussian's curvature
     # bias is cancelled by twicing
     c, r = np.array([0.0, 0.0, 0.5]), 0.1
@@ -254,7 +191,7 @@ def test_smoothing_along_rays_keeps_planes_and_curvature_and_removes_noise():
     disc = b**2 - (c @ c - r**2)
     ball = dirs * np.where(disc > 0, b - np.sqrt(np.maximum(disc, 0)), np.nan)[..., None]
     core = (slice(45, 75), slice(65, 95))
-    err = np.linalg.norm(_smoothed_along_rays(ball, 3.0) - ball, axis=2)[core]
+    err = np.linalg.norm(smoothed_along_rays(ball, 3.0) - ball, axis=2)[core]
     z = ball[..., 2]
     ok = np.isfinite(z)
     weight = np.maximum(cv2.GaussianBlur(ok.astype(np.float32), (0, 0), 3.0), 1e-6)
@@ -264,12 +201,12 @@ def test_smoothing_along_rays_keeps_planes_and_curvature_and_removes_noise():
     # noise along the rays: 0.25 mm per pixel -> under 0.1 mm after a 2 px smoothing
     rng = np.random.default_rng(7)
     noisy = plane * (1.0 + rng.normal(0, 0.25e-3 / 0.5, (h, w)))[..., None]
-    resid = np.linalg.norm(_smoothed_along_rays(noisy, 2.0) - plane, axis=2)[inner]
+    resid = np.linalg.norm(smoothed_along_rays(noisy, 2.0) - plane, axis=2)[inner]
     assert np.sqrt(np.mean(resid**2)) < 0.1e-3
     # invalid points stay invalid
     holes = plane.copy()
     holes[50:55, 70:75] = np.nan
-    assert np.all(np.isnan(_smoothed_along_rays(holes, 2.0)[50:55, 70:75]))
+    assert np.all(np.isnan(smoothed_along_rays(holes, 2.0)[50:55, 70:75]))
 
 
 def _rays(h: int, w: int, f: float) -> np.ndarray:
@@ -279,8 +216,6 @@ def _rays(h: int, w: int, f: float) -> np.ndarray:
 
 
 def test_depth_edge_mask_keeps_steep_planes_and_drops_edges_and_holes():
-    from frontend.localization import _depth_edge_free_mask
-
     h, w = 200, 260
     dirs = _rays(h, w, 300.0)
     rng = np.random.default_rng(3)
@@ -290,23 +225,21 @@ def test_depth_edge_mask_keeps_steep_planes_and_drops_edges_and_holes():
     t = -0.15 / (dirs @ n)
     assert np.all(t > 0)
     steep = dirs * (t * (1 + rng.normal(0, 0.25e-3 / 0.5, (h, w))))[..., None]
-    assert _depth_edge_free_mask(steep[..., 2], 5)[inner].mean() > 0.97
+    assert depth_edge_free_mask(steep[..., 2], 5)[inner].mean() > 0.97
     # noise-free: the floor keeps the threshold above zero
-    assert _depth_edge_free_mask((dirs * t[..., None])[..., 2], 5)[inner].mean() > 0.97
+    assert depth_edge_free_mask((dirs * t[..., None])[..., 2], 5)[inner].mean() > 0.97
     # a 20 mm step between two walls at column 130, and a hole: gone within the reach, kept beyond
     z = np.where(np.arange(w)[None, :] < 130, 0.5, 0.52) * np.ones((h, w))
     z = z * (1 + rng.normal(0, 0.25e-3 / 0.5, (h, w)))
     z[60:70, 40:50] = np.nan
-    mask = _depth_edge_free_mask(z, 5)
+    mask = depth_edge_free_mask(z, 5)
     assert not mask[:, 124:136].any()
     assert mask[20:-20, 137:-20].all() and mask[100:-20, 20:118].all()
     assert not mask[60:70, 36:54].any() and not mask[56:74, 40:50].any() and mask[80:90, 40:50].all()
-    assert not _depth_edge_free_mask(np.full((h, w), np.nan), 5).any()
+    assert not depth_edge_free_mask(np.full((h, w), np.nan), 5).any()
 
 
 def test_adaptive_smoothing_is_wide_on_planes_and_narrow_on_relief():
-    from frontend.localization import _adaptively_smoothed_along_rays, _smoothed_along_rays
-
     h, w = 240, 320
     dirs = _rays(h, w, 400.0)
     n = np.array([0.3, -0.2, -1.0]) / np.linalg.norm([0.3, -0.2, -1.0])
@@ -328,8 +261,8 @@ def test_adaptive_smoothing_is_wide_on_planes_and_narrow_on_relief():
     def errors_mm(xyz):
         return 1e3 * (np.linalg.norm(xyz, axis=2) - t)
 
-    narrow, wide = errors_mm(_smoothed_along_rays(noisy, 2.0)), errors_mm(_smoothed_along_rays(noisy, 6.0))
-    out = _adaptively_smoothed_along_rays(noisy, 2.0, 6.0)
+    narrow, wide = errors_mm(smoothed_along_rays(noisy, 2.0)), errors_mm(smoothed_along_rays(noisy, 6.0))
+    out = adaptively_smoothed_along_rays(noisy, 2.0, 6.0)
     adaptive = errors_mm(out)
     rms = lambda e, m: float(np.sqrt(np.mean(e[m] ** 2)))  # noqa: E731
     # on the wall it removes the noise as the wide smoothing does (about half of the narrow one's)
@@ -339,3 +272,18 @@ def test_adaptive_smoothing_is_wide_on_planes_and_narrow_on_relief():
     assert abs(np.mean(wide[core])) > 0.5
     assert abs(np.mean(adaptive[core])) < 0.01
     assert np.all(np.isnan(out[5:9, 5:9]))
+
+
+def test_clamped_bilinear_sampling_is_exact_on_affine_images_and_clamps_at_the_border():
+    from frontend.localization.photometric import sample_bilinear_clamped
+
+    v, u = np.mgrid[0:40, 0:60].astype(np.float32)
+    image = 3.0 * u - 2.0 * v + 7.0  # bilinear interpolation reproduces an affine image exactly
+    x = np.array([[0.25, 10.5], [58.9, 33.125]], np.float32)
+    y = np.array([[0.75, 20.25], [38.5, 1.0]], np.float32)
+    out = sample_bilinear_clamped(image, x, y)
+    assert out.shape == x.shape and out.dtype == np.float32
+    assert np.allclose(out, 3.0 * x - 2.0 * y + 7.0, atol=1e-3)
+    # outside the image: the nearest inside position (just short of the last column and row)
+    far = sample_bilinear_clamped(image, np.array([-5.0, 500.0]), np.array([-5.0, 500.0]))
+    assert np.allclose(far, [7.0, 3.0 * 58.999 - 2.0 * 38.999 + 7.0], atol=1e-2)

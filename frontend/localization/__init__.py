@@ -1,0 +1,34 @@
+"""Locating a camera in the map from its texture image: the paper's localisation (eqs. 11-21).
+
+Two steps, each a public function:
+
+- :func:`localize_dlt` (``dlt.py``): DLT on 3D map points and their 2D keypoints, in RANSAC, then
+  Levenberg-Marquardt on the reprojection error.
+- :func:`localize_photometric` (``photometric.py``): direct photometric refinement of that pose
+  against map frames (:class:`DenseReference`) with the FPP texture's shading model.
+
+``surface.py`` holds what the photometric step needs of an organised FPP map: range smoothing
+along the rays, the depth-edge mask, normals and the projector's irradiance.
+"""
+
+from frontend.localization.dlt import (
+    LocalizationResult,
+    decompose_projection,
+    dlt_projection_matrix,
+    localize_dlt,
+)
+from frontend.localization.photometric import (
+    DenseReference,
+    PhotometricLocalizationResult,
+    localize_photometric,
+)
+
+__all__ = [
+    "DenseReference",
+    "LocalizationResult",
+    "PhotometricLocalizationResult",
+    "decompose_projection",
+    "dlt_projection_matrix",
+    "localize_dlt",
+    "localize_photometric",
+]

@@ -1,0 +1,191 @@
+"""Organised FPP maps as surfaces for photometric localisation: range smoothing along the rays,
+depth-edge masks, normals and the projector's irradiance.
+
+An FPP point's range noise (about 0.25 mm per pixel at 1920x1200) moves its projection in another
+view by a good fraction of a pixel; these helpers smooth it without moving planes or (to first
+order) curved relief, and keep pixels whose smoothing would reach across a depth edge out.
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+import math
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from frontend.dense_alignment import cross_rows
+
+log = logging.getLogger(__name__)
+
+Array = NDArray[np.float64]
+
+
+def projector_irradiance(normals: Array, to_projector: Array) -> tuple[Array, Array]:
+    """The FPP texture's shading model: irradiance ``E = cos(theta) / d^2`` of surface points with
+    unit ``normals`` from a projector at ``to_projector`` (point to projector, metres), and
+    ``cos(theta)``; over the last axis, any leading shape."""
+    d = np.linalg.norm(to_projector, axis=-1)
+    cos = np.abs(np.sum(normals * to_projector, axis=-1)) / d
+    return cos / d**2, cos
+
+
+def _twice_smoothed_inverse_depth(inv_z: NDArray, ok: NDArray[np.bool_], sigma_px: float, den: NDArray | None = None) -> Array:
+    """``2 G(f) - G(G(f))`` of inverse depth by normalised Gaussian convolution over the ``ok`` pixels
+    (``den``: the normalisation ``max(G(ok), 1e-6)`` when the caller has it already)."""
+    if den is None:
+        den = np.maximum(cv2.GaussianBlur(ok.astype(np.float32), (0, 0), sigma_px), np.float32(1e-6))
+
+    def blur(f: Array) -> Array:
+        return cv2.GaussianBlur(np.where(ok, f, 0.0).astype(np.float32), (0, 0), sigma_px).astype(np.float64) / den
+
+    once = blur(inv_z)
+    return 2.0 * once - blur(once)
+
+
+def smoothed_along_rays(xyz_map: Array, sigma_px: float) -> Array:
+    """Organised points moved along their rays to a smoothed depth, without the smoothing's bias.
+
+    Inverse depth is smoothed (normalised Gaussian convolution over the valid pixels): on a plane
+    it is affine in the pixel coordinates, so a plane stays exactly where it is. On a curved
+    surface a Gaussian of variance s^2 shifts it by s^2/2 times its Laplacian; "twicing"
+    (``2 G(f) - G(G(f))``) cancels that term (a doll frame with exact points: plain smoothing puts
+    the located camera 0.029 mm off, twicing 0.012 mm, the raw exact points 0.013 mm).
+
+    ``xyz_map`` is (H, W, 3) float64, metres in its sensor frame, NaN where invalid; ``sigma_px`` the
+    Gaussian's standard deviation in pixels. Returns (H, W, 3), NaN where the input is invalid."""
+    return xyz_map * smoothing_scale(xyz_map[..., 2], sigma_px)[..., None]
+
+
+def smoothing_scale(depth_m: Array, sigma_px: float) -> Array:
+    """The factor ``smoothed depth / depth`` of :func:`smoothed_along_rays` per pixel (NaN where invalid):
+    callers that need a few pixels scale just those (the full (H, W, 3) product costs ~0.1 s)."""
+    z = depth_m
+    ok = np.isfinite(z)
+    inv_z = np.where(ok, 1.0 / np.where(ok, z, 1.0), 0.0)
+    twice = _twice_smoothed_inverse_depth(inv_z, ok, sigma_px)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return 1.0 / (twice * np.where(ok, z, np.nan))
+
+
+@functools.lru_cache(maxsize=16)
+def _smoother_noise_gains(small_px: float, large_px: float) -> tuple[float, float, float]:
+    """White-noise gains (L2 norms) of the twicing kernels k_s, k_l: ``||delta - k_s||``,
+    ``||k_s - k_l||`` and ``||G_l * (k_s - k_l)||`` (numerically, from an impulse)."""
+    n = 2 * int(math.ceil(10.0 * large_px)) + 1
+    impulse = np.zeros((n, n))
+    impulse[n // 2, n // 2] = 1.0
+    ok = np.ones((n, n), bool)
+    k_small = _twice_smoothed_inverse_depth(impulse, ok, small_px)
+    k_large = _twice_smoothed_inverse_depth(impulse, ok, large_px)
+    diff = k_small - k_large
+    diff_averaged = cv2.GaussianBlur(diff.astype(np.float32), (0, 0), large_px).astype(np.float64)
+    return float(np.linalg.norm(impulse - k_small)), float(np.linalg.norm(diff)), float(np.linalg.norm(diff_averaged))
+
+
+def adaptively_smoothed_along_rays(xyz_map: Array, small_px: float, large_px: float, kappa: float = 3.0) -> Array:
+    """:func:`smoothed_along_rays` with ``large_px`` wherever the data cannot tell it from ``small_px``, else ``small_px``.
+
+    A plane is exact under either width, and the range noise left falls as 1/width, so walls want
+    the wide one; on curved relief (a doll's arm) the wide one keeps a bias that the twicing does
+    not cancel, small per pixel but the same over thousands of pixels, which is what moves a pose.
+    The test (a Lepski-type choice of bandwidth) therefore looks at the two estimates'
+    difference averaged over the wide window, where noise cancels and a bias does not: the wide one
+    is used where that average, and the pixel's own difference, stay within ``kappa`` standard
+    deviations of what noise alone gives. The noise level is local (the variance of the raw
+    inverse depth about the narrow estimate over the wide window): it changes with range and albedo.
+    On 12 simulated corridor frames located against their two neighbours (start 0.5 mm off the
+    truth) it took the median camera-centre error from 0.058 to 0.045 mm on its own.
+
+    ``xyz_map`` (H, W, 3) metres, NaN where invalid; ``small_px``, ``large_px`` the two widths in
+    pixels. Returns (H, W, 3), NaN where the input is invalid.
+    """
+    return xyz_map * adaptive_smoothing_scale(xyz_map[..., 2], small_px, large_px, kappa)[..., None]
+
+
+def adaptive_smoothing_scale(depth_m: Array, small_px: float, large_px: float, kappa: float = 3.0) -> Array:
+    """The per-pixel factor of :func:`adaptively_smoothed_along_rays` (as :func:`smoothing_scale`)."""
+    z = depth_m
+    ok = np.isfinite(z)
+    inv_z = np.where(ok, 1.0 / np.where(ok, z, 1.0), 0.0)
+    # the wide smoother and the local means below share one normalisation
+    den = np.maximum(cv2.GaussianBlur(ok.astype(np.float32), (0, 0), large_px), np.float32(1e-6))
+    narrow = _twice_smoothed_inverse_depth(inv_z, ok, small_px)
+    wide = _twice_smoothed_inverse_depth(inv_z, ok, large_px, den)
+    gain_residual, gain_difference, gain_averaged = _smoother_noise_gains(float(small_px), float(large_px))
+
+    def local_mean(f: Array) -> Array:
+        return cv2.GaussianBlur(np.where(ok, f, 0.0).astype(np.float32), (0, 0), large_px).astype(np.float64) / den
+
+    sigma_pixel = np.sqrt(local_mean((inv_z - narrow) ** 2)) / gain_residual  # raw inverse-depth noise
+    difference = wide - narrow
+    with np.errstate(invalid="ignore"):
+        use_wide = (
+            ok
+            & (np.abs(local_mean(difference)) < kappa * gain_averaged * sigma_pixel)
+            & (np.abs(difference) < kappa * gain_difference * sigma_pixel)
+        )
+    smoothed = np.where(use_wide, wide, narrow)
+    log.debug("adaptive range smoothing: %.0f%% of %d pixels at %.1f px, the rest at %.1f px", 100.0 * use_wide.sum() / max(int(ok.sum()), 1), int(ok.sum()), large_px, small_px)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return 1.0 / (smoothed * np.where(ok, z, np.nan))
+
+
+def depth_edge_free_mask(depth_m: NDArray, reach_px: int, kappa: float = 8.0, relative_floor: float = 1e-4) -> NDArray[np.bool_]:
+    """Valid pixels farther than ``reach_px`` from a depth edge or an invalid pixel.
+
+    A depth edge is a second difference of inverse depth along a row or a column above ``kappa``
+    robust standard deviations of the frame's second differences (or ``relative_floor`` of the
+    median inverse depth, for noise-free maps). A plane at any slant has none (its inverse depth is
+    affine in the pixels), so tilted walls and a turntable's table stay in; the window depth-span
+    test this replaces dropped every surface tilted beyond about 70 degrees and kept pixels whose
+    smoothing reached across an edge (12 simulated doll frames located against their two
+    neighbours, start 0.5 mm off the truth: median camera-centre error 0.072 -> 0.022 mm on its own).
+
+    ``depth_m`` is (H, W), metres, NaN where invalid; returns (H, W) bool.
+    """
+    z = np.asarray(depth_m, dtype=np.float32)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv_z = np.float32(1.0) / z
+    finite = np.isfinite(inv_z) & (z > 0)
+    if not finite.any():
+        return finite
+    d2u = np.full(z.shape, np.nan, np.float32)
+    d2v = np.full(z.shape, np.nan, np.float32)
+    for d2, ahead, here, behind in ((d2u[:, 1:-1], inv_z[:, 2:], inv_z[:, 1:-1], inv_z[:, :-2]), (d2v[1:-1], inv_z[2:], inv_z[1:-1], inv_z[:-2])):
+        np.add(ahead, behind, out=d2)  # in place: full-size temporaries cost more than the arithmetic
+        d2 -= here
+        d2 -= here
+    sample = np.abs(np.concatenate([d2u[::3].ravel(), d2v[:, ::3].ravel()]))
+    sample = sample[np.isfinite(sample)]
+    floor = relative_floor * float(np.median(inv_z[::3, ::3][finite[::3, ::3]])) if finite[::3, ::3].any() else 0.0
+    threshold = max(kappa * 1.4826 * float(np.median(sample)) if sample.size else 0.0, floor)
+    with np.errstate(invalid="ignore"):
+        smooth = finite & (np.abs(d2u) < threshold) & (np.abs(d2v) < threshold)  # NaN (border, holes) fails
+    r = max(1, int(reach_px))
+    return cv2.erode(smooth.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))) > 0
+
+
+def organised_normals_at(xyz_map: NDArray, flat_index: NDArray, step_px: int, scale: NDArray | None = None) -> Array:
+    """Unit normals (N, 3) of an organised map at some pixels (``flat_index`` into the H x W grid), of
+    ``xyz_map * scale[..., None]`` when a per-pixel ``scale`` is given: central differences ``step_px``
+    pixels apart along u and v, NaN within ``step_px`` of the border or next to an invalid point.
+    Their sign is arbitrary (callers use ``|n . d|``)."""
+    xyz = np.asarray(xyz_map, dtype=np.float64)
+    H, W = xyz.shape[:2]
+    k = int(step_px)
+    r, c = np.divmod(np.asarray(flat_index, dtype=np.int64), W)
+    inside = (c >= k) & (c < W - k) & (r >= k) & (r < H - k)
+    r, c = np.clip(r, k, max(k, H - k - 1)), np.clip(c, k, max(k, W - k - 1))
+    def at(rows: NDArray, cols: NDArray) -> Array:
+        return xyz[rows, cols] if scale is None else xyz[rows, cols] * scale[rows, cols][:, None]
+
+    du = at(r, np.minimum(c + k, W - 1)) - at(r, c - k)
+    dv = at(np.minimum(r + k, H - 1), c) - at(r - k, c)
+    n = cross_rows(du, dv).T
+    with np.errstate(invalid="ignore", divide="ignore"):
+        n /= np.linalg.norm(n, axis=1, keepdims=True)
+    n[~inside] = np.nan
+    return n
