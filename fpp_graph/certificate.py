@@ -68,6 +68,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
+from scipy.sparse.csgraph import connected_components
 from numpy.typing import ArrayLike, NDArray
 
 from fpp_graph.errors import GraphError
@@ -306,26 +307,28 @@ def data_from_graph(graph: PoseGraph, poses: Mapping[int, ArrayLike] | None = No
     edges = graph.edges()
     if not edges:
         raise GraphError("certify: the graph has no edges; there is nothing to certify (add relative-pose edges)")
-    current = graph.poses() if poses is None else poses
-    keys = np.array(sorted(graph.poses()), dtype=np.int64)
-    missing = [int(k) for k in keys if int(k) not in current]
+    graph_poses = graph.poses()
+    current = graph_poses if poses is None else poses
+    keys = np.array(sorted(graph_poses), dtype=np.int64)
+    missing = [k for k in keys.tolist() if k not in current]
     if missing:
         raise GraphError(f"certify: no pose given for key(s) {missing[:10]}; pass a pose for every pose of the graph")
-    parts = connected_parts(keys.tolist(), (e.pair for e in edges))
-    if len(parts) > 1:
+    ends = np.array([(e.target_id, e.source_id) for e in edges], dtype=np.int64)
+    target, source = np.searchsorted(keys, ends).T  # edges join poses of the graph: all found
+    n = len(keys)
+    adjacency = sp.coo_matrix((np.ones(len(edges)), (target, source)), shape=(n, n))
+    if connected_components(adjacency, directed=False)[0] > 1:
+        parts = connected_parts(keys.tolist(), (e.pair for e in edges))
         sizes = ", ".join(f"{len(p)} poses from {p[0]}" for p in parts[:5])
         raise GraphError(
             f"certify: the edges split the graph into {len(parts)} parts ({sizes}); the certificate needs "
             "one connected graph: certify each part as its own subgraph"
         )
-    index = {int(k): n for n, k in enumerate(keys)}
     T = _stacked_poses(current, keys)
-    target = np.array([index[e.target_id] for e in edges])
-    source = np.array([index[e.source_id] for e in edges])
-    M_ts = np.stack([e.T_target_source for e in edges])
-    tau, kappa = sesync_tau_kappa(np.stack([e.information_rot_trans for e in edges]))
+    M_ts = np.array([e.T_target_source for e in edges], dtype=np.float64)
+    tau, kappa = sesync_tau_kappa(np.array([e.information_rot_trans for e in edges], dtype=np.float64))
     fixed = graph.fixed_poses()
-    anchor = index[fixed[0]] if fixed else 0
+    anchor = int(np.searchsorted(keys, fixed[0])) if fixed else 0
     data = build_data(keys, target, source, M_ts[:, :3, :3], M_ts[:, :3, 3], tau, kappa, grounded=anchor)
     return data, T, anchor
 
@@ -333,7 +336,7 @@ def data_from_graph(graph: PoseGraph, poses: Mapping[int, ArrayLike] | None = No
 def _stacked_poses(poses: Mapping[int, ArrayLike], keys: NDArray[np.int64]) -> Array:
     """(n, 4, 4) rigid transforms in ``keys`` order, validated at once (rotations projected)."""
     try:
-        T = np.stack([np.asarray(poses[int(k)], dtype=np.float64) for k in keys])
+        T = np.stack([np.asarray(poses[k], dtype=np.float64) for k in keys.tolist()])
     except ValueError:
         shapes = {int(k): np.shape(poses[int(k)]) for k in keys if np.shape(poses[int(k)]) != (4, 4)}
         raise GraphError(f"certify: poses must be 4x4 matrices; got shapes {dict(list(shapes.items())[:5])}") from None
@@ -497,6 +500,8 @@ class _CertificateMatrix:
         eigenvalues : (k,)
             Ascending.
         eigenvectors : (3n, k)
+            Only when they may be needed for an escape: (3n, 0) when ``psd`` from the sparse
+            path.
         """
         lu, negatives = self.negative_count(-eta)
         if self.size <= _DENSE_EIGEN_SIZE or lu is None or negatives < 0:
@@ -522,6 +527,10 @@ class _CertificateMatrix:
         op = spla.LinearOperator((self.size, self.size), matvec=self.matvec, dtype=np.float64)
         inverse = spla.LinearOperator((self.size, self.size), matvec=solve, dtype=np.float64)
         v0 = np.random.default_rng(0).standard_normal(self.size)  # deterministic results
+        if psd:  # no escape follows: the eigenvectors (ARPACK's costly extraction) are not needed
+            w = spla.eigsh(op, k=k, sigma=sigma, which="LM", OPinv=inverse, v0=v0, tol=1e-10,
+                           return_eigenvectors=False)
+            return psd, np.sort(w), np.empty((self.size, 0))
         w, V = spla.eigsh(op, k=k, sigma=sigma, which="LM", OPinv=inverse, v0=v0, tol=1e-10)
         order = np.argsort(w)
         return psd, w[order], V[:, order]
