@@ -674,7 +674,7 @@ def _newton(
         log.debug("newton (r=%d) iteration %d: F %.15g, |grad| %.3g (stop at %.3g), mu %.3g",
                   r, iterations, F, gradient_norm, _GRADIENT_RTOL * grad_scale, mu)
         if gradient_norm <= _GRADIENT_RTOL * grad_scale:
-            break
+            return X, F, gradient_norm, iterations
         g_free = g[free]
         X_new = None
         # Near convergence the Hessian barely changes: reuse the last factorisation (a chord
