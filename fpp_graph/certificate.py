@@ -21,13 +21,16 @@ Steps of :func:`certify_graph`:
    Schur complement of its grounded translation block, which is positive definite).
 2. Refinement. Chordal + LM minimises GTSAM's log-map cost, whose optimum is ~1e-4 relative away
    from a critical point of ``F``. Damped Riemannian Newton steps on ``(SO(3) x R^3)^n`` (exact
-   Hessian, polar retraction, one sparse factorisation per step) move the poses to a first-order
-   critical point of ``F``.
+   Hessian assembled edge by edge, polar retraction) move the poses to a first-order critical
+   point of ``F`` (:mod:`fpp_graph.certificate_refinement`). The Hessian is factorised once from
+   a good start (LM's solution): later steps reuse that factorisation (chord steps) while each
+   shrinks the gradient at least tenfold, and factorise afresh otherwise.
 3. Certificate. ``Lambda = SymBlockDiag(Q R^T R)`` (3x3 blocks, closed form) and ``S = Q - Lambda``.
    ``S R^T = 0`` at a critical point, so ``S`` has 3 zero eigenvalues (the rotation gauge). An
    LDL^T inertia count of ``S + eta I`` (negative pivots of the augmented matrix) decides
    ``certified = lambda_min(S) >= -eta``; shift-invert Lanczos (ARPACK) on the same factorisation
-   gives ``lambda_min`` and the eigenvector.
+   gives ``lambda_min``, the spectral gap and the eigenvector (Rayleigh-Ritz with ``S`` refines
+   the eigenvalues to the rounding level of ``S``).
 4. Escape (when not certified). Riemannian staircase: lift ``R`` to ``Y`` in ``St(3, r+1)^n`` by a
    zero row, step along the eigenvector of ``lambda_min`` in the new row (a second-order descent
    direction, backtracked), minimise ``tr(Y Q Y^T)`` on the lifted manifold with the same damped
@@ -69,7 +72,19 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from numpy.typing import ArrayLike, NDArray
+from scipy.sparse.csgraph import connected_components
 
+from fpp_graph.certificate_refinement import (
+    block_diagonal,
+    multipliers,
+    newton,
+    objective,
+    optimal_translations,
+    polar,
+    rotation_blocks,
+    stack_blocks,
+    symmetric_lu,
+)
 from fpp_graph.errors import GraphError
 from fpp_graph.graph_diagnostics import connected_parts
 
@@ -86,23 +101,10 @@ RELATIVE_SUBOPTIMALITY = 1e-6
 NUMERICAL_FLOOR = 1e-11
 #: Default largest rank of the Riemannian staircase (SE-Sync's default r_max is 10).
 MAX_RANK = 8
-#: Newton stops when the Riemannian gradient norm is below this times the gradient scale.
-_GRADIENT_RTOL = 1e-14
-_MAX_NEWTON_ITERATIONS = 100
 #: Matrices of S up to this size are decomposed densely (ARPACK needs k < size).
 _DENSE_EIGEN_SIZE = 30
 #: Eigenpairs computed: the 3 gauge ones and the first non-gauge one (the spectral gap).
 _NUM_EIGENPAIRS = 4
-
-# Generators of so(3): (E_p)_{kc} such that hat(w) = sum_p w_p E_p.
-_SO3_GENERATORS = np.array(
-    [
-        [[0.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]],
-        [[0.0, 0.0, 1.0], [0.0, 0.0, 0.0], [-1.0, 0.0, 0.0]],
-        [[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 0.0]],
-    ]
-)
-
 
 # ----------------------------------------------------------------------------------------------
 # Result
@@ -304,26 +306,28 @@ def data_from_graph(graph: PoseGraph, poses: Mapping[int, ArrayLike] | None = No
     edges = graph.edges()
     if not edges:
         raise GraphError("certify: the graph has no edges; there is nothing to certify (add relative-pose edges)")
-    current = graph.poses() if poses is None else poses
-    keys = np.array(sorted(graph.poses()), dtype=np.int64)
-    missing = [int(k) for k in keys if int(k) not in current]
+    graph_poses = graph.poses()
+    current = graph_poses if poses is None else poses
+    keys = np.array(sorted(graph_poses), dtype=np.int64)
+    missing = [k for k in keys.tolist() if k not in current]
     if missing:
         raise GraphError(f"certify: no pose given for key(s) {missing[:10]}; pass a pose for every pose of the graph")
-    parts = connected_parts(keys.tolist(), (e.pair for e in edges))
-    if len(parts) > 1:
+    ends = np.array([(e.target_id, e.source_id) for e in edges], dtype=np.int64)
+    target, source = np.searchsorted(keys, ends).T  # edges join poses of the graph: all found
+    n = len(keys)
+    adjacency = sp.coo_matrix((np.ones(len(edges)), (target, source)), shape=(n, n))
+    if connected_components(adjacency, directed=False)[0] > 1:
+        parts = connected_parts(keys.tolist(), (e.pair for e in edges))
         sizes = ", ".join(f"{len(p)} poses from {p[0]}" for p in parts[:5])
         raise GraphError(
             f"certify: the edges split the graph into {len(parts)} parts ({sizes}); the certificate needs "
             "one connected graph: certify each part as its own subgraph"
         )
-    index = {int(k): n for n, k in enumerate(keys)}
     T = _stacked_poses(current, keys)
-    target = np.array([index[e.target_id] for e in edges])
-    source = np.array([index[e.source_id] for e in edges])
-    M_ts = np.stack([e.T_target_source for e in edges])
-    tau, kappa = sesync_tau_kappa(np.stack([e.information_rot_trans for e in edges]))
+    M_ts = np.array([e.T_target_source for e in edges], dtype=np.float64)
+    tau, kappa = sesync_tau_kappa(np.array([e.information_rot_trans for e in edges], dtype=np.float64))
     fixed = graph.fixed_poses()
-    anchor = index[fixed[0]] if fixed else 0
+    anchor = int(np.searchsorted(keys, fixed[0])) if fixed else 0
     data = build_data(keys, target, source, M_ts[:, :3, :3], M_ts[:, :3, 3], tau, kappa, grounded=anchor)
     return data, T, anchor
 
@@ -331,7 +335,7 @@ def data_from_graph(graph: PoseGraph, poses: Mapping[int, ArrayLike] | None = No
 def _stacked_poses(poses: Mapping[int, ArrayLike], keys: NDArray[np.int64]) -> Array:
     """(n, 4, 4) rigid transforms in ``keys`` order, validated at once (rotations projected)."""
     try:
-        T = np.stack([np.asarray(poses[int(k)], dtype=np.float64) for k in keys])
+        T = np.stack([np.asarray(poses[k], dtype=np.float64) for k in keys.tolist()])
     except ValueError:
         shapes = {int(k): np.shape(poses[int(k)]) for k in keys if np.shape(poses[int(k)]) != (4, 4)}
         raise GraphError(f"certify: poses must be 4x4 matrices; got shapes {dict(list(shapes.items())[:5])}") from None
@@ -355,104 +359,6 @@ def _stacked_poses(poses: Mapping[int, ArrayLike], keys: NDArray[np.int64]) -> A
 
 
 # ----------------------------------------------------------------------------------------------
-# Objective, translations, multipliers
-# ----------------------------------------------------------------------------------------------
-def _rotation_blocks(X: Array, n: int) -> Array:
-    """(r, 4n) -> (n, r, 3) blocks Y_i."""
-    r = X.shape[0]
-    return X[:, : 3 * n].reshape(r, n, 3).transpose(1, 0, 2)
-
-
-def _stack_blocks(Y_blocks: Array) -> Array:
-    """(n, r, 3) -> (r, 3n)."""
-    n, r, _ = Y_blocks.shape
-    return Y_blocks.transpose(1, 0, 2).reshape(r, 3 * n)
-
-
-def _residuals(data: SESyncData, X: Array) -> tuple[Array, Array]:
-    """Per-edge residuals ``Y_s - Y_t R_ts`` (m, r, 3) and ``p_s - p_t - Y_t t_ts`` (m, r).
-
-    ``F`` and its gradient are evaluated from residuals, not as ``tr(X M X^T)``: the quadratic
-    form cancels terms of order ``kappa |t|^2`` and loses most digits when ``F`` is small
-    (parking-garage: F = 1.26 against terms of 1e6).
-    """
-    n = data.n
-    Y = _rotation_blocks(X, n)
-    P = X[:, 3 * n :].T
-    Y_t = Y[data.target_index]
-    rot = Y[data.source_index] - Y_t @ data.R_target_source
-    trans = P[data.source_index] - P[data.target_index] - np.einsum("mac,mc->ma", Y_t, data.t_target_source)
-    return rot, trans
-
-
-def objective(data: SESyncData, X: Array) -> float:
-    """SE-Sync's ``F = tr(X M X^T)`` for ``X`` of shape (r, 4n), summed from edge residuals."""
-    rot, trans = _residuals(data, X)
-    return float(data.kappa @ np.einsum("mac,mac->m", rot, rot) + data.tau @ np.einsum("ma,ma->m", trans, trans))
-
-
-def half_gradient(data: SESyncData, X: Array) -> Array:
-    """``X M`` (r, 4n) (half the Euclidean gradient of ``F``), accumulated from edge residuals."""
-    n, r = data.n, X.shape[0]
-    rot, trans = _residuals(data, X)
-    k_rot = data.kappa[:, None, None] * rot
-    t_trans = data.tau[:, None] * trans
-    at_source = k_rot.reshape(len(rot), -1)
-    at_target = -(k_rot @ np.transpose(data.R_target_source, (0, 2, 1))
-                  + np.einsum("ma,mc->mac", t_trans, data.t_target_source)).reshape(len(rot), -1)
-    G_rot = (data.to_source @ at_source + data.to_target @ at_target).reshape(n, r, 3)
-    G_pos = data.to_source @ t_trans - data.to_target @ t_trans  # (n, r)
-    return np.hstack([_stack_blocks(G_rot), G_pos.T])
-
-
-def optimal_translations(data: SESyncData, Y: Array) -> Array:
-    """Positions minimising ``F`` for the rotation part ``Y`` (r, 3n); returns ``X`` (r, 4n)."""
-    n = data.n
-    r = Y.shape[0]
-    keep = np.delete(np.arange(n), data.grounded)
-    M_tR = data.M[3 * n :, : 3 * n][keep]
-    rhs = -(M_tR @ Y.T)  # (n-1, r)
-    T = np.zeros((r, n))
-    T[:, keep] = data.translation_factor.solve(np.ascontiguousarray(rhs)).T
-    return np.hstack([Y, T])
-
-
-def multipliers(data: SESyncData, X: Array) -> Array:
-    """``Lambda_i = sym(Y_i^T (X M)_i)`` (n, 3, 3); with optimal positions ``(X M)_R = (Y Q)``."""
-    XM = half_gradient(data, X)
-    B = np.einsum("nri,nrj->nij", _rotation_blocks(X, data.n), _rotation_blocks(XM, data.n))
-    return 0.5 * (B + B.transpose(0, 2, 1))
-
-
-def _block_diagonal(blocks: Array, size: int) -> sp.csr_matrix:
-    """(n, 3, 3) blocks on the diagonal of a (size x size) sparse matrix."""
-    n = len(blocks)
-    base = 3 * np.arange(n)[:, None, None]
-    e3 = np.arange(3)
-    rows = np.broadcast_to(base + e3[None, :, None], (n, 3, 3)).ravel()
-    cols = np.broadcast_to(base + e3[None, None, :], (n, 3, 3)).ravel()
-    return sp.csr_matrix((blocks.ravel(), (rows, cols)), shape=(size, size))
-
-
-def _symmetric_lu(A: sp.spmatrix) -> tuple[spla.SuperLU | None, int]:
-    """LDL^T-like factorisation (diagonal pivots, symmetric ordering) and its negative-pivot count.
-
-    With diagonal pivoting and the same row and column order, SuperLU's ``U = D L^T``, so by
-    Sylvester's law of inertia the number of negative diagonal entries of ``U`` is the number of
-    negative eigenvalues of ``A``. Returns ``(None, -1)`` when a zero pivot stops the
-    factorisation or the orders differ (the count is then unknown).
-    """
-    try:
-        lu = spla.splu(sp.csc_matrix(A), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
-                       options={"SymmetricMode": True})
-    except RuntimeError:
-        return None, -1
-    if not np.array_equal(lu.perm_r, lu.perm_c):
-        return lu, -1
-    return lu, int(np.count_nonzero(lu.U.diagonal() < 0.0))
-
-
-# ----------------------------------------------------------------------------------------------
 # The certificate matrix S = Q - Lambda
 # ----------------------------------------------------------------------------------------------
 class _CertificateMatrix:
@@ -463,7 +369,7 @@ class _CertificateMatrix:
         self.data = data
         self.size = 3 * n
         keep = np.concatenate([np.arange(3 * n), 3 * n + np.delete(np.arange(n), data.grounded)])
-        self.augmented = (data.M[keep][:, keep] - _block_diagonal(Lambda, len(keep))).tocsc()
+        self.augmented = (data.M[keep][:, keep] - block_diagonal(Lambda, len(keep))).tocsc()
         self._M_RR = self.augmented[: 3 * n, : 3 * n]
         self._M_tR = self.augmented[3 * n :, : 3 * n].tocsr()
         self._M_Rt = self.augmented[: 3 * n, 3 * n :].tocsr()
@@ -483,7 +389,7 @@ class _CertificateMatrix:
 
     def negative_count(self, sigma: float) -> tuple[spla.SuperLU | None, int]:
         """Factorisation of ``S - sigma I`` (augmented) and its number of negative eigenvalues."""
-        return _symmetric_lu(self.shifted(sigma))
+        return symmetric_lu(self.shifted(sigma))
 
     def smallest(self, eta: float, k: int = _NUM_EIGENPAIRS) -> tuple[bool, Array, Array]:
         """Inertia test of ``S + eta I`` and the ``k`` smallest eigenpairs of ``S``.
@@ -520,143 +426,14 @@ class _CertificateMatrix:
         op = spla.LinearOperator((self.size, self.size), matvec=self.matvec, dtype=np.float64)
         inverse = spla.LinearOperator((self.size, self.size), matvec=solve, dtype=np.float64)
         v0 = np.random.default_rng(0).standard_normal(self.size)  # deterministic results
-        w, V = spla.eigsh(op, k=k, sigma=sigma, which="LM", OPinv=inverse, v0=v0, tol=1e-12)
-        order = np.argsort(w)
-        return psd, w[order], V[:, order]
-
-
-# ----------------------------------------------------------------------------------------------
-# Damped Riemannian Newton on (St(3, r) x R^r)^n
-# ----------------------------------------------------------------------------------------------
-def _polar(blocks: Array) -> Array:
-    """Nearest matrices with orthonormal columns, (n, r, 3) -> (n, r, 3) (polar retraction)."""
-    U, _, Vt = np.linalg.svd(blocks, full_matrices=False)
-    return U @ Vt
-
-
-def _tangent_basis(Y_blocks: Array) -> Array:
-    """A basis of the tangent space of St(3, r) at each ``Y_i``: (n, P, r, 3), P = 3 (r - 2).
-
-    ``Y_i E_p`` (rotations within the span of ``Y_i``) and ``N_i[:, m] e_c^T`` with ``N_i`` an
-    orthonormal complement of ``Y_i`` (r x (r-3)).
-    """
-    n, r, _ = Y_blocks.shape
-    rot = np.einsum("nak,pkc->npac", Y_blocks, _SO3_GENERATORS)
-    if r == 3:
-        return rot
-    U = np.linalg.svd(Y_blocks, full_matrices=True)[0]
-    N = U[:, :, 3:]  # (n, r, r-3)
-    normal = np.einsum("nam,cd->nmcad", N, np.eye(3)).reshape(n, 3 * (r - 3), r, 3)
-    return np.concatenate([rot, normal], axis=1)
-
-
-def _newton(
-    data: SESyncData, X: Array, anchor: int, max_iterations: int = _MAX_NEWTON_ITERATIONS
-) -> tuple[Array, float, float, int]:
-    """Minimise ``F`` over ``(St(3, r) x R^r)^n`` from ``X`` (r, 4n): damped Newton, exact Hessian.
-
-    The step solves ``(H + mu I) xi = -g`` in tangent coordinates, with the anchor's coordinates
-    removed (the gauge); ``mu`` starts at 0 (pure Newton, quadratic convergence near a local
-    minimum) and grows until the damped Hessian is positive definite (inertia of its LDL^T) and
-    the step lowers ``F``. The Hessian of the pullback through the (second-order) polar
-    retraction is ``2 J^T (I_r kron (M - blkdiag(Lambda, 0))) J`` (SE-Sync's Hessian formula).
-
-    Returns
-    -------
-    X : (r, 4n)
-    F : float
-    gradient_norm : float
-    iterations : int
-    """
-    n, r = data.n, X.shape[0]
-    P = 3 * (r - 2)
-    size = 4 * n
-    dim = n * P + n * r
-    e3 = np.arange(3)
-    er = np.arange(r)
-    gauge = np.r_[anchor * P + np.arange(P), n * P + anchor * r + er]
-    free = np.setdiff1d(np.arange(dim), gauge)
-    # Translation part of the tangent map is the identity: rows a * 4n + 3n + i, cols nP + i r + a.
-    t_rows = (er[None, :] * size + 3 * n + np.arange(n)[:, None]).ravel()
-    t_cols = (n * P + np.arange(n)[:, None] * r + er[None, :]).ravel()
-    rows_rot = (er[None, None, :, None] * size + 3 * np.arange(n)[:, None, None, None] + e3[None, None, None, :])
-    rows_rot = np.broadcast_to(rows_rot, (n, P, r, 3)).ravel()
-    cols_rot = np.broadcast_to((np.arange(n)[:, None] * P + np.arange(P)[None, :])[:, :, None, None], (n, P, r, 3)).ravel()
-    def coordinates_gradient(X: Array, B: Array) -> Array:
-        G = 2.0 * half_gradient(data, X)
-        return np.r_[np.einsum("nac,npac->np", _rotation_blocks(G, n), B).ravel(), G[:, 3 * n :].T.ravel()]
-
-    def step(X: Array, B: Array, lu: spla.SuperLU, g_free: Array) -> Array | None:
-        """The retracted point of the step solving ``lu`` (None if it leaves SO(3))."""
-        xi = np.zeros(dim)
-        xi[free] = -lu.solve(g_free)
-        Y_new = _polar(_rotation_blocks(X, n) + np.einsum("np,npac->nac", xi[: n * P].reshape(n, P), B))
-        if r == 3 and np.any(np.linalg.det(Y_new) < 0):
-            return None
-        return np.hstack([_stack_blocks(Y_new), X[:, 3 * n :] + xi[n * P :].reshape(n, r).T])
-
-    F = objective(data, X)
-    mu = 0.0
-    previous_lu: spla.SuperLU | None = None  # undamped factorisation of the last step
-    previous_gradient = math.inf
-    iterations = 0
-    for iterations in range(1, max_iterations + 1):  # noqa: B007
-        Y = _rotation_blocks(X, n)
-        B = _tangent_basis(Y)  # (n, P, r, 3)
-        g = coordinates_gradient(X, B)
-        gradient_norm = float(np.linalg.norm(g))
-        grad_scale = data.spectral_scale * math.sqrt(n) * max(1.0, float(np.abs(X[:, 3 * n :]).max()))
-        log.debug("newton (r=%d) iteration %d: F %.15g, |grad| %.3g (stop at %.3g), mu %.3g",
-                  r, iterations, F, gradient_norm, _GRADIENT_RTOL * grad_scale, mu)
-        if gradient_norm <= _GRADIENT_RTOL * grad_scale:
-            break
-        g_free = g[free]
-        X_new = None
-        # Near convergence the Hessian barely changes: reuse the last factorisation (a chord
-        # step, linear convergence at a tiny rate) and save one sparse factorisation.
-        if previous_lu is not None and gradient_norm <= 1e-3 * previous_gradient:
-            X_new = step(X, B, previous_lu, g_free)
-            F_new = objective(data, X_new) if X_new is not None else math.inf
-            if F_new > F + 1e-15 * abs(F):
-                X_new = None
-        previous_gradient = gradient_norm
-        if X_new is None:
-            XM = half_gradient(data, X)
-            Lambda = np.einsum("nri,nrj->nij", Y, _rotation_blocks(XM, n))
-            Lambda = 0.5 * (Lambda + Lambda.transpose(0, 2, 1))
-            S_full = (data.M - _block_diagonal(Lambda, size)).tocsr()
-            J = sp.csr_matrix(
-                (np.r_[B.ravel(), np.ones(n * r)], (np.r_[rows_rot, t_rows], np.r_[cols_rot, t_cols])),
-                shape=(r * size, dim),
-            )
-            H = 2.0 * (J.T @ sp.kron(sp.identity(r, format="csr"), S_full, format="csr") @ J)
-            H = H.tocsr()[free][:, free]
-            H = (0.5 * (H + H.T)).tocsc()
-            h_scale = float(np.abs(H.diagonal()).max())
-            previous_lu = None
-            for _ in range(40):
-                lu, negatives = _symmetric_lu(H + mu * sp.identity(len(free), format="csc") if mu else H)
-                if lu is not None and negatives == 0:
-                    X_new = step(X, B, lu, g_free)
-                    F_new = objective(data, X_new) if X_new is not None else math.inf
-                    if F_new <= F + 1e-15 * abs(F):
-                        previous_lu = lu if mu == 0.0 else None
-                        break
-                    X_new = None
-                mu = max(10.0 * mu, 1e-9 * h_scale)
-            if X_new is None:
-                log.debug("newton (r=%d): no decreasing step at F=%.12g; stopping", r, F)
-                break
-            mu = 0.0 if mu <= 1e-6 * h_scale else mu / 10.0
-        decrease = F - F_new
-        X, F = X_new, F_new
-        if decrease <= 1e-15 * abs(F) and iterations > 1:
-            break
-    g = coordinates_gradient(X, _tangent_basis(_rotation_blocks(X, n)))
-    if iterations == max_iterations:
-        log.warning("newton (r=%d): %d iterations without converging (|grad| %.3g): not a critical point",
-                    r, iterations, float(np.linalg.norm(g)))
-    return X, F, float(np.linalg.norm(g)), iterations
+        _, V = spla.eigsh(op, k=k, sigma=sigma, which="LM", OPinv=inverse, v0=v0, tol=1e-10)
+        # Rayleigh-Ritz with S itself: the shift-inverted values carry the solves' rounding
+        # magnified by 1/eta (a relative error of ~1e-8 on the gap); Rayleigh quotients of the
+        # Ritz vectors are exact to rounding in S (errors quadratic in the vectors').
+        V, _ = np.linalg.qr(V)
+        projected = V.T @ self.matvec(V)
+        w, U = np.linalg.eigh(0.5 * (projected + projected.T))
+        return psd, w, V @ U
 
 
 # ----------------------------------------------------------------------------------------------
@@ -676,7 +453,7 @@ def _escape(data: SESyncData, X: Array, v: Array, eigenvalue: float) -> Array:
     direction[r] = v / np.linalg.norm(v)
     alpha = math.sqrt(n)
     for _ in range(60):
-        Y_try = _stack_blocks(_polar(_rotation_blocks(Y + alpha * direction, n)))
+        Y_try = stack_blocks(polar(rotation_blocks(Y + alpha * direction, n)))
         X_try = optimal_translations(data, Y_try)
         F_try = objective(data, X_try)
         if F_try < F0 - 1e-4 * alpha**2 * abs(eigenvalue) / n:
@@ -697,13 +474,13 @@ def _round(Y: Array, n: int) -> Array:
     """
     w, U = np.linalg.eigh(Y @ Y.T)
     R = U[:, np.argsort(w)[::-1][:3]].T @ Y
-    blocks = _rotation_blocks(R, n)
+    blocks = rotation_blocks(R, n)
     if np.count_nonzero(np.linalg.det(blocks) > 0) < n / 2:
         blocks = blocks * np.array([1.0, 1.0, -1.0])[None, :, None]
     Ub, _, Vt = np.linalg.svd(blocks)
     d = np.sign(np.linalg.det(Ub @ Vt))
     Ub[:, :, 2] *= d[:, None]
-    return _stack_blocks(Ub @ Vt)
+    return stack_blocks(Ub @ Vt)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -748,9 +525,9 @@ def certify_arrays(
     """
     start = time.perf_counter()
     n = data.n
-    X = np.hstack([_stack_blocks(T_world_sensor[:, :3, :3]), T_world_sensor[:, :3, 3].T])
+    X = np.hstack([stack_blocks(T_world_sensor[:, :3, :3]), T_world_sensor[:, :3, 3].T])
     input_F = objective(data, X)
-    X, F, gradient_norm, iterations = _newton(data, X, anchor)
+    X, F, gradient_norm, iterations = newton(data, X, anchor)
     t_refine = time.perf_counter() - start
     eta = _tolerance(data, F, relative_suboptimality, numerical_floor)
     psd, w, V = _certify_point(data, X, eta)
@@ -767,7 +544,7 @@ def certify_arrays(
         while rank < max_rank:
             lifted = _escape(data, lifted, lifted_V[:, 0], lifted_w[0])
             rank += 1
-            lifted, F_lifted, _, steps = _newton(data, lifted, anchor)
+            lifted, F_lifted, _, steps = newton(data, lifted, anchor)
             eta_lifted = _tolerance(data, F_lifted, relative_suboptimality, numerical_floor)
             lifted_psd, lifted_w, lifted_V = _certify_point(data, lifted, eta_lifted)
             log.info("staircase rank %d: F %.12g after %d Newton steps, lambda_min %.3g (%s)",
@@ -775,7 +552,7 @@ def certify_arrays(
             if lifted_psd:
                 break
         candidate = optimal_translations(data, _round(lifted[:, : 3 * n], n))
-        candidate, F_candidate, gradient_candidate, _ = _newton(data, candidate, anchor)
+        candidate, F_candidate, gradient_candidate, _ = newton(data, candidate, anchor)
         method = f"staircase r=3->{rank}"
         relaxation_F = F_lifted
         log.info("staircase: rounded and polished F %.12g, lifted F %.12g (relative difference %.2g)",
@@ -819,7 +596,7 @@ def _poses_in_gauge(X: Array, T_anchor_given: Array, anchor: int, keys: NDArray[
     """4x4 poses from ``X`` (3, 4n), moved rigidly so that the anchor keeps its given pose."""
     n = len(keys)
     T = np.zeros((n, 4, 4))
-    T[:, :3, :3] = _rotation_blocks(X, n)
+    T[:, :3, :3] = rotation_blocks(X, n)
     T[:, :3, 3] = X[:, 3 * n :].T
     T[:, 3, 3] = 1.0
     correction = T_anchor_given @ np.linalg.inv(T[anchor])
