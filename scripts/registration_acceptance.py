@@ -65,7 +65,7 @@ from frontend.localization import (  # noqa: E402
     localize_photometric,
 )
 from frontend.registration import FppPairRegistrar, TextureCamera, lift_keypoints  # noqa: E402
-from frontend.simulator import FppSimulator, load_simulation, look_at_pose  # noqa: E402
+from frontend.sim import FppSimulator, load_simulation, look_at_pose  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 RENDER_OVERRIDES: dict = {}  # RenderSettings fields set from the command line (--smooth-shading)
