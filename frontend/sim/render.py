@@ -177,6 +177,21 @@ class RenderedFrame:
     ground_truth: GroundTruth
 
 
+@dataclass(frozen=True, eq=False)
+class _RayHits:
+    """One pose's camera rays and what they hit (Open3D's answers are per ray, hits or not)."""
+
+    origin: NDArray[np.float64]  # (3,) sensor centre, world frame
+    rays: NDArray[np.float32]  # (H*W, 6) origin and unit direction per camera pixel, world frame
+    index: NDArray[np.intp]  # (n,) flat pixel index of the rays that hit
+    t_hit: NDArray[np.float32]  # (n,) hit distance along those rays, metres
+    normals: NDArray[np.float32]  # (H*W, 3) normal of the hit triangle
+    geometry_ids: NDArray[np.uint32]  # (H*W,)
+    triangle_ids: NDArray[np.uint32]  # (H*W,)
+    bary_uv: NDArray[np.float32]  # (H*W, 2) barycentric (u, v) in the hit triangle
+    projector_centre_world: NDArray[np.float32]  # (3,)
+
+
 class FppSimulator:
     """Renders the pattern images a camera + projector rig captures of a static scene.
 
@@ -252,26 +267,8 @@ class FppSimulator:
             The sensor is inside (or touching) scene geometry.
         """
         T_world_sensor = np.asarray(T_world_sensor, dtype=np.float64)
-        s = self.settings
-        cam, proj = self.calibration.camera, self.calibration.projector
-        H, W = cam.height, cam.width
-        R32 = T_world_sensor[:3, :3].astype(np.float32)
-        origin = T_world_sensor[:3, 3]
-        rays = np.empty((H * W, 6), dtype=np.float32)
-        rays[:, :3] = origin
-        np.matmul(self._rays_camera32, np.ascontiguousarray(R32.T), out=rays[:, 3:])  # contiguous: BLAS path, 25x faster
-        ans = self._raycaster.cast_rays(o3d.core.Tensor(rays))
-        t_all = ans["t_hit"].numpy()
-        index = np.flatnonzero(np.isfinite(t_all))
-        n = index.size
-        t_hit = t_all[index]
-        normals_all = ans["primitive_normals"].numpy()
-        gids = ans["geometry_ids"].numpy()
-        tris_all = ans["primitive_ids"].numpy()
-        bary_all = ans["primitive_uvs"].numpy()
-        c_proj_world = (T_world_sensor[:3, :3] @ self._projector_centre_sensor + origin).astype(np.float32)
-        T_pc32 = self.calibration.T_projector_camera.astype(np.float32)
-
+        hits = self._cast_camera_rays(T_world_sensor)
+        n = hits.index.size
         out = {
             "pts_cam": np.empty((n, 3)),
             "u_p": np.empty(n, np.float32),
@@ -281,68 +278,112 @@ class FppSimulator:
             "albedo": np.empty(n, np.float32),
             "backfacing": np.empty(n, bool),
         }
-
-        def chunk(sl: slice) -> None:
-            idx = index[sl]
-            t = t_hit[sl]
-            d_world = rays[idx, 3:]
-            pts_world = origin.astype(np.float32) + t[:, None] * d_world
-            out["pts_cam"][sl] = t.astype(np.float64)[:, None] * self._rays_camera[idx]
-            nrm = normals_all[idx]
-            back = np.einsum("ij,ij->i", nrm, d_world) > 0
-            nrm[back] *= -1.0  # two-sided surfaces: use the side the camera sees
-            out["backfacing"][sl] = back
-            pts_cam32 = t[:, None] * self._rays_camera32[idx]
-            u_p, v_p, z_p = project_points(proj, T_pc32, pts_cam32)
-            inside = (z_p > 0) & (u_p >= -0.5) & (u_p < proj.width - 0.5) & (v_p >= -0.5) & (v_p < proj.height - 0.5)
-            to_proj = c_proj_world - pts_world
-            dist_p = np.sqrt(np.einsum("ij,ij->i", to_proj, to_proj))
-            cos_p = np.einsum("ij,ij->i", nrm, to_proj) / dist_p
-            cos_shade = cos_p
-            if self._vertex_normals:
-                smooth_n = self._interpolated_normals(gids[idx], tris_all[idx], bary_all[idx], nrm)
-                cos_shade = np.maximum(np.einsum("ij,ij->i", smooth_n, to_proj) / dist_p, np.float32(0.0))
-            lit = inside & (cos_p > s.min_lit_cosine)
-            cand = np.flatnonzero(lit)
-            if cand.size:
-                shadow = np.empty((cand.size, 6), dtype=np.float32)
-                shadow[:, :3] = pts_world[cand] + np.float32(s.shadow_offset_m) * nrm[cand]
-                shadow[:, 3:] = c_proj_world - shadow[:, :3]  # unnormalised: t = 1 at the projector
-                occluded = self._raycaster.test_occlusions(o3d.core.Tensor(shadow), tnear=0.0, tfar=0.999, nthreads=1).numpy().astype(bool)
-                lit[cand[occluded]] = False
-            falloff = (np.float32(s.irradiance_reference_m) / dist_p) ** 2 if s.inverse_square else np.float32(1.0)
-            out["irradiance"][sl] = np.where(lit, np.float32(s.projector_irradiance_grey) * cos_shade * falloff, np.float32(0.0))
-            out["lit"][sl] = lit
-            out["u_p"][sl] = u_p
-            out["v_p"][sl] = v_p
-            g = gids[idx]
-            alb = np.zeros(idx.size, np.float32)
-            present = np.flatnonzero(np.bincount(g, minlength=1))  # only the parts this view sees
-            for gid in present:
-                pi = self._gid_to_part[int(gid)]
-                sel = np.flatnonzero(g == gid)
-                if sel.size:
-                    alb[sel] = self._parts[pi].material.albedo(pts_world[sel], tris_all[idx[sel]].astype(np.int64), bary_all[idx[sel]])
-            out["albedo"][sl] = alb
-
-        self._map(chunk, n)
+        self._map(lambda sl: self._shade_hits(hits, sl, out), n)
         self._check_sensor_outside(out["backfacing"], n, T_world_sensor, where)
+        gt = self._ground_truth_maps(T_world_sensor, hits.index, out)
+        out["index"] = hits.index
+        out["depth"] = out["pts_cam"][:, 2]
+        return gt, out
+
+    def _cast_camera_rays(self, T_world_sensor: NDArray) -> _RayHits:
+        """Cast one ray per camera pixel from the sensor pose into the scene."""
+        cam = self.calibration.camera
+        H, W = cam.height, cam.width
+        R32 = T_world_sensor[:3, :3].astype(np.float32)
+        origin = T_world_sensor[:3, 3]
+        rays = np.empty((H * W, 6), dtype=np.float32)
+        rays[:, :3] = origin
+        np.matmul(self._rays_camera32, np.ascontiguousarray(R32.T), out=rays[:, 3:])  # contiguous: BLAS path, 25x faster
+        ans = self._raycaster.cast_rays(o3d.core.Tensor(rays))
+        t_all = ans["t_hit"].numpy()
+        index = np.flatnonzero(np.isfinite(t_all))
+        return _RayHits(
+            origin=origin,
+            rays=rays,
+            index=index,
+            t_hit=t_all[index],
+            normals=ans["primitive_normals"].numpy(),
+            geometry_ids=ans["geometry_ids"].numpy(),
+            triangle_ids=ans["primitive_ids"].numpy(),
+            bary_uv=ans["primitive_uvs"].numpy(),
+            projector_centre_world=(T_world_sensor[:3, :3] @ self._projector_centre_sensor + origin).astype(np.float32),
+        )
+
+    def _shade_hits(self, hits: _RayHits, sl: slice, out: dict[str, NDArray]) -> None:
+        """Fill ``out[...][sl]`` for the hits ``sl``: camera-frame points, projector pixels, lit
+        mask, projector irradiance (grey levels) and albedo."""
+        s = self.settings
+        proj = self.calibration.projector
+        T_pc32 = self.calibration.T_projector_camera.astype(np.float32)
+        c_proj_world = hits.projector_centre_world
+        idx = hits.index[sl]
+        t = hits.t_hit[sl]
+        d_world = hits.rays[idx, 3:]
+        pts_world = hits.origin.astype(np.float32) + t[:, None] * d_world
+        out["pts_cam"][sl] = t.astype(np.float64)[:, None] * self._rays_camera[idx]
+        nrm = hits.normals[idx]
+        back = np.einsum("ij,ij->i", nrm, d_world) > 0
+        nrm[back] *= -1.0  # two-sided surfaces: use the side the camera sees
+        out["backfacing"][sl] = back
+        pts_cam32 = t[:, None] * self._rays_camera32[idx]
+        u_p, v_p, z_p = project_points(proj, T_pc32, pts_cam32)
+        inside = (z_p > 0) & (u_p >= -0.5) & (u_p < proj.width - 0.5) & (v_p >= -0.5) & (v_p < proj.height - 0.5)
+        to_proj = c_proj_world - pts_world
+        dist_p = np.sqrt(np.einsum("ij,ij->i", to_proj, to_proj))
+        cos_p = np.einsum("ij,ij->i", nrm, to_proj) / dist_p
+        gids, tris, bary = hits.geometry_ids[idx], hits.triangle_ids[idx], hits.bary_uv[idx]
+        cos_shade = cos_p
+        if self._vertex_normals:
+            smooth_n = self._interpolated_normals(gids, tris, bary, nrm)
+            cos_shade = np.maximum(np.einsum("ij,ij->i", smooth_n, to_proj) / dist_p, np.float32(0.0))
+        lit = self._unshadowed(inside & (cos_p > s.min_lit_cosine), pts_world, nrm, c_proj_world)
+        falloff = (np.float32(s.irradiance_reference_m) / dist_p) ** 2 if s.inverse_square else np.float32(1.0)
+        out["irradiance"][sl] = np.where(lit, np.float32(s.projector_irradiance_grey) * cos_shade * falloff, np.float32(0.0))
+        out["lit"][sl] = lit
+        out["u_p"][sl] = u_p
+        out["v_p"][sl] = v_p
+        out["albedo"][sl] = self._albedo_at(gids, tris, bary, pts_world)
+
+    def _unshadowed(self, lit: NDArray, pts_world: NDArray, normals: NDArray, c_proj_world: NDArray) -> NDArray[np.bool_]:
+        """``lit`` without the hits whose shadow ray towards the projector centre meets geometry."""
+        cand = np.flatnonzero(lit)
+        if not cand.size:
+            return lit
+        shadow = np.empty((cand.size, 6), dtype=np.float32)
+        shadow[:, :3] = pts_world[cand] + np.float32(self.settings.shadow_offset_m) * normals[cand]
+        shadow[:, 3:] = c_proj_world - shadow[:, :3]  # unnormalised: t = 1 at the projector
+        occluded = self._raycaster.test_occlusions(o3d.core.Tensor(shadow), tnear=0.0, tfar=0.999, nthreads=1).numpy().astype(bool)
+        lit[cand[occluded]] = False
+        return lit
+
+    def _albedo_at(self, gids: NDArray, tris: NDArray, bary: NDArray, pts_world: NDArray) -> NDArray[np.float32]:
+        """Material albedo at hits on Open3D geometries ``gids``, triangles ``tris``, barycentrics ``bary``."""
+        alb = np.zeros(gids.size, np.float32)
+        present = np.flatnonzero(np.bincount(gids, minlength=1))  # only the parts this view sees
+        for gid in present:
+            pi = self._gid_to_part[int(gid)]
+            sel = np.flatnonzero(gids == gid)
+            if sel.size:
+                alb[sel] = self._parts[pi].material.albedo(pts_world[sel], tris[sel].astype(np.int64), bary[sel])
+        return alb
+
+    def _ground_truth_maps(self, T_world_sensor: NDArray, index: NDArray, shading: dict[str, NDArray]) -> GroundTruth:
+        """Per-pixel ground truth from the per-hit values (``index``: flat pixel of each hit)."""
+        cam = self.calibration.camera
+        H, W = cam.height, cam.width
         xyz = np.full((H * W, 3), np.nan)
-        xyz[index] = out["pts_cam"]
+        xyz[index] = shading["pts_cam"]
         lit_mask = np.zeros(H * W, dtype=bool)
-        lit_mask[index[out["lit"]]] = True
+        lit_mask[index[shading["lit"]]] = True
         albedo = np.zeros(H * W, dtype=np.float32)
-        albedo[index] = out["albedo"]
-        gt = GroundTruth(
+        albedo[index] = shading["albedo"]
+        return GroundTruth(
             T_world_sensor=T_world_sensor.copy(),
             xyz_map_m=xyz.reshape(H, W, 3),
             depth_m=xyz[:, 2].reshape(H, W).copy(),
             lit_mask=lit_mask.reshape(H, W),
             albedo=albedo.reshape(H, W),
         )
-        out["index"] = index
-        out["depth"] = out["pts_cam"][:, 2]
-        return gt, out
 
     def _interpolated_normals(self, gids: NDArray, tris: NDArray, bary: NDArray, face_normals: NDArray) -> NDArray[np.float32]:
         """Vertex normals interpolated at the hits (barycentric ``(u, v)`` of Open3D: weights

@@ -224,6 +224,27 @@ def make_poster(seed: int, width_px: int = 480, height_px: int = 640) -> NDArray
     return cv2.GaussianBlur(img.astype(np.float32) / 255.0, (0, 0), 1.0)
 
 
+def build_corridor(cfg: CorridorConfig) -> tuple[Scene, NDArray, NDArray]:
+    """Corridor scene and the cart trajectory.
+
+    World frame: x along the corridor (0..length), y across (left wall at +width/2), z up,
+    floor at z = 0. The cart drives along the centre line; the sensor looks at the left wall
+    (+y) on "out" passes and at the right wall on "back" passes, at ``wall_distance_m``;
+    between passes it turns in place by ``turn_step_deg`` steps, looking at the end wall
+    midway. Later passes revisit earlier ones (loops); the same poster hangs at several places
+    on both walls (look-alike places).
+    """
+    parts = _corridor_shell(cfg)
+    parts += _door_frames(cfg)
+    parts += _pilasters(cfg)
+    parts += _handrail(cfg)
+    parts += _posters(cfg)
+    parts += _clutter(cfg)
+    scene = Scene(parts)
+    poses = corridor_trajectory(cfg)
+    return scene, poses, np.arange(len(poses)) * cfg.frame_interval_s
+
+
 def _facing(part: SurfacePart, direction: NDArray) -> SurfacePart:
     """Flip a flat part's winding so its front (right-handed normal) points along ``direction``."""
     v0, v1, v2 = part.vertices[part.triangles[0]]
@@ -235,20 +256,15 @@ def _facing(part: SurfacePart, direction: NDArray) -> SurfacePart:
     return part
 
 
-def build_corridor(cfg: CorridorConfig) -> tuple[Scene, NDArray, NDArray]:
-    """Corridor scene and the cart trajectory.
+def _wall_side(cfg: CorridorConfig, side: int) -> tuple[float, float]:
+    """(wall y, sign of +y into the corridor) of the left (``side`` > 0) or right wall."""
+    return (cfg.width_m / 2, -1.0) if side > 0 else (-cfg.width_m / 2, 1.0)
 
-    World frame: x along the corridor (0..length), y across (left wall at +width/2), z up,
-    floor at z = 0. The cart drives along the centre line; the sensor looks at the left wall
-    (+y) on "out" passes and at the right wall on "back" passes, at ``wall_distance_m``;
-    between passes it turns in place by ``turn_step_deg`` steps, looking at the end wall
-    midway. Later passes revisit earlier ones (loops); the same poster hangs at several places
-    on both walls (look-alike places).
-    """
 
+def _corridor_shell(cfg: CorridorConfig) -> list[SurfacePart]:
+    """Floor, ceiling, side walls and end walls, all facing the corridor's inside."""
     L, Wd, Hc = cfg.length_m, cfg.width_m, cfg.height_m
     yl, yr = Wd / 2, -Wd / 2
-    rng = np.random.default_rng(cfg.clutter_seed)
     wall = ProceduralMaterial(base=0.62, contrast=0.45, scale_m=0.05, octaves=4, seed=21)
     wall_r = ProceduralMaterial(base=0.58, contrast=0.5, scale_m=0.045, octaves=4, seed=22)
     parts: list[SurfacePart] = [
@@ -262,17 +278,16 @@ def build_corridor(cfg: CorridorConfig) -> tuple[Scene, NDArray, NDArray]:
     # The shell's faces must face the corridor's inside (the renderer's inside-geometry check
     # counts back faces).
     centre = np.array([L / 2, 0, Hc / 2])
-    parts = [_facing(p, centre - p.vertices[0]) for p in parts]
+    return [_facing(p, centre - p.vertices[0]) for p in parts]
 
-    def wall_side(side: int) -> tuple[float, float]:
-        """(wall y, sign of +y into the corridor)"""
-        return (yl, -1.0) if side > 0 else (yr, 1.0)
 
-    # Door frames (jambs + head protruding from the wall) with a recessed, striped door leaf.
+def _door_frames(cfg: CorridorConfig) -> list[SurfacePart]:
+    """Door frames (jambs + head protruding from the wall) with a recessed, striped door leaf."""
+    parts: list[SurfacePart] = []
     door_mat = ProceduralMaterial(base=0.45, contrast=0.5, scale_m=0.03, seed=31, stripes_m=0.012)
     frame_mat = ProceduralMaterial(base=0.85, contrast=0.25, scale_m=0.02, seed=32)
     for side, x0 in ((1, 2.1), (-1, 3.7)):
-        yw, inward = wall_side(side)
+        yw, inward = _wall_side(cfg, side)
         depth = 0.025
         lo_y, hi_y = sorted([yw, yw + inward * depth])
         parts.append(box(f"door{side}_jamb_a", [x0 - 0.08, lo_y, 0], [x0, hi_y, 2.05], frame_mat))
@@ -283,24 +298,39 @@ def build_corridor(cfg: CorridorConfig) -> tuple[Scene, NDArray, NDArray]:
         parts.append(_facing(quad(f"door{side}_leaf", [x0, leaf_y, 0], [0.85, 0, 0], [0, 0, 2.05], door_mat), np.array([0.0, inward, 0.0])))
         hx = x0 + 0.75
         parts.append(box(f"door{side}_handle", [hx, min(leaf_y, leaf_y + inward * 0.06), 0.98], [hx + 0.12, max(leaf_y, leaf_y + inward * 0.06), 1.01], ProceduralMaterial(base=0.3, contrast=0.2, seed=33)))
-    # Pilasters every ~1.4 m on both walls (geometry that pins the along-corridor position).
+    return parts
+
+
+def _pilasters(cfg: CorridorConfig) -> list[SurfacePart]:
+    """Pilasters every ~1.4 m on both walls (geometry that pins the along-corridor position)."""
+    parts: list[SurfacePart] = []
     for side in (1, -1):
-        yw, inward = wall_side(side)
-        for x in np.arange(0.7 if side > 0 else 1.2, L - 0.3, 1.4):
+        yw, inward = _wall_side(cfg, side)
+        for x in np.arange(0.7 if side > 0 else 1.2, cfg.length_m - 0.3, 1.4):
             if any(abs(x - d) < 1.1 for d in (2.5, 4.1)):
                 continue
             lo_y, hi_y = sorted([yw, yw + inward * 0.06])
-            parts.append(box(f"pilaster{side}_{x:.1f}", [x, lo_y, 0], [x + 0.18, hi_y, Hc], ProceduralMaterial(base=0.7, contrast=0.4, scale_m=0.03, seed=int(40 + 10 * x))))
-    # Handrail on brackets along part of the left wall.
+            parts.append(box(f"pilaster{side}_{x:.1f}", [x, lo_y, 0], [x + 0.18, hi_y, cfg.height_m], ProceduralMaterial(base=0.7, contrast=0.4, scale_m=0.03, seed=int(40 + 10 * x))))
+    return parts
+
+
+def _handrail(cfg: CorridorConfig) -> list[SurfacePart]:
+    """A handrail on brackets along part of the left wall."""
+    yl = cfg.width_m / 2
     rail_mat = ProceduralMaterial(base=0.5, contrast=0.3, scale_m=0.01, seed=51)
-    parts.append(cylinder("handrail", [0.9, yl - 0.07, 0.9], [1.9, yl - 0.07, 0.9], 0.02, rail_mat, resolution=32))
+    parts = [cylinder("handrail", [0.9, yl - 0.07, 0.9], [1.9, yl - 0.07, 0.9], 0.02, rail_mat, resolution=32)]
     for bx in (1.0, 1.8):
         parts.append(box(f"rail_bracket_{bx}", [bx - 0.01, yl - 0.07, 0.86], [bx + 0.01, yl, 0.89], rail_mat))
-    # Posters: "A" repeated (look-alike places), plus unique ones. 2 mm proud of the wall.
+    return parts
+
+
+def _posters(cfg: CorridorConfig) -> list[SurfacePart]:
+    """Posters 2 mm proud of the walls: poster "A" repeated (look-alike places), plus unique ones."""
+    parts: list[SurfacePart] = []
     look_alike = make_poster(1000)
     slots = {1: [1.3, 3.05, 4.9, 5.6], -1: [0.5, 2.0, 4.6, 5.4]}
     for side, xs in slots.items():
-        yw, inward = wall_side(side)
+        yw, inward = _wall_side(cfg, side)
         for i, x in enumerate(xs):
             img = look_alike if i < cfg.poster_repeats else make_poster(2000 + 10 * i + (side > 0))
             y = yw + inward * 0.002
@@ -311,9 +341,16 @@ def build_corridor(cfg: CorridorConfig) -> tuple[Scene, NDArray, NDArray]:
             else:
                 poster = quad(f"poster{side}_{i}", [x + w, y, z0 + h], [-w, 0, 0], [0, 0, -h], image=img)
             parts.append(_facing(poster, np.array([0.0, inward, 0.0])))
-    # Clutter: boxes stacked against the walls, a bin, a radiator, a fire extinguisher.
+    return parts
+
+
+def _clutter(cfg: CorridorConfig) -> list[SurfacePart]:
+    """Boxes stacked against the walls (sizes from ``clutter_seed``), a bin, a radiator, a fire extinguisher."""
+    yl, yr = cfg.width_m / 2, -cfg.width_m / 2
+    rng = np.random.default_rng(cfg.clutter_seed)
+    parts: list[SurfacePart] = []
     for side, x in ((1, 4.2), (-1, 1.4), (-1, 5.0)):
-        yw, inward = wall_side(side)
+        yw, inward = _wall_side(cfg, side)
         z = 0.0
         for k in range(int(rng.integers(2, 4))):
             dx, dy, dz = rng.uniform(0.25, 0.45), rng.uniform(0.2, 0.35), rng.uniform(0.25, 0.4)
@@ -327,9 +364,7 @@ def build_corridor(cfg: CorridorConfig) -> tuple[Scene, NDArray, NDArray]:
     for k in range(14):
         x = 3.3 + 0.05 * k
         parts.append(box(f"radiator_fin_{k}", [x, yr + 0.03, 0.15], [x + 0.03, yr + 0.11, 0.85], rad_mat))
-    scene = Scene(parts)
-    poses = corridor_trajectory(cfg)
-    return scene, poses, np.arange(len(poses)) * cfg.frame_interval_s
+    return parts
 
 
 def corridor_trajectory(cfg: CorridorConfig) -> NDArray[np.float64]:
