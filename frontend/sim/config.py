@@ -29,6 +29,22 @@ def config_error(exc: ValidationError, where: str) -> ConfigError:
     return ConfigError(f"{where}: " + "; ".join(parts))
 
 
+def validate_section(model: type[BaseModel], data: Any, where: str) -> Any:
+    """Validate a config section (empty or ``None`` means all defaults) into ``model``.
+
+    Raises
+    ------
+    ConfigError
+        ``data`` is not a mapping, or a key is unknown or has a bad value.
+    """
+    try:
+        return model(**(data or {}))
+    except ValidationError as exc:
+        raise config_error(exc, where) from None
+    except TypeError as exc:
+        raise ConfigError(f"{where}: {exc}") from None
+
+
 def parse_model(model: type[BaseModel], data: Any, where: str) -> Any:
     """Validate a config section (``None`` means all defaults) into ``model``.
 

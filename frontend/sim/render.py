@@ -39,12 +39,12 @@ import cv2
 import numpy as np
 import open3d as o3d
 from numpy.typing import NDArray
-from pydantic import Field, ValidationError
+from pydantic import Field
 
-from fpp_graph.errors import ConfigError, InputDataError
+from fpp_graph.errors import InputDataError
 from frontend.patterns import PatternSpec, pattern_intensity
 from frontend.rig import PinholeModel, RigCalibration
-from frontend.sim.config import StrictModel, config_error
+from frontend.sim.config import StrictModel, validate_section
 
 
 class RenderSettings(StrictModel):
@@ -510,9 +510,4 @@ class FppSimulator:
 
 def parse_render_settings(data: dict[str, Any] | None, where: str) -> RenderSettings:
     """Validate a ``render:`` config section (unknown keys are errors)."""
-    try:
-        return RenderSettings(**(data or {}))
-    except ValidationError as exc:
-        raise config_error(exc, where) from None
-    except TypeError as exc:
-        raise ConfigError(f"{where}: {exc}") from None
+    return validate_section(RenderSettings, data, where)

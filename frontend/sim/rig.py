@@ -10,12 +10,12 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-from pydantic import Field, ValidationError
+from pydantic import Field
 
 from fpp_graph.errors import ConfigError
 from frontend.patterns import PatternSpec
 from frontend.rig import PinholeModel, RigCalibration
-from frontend.sim.config import StrictModel, config_error
+from frontend.sim.config import StrictModel, validate_section
 from frontend.sim.poses import look_at_rotation, rotation_between
 
 PREVIEW_SIZE = (640, 400)
@@ -122,9 +122,4 @@ def default_pattern_spec() -> PatternSpec:
 
 def parse_rig_parameters(data: dict[str, Any] | None, where: str) -> RigParameters:
     """Validate a ``rig:`` config section (unknown keys are errors)."""
-    try:
-        return RigParameters(**(data or {}))
-    except ValidationError as exc:
-        raise config_error(exc, where) from None
-    except TypeError as exc:
-        raise ConfigError(f"{where}: {exc}") from None
+    return validate_section(RigParameters, data, where)
