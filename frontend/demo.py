@@ -41,7 +41,7 @@ def demo(
     from fpp_graph.config import load_config
     from fpp_graph.run_evaluation import evaluate_results
     from fpp_graph.sources import open_source
-    from frontend.simulator import simulate_sequence
+    from frontend.sim import simulate_sequence
 
     setup_logging("WARNING")
     start = time.perf_counter()
@@ -89,7 +89,7 @@ def simulate_once(name: str, folder: Path, full: bool = False, frames: int | Non
     """Simulate ``scene_definition(name, seed)`` into ``folder`` unless the same one is there already."""
     import json
 
-    from frontend.simulator import simulate_sequence
+    from frontend.sim import simulate_sequence
 
     stamp = folder / "simulated.json"
     wanted = json.dumps({"scene": name, "full": full, "frames": frames, "seed": seed})

@@ -1,6 +1,6 @@
 """Small synthetic FPP-like frames for registration tests and benchmarks (no fringe decoding).
 
-The full virtual sensor (:mod:`frontend.simulator`) renders fringe images that are decoded into
+The full virtual sensor (:mod:`frontend.sim`) renders fringe images that are decoded into
 frames; that is the path accuracy figures of the whole front-end come from. Registration tests
 need something smaller and independent of the decoder: a textured surface ray-cast straight into
 an ``xyz_map`` + ``texture`` :class:`~fpp_graph.types.Frame`, with Gaussian depth noise along the

@@ -21,8 +21,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from frontend import scenes  # noqa: E402
-from frontend.simulator import FppSimulator, default_pattern_spec, default_rig, load_simulation  # noqa: E402
+from frontend.sim import FppSimulator, default_pattern_spec, default_rig, load_simulation, scenes  # noqa: E402
 
 DATASETS = Path(__file__).resolve().parents[1] / "datasets"
 

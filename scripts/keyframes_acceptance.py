@@ -52,7 +52,7 @@ def scene_config(name: str, resolution: str) -> dict:
 
 
 def sequence_dir(name: str, resolution: str) -> Path:
-    from frontend.simulator import simulate_sequence
+    from frontend.sim import simulate_sequence
 
     path = ROOT / "datasets" / "generated" / f"{name}_{resolution}"
     if not (path / "sequence.yaml").exists():

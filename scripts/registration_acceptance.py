@@ -1,6 +1,6 @@
 """Acceptance figures of issue 5 (pairwise registration, rejection, NEES, DLT) on fringe-simulator frames.
 
-Every frame is rendered by :class:`frontend.simulator.FppSimulator` (11 fringe images:
+Every frame is rendered by :class:`frontend.sim.FppSimulator` (11 fringe images:
 4-step phase + complementary Gray code), decoded and triangulated by
 :class:`frontend.fpp_sensor.FppSensor` in memory (no sequence folder is written), from the scene
 definitions ``datasets/turntable.yaml`` (the doll), ``datasets/turntable_bunny.yaml`` and
@@ -59,7 +59,7 @@ from frontend.features import match_descriptors  # noqa: E402
 from frontend.fpp_sensor import FppSensor  # noqa: E402
 from frontend.localization import DenseReference, localize_dlt, localize_photometric  # noqa: E402
 from frontend.registration import FppPairRegistrar, TextureCamera, lift_keypoints  # noqa: E402
-from frontend.simulator import FppSimulator, load_simulation, look_at_pose  # noqa: E402
+from frontend.sim import FppSimulator, load_simulation, look_at_pose  # noqa: E402
 from scripts.experimental.dense_localization import localize_dense, localize_dense_map  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -309,7 +309,7 @@ def corridor_lookalike_poses(frames: SimulatedFrames, offsets: list[tuple[float,
     cfg = frames.setup.config["corridor"]
     yl, yr = cfg["width_m"] / 2, -cfg["width_m"] / 2
     d = cfg["wall_distance_m"]
-    # poster copies (slot x of the left edge, see frontend.scenes.build_corridor): left wall
+    # poster copies (slot x of the left edge, see frontend.sim.build_corridor): left wall
     # 1.3 and 3.05, right wall 0.5 and 2.0; 0.36 x 0.48 m, bottom at 0.72 m
     copies = {1: [1.3 + 0.18, 3.05 + 0.18], -1: [0.5 + 0.18, 2.0 + 0.18]}
     out = []

@@ -25,14 +25,14 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from frontend import scenes  # noqa: E402
 from frontend.fpp_sensor import FppSensor  # noqa: E402
-from frontend.simulator import (  # noqa: E402
+from frontend.sim import (  # noqa: E402
     FppSimulator,
     RenderSettings,
     default_pattern_spec,
     default_rig,
     load_simulation,
+    scenes,
 )
 
 DATASETS = Path(__file__).resolve().parents[1] / "datasets"

@@ -143,7 +143,7 @@ def test_local_cluster_via_cli_matches_process_pool(sequences, config_file, proc
 @pytest.fixture(scope="module")
 def fpp_sequence(tmp_path_factory):
     """Two simulated turntable views, 15 degrees apart, at the 640x400 preview resolution."""
-    simulator = pytest.importorskip("frontend.simulator")
+    simulator = pytest.importorskip("frontend.sim")
     root = tmp_path_factory.mktemp("fpp_in")
     scene = {"scene": "turntable", "turntable": {"turns": 1, "views_per_turn": 24}}
     return simulator.simulate_sequence(scene, root / "turntable", preview=True, max_frames=2)

@@ -119,9 +119,8 @@ def test_dlt_planar_points_use_pnp_samples():
 def fringe_triple():
     """Three fringe-simulator frames (640x400) of a textured tilted plate with a ball in front:
     references left and right of the query, the projector moving with the camera."""
-    from frontend import scenes
     from frontend.fpp_sensor import FppSensor
-    from frontend.simulator import FppSimulator, default_pattern_spec, default_rig, look_at_pose
+    from frontend.sim import FppSimulator, default_pattern_spec, default_rig, look_at_pose, scenes
 
     rig, spec = default_rig(preview=True), default_pattern_spec()
     plane = scenes.plane_scene(0.55, tilt_deg=12.0, albedo=0.6, contrast=0.7)

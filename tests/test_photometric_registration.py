@@ -14,9 +14,8 @@ from frontend.registration import FppPairRegistrar, TextureCamera
 @pytest.fixture(scope="module")
 def wall_pair():
     """Two fringe-simulator frames (640x400) of a textured flat wall, the camera moved along it."""
-    from frontend import scenes
     from frontend.fpp_sensor import FppSensor
-    from frontend.simulator import FppSimulator, default_pattern_spec, default_rig, look_at_pose
+    from frontend.sim import FppSimulator, default_pattern_spec, default_rig, look_at_pose, scenes
 
     rig, spec = default_rig(preview=True), default_pattern_spec()
     scene = scenes.plane_scene(0.55, tilt_deg=12.0, albedo=0.6, contrast=0.7)

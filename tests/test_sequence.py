@@ -11,7 +11,7 @@ from frontend.fpp_sensor import FppSensor
 from frontend.patterns import PatternSpec
 from frontend.rig import PinholeModel, RigCalibration
 from frontend.sequence import SequenceWriter, read_sequence
-from frontend.simulator import default_rig, simulate_sequence
+from frontend.sim import default_rig, simulate_sequence
 
 
 @pytest.fixture

@@ -7,15 +7,28 @@ import pytest
 from conftest import shared_data_path
 
 from fpp_graph.errors import ConfigError, FppError, InputDataError
-from frontend import scenes
 from frontend.fpp_sensor import FppSensor
-from frontend.simulator import (
+from frontend.sim import (
+    CorridorConfig,
     FppSimulator,
+    ProceduralMaterial,
     RenderSettings,
+    Scene,
+    SurfacePart,
+    TurntableConfig,
+    box,
+    build_corridor,
+    build_turntable,
     default_pattern_spec,
     default_rig,
+    frame_overlap,
+    load_mesh,
     load_simulation,
+    make_doll,
+    make_poster,
+    plane_scene,
     project_points,
+    sphere_scene,
 )
 
 
@@ -31,7 +44,7 @@ def spec():
 
 @pytest.fixture(scope="module")
 def plane_capture(rig, spec):
-    sim = FppSimulator(rig, spec, scenes.plane_scene(0.5, tilt_deg=-7.0, albedo=0.8))
+    sim = FppSimulator(rig, spec, plane_scene(0.5, tilt_deg=-7.0, albedo=0.8))
     return sim, sim.render(np.eye(4), frame_index=0)
 
 
@@ -75,7 +88,7 @@ def test_noise_is_reproducible_per_frame_index(plane_capture):
 
 def test_noise_free_settings_give_noise_free_images(rig, spec):
     quiet = RenderSettings(read_noise_grey=0.0, shot_noise_gain=0.0)
-    sim = FppSimulator(rig, spec, scenes.plane_scene(0.5, tilt_deg=-7.0), quiet)
+    sim = FppSimulator(rig, spec, plane_scene(0.5, tilt_deg=-7.0), quiet)
     a, b = sim.render(np.eye(4), 0).images, sim.render(np.eye(4), 5).images
     assert np.array_equal(a, b)
 
@@ -85,7 +98,7 @@ def test_smooth_shading_removes_facets_from_the_texture(rig, spec):
 
     # a coarse white ball: flat triangle normals make the projector's irradiance step at every
     # edge; interpolated normals give a smooth shading over the same geometry
-    ball = scenes.sphere_scene(0.45, radius_m=0.05, resolution=12)
+    ball = sphere_scene(0.45, radius_m=0.05, resolution=12)
     images = {}
     sensor = FppSensor(rig, spec)
     for smooth in (False, True):
@@ -101,9 +114,9 @@ def test_smooth_shading_removes_facets_from_the_texture(rig, spec):
 
 
 def test_occluder_casts_a_projector_shadow(rig, spec):
-    plane = scenes.plane_scene(0.5, tilt_deg=0.0)
-    blocker = scenes.box("blocker", [-0.03, -0.03, 0.38], [0.03, 0.03, 0.42], scenes.ProceduralMaterial())
-    sim = FppSimulator(rig, spec, scenes.Scene(plane.parts + [blocker]))
+    plane = plane_scene(0.5, tilt_deg=0.0)
+    blocker = box("blocker", [-0.03, -0.03, 0.38], [0.03, 0.03, 0.42], ProceduralMaterial())
+    sim = FppSimulator(rig, spec, Scene(plane.parts + [blocker]))
     gt, _ = sim.ground_truth(np.eye(4))
     free, _ = FppSimulator(rig, spec, plane).ground_truth(np.eye(4))
     on_plane = np.abs(gt.depth_m - 0.5) < 1e-3
@@ -117,29 +130,29 @@ def test_occluder_casts_a_projector_shadow(rig, spec):
 
 
 def test_sensor_inside_geometry_is_an_error(rig, spec):
-    cube = scenes.box("cube", [-1, -1, -1], [1, 1, 1], scenes.ProceduralMaterial())
-    sim = FppSimulator(rig, spec, scenes.Scene([cube]))
+    cube = box("cube", [-1, -1, -1], [1, 1, 1], ProceduralMaterial())
+    sim = FppSimulator(rig, spec, Scene([cube]))
     with pytest.raises(InputDataError, match="inside or touching scene geometry"):
         sim.render(np.eye(4))
 
 
 def test_textures_have_contrast_for_keypoints():
     pts = np.random.default_rng(0).uniform(-0.2, 0.2, (20000, 3))
-    a = scenes.ProceduralMaterial(base=0.6, contrast=0.6, scale_m=0.02).albedo(pts)
+    a = ProceduralMaterial(base=0.6, contrast=0.6, scale_m=0.02).albedo(pts)
     assert 0.0 <= a.min() and a.max() <= 1.0
     assert a.std() > 0.08
-    poster = scenes.make_poster(1000)
+    poster = make_poster(1000)
     assert poster.std() > 0.1
-    assert np.array_equal(poster, scenes.make_poster(1000))  # the look-alike poster repeats exactly
-    doll = scenes.make_doll(0.22)
+    assert np.array_equal(poster, make_poster(1000))  # the look-alike poster repeats exactly
+    doll = make_doll(0.22)
     assert len(doll) >= 10
     top = max(p.vertices[:, 2].max() for p in doll)
     assert top == pytest.approx(0.22, abs=0.01)
 
 
 def test_turntable_protocol_trajectory():
-    cfg = scenes.TurntableConfig()
-    scene, poses, stamps = scenes.build_turntable(cfg)
+    cfg = TurntableConfig()
+    scene, poses, stamps = build_turntable(cfg)
     assert poses.shape == (39, 4, 4) and len(stamps) == 39
     np.testing.assert_allclose(poses[13], poses[0], atol=1e-12)  # each turn returns to its start
     np.testing.assert_allclose(poses[26 + 5], poses[5], atol=1e-12)
@@ -155,8 +168,8 @@ def test_turntable_protocol_trajectory():
 
 
 def test_corridor_has_100_frames_overlap_and_revisits(rig, spec):
-    cfg = scenes.CorridorConfig()
-    scene, poses, _ = scenes.build_corridor(cfg)
+    cfg = CorridorConfig()
+    scene, poses, _ = build_corridor(cfg)
     assert len(poses) >= 100
     names = [p.name for p in scene.parts]
     assert sum(n.startswith("poster") for n in names) >= 6 and any("door" in n for n in names)
@@ -166,7 +179,7 @@ def test_corridor_has_100_frames_overlap_and_revisits(rig, spec):
     for k in (2, 8, 30):
         a, _ = sim.ground_truth(poses[k])
         b, _ = sim.ground_truth(poses[k + 1])
-        overlaps.append(scenes.frame_overlap(a.xyz_map_m, poses[k], b.depth_m, poses[k + 1], K))
+        overlaps.append(frame_overlap(a.xyz_map_m, poses[k], b.depth_m, poses[k + 1], K))
     assert 0.2 < np.mean(overlaps) < 0.5
     # A later pass sees the first frame's place again (a loop).
     later = [j for j in range(20, len(poses)) if np.linalg.norm(poses[j][:3, 3] - poses[0][:3, 3]) < 0.05 and poses[j][:3, 2] @ poses[0][:3, 2] > 0.99]
@@ -175,17 +188,17 @@ def test_corridor_has_100_frames_overlap_and_revisits(rig, spec):
 
 def test_mesh_loading_errors(tmp_path):
     with pytest.raises(InputDataError, match="does not exist"):
-        scenes.load_mesh(tmp_path / "missing.ply")
+        load_mesh(tmp_path / "missing.ply")
     garbage = tmp_path / "garbage.ply"
     garbage.write_bytes(b"\x00\x01 not a mesh at all")
     with pytest.raises(InputDataError, match="empty or not a"):
-        scenes.load_mesh(garbage)
+        load_mesh(garbage)
     empty = tmp_path / "empty.ply"
     empty.write_text("ply\nformat ascii 1.0\nelement vertex 0\nproperty float x\nproperty float y\nproperty float z\nelement face 0\nproperty list uchar int vertex_indices\nend_header\n")
     with pytest.raises(InputDataError, match="0 vertices"):
-        scenes.load_mesh(empty)
+        load_mesh(empty)
     with pytest.raises(InputDataError, match="empty"):
-        scenes.SurfacePart("nothing", np.zeros((0, 3)), np.zeros((0, 3), int))
+        SurfacePart("nothing", np.zeros((0, 3)), np.zeros((0, 3), int))
 
 
 def test_config_errors(tmp_path):

@@ -1,4 +1,4 @@
-"""The virtual FPP sensor: a camera + projector rig that renders the fringe images it would capture.
+"""The virtual FPP sensor's renderer: the fringe images a camera + projector rig would capture.
 
 No FPP hardware is attached to this project, so every accuracy figure is measured against this
 simulator. It renders the *raw 8-bit pattern images* (not point clouds): the front-end then
@@ -30,77 +30,24 @@ Units: metres, radians, pixels (pixel-centre convention: pixel ``(u, v)`` is cen
 from __future__ import annotations
 
 import functools
-import logging
 import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import cv2
 import numpy as np
 import open3d as o3d
 from numpy.typing import NDArray
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import Field
 
-from fpp_graph.config import read_yaml_file
-from fpp_graph.errors import ConfigError, InputDataError
+from fpp_graph.errors import InputDataError
 from frontend.patterns import PatternSpec, pattern_intensity
 from frontend.rig import PinholeModel, RigCalibration
-
-log = logging.getLogger(__name__)
-
-PREVIEW_SIZE = (640, 400)
-"""Camera size (width, height) of the preview mode: the default camera binned by 3."""
+from frontend.sim.config import StrictModel, validate_section
 
 
-def _pydantic_to_config_error(exc: ValidationError, where: str) -> ConfigError:
-    parts = []
-    for err in exc.errors():
-        loc = ".".join(str(p) for p in err["loc"])
-        parts.append(f"{loc}: {err['msg']}")
-    return ConfigError(f"{where}: " + "; ".join(parts))
-
-
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-
-class RigParameters(_Strict):
-    """Physical parameters of the simulated rig (defaults after the paper's sensor).
-
-    Camera: Basler acA1920-155uc class (1920x1200, 5.86 um pixels) with a 12 mm lens, so
-    ``f = 12 mm / 5.86 um = 2048 px`` and the field of view at 0.5 m is about 0.47 m x 0.29 m.
-    Projector: TI LightCrafter 4500 class (912x1140 diamond array). Its rows are at half the
-    column pitch, hence ``fy = 2 fx``, and its lens has a 100 % vertical offset (the image lies
-    entirely on one side of the optical axis, ``cy = height``), so it is tilted to light the
-    camera's view. ``fx`` is chosen so that the projected width matches the camera's view at the
-    working distance. The projector sits ``baseline_m`` to the camera's right and is aimed at the
-    point on the camera axis at ``working_distance_m``.
-    """
-
-    camera_width: int = Field(1920, gt=0)
-    camera_height: int = Field(1200, gt=0)
-    camera_focal_px: float = Field(2048.0, gt=0, description="12 mm lens / 5.86 um pixels")
-    camera_principal_offset_px: tuple[float, float] = Field((3.2, -2.7), description="principal point minus image centre")
-    camera_dist: tuple[float, ...] = Field((-0.075, 0.11, 0.0003, -0.0002, 0.0), description="OpenCV k1 k2 p1 p2 k3")
-    projector_width: int = Field(912, gt=0)
-    projector_height: int = Field(1140, gt=0)
-    projector_fx_px: float = Field(920.0, gt=0)
-    projector_fy_px: float = Field(1840.0, gt=0, description="diamond array: rows at half pitch")
-    projector_cx_px: float = 455.5
-    projector_cy_px: float = Field(1139.5, description="100 % offset: the image lies above the axis")
-    projector_dist: tuple[float, ...] = Field((0.02, -0.01, 0.0, 0.0, 0.0), description="OpenCV k1 k2 p1 p2 k3")
-    baseline_m: float = Field(0.13, gt=0)
-    baseline_height_m: float = Field(0.0, description="projector centre below (+) the camera centre")
-    working_distance_m: float = Field(0.5, gt=0, description="where the projector's image centre meets the camera axis")
-
-    def calibration(self, preview: bool = False) -> RigCalibration:
-        """The rig as a :class:`RigCalibration`; ``preview`` bins the camera to 640x400."""
-        return build_rig(self, preview=preview)
-
-
-class RenderSettings(_Strict):
+class RenderSettings(StrictModel):
     """Photometric model of the simulated sensor (grey levels refer to the 8-bit output).
 
     The default noise is that of a machine-vision CMOS camera at moderate gain: read noise
@@ -125,111 +72,6 @@ class RenderSettings(_Strict):
     min_lit_cosine: float = Field(0.02, ge=0, lt=1, description="grazing projector light below this cosine is treated as unlit")
     smooth_shading: bool = Field(False, description="projector irradiance from normals interpolated across each triangle (smooth surfaces) instead of the flat triangle normal (faceted shading)")
     seed: int = Field(0, description="noise seed; frame k uses (seed, k)")
-
-
-def build_rig(params: RigParameters | None = None, preview: bool = False) -> RigCalibration:
-    """Build the camera + projector calibration from physical parameters.
-
-    Parameters
-    ----------
-    params : RigParameters, optional
-        Defaults to the paper-like rig.
-    preview : bool
-        Bin the camera to 640x400 (focal length and principal point scaled, pixel-centre
-        convention kept); the projector is unchanged.
-
-    Returns
-    -------
-    RigCalibration
-        Sensor frame = camera frame; ``T_projector_camera`` maps camera points into the projector.
-    """
-    p = params or RigParameters()
-    w, h = p.camera_width, p.camera_height
-    cx = (w - 1) / 2.0 + p.camera_principal_offset_px[0]
-    cy = (h - 1) / 2.0 + p.camera_principal_offset_px[1]
-    K_c = np.array([[p.camera_focal_px, 0.0, cx], [0.0, p.camera_focal_px, cy], [0.0, 0.0, 1.0]])
-    if preview:
-        s = PREVIEW_SIZE[0] / w
-        if abs(h * s - PREVIEW_SIZE[1]) > 1e-6:
-            raise ConfigError(f"preview binning needs a {PREVIEW_SIZE[0]}:{PREVIEW_SIZE[1]} camera aspect, got {w}x{h}")
-        K_c = K_c.copy()
-        K_c[0, 0] *= s
-        K_c[1, 1] *= s
-        K_c[0, 2] = (K_c[0, 2] + 0.5) * s - 0.5
-        K_c[1, 2] = (K_c[1, 2] + 0.5) * s - 0.5
-        w, h = PREVIEW_SIZE
-    camera = PinholeModel(w, h, K_c, np.array(p.camera_dist, dtype=float))
-    K_p = np.array([[p.projector_fx_px, 0.0, p.projector_cx_px], [0.0, p.projector_fy_px, p.projector_cy_px], [0.0, 0.0, 1.0]])
-    projector = PinholeModel(p.projector_width, p.projector_height, K_p, np.array(p.projector_dist, dtype=float))
-
-    # Aim the projector: the ray through its image centre must meet the camera axis at the
-    # working distance, with the projector's rows kept parallel to the camera's.
-    centre_px = np.array([(p.projector_width - 1) / 2.0, (p.projector_height - 1) / 2.0, 1.0])
-    d_proj = np.linalg.solve(K_p, centre_px)
-    d_proj /= np.linalg.norm(d_proj)
-    c_proj = np.array([p.baseline_m, p.baseline_height_m, 0.0])
-    target = np.array([0.0, 0.0, p.working_distance_m])
-    R_look = _look_at_rotation(target - c_proj, down_hint=np.array([0.0, 1.0, 0.0]))
-    # R_off maps the projector's optical axis onto its image-centre ray d_proj.
-    R_off = _rotation_between(np.array([0.0, 0.0, 1.0]), d_proj)
-    R_camera_projector = R_look @ R_off.T
-    T_camera_projector = np.eye(4)
-    T_camera_projector[:3, :3] = R_camera_projector
-    T_camera_projector[:3, 3] = c_proj
-    T_projector_camera = np.linalg.inv(T_camera_projector)
-    T_projector_camera[3] = [0.0, 0.0, 0.0, 1.0]
-    return RigCalibration(camera=camera, projector=projector, T_projector_camera=T_projector_camera)
-
-
-def default_rig(preview: bool = False) -> RigCalibration:
-    """The paper-like default rig (1920x1200 camera, 912x1140 projector, 0.12 m baseline)."""
-    return build_rig(RigParameters(), preview=preview)
-
-
-def default_pattern_spec() -> PatternSpec:
-    """4-step phase shifting with complementary Gray code, 64 periods (14.25 px pitch) over 912 px."""
-    return PatternSpec(kind="complementary_gray", phase_steps=4, periods=(64,), gray_bits=6, axis="columns")
-
-
-def _look_at_rotation(forward: NDArray, down_hint: NDArray) -> NDArray:
-    """Rotation whose columns are camera x (right), y (down), z (forward) in the parent frame.
-
-    ``down_hint`` is the parent-frame direction that should appear as image "down" (+y).
-    """
-    z = forward / np.linalg.norm(forward)
-    y = down_hint - np.dot(down_hint, z) * z
-    ny = np.linalg.norm(y)
-    if ny < 1e-9:
-        raise ConfigError("look-at direction is parallel to the up hint; choose another viewing direction")
-    y /= ny
-    x = np.cross(y, z)
-    return np.column_stack([x, y, z])
-
-
-def _rotation_between(a: NDArray, b: NDArray) -> NDArray:
-    """Smallest rotation taking unit vector ``a`` to unit vector ``b``."""
-    a = a / np.linalg.norm(a)
-    b = b / np.linalg.norm(b)
-    v = np.cross(a, b)
-    c = float(np.dot(a, b))
-    if np.linalg.norm(v) < 1e-15:
-        return np.eye(3) if c > 0 else -np.eye(3)
-    vx = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
-    return np.eye(3) + vx + vx @ vx * (1.0 / (1.0 + c))
-
-
-def look_at_pose(position_world: NDArray, target_world: NDArray, up_world: NDArray | None = None) -> NDArray[np.float64]:
-    """``T_world_sensor`` of a sensor at ``position_world`` looking at ``target_world``.
-
-    The sensor frame is the camera frame (x right, y down, z forward); ``up_world`` (default
-    +z) appears upwards in the image.
-    """
-    up = np.array([0.0, 0.0, 1.0]) if up_world is None else np.asarray(up_world, float)
-    R = _look_at_rotation(np.asarray(target_world, float) - np.asarray(position_world, float), -up)
-    T = np.eye(4)
-    T[:3, :3] = R
-    T[:3, 3] = position_world
-    return T
 
 
 def camera_ray_directions(camera: PinholeModel) -> NDArray[np.float64]:
@@ -335,6 +177,21 @@ class RenderedFrame:
     ground_truth: GroundTruth
 
 
+@dataclass(frozen=True, eq=False)
+class _RayHits:
+    """One pose's camera rays and what they hit (Open3D's answers are per ray, hits or not)."""
+
+    origin: NDArray[np.float64]  # (3,) sensor centre, world frame
+    rays: NDArray[np.float32]  # (H*W, 6) origin and unit direction per camera pixel, world frame
+    index: NDArray[np.intp]  # (n,) flat pixel index of the rays that hit
+    t_hit: NDArray[np.float32]  # (n,) hit distance along those rays, metres
+    normals: NDArray[np.float32]  # (H*W, 3) normal of the hit triangle
+    geometry_ids: NDArray[np.uint32]  # (H*W,)
+    triangle_ids: NDArray[np.uint32]  # (H*W,)
+    bary_uv: NDArray[np.float32]  # (H*W, 2) barycentric (u, v) in the hit triangle
+    projector_centre_world: NDArray[np.float32]  # (3,)
+
+
 class FppSimulator:
     """Renders the pattern images a camera + projector rig captures of a static scene.
 
@@ -344,7 +201,7 @@ class FppSimulator:
         The rig (its camera size is the rendered image size).
     spec : PatternSpec
         The projected pattern set; ``spec.image_count()`` images per frame, in capture order.
-    scene : frontend.scenes.Scene
+    scene : frontend.sim.scenes.Scene
         Triangle meshes with materials, world frame, metres.
     settings : RenderSettings, optional
     full_resolution_width : int, optional
@@ -410,26 +267,8 @@ class FppSimulator:
             The sensor is inside (or touching) scene geometry.
         """
         T_world_sensor = np.asarray(T_world_sensor, dtype=np.float64)
-        s = self.settings
-        cam, proj = self.calibration.camera, self.calibration.projector
-        H, W = cam.height, cam.width
-        R32 = T_world_sensor[:3, :3].astype(np.float32)
-        origin = T_world_sensor[:3, 3]
-        rays = np.empty((H * W, 6), dtype=np.float32)
-        rays[:, :3] = origin
-        np.matmul(self._rays_camera32, np.ascontiguousarray(R32.T), out=rays[:, 3:])  # contiguous: BLAS path, 25x faster
-        ans = self._raycaster.cast_rays(o3d.core.Tensor(rays))
-        t_all = ans["t_hit"].numpy()
-        index = np.flatnonzero(np.isfinite(t_all))
-        n = index.size
-        t_hit = t_all[index]
-        normals_all = ans["primitive_normals"].numpy()
-        gids = ans["geometry_ids"].numpy()
-        tris_all = ans["primitive_ids"].numpy()
-        bary_all = ans["primitive_uvs"].numpy()
-        c_proj_world = (T_world_sensor[:3, :3] @ self._projector_centre_sensor + origin).astype(np.float32)
-        T_pc32 = self.calibration.T_projector_camera.astype(np.float32)
-
+        hits = self._cast_camera_rays(T_world_sensor)
+        n = hits.index.size
         out = {
             "pts_cam": np.empty((n, 3)),
             "u_p": np.empty(n, np.float32),
@@ -439,68 +278,112 @@ class FppSimulator:
             "albedo": np.empty(n, np.float32),
             "backfacing": np.empty(n, bool),
         }
-
-        def chunk(sl: slice) -> None:
-            idx = index[sl]
-            t = t_hit[sl]
-            d_world = rays[idx, 3:]
-            pts_world = origin.astype(np.float32) + t[:, None] * d_world
-            out["pts_cam"][sl] = t.astype(np.float64)[:, None] * self._rays_camera[idx]
-            nrm = normals_all[idx]
-            back = np.einsum("ij,ij->i", nrm, d_world) > 0
-            nrm[back] *= -1.0  # two-sided surfaces: use the side the camera sees
-            out["backfacing"][sl] = back
-            pts_cam32 = t[:, None] * self._rays_camera32[idx]
-            u_p, v_p, z_p = project_points(proj, T_pc32, pts_cam32)
-            inside = (z_p > 0) & (u_p >= -0.5) & (u_p < proj.width - 0.5) & (v_p >= -0.5) & (v_p < proj.height - 0.5)
-            to_proj = c_proj_world - pts_world
-            dist_p = np.sqrt(np.einsum("ij,ij->i", to_proj, to_proj))
-            cos_p = np.einsum("ij,ij->i", nrm, to_proj) / dist_p
-            cos_shade = cos_p
-            if self._vertex_normals:
-                smooth_n = self._interpolated_normals(gids[idx], tris_all[idx], bary_all[idx], nrm)
-                cos_shade = np.maximum(np.einsum("ij,ij->i", smooth_n, to_proj) / dist_p, np.float32(0.0))
-            lit = inside & (cos_p > s.min_lit_cosine)
-            cand = np.flatnonzero(lit)
-            if cand.size:
-                shadow = np.empty((cand.size, 6), dtype=np.float32)
-                shadow[:, :3] = pts_world[cand] + np.float32(s.shadow_offset_m) * nrm[cand]
-                shadow[:, 3:] = c_proj_world - shadow[:, :3]  # unnormalised: t = 1 at the projector
-                occluded = self._raycaster.test_occlusions(o3d.core.Tensor(shadow), tnear=0.0, tfar=0.999, nthreads=1).numpy().astype(bool)
-                lit[cand[occluded]] = False
-            falloff = (np.float32(s.irradiance_reference_m) / dist_p) ** 2 if s.inverse_square else np.float32(1.0)
-            out["irradiance"][sl] = np.where(lit, np.float32(s.projector_irradiance_grey) * cos_shade * falloff, np.float32(0.0))
-            out["lit"][sl] = lit
-            out["u_p"][sl] = u_p
-            out["v_p"][sl] = v_p
-            g = gids[idx]
-            alb = np.zeros(idx.size, np.float32)
-            present = np.flatnonzero(np.bincount(g, minlength=1))  # only the parts this view sees
-            for gid in present:
-                pi = self._gid_to_part[int(gid)]
-                sel = np.flatnonzero(g == gid)
-                if sel.size:
-                    alb[sel] = self._parts[pi].material.albedo(pts_world[sel], tris_all[idx[sel]].astype(np.int64), bary_all[idx[sel]])
-            out["albedo"][sl] = alb
-
-        self._map(chunk, n)
+        self._map(lambda sl: self._shade_hits(hits, sl, out), n)
         self._check_sensor_outside(out["backfacing"], n, T_world_sensor, where)
+        gt = self._ground_truth_maps(T_world_sensor, hits.index, out)
+        out["index"] = hits.index
+        out["depth"] = out["pts_cam"][:, 2]
+        return gt, out
+
+    def _cast_camera_rays(self, T_world_sensor: NDArray) -> _RayHits:
+        """Cast one ray per camera pixel from the sensor pose into the scene."""
+        cam = self.calibration.camera
+        H, W = cam.height, cam.width
+        R32 = T_world_sensor[:3, :3].astype(np.float32)
+        origin = T_world_sensor[:3, 3]
+        rays = np.empty((H * W, 6), dtype=np.float32)
+        rays[:, :3] = origin
+        np.matmul(self._rays_camera32, np.ascontiguousarray(R32.T), out=rays[:, 3:])  # contiguous: BLAS path, 25x faster
+        ans = self._raycaster.cast_rays(o3d.core.Tensor(rays))
+        t_all = ans["t_hit"].numpy()
+        index = np.flatnonzero(np.isfinite(t_all))
+        return _RayHits(
+            origin=origin,
+            rays=rays,
+            index=index,
+            t_hit=t_all[index],
+            normals=ans["primitive_normals"].numpy(),
+            geometry_ids=ans["geometry_ids"].numpy(),
+            triangle_ids=ans["primitive_ids"].numpy(),
+            bary_uv=ans["primitive_uvs"].numpy(),
+            projector_centre_world=(T_world_sensor[:3, :3] @ self._projector_centre_sensor + origin).astype(np.float32),
+        )
+
+    def _shade_hits(self, hits: _RayHits, sl: slice, out: dict[str, NDArray]) -> None:
+        """Fill ``out[...][sl]`` for the hits ``sl``: camera-frame points, projector pixels, lit
+        mask, projector irradiance (grey levels) and albedo."""
+        s = self.settings
+        proj = self.calibration.projector
+        T_pc32 = self.calibration.T_projector_camera.astype(np.float32)
+        c_proj_world = hits.projector_centre_world
+        idx = hits.index[sl]
+        t = hits.t_hit[sl]
+        d_world = hits.rays[idx, 3:]
+        pts_world = hits.origin.astype(np.float32) + t[:, None] * d_world
+        out["pts_cam"][sl] = t.astype(np.float64)[:, None] * self._rays_camera[idx]
+        nrm = hits.normals[idx]
+        back = np.einsum("ij,ij->i", nrm, d_world) > 0
+        nrm[back] *= -1.0  # two-sided surfaces: use the side the camera sees
+        out["backfacing"][sl] = back
+        pts_cam32 = t[:, None] * self._rays_camera32[idx]
+        u_p, v_p, z_p = project_points(proj, T_pc32, pts_cam32)
+        inside = (z_p > 0) & (u_p >= -0.5) & (u_p < proj.width - 0.5) & (v_p >= -0.5) & (v_p < proj.height - 0.5)
+        to_proj = c_proj_world - pts_world
+        dist_p = np.sqrt(np.einsum("ij,ij->i", to_proj, to_proj))
+        cos_p = np.einsum("ij,ij->i", nrm, to_proj) / dist_p
+        gids, tris, bary = hits.geometry_ids[idx], hits.triangle_ids[idx], hits.bary_uv[idx]
+        cos_shade = cos_p
+        if self._vertex_normals:
+            smooth_n = self._interpolated_normals(gids, tris, bary, nrm)
+            cos_shade = np.maximum(np.einsum("ij,ij->i", smooth_n, to_proj) / dist_p, np.float32(0.0))
+        lit = self._unshadowed(inside & (cos_p > s.min_lit_cosine), pts_world, nrm, c_proj_world)
+        falloff = (np.float32(s.irradiance_reference_m) / dist_p) ** 2 if s.inverse_square else np.float32(1.0)
+        out["irradiance"][sl] = np.where(lit, np.float32(s.projector_irradiance_grey) * cos_shade * falloff, np.float32(0.0))
+        out["lit"][sl] = lit
+        out["u_p"][sl] = u_p
+        out["v_p"][sl] = v_p
+        out["albedo"][sl] = self._albedo_at(gids, tris, bary, pts_world)
+
+    def _unshadowed(self, lit: NDArray, pts_world: NDArray, normals: NDArray, c_proj_world: NDArray) -> NDArray[np.bool_]:
+        """``lit`` without the hits whose shadow ray towards the projector centre meets geometry."""
+        cand = np.flatnonzero(lit)
+        if not cand.size:
+            return lit
+        shadow = np.empty((cand.size, 6), dtype=np.float32)
+        shadow[:, :3] = pts_world[cand] + np.float32(self.settings.shadow_offset_m) * normals[cand]
+        shadow[:, 3:] = c_proj_world - shadow[:, :3]  # unnormalised: t = 1 at the projector
+        occluded = self._raycaster.test_occlusions(o3d.core.Tensor(shadow), tnear=0.0, tfar=0.999, nthreads=1).numpy().astype(bool)
+        lit[cand[occluded]] = False
+        return lit
+
+    def _albedo_at(self, gids: NDArray, tris: NDArray, bary: NDArray, pts_world: NDArray) -> NDArray[np.float32]:
+        """Material albedo at hits on Open3D geometries ``gids``, triangles ``tris``, barycentrics ``bary``."""
+        alb = np.zeros(gids.size, np.float32)
+        present = np.flatnonzero(np.bincount(gids, minlength=1))  # only the parts this view sees
+        for gid in present:
+            pi = self._gid_to_part[int(gid)]
+            sel = np.flatnonzero(gids == gid)
+            if sel.size:
+                alb[sel] = self._parts[pi].material.albedo(pts_world[sel], tris[sel].astype(np.int64), bary[sel])
+        return alb
+
+    def _ground_truth_maps(self, T_world_sensor: NDArray, index: NDArray, shading: dict[str, NDArray]) -> GroundTruth:
+        """Per-pixel ground truth from the per-hit values (``index``: flat pixel of each hit)."""
+        cam = self.calibration.camera
+        H, W = cam.height, cam.width
         xyz = np.full((H * W, 3), np.nan)
-        xyz[index] = out["pts_cam"]
+        xyz[index] = shading["pts_cam"]
         lit_mask = np.zeros(H * W, dtype=bool)
-        lit_mask[index[out["lit"]]] = True
+        lit_mask[index[shading["lit"]]] = True
         albedo = np.zeros(H * W, dtype=np.float32)
-        albedo[index] = out["albedo"]
-        gt = GroundTruth(
+        albedo[index] = shading["albedo"]
+        return GroundTruth(
             T_world_sensor=T_world_sensor.copy(),
             xyz_map_m=xyz.reshape(H, W, 3),
             depth_m=xyz[:, 2].reshape(H, W).copy(),
             lit_mask=lit_mask.reshape(H, W),
             albedo=albedo.reshape(H, W),
         )
-        out["index"] = index
-        out["depth"] = out["pts_cam"][:, 2]
-        return gt, out
 
     def _interpolated_normals(self, gids: NDArray, tris: NDArray, bary: NDArray, face_normals: NDArray) -> NDArray[np.float32]:
         """Vertex normals interpolated at the hits (barycentric ``(u, v)`` of Open3D: weights
@@ -625,140 +508,6 @@ class FppSimulator:
         return np.clip(np.rint(noisy), 0, 255).astype(np.uint8)
 
 
-def _triangle_normals(vertices: NDArray, triangles: NDArray) -> NDArray[np.float64]:
-    v0 = vertices[triangles[:, 0]]
-    n = np.cross(vertices[triangles[:, 1]] - v0, vertices[triangles[:, 2]] - v0)
-    norm = np.linalg.norm(n, axis=1, keepdims=True)
-    norm[norm == 0] = 1.0
-    return n / norm
-
-
-def parse_rig_parameters(data: dict[str, Any] | None, where: str) -> RigParameters:
-    """Validate a ``rig:`` config section (unknown keys are errors)."""
-    try:
-        return RigParameters(**(data or {}))
-    except ValidationError as exc:
-        raise _pydantic_to_config_error(exc, where) from None
-    except TypeError as exc:
-        raise ConfigError(f"{where}: {exc}") from None
-
-
 def parse_render_settings(data: dict[str, Any] | None, where: str) -> RenderSettings:
     """Validate a ``render:`` config section (unknown keys are errors)."""
-    try:
-        return RenderSettings(**(data or {}))
-    except ValidationError as exc:
-        raise _pydantic_to_config_error(exc, where) from None
-    except TypeError as exc:
-        raise ConfigError(f"{where}: {exc}") from None
-
-
-# ---------------------------------------------------------------------------------------------
-# Scene configs -> recorded sequences
-# ---------------------------------------------------------------------------------------------
-_CONFIG_KEYS = {"scene", "description", "patterns", "rig", "render", "turntable", "corridor"}
-
-
-@dataclass(frozen=True, eq=False)
-class SimulationSetup:
-    """Everything needed to simulate a sequence, resolved from a scene YAML."""
-
-    name: str
-    calibration: RigCalibration
-    spec: PatternSpec
-    settings: RenderSettings
-    scene: Any
-    poses_world_sensor: NDArray[np.float64]
-    timestamps_s: NDArray[np.float64]
-    config: dict[str, Any]
-
-
-def load_simulation(config: str | os.PathLike[str] | dict[str, Any], preview: bool = False, max_frames: int | None = None) -> SimulationSetup:
-    """Resolve a scene definition (a ``datasets/*.yaml`` path or its dict) into a setup.
-
-    Raises
-    ------
-    ConfigError
-        Unknown keys or bad values (message names the key), or zero frames.
-    InputDataError
-        An object mesh that is missing, unreadable or empty.
-    """
-
-    from frontend import scenes
-
-    base_dir = None
-    where = "<simulation config>"
-    if not isinstance(config, dict):
-        path = Path(config)
-        where = str(path)
-        config = read_yaml_file(path, ConfigError, "scene config")
-        base_dir = path.parent
-    if not isinstance(config, dict):
-        raise ConfigError(f"{where}: a scene config must be a mapping")
-    unknown = sorted(set(config) - _CONFIG_KEYS)
-    if unknown:
-        raise ConfigError(f"{where}: unknown key(s) {', '.join(map(repr, unknown))}; valid keys: {', '.join(sorted(_CONFIG_KEYS))}")
-    kind = config.get("scene")
-    if kind not in ("turntable", "corridor"):
-        raise ConfigError(f"{where}: scene must be 'turntable' or 'corridor', got {kind!r}")
-    rig = parse_rig_parameters(config.get("rig"), f"{where}: rig")
-    settings = parse_render_settings(config.get("render"), f"{where}: render")
-    spec = PatternSpec.from_dict(config["patterns"], f"{where}: patterns") if "patterns" in config else default_pattern_spec()
-    calibration = build_rig(rig, preview=preview)
-    if kind == "turntable":
-        cfg = scenes.parse_model(scenes.TurntableConfig, config.get("turntable"), f"{where}: turntable")
-        scene, poses, stamps = scenes.build_turntable(cfg, base_dir)
-    else:
-        cfg = scenes.parse_model(scenes.CorridorConfig, config.get("corridor"), f"{where}: corridor")
-        scene, poses, stamps = scenes.build_corridor(cfg)
-    if max_frames is not None:
-        poses, stamps = poses[:max_frames], stamps[:max_frames]
-    if len(poses) == 0:
-        raise ConfigError(f"{where}: the {kind} trajectory has zero frames; set turns/views_per_turn or passes >= 1")
-    resolved = dict(config)
-    resolved[kind] = cfg.model_dump(mode="json")
-    resolved["rig"] = rig.model_dump(mode="json")
-    resolved["render"] = settings.model_dump(mode="json")
-    resolved["patterns"] = spec.to_dict()
-    return SimulationSetup(kind, calibration, spec, settings, scene, poses, stamps, resolved)
-
-
-def simulate_sequence(
-    config: str | os.PathLike[str] | dict[str, Any],
-    out: str | os.PathLike[str],
-    preview: bool = False,
-    max_frames: int | None = None,
-    overwrite: bool = False,
-    progress: Any = None,
-) -> Path:
-    """Render a scene definition into a recorded sequence folder (images + ground truth).
-
-    Parameters
-    ----------
-    config : path or dict
-        A ``datasets/*.yaml`` scene definition.
-    out : path
-        Sequence folder to write (see :mod:`frontend.sequence`).
-    preview : bool
-        640x400 camera instead of 1920x1200.
-    max_frames : int, optional
-        Only the first frames of the trajectory (quick looks).
-    overwrite : bool
-        Replace an existing sequence folder.
-    progress : callable, optional
-        Called as ``progress(done, total)`` after each frame.
-    """
-    from frontend.sequence import SequenceWriter
-
-    setup = load_simulation(config, preview=preview, max_frames=max_frames)
-    sim = FppSimulator(setup.calibration, setup.spec, setup.scene, setup.settings)
-    source = {"simulator": "frontend.simulator.FppSimulator", "preview": bool(preview), "config": setup.config}
-    writer = SequenceWriter(out, setup.calibration, setup.spec, overwrite=overwrite, source=source)
-    n = len(setup.poses_world_sensor)
-    for k, (T, ts) in enumerate(zip(setup.poses_world_sensor, setup.timestamps_s, strict=True)):
-        frame = sim.render(T, frame_index=k)
-        writer.add_frame(k, float(ts), frame.images)
-        if progress is not None:
-            progress(k + 1, n)
-    writer.write_ground_truth(setup.poses_world_sensor, setup.scene.to_open3d())
-    return writer.close()
+    return validate_section(RenderSettings, data, where)

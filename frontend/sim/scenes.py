@@ -1,19 +1,16 @@
-"""Scenes for the virtual FPP sensor: meshes with surface albedo, and sensor trajectories.
+"""Scenes for the virtual FPP sensor: scene configs and builders, sensor trajectories, overlap.
 
-A :class:`Scene` is a list of :class:`SurfacePart` (triangle mesh in the world frame, metres,
-plus a material giving the albedo at any surface point). Materials:
-
-* :class:`ProceduralMaterial`: a solid 3D texture (fractal value noise, sharpened into blobs),
-  evaluated at the 3D hit point, so any mesh gets texture without UVs;
-* :class:`VertexColorMaterial`: the mesh's vertex colours, interpolated barycentrically;
-* :class:`ImageMaterial`: an image mapped through per-corner UVs (posters).
+A :class:`Scene` is a list of :class:`frontend.sim.parts.SurfacePart` (triangle mesh in the
+world frame, metres, plus a material giving the albedo at any surface point,
+:mod:`frontend.sim.materials`).
 
 Scenes built here (parameters in pydantic models, loaded from the YAML files in ``datasets/``):
 
 * turntable (:func:`build_turntable`): an object on a table, world frame = table frame (z up,
   table top at z = 0). The table turns the object by ``-theta``, which is the same as the sensor
   orbiting by ``+theta``: the renderer moves the sensor on a circle looking at the object. The
-  default object is a procedural textured doll (:func:`make_doll`); any mesh file can replace it.
+  default object is a procedural textured doll (:func:`frontend.sim.parts.make_doll`); any
+  mesh file can replace it.
 * corridor (:func:`build_corridor`): a textured corridor (walls, floor, ceiling, door frames,
   pilasters, a handrail, posters, clutter) with a cart trajectory along it and back.
 * plane and sphere (:func:`plane_scene`, :func:`sphere_scene`) for accuracy checks.
@@ -21,173 +18,32 @@ Scenes built here (parameters in pydantic models, loaded from the YAML files in 
 
 from __future__ import annotations
 
-import logging
 import math
-import os
-import threading
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal, Protocol
+from typing import Any, Literal
 
 import cv2
 import numpy as np
 import open3d as o3d
 from numpy.typing import NDArray
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
-from scipy import ndimage
-from scipy.spatial.transform import Rotation
+from pydantic import Field
 
 from fpp_graph.errors import ConfigError, InputDataError
 from fpp_graph.geometry import transform_points
-
-log = logging.getLogger(__name__)
-
-
-# ---------------------------------------------------------------------------------------------
-# Materials
-# ---------------------------------------------------------------------------------------------
-class Material(Protocol):
-    def albedo(self, points_world: NDArray, triangle_ids: NDArray, bary_uv: NDArray) -> NDArray[np.float64]:
-        """Albedo in [0, 1] at hit points (N,3) on triangles (N,) with barycentrics (N,2)."""
-        ...
-
-
-_LATTICE = 1024  # noise tile size in cells; the texture repeats every 256 * scale_m
-_NOISE_CACHE: dict[int, list[NDArray[np.float32]]] = {}
-_NOISE_LOCK = threading.Lock()
-
-
-def _noise_planes(seed: int) -> list[NDArray[np.float32]]:
-    """Three smooth, zero-mean, unit-std 2D noise tiles (one per coordinate plane) for a seed."""
-    with _NOISE_LOCK:
-        if seed not in _NOISE_CACHE:
-            rng = np.random.default_rng(seed)
-            tiles = []
-            for _ in range(3):
-                tile = ndimage.gaussian_filter(rng.standard_normal((_LATTICE, _LATTICE), dtype=np.float32), 1.5, mode="wrap")
-                tiles.append((tile - tile.mean()) / tile.std())
-            _NOISE_CACHE[seed] = tiles
-        return _NOISE_CACHE[seed]
-
-
-_TEXTURE_ROTATION = Rotation.from_euler("xyz", [37.0, 23.0, 61.0], degrees=True).as_matrix()
-_ROW = 1024  # cv2.remap maps must stay below 32767 in each dimension: sample in rows of this width
-
-
-def _sample_tile(tile: NDArray[np.float32], cols: NDArray[np.float32], rows: NDArray[np.float32]) -> NDArray[np.float32]:
-    """Bilinear samples of a wrapping tile at (cols, rows), both (h * _ROW,) float32 contiguous.
-
-    cv2.remap converts coordinates to fixed point (|coordinate| < 32767 cells) and wraps them
-    with BORDER_WRAP; it runs at memory speed.
-    """
-    h = cols.size // _ROW
-    return cv2.remap(tile, cols.reshape(h, _ROW), rows.reshape(h, _ROW), cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP).reshape(-1)
-
-
-@dataclass(frozen=True)
-class ProceduralMaterial:
-    """Solid texture: ``base + contrast/2 * tanh(sharpness * fbm(p / scale) / 2)`` clipped to [0, 1].
-
-    ``fbm`` is ``octaves`` of smooth noise, each octave half the scale of the previous, so
-    features span ``scale_m / 2**(octaves-1)`` to ``scale_m``. Each octave is the sum of three 2D
-    noise tiles evaluated on the point's (y, z), (z, x) and (x, y) coordinates: a function of
-    the 3D position (a solid texture, no UVs needed) that runs at image-filtering speed.
-    ``stripes_m`` > 0 adds a wood-like stripe modulation along x (doors).
-    """
-
-    base: float = 0.55
-    contrast: float = 0.6
-    scale_m: float = 0.03
-    octaves: int = 3
-    sharpness: float = 3.0
-    seed: int = 0
-    stripes_m: float = 0.0
-
-    def albedo(self, points_world: NDArray, triangle_ids: NDArray | None = None, bary_uv: NDArray | None = None) -> NDArray[np.float64]:
-        # A generic rotation first: axis-aligned walls would otherwise see two of the three 2D
-        # tiles as 1D stripes (a plaid look that gives poorly localised keypoints).
-        p0 = np.asarray(points_world)
-        p = p0 @ _TEXTURE_ROTATION.T.astype(p0.dtype)
-        n = p.shape[0]
-        tiles = _noise_planes(self.seed)
-        padded = -(-n // _ROW) * _ROW
-        coords = np.zeros((3, padded), dtype=np.float32)
-        total = np.zeros(padded, dtype=np.float32)
-        weight_sum = 0.0
-        cells_per_scale = 4.0  # lattice cells per feature size (the tile is blurred over 1.5 cells)
-        for k in range(max(1, self.octaves)):
-            f = cells_per_scale * (2.0**k) / self.scale_m
-            for a in range(3):
-                # Fold large coordinates into one tile period in float64 first, so the float32
-                # coordinates cv2.remap sees stay small and exact to ~1e-4 cell.
-                np.mod(p[:, a] * f + 97.3 * (k + 1), _LATTICE, out=coords[a, :n], casting="unsafe")
-            w = 0.55**k
-            octave = _sample_tile(tiles[0], coords[1], coords[2])
-            octave += _sample_tile(tiles[1], coords[2], coords[0])
-            octave += _sample_tile(tiles[2], coords[0], coords[1])
-            octave *= np.float32(w / math.sqrt(3.0))
-            total += octave
-            weight_sum += w * w
-        total = total[:n]
-        fbm = total / np.float32(math.sqrt(weight_sum))  # ~unit standard deviation
-        if self.stripes_m > 0:
-            fbm = 0.6 * fbm + 0.4 * np.sin(2 * np.pi * p0[:, 0] / self.stripes_m + 2.0 * fbm)
-        a = self.base + 0.5 * self.contrast * np.tanh(self.sharpness * fbm / 2.0)
-        return np.clip(a, 0.0, 1.0)
-
-
-@dataclass(frozen=True, eq=False)
-class VertexColorMaterial:
-    """Albedo from per-vertex grey values (luminance of vertex colours), interpolated."""
-
-    vertex_albedo: NDArray[np.float64]
-    triangles: NDArray[np.int64]
-
-    def albedo(self, points_world: NDArray, triangle_ids: NDArray, bary_uv: NDArray) -> NDArray[np.float64]:
-        tri = self.triangles[triangle_ids]
-        a = self.vertex_albedo
-        u, v = bary_uv[:, 0], bary_uv[:, 1]
-        return (1 - u - v) * a[tri[:, 0]] + u * a[tri[:, 1]] + v * a[tri[:, 2]]
-
-
-@dataclass(frozen=True, eq=False)
-class ImageMaterial:
-    """Albedo from a grey image (h, w) in [0, 1] through per-corner UVs (T, 3, 2) in [0, 1].
-
-    UV (0, 0) is the image's top-left corner, u along columns, v along rows.
-    """
-
-    image: NDArray[np.float32]
-    triangle_uvs: NDArray[np.float64]
-
-    def albedo(self, points_world: NDArray, triangle_ids: NDArray, bary_uv: NDArray) -> NDArray[np.float64]:
-        uv = self.triangle_uvs[triangle_ids]
-        b1, b2 = bary_uv[:, :1], bary_uv[:, 1:2]
-        tex = (1 - b1 - b2) * uv[:, 0] + b1 * uv[:, 1] + b2 * uv[:, 2]
-        h, w = self.image.shape
-        cols = tex[:, 0] * w - 0.5
-        rows = tex[:, 1] * h - 0.5
-        return ndimage.map_coordinates(self.image, [rows, cols], order=1, mode="nearest").astype(np.float64)
-
-
-@dataclass(eq=False)
-class SurfacePart:
-    """A triangle mesh in the world frame (metres) with its material."""
-
-    name: str
-    vertices: NDArray[np.float64]
-    triangles: NDArray[np.int64]
-    material: Any = field(default_factory=ProceduralMaterial)
-
-    def __post_init__(self) -> None:
-        self.vertices = np.asarray(self.vertices, dtype=np.float64).reshape(-1, 3)
-        self.triangles = np.asarray(self.triangles, dtype=np.int64).reshape(-1, 3)
-        if self.vertices.shape[0] == 0 or self.triangles.shape[0] == 0:
-            raise InputDataError(f"surface {self.name!r} is empty ({self.vertices.shape[0]} vertices, {self.triangles.shape[0]} triangles)")
-        if not np.all(np.isfinite(self.vertices)):
-            raise InputDataError(f"surface {self.name!r} has non-finite vertex coordinates")
-        if self.triangles.min() < 0 or self.triangles.max() >= self.vertices.shape[0]:
-            raise InputDataError(f"surface {self.name!r} has triangle indices outside its {self.vertices.shape[0]} vertices")
+from frontend.sim.config import StrictModel
+from frontend.sim.materials import ImageMaterial, ProceduralMaterial, VertexColorMaterial
+from frontend.sim.parts import (
+    SurfacePart,
+    box,
+    cylinder,
+    load_mesh,
+    make_doll,
+    place_mesh,
+    quad,
+    sphere,
+)
+from frontend.sim.poses import axis_rotation, look_at_pose
 
 
 @dataclass(eq=False)
@@ -226,188 +82,9 @@ def _vertex_albedo(part: SurfacePart) -> NDArray[np.float64]:
 
 
 # ---------------------------------------------------------------------------------------------
-# Mesh helpers
-# ---------------------------------------------------------------------------------------------
-def _o3d_arrays(mesh: o3d.geometry.TriangleMesh) -> tuple[NDArray, NDArray]:
-    return np.asarray(mesh.vertices, dtype=np.float64).copy(), np.asarray(mesh.triangles, dtype=np.int64).copy()
-
-
-def _transform(vertices: NDArray, R: NDArray | None = None, t: NDArray | None = None, scale: NDArray | float = 1.0) -> NDArray:
-    v = vertices * scale
-    if R is not None:
-        v = v @ np.asarray(R).T
-    if t is not None:
-        v = v + np.asarray(t)
-    return v
-
-
-def _rot(axis: str, angle_rad: float) -> NDArray:
-    c, s = math.cos(angle_rad), math.sin(angle_rad)
-    if axis == "x":
-        return np.array([[1, 0, 0], [0, c, -s], [0, s, c]])
-    if axis == "y":
-        return np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
-    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
-
-
-def box(name: str, min_xyz: Any, max_xyz: Any, material: Any) -> SurfacePart:
-    """Axis-aligned closed box with outward faces."""
-    lo, hi = np.asarray(min_xyz, float), np.asarray(max_xyz, float)
-    m = o3d.geometry.TriangleMesh.create_box(*(hi - lo))
-    v, t = _o3d_arrays(m)
-    return SurfacePart(name, v + lo, t, material)
-
-
-def quad(name: str, corner: Any, edge_u: Any, edge_v: Any, material: Any = None, image: NDArray | None = None) -> SurfacePart:
-    """A rectangle ``corner + a edge_u + b edge_v`` (a, b in [0, 1]); its front is ``edge_u x edge_v``.
-
-    With ``image``, UV (0,0) is at ``corner`` (image top-left), u along ``edge_u``.
-    """
-    c, eu, ev = (np.asarray(x, float) for x in (corner, edge_u, edge_v))
-    verts = np.array([c, c + eu, c + eu + ev, c + ev])
-    tris = np.array([[0, 1, 2], [0, 2, 3]])
-    if image is not None:
-        uv = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], dtype=float)
-        material = ImageMaterial(image.astype(np.float32), uv[tris])
-    return SurfacePart(name, verts, tris, material if material is not None else ProceduralMaterial())
-
-
-def _facing(part: SurfacePart, direction: NDArray) -> SurfacePart:
-    """Flip a flat part's winding so its front (right-handed normal) points along ``direction``."""
-    v0, v1, v2 = part.vertices[part.triangles[0]]
-    if np.dot(np.cross(v1 - v0, v2 - v0), direction) < 0:
-        part.triangles = part.triangles[:, ::-1].copy()
-        mat = part.material
-        if isinstance(mat, ImageMaterial):
-            part.material = ImageMaterial(mat.image, mat.triangle_uvs[:, ::-1].copy())
-    return part
-
-
-def sphere(name: str, centre: Any, radii: Any, material: Any, resolution: int = 40) -> SurfacePart:
-    m = o3d.geometry.TriangleMesh.create_sphere(radius=1.0, resolution=resolution)
-    v, t = _o3d_arrays(m)
-    return SurfacePart(name, v * np.asarray(radii, float) + np.asarray(centre, float), t, material)
-
-
-def cylinder(name: str, start: Any, end: Any, radius: float, material: Any, resolution: int = 40, closed: bool = True) -> SurfacePart:
-    """A cylinder from ``start`` to ``end`` (capped)."""
-    a, b = np.asarray(start, float), np.asarray(end, float)
-    length = float(np.linalg.norm(b - a))
-    m = o3d.geometry.TriangleMesh.create_cylinder(radius=radius, height=length, resolution=resolution, split=max(1, int(length / (radius * 0.5))))
-    v, t = _o3d_arrays(m)
-    z = (b - a) / length
-    R = _rotation_z_to(z)
-    return SurfacePart(name, v @ R.T + (a + b) / 2.0, t, material)
-
-
-def _rotation_z_to(z: NDArray) -> NDArray:
-    z = z / np.linalg.norm(z)
-    helper = np.array([1.0, 0, 0]) if abs(z[0]) < 0.9 else np.array([0, 1.0, 0])
-    x = np.cross(helper, z)
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    return np.column_stack([x, y, z])
-
-
-# ---------------------------------------------------------------------------------------------
-# Mesh files
-# ---------------------------------------------------------------------------------------------
-def load_mesh(path: str | os.PathLike[str]) -> o3d.geometry.TriangleMesh:
-    """Read a triangle mesh file (PLY, OBJ, STL, OFF, GLB...) with Open3D.
-
-    Raises
-    ------
-    InputDataError
-        The file is missing, unreadable, not a mesh, or has no triangles.
-    """
-    path = Path(path)
-    if not path.is_file():
-        raise InputDataError(f"mesh file {path} does not exist; give the path to a PLY/OBJ/STL/OFF mesh")
-    try:
-        with open(path, "rb") as handle:
-            handle.read(1)
-    except OSError as exc:
-        raise InputDataError(f"cannot read mesh {path}: {exc.strerror}") from exc
-    mesh = o3d.io.read_triangle_mesh(str(path), enable_post_processing=False, print_progress=False)
-    if len(mesh.vertices) == 0 or len(mesh.triangles) == 0:
-        raise InputDataError(
-            f"mesh {path} has {len(mesh.vertices)} vertices and {len(mesh.triangles)} triangles: it is empty or not a "
-            "triangle-mesh format Open3D reads (PLY, OBJ, STL, OFF, GLB); convert it or point to another file"
-        )
-    v = np.asarray(mesh.vertices)
-    if not np.all(np.isfinite(v)):
-        raise InputDataError(f"mesh {path} has non-finite vertex coordinates")
-    if float(np.ptp(v, axis=0).max()) <= 0:
-        raise InputDataError(f"mesh {path} is degenerate: all vertices coincide")
-    return mesh
-
-
-_UP_AXES = {"z": np.eye(3), "y": _rot("x", math.pi / 2), "-y": _rot("x", -math.pi / 2), "x": _rot("y", -math.pi / 2), "-z": _rot("x", math.pi)}
-
-
-def place_mesh(mesh: o3d.geometry.TriangleMesh, size_m: float, up_axis: str = "z") -> tuple[NDArray, NDArray]:
-    """Rotate the mesh's ``up_axis`` to +z, scale its largest extent to ``size_m``, stand it on z = 0.
-
-    Returns vertices (V,3) in metres and triangles (T,3), centred on x = y = 0.
-    """
-    if up_axis not in _UP_AXES:
-        raise ConfigError(f"up_axis {up_axis!r} unknown; use one of {sorted(_UP_AXES)}")
-    if not size_m > 0:
-        raise ConfigError(f"object size must be positive, got {size_m}")
-    v, t = _o3d_arrays(mesh)
-    v = v @ _UP_AXES[up_axis].T
-    extent = np.ptp(v, axis=0)
-    v = v * (size_m / float(extent.max()))
-    lo, hi = v.min(axis=0), v.max(axis=0)
-    v = v - np.array([(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, lo[2]])
-    return v, t
-
-
-# ---------------------------------------------------------------------------------------------
-# The default doll
-# ---------------------------------------------------------------------------------------------
-def make_doll(height_m: float = 0.22, seed: int = 7) -> list[SurfacePart]:
-    """A procedural textured doll standing on z = 0, centred on the z axis, facing +x.
-
-    Head, hair cap, eyes and nose, body, arms, legs and feet; each part has its own solid texture
-    (different base albedo, scale and seed) so 2D keypoints have something to match everywhere.
-    """
-    s = height_m / 0.22
-
-    def mat(base: float, scale: float, k: int, contrast: float = 0.55) -> ProceduralMaterial:
-        return ProceduralMaterial(base=base, contrast=contrast, scale_m=scale * s, seed=seed + k)
-
-    parts = [
-        cylinder("leg_left", [0, 0.02 * s, 0.012 * s], [0, 0.02 * s, 0.075 * s], 0.016 * s, mat(0.35, 0.02, 1)),
-        cylinder("leg_right", [0, -0.02 * s, 0.012 * s], [0, -0.02 * s, 0.075 * s], 0.016 * s, mat(0.35, 0.02, 1)),
-        sphere("foot_left", [0.012 * s, 0.02 * s, 0.012 * s], np.array([0.03, 0.018, 0.012]) * s, mat(0.25, 0.01, 2)),
-        sphere("foot_right", [0.012 * s, -0.02 * s, 0.012 * s], np.array([0.03, 0.018, 0.012]) * s, mat(0.25, 0.01, 2)),
-        sphere("body", [0, 0, 0.115 * s], np.array([0.035, 0.048, 0.055]) * s, mat(0.6, 0.03, 3, 0.7), resolution=60),
-        cylinder("arm_left", [0, 0.045 * s, 0.145 * s], [0.03 * s, 0.075 * s, 0.085 * s], 0.011 * s, mat(0.55, 0.015, 4)),
-        cylinder("arm_right", [0, -0.045 * s, 0.145 * s], [0.0, -0.085 * s, 0.09 * s], 0.011 * s, mat(0.55, 0.015, 4)),
-        sphere("hand_left", [0.03 * s, 0.075 * s, 0.08 * s], np.full(3, 0.014) * s, mat(0.75, 0.01, 5, 0.3)),
-        sphere("hand_right", [0.0, -0.085 * s, 0.085 * s], np.full(3, 0.014) * s, mat(0.75, 0.01, 5, 0.3)),
-        sphere("head", [0, 0, 0.19 * s], np.array([0.032, 0.033, 0.035]) * s, mat(0.78, 0.012, 6, 0.3), resolution=60),
-        sphere("hair", [-0.006 * s, 0, 0.2 * s], np.array([0.031, 0.035, 0.03]) * s, mat(0.2, 0.008, 7, 0.35)),
-        sphere("nose", [0.032 * s, 0, 0.188 * s], np.full(3, 0.006) * s, mat(0.7, 0.01, 8, 0.2)),
-        sphere("eye_left", [0.027 * s, 0.012 * s, 0.197 * s], np.full(3, 0.0055) * s, mat(0.1, 0.01, 9, 0.1)),
-        sphere("eye_right", [0.027 * s, -0.012 * s, 0.197 * s], np.full(3, 0.0055) * s, mat(0.1, 0.01, 9, 0.1)),
-        cylinder("belt", [0, 0, 0.085 * s], [0, 0, 0.095 * s], 0.04 * s, mat(0.15, 0.01, 10, 0.3)),
-    ]
-    top = max(float(p.vertices[:, 2].max()) for p in parts)
-    for p in parts:  # exact requested height
-        p.vertices = p.vertices * (height_m / top)
-    return parts
-
-
-# ---------------------------------------------------------------------------------------------
 # Config models
 # ---------------------------------------------------------------------------------------------
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-
-class TextureConfig(_Strict):
+class TextureConfig(StrictModel):
     """Albedo of a loaded mesh: ``procedural`` (solid texture), ``vertex_colors`` or ``image``."""
 
     kind: Literal["procedural", "vertex_colors", "image"] = "procedural"
@@ -419,7 +96,7 @@ class TextureConfig(_Strict):
     image: str | None = Field(None, description="texture image path (kind=image; the mesh must carry UVs)")
 
 
-class TurntableConfig(_Strict):
+class TurntableConfig(StrictModel):
     """An object on a turntable in front of a fixed sensor (the paper's doll protocol)."""
 
     object: str = Field("doll", description="'doll' (built-in) or a mesh file path (relative to the YAML file)")
@@ -436,7 +113,7 @@ class TurntableConfig(_Strict):
     frame_interval_s: float = Field(1.0, gt=0)
 
 
-class CorridorConfig(_Strict):
+class CorridorConfig(StrictModel):
     """A textured corridor; the sensor rides a cart along one wall, turns, and back along the other."""
 
     length_m: float = Field(6.0, gt=1.0)
@@ -451,18 +128,6 @@ class CorridorConfig(_Strict):
     poster_repeats: int = Field(2, ge=1, description="copies of the look-alike poster on each wall (false-loop bait)")
     clutter_seed: int = 11
     frame_interval_s: float = Field(1.0, gt=0)
-
-
-def parse_model(model: type[BaseModel], data: Any, where: str) -> Any:
-    if data is None:
-        data = {}
-    if not isinstance(data, dict):
-        raise ConfigError(f"{where}: expected a mapping, got {type(data).__name__}")
-    try:
-        return model(**data)
-    except ValidationError as exc:
-        msgs = "; ".join(f"{'.'.join(str(p) for p in e['loc'])}: {e['msg']}" for e in exc.errors())
-        raise ConfigError(f"{where}: {msgs}") from None
 
 
 # ---------------------------------------------------------------------------------------------
@@ -512,8 +177,6 @@ def build_turntable(cfg: TurntableConfig, base_dir: Path | None = None) -> tuple
         the trajectory returns to its start after each turn.
     timestamps_s : (N,)
     """
-    from frontend.simulator import look_at_pose
-
     parts = _object_parts(cfg, base_dir)
     top = max(float(p.vertices[:, 2].max()) for p in parts)
     if cfg.table_radius_m > 0:
@@ -571,10 +234,37 @@ def build_corridor(cfg: CorridorConfig) -> tuple[Scene, NDArray, NDArray]:
     midway. Later passes revisit earlier ones (loops); the same poster hangs at several places
     on both walls (look-alike places).
     """
+    parts = _corridor_shell(cfg)
+    parts += _door_frames(cfg)
+    parts += _pilasters(cfg)
+    parts += _handrail(cfg)
+    parts += _posters(cfg)
+    parts += _clutter(cfg)
+    scene = Scene(parts)
+    poses = corridor_trajectory(cfg)
+    return scene, poses, np.arange(len(poses)) * cfg.frame_interval_s
 
+
+def _facing(part: SurfacePart, direction: NDArray) -> SurfacePart:
+    """Flip a flat part's winding so its front (right-handed normal) points along ``direction``."""
+    v0, v1, v2 = part.vertices[part.triangles[0]]
+    if np.dot(np.cross(v1 - v0, v2 - v0), direction) < 0:
+        part.triangles = part.triangles[:, ::-1].copy()
+        mat = part.material
+        if isinstance(mat, ImageMaterial):
+            part.material = ImageMaterial(mat.image, mat.triangle_uvs[:, ::-1].copy())
+    return part
+
+
+def _wall_side(cfg: CorridorConfig, side: int) -> tuple[float, float]:
+    """(wall y, sign of +y into the corridor) of the left (``side`` > 0) or right wall."""
+    return (cfg.width_m / 2, -1.0) if side > 0 else (-cfg.width_m / 2, 1.0)
+
+
+def _corridor_shell(cfg: CorridorConfig) -> list[SurfacePart]:
+    """Floor, ceiling, side walls and end walls, all facing the corridor's inside."""
     L, Wd, Hc = cfg.length_m, cfg.width_m, cfg.height_m
     yl, yr = Wd / 2, -Wd / 2
-    rng = np.random.default_rng(cfg.clutter_seed)
     wall = ProceduralMaterial(base=0.62, contrast=0.45, scale_m=0.05, octaves=4, seed=21)
     wall_r = ProceduralMaterial(base=0.58, contrast=0.5, scale_m=0.045, octaves=4, seed=22)
     parts: list[SurfacePart] = [
@@ -588,17 +278,16 @@ def build_corridor(cfg: CorridorConfig) -> tuple[Scene, NDArray, NDArray]:
     # The shell's faces must face the corridor's inside (the renderer's inside-geometry check
     # counts back faces).
     centre = np.array([L / 2, 0, Hc / 2])
-    parts = [_facing(p, centre - p.vertices[0]) for p in parts]
+    return [_facing(p, centre - p.vertices[0]) for p in parts]
 
-    def wall_side(side: int) -> tuple[float, float]:
-        """(wall y, sign of +y into the corridor)"""
-        return (yl, -1.0) if side > 0 else (yr, 1.0)
 
-    # Door frames (jambs + head protruding from the wall) with a recessed, striped door leaf.
+def _door_frames(cfg: CorridorConfig) -> list[SurfacePart]:
+    """Door frames (jambs + head protruding from the wall) with a recessed, striped door leaf."""
+    parts: list[SurfacePart] = []
     door_mat = ProceduralMaterial(base=0.45, contrast=0.5, scale_m=0.03, seed=31, stripes_m=0.012)
     frame_mat = ProceduralMaterial(base=0.85, contrast=0.25, scale_m=0.02, seed=32)
     for side, x0 in ((1, 2.1), (-1, 3.7)):
-        yw, inward = wall_side(side)
+        yw, inward = _wall_side(cfg, side)
         depth = 0.025
         lo_y, hi_y = sorted([yw, yw + inward * depth])
         parts.append(box(f"door{side}_jamb_a", [x0 - 0.08, lo_y, 0], [x0, hi_y, 2.05], frame_mat))
@@ -609,24 +298,39 @@ def build_corridor(cfg: CorridorConfig) -> tuple[Scene, NDArray, NDArray]:
         parts.append(_facing(quad(f"door{side}_leaf", [x0, leaf_y, 0], [0.85, 0, 0], [0, 0, 2.05], door_mat), np.array([0.0, inward, 0.0])))
         hx = x0 + 0.75
         parts.append(box(f"door{side}_handle", [hx, min(leaf_y, leaf_y + inward * 0.06), 0.98], [hx + 0.12, max(leaf_y, leaf_y + inward * 0.06), 1.01], ProceduralMaterial(base=0.3, contrast=0.2, seed=33)))
-    # Pilasters every ~1.4 m on both walls (geometry that pins the along-corridor position).
+    return parts
+
+
+def _pilasters(cfg: CorridorConfig) -> list[SurfacePart]:
+    """Pilasters every ~1.4 m on both walls (geometry that pins the along-corridor position)."""
+    parts: list[SurfacePart] = []
     for side in (1, -1):
-        yw, inward = wall_side(side)
-        for x in np.arange(0.7 if side > 0 else 1.2, L - 0.3, 1.4):
+        yw, inward = _wall_side(cfg, side)
+        for x in np.arange(0.7 if side > 0 else 1.2, cfg.length_m - 0.3, 1.4):
             if any(abs(x - d) < 1.1 for d in (2.5, 4.1)):
                 continue
             lo_y, hi_y = sorted([yw, yw + inward * 0.06])
-            parts.append(box(f"pilaster{side}_{x:.1f}", [x, lo_y, 0], [x + 0.18, hi_y, Hc], ProceduralMaterial(base=0.7, contrast=0.4, scale_m=0.03, seed=int(40 + 10 * x))))
-    # Handrail on brackets along part of the left wall.
+            parts.append(box(f"pilaster{side}_{x:.1f}", [x, lo_y, 0], [x + 0.18, hi_y, cfg.height_m], ProceduralMaterial(base=0.7, contrast=0.4, scale_m=0.03, seed=int(40 + 10 * x))))
+    return parts
+
+
+def _handrail(cfg: CorridorConfig) -> list[SurfacePart]:
+    """A handrail on brackets along part of the left wall."""
+    yl = cfg.width_m / 2
     rail_mat = ProceduralMaterial(base=0.5, contrast=0.3, scale_m=0.01, seed=51)
-    parts.append(cylinder("handrail", [0.9, yl - 0.07, 0.9], [1.9, yl - 0.07, 0.9], 0.02, rail_mat, resolution=32))
+    parts = [cylinder("handrail", [0.9, yl - 0.07, 0.9], [1.9, yl - 0.07, 0.9], 0.02, rail_mat, resolution=32)]
     for bx in (1.0, 1.8):
         parts.append(box(f"rail_bracket_{bx}", [bx - 0.01, yl - 0.07, 0.86], [bx + 0.01, yl, 0.89], rail_mat))
-    # Posters: "A" repeated (look-alike places), plus unique ones. 2 mm proud of the wall.
+    return parts
+
+
+def _posters(cfg: CorridorConfig) -> list[SurfacePart]:
+    """Posters 2 mm proud of the walls: poster "A" repeated (look-alike places), plus unique ones."""
+    parts: list[SurfacePart] = []
     look_alike = make_poster(1000)
     slots = {1: [1.3, 3.05, 4.9, 5.6], -1: [0.5, 2.0, 4.6, 5.4]}
     for side, xs in slots.items():
-        yw, inward = wall_side(side)
+        yw, inward = _wall_side(cfg, side)
         for i, x in enumerate(xs):
             img = look_alike if i < cfg.poster_repeats else make_poster(2000 + 10 * i + (side > 0))
             y = yw + inward * 0.002
@@ -637,9 +341,16 @@ def build_corridor(cfg: CorridorConfig) -> tuple[Scene, NDArray, NDArray]:
             else:
                 poster = quad(f"poster{side}_{i}", [x + w, y, z0 + h], [-w, 0, 0], [0, 0, -h], image=img)
             parts.append(_facing(poster, np.array([0.0, inward, 0.0])))
-    # Clutter: boxes stacked against the walls, a bin, a radiator, a fire extinguisher.
+    return parts
+
+
+def _clutter(cfg: CorridorConfig) -> list[SurfacePart]:
+    """Boxes stacked against the walls (sizes from ``clutter_seed``), a bin, a radiator, a fire extinguisher."""
+    yl, yr = cfg.width_m / 2, -cfg.width_m / 2
+    rng = np.random.default_rng(cfg.clutter_seed)
+    parts: list[SurfacePart] = []
     for side, x in ((1, 4.2), (-1, 1.4), (-1, 5.0)):
-        yw, inward = wall_side(side)
+        yw, inward = _wall_side(cfg, side)
         z = 0.0
         for k in range(int(rng.integers(2, 4))):
             dx, dy, dz = rng.uniform(0.25, 0.45), rng.uniform(0.2, 0.35), rng.uniform(0.25, 0.4)
@@ -653,15 +364,11 @@ def build_corridor(cfg: CorridorConfig) -> tuple[Scene, NDArray, NDArray]:
     for k in range(14):
         x = 3.3 + 0.05 * k
         parts.append(box(f"radiator_fin_{k}", [x, yr + 0.03, 0.15], [x + 0.03, yr + 0.11, 0.85], rad_mat))
-    scene = Scene(parts)
-    poses = corridor_trajectory(cfg)
-    return scene, poses, np.arange(len(poses)) * cfg.frame_interval_s
+    return parts
 
 
 def corridor_trajectory(cfg: CorridorConfig) -> NDArray[np.float64]:
     """(N, 4, 4) ``T_world_sensor`` of the cart: passes along the walls joined by in-place turns."""
-    from frontend.simulator import look_at_pose
-
     L, Wd = cfg.length_m, cfg.width_m
     x_start, x_end = cfg.margin_m, L - cfg.margin_m
     if x_end <= x_start:
@@ -710,7 +417,7 @@ def plane_scene(distance_m: float = 0.5, size_m: float = 1.0, tilt_deg: float = 
     white-ish (like a calibration flat), > 0 gives it a solid texture.
     """
     t = math.radians(tilt_deg)
-    R = _rot("y", t)
+    R = axis_rotation("y", t)
     eu = R @ np.array([size_m, 0, 0])
     ev = R @ np.array([0, size_m, 0])
     c = np.array([0, 0, distance_m]) - 0.5 * eu - 0.5 * ev
