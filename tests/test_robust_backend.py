@@ -13,7 +13,12 @@ from fpp_graph.config import PoseGraphConfig
 from fpp_graph.geometry import adjoint, invert, make_pose, se3_exp
 from fpp_graph.outliers import CHI2_6_MEDIAN, family_bound, odometry_cycle_chi2
 from fpp_graph.pose_graph import PoseGraph, sesync_objective
-from fpp_graph.synthetic_graphs import add_false_loops, corridor_trajectory, torus_graph, torus_graph_high_rotation_noise
+from fpp_graph.synthetic_graphs import (
+    add_false_loops,
+    corridor_trajectory,
+    torus_graph,
+    torus_graph_high_rotation_noise,
+)
 from fpp_graph.types import ConstraintKind
 
 LEAST_SQUARES = PoseGraphConfig(robust="none")
