@@ -146,10 +146,19 @@ def optimize_graph(
         )
 
 
+#: Commands defined in this module: running one of them needs no other command registered.
+_OWN_COMMANDS = frozenset({"optimize", "config"})
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``fpp-slam``: runs the typer app, turning FppError into one line + exit 2."""
+    args = sys.argv[1:] if argv is None else list(argv)
+    if not args or args[0] not in _OWN_COMMANDS:
+        # run/eval/batch and the plug-ins (an entry-point scan of every installed package)
+        # are registered only when the command line may need them, e.g. for --help
+        _register_commands()
     try:
-        app(args=argv, standalone_mode=False)
+        app(args=args, standalone_mode=False)
     except FppError as exc:
         typer.echo(f"fpp-slam: error: {exc}", err=True)
         return exc.exit_code
@@ -170,12 +179,15 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-if __name__ == "__main__":
-    sys.exit(main())
+_registered = False
 
 
 def _register_commands() -> None:
-    """Attach the run/eval/batch commands and any front-end command plug-ins (entry points)."""
+    """Attach the run/eval/batch commands and any front-end command plug-ins (entry points), once."""
+    global _registered
+    if _registered:
+        return
+    _registered = True
     from importlib.metadata import entry_points
 
     from fpp_graph import cli_run  # noqa: F401  (registers run, eval, batch on `app`)
@@ -184,4 +196,5 @@ def _register_commands() -> None:
         app.command(ep.name)(ep.load())
 
 
-_register_commands()
+if __name__ == "__main__":
+    sys.exit(main())

@@ -3,7 +3,7 @@
 GTSAM reports an under-constrained problem as ``IndeterminantLinearSystemException`` naming one
 "nearby variable", which says little about the cause. Every such case in a pose graph is
 structural: a part of the graph that no edge ties to an anchor (a fixed pose or a prior). This
-module finds those parts with networkx and says which poses they hold, so the error names them
+module finds those parts (scipy's csgraph) and says which poses they hold, so the error names them
 all and says what to do.
 """
 

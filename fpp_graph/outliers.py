@@ -114,6 +114,76 @@ class CycleCheck:
         return max(1.0, self.measured_scale())
 
 
+def _odometry_forest(
+    n: int, ends: NDArray[np.int64], roots: Sequence[int]
+) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]:
+    """Breadth-first spanning forest of the odometry graph on nodes ``0..n-1``.
+
+    ``ends`` (K, 2) holds the node indices of the odometry edges, in edge order. Each tree is
+    rooted at the first of ``roots`` in it, else at its smallest node. Neighbours are visited in
+    the order their first edge appears, and of parallel edges the last one is the tree edge.
+
+    Returns ``(order, parent, parent_edge, tree)``: the nodes in breadth-first order (all trees
+    at once; a node's parent comes before it), each node's parent (a root is its own parent),
+    the index into ``ends`` of the edge to its parent (-1 at a root) and each node's tree label.
+    """
+    from scipy.sparse import csr_matrix
+    from scipy.sparse.csgraph import breadth_first_order, connected_components
+
+    a, b = ends[:, 0], ends[:, 1]
+    pair = np.minimum(a, b) * n + np.maximum(a, b)
+    pairs, first = np.unique(pair, return_index=True)
+    last = len(pair) - 1 - np.unique(pair[::-1], return_index=True)[1]
+    # adjacency rows listing each node's neighbours in the order of their first edge (csgraph
+    # walks a row in storage order); node n is a virtual root joined to every tree's root
+    rows = np.concatenate([a[first], b[first]])
+    cols = np.concatenate([b[first], a[first]])
+    rank = np.concatenate([first, first])
+    by_row = np.lexsort((rank, rows))
+    adjacency = csr_matrix((np.ones(len(by_row)), cols[by_row], np.r_[0, np.cumsum(np.bincount(rows, minlength=n))]),
+                           shape=(n, n))
+    _, labels = connected_components(adjacency, directed=False)
+    candidates = np.concatenate([np.asarray(roots, dtype=np.int64), np.arange(n)])
+    tree_roots = candidates[np.sort(np.unique(labels[candidates], return_index=True)[1])]
+    with_root = csr_matrix(
+        (np.ones(adjacency.nnz + len(tree_roots)), np.concatenate([adjacency.indices, tree_roots]),
+         np.r_[adjacency.indptr, adjacency.nnz + len(tree_roots)]),
+        shape=(n + 1, n + 1),
+    )
+    order, predecessor = breadth_first_order(with_root, n, directed=True, return_predecessors=True)
+    order, parent = order[1:], predecessor[:n].astype(np.int64)
+    parent[tree_roots] = tree_roots
+    parent_edge = np.full(n, -1, dtype=np.int64)
+    child = np.flatnonzero(parent != np.arange(n))
+    ends_pair = np.minimum(child, parent[child]) * n + np.maximum(child, parent[child])
+    parent_edge[child] = last[np.searchsorted(pairs, ends_pair)]
+    return order.astype(np.int64), parent, parent_edge, labels.astype(np.int64)
+
+
+def _lowest_common_ancestors(parent: NDArray[np.int64], u: NDArray[np.int64], v: NDArray[np.int64]) -> NDArray[np.int64]:
+    """Lowest common ancestors of the node pairs ``(u, v)`` (each in one tree; a root is its own
+    parent), by binary lifting: ``log2(depth)`` vectorised steps."""
+    # ancestor tables up[k] (the 2^k-th ancestor, a root past it) and depths by pointer jumping
+    ancestor = parent
+    depth = (parent != np.arange(len(parent))).astype(np.int64)
+    up = [parent]
+    while np.any(parent[ancestor] != ancestor):
+        depth = depth + depth[ancestor]
+        ancestor = ancestor[ancestor]
+        up.append(ancestor)
+    u, v = u.copy(), v.copy()
+    swap = depth[u] < depth[v]
+    u[swap], v[swap] = v[swap], u[swap]
+    lift = depth[u] - depth[v]
+    for k, jump in enumerate(up):
+        bit = ((lift >> k) & 1).astype(bool)
+        u[bit] = jump[u[bit]]
+    for jump in reversed(up):
+        differ = jump[u] != jump[v]
+        u[differ], v[differ] = jump[u[differ]], jump[v[differ]]
+    return np.where(u == v, u, parent[u])
+
+
 def odometry_cycle_chi2(
     keys: Sequence[int],
     source_target: NDArray[np.int64],
@@ -145,63 +215,47 @@ def odometry_cycle_chi2(
         Anchored keys (the gauge).
     """
     import gtsam
-    import networkx as nx
 
-    key_list = [int(k) for k in keys]
-    index = {k: n for n, k in enumerate(key_list)}
+    key_array = np.asarray([int(k) for k in keys], dtype=np.int64)
+    n = len(key_array)
+    if n == 0:
+        return CycleCheck(np.zeros(0, dtype=np.int64), np.zeros(0))
+    # node index of every key (its position in ``keys``)
+    sorter = np.argsort(key_array, kind="stable")
+    ends = sorter[np.searchsorted(key_array, np.asarray(source_target, dtype=np.int64).reshape(-1, 2), sorter=sorter)]
+    known = {int(k) for k in key_array}
+    root_index = sorter[np.searchsorted(key_array, [int(r) for r in roots if int(r) in known], sorter=sorter)]
     odometry = np.flatnonzero(~is_loop)
-    graph = nx.Graph()
-    graph.add_nodes_from(range(len(key_list)))
-    for i in odometry:
-        s, t = source_target[i]
-        graph.add_edge(index[int(s)], index[int(t)], edge=int(i))
     covariance = np.linalg.inv(information_rot_trans)
+    order, parent, parent_edge, tree = _odometry_forest(n, ends[odometry].reshape(-1, 2), root_index)
 
-    P = np.zeros((len(key_list), 4, 4))
-    S = np.zeros((len(key_list), 6, 6))
-    tree_of = np.full(len(key_list), -1)
-    trees: list[nx.DiGraph] = []
-    tree_roots: list[int] = []
-    root_order = [index[int(r)] for r in roots if int(r) in index] + list(range(len(key_list)))
-    for root in root_order:
-        if tree_of[root] >= 0:
-            continue
-        P[root] = np.eye(4)
-        tree_of[root] = len(trees)
-        tree = nx.DiGraph()
-        tree.add_node(root)
-        for parent, child in nx.bfs_edges(graph, root):
-            i = graph.edges[parent, child]["edge"]
-            s = index[int(source_target[i, 0])]
-            M = T_target_source[i]
-            P[child] = P[parent] @ (M if parent == index[int(source_target[i, 1])] else invert(M))
-            A = adjoint(P[s])
-            S[child] = S[parent] + A @ covariance[i] @ A.T
-            tree_of[child] = len(trees)
-            tree.add_edge(parent, child)
-        trees.append(tree)
-        tree_roots.append(root)
+    # pose of each node from its tree's root: P_child = P_parent @ (T_t_s or its inverse)
+    child = order[parent[order] != order]
+    edge = odometry[parent_edge[child]]
+    forward = parent[child] == ends[edge, 1]
+    step = np.where(forward[:, None, None], T_target_source[edge], invert(T_target_source[edge]))
+    poses = [np.eye(4)] * n
+    for c, p, M in zip(child.tolist(), parent[child].tolist(), step, strict=True):
+        poses[c] = poses[p] @ M
+    P = np.stack(poses)
+    # left covariance accumulated from the root: each edge adds Ad(P_source) Sigma Ad(P_source)^T
+    A = adjoint(P[ends[edge, 0]])
+    added = A @ covariance[edge] @ np.swapaxes(A, 1, 2)
+    covariances = [np.zeros((6, 6))] * n
+    for c, p, Q in zip(child.tolist(), parent[child].tolist(), added, strict=True):
+        covariances[c] = covariances[p] + Q
+    S = np.stack(covariances)
 
     loops = np.flatnonzero(is_loop)
-    src = np.array([index[int(source_target[i, 0])] for i in loops], dtype=np.int64)
-    tgt = np.array([index[int(source_target[i, 1])] for i in loops], dtype=np.int64)
-    same = tree_of[src] == tree_of[tgt]
+    src, tgt = ends[loops, 0], ends[loops, 1]
+    same = tree[src] == tree[tgt]
     loops, src, tgt = loops[same], src[same], tgt[same]
     if len(loops) == 0:
         return CycleCheck(np.zeros(0, dtype=np.int64), np.zeros(0))
-    lca = np.empty(len(loops), dtype=np.int64)
-    for n_tree, tree in enumerate(trees):
-        members = np.flatnonzero(tree_of[src] == n_tree)
-        if len(members) == 0:
-            continue
-        pairs = [(int(src[m]), int(tgt[m])) for m in members]
-        found = dict(nx.tree_all_pairs_lowest_common_ancestor(tree, root=tree_roots[n_tree], pairs=pairs))
-        lca[members] = [found[p] for p in pairs]
+    lca = _lowest_common_ancestors(parent, src, tgt)
 
-    T_pred = invert(P[tgt]) @ P[src]
-    error = np.array([
-        gtsam.Pose3.Logmap(gtsam.Pose3(invert(T_target_source[i]) @ T)) for i, T in zip(loops, T_pred, strict=True)
-    ])
+    disagreement = invert(T_target_source[loops]) @ (invert(P[tgt]) @ P[src])
+    error = np.array([gtsam.Pose3.Logmap(gtsam.Pose3(T)) for T in disagreement])
     A = adjoint(invert(P[src]))
     D = S[src] + S[tgt] - 2.0 * S[lca]
     C = covariance[loops] + A @ D @ np.swapaxes(A, 1, 2)

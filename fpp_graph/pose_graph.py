@@ -857,6 +857,7 @@ class _Problem:
             for e, m, n in zip(self.edges, self.measured, self.noise, strict=True)
         ]
         self.is_loop = np.array([e.kind is ConstraintKind.LOOP for e in self.edges], dtype=bool)
+        self._cycle_checks: dict[bytes, CycleCheck] = {}
 
     # -- graphs ----------------------------------------------------------------------------
     def gaussian_graph(self, active: NDArray[np.bool_]) -> gtsam.NonlinearFactorGraph:
@@ -942,7 +943,17 @@ class _Problem:
         return np.array([2.0 * self.gaussian[i].error(values) for i in loops], dtype=np.float64)
 
     def cycle_check(self, active: NDArray[np.bool_]) -> CycleCheck:
-        """The active loops against the odometry paths between their ends."""
+        """The active loops against the odometry paths between their ends.
+
+        It depends on the active set only (not on the values): kept per active set, so the
+        screens of one optimisation measure the scale once while no edge is dropped.
+        """
+        key = np.asarray(active, dtype=bool).tobytes()
+        if key not in self._cycle_checks:
+            self._cycle_checks[key] = self._cycle_check(active)
+        return self._cycle_checks[key]
+
+    def _cycle_check(self, active: NDArray[np.bool_]) -> CycleCheck:
         idx = np.flatnonzero(active)
         check = odometry_cycle_chi2(
             list(self.given_poses),

@@ -167,6 +167,132 @@ def test_variance_factor_measures_the_scale_and_never_goes_below_one():
     assert _cycle_check(graph, information_scale=0.1).variance_factor() == 1.0
 
 
+def _random_pose(rng: np.random.Generator) -> np.ndarray:
+    return make_pose(Rotation.from_rotvec(rng.normal(size=3)).as_matrix(), rng.normal(size=3))
+
+
+def _random_information(rng: np.random.Generator) -> np.ndarray:
+    L = rng.normal(size=(6, 6))
+    return L @ L.T + 6.0 * np.eye(6)
+
+
+def _brute_force_cycle_chi2(keys, tree_edges, T, info, loop):
+    """A loop's chi-square from the explicit odometry path between its ends (``tree_edges`` a
+    forest, so the path is unique): walk it from the source, composing ``T_source_x`` and
+    adding each edge's covariance moved into the source frame; ``None`` across trees."""
+    s, t = loop
+    neighbours = {k: [] for k in keys}
+    for i, (a, b) in enumerate(tree_edges):
+        neighbours[a].append((b, i))
+        neighbours[b].append((a, i))
+    reached = {s: (np.eye(4), np.zeros((6, 6)))}
+    frontier = [s]
+    while frontier:
+        x = frontier.pop()
+        T_s_x, C = reached[x]
+        for y, i in neighbours[x]:
+            if y in reached:
+                continue
+            a, b = tree_edges[i]  # T[i] = T_b_a
+            T_s_y = T_s_x @ (invert(T[i]) if x == a else T[i])
+            T_s_a = T_s_x if x == a else T_s_y
+            A = adjoint(T_s_a)
+            reached[y] = (T_s_y, C + A @ np.linalg.inv(info[i]) @ A.T)
+            frontier.append(y)
+    if t not in reached:
+        return None
+    T_s_t, C = reached[t]  # C: the path's covariance as a right perturbation of T_t_s
+    return invert(T_s_t), C
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_cycle_chi2_matches_the_explicit_odometry_path(seed):
+    """Random odometry forest (two trees, shuffled keys and edge directions) with loops within
+    and across the trees: each loop's chi-square is that of its explicit odometry path."""
+    import gtsam
+
+    rng = np.random.default_rng(seed)
+    keys = [int(k) for k in rng.permutation(np.arange(100, 160))]
+    parts = [keys[:35], keys[35:]]
+    tree_edges = []
+    for part in parts:
+        for n in range(1, len(part)):
+            a, b = part[n], part[int(rng.integers(0, n))]
+            tree_edges.append((a, b) if rng.random() < 0.5 else (b, a))
+    loops = [tuple(int(k) for k in rng.choice(keys, size=2, replace=False)) for _ in range(40)]
+    pairs = tree_edges + loops
+    order = rng.permutation(len(pairs))
+    pairs = [pairs[i] for i in order]
+    is_loop = order >= len(tree_edges)
+    T = np.stack([_random_pose(rng) for _ in pairs])
+    info = np.stack([_random_information(rng) for _ in pairs])
+    roots = [parts[1][7], 99999]  # a root inside the second tree; unknown keys are ignored
+    check = odometry_cycle_chi2(keys, np.array(pairs), T, info, is_loop, roots)
+
+    odo = np.flatnonzero(~is_loop)
+    expected = {}
+    for i in np.flatnonzero(is_loop):
+        found = _brute_force_cycle_chi2(keys, [pairs[j] for j in odo], T[odo], info[odo], pairs[i])
+        if found is None:
+            continue
+        T_pred, C_path = found
+        e = gtsam.Pose3.Logmap(gtsam.Pose3(invert(T[i]) @ T_pred))
+        expected[int(i)] = float(e @ np.linalg.solve(np.linalg.inv(info[i]) + C_path, e))
+    assert 0 < len(expected) < int(is_loop.sum())  # some loops span the two trees
+    assert check.loop_index.tolist() == sorted(expected)
+    np.testing.assert_allclose(check.chi2, [expected[i] for i in check.loop_index], rtol=1e-7)
+
+
+def test_odometry_forest_is_networkx_breadth_first_tree():
+    """With cycles and parallel edges in the odometry, the spanning forest is networkx's
+    breadth-first tree (neighbours in first-edge order, the last parallel edge), and the lowest
+    common ancestors are those of the tree."""
+    import networkx as nx
+
+    from fpp_graph.outliers import _lowest_common_ancestors, _odometry_forest
+
+    rng = np.random.default_rng(3)
+    n = 80
+    ends = rng.integers(0, n - 10, size=(120, 2))  # cycles, parallel edges, self-loops
+    ends = np.concatenate([ends, ends[:15, ::-1], [[n - 3, n - 2]]])  # plus isolated nodes, a 2-node tree
+    roots = [5, 40]
+    order, parent, parent_edge, tree = _odometry_forest(n, ends, roots)
+
+    graph = nx.Graph()
+    graph.add_nodes_from(range(n))
+    for i, (a, b) in enumerate(ends):
+        graph.add_edge(int(a), int(b), edge=i)
+    expected_parent = np.arange(n)
+    seen = set()
+    for root in [*roots, *range(n)]:
+        if root in seen:
+            continue
+        seen.add(root)
+        for p, c in nx.bfs_edges(graph, root):
+            seen.add(c)
+            expected_parent[c] = p
+            assert parent_edge[c] == graph.edges[p, c]["edge"]
+    assert parent.tolist() == expected_parent.tolist()
+    assert sorted(order.tolist()) == list(range(n))
+    position = np.empty(n, dtype=int)
+    position[order] = np.arange(n)
+    assert np.all(position[parent] <= position)
+    assert len(np.unique(tree)) == nx.number_connected_components(graph)
+
+    def ancestors(x):
+        path = [int(x)]
+        while parent[path[-1]] != path[-1]:
+            path.append(int(parent[path[-1]]))
+        return path
+
+    u, v = rng.integers(0, n, size=(2, 300))
+    same = tree[u] == tree[v]
+    lca = _lowest_common_ancestors(parent, u[same], v[same])
+    for a, b, c in zip(u[same], v[same], lca, strict=True):
+        up_b = set(ancestors(b))
+        assert c == next(x for x in ancestors(a) if x in up_b)
+
+
 def test_adjoint_and_inverse_of_stacks_match_gtsam():
     import gtsam
 
