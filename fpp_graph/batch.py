@@ -69,8 +69,8 @@ def run_one(sequence: str, out: str, config_path: str | None, resume: bool, over
         # (a Dask worker is a daemon process and could not start a pool of its own anyway)
         config = config_from_dict({**config.model_dump(mode="json"), "run": {**config.run.model_dump(mode="json"), "workers": 1}})
         if Path(sequence).suffix.lower() == ".g2o":
+            from fpp_graph.graph_run import run_graph_file
             from fpp_graph.pipeline import prepare_results_dir
-            from fpp_graph.run_graph import run_graph_file
 
             if not Path(sequence).is_file():
                 raise InputDataError(f"pose graph {sequence} does not exist")

@@ -6,7 +6,7 @@ The problem certified is SE-Sync's isotropic one, whatever noise model the graph
 
 over the relative edges ``e = (source s, target t)`` measuring ``T_target_source = (R_ts, t_ts)``,
 with ``tau_e, kappa_e`` from each edge's information blocks
-(:func:`~fpp_graph.pose_graph.sesync_tau_kappa`). ``R_i, t_i`` are the world-from-sensor rotation
+(:func:`~fpp_graph.noise_model.sesync_tau_kappa`). ``R_i, t_i`` are the world-from-sensor rotation
 and position (metres) of pose ``i``. Priors and fixed poses play no part: ``F`` is invariant under
 a rigid motion of all poses (the gauge), and the returned poses are moved rigidly so that the
 anchor (the first fixed pose, else the smallest key) keeps its given value.
@@ -87,6 +87,7 @@ from fpp_graph.certificate_refinement import (
 )
 from fpp_graph.errors import GraphError
 from fpp_graph.graph_diagnostics import connected_parts
+from fpp_graph.noise_model import sesync_tau_kappa
 
 if TYPE_CHECKING:
     from fpp_graph.pose_graph import PoseGraph
@@ -301,8 +302,6 @@ def data_from_graph(graph: PoseGraph, poses: Mapping[int, ArrayLike] | None = No
     GraphError
         No edges, a pose missing from ``poses``, poses not connected by edges.
     """
-    from fpp_graph.pose_graph import sesync_tau_kappa
-
     edges = graph.edges()
     if not edges:
         raise GraphError("certify: the graph has no edges; there is nothing to certify (add relative-pose edges)")

@@ -11,7 +11,8 @@ function usable on its own:
 5. :func:`fuse_map` - re-fuse the global map under the optimised poses (``map.ply``, ``mesh.ply``);
 6. :func:`write_metrics_and_plots` - ``metrics.json`` and PNG plots.
 
-Every output file is written atomically (temp file + rename).
+:func:`run_sequence` is the whole of ``fpp-slam run SEQUENCE`` (source discovery, config,
+pipeline). Every output file is written atomically (temp file + rename).
 """
 
 from __future__ import annotations
@@ -414,3 +415,18 @@ class Pipeline:
 
     def _timed(self, report: RunReport, stage: str) -> Pipeline._Timer:
         return Pipeline._Timer(report, stage)
+
+
+def run_sequence(
+    sequence: Path, config_path: Path | None, out: Path, resume: bool = False, overwrite: bool = False,
+    kind: str | None = None, progress: ProgressCallback | None = None,
+) -> RunReport:
+    """``fpp-slam run SEQUENCE``: open the sequence with its registered source (``kind`` forces
+    one), load the configuration (packaged defaults overridden by ``config_path``) and run the
+    pipeline into ``out``."""
+    from fpp_graph.config import load_config
+    from fpp_graph.sources import open_source
+
+    config = load_config(config_path)
+    source = open_source(sequence, config, kind=kind)
+    return Pipeline(source, config, out, resume=resume, overwrite=overwrite, progress=progress).run()

@@ -36,9 +36,9 @@ def demo(
     """Simulate the default doll turntable (3 turns x 24 views, preview), run, evaluate, print a short table."""
     import time
 
-    from fpp_graph.cli import setup_logging
-    from fpp_graph.cli_run import _print_table, run_sequence
+    from fpp_graph.cli import RichProgress, print_metrics_table, setup_logging
     from fpp_graph.config import load_config
+    from fpp_graph.pipeline import run_sequence
     from fpp_graph.run_evaluation import evaluate_results
     from fpp_graph.sources import open_source
     from frontend.sim import simulate_sequence
@@ -51,13 +51,14 @@ def demo(
         typer.echo(f"simulating the default turntable ({'1920x1200' if full else '640x400 preview'}) into {sequence_dir} ...")
         simulate_sequence(DEFAULT_SCENE, sequence_dir, preview=not full, max_frames=frames or None, overwrite=True)
     typer.echo(f"simulated in {time.perf_counter() - start:.1f} s; running SLAM ...")
-    report = run_sequence(sequence_dir, None, results_dir, resume=False, overwrite=True, kind="fpp")
+    with RichProgress() as progress:
+        report = run_sequence(sequence_dir, None, results_dir, resume=False, overwrite=True, kind="fpp", progress=progress)
     metrics = evaluate_results(results_dir, open_source(sequence_dir, load_config(None)))
     keep = (
         "frames", "keyframes", "loops_accepted", "loops_rejected", "ate_rmse_mm", "rpe_trans_rmse_mm",
         "rpe_rot_rmse_deg", "loop_return_mm", "map_rmse_mm", "map_p95_mm", "run_seconds",
     )
-    _print_table({k: metrics[k] for k in keep if k in metrics})
+    print_metrics_table({k: metrics[k] for k in keep if k in metrics})
     typer.echo(f"demo finished in {time.perf_counter() - start:.1f} s; results in {report.results_dir}")
 
 

@@ -4,7 +4,7 @@
 
 For each scene the sequence is simulated (640x400 preview unless ``--full``), then:
 
-* **ours**: ``fpp-slam run`` (the same :func:`fpp_graph.cli_run.run_sequence`), evaluated with
+* **ours**: ``fpp-slam run`` (the same :func:`fpp_graph.pipeline.run_sequence`), evaluated with
   ``fpp-slam eval`` (:func:`fpp_graph.run_evaluation.evaluate_results`);
 * **Open3D** (the user's obvious alternative, the multiway-registration tutorial): on the *same
   decoded frames* (our run's frame cache, so the peer pays no decoding), each cloud voxel-
@@ -48,13 +48,13 @@ def cpu_seconds() -> float:
 
 
 def run_ours(seq: Path, out: Path, config_path: Path | None = None) -> dict:
-    from fpp_graph.cli_run import run_sequence
     from fpp_graph.config import load_config
+    from fpp_graph.pipeline import run_sequence
     from fpp_graph.run_evaluation import evaluate_results
     from fpp_graph.sources import open_source
 
     wall0, cpu0 = time.perf_counter(), cpu_seconds()
-    run_sequence(seq, config_path, out, resume=False, overwrite=True, kind=None, show_progress=False)
+    run_sequence(seq, config_path, out, resume=False, overwrite=True, kind=None)
     wall, cpu = time.perf_counter() - wall0, cpu_seconds() - cpu0
     metrics = evaluate_results(out, open_source(seq, load_config(None)))
     return {"wall_s": wall, "cpu_s": cpu, **metrics}

@@ -32,14 +32,14 @@ COLUMNS = [
 
 
 def run_one(scene: str, seed: int, folder: Path, full: bool, frames: int | None, config_path: Path | None = None) -> dict:
-    from fpp_graph.cli_run import run_sequence
     from fpp_graph.config import load_config
+    from fpp_graph.pipeline import run_sequence
     from fpp_graph.run_evaluation import evaluate_results
     from fpp_graph.sources import open_source
     from frontend.demo import simulate_once
 
     seq = simulate_once(scene, folder / "sequence", full, frames, seed)
-    report = run_sequence(seq, config_path, folder / "results", resume=False, overwrite=True, kind=None, show_progress=False)
+    report = run_sequence(seq, config_path, folder / "results", resume=False, overwrite=True, kind=None)
     m = evaluate_results(folder / "results", open_source(seq, load_config(None)))
     run = report.metrics
     row = {

@@ -49,14 +49,13 @@ def config_file(tmp_path_factory):
 
 
 def folder_contents(folder: Path) -> dict[str, object]:
-    """Every file of a results folder; metrics.json without its wall-clock ``seconds``."""
+    """Every file of a results folder; metrics.json without its wall-clock times (``*seconds``)."""
     contents: dict[str, object] = {}
     for path in sorted(p for p in folder.rglob("*") if p.is_file()):
         key = str(path.relative_to(folder))
         if path.name == "metrics.json":
             metrics = json.loads(path.read_text())
-            metrics.pop("seconds", None)
-            contents[key] = metrics
+            contents[key] = {k: v for k, v in metrics.items() if not k.endswith("seconds")}
         else:
             contents[key] = path.read_bytes()
     return contents

@@ -81,3 +81,19 @@ def test_cli_help_lists_subcommands():
         capture_output=True, text=True, check=True,
     )
     assert probe.stdout.strip() == "[]"
+
+
+def _command_names(help_text: str) -> set[str]:
+    """Command names of a typer/rich help screen (the first word of each row in the Commands box)."""
+    section = help_text.split("Commands")[1]
+    return {line.strip("│ ").split()[0] for line in section.splitlines() if line.startswith("│ ") and line[2:3].strip()}
+
+
+def test_python_m_and_the_console_script_list_the_same_commands():
+    exe = Path(sys.executable).parent / "fpp-slam"
+    script = subprocess.run([str(exe), "--help"], capture_output=True, text=True, check=True).stdout
+    module = subprocess.run([sys.executable, "-m", "fpp_graph.cli", "--help"], capture_output=True, text=True, check=True).stdout
+    names = _command_names(script)
+    assert {"optimize", "run", "eval", "batch", "config", "demo"} <= names
+    assert _command_names(module) == names
+

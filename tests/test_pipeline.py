@@ -160,9 +160,7 @@ def tum_sequence(tmp_path_factory):
     return write_tum_rgbd_sequence(tmp_path_factory.mktemp("tum") / "seq")
 
 
-# the console script itself (``python -m fpp_graph.cli`` would register the commands on a second
-# copy of the module)
-_FPP_SLAM = [sys.executable, "-c", "import sys; from fpp_graph.cli import main; sys.exit(main())"]
+_FPP_SLAM = [sys.executable, "-m", "fpp_graph.cli"]
 
 
 def _cli(*args: str, **kwargs):

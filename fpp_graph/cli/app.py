@@ -1,0 +1,84 @@
+"""The ``fpp-slam`` application: its commands, and :func:`main`, which turns user errors into
+one line.
+
+Each command is a thin wrapper over a library function, defined in a module of this package
+that does not import this one (dependencies run one way: app -> commands -> common). Heavy
+modules (numpy, gtsam, Open3D, OpenCV) are imported inside the commands so that ``fpp-slam
+--help`` stays instant. User errors (:class:`~fpp_graph.errors.FppError`) print one line on
+stderr and exit 2. Front-ends add commands through the ``fpp_graph.cli`` entry-point group
+(``fpp-slam demo`` is one).
+"""
+
+from __future__ import annotations
+
+import sys
+
+import typer
+
+from fpp_graph.cli.config_commands import config_defaults, config_dump
+from fpp_graph.cli.optimize import optimize_graph
+from fpp_graph.cli.run import batch, eval_, run
+from fpp_graph.errors import FppError
+
+PLUGIN_GROUP = "fpp_graph.cli"
+
+app = typer.Typer(
+    name="fpp-slam",
+    help="Millimetre-accurate indoor SLAM on fringe projection profilometry (FPP) sensors.",
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+)
+config_app = typer.Typer(help="Inspect the configuration.", no_args_is_help=True)
+config_app.command("dump")(config_dump)
+config_app.command("defaults")(config_defaults)
+app.command("optimize")(optimize_graph)
+app.command("run")(run)
+app.command("eval")(eval_)
+app.command("batch")(batch)
+app.add_typer(config_app, name="config")
+
+_BUILT_IN = frozenset({"optimize", "run", "eval", "batch", "config"})
+_plugins_added = False
+
+
+def add_plugin_commands() -> None:
+    """Attach the commands front-ends register under the ``fpp_graph.cli`` entry points, once."""
+    global _plugins_added
+    if _plugins_added:
+        return
+    _plugins_added = True
+    from importlib.metadata import entry_points
+
+    for ep in entry_points(group=PLUGIN_GROUP):
+        app.command(ep.name)(ep.load())
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of ``fpp-slam`` (and ``python -m fpp_graph.cli``): runs the app, turning
+    FppError into one line + exit 2."""
+    args = sys.argv[1:] if argv is None else list(argv)
+    if not args or args[0] not in _BUILT_IN:
+        # scanning every installed package's entry points costs tens of ms: only when the
+        # command line may name a plug-in command (or asks for the list of commands)
+        add_plugin_commands()
+    try:
+        app(args=args, prog_name="fpp-slam", standalone_mode=False)
+    except FppError as exc:
+        typer.echo(f"fpp-slam: error: {exc}", err=True)
+        return exc.exit_code
+    except KeyboardInterrupt:
+        typer.echo("fpp-slam: interrupted", err=True)
+        return 130
+    except typer.Exit as exc:  # raised by --help and typer.Exit(code)
+        return int(exc.exit_code or 0)
+    except Exception as exc:
+        # Usage errors of the click engine under typer (vendored in recent typer releases, so
+        # matched by behaviour rather than by class): they know how to show themselves.
+        if callable(getattr(exc, "show", None)) and isinstance(getattr(exc, "exit_code", None), int):
+            exc.show()
+            return int(exc.exit_code)
+        if type(exc).__name__ == "Abort":
+            return 1
+        raise
+    return 0

@@ -1,0 +1,95 @@
+"""What every ``fpp-slam`` command shares: options, logging set-up, progress bars, tables.
+
+Module-level imports stay light (typer only) so that ``fpp-slam --help`` is instant.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+from typing import Annotated, Any, Optional
+
+import typer
+
+ConfigOption = Annotated[
+    Optional[Path],  # noqa: UP045 - typer needs Optional on 3.11
+    typer.Option("--config", "-c", help="YAML file overriding the packaged defaults."),
+]
+OutOption = Annotated[Optional[Path], typer.Option("--out", "-o", help="Results folder (default: results/<sequence>-<time>).")]  # noqa: UP045
+
+
+def setup_logging(level: str = "INFO", log_file: Path | None = None) -> None:
+    """Configure logging for the CLI: rich console handler on stderr, optional file handler."""
+    from rich.console import Console
+    from rich.logging import RichHandler
+
+    # stderr: stdout carries results (--json) that log lines must not corrupt
+    handlers: list[logging.Handler] = [RichHandler(console=Console(stderr=True), show_path=False, rich_tracebacks=False)]
+    if log_file is not None:
+        log_file.parent.mkdir(parents=True, exist_ok=True)
+        file_handler = logging.FileHandler(log_file, encoding="utf-8")
+        file_handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+        handlers.append(file_handler)
+    logging.basicConfig(level=level, handlers=handlers, format="%(message)s", force=True)
+
+
+def default_out(sequence: Path) -> Path:
+    """``results/<sequence name>-<local time>``."""
+    return Path("results") / f"{sequence.stem or sequence.name}-{time.strftime('%Y%m%d-%H%M%S')}"
+
+
+class RichProgress:
+    """Progress bars per stage with items/s: a ``fpp_graph.pipeline.ProgressCallback`` for the CLI."""
+
+    def __init__(self) -> None:
+        from rich.progress import (
+            BarColumn,
+            MofNCompleteColumn,
+            Progress,
+            TextColumn,
+            TimeElapsedColumn,
+        )
+
+        self.progress = Progress(
+            TextColumn("{task.description:>9}"), BarColumn(), MofNCompleteColumn(),
+            TextColumn("{task.fields[rate]}"), TimeElapsedColumn(), transient=False,
+        )
+        self.tasks: dict[str, Any] = {}
+        self.started: dict[str, float] = {}
+
+    def __enter__(self) -> RichProgress:
+        self.progress.__enter__()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.progress.__exit__(*exc)
+
+    def __call__(self, stage: str, done: int, total: int) -> None:
+        if stage not in self.tasks:
+            self.tasks[stage] = self.progress.add_task(stage, total=total, rate="")
+            self.started[stage] = time.perf_counter()
+        elapsed = max(time.perf_counter() - self.started[stage], 1e-9)
+        self.progress.update(self.tasks[stage], completed=done, total=total, rate=f"{done / elapsed:.2f}/s")
+
+
+def print_metrics_table(metrics: dict[str, Any], title: str = "fpp-slam evaluation") -> None:
+    """A two-column table of figures (floats to 4 decimals) on stdout."""
+    from rich.console import Console
+    from rich.table import Table
+
+    def shown(value: Any) -> str:
+        if isinstance(value, float):
+            return f"{value:.4f}"
+        if isinstance(value, list):
+            return ", ".join(shown(v) for v in value)
+        if isinstance(value, dict):
+            return ", ".join(f"{k}={shown(v)}" for k, v in value.items())
+        return str(value)
+
+    table = Table(title=title)
+    table.add_column("metric")
+    table.add_column("value", justify="right")
+    for key, value in metrics.items():
+        table.add_row(key, shown(value))
+    Console().print(table)

@@ -1,0 +1,93 @@
+"""``fpp-slam run | eval | batch``: thin wrappers over the pipeline, the evaluation and the batch
+runner. Heavy imports stay inside the commands."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+
+from fpp_graph.cli.common import (
+    ConfigOption,
+    OutOption,
+    RichProgress,
+    default_out,
+    print_metrics_table,
+    setup_logging,
+)
+from fpp_graph.errors import InputDataError
+
+
+def run(
+    sequence: Annotated[Path, typer.Argument(help="Sequence folder (FPP sequence.yaml, 7-Scenes or TUM RGB-D) or a .g2o pose graph.")],
+    config: ConfigOption = None,
+    out: OutOption = None,
+    resume: Annotated[bool, typer.Option("--resume", help="Continue an interrupted run in --out.")] = False,
+    overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace earlier results in --out.")] = False,
+    kind: Annotated[Optional[str], typer.Option("--kind", help="Force the sequence reader (fpp, rgbd).")] = None,  # noqa: UP045
+) -> None:
+    """Raw sequence -> decode -> constraints -> keyframes and loops -> pose graph -> fused map."""
+    from fpp_graph.config import load_config
+
+    out = out or default_out(sequence)
+    cfg = load_config(config)
+    if sequence.suffix.lower() == ".g2o":
+        from fpp_graph.graph_run import run_graph_file
+        from fpp_graph.pipeline import prepare_results_dir
+
+        results = prepare_results_dir(out, resume, overwrite)
+        setup_logging(cfg.run.log_level, results / "run.log")
+        typer.echo(json.dumps(run_graph_file(sequence, cfg, results), indent=1, default=float))
+        return
+    from fpp_graph.pipeline import run_sequence
+
+    setup_logging(cfg.run.log_level)
+    with RichProgress() as progress:
+        report = run_sequence(sequence, config, out, resume=resume, overwrite=overwrite, kind=kind, progress=progress)
+    m = report.metrics
+    typer.echo(
+        f"{m['frames']}/{m['frames_total']} frames, {m['keyframes']} keyframes, loops {m['loops_accepted']} accepted / "
+        f"{m['loops_rejected']} rejected, {len(m['components'])} part(s), {m['seconds']:.1f} s -> {report.results_dir}"
+    )
+
+
+def eval_(
+    results: Annotated[Path, typer.Argument(help="Results folder of a run.")],
+    gt: Annotated[Path, typer.Option("--gt", help="The sequence folder with ground truth.")],
+    as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object.")] = False,
+    config: ConfigOption = None,
+) -> None:
+    """ATE/RPE (SE(3) alignment), loop return error, circle fit, map accuracy vs the GT mesh."""
+    from fpp_graph.config import load_config
+    from fpp_graph.run_evaluation import evaluate_results
+    from fpp_graph.sources import open_source
+
+    setup_logging("WARNING")
+    metrics = evaluate_results(results, open_source(gt, load_config(config)))
+    if as_json:
+        typer.echo(json.dumps(metrics, default=float))
+    else:
+        print_metrics_table(metrics)
+
+
+def batch(
+    sequences: Annotated[list[Path], typer.Argument(help="Sequence folders or .g2o pose graphs (as for run).")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Parent folder of the results.")] = Path("results/batch"),
+    config: ConfigOption = None,
+    workers: Annotated[int, typer.Option("--workers", help="Sequences run at once (processes).")] = 1,
+    scheduler: Annotated[Optional[str], typer.Option("--scheduler", help="Dask scheduler address, or 'local' for a local cluster (needs the dask extra).")] = None,  # noqa: UP045
+    resume: Annotated[bool, typer.Option("--resume")] = False,
+    overwrite: Annotated[bool, typer.Option("--overwrite")] = False,
+) -> None:
+    """Many sequences through a concurrent.futures executor (or Dask distributed)."""
+    from fpp_graph.batch import run_batch
+
+    setup_logging("WARNING")
+    rows = run_batch(sequences, out, config, workers=workers, scheduler=scheduler, resume=resume, overwrite=overwrite)
+    failed = [r for r in rows if r.get("error")]
+    for r in rows:
+        typer.echo(json.dumps(r, default=float))
+    if failed:
+        raise InputDataError(f"{len(failed)} of {len(rows)} sequences failed: " + "; ".join(f"{r['sequence']}: {r['error']}" for r in failed))
