@@ -36,4 +36,8 @@ if [ ! -x .venv/bin/python ]; then
 fi
 .venv/bin/python -m pip install --quiet --upgrade pip
 .venv/bin/python -m pip install --quiet -e ".[${extras}]"
+# An editable install is not byte-compiled (a wheel install is): compile once, so that a
+# process that may not write bytecode (PYTHONDONTWRITEBYTECODE) does not recompile every module
+# at each start (about 0.1 s of `fpp-slam optimize` on a small graph).
+.venv/bin/python -m compileall -q fpp_graph frontend >/dev/null
 echo "bootstrap: ready (.venv with fpp-graph[${extras}])"
