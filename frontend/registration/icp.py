@@ -192,6 +192,7 @@ class IcpResult:
     residuals_m: Array = field(repr=False)
 
 
+# Long for its numpydoc docstring; alignment and the correspondence figures share one sample, so one body.
 def refine_icp(
     target: IcpCloud,
     source: IcpCloud,

@@ -119,6 +119,7 @@ class RansacResult:
         return int(self.inliers.sum())
 
 
+# Long for its numpydoc docstring; the sampling loop shares its adaptive stopping state, so it stays one body.
 def ransac_rigid(
     P_target: NDArray,
     P_source: NDArray,

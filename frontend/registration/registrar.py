@@ -2,57 +2,37 @@
 
 from __future__ import annotations
 
-import logging
-import time
 import weakref
-from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from fpp_graph.config import RegistrationConfig
 from fpp_graph.errors import FppError
-from fpp_graph.geometry import invert, se3_exp
+from fpp_graph.geometry import invert
 from fpp_graph.types import Constraint, ConstraintKind, Frame
 from frontend.dense_alignment import DenseAlignment, OrganisedSurface, align_dense
-from frontend.features import (
-    Detector,
-    detect_and_describe,
-    feature_signature,
-    make_detector,
-    match_descriptors,
+from frontend.features import Detector, detect_and_describe, feature_signature, make_detector
+from frontend.registration.gates import Checkpoint, rejection
+from frontend.registration.icp import IcpCloud, organised_subsample, prepare_icp_cloud
+from frontend.registration.keypoints import RansacResult, ransac_rigid
+from frontend.registration.refinement import (
+    check_weak_geometry,
+    dense_stage,
+    photometric_applies,
+    photometric_stage,
 )
-from frontend.registration.icp import (
-    IcpCloud,
-    information_from_icp,
-    organised_subsample,
-    prepare_icp_cloud,
-    refine_icp,
+from frontend.registration.stages import (
+    handle_weak_directions,
+    joint_information,
+    lift_matches,
+    match_keypoints,
+    ransac_metadata,
+    run_icp,
 )
-from frontend.registration.keypoints import (
-    drop_sensor_fixed_matches,
-    information_from_keypoints,
-    keypoint_inliers,
-    lift_keypoints,
-    ransac_rigid,
-)
-from frontend.registration.texture import _MIN_AGREEMENT_BLOCKS, TextureCamera, texture_agreement
-from frontend.registration.weak_directions import (
-    _CHI2_3DOF_9999,
-    _CHI2_6DOF_999,
-    Degeneracy,
-    _disagreement_along,
-    _max_motion_m,
-    _weak_direction_sigma_m,
-    _weak_directions_from,
-    check_degeneracy,
-    joint_keypoint_step,
-    plane_directions,
-    weak_direction_pin,
-    without_weak_directions,
-)
-
-log = logging.getLogger(__name__)
+from frontend.registration.state import PairState
+from frontend.registration.texture import TextureCamera
+from frontend.registration.weak_directions import Degeneracy, weak_direction_pin
 
 
 class FppPairRegistrar:
@@ -196,6 +176,14 @@ class FppPairRegistrar:
         return invert(result.T_camera_world), cfg.photometric_information_scale * result.information, ""
 
     # -- the pair ------------------------------------------------------------------------------
+    @property
+    def texture_sets_planes(self) -> bool:
+        """Whether the texture sets a plane's in-plane directions (the rig's camera is known and the
+        photometric and dense refinements are on): ICP then keeps its coarse pose on planes, the
+        plane rule always applies, and the dense fit holds the plane's directions."""
+        cfg = self.config
+        return self.texture_camera is not None and cfg.photometric_plane_refinement and cfg.dense_refinement
+
     def register(
         self,
         target: Frame,
@@ -204,6 +192,9 @@ class FppPairRegistrar:
         kind: ConstraintKind | str = ConstraintKind.ODOMETRY,
     ) -> Constraint:
         """Estimate ``T_target_source``; a failed pair returns a rejected Constraint with the reason.
+
+        Stages: :mod:`.stages` and :mod:`.refinement`; every rejection is a row of
+        :data:`.gates.GATES`, checked after the stage whose result it reads.
 
         Parameters
         ----------
@@ -219,352 +210,82 @@ class FppPairRegistrar:
         Constraint
             Accepted with information ``[rot, trans]``, or rejected with ``rejection_reason``.
         """
+        cfg, s = self.config, PairState(target, source, kind, T_guess)
+        self.last_timings_s, self.last_cpu_timings_s = s.timer.wall_s, s.timer.cpu_s
+        if rejected := rejection(Checkpoint.INPUT, s, cfg):
+            return rejected
+        s.matches = match_keypoints(target, source, self.describe, cfg, s.timer)
+        if rejected := rejection(Checkpoint.FEATURES, s, cfg):
+            return rejected
+        s.meta.update(s.matches.metadata)
+        if rejected := rejection(Checkpoint.MATCHES, s, cfg):
+            return rejected
+        started = s.timer.start()  # the "ransac" time includes the lift
+        s.lifted = lift_matches(target, source, s.matches)
+        if rejected := rejection(Checkpoint.LIFTED, s, cfg):
+            return rejected
+        s.ransac = self._ransac(s)
+        s.timer.stop("ransac", started)
+        s.meta.update(ransac_metadata(s.matches, s.lifted, s.ransac, cfg.feature))
+        if rejected := rejection(Checkpoint.RANSAC, s, cfg):
+            return rejected
+        s.icp = run_icp(target, source, s.ransac.T_target_source, cfg, self.icp_cloud, self.texture_sets_planes, s.timer)
+        s.meta.update(s.icp.metadata)
+        if rejected := rejection(Checkpoint.ICP, s, cfg):
+            return rejected
+        s.weak = handle_weak_directions(s.lifted, s.ransac, s.icp, cfg, self.texture_sets_planes)
+        s.meta.update(s.weak.metadata)
+        if rejected := rejection(Checkpoint.POSE, s, cfg):
+            return rejected
+        started = s.timer.start()
+        information = joint_information(s.lifted, s.icp, s.weak, cfg)
+        s.keypoints, s.pose = information.keypoints, information.pose
+        s.meta.update(information.metadata)
+        s.timer.stop("information", started)
+        self._refine(s)  # dense, then photometric
+        s.check = check_weak_geometry(target, source, s.pose, s.weak.icp.source_points, ConstraintKind(kind) is ConstraintKind.LOOP, T_guess)
+        s.meta.update(s.check.metadata)
+        return rejection(Checkpoint.FINAL, s, cfg) or self._accept(s)
+
+    def _ransac(self, s: PairState) -> RansacResult:
+        """RANSAC on the lifted matches, seeded per pair so results do not depend on pair order."""
+        cfg, lifted = self.config, s.lifted
+        rng = np.random.default_rng([self.seed, s.source.id & 0xFFFFFFFF, s.target.id & 0xFFFFFFFF])
+        extra = [np.asarray(s.T_guess, dtype=np.float64)] if s.T_guess is not None else None
+        return ransac_rigid(lifted.points_target_m, lifted.points_source_m, cfg.ransac_threshold_m, cfg.ransac_iterations, cfg.ransac_confidence, rng, extra)
+
+    def _refine(self, s: PairState) -> None:
+        """The dense stage, then (when the texture sets a plane's directions) the photometric step."""
         cfg = self.config
-        timings: dict[str, float] = {}
-        cpu_timings: dict[str, float] = {}
-        self.last_timings_s, self.last_cpu_timings_s = timings, cpu_timings
-        ids = (source.id, target.id)
+        inliers_source_m = s.lifted.points_source_m[s.ransac.inliers]
+        started = s.timer.start()
+        s.dense = dense_stage(s.target, s.source, self.refine_dense, s.pose, s.keypoints, s.icp, s.weak, inliers_source_m, s.ransac.T_target_source, cfg, self.texture_sets_planes)
+        s.pose = s.dense.pose
+        s.meta.update(s.dense.metadata)
+        s.timer.stop("dense", started)
+        if photometric_applies(self.texture_sets_planes, s.weak, s.dense):
+            started = s.timer.start()
+            s.photometric = photometric_stage(s.target, s.source, self.refine_plane_photometric, s.pose, s.keypoints, s.weak, inliers_source_m, cfg)
+            s.pose = s.photometric.pose
+            s.meta.update(s.photometric.metadata)
+            s.timer.stop("photometric", started)
 
-        def reject(reason: str, **quality: Any) -> Constraint:
-            log.info("pair %d->%d rejected: %s", source.id, target.id, reason)
-            meta = dict(quality.pop("metadata", {}))
-            meta["timings_s"] = dict(timings)
-            return Constraint.rejected(*ids, reason, kind=kind, metadata=meta, **quality)
-
-        for role, frame in (("target", target), ("source", source)):
-            if frame.xyz_map is None:
-                return reject(f"{role} frame {frame.id} has no xyz_map: keypoints cannot be lifted to 3D")
-            if frame.texture is None:
-                return reject(f"{role} frame {frame.id} has no texture image: no keypoints")
-            # the frame's point list is the map's valid pixels: checking it is O(1), a scan of
-            # the full map costs ~5 ms per 1920x1200 frame (the map is scanned only without points)
-            if frame.points.shape[0] == 0 and not np.any(np.isfinite(frame.xyz_map[..., 2])):
-                return reject(f"{role} frame {frame.id} has no valid 3D points")
-            if min(frame.texture.shape) < 32:
-                return reject(f"{role} frame {frame.id}: texture {frame.texture.shape} too small for keypoints")
-        try:
-            t0, c0 = time.perf_counter(), time.process_time()
-            tgt = self.describe(target)
-            src = self.describe(source)
-            timings["features"], cpu_timings["features"] = time.perf_counter() - t0, time.process_time() - c0
-            t0, c0 = time.perf_counter(), time.process_time()
-            matches = match_descriptors(tgt.descriptors, src.descriptors, cfg.ratio_test, cfg.mutual_check)
-            timings["match"], cpu_timings["match"] = time.perf_counter() - t0, time.process_time() - c0
-        except FppError as exc:
-            return reject(f"features failed: {exc}")
-        matches, static_dropped = drop_sensor_fixed_matches(matches, tgt.keypoints_uv, src.keypoints_uv, target.texture.shape[1])
-        if matches.shape[0] < cfg.min_inliers:
-            return reject(f"too few matches ({matches.shape[0]} < {cfg.min_inliers})", metadata={"matches": int(matches.shape[0]), "sensor_fixed_matches_dropped": static_dropped})
-        t0, c0 = time.perf_counter(), time.process_time()
-        Pt, vt = lift_keypoints(target.xyz_map, tgt.keypoints_uv[matches[:, 0]])
-        Ps, vs = lift_keypoints(source.xyz_map, src.keypoints_uv[matches[:, 1]])
-        ok = vt & vs
-        Pt, Ps = Pt[ok], Ps[ok]
-        matches3d = matches[ok]
-        if Pt.shape[0] < cfg.min_inliers:
-            return reject(f"too few matches with valid 3D ({Pt.shape[0]} < {cfg.min_inliers})", metadata={"matches": int(matches.shape[0])})
-        rng = np.random.default_rng([self.seed, source.id & 0xFFFFFFFF, target.id & 0xFFFFFFFF])
-        extra = [np.asarray(T_guess, dtype=np.float64)] if T_guess is not None else None
-        ransac = ransac_rigid(Pt, Ps, cfg.ransac_threshold_m, cfg.ransac_iterations, cfg.ransac_confidence, rng, extra)
-        timings["ransac"], cpu_timings["ransac"] = time.perf_counter() - t0, time.process_time() - c0
-        meta: dict[str, Any] = {
-            "matches": int(matches.shape[0]),
-            "sensor_fixed_matches_dropped": static_dropped,
-            "matches_3d": int(Pt.shape[0]),
-            "ransac_inliers": ransac.num_inliers,
-            "ransac_iterations": ransac.iterations,
-            "ransac_rmse_m": ransac.inlier_rmse_m,
-            "T_ransac": ransac.T_target_source,
-            "feature": cfg.feature,
-        }
-        if ransac.num_inliers < cfg.min_inliers:
-            return reject(f"too few inliers ({ransac.num_inliers} < {cfg.min_inliers} RANSAC inliers of {Pt.shape[0]})", inlier_count=ransac.num_inliers, metadata=meta)
-        # With the dense refinement on, ICP only has to reach its basin and tell relief from a
-        # plane: coarser voxels do that (turntable pairs: same final error, ICP stages 2.4x
-        # faster). A plane to ICP (three weak directions) skips the dense stage and keeps ICP's pose, so
-        # it is redone on the fine voxels.
-        dense_follows = cfg.dense_refinement and cfg.dense_icp_voxel_m > cfg.icp_voxel_m
-        photometric_possible = self.texture_camera is not None and cfg.photometric_plane_refinement and cfg.dense_refinement
-        voxels = [cfg.dense_icp_voxel_m, cfg.icp_voxel_m] if dense_follows else [cfg.icp_voxel_m]
-        timings["icp_prepare"] = cpu_timings["icp_prepare"] = timings["icp"] = cpu_timings["icp"] = 0.0
-        for voxel in voxels:
-            t0, c0 = time.perf_counter(), time.process_time()
-            tcloud = self.icp_cloud(target, voxel)
-            scloud = self.icp_cloud(source, voxel)
-            # KD-trees, normals, covariances of the ICP subsets (lazy, kept for the frame's next pairs)
-            _ = (tcloud.target, scloud.source)
-            timings["icp_prepare"] += time.perf_counter() - t0
-            cpu_timings["icp_prepare"] += time.process_time() - c0
-            if min(tcloud.size, scloud.size) < 30:
-                return reject(f"too few points for ICP ({tcloud.size} target, {scloud.size} source voxels of {1e3 * voxel:g} mm)", inlier_count=ransac.num_inliers, metadata=meta)
-            t0, c0 = time.perf_counter(), time.process_time()
-            icp = refine_icp(tcloud, scloud, ransac.T_target_source, cfg.icp_method, cfg.icp_max_correspondence_m, cfg.icp_max_iterations)
-            timings["icp"] += time.perf_counter() - t0
-            cpu_timings["icp"] += time.process_time() - c0
-            meta["icp_voxel_m"] = voxel
-            if not np.all(np.isfinite(icp.T_target_source)):
-                break  # rejected below
-            info_icp_raw = information_from_icp(icp, scale=cfg.information_scale)
-            deg_icp = check_degeneracy(info_icp_raw, icp.source_points, cfg.degeneracy_ratio)
-            if voxel == cfg.icp_voxel_m or len(deg_icp.unconstrained) < 3 or photometric_possible:
-                # (coarse and not a plane: the dense refinement takes it from here, below; a plane
-                # with the texture camera: the dense fit gives the tilts and the texture the rest)
-                break
-            meta["coarse_icp_plane_like"] = True
-        T = icp.T_target_source
-        meta["T_icp"] = T
-        quality = {"fitness": icp.fitness, "inlier_rmse_m": icp.inlier_rmse_m, "inlier_count": ransac.num_inliers, "overlap": icp.overlap}
-        meta.update({"icp_iterations": icp.iterations, "icp_converged": icp.converged, "icp_correspondences": icp.num_correspondences})
-        if not np.all(np.isfinite(T)):
-            return reject("ICP diverged (non-finite pose)", metadata=meta, **quality)
-        drop_weak: Degeneracy | None = None
-        # where ICP moved the keypoint inliers: a large move means it left RANSAC's basin
-        Ps_in = Ps[ransac.inliers]
-        shift = np.linalg.norm((Ps_in @ T[:3, :3].T + T[:3, 3]) - (Ps_in @ ransac.T_target_source[:3, :3].T + ransac.T_target_source[:3, 3]), axis=1)
-        meta["icp_shift_m"] = float(shift.max()) if shift.size else 0.0
-        res_kp = np.linalg.norm(Pt - (Ps @ T[:3, :3].T + T[:3, 3]), axis=1)
-        kp_inliers = int(np.sum(res_kp < cfg.ransac_threshold_m))
-        meta["keypoint_inliers_after_icp"] = kp_inliers
-        meta["matches_used"] = matches3d[res_kp < cfg.ransac_threshold_m]
-        # Directions ICP cannot be trusted along come from the keypoints, with ICP's information
-        # there dropped (normal scatter makes it claim ~0.05 mm in-plane on a wall, which is not
-        # information about the pose):
-        # - plane-like pairs (two or more weak ICP directions: a wall, an object on a big table)
-        #   whose ICP pose disagrees with the keypoints in the plane (chi-square, 3 dof, 0.9999,
-        #   under the keypoints' covariance given ICP's other directions): the in-plane shifts and
-        #   the spin about the normal go to the keypoints' optimum given ICP's normal shift and
-        #   tilts. On simulated corridor walls GICP slid 1.5-4 mm in-plane on most pairs (faint
-        #   relief, the decoder's texture-correlated ripple) while the keypoints were within
-        #   0.1-0.5 mm; over 104 adjacent corridor pairs the median error fell from 0.146 to 0.075 mm
-        #   and the maximum from 2.09 to 0.73 mm. Where the two agree ICP's pose is kept: on relief
-        #   it is the more precise (a turntable pair: ICP 0.045 mm, keypoints 1.5 mm, m2 16.9).
-        # - otherwise, when ICP lost the keypoints on weak geometry (drifted along its flat
-        #   directions rather than a wrong pair): those flat directions from RANSAC's pose.
-        meta["icp_eigenvalue_ratios"] = deg_icp.eigenvalue_ratios
-        lost_keypoints = meta["icp_shift_m"] > cfg.max_icp_shift_m or kp_inliers < cfg.min_inliers
-        weak: Degeneracy | None = None
-        if cfg.plane_from_keypoints and len(deg_icp.unconstrained) >= 2:
-            plane = plane_directions(info_icp_raw, icp.source_points)
-            meta["plane_spin_ratio"] = float(plane.eigenvalue_ratios[2])
-            m2 = _disagreement_along(T, ransac.T_target_source, cfg.keypoint_information_scale * information_from_keypoints(ransac.T_target_source, Ps_in, np.full(Ps_in.shape[0], ransac.inlier_rmse_m)), plane, icp.source_points)
-            meta["plane_keypoint_mahalanobis2"] = m2
-            # (with the rig's texture camera the texture sets the plane's directions, below: always)
-            if m2 > _CHI2_3DOF_9999 or lost_keypoints or photometric_possible:
-                weak = plane
-        if weak is None and lost_keypoints and deg_icp.degenerate:
-            weak = deg_icp
-        if weak is not None:
-            if weak is deg_icp:
-                T_fb = _weak_directions_from(T, ransac.T_target_source, weak, icp.source_points)
-            else:
-                # the keypoints' optimum given ICP's normal shift and tilts (RANSAC's own in-plane
-                # estimate carries its tilt error through the lever arm of a narrow overlap strip)
-                T_fb = T @ se3_exp(joint_keypoint_step(T, without_weak_directions(info_icp_raw, weak, icp.source_points), Ps_in, Pt[ransac.inliers], iterations=5))
-            Ps_in_fb = Ps_in @ T_fb[:3, :3].T + T_fb[:3, 3]
-            shift_fb = np.linalg.norm(Ps_in_fb - (Ps_in @ ransac.T_target_source[:3, :3].T + ransac.T_target_source[:3, 3]), axis=1)
-            res_fb = np.linalg.norm(Pt - (Ps @ T_fb[:3, :3].T + T_fb[:3, 3]), axis=1)
-            if float(shift_fb.max()) <= cfg.max_icp_shift_m and int(np.sum(res_fb < cfg.ransac_threshold_m)) >= cfg.min_inliers:
-                icp = refine_icp(tcloud, scloud, T_fb, "none", cfg.icp_max_correspondence_m, 0)
-                T = T_fb
-                meta.update({"icp_shift_m": float(shift_fb.max()), "weak_directions_from_keypoints": weak.unconstrained, "icp_drift_m": meta["icp_shift_m"]})
-                res_kp = res_fb
-                kp_inliers = int(np.sum(res_kp < cfg.ransac_threshold_m))
-                meta["keypoint_inliers_after_icp"] = kp_inliers
-                meta["matches_used"] = matches3d[res_kp < cfg.ransac_threshold_m]
-                quality = {"fitness": icp.fitness, "inlier_rmse_m": icp.inlier_rmse_m, "inlier_count": ransac.num_inliers, "overlap": icp.overlap}
-                drop_weak = weak
-        if meta["icp_shift_m"] > cfg.max_icp_shift_m:
-            return reject(f"ICP left the RANSAC basin (moved keypoint inliers by {1e3 * meta['icp_shift_m']:.2f} mm > {1e3 * cfg.max_icp_shift_m:.2f} mm)", metadata=meta, **quality)
-        if kp_inliers < cfg.min_inliers:
-            return reject(f"too few inliers after ICP ({kp_inliers} < {cfg.min_inliers} keypoints agree)", metadata=meta, **quality)
-        if icp.fitness < cfg.min_fitness:
-            return reject(f"low fitness ({icp.fitness:.3f} < {cfg.min_fitness})", metadata=meta, **quality)
-        if icp.overlap < cfg.min_overlap:
-            return reject(f"low overlap ({icp.overlap:.3f} < {cfg.min_overlap})", metadata=meta, **quality)
-        if not icp.inlier_rmse_m <= cfg.max_inlier_rmse_m:
-            return reject(f"high inlier RMSE ({1e3 * icp.inlier_rmse_m:.3f} mm > {1e3 * cfg.max_inlier_rmse_m:.3f} mm)", metadata=meta, **quality)
-        t0, c0 = time.perf_counter(), time.process_time()
-        # ICP's information at the final pose: the one computed above unless the pose moved
-        info_icp = info_icp_raw
-        if drop_weak is not None:
-            info_icp = without_weak_directions(information_from_icp(icp, scale=cfg.information_scale), drop_weak, icp.source_points)
-        # Where the dense geometry is weak (an object on a big table plane, a wall), ICP's cost
-        # is flat: the keypoints' point-to-point information constrains exactly those directions.
-        kp_mask = keypoint_inliers(res_kp, cfg.ransac_threshold_m)
-
-        def at_pose(T: NDArray, info_geometry: NDArray) -> tuple[NDArray, NDArray, Degeneracy]:
-            """The keypoints' information at ``T`` (the inlier set stays), the joint information and its degeneracy."""
-            res = np.linalg.norm(Pt - (Ps @ T[:3, :3].T + T[:3, 3]), axis=1)
-            info_k = information_from_keypoints(T, Ps[kp_mask], res[kp_mask])
-            joint = info_geometry + info_k
-            return info_k, joint, check_degeneracy(joint, icp.source_points, cfg.degeneracy_ratio)
-
-        info_kp = information_from_keypoints(T, Ps[kp_mask], res_kp[kp_mask])
-        info = info_icp + info_kp
-        deg = check_degeneracy(info, icp.source_points, cfg.degeneracy_ratio)
-        if deg.degenerate and drop_weak is None:
-            # ICP can drift along its flat directions (0.45 mm on a flat-wall test pair whose
-            # RANSAC pose was within 0.01 mm, more on thinned clouds) while the information claims
-            # the keypoints pin them. When ICP's pose is inconsistent with the joint optimum of
-            # ICP's and the keypoints' costs (chi-square, 6 dof, 0.999), move there and take the
-            # information there; otherwise keep ICP's pose, which on relief is the more precise
-            # (over 36 synthetic pairs moving always doubled the median translation error).
-            step = joint_keypoint_step(T, info_icp, Ps[kp_mask], Pt[kp_mask])
-            m2 = float(step @ info @ step)
-            meta["joint_keypoint_step"] = step
-            meta["joint_keypoint_step_mahalanobis2"] = m2
-            if m2 > _CHI2_6DOF_999:
-                T = T @ se3_exp(step)
-                meta["moved_to_joint_optimum"] = True
-                info_kp, info, deg = at_pose(T, info_icp)
-        timings["information"], cpu_timings["information"] = time.perf_counter() - t0, time.process_time() - c0
-        t0, c0 = time.perf_counter(), time.process_time()
-        # Every pixel instead of 2 mm voxels: on simulated turntable pairs the median error fell
-        # from 0.0051 deg / 0.043 mm to ~0.001 deg / 0.01 mm (module doc of dense_alignment).
-        # Pinned: the directions already taken from the keypoints. One weak direction of curved
-        # relief (the doll's spin about the turntable axis, where GICP's error was) is left to
-        # the dense fit; a plane is not refined (below).
-        weak_dense = drop_weak
-        T_start = T
-        plane_dense: DenseAlignment | None = None
-        if photometric_possible and drop_weak is not None and drop_weak is not deg_icp:
-            # A wall whose plane directions the texture sets (below): the dense fit gives its
-            # tilts and distance, with the plane's directions held at the keypoints' values
-            # (unheld they slide 0.06 -> 0.3 mm and take the tilts along). 12 simulated corridor
-            # pairs: 0.029 mm median with ICP's tilts, 0.017 mm with these. If every pixel sees
-            # relief after all (a doll on a table) the unheld re-check below decides instead.
-            held, _ = self.refine_dense(target, source, T, info_kp, drop_weak, icp.source_points)
-            if held is not None and len(check_degeneracy(held.information, held.source_points, cfg.degeneracy_ratio).unconstrained) >= 3:
-                if _max_motion_m(held.T_target_source, ransac.T_target_source, Ps_in) <= cfg.max_icp_shift_m:
-                    plane_dense = held
-        if plane_dense is not None:
-            meta.update({"T_before_dense": T, "dense_pinned": list(drop_weak.unconstrained), "dense_iterations": plane_dense.iterations,
-                         "dense_residuals": plane_dense.num_residuals, "dense_sigma_m": plane_dense.sigma_m})
-            T = plane_dense.T_target_source
-            info_icp = without_weak_directions(cfg.dense_information_scale * plane_dense.information, drop_weak, icp.source_points)
-            info_kp, info, deg = at_pose(T, info_icp)
-            dense, why_not = None, ""
-        elif drop_weak is not None and drop_weak is not deg_icp:
-            # The plane rule (step 4) read the pair as a plane from ICP's voxels and took the
-            # in-plane directions from the keypoints. A doll on a turntable looks like that to
-            # ICP (the table dominates), and ORB keypoints 1.4 mm off then replaced ICP's
-            # 0.04 mm pose. Every pixel decides: from ICP's own pose, unpinned; if the dense
-            # information is not plane-like the relief constrains the plane's directions.
-            weak_dense, T_start = None, meta["T_icp"]
-            meta["dense_rechecks_plane_rule"] = True
-        if plane_dense is None:
-            if len(deg_icp.unconstrained) >= 3:
-                dense, why_not = None, "plane-like geometry (ICP: " + "; ".join(deg_icp.unconstrained) + ")"
-            else:
-                dense, why_not = self.refine_dense(target, source, T_start, info_kp, weak_dense, icp.source_points)
-        if weak_dense is not None:
-            meta["dense_pinned"] = list(weak_dense.unconstrained)
-        if dense is not None:
-            dense_deg = check_degeneracy(dense.information, dense.source_points, cfg.degeneracy_ratio)
-            meta["dense_eigenvalue_ratios"] = dense_deg.eigenvalue_ratios
-            # (against RANSAC's pose, as ICP's shift is: the keypoints' basin)
-            shift_dense = _max_motion_m(dense.T_target_source, ransac.T_target_source, Ps_in)
-            meta.update({"dense_shift_m": shift_dense, "dense_iterations": dense.iterations, "dense_residuals": dense.num_residuals, "dense_sigma_m": dense.sigma_m})
-            if len(dense_deg.unconstrained) >= 3:
-                # a plane even to every pixel (a wall: ratios <= 0.016 where the doll's are >= 0.2):
-                # its tilts and normal shift came out no better than ICP's (9 simulated corridor
-                # pairs: 0.064 -> 0.098 mm median) and the in-plane directions are the keypoints'
-                why_not = "plane-like geometry (" + "; ".join(dense_deg.unconstrained) + ")"
-            elif shift_dense > cfg.max_icp_shift_m:
-                why_not = f"moved the keypoint inliers by {1e3 * shift_dense:.2f} mm"
-            else:
-                meta["T_before_dense"] = T
-                T = dense.T_target_source
-                info_dense = cfg.dense_information_scale * dense.information
-                if weak_dense is not None:
-                    info_dense = without_weak_directions(info_dense, weak_dense, icp.source_points)
-                # the dense term replaces ICP's (the same surfaces, measured densely)
-                info_icp = info_dense
-                info_kp, info, deg = at_pose(T, info_icp)
-        if why_not and why_not != "off":
-            meta["dense_not_used"] = why_not
-            log.debug("pair %d->%d: dense refinement not used: %s", source.id, target.id, why_not)
-        timings["dense"], cpu_timings["dense"] = time.perf_counter() - t0, time.process_time() - c0
-        info_photometric = np.zeros((6, 6))
-        if photometric_possible and drop_weak is not None and (plane_dense is not None or "T_before_dense" not in meta):
-            # the weak directions came from the keypoints and no relief took over: the texture sets them
-            t0, c0 = time.perf_counter(), time.process_time()
-            T_photo, info_photo, why_not_photo = self.refine_plane_photometric(target, source, T, drop_weak, info_icp, icp.source_points)
-            if T_photo is not None:
-                shift_photo = _max_motion_m(T_photo, T, Ps_in)
-                meta["photometric_shift_m"] = shift_photo
-                if shift_photo > cfg.ransac_threshold_m:
-                    why_not_photo = f"moved the keypoint inliers by {1e3 * shift_photo:.2f} mm"
-                else:
-                    meta["T_before_photometric"] = T
-                    T = T_photo
-                    info_kp, info, deg = at_pose(T, info_icp)
-                    # carried by the constraint only: the gates below (a plane is admitted when the
-                    # keypoints pin it; look-alike places) stay on the geometry and the keypoints
-                    info_photometric = info_photo
-            if why_not_photo:
-                meta["photometric_not_used"] = why_not_photo
-                log.debug("pair %d->%d: photometric refinement not used: %s", source.id, target.id, why_not_photo)
-            timings["photometric"], cpu_timings["photometric"] = time.perf_counter() - t0, time.process_time() - c0
-        meta["eigenvalue_ratios"] = deg.eigenvalue_ratios
-        if deg.degenerate:
-            # Weak in the dense geometry (one plane, an object on a table): acceptable only if the
-            # keypoints pin those directions down to within max_weak_sigma_m.
-            weak_sigma_m = _weak_direction_sigma_m(info, deg, icp.source_points)
-            # the same directions from the dense geometry alone (no keypoints), for diagnosis: on
-            # a plane, noisy normals make point-to-plane information claim ~0.1 mm in-plane, so it
-            # cannot tell relief from a plane and is not used to admit loops
-            meta["weak_direction_geometry_sigma_m"] = _weak_direction_sigma_m(info_icp, deg, icp.source_points)
-            meta["geometrically_weak"] = deg.unconstrained
-            meta["weak_direction_sigma_m"] = weak_sigma_m
-            if ConstraintKind(kind) is ConstraintKind.LOOP and T_guess is None:
-                # A revisit proposed by appearance alone, on weak geometry (a plane), rests on the
-                # keypoints, and look-alike places (repeated posters) fool keypoints: their
-                # inliers all sit on the repeated object while the surroundings differ. Only a
-                # pair whose textures agree over the whole overlap is taken (simulated corridor:
-                # true revisits 0.989-1.000 of the blocks, look-alike posters 0.37-0.81).
-                agreement = texture_agreement(target, source, T)
-                meta["texture_agreement"] = agreement.fraction
-                meta["texture_agreement_blocks"] = agreement.blocks
-                meta["texture_agreement_overlap"] = agreement.overlap
-                if not (agreement.fraction >= cfg.min_texture_agreement and agreement.blocks >= _MIN_AGREEMENT_BLOCKS):
-                    return reject(
-                        "look-alike place: degenerate geometry (unconstrained " + "; ".join(deg.unconstrained)
-                        + f") and the textures agree on only {100 * agreement.fraction:.1f} % of {agreement.blocks} overlap blocks"
-                        + f" (< {100 * cfg.min_texture_agreement:.0f} % of >= {_MIN_AGREEMENT_BLOCKS}) for an appearance-only candidate",
-                        metadata={**meta, "unconstrained_directions": deg.directions}, **quality,
-                    )
-                if not agreement.overlap >= cfg.min_texture_overlap:
-                    # the overlap may be the repeated object alone (poster twins on opposite walls
-                    # registered 0.2 m apart agreed on 100 % of their 0.37-0.63 overlap)
-                    return reject(
-                        "possible look-alike place: degenerate geometry (unconstrained " + "; ".join(deg.unconstrained)
-                        + f") and the agreeing overlap covers only {100 * agreement.overlap:.0f} % of the view"
-                        + f" (< {100 * cfg.min_texture_overlap:.0f} %) for an appearance-only candidate",
-                        metadata={**meta, "unconstrained_directions": deg.directions}, **quality,
-                    )
-            if ConstraintKind(kind) is ConstraintKind.LOOP and T_guess is not None:
-                meta["weak_loop_guess_deviation_m"] = float(np.linalg.norm(T[:3, 3] - np.asarray(T_guess, dtype=np.float64)[:3, 3]))
-            if not weak_sigma_m <= cfg.max_weak_sigma_m:
-                return reject(
-                    "degenerate geometry: unconstrained " + "; ".join(deg.unconstrained)
-                    + f" (sigma {1e3 * weak_sigma_m:.3f} mm > {1e3 * cfg.max_weak_sigma_m:.3f} mm even with keypoints)",
-                    metadata={**meta, "unconstrained_directions": deg.directions}, **quality,
-                )
-        meta["timings_s"] = dict(timings)
+    def _accept(self, s: PairState) -> Constraint:
+        s.meta["timings_s"] = dict(s.timer.wall_s)
+        photometric = s.photometric.information if s.photometric is not None else np.zeros((6, 6))
         return Constraint(
-            source_id=source.id,
-            target_id=target.id,
-            T_target_source=T,
-            # The gates above use the keypoints' raw information; the constraint carries it
-            # scaled: keypoint errors are correlated (one detector, the same texture), so n
-            # keypoints are worth fewer than n independent points. Calibrated by NEES on
-            # simulated pairs: the corridor median fell from 64 to 10 at 0.1 with the turntable
-            # unchanged (4.6: there ICP's information dominates every direction).
-            information=info_icp + cfg.keypoint_information_scale * info_kp + info_photometric,
-            kind=kind,
-            metadata=meta,
-            **quality,
+            source_id=s.source.id,
+            target_id=s.target.id,
+            T_target_source=s.pose.T_target_source,
+            # The gates use the keypoints' raw information; the constraint carries it scaled:
+            # keypoint errors are correlated (one detector, the same texture), so n keypoints
+            # are worth fewer than n independent points. Calibrated by NEES on simulated pairs:
+            # the corridor median fell from 64 to 10 at 0.1 with the turntable unchanged (4.6:
+            # there ICP's information dominates every direction).
+            information=s.pose.information_geometry + self.config.keypoint_information_scale * s.pose.information_keypoints + photometric,
+            kind=s.kind,
+            metadata=s.meta,
+            **s.quality,
         )
 
 

@@ -38,6 +38,7 @@ class TextureAgreement:
     overlap: float = float("nan")
 
 
+# One body: projection and the per-block statistics share the sample layout (h, w, b) end to end.
 def texture_agreement(
     target: Frame,
     source: Frame,
@@ -129,9 +130,6 @@ def texture_agreement(
     if count == 0:
         return TextureAgreement(float("nan"), 0, overlap)
     return TextureAgreement(float(agree.sum()) / count, count, overlap)
-
-
-_MIN_AGREEMENT_BLOCKS = 20  # fewer informative overlap blocks cannot tell a look-alike from a revisit
 
 
 @dataclass(frozen=True)
