@@ -80,9 +80,9 @@ from frontend.registration.registrar import FppPairRegistrar, with_features
 from frontend.registration.texture import TextureAgreement, TextureCamera, texture_agreement
 from frontend.registration.weak_directions import (
     Degeneracy,
-    _centred_coordinates,
-    _disagreement_along,
-    _weak_directions_from,
+    _centred_coordinates,  # noqa: F401  (private; the tests import it from here)
+    _disagreement_along,  # noqa: F401  (private; the tests import it from here)
+    _weak_directions_from,  # noqa: F401  (private; the tests import it from here)
     check_degeneracy,
     joint_keypoint_step,
     plane_directions,
@@ -101,9 +101,6 @@ __all__ = [
     "RansacResult",
     "TextureAgreement",
     "TextureCamera",
-    "_centred_coordinates",
-    "_disagreement_along",
-    "_weak_directions_from",
     "check_degeneracy",
     "drop_sensor_fixed_matches",
     "fit_pinhole",
