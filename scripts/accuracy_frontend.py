@@ -18,9 +18,9 @@ from __future__ import annotations
 import numpy as np
 
 from fpp_graph.config import DecodeConfig
-from frontend.patterns import PatternSpec
-from frontend.phase import decode
-from frontend.synthetic_captures import render_captures, smooth_projector_map
+from frontend.fpp.patterns import PatternSpec
+from frontend.fpp.phase import decode
+from frontend.testing.synthetic_captures import render_captures, smooth_projector_map
 
 CAMERA_W, CAMERA_H = 1920, 1200
 PROJECTOR_W, PROJECTOR_H = 1920, 1080

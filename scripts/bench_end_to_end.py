@@ -75,15 +75,15 @@ class ExclusiveTimers:
 def instrument(timers: ExclusiveTimers) -> None:
     import fpp_graph.keyframes
     import fpp_graph.pipeline as pipeline
-    import frontend.features
-    import frontend.fpp_sensor
+    import frontend.features.detect
+    import frontend.fpp.sensor
+    import frontend.fpp.sequence
     import frontend.registration
-    import frontend.sequence
     from fpp_graph.pose_graph import PoseGraph
 
-    timers.wrap(frontend.sequence.Sequence, "load_frame_images", "read PNG")
-    timers.wrap(frontend.fpp_sensor.FppSensor, "frame_from_images", "decode + triangulate")
-    timers.wrap(frontend.features, "detect_and_describe", "features")
+    timers.wrap(frontend.fpp.sequence.Sequence, "load_frame_images", "read PNG")
+    timers.wrap(frontend.fpp.sensor.FppSensor, "frame_from_images", "decode + triangulate")
+    timers.wrap(frontend.features.detect, "detect_and_describe", "features")
     timers.wrap(frontend.registration.FppPairRegistrar, "register", "registration")
     timers.wrap(PoseGraph, "optimize", "pose graph")
     timers.wrap(PoseGraph, "marginal_covariance", "pose graph")

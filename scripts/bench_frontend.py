@@ -41,9 +41,9 @@ from collections.abc import Callable  # noqa: E402
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
-from frontend.patterns import PatternSpec  # noqa: E402
-from frontend.phase import Decoder, compute_wrapped_phase  # noqa: E402
-from frontend.synthetic_captures import render_captures, smooth_projector_map  # noqa: E402
+from frontend.fpp.patterns import PatternSpec  # noqa: E402
+from frontend.fpp.phase import Decoder, compute_wrapped_phase  # noqa: E402
+from frontend.testing.synthetic_captures import render_captures, smooth_projector_map  # noqa: E402
 
 CAMERA_W, CAMERA_H = 1920, 1200
 PROJECTOR_W, PROJECTOR_H = 1920, 1080
@@ -87,7 +87,7 @@ def synthetic_calibration():
     surface 0.70-1.14 m away, so every decoded pixel triangulates to a valid point (the timing
     then covers real work, not a frame of rejected depths).
     """
-    from frontend.rig import PinholeModel, RigCalibration
+    from frontend.fpp.rig import PinholeModel, RigCalibration
 
     camera = PinholeModel(CAMERA_W, CAMERA_H, np.array([[2400.0, 0, 959.5], [0, 2400.0, 599.5], [0, 0, 1]]), np.array([-0.08, 0.1, 0.0005, -0.0003, 0.0]))
     projector = PinholeModel(PROJECTOR_W, PROJECTOR_H, np.array([[2600.0, 0, 959.5], [0, 2600.0, 1079.0], [0, 0, 1]]))
@@ -100,12 +100,12 @@ def synthetic_calibration():
 
 
 def time_triangulation(u_projector_px: np.ndarray, mask: np.ndarray, repeat: int) -> tuple[float, float, float] | str:
-    """HOOK: (median wall, min wall, median CPU) ms of ``frontend.triangulation.Triangulator(calibration).triangulate``.
+    """HOOK: (median wall, min wall, median CPU) ms of ``frontend.fpp.triangulation.Triangulator(calibration).triangulate``.
 
     Returns a string saying why when the triangulation module is not available yet.
     """
     try:
-        from frontend.triangulation import Triangulator
+        from frontend.fpp.triangulation import Triangulator
     except ImportError as exc:
         return f"not available ({exc})"
     try:
@@ -122,7 +122,7 @@ TRIANGULATION_VALID = [float("nan")]
 
 def frame_loop(decoder: Decoder, images: np.ndarray, previous, reuse: bool) -> Callable[[], object]:
     """One frame of a sensor loop: decode then triangulate (float64 xyz), buffers reused or not."""
-    from frontend.triangulation import Triangulator
+    from frontend.fpp.triangulation import Triangulator
 
     triangulator = Triangulator(synthetic_calibration())
     xyz = np.empty((CAMERA_H, CAMERA_W, 3), dtype=np.float64)
@@ -177,7 +177,7 @@ def main() -> None:
     if isinstance(tri, str):
         print(f"triangulation                      {tri}")
     else:
-        print(f"triangulation (frontend.triangulation) median {tri[0]:6.1f} ms  (min {tri[1]:5.1f}, CPU {tri[2]:5.1f})   "
+        print(f"triangulation (frontend.fpp.triangulation) median {tri[0]:6.1f} ms  (min {tri[1]:5.1f}, CPU {tri[2]:5.1f})   "
               f"valid points {100 * TRIANGULATION_VALID[0]:.2f} % of the frame")
         for label, reuse in (("decode + triangulation, one frame loop", True), ("  same, fresh output arrays per frame", False)):
             w_med, w_min, c_med = timed(frame_loop(decoder, images, result, reuse), args.repeat)

@@ -11,7 +11,7 @@ distance while the texture sets the in-plane directions (stage ``photometric``);
 keypoints set them. The split is process CPU time per stage (the registrar's
 ``last_cpu_timings_s``); the total is printed as wall and CPU time, because the machine is shared
 and wall time counts the other processes too.
-Frames are ray-cast synthetic frames (:mod:`frontend.synthetic_frames`); each repetition uses
+Frames are ray-cast synthetic frames (:mod:`frontend.testing.synthetic_frames`); each repetition uses
 fresh Frame objects so nothing is cached between repetitions. SURF (the project's) is the
 subject; SIFT and ORB run on the same pair as peers.
 
@@ -36,7 +36,12 @@ import numpy as np  # noqa: E402
 from fpp_graph.config import RegistrationConfig  # noqa: E402
 from fpp_graph.geometry import invert, pose_error  # noqa: E402
 from frontend.registration import FppPairRegistrar, TextureCamera  # noqa: E402
-from frontend.synthetic_frames import bumpy_wall_scene, camera_matrix, render_frame, wall_pose  # noqa: E402
+from frontend.testing.synthetic_frames import (  # noqa: E402
+    bumpy_wall_scene,
+    camera_matrix,
+    render_frame,
+    wall_pose,
+)
 
 
 def fa_kp(reg: FppPairRegistrar, frame) -> np.ndarray:

@@ -21,9 +21,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from frontend.calibration_io import read_procam_calibration, read_slmaster_calibration
-from frontend.rig import save_calibration
-from frontend.rig_calibration import (
+from frontend.fpp.calibration_io import read_procam_calibration, read_slmaster_calibration
+from frontend.fpp.rig import save_calibration
+from frontend.fpp.rig_calibration import (
     Chessboard,
     calibrate_rig,
     observe_graycode_folders,
@@ -108,8 +108,8 @@ def slmaster_direction_check(cal, folder: Path) -> None:
     import runpy
 
     from fpp_graph.geometry import invert
-    from frontend.rig import RigCalibration
-    from frontend.triangulation import Triangulator
+    from frontend.fpp.rig import RigCalibration
+    from frontend.fpp.triangulation import Triangulator
 
     try:  # the phase helper's decoder script knows SLMaster's pattern conventions
         decoded = runpy.run_path(str(ROOT / "scripts" / "decode_real.py"))["decode_slmaster_monocular"](folder)

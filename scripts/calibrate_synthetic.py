@@ -18,8 +18,8 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from fpp_graph.geometry import make_pose, rotation_angle_rad
-from frontend.rig import PinholeModel, RigCalibration
-from frontend.rig_calibration import (
+from frontend.fpp.rig import PinholeModel, RigCalibration
+from frontend.fpp.rig_calibration import (
     Chessboard,
     calibrate_from_captures,
     sample_board_poses,

@@ -1,4 +1,4 @@
-"""Decode the real SLMaster captures under ../shared/data/real_fpp with frontend.phase.
+"""Decode the real SLMaster captures under ../shared/data/real_fpp with frontend.fpp.phase.
 
 Run: .venv/bin/python scripts/decode_real.py [--data DIR] [--out results/frontend]
 
@@ -8,7 +8,7 @@ For use from Python (e.g. to triangulate the monocular capture)::
 
     import runpy
     decode_real = runpy.run_path("scripts/decode_real.py")
-    result = decode_real["decode_slmaster_monocular"]()      # a frontend.phase.DecodeResult
+    result = decode_real["decode_slmaster_monocular"]()      # a frontend.fpp.phase.DecodeResult
 
 SLMaster's conventions (Practice3DVision/SLMaster, ``sinusCompleGraycodePattern.cpp`` and
 ``threeFrequencyHeterodynePattern.cpp``), and how they map onto ours
@@ -21,7 +21,7 @@ SLMaster's conventions (Practice3DVision/SLMaster, ``sinusCompleGraycodePattern.
   after which our wrapped phase equals their ``theta + pi`` and our absolute phase equals their
   "unwrapped phase" (``theta + 2 pi floor + pi``) and our fringe order their "floor".
 * Complementary Gray code: bit images MSB first (first image: left half dark, right half
-  bright), bright = 1, then the half-period bit last: exactly :mod:`frontend.patterns`.
+  bright), bright = 1, then the half-period bit last: exactly :mod:`frontend.fpp.patterns`.
 * Three-frequency heterodyne: periods ``(P, P - 6, P - 11)`` = (64, 58, 53), 4 steps each, in
   that order; unwrapped to the 64-period phase.
 * Their regression test (``test/testThreeFrequencyHeterodynePattern.cpp``, testUnwrap) reads
@@ -50,9 +50,9 @@ from pathlib import Path
 import numpy as np
 
 from fpp_graph.config import DecodeConfig
-from frontend.images import load_image_stack
-from frontend.patterns import PatternSpec
-from frontend.phase import Decoder, DecodeResult
+from frontend.fpp.images import load_image_stack
+from frontend.fpp.patterns import PatternSpec
+from frontend.fpp.phase import Decoder, DecodeResult
 
 DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "real_fpp"
 PROJECTOR_WIDTH, PROJECTOR_HEIGHT = 1920, 1080  # both SLMaster sets: 1920-wide projector
@@ -98,7 +98,7 @@ def monocular_index(shift: str = "slmaster", bits: str = "msb_first") -> list[in
 def decode_slmaster_monocular(folder: Path | None = None, config: DecodeConfig | None = None) -> DecodeResult:
     """Decode ``slmaster_monocular``: 12-step + 5 Gray bits + 1 complementary bit, 32 periods.
 
-    Returns the :class:`frontend.phase.DecodeResult` (1280x1024 camera); ``u_projector_px`` is
+    Returns the :class:`frontend.fpp.phase.DecodeResult` (1280x1024 camera); ``u_projector_px`` is
     the projector column (1920-wide projector, pitch 60 px), NaN where invalid.
     """
     folder = folder or DEFAULT_DATA / "slmaster_monocular"

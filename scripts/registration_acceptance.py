@@ -2,7 +2,7 @@
 
 Every frame is rendered by :class:`frontend.sim.FppSimulator` (11 fringe images:
 4-step phase + complementary Gray code), decoded and triangulated by
-:class:`frontend.fpp_sensor.FppSensor` in memory (no sequence folder is written), from the scene
+:class:`frontend.fpp.sensor.FppSensor` in memory (no sequence folder is written), from the scene
 definitions ``datasets/turntable.yaml`` (the doll), ``datasets/turntable_bunny.yaml`` and
 ``datasets/corridor.yaml``.
 
@@ -55,8 +55,8 @@ from fpp_graph.config import RegistrationConfig, read_yaml_file  # noqa: E402
 from fpp_graph.errors import ConfigError  # noqa: E402
 from fpp_graph.geometry import invert, pose_error, se3_log  # noqa: E402
 from fpp_graph.types import ConstraintKind, Frame  # noqa: E402
-from frontend.features import match_descriptors  # noqa: E402
-from frontend.fpp_sensor import FppSensor  # noqa: E402
+from frontend.features.detect import match_descriptors  # noqa: E402
+from frontend.fpp.sensor import FppSensor  # noqa: E402
 from frontend.localization import DenseReference, localize_dlt, localize_photometric  # noqa: E402
 from frontend.registration import FppPairRegistrar, TextureCamera, lift_keypoints  # noqa: E402
 from frontend.sim import FppSimulator, load_simulation, look_at_pose  # noqa: E402

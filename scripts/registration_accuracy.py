@@ -1,6 +1,6 @@
 """Accuracy, covariance consistency, rejection and DLT figures of the pairwise registration.
 
-Data: ray-cast synthetic frames (:mod:`frontend.synthetic_frames`: a textured bumpy wall with
+Data: ray-cast synthetic frames (:mod:`frontend.testing.synthetic_frames`: a textured bumpy wall with
 boxes, 0.05 mm depth noise along the ray, 640x400 camera with the paper rig's field of view),
 not the fringe simulator. Groups of pairs:
 
@@ -37,7 +37,7 @@ from fpp_graph.config import RegistrationConfig  # noqa: E402
 from fpp_graph.geometry import invert, pose_error, se3_log  # noqa: E402
 from frontend.localization import localize_dlt  # noqa: E402
 from frontend.registration import FppPairRegistrar, lift_keypoints  # noqa: E402
-from frontend.synthetic_frames import bumpy_wall_scene, render_frame, wall_pose  # noqa: E402
+from frontend.testing.synthetic_frames import bumpy_wall_scene, render_frame, wall_pose  # noqa: E402
 
 W, H = 640, 400
 

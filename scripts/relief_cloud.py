@@ -34,8 +34,8 @@ def robust_plane(points: np.ndarray, iterations: int = 5, keep_mm: float = 1.0) 
 def main() -> None:
     if not DATA.exists():
         sys.exit(f"real data {DATA} is absent")
-    from frontend.calibration_io import read_slmaster_calibration
-    from frontend.triangulation import Triangulator
+    from frontend.fpp.calibration_io import read_slmaster_calibration
+    from frontend.fpp.triangulation import Triangulator
 
     decode = runpy.run_path(str(ROOT / "scripts" / "decode_real.py"))["decode_slmaster_monocular"]
     result = decode(DATA)

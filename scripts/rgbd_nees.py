@@ -2,7 +2,7 @@
 
     .venv/bin/python scripts/rgbd_nees.py [SEQUENCE_DIR] [--pairs 150:152 155:158 ...]
 
-Registers frame pairs with the RGB-D source's registrar (:mod:`frontend.rgbd`: colour resampled
+Registers frame pairs with the RGB-D source's registrar (:mod:`frontend.rgbd.source`: colour resampled
 onto the depth grid, RGB-D floors, ``RGBD_INFORMATION_SCALE``) and prints, per pair, the
 translation/rotation error against the sequence's poses, the 1-sigma the information claims and
 the NEES ``e^T I e`` (6 degrees of freedom: 6 on average when the information is right). The
@@ -34,7 +34,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from fpp_graph.config import load_config
     from fpp_graph.geometry import invert
-    from frontend.rgbd import RGBD_INFORMATION_SCALE, RgbdSource
+    from frontend.rgbd.source import RGBD_INFORMATION_SCALE, RgbdSource
 
     source = RgbdSource(args.sequence, load_config(None))
     gt = {e.frame_id: e.T_world_sensor for e in source.entries}

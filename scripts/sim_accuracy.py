@@ -5,7 +5,7 @@
     .venv/bin/python scripts/sim_accuracy.py --sequence datasets/generated/corridor [--every 5]
 
 1. Plane and sphere: render the default rig's pattern stack, decode it with
-   :class:`frontend.fpp_sensor.FppSensor` (the real-recording path) and compare every valid
+   :class:`frontend.fpp.sensor.FppSensor` (the real-recording path) and compare every valid
    pixel's point with the ray-cast ground truth of the same pixel (3D distance; both lie on the
    pixel's ray). Printed with the noise settings; the paper's single-view figure is 0.067 mm.
 2. Overlap of adjacent frames (corridor, turntable), from ground truth: the fraction of frame
@@ -25,7 +25,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from frontend.fpp_sensor import FppSensor  # noqa: E402
+from frontend.fpp.sensor import FppSensor  # noqa: E402
 from frontend.sim import (  # noqa: E402
     FppSimulator,
     RenderSettings,
@@ -117,7 +117,7 @@ def overlaps(config: Path, step: int = 1) -> None:
 def check_sequence(path: Path, every: int) -> None:
     import open3d as o3d
 
-    from frontend.sequence import read_sequence
+    from frontend.fpp.sequence import read_sequence
 
     seq = read_sequence(path)
     if seq.ground_truth is None or seq.ground_truth_mesh_path is None:

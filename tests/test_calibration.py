@@ -12,13 +12,13 @@ from scipy.spatial.transform import Rotation
 
 from fpp_graph.errors import CalibrationError
 from fpp_graph.geometry import make_pose
-from frontend.calibration_io import (
+from frontend.fpp.calibration_io import (
     read_any_calibration,
     read_procam_calibration,
     read_slmaster_calibration,
 )
-from frontend.rig import PinholeModel, RigCalibration, load_calibration, save_calibration
-from frontend.rig_calibration import (
+from frontend.fpp.rig import PinholeModel, RigCalibration, load_calibration, save_calibration
+from frontend.fpp.rig_calibration import (
     Chessboard,
     calibrate_from_captures,
     calibrate_from_graycode_folders,

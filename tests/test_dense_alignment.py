@@ -13,7 +13,7 @@ from fpp_graph.errors import InputDataError
 from fpp_graph.geometry import invert, pose_error, se3_exp
 from frontend.dense_alignment import OrganisedSurface, align_dense
 from frontend.registration import FppPairRegistrar, plane_directions, weak_direction_pin
-from frontend.synthetic_frames import bumpy_wall_scene, render_frame, wall_pose
+from frontend.testing.synthetic_frames import bumpy_wall_scene, render_frame, wall_pose
 
 W, H = 640, 400
 

@@ -13,7 +13,7 @@ import pytest
 from fpp_graph.errors import InputDataError
 from fpp_graph.geometry import invert, se3_exp
 from frontend.localization import DenseReference
-from frontend.synthetic_frames import bumpy_wall_scene, render_frame, wall_pose
+from frontend.testing.synthetic_frames import bumpy_wall_scene, render_frame, wall_pose
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # as the scripts do: the repository root
 from scripts.experimental.dense_localization import (  # noqa: E402

@@ -273,7 +273,7 @@ def _step_scene_xyz(rng, noise_m=5e-5):
 
 
 def test_edge_filter_removes_mixed_pixels_and_grazing_surfaces(rng):
-    from frontend.fpp_sensor import edge_filter_mask
+    from frontend.fpp.sensor import edge_filter_mask
 
     xyz, f, mixed, tilt, box = _step_scene_xyz(rng)
     keep = edge_filter_mask(xyz, f, max_angle_deg=75.0)
@@ -292,7 +292,7 @@ def test_edge_filter_removes_mixed_pixels_and_grazing_surfaces(rng):
 
 
 def test_edge_filter_keeps_a_moderately_tilted_plane(rng):
-    from frontend.fpp_sensor import edge_filter_mask
+    from frontend.fpp.sensor import edge_filter_mask
 
     h, w, f = 60, 80, 300.0
     v, u = np.mgrid[0:h, 0:w].astype(np.float64)

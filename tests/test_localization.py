@@ -22,7 +22,7 @@ from frontend.localization.surface import (
     smoothed_along_rays,
 )
 from frontend.registration import FppPairRegistrar, lift_keypoints
-from frontend.synthetic_frames import bumpy_wall_scene, render_frame, wall_pose
+from frontend.testing.synthetic_frames import bumpy_wall_scene, render_frame, wall_pose
 
 K = np.array([[683.0, 0.0, 319.5], [0.0, 683.0, 199.5], [0.0, 0.0, 1.0]])
 
@@ -119,7 +119,7 @@ def test_dlt_planar_points_use_pnp_samples():
 def fringe_triple():
     """Three fringe-simulator frames (640x400) of a textured tilted plate with a ball in front:
     references left and right of the query, the projector moving with the camera."""
-    from frontend.fpp_sensor import FppSensor
+    from frontend.fpp.sensor import FppSensor
     from frontend.sim import FppSimulator, default_pattern_spec, default_rig, look_at_pose, scenes
 
     rig, spec = default_rig(preview=True), default_pattern_spec()

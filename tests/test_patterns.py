@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from fpp_graph.errors import ConfigError
-from frontend.patterns import (
+from frontend.fpp.patterns import (
     PatternSpec,
     generate_patterns,
     gray_encode,

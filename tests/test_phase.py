@@ -12,10 +12,10 @@ from conftest import run_in_threads, shared_data_path
 
 from fpp_graph.config import DecodeConfig
 from fpp_graph.errors import InputDataError
-from frontend.images import load_image_stack
-from frontend.patterns import PatternSpec
-from frontend.phase import Decoder, compute_wrapped_phase, decode
-from frontend.synthetic_captures import render_captures, smooth_projector_map
+from frontend.fpp.images import load_image_stack
+from frontend.fpp.patterns import PatternSpec
+from frontend.fpp.phase import Decoder, compute_wrapped_phase, decode
+from frontend.testing.synthetic_captures import render_captures, smooth_projector_map
 
 PW, PH = 640, 400  # projector: the camera sees ~1.9 projector pixels per pixel (non-integer)
 CW, CH = 320, 240  # camera

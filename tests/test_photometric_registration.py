@@ -14,7 +14,7 @@ from frontend.registration import FppPairRegistrar, TextureCamera
 @pytest.fixture(scope="module")
 def wall_pair():
     """Two fringe-simulator frames (640x400) of a textured flat wall, the camera moved along it."""
-    from frontend.fpp_sensor import FppSensor
+    from frontend.fpp.sensor import FppSensor
     from frontend.sim import FppSimulator, default_pattern_spec, default_rig, look_at_pose, scenes
 
     rig, spec = default_rig(preview=True), default_pattern_spec()

@@ -14,7 +14,7 @@ from fpp_graph.errors import InputDataError, OutputError
 from fpp_graph.pipeline import Pipeline
 from fpp_graph.trajectory import Trajectory, read_tum
 
-synthetic_frames = pytest.importorskip("frontend.synthetic_frames")
+synthetic_frames = pytest.importorskip("frontend.testing.synthetic_frames")
 
 # the sensor slides 0.5 m along a textured wall and comes back: a revisit at the end
 XS = [-0.25, -0.15, -0.05, 0.05, 0.15, 0.05, -0.05, -0.15, -0.25]
@@ -22,7 +22,7 @@ BROKEN = 4  # this frame's "PNG" is corrupt: the run skips it and says so
 
 
 class WallSource:
-    """A FrameSource over :mod:`frontend.synthetic_frames` (no fringe decoding, for speed)."""
+    """A FrameSource over :mod:`frontend.testing.synthetic_frames` (no fringe decoding, for speed)."""
 
     name = "wall"
 
@@ -41,7 +41,7 @@ class WallSource:
         return list(range(len(XS)))
 
     def load_frame(self, frame_id):
-        from frontend.features import detect_and_describe
+        from frontend.features.detect import detect_and_describe
 
         self.loads += 1
         if frame_id == self.broken:
@@ -212,7 +212,7 @@ def test_rgbd_colour_depth_size_mismatch_is_reported(tmp_path, tum_sequence):
     import cv2
 
     from fpp_graph.config import Config
-    from frontend.rgbd import RgbdSource
+    from frontend.rgbd.source import RgbdSource
 
     seq = tmp_path / "seq"
     shutil.copytree(tum_sequence, seq)
@@ -302,7 +302,7 @@ def test_kill_9_mid_run_then_resume(tmp_path):
 def test_colour_is_resampled_onto_the_depth_grid():
     """A colour dot seen by a camera 2.5 cm to the side with another focal length lands on the
     depth pixel of the same surface point (7-Scenes colour is not registered to depth)."""
-    from frontend.rgbd import (
+    from frontend.rgbd.source import (
         KINECT_V1_COLOR_K,
         KINECT_V1_T_COLOR_DEPTH,
         depth_to_xyz_map,

@@ -30,7 +30,7 @@ from frontend.registration import (
     texture_agreement,
     with_features,
 )
-from frontend.synthetic_frames import (
+from frontend.testing.synthetic_frames import (
     ProceduralAlbedo,
     bumpy_wall_scene,
     camera_matrix,

@@ -7,10 +7,10 @@ import pytest
 import yaml
 
 from fpp_graph.errors import CalibrationError, ConfigError, InputDataError, OutputError
-from frontend.fpp_sensor import FppSensor
-from frontend.patterns import PatternSpec
-from frontend.rig import PinholeModel, RigCalibration
-from frontend.sequence import SequenceWriter, read_sequence
+from frontend.fpp.patterns import PatternSpec
+from frontend.fpp.rig import PinholeModel, RigCalibration
+from frontend.fpp.sensor import FppSensor
+from frontend.fpp.sequence import SequenceWriter, read_sequence
 from frontend.sim import default_rig, simulate_sequence
 
 

@@ -7,7 +7,7 @@ import pytest
 from conftest import shared_data_path
 
 from fpp_graph.errors import ConfigError, FppError, InputDataError
-from frontend.fpp_sensor import FppSensor
+from frontend.fpp.sensor import FppSensor
 from frontend.sim import (
     CorridorConfig,
     FppSimulator,

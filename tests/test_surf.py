@@ -1,4 +1,4 @@
-"""SURF (frontend.surf) and the feature factory/matching (frontend.features)."""
+"""SURF (frontend.features.surf) and the feature factory/matching (frontend.features.detect)."""
 
 from __future__ import annotations
 
@@ -9,8 +9,13 @@ import pytest
 from fpp_graph.config import RegistrationConfig
 from fpp_graph.errors import InputDataError
 from fpp_graph.types import Frame
-from frontend.features import detect_and_describe, make_detector, match_descriptors
-from frontend.surf import SurfParams, _hessian_layer, _hessian_layer_dense, surf_detect_and_compute
+from frontend.features.detect import detect_and_describe, make_detector, match_descriptors
+from frontend.features.surf import (
+    SurfParams,
+    _hessian_layer,
+    _hessian_layer_dense,
+    surf_detect_and_compute,
+)
 
 
 def _texture(seed: int = 0, shape=(240, 320)) -> np.ndarray:
@@ -110,7 +115,7 @@ def test_match_ratio_and_mutual():
 
 
 def test_block_sums_equal_area_averaging():
-    from frontend.surf import _block_sums
+    from frontend.features.surf import _block_sums
 
     img = _texture(6, (240, 320))
     sums = _block_sums(img, 2)
@@ -122,7 +127,7 @@ def test_block_sums_equal_area_averaging():
 
 def test_integer_working_image_gives_the_float_responses():
     # fast_hessian on exact integer block sums (value_scale) must equal it on the [0, 1] image
-    from frontend.surf import _block_sums, fast_hessian
+    from frontend.features.surf import _block_sums, fast_hessian
 
     img = _texture(7, (240, 320))
     ints = _block_sums(img, 2)
@@ -138,7 +143,7 @@ def test_integer_working_image_gives_the_float_responses():
 
 def test_haar_bank_matches_box_sums_at_pixels():
     # dx = (right half - left half) of a 2h x 2h window centred between pixels, read by remap
-    from frontend.surf import _HaarBank
+    from frontend.features.surf import _HaarBank
 
     img = _texture(8, (120, 160)).astype(np.float32)
     bank = _HaarBank(img)
@@ -164,7 +169,7 @@ def test_haar_bank_matches_box_sums_at_pixels():
 
 def test_l2_nearest_matches_brute_force_with_ties_and_chunks():
     # the column nearest neighbours come from the column minima and the first row holding them
-    from frontend.features import _l2_nearest
+    from frontend.features.detect import _l2_nearest
 
     rng = np.random.default_rng(9)
     a = rng.normal(size=(70, 8)).astype(np.float32)
@@ -183,7 +188,7 @@ def test_l2_nearest_matches_brute_force_with_ties_and_chunks():
 
 def test_integer_integral_gives_the_float_hessian_layers():
     # octaves >= 2 read an int32 integral image when the sums fit; same det(H) as float64
-    from frontend.surf import _block_sums, _integral
+    from frontend.features.surf import _block_sums, _integral
 
     img = _block_sums(_texture(10, (240, 320)), 2)
     pad = 40
@@ -213,6 +218,6 @@ def test_dense_layer_with_shared_padding_is_the_same():
 
 
 def _block_sums_of(seed: int) -> np.ndarray:
-    from frontend.surf import _block_sums
+    from frontend.features.surf import _block_sums
 
     return _block_sums(_texture(seed, (240, 320)), 2)

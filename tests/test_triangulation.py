@@ -10,8 +10,8 @@ from scipy.spatial.transform import Rotation
 
 from fpp_graph.errors import CalibrationError, InputDataError
 from fpp_graph.geometry import make_pose
-from frontend.rig import PinholeModel, RigCalibration
-from frontend.triangulation import (
+from frontend.fpp.rig import PinholeModel, RigCalibration
+from frontend.fpp.triangulation import (
     Triangulator,
     distort_normalized,
     project_to_camera,

@@ -4,7 +4,7 @@
 to a frozen result (:mod:`.stages`, :mod:`.refinement`), on a running :class:`~.state.PairState`:
 
 1. :func:`~.stages.match_keypoints`: keypoints on both texture images
-   (:func:`frontend.features.detect_and_describe`, once per frame), descriptor matches with ratio
+   (:func:`frontend.features.detect.detect_and_describe`, once per frame), descriptor matches with ratio
    test and mutual check, the projector's sensor-fixed features dropped
    (:func:`drop_sensor_fixed_matches`);
 2. :func:`~.stages.lift_matches`: matched keypoints to 3D through each frame's ``xyz_map``

@@ -12,7 +12,7 @@ from fpp_graph.errors import FppError
 from fpp_graph.geometry import invert
 from fpp_graph.types import Constraint, ConstraintKind, Frame
 from frontend.dense_alignment import DenseAlignment, OrganisedSurface, align_dense
-from frontend.features import Detector, detect_and_describe, feature_signature, make_detector
+from frontend.features.detect import Detector, detect_and_describe, feature_signature, make_detector
 from frontend.registration.gates import Checkpoint, rejection
 from frontend.registration.icp import IcpCloud, organised_subsample, prepare_icp_cloud
 from frontend.registration.keypoints import RansacResult, ransac_rigid
@@ -290,7 +290,7 @@ class FppPairRegistrar:
 
 
 def with_features(frame: Frame, config: RegistrationConfig) -> Frame:
-    """Alias of :func:`frontend.features.detect_and_describe` for pipeline code that only imports this module."""
+    """Alias of :func:`frontend.features.detect.detect_and_describe` for pipeline code that only imports this module."""
     return detect_and_describe(frame, config)
 
 

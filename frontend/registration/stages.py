@@ -26,7 +26,7 @@ from fpp_graph.config import RegistrationConfig
 from fpp_graph.errors import FppError
 from fpp_graph.geometry import se3_exp
 from fpp_graph.types import Frame
-from frontend.features import match_descriptors
+from frontend.features.detect import match_descriptors
 from frontend.registration.icp import IcpCloud, IcpResult, information_from_icp, refine_icp
 from frontend.registration.keypoints import (
     RansacResult,

@@ -144,7 +144,7 @@ class TextureCamera:
 
     @classmethod
     def from_rig(cls, rig: Any) -> TextureCamera:
-        """From a :class:`frontend.rig.RigCalibration` (camera intrinsics, ``T_projector_camera``)."""
+        """From a :class:`frontend.fpp.rig.RigCalibration` (camera intrinsics, ``T_projector_camera``)."""
         T = np.asarray(rig.T_projector_camera, dtype=np.float64)
         return cls(np.asarray(rig.camera.K, dtype=np.float64), np.asarray(rig.camera.dist, dtype=np.float64).reshape(-1), -T[:3, :3].T @ T[:3, 3])
 

@@ -13,7 +13,7 @@ Rendering one frame (:meth:`FppSimulator.render`)
    ``T_projector_camera``); test projector visibility with a shadow ray towards the projector
    centre.
 3. Radiance of pattern image ``m``: ``albedo * (E_p * cos(theta_p) * (d0 / d_p)^2 * P_m + ambient)``
-   with ``P_m`` the continuous pattern value (:func:`frontend.patterns.pattern_intensity`,
+   with ``P_m`` the continuous pattern value (:func:`frontend.fpp.patterns.pattern_intensity`,
    projector gamma and finite DMD contrast applied). Surfaces are two-sided Lambertian.
 4. Camera: depth-dependent defocus (thin-lens blur circle, blended between two Gaussian blurs),
    shot noise (variance ``gain * signal``) plus read noise, the camera response (gamma),
@@ -42,8 +42,8 @@ from numpy.typing import NDArray
 from pydantic import Field
 
 from fpp_graph.errors import InputDataError
-from frontend.patterns import PatternSpec, pattern_intensity
-from frontend.rig import PinholeModel, RigCalibration
+from frontend.fpp.patterns import PatternSpec, pattern_intensity
+from frontend.fpp.rig import PinholeModel, RigCalibration
 from frontend.sim.config import StrictModel, validate_section
 
 

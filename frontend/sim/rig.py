@@ -2,7 +2,7 @@
 
 :class:`RigParameters` describes the rig as one would buy and mount it (sensor sizes, focal
 lengths, lens distortion, baseline, working distance); :func:`build_rig` turns it into the
-:class:`frontend.rig.RigCalibration` the renderer and the decoder use. Units: metres and pixels.
+:class:`frontend.fpp.rig.RigCalibration` the renderer and the decoder use. Units: metres and pixels.
 """
 
 from __future__ import annotations
@@ -13,8 +13,8 @@ import numpy as np
 from pydantic import Field
 
 from fpp_graph.errors import ConfigError
-from frontend.patterns import PatternSpec
-from frontend.rig import PinholeModel, RigCalibration
+from frontend.fpp.patterns import PatternSpec
+from frontend.fpp.rig import PinholeModel, RigCalibration
 from frontend.sim.config import StrictModel, validate_section
 from frontend.sim.poses import look_at_rotation, rotation_between
 

@@ -3,7 +3,7 @@
 :func:`load_simulation` turns a scene definition into a :class:`SimulationSetup` (rig, patterns,
 render settings, scene, trajectory); :func:`simulate_sequence` renders every pose with
 :class:`frontend.sim.render.FppSimulator` and writes a recorded sequence folder
-(:mod:`frontend.sequence`), the same format a real sensor's recordings take.
+(:mod:`frontend.fpp.sequence`), the same format a real sensor's recordings take.
 """
 
 from __future__ import annotations
@@ -18,9 +18,9 @@ from numpy.typing import NDArray
 
 from fpp_graph.config import read_yaml_file
 from fpp_graph.errors import ConfigError
-from frontend.patterns import PatternSpec
-from frontend.rig import RigCalibration
-from frontend.sequence import SequenceWriter
+from frontend.fpp.patterns import PatternSpec
+from frontend.fpp.rig import RigCalibration
+from frontend.fpp.sequence import SequenceWriter
 from frontend.sim.config import parse_model
 from frontend.sim.render import FppSimulator, RenderSettings, parse_render_settings
 from frontend.sim.rig import build_rig, default_pattern_spec, parse_rig_parameters
@@ -111,7 +111,7 @@ def simulate_sequence(
     config : path or dict
         A ``datasets/*.yaml`` scene definition.
     out : path
-        Sequence folder to write (see :mod:`frontend.sequence`).
+        Sequence folder to write (see :mod:`frontend.fpp.sequence`).
     preview : bool
         640x400 camera instead of 1920x1200.
     max_frames : int, optional

@@ -54,7 +54,7 @@ from numpy.typing import NDArray
 
 from fpp_graph.errors import CalibrationError
 from fpp_graph.geometry import make_pose
-from frontend.rig import PinholeModel, RigCalibration, load_calibration
+from frontend.fpp.rig import PinholeModel, RigCalibration, load_calibration
 
 _UNIT_TO_M = {"m": 1.0, "cm": 1e-2, "mm": 1e-3}
 # A rotation read from a file may carry rounding; beyond this it is not a rotation at all.

@@ -2,7 +2,7 @@
 
 Reads a recorded sequence folder (``sequence.yaml`` + per-frame PNG stacks, the format the
 simulator writes and a real sensor's recordings must fit), decodes each frame through
-:class:`frontend.fpp_sensor.FppSensor` and computes its 2D keypoints once, so registration of
+:class:`frontend.fpp.sensor.FppSensor` and computes its 2D keypoints once, so registration of
 every pair reuses them.
 """
 
@@ -15,7 +15,7 @@ from typing import Any
 from fpp_graph.config import Config
 from fpp_graph.trajectory import Trajectory
 from fpp_graph.types import Frame
-from frontend.sequence import SEQUENCE_FILE, read_sequence
+from frontend.fpp.sequence import SEQUENCE_FILE, read_sequence
 
 log = logging.getLogger(__name__)
 
@@ -44,7 +44,7 @@ class FppSequenceSource:
     @property
     def sensor(self):
         if self._sensor is None:
-            from frontend.fpp_sensor import FppSensor
+            from frontend.fpp.sensor import FppSensor
 
             self._sensor = FppSensor(self.sequence.calibration, self.sequence.spec, self.config.decode)
         return self._sensor
@@ -53,7 +53,7 @@ class FppSequenceSource:
         return [rec.id for rec in self.sequence.frames]
 
     def load_frame(self, frame_id: int) -> Frame:
-        from frontend.features import detect_and_describe
+        from frontend.features.detect import detect_and_describe
 
         i = self._index[frame_id]
         rec = self.sequence.frames[i]

@@ -3,7 +3,7 @@
 A camera looks at a smooth scene: every camera pixel sees a known (sub-pixel) projector
 coordinate, a background ``A`` and a modulation ``B`` (camera grey levels). Pattern image ``i``
 is rendered as ``A + B (2 p_i - 1)`` with ``p_i`` the exact pattern value from
-:func:`frontend.patterns.pattern_intensity` (so binary patterns are ``A -+ B``), optionally
+:func:`frontend.fpp.patterns.pattern_intensity` (so binary patterns are ``A -+ B``), optionally
 blurred (camera defocus across code edges), plus Gaussian noise, then quantised. This is not the
 project's sensor simulator (no geometry, no lens model): it isolates the decoder.
 """
@@ -14,7 +14,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from frontend.patterns import PatternSpec, pattern_intensity
+from frontend.fpp.patterns import PatternSpec, pattern_intensity
 
 
 def smooth_projector_map(

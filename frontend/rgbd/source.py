@@ -224,7 +224,7 @@ class RgbdSource:
         return [e.frame_id for e in self.entries]
 
     def load_frame(self, frame_id: int) -> Frame:
-        from frontend.features import detect_and_describe
+        from frontend.features.detect import detect_and_describe
 
         e = self._by_id[frame_id]
         depth = cv2.imread(str(e.depth), cv2.IMREAD_UNCHANGED)

@@ -44,9 +44,9 @@ from fpp_graph.atomic import atomic_write_bytes, atomic_write_text
 from fpp_graph.config import read_yaml_file
 from fpp_graph.errors import InputDataError, OutputError
 from fpp_graph.trajectory import Trajectory, read_tum, write_tum
-from frontend.images import load_image_stack
-from frontend.patterns import PatternSpec
-from frontend.rig import RigCalibration
+from frontend.fpp.images import load_image_stack
+from frontend.fpp.patterns import PatternSpec
+from frontend.fpp.rig import RigCalibration
 
 log = logging.getLogger(__name__)
 

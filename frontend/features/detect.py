@@ -1,7 +1,7 @@
 """2D keypoints on FPP texture images and their matching.
 
 Detectors (``registration.feature`` in the config): ``surf`` (the project's own implementation,
-:mod:`frontend.surf`, as the paper uses), and OpenCV's ``sift``, ``orb`` and ``akaze``. Images
+:mod:`frontend.features.surf`, as the paper uses), and OpenCV's ``sift``, ``orb`` and ``akaze``. Images
 wider than ``registration.feature_max_width_px`` are reduced by an integer factor before
 detection (area averaging); keypoints are returned in full-image pixels, so the 2D-to-3D lift
 reads the full-resolution ``xyz_map``.
@@ -25,7 +25,7 @@ from numpy.typing import NDArray
 from fpp_graph.config import RegistrationConfig
 from fpp_graph.errors import InputDataError
 from fpp_graph.types import Frame
-from frontend.surf import SurfParams, surf_detect_and_compute
+from frontend.features.surf import SurfParams, surf_detect_and_compute
 
 log = logging.getLogger(__name__)
 

@@ -5,7 +5,7 @@ A :class:`PatternSpec` says what the projector shows for one 3D frame, in captur
 :func:`pattern_intensity` gives the continuous value of any pattern image at sub-pixel projector
 coordinates (for renderers that sample the patterns exactly).
 
-Conventions (the decoder in :mod:`frontend.phase` relies on every one of them)
+Conventions (the decoder in :mod:`frontend.fpp.phase` relies on every one of them)
 ------------------------------------------------------------------------------
 * Encoded axis. ``axis="columns"``: vertical fringes, the intensity varies along projector
   columns and encodes ``u_p``; the "width" ``W`` below is the projector width. ``axis="rows"``:

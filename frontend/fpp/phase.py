@@ -3,7 +3,7 @@
 :func:`decode` (or a reusable :class:`Decoder`) turns one frame's captured pattern images into
 the wrapped and absolute phase, the projector coordinate of every camera pixel, the fringe
 modulation, the texture image and a validity mask. It follows the conventions of
-:mod:`frontend.patterns` (read its docstring); in short:
+:mod:`frontend.fpp.patterns` (read its docstring); in short:
 
 * eq. 1: ``I_n = a + b cos(phi - delta_n)``, ``delta_n = 2 pi (n - 1) / N``;
 * eq. 2: ``phi = atan2(S, C)``, ``S = sum I_n sin delta_n``, ``C = sum I_n cos delta_n``, taken in
@@ -68,7 +68,7 @@ from numpy.typing import NDArray
 
 from fpp_graph.config import DecodeConfig
 from fpp_graph.errors import ConfigError, InputDataError
-from frontend.patterns import PatternSpec, unwrapping_scheme
+from frontend.fpp.patterns import PatternSpec, unwrapping_scheme
 
 logger = logging.getLogger(__name__)
 
@@ -207,7 +207,7 @@ def _as_stack(images: NDArray | Sequence[NDArray], expected: int, what: str) -> 
     if isinstance(images, np.ndarray):
         stack = images
         if stack.ndim != 3:
-            hint = " (colour images? convert them to grey, e.g. with frontend.images.load_image_stack)" if stack.ndim == 4 else ""
+            hint = " (colour images? convert them to grey, e.g. with frontend.fpp.images.load_image_stack)" if stack.ndim == 4 else ""
             raise InputDataError(f"pattern images must be a (M, H, W) stack of single-channel 2D images, got an array of shape {stack.shape}{hint}")
     else:
         imgs = [np.asarray(im) for im in images]
@@ -620,7 +620,7 @@ def compute_wrapped_phase(images: NDArray | Sequence[NDArray], band_rows: int = 
     ----------
     images : (N, H, W) uint8 or uint16, N >= 3
         ``I_n = a + b cos(phi - 2 pi n / N)``, n = 0..N-1 (the convention of
-        :mod:`frontend.patterns`).
+        :mod:`frontend.fpp.patterns`).
     band_rows : int
         Rows per band (cache blocking); 0 = whole image.
 

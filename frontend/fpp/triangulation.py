@@ -61,7 +61,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from fpp_graph.errors import CalibrationError, InputDataError
-from frontend.rig import PinholeModel, RigCalibration
+from frontend.fpp.rig import PinholeModel, RigCalibration
 
 log = logging.getLogger(__name__)
 

@@ -1,7 +1,7 @@
 """The FPP sensor as the back-end sees it: one frame's pattern images -> a :class:`fpp_graph.types.Frame`.
 
-decode (phase retrieval + unwrapping, :mod:`frontend.phase`) -> triangulate
-(:mod:`frontend.triangulation`) -> Frame. Real recordings and simulated ones take exactly this
+decode (phase retrieval + unwrapping, :mod:`frontend.fpp.phase`) -> triangulate
+(:mod:`frontend.fpp.triangulation`) -> Frame. Real recordings and simulated ones take exactly this
 path. The decoder tables and the per-pixel triangulation constants are built once per sensor.
 """
 
@@ -17,10 +17,10 @@ from numpy.typing import NDArray
 from fpp_graph.config import DecodeConfig
 from fpp_graph.errors import InputDataError
 from fpp_graph.types import Frame
-from frontend.patterns import PatternSpec
-from frontend.phase import Decoder, DecodeResult
-from frontend.rig import RigCalibration
-from frontend.triangulation import Triangulator
+from frontend.fpp.patterns import PatternSpec
+from frontend.fpp.phase import Decoder, DecodeResult
+from frontend.fpp.rig import RigCalibration
+from frontend.fpp.triangulation import Triangulator
 
 log = logging.getLogger(__name__)
 
