@@ -38,9 +38,9 @@ def demo(
 
     from fpp_graph.cli import RichProgress, print_metrics_table, setup_logging
     from fpp_graph.config import load_config
-    from fpp_graph.pipeline import run_sequence
-    from fpp_graph.run_evaluation import evaluate_results
-    from fpp_graph.sources import open_source
+    from fpp_graph.evaluation.results import evaluate_results
+    from fpp_graph.slam.pipeline import run_sequence
+    from fpp_graph.slam.sources import open_source
     from frontend.sim import simulate_sequence
 
     setup_logging("WARNING")

@@ -73,13 +73,13 @@ class ExclusiveTimers:
 
 
 def instrument(timers: ExclusiveTimers) -> None:
-    import fpp_graph.keyframes
-    import fpp_graph.pipeline as pipeline
+    import fpp_graph.slam.keyframes
+    import fpp_graph.slam.pipeline as pipeline
     import frontend.features.detect
     import frontend.fpp.sensor
     import frontend.fpp.sequence
     import frontend.registration
-    from fpp_graph.pose_graph import PoseGraph
+    from fpp_graph.backend.pose_graph import PoseGraph
 
     timers.wrap(frontend.fpp.sequence.Sequence, "load_frame_images", "read PNG")
     timers.wrap(frontend.fpp.sensor.FppSensor, "frame_from_images", "decode + triangulate")
@@ -87,8 +87,8 @@ def instrument(timers: ExclusiveTimers) -> None:
     timers.wrap(frontend.registration.FppPairRegistrar, "register", "registration")
     timers.wrap(PoseGraph, "optimize", "pose graph")
     timers.wrap(PoseGraph, "marginal_covariance", "pose graph")
-    timers.wrap(fpp_graph.keyframes.KeyframeManager, "process", "keyframes + loop detection")
-    timers.wrap(fpp_graph.keyframes.KeyframeManager, "finish", "keyframes + loop detection")
+    timers.wrap(fpp_graph.slam.keyframes.KeyframeManager, "process", "keyframes + loop detection")
+    timers.wrap(fpp_graph.slam.keyframes.KeyframeManager, "finish", "keyframes + loop detection")
     timers.wrap(pipeline, "fuse_map", "fusion (map + TSDF mesh)")
     timers.wrap(pipeline, "fuse_points_only", "plots + outputs")
     timers.wrap(pipeline, "write_plots", "plots + outputs")
@@ -114,8 +114,8 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.ERROR)
 
     from fpp_graph.config import config_from_dict
-    from fpp_graph.pipeline import Pipeline
-    from fpp_graph.sources import open_source
+    from fpp_graph.slam.pipeline import Pipeline
+    from fpp_graph.slam.sources import open_source
     from frontend.demo import simulate_once
 
     res = "640x400" if args.preview else "1920x1200"

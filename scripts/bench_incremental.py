@@ -33,11 +33,11 @@ import time
 
 import numpy as np
 
+from fpp_graph.backend.incremental import IncrementalPoseGraph
+from fpp_graph.backend.pose_graph import PoseGraph
 from fpp_graph.config import PoseGraphConfig
-from fpp_graph.incremental import IncrementalPoseGraph
-from fpp_graph.keyframes import transport_covariance
-from fpp_graph.pose_graph import PoseGraph
-from fpp_graph.synthetic_graphs import SyntheticGraph, ate_rmse_m, circuit_laps
+from fpp_graph.slam.keyframes import transport_covariance
+from fpp_graph.testing.synthetic_graphs import SyntheticGraph, ate_rmse_m, circuit_laps
 from fpp_graph.types import Constraint, ConstraintKind
 
 CHI2_6_999 = 22.457744484825323  # chi-square bound, 6 dof, p = 0.999 (the default keyframes.loop_check_probability)

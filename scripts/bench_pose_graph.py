@@ -31,15 +31,15 @@ from pathlib import Path
 
 import numpy as np
 
-from fpp_graph.config import PoseGraphConfig
-from fpp_graph.g2o import read_g2o
-from fpp_graph.incremental import IncrementalPoseGraph
-from fpp_graph.pose_graph import (
+from fpp_graph.backend.g2o import read_g2o
+from fpp_graph.backend.incremental import IncrementalPoseGraph
+from fpp_graph.backend.pose_graph import (
     PoseGraph,
     isotropic_information,
     sesync_objective,
 )
-from fpp_graph.synthetic_graphs import ate_rmse_m, corridor_trajectory, torus_graph
+from fpp_graph.config import PoseGraphConfig
+from fpp_graph.testing.synthetic_graphs import ate_rmse_m, corridor_trajectory, torus_graph
 from fpp_graph.types import Constraint
 
 PUBLISHED_F = {"sphere2500": 1.687e3, "parking-garage": 1.263e0}

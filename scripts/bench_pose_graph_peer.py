@@ -6,7 +6,7 @@ scripts/plain_gtsam_g2o.py FILE`` (chordal + Levenberg-Marquardt, the same SE-Sy
 noise model, no robust stage). Graphs: sphere2500, parking-garage and smallGrid3D from
 ``../shared/data/posegraphs`` (skipped with a message when absent; never copied into the
 repository) and two synthetic tori written to a temporary directory as g2o
-(:func:`fpp_graph.synthetic_graphs.torus_graph`: 5000 poses, 9048 edges, sphere2500's noise
+(:func:`fpp_graph.testing.synthetic_graphs.torus_graph`: 5000 poses, 9048 edges, sphere2500's noise
 regime; and the same with 10x the rotation noise).
 
 Each command runs ``--runs`` times, project and peer alternating, as separate processes (Python
@@ -83,7 +83,7 @@ def agree_4sf(a: float, b: float) -> bool:
 
 
 def graphs(tmp: Path) -> list[tuple[str, Path]]:
-    from fpp_graph.synthetic_graphs import torus_graph, torus_graph_high_rotation_noise
+    from fpp_graph.testing.synthetic_graphs import torus_graph, torus_graph_high_rotation_noise
 
     out = []
     for name in BENCHMARK_FILES:

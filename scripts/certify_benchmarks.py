@@ -25,9 +25,9 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from fpp_graph.backend.g2o import read_g2o
+from fpp_graph.backend.pose_graph import PoseGraph, sesync_objective
 from fpp_graph.config import PoseGraphConfig
-from fpp_graph.g2o import read_g2o
-from fpp_graph.pose_graph import PoseGraph, sesync_objective
 
 #: Published certified optima of F (Rosen et al., IJRR 2019, table 2); None where not published.
 PUBLISHED = {"sphere2500": 1.687e3, "parking-garage": 1.263e0, "smallGrid3D": None}

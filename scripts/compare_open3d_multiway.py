@@ -4,8 +4,8 @@
 
 For each scene the sequence is simulated (640x400 preview unless ``--full``), then:
 
-* **ours**: ``fpp-slam run`` (the same :func:`fpp_graph.pipeline.run_sequence`), evaluated with
-  ``fpp-slam eval`` (:func:`fpp_graph.run_evaluation.evaluate_results`);
+* **ours**: ``fpp-slam run`` (the same :func:`fpp_graph.slam.pipeline.run_sequence`), evaluated with
+  ``fpp-slam eval`` (:func:`fpp_graph.evaluation.results.evaluate_results`);
 * **Open3D** (the user's obvious alternative, the multiway-registration tutorial): on the *same
   decoded frames* (our run's frame cache, so the peer pays no decoding), each cloud voxel-
   downsampled to our ICP voxel with normals (radius 2 voxels); pairwise multiscale point-to-plane
@@ -49,9 +49,9 @@ def cpu_seconds() -> float:
 
 def run_ours(seq: Path, out: Path, config_path: Path | None = None) -> dict:
     from fpp_graph.config import load_config
-    from fpp_graph.pipeline import run_sequence
-    from fpp_graph.run_evaluation import evaluate_results
-    from fpp_graph.sources import open_source
+    from fpp_graph.evaluation.results import evaluate_results
+    from fpp_graph.slam.pipeline import run_sequence
+    from fpp_graph.slam.sources import open_source
 
     wall0, cpu0 = time.perf_counter(), cpu_seconds()
     run_sequence(seq, config_path, out, resume=False, overwrite=True, kind=None)
@@ -65,11 +65,11 @@ def open3d_multiway(ours_dir: Path, seq: Path, out: Path) -> dict:
     import open3d as o3d
 
     from fpp_graph.config import load_config
-    from fpp_graph.frame_store import load_frame
-    from fpp_graph.fusion import intrinsics_of, render_depth
+    from fpp_graph.evaluation.results import evaluate_results
+    from fpp_graph.fusion.voxel_map import intrinsics_of, render_depth
     from fpp_graph.geometry import invert
-    from fpp_graph.run_evaluation import evaluate_results
-    from fpp_graph.sources import open_source
+    from fpp_graph.slam.frame_store import load_frame
+    from fpp_graph.slam.sources import open_source
     from fpp_graph.trajectory import Trajectory, write_tum
 
     config = load_config(ours_dir / "config.yaml")
@@ -149,7 +149,7 @@ def open3d_multiway(ours_dir: Path, seq: Path, out: Path) -> dict:
     t_graph = time.perf_counter() - wall0
 
     # Open3D's TSDF: the tensor VoxelBlockGrid (the legacy ScalableTSDFVolume of open3d 0.20
-    # extracts nothing here, see fpp_graph/fusion.py), our TSDF voxel and truncation
+    # extracts nothing here, see fpp_graph/fusion/voxel_map.py), our TSDF voxel and truncation
     voxel_t, trunc_voxels = config.fusion.tsdf_voxel_m, config.fusion.tsdf_truncation_m / config.fusion.tsdf_voxel_m
     volume = o3d.t.geometry.VoxelBlockGrid(
         attr_names=("tsdf", "weight", "color"), attr_dtypes=(o3d.core.float32, o3d.core.float32, o3d.core.float32),
@@ -196,8 +196,8 @@ def main(argv: list[str] | None = None) -> int:
         seq = simulate_once(name, folder / "sequence", args.full, args.frames)
         if args.reuse_ours and (folder / "ours" / "metrics.json").exists():
             from fpp_graph.config import load_config
-            from fpp_graph.run_evaluation import evaluate_results
-            from fpp_graph.sources import open_source
+            from fpp_graph.evaluation.results import evaluate_results
+            from fpp_graph.slam.sources import open_source
 
             ours = evaluate_results(folder / "ours", open_source(seq, load_config(None)))
             ours.update(wall_s=ours["run_seconds"], cpu_s=float("nan"))

@@ -19,9 +19,9 @@ from pathlib import Path
 import numpy as np
 
 from fpp_graph.config import Config, load_config
-from fpp_graph.evaluation import ate_rpe
-from fpp_graph.frame_store import FrameStore, load_frame
-from fpp_graph.keyframes import KeyframeManager
+from fpp_graph.evaluation.metrics import ate_rpe
+from fpp_graph.slam.frame_store import FrameStore, load_frame
+from fpp_graph.slam.keyframes import KeyframeManager
 from fpp_graph.trajectory import Trajectory, read_tum
 from frontend.registration import FppPairRegistrar
 

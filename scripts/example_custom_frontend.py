@@ -22,7 +22,7 @@ from scipy.spatial.transform import Rotation
 
 from fpp_graph.config import config_from_dict
 from fpp_graph.geometry import invert, make_pose, se3_exp
-from fpp_graph.keyframes import KeyframeManager
+from fpp_graph.slam.keyframes import KeyframeManager
 from fpp_graph.trajectory import Trajectory, write_tum
 from fpp_graph.types import Constraint, ConstraintKind, Frame
 

@@ -2,9 +2,9 @@
 
 Graphs: sphere2500 and parking-garage from ``../shared/data/posegraphs`` (skipped with a message
 when absent; never copied into the repository) and a synthetic torus
-(:func:`fpp_graph.synthetic_graphs.torus_graph`, sphere2500's noise regime; 1500 poses by
+(:func:`fpp_graph.testing.synthetic_graphs.torus_graph`, sphere2500's noise regime; 1500 poses by
 default, the 5000-pose one as well with ``--torus5000``). Cases per graph
-(:func:`fpp_graph.synthetic_graphs.add_false_loops_to_graph`):
+(:func:`fpp_graph.testing.synthetic_graphs.add_false_loops_to_graph`):
 
 - ``random 0.1`` / ``random 0.3``: random false loops, 10 % / 30 % of the number of TRUE LOOP
   edges (not of all edges), each with a random relative pose (uniform rotation, translation of
@@ -39,10 +39,10 @@ from pathlib import Path
 
 import numpy as np
 
+from fpp_graph.backend.g2o import read_g2o
+from fpp_graph.backend.pose_graph import PoseGraph, PoseGraphResult, sesync_objective
 from fpp_graph.config import PoseGraphConfig
-from fpp_graph.g2o import read_g2o
-from fpp_graph.pose_graph import PoseGraph, PoseGraphResult, sesync_objective
-from fpp_graph.synthetic_graphs import add_false_loops_to_graph, torus_graph
+from fpp_graph.testing.synthetic_graphs import add_false_loops_to_graph, torus_graph
 from fpp_graph.types import ConstraintKind
 
 SHARED_POSEGRAPHS = Path(__file__).resolve().parents[2] / "shared" / "data" / "posegraphs"

@@ -13,7 +13,7 @@ Resolutions: ``preview`` 640x400, ``mid`` 960x600 (the default rig with the came
 
 For each sequence it runs the whole pipeline in this process (one worker, so the peak RSS is
 the run's) and prints: chain breaks and connected parts; loop candidates scored against ground
-truth per stage (:mod:`fpp_graph.loop_evaluation`); for turntables the same-angle revisit pairs
+truth per stage (:mod:`fpp_graph.evaluation.loops`); for turntables the same-angle revisit pairs
 found; ATE; map accuracy against the ground-truth mesh (Open3D RaycastingScene) before
 (odometry only) and after loop closure; RSS at frame counts and per stage. ``badinput`` re-runs
 the turntable24 keyframes with a block of views left out (no overlap across the gap).
@@ -98,10 +98,10 @@ class RssSampler:
 
 def map_figures(out: Path, source, slam, voxel_m: float) -> dict:
     """Map accuracy against the ground-truth mesh before (odometry only) and after loop closure."""
-    from fpp_graph.evaluation import ate_rpe, load_mesh, point_to_mesh_distances
-    from fpp_graph.frame_store import FrameStore
-    from fpp_graph.pipeline import fuse_points_only, odometry_only_poses
-    from fpp_graph.plots import plot_map_before_after
+    from fpp_graph.evaluation.metrics import ate_rpe, load_mesh, point_to_mesh_distances
+    from fpp_graph.evaluation.plots import plot_map_before_after
+    from fpp_graph.slam.frame_store import FrameStore
+    from fpp_graph.slam.pipeline import fuse_points_only, odometry_only_poses
     from fpp_graph.trajectory import read_tum
 
     estimate = read_tum(out / "trajectory.tum")
@@ -157,8 +157,8 @@ def same_angle_pairs(slam, views: int) -> dict:
 
 def run_sequence(name: str, resolution: str, results_root: Path, voxel_mm: float | None = None) -> dict:
     from fpp_graph.config import load_config
-    from fpp_graph.pipeline import Pipeline
-    from fpp_graph.sources import open_source
+    from fpp_graph.slam.pipeline import Pipeline
+    from fpp_graph.slam.sources import open_source
 
     seq = sequence_dir(name, resolution)
     cfg = load_config(None)
@@ -193,9 +193,9 @@ def run_sequence(name: str, resolution: str, results_root: Path, voxel_mm: float
 def bad_input(results_root: Path, resolution: str, gap: tuple[int, int]) -> dict:
     """Re-run the turntable24 keyframes with views ``gap[0] .. gap[1]-1`` left out."""
     from fpp_graph.config import load_config
-    from fpp_graph.frame_store import FrameStore
-    from fpp_graph.keyframes import KeyframeManager
-    from fpp_graph.sources import open_source
+    from fpp_graph.slam.frame_store import FrameStore
+    from fpp_graph.slam.keyframes import KeyframeManager
+    from fpp_graph.slam.sources import open_source
 
     out = results_root / f"turntable24_{resolution}"
     if not (out / "frames").exists():

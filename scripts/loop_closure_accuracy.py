@@ -33,9 +33,9 @@ COLUMNS = [
 
 def run_one(scene: str, seed: int, folder: Path, full: bool, frames: int | None, config_path: Path | None = None) -> dict:
     from fpp_graph.config import load_config
-    from fpp_graph.pipeline import run_sequence
-    from fpp_graph.run_evaluation import evaluate_results
-    from fpp_graph.sources import open_source
+    from fpp_graph.evaluation.results import evaluate_results
+    from fpp_graph.slam.pipeline import run_sequence
+    from fpp_graph.slam.sources import open_source
     from frontend.demo import simulate_once
 
     seq = simulate_once(scene, folder / "sequence", full, frames, seed)

@@ -26,7 +26,7 @@ import time
 import numpy as np
 
 from fpp_graph.config import PoseGraphConfig
-from fpp_graph.synthetic_graphs import add_false_loops, ate_rmse_m, corridor_trajectory
+from fpp_graph.testing.synthetic_graphs import add_false_loops, ate_rmse_m, corridor_trajectory
 
 
 def main() -> int:

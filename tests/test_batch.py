@@ -15,11 +15,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fpp_graph.batch import _result_or_error, plain_row, results_name, run_batch, run_one
+from fpp_graph.backend.g2o import write_g2o
 from fpp_graph.cli import main as cli_main
 from fpp_graph.errors import InputDataError
-from fpp_graph.g2o import write_g2o
-from fpp_graph.synthetic_graphs import ate_rmse_m, corridor_trajectory
+from fpp_graph.slam.batch import _result_or_error, plain_row, results_name, run_batch, run_one
+from fpp_graph.testing.synthetic_graphs import ate_rmse_m, corridor_trajectory
 from fpp_graph.trajectory import read_tum
 
 GOOD = {"corridor_a": 5, "corridor_b": 6}  # name -> seed

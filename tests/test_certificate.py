@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from fpp_graph.certificate import certify_graph
+from fpp_graph.backend.certificate import certify_graph
+from fpp_graph.backend.pose_graph import PoseGraph, sesync_objective, sesync_tau_kappa
 from fpp_graph.config import PoseGraphConfig
 from fpp_graph.errors import GraphError
-from fpp_graph.pose_graph import PoseGraph, sesync_objective, sesync_tau_kappa
 
 ISOTROPIC = PoseGraphConfig(noise_model="isotropic", robust="none", remove_inconsistent_loops=False)
 FILE_MODEL = PoseGraphConfig(noise_model="file", robust="none", remove_inconsistent_loops=False)

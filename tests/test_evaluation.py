@@ -10,7 +10,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from fpp_graph.errors import ConfigError, FppError, InputDataError
-from fpp_graph.evaluation import (
+from fpp_graph.evaluation.metrics import (
     ate_rpe,
     fit_circle,
     load_mesh,
@@ -225,7 +225,7 @@ def test_map_accuracy_bad_input(tmp_path):
 
 
 def test_load_mesh_round_trip(tmp_path):
-    from fpp_graph.fusion import write_mesh_ply
+    from fpp_graph.fusion.voxel_map import write_mesh_ply
 
     V, F = _sphere(resolution=30)
     write_mesh_ply(tmp_path / "gt.ply", V, F)

@@ -9,8 +9,8 @@ import open3d as o3d
 import pytest
 
 from fpp_graph.errors import InputDataError
-from fpp_graph.evaluation import map_accuracy
-from fpp_graph.fusion import (
+from fpp_graph.evaluation.metrics import map_accuracy
+from fpp_graph.fusion.voxel_map import (
     FusedMap,
     VoxelMapFuser,
     intrinsics_of,
@@ -306,7 +306,7 @@ def test_edge_filter_keeps_a_moderately_tilted_plane(rng):
 
 
 def test_grazing_weights_follow_the_angle_to_the_ray():
-    from fpp_graph.fusion import grazing_weights
+    from fpp_graph.fusion.voxel_map import grazing_weights
 
     # a plane z = 0.5 + x tan(60 deg): its normal makes 60 deg with the optical axis
     h, w, f = 40, 60, 200.0
@@ -342,7 +342,7 @@ def test_surface_smoothing_removes_the_voxel_sorting_of_noise():
 
 
 def test_surface_smoothing_leaves_isolated_points_and_edges():
-    from fpp_graph.fusion import project_to_local_planes, voxel_keys
+    from fpp_graph.fusion.voxel_map import project_to_local_planes, voxel_keys
 
     pts = np.array([[0.0105, 0.0105, 0.0105], [0.0505, 0.0505, 0.0505]])
     keys = voxel_keys(pts, 0.001)

@@ -15,18 +15,18 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from fpp_graph.cli import main as cli_main
-from fpp_graph.config import PoseGraphConfig
-from fpp_graph.errors import GraphError, InputDataError
-from fpp_graph.g2o import read_g2o, write_g2o
-from fpp_graph.geometry import is_rigid
-from fpp_graph.pose_graph import (
+from fpp_graph.backend.g2o import read_g2o, write_g2o
+from fpp_graph.backend.pose_graph import (
     PoseGraph,
     isotropic_information,
     sesync_objective,
     sesync_tau_kappa,
 )
-from fpp_graph.synthetic_graphs import corridor_trajectory
+from fpp_graph.cli import main as cli_main
+from fpp_graph.config import PoseGraphConfig
+from fpp_graph.errors import GraphError, InputDataError
+from fpp_graph.geometry import is_rigid
+from fpp_graph.testing.synthetic_graphs import corridor_trajectory
 from fpp_graph.types import ConstraintKind
 
 # A valid 4-vertex graph: 3 odometry edges and 2 loops, non-diagonal information.
@@ -187,7 +187,7 @@ def test_indefinite_information_with_definite_blocks_is_projected(tmp_path, capl
     text = replace_line(VALID, 7, line(VALID, 7).replace(INFO_21, info_21(COUPLED)))
     text = replace_line(text, 9, line(text, 9).replace(INFO_21, info_21(COUPLED)))
     path = write(tmp_path, text)
-    with caplog.at_level("WARNING", logger="fpp_graph.g2o"):
+    with caplog.at_level("WARNING", logger="fpp_graph.backend.g2o"):
         graph = read_g2o(path)
     edges = graph.edges()
     projected = COUPLED.copy()
@@ -205,7 +205,7 @@ def test_indefinite_information_with_definite_blocks_is_projected(tmp_path, capl
     untouched = read_g2o(write(tmp_path, VALID, "valid.g2o")).edges()
     for n in (0, 2, 4):
         np.testing.assert_array_equal(edges[n].information_rot_trans, untouched[n].information_rot_trans)
-    warnings = [r for r in caplog.records if r.name == "fpp_graph.g2o" and r.levelname == "WARNING"]
+    warnings = [r for r in caplog.records if r.name == "fpp_graph.backend.g2o" and r.levelname == "WARNING"]
     assert len(warnings) == 1
     message = warnings[0].getMessage()
     assert f"{path}: 2 edge(s)" in message and "first on line 7" in message and "coupling is dropped" in message
@@ -220,9 +220,9 @@ def test_python_api_still_refuses_indefinite_information():
 
 
 def test_definite_information_reads_without_warning(tmp_path, caplog):
-    with caplog.at_level("WARNING", logger="fpp_graph.g2o"):
+    with caplog.at_level("WARNING", logger="fpp_graph.backend.g2o"):
         read_g2o(write(tmp_path, VALID))
-    assert not [r for r in caplog.records if r.name == "fpp_graph.g2o"]
+    assert not [r for r in caplog.records if r.name == "fpp_graph.backend.g2o"]
 
 
 @pytest.mark.parametrize("noise_model", ["file", "isotropic"])
@@ -241,9 +241,9 @@ def test_graph_with_projected_edges_optimises(tmp_path, caplog, noise_model):
     for n in edge_lines[::3]:
         lines[n] = " ".join(lines[n].split()[:10]) + " " + info_21(coupled)
     path = write(tmp_path, "\n".join(lines) + "\n", "coupled.g2o")
-    with caplog.at_level("WARNING", logger="fpp_graph.g2o"):
+    with caplog.at_level("WARNING", logger="fpp_graph.backend.g2o"):
         graph = read_g2o(path)
-    (warning,) = [r for r in caplog.records if r.name == "fpp_graph.g2o"]
+    (warning,) = [r for r in caplog.records if r.name == "fpp_graph.backend.g2o"]
     assert f"{len(edge_lines[::3])} edge(s)" in warning.getMessage()
     assert f"first on line {edge_lines[0] + 1}" in warning.getMessage()
     config = PoseGraphConfig(noise_model=noise_model)

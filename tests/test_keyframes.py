@@ -9,10 +9,10 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from fpp_graph.config import Config, config_from_dict
-from fpp_graph.frame_store import FrameStore, load_frame, save_frame
 from fpp_graph.geometry import invert, make_pose, pose_error, se3_exp
-from fpp_graph.keyframes import KeyframeManager
-from fpp_graph.loop_closure import AppearanceIndex
+from fpp_graph.slam.frame_store import FrameStore, load_frame, save_frame
+from fpp_graph.slam.keyframes import KeyframeManager
+from fpp_graph.slam.loop_closure import AppearanceIndex
 from fpp_graph.types import Constraint, ConstraintKind, Frame
 
 VIEWS = 13
@@ -206,7 +206,7 @@ def test_frame_store_opens_an_existing_folder(tmp_path, rng):
 
 
 def test_loop_evaluation_precision_recall_per_stage(rng):
-    from fpp_graph.loop_evaluation import evaluate_loops, ground_truth_overlaps
+    from fpp_graph.evaluation.loops import evaluate_loops, ground_truth_overlaps
 
     # 12 keyframes along a wall, 0.2 m apart, each seeing a 0.3 m patch: neighbours overlap,
     # and 0/10 and 1/11 see the same wall section again (revisits)
@@ -255,7 +255,7 @@ def _chain_pose(result_or_manager_odometry, key: int) -> np.ndarray:
 
 
 def test_loops_go_to_isam2_and_the_batch_solve_runs_once_at_finish(rng, monkeypatch):
-    from fpp_graph.pose_graph import PoseGraph
+    from fpp_graph.backend.pose_graph import PoseGraph
 
     calls = []
     original = PoseGraph.optimize
@@ -297,7 +297,7 @@ def test_a_loop_failing_the_innovation_test_is_held_out_but_reaches_the_final_so
     poses = turntable_poses(turns=3)
     wrong = (2 * VIEWS + 4, VIEWS + 4)
     manager = KeyframeManager(WrongLoopRegistrar(poses, rng, wrong), Config())
-    with caplog.at_level("WARNING", logger="fpp_graph.keyframes"):
+    with caplog.at_level("WARNING", logger="fpp_graph.slam.keyframes"):
         for f in make_frames(len(poses), rng):
             manager.process(f)
     assert any("held out of the running estimate" in r.message for r in caplog.records)
@@ -317,7 +317,7 @@ def test_a_loop_failing_the_innovation_test_is_held_out_but_reaches_the_final_so
 
 
 def test_periodic_batch_solve_every_k_keyframes(rng, monkeypatch):
-    from fpp_graph.pose_graph import PoseGraph
+    from fpp_graph.backend.pose_graph import PoseGraph
 
     calls = []
     original = PoseGraph.optimize

@@ -11,7 +11,7 @@ import pytest
 
 from fpp_graph.config import config_from_dict
 from fpp_graph.errors import InputDataError, OutputError
-from fpp_graph.pipeline import Pipeline
+from fpp_graph.slam.pipeline import Pipeline
 from fpp_graph.trajectory import Trajectory, read_tum
 
 synthetic_frames = pytest.importorskip("frontend.testing.synthetic_frames")
@@ -73,7 +73,7 @@ def config():
 
 @pytest.fixture(scope="module")
 def finished_run(tmp_path_factory):
-    from fpp_graph.fusion import write_mesh_ply
+    from fpp_graph.fusion.voxel_map import write_mesh_ply
 
     root = tmp_path_factory.mktemp("run")
     source = WallSource()
@@ -97,7 +97,7 @@ def test_results_folder_is_complete(finished_run):
 
 
 def test_trajectory_and_map_are_accurate(finished_run):
-    from fpp_graph.run_evaluation import evaluate_results
+    from fpp_graph.evaluation.results import evaluate_results
 
     source, report = finished_run
     metrics = evaluate_results(report.results_dir, source)
@@ -178,7 +178,7 @@ def _rgbd_config(tmp_path: Path) -> Path:
 def _assert_outputs_whole(out: Path) -> None:
     import open3d as o3d
 
-    from fpp_graph.frame_store import load_frame
+    from fpp_graph.slam.frame_store import load_frame
 
     assert not [p.name for p in out.rglob("*") if ".tmp" in p.name]
     for npz in (out / "frames").glob("*.npz"):

@@ -8,8 +8,13 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from fpp_graph.errors import InputDataError
+from fpp_graph.evaluation.plots import (
+    plot_errors,
+    plot_map_before_after,
+    plot_trajectory_top_view,
+    top_view,
+)
 from fpp_graph.geometry import compose, make_pose
-from fpp_graph.plots import plot_errors, plot_map_before_after, plot_trajectory_top_view, top_view
 
 
 def square_loop(n=40, side_m=2.0, y_wobble_m=0.02):

@@ -7,17 +7,22 @@ import pytest
 from conftest import shared_data_path
 from scipy.spatial.transform import Rotation
 
-from fpp_graph.config import PoseGraphConfig
-from fpp_graph.errors import FppError, GraphError
-from fpp_graph.geometry import invert, make_pose, se3_exp
-from fpp_graph.incremental import IncrementalPoseGraph
-from fpp_graph.pose_graph import (
+from fpp_graph.backend.incremental import IncrementalPoseGraph
+from fpp_graph.backend.pose_graph import (
     PoseGraph,
     isotropic_information,
     sesync_objective,
     sesync_tau_kappa,
 )
-from fpp_graph.synthetic_graphs import add_false_loops, ate_rmse_m, corridor_trajectory, torus_graph
+from fpp_graph.config import PoseGraphConfig
+from fpp_graph.errors import FppError, GraphError
+from fpp_graph.geometry import invert, make_pose, se3_exp
+from fpp_graph.testing.synthetic_graphs import (
+    add_false_loops,
+    ate_rmse_m,
+    corridor_trajectory,
+    torus_graph,
+)
 from fpp_graph.types import Constraint, ConstraintKind
 
 LM = PoseGraphConfig(robust="none", remove_inconsistent_loops=False)
@@ -372,7 +377,7 @@ def test_isotropic_cost_matches_sesync_objective_at_small_residuals():
 
 
 def test_parking_garage_reaches_the_published_sesync_optimum():
-    from fpp_graph.g2o import read_g2o
+    from fpp_graph.backend.g2o import read_g2o
 
     graph = read_g2o(shared_data_path("posegraphs", "parking-garage.g2o"))
     result = graph.optimize(PoseGraphConfig(noise_model="isotropic", robust="none", remove_inconsistent_loops=False))

@@ -1,7 +1,7 @@
 """Every plug-in point works with a foreign implementation written only against its declaration.
 
 Each class below implements one protocol of ``fpp_graph`` (``PairRegistrar``, ``LoopDetector``,
-``MapFuser`` in :mod:`fpp_graph.types`, ``FrameSource`` in :mod:`fpp_graph.sources`) with exactly
+``MapFuser`` in :mod:`fpp_graph.types`, ``FrameSource`` in :mod:`fpp_graph.slam.sources`) with exactly
 the declared methods and nothing else, inherits from nothing, and is driven through the
 project's own consumers (``KeyframeManager``, ``Pipeline``).
 """
@@ -17,9 +17,9 @@ import pytest
 
 from fpp_graph.config import config_from_dict
 from fpp_graph.geometry import invert, make_pose, se3_exp, transform_points
-from fpp_graph.keyframes import KeyframeManager
-from fpp_graph.pipeline import Pipeline
-from fpp_graph.sources import FrameSource
+from fpp_graph.slam.keyframes import KeyframeManager
+from fpp_graph.slam.pipeline import Pipeline
+from fpp_graph.slam.sources import FrameSource
 from fpp_graph.trajectory import Trajectory
 from fpp_graph.types import (
     Constraint,

@@ -15,9 +15,9 @@ import pytest
 from conftest import shared_data_path
 
 from fpp_graph.config import load_config
-from fpp_graph.pipeline import Pipeline
-from fpp_graph.run_evaluation import evaluate_results
-from fpp_graph.sources import open_source
+from fpp_graph.evaluation.results import evaluate_results
+from fpp_graph.slam.pipeline import Pipeline
+from fpp_graph.slam.sources import open_source
 
 
 @pytest.fixture(scope="module")

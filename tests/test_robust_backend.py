@@ -9,11 +9,11 @@ import pytest
 from conftest import shared_data_path
 from scipy.spatial.transform import Rotation
 
+from fpp_graph.backend.outliers import CHI2_6_MEDIAN, family_bound, odometry_cycle_chi2
+from fpp_graph.backend.pose_graph import PoseGraph, sesync_objective
 from fpp_graph.config import PoseGraphConfig
 from fpp_graph.geometry import adjoint, invert, make_pose, se3_exp
-from fpp_graph.outliers import CHI2_6_MEDIAN, family_bound, odometry_cycle_chi2
-from fpp_graph.pose_graph import PoseGraph, sesync_objective
-from fpp_graph.synthetic_graphs import (
+from fpp_graph.testing.synthetic_graphs import (
     add_false_loops,
     corridor_trajectory,
     torus_graph,
@@ -249,7 +249,7 @@ def test_odometry_forest_is_networkx_breadth_first_tree():
     common ancestors are those of the tree."""
     import networkx as nx
 
-    from fpp_graph.outliers import _lowest_common_ancestors, _odometry_forest
+    from fpp_graph.backend.outliers import _lowest_common_ancestors, _odometry_forest
 
     rng = np.random.default_rng(3)
     n = 80
@@ -308,7 +308,7 @@ def test_adjoint_and_inverse_of_stacks_match_gtsam():
     [("smallGrid3D.g2o", None), ("parking-garage.g2o", 1.263), ("sphere2500.g2o", 1.687e3)],
 )
 def test_benchmarks_reach_the_certified_optimum_with_default_flags(name, published):
-    from fpp_graph.g2o import read_g2o
+    from fpp_graph.backend.g2o import read_g2o
 
     path = shared_data_path("posegraphs", name)
     plain = read_g2o(path).optimize(PoseGraphConfig(noise_model="isotropic", robust="none"))

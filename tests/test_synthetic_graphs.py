@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from fpp_graph.backend.g2o import read_g2o
 from fpp_graph.errors import GraphError
-from fpp_graph.g2o import read_g2o
 from fpp_graph.geometry import invert, rotation_angle_rad, se3_log
-from fpp_graph.synthetic_graphs import (
+from fpp_graph.testing.synthetic_graphs import (
     SPHERE2500_ROTATION_SIGMA_RAD,
     SPHERE2500_TRANSLATION_SIGMA_PER_STEP,
     add_false_loops_to_graph,

@@ -40,7 +40,7 @@ def default_out(sequence: Path) -> Path:
 
 
 class RichProgress:
-    """Progress bars per stage with items/s: a ``fpp_graph.pipeline.ProgressCallback`` for the CLI."""
+    """Progress bars per stage with items/s: a ``fpp_graph.slam.pipeline.ProgressCallback`` for the CLI."""
 
     def __init__(self) -> None:
         from rich.progress import (

@@ -24,8 +24,8 @@ def optimize_graph(
     """Optimise a g2o pose graph: chordal init, LM, robust loops on evidence, certificate."""
     import json
 
+    from fpp_graph.backend.graph_run import graph_run_summary, optimize_g2o_file
     from fpp_graph.config import load_config
-    from fpp_graph.graph_run import graph_run_summary, optimize_g2o_file
 
     cfg = load_config(config)
     if as_json:  # keep stdout for the JSON object alone
@@ -35,7 +35,7 @@ def optimize_graph(
     pg_config = cfg.pose_graph.model_copy(update={**_choices(noise_model=noise_model, robust=robust), "certify": certify})
     run = optimize_g2o_file(graph_file, pg_config)
     if out is not None:
-        from fpp_graph.g2o import write_g2o
+        from fpp_graph.backend.g2o import write_g2o
 
         write_g2o(out, run.graph, poses=run.result.poses_world_sensor)
     summary = {**graph_run_summary(run, certify), "output": None if out is None else str(out)}

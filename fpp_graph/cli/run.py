@@ -34,14 +34,14 @@ def run(
     out = out or default_out(sequence)
     cfg = load_config(config)
     if sequence.suffix.lower() == ".g2o":
-        from fpp_graph.graph_run import run_graph_file
-        from fpp_graph.pipeline import prepare_results_dir
+        from fpp_graph.backend.graph_run import run_graph_file
+        from fpp_graph.slam.pipeline import prepare_results_dir
 
         results = prepare_results_dir(out, resume, overwrite)
         setup_logging(cfg.run.log_level, results / "run.log")
         typer.echo(json.dumps(run_graph_file(sequence, cfg, results), indent=1, default=float))
         return
-    from fpp_graph.pipeline import run_sequence
+    from fpp_graph.slam.pipeline import run_sequence
 
     setup_logging(cfg.run.log_level)
     with RichProgress() as progress:
@@ -61,8 +61,8 @@ def eval_(
 ) -> None:
     """ATE/RPE (SE(3) alignment), loop return error, circle fit, map accuracy vs the GT mesh."""
     from fpp_graph.config import load_config
-    from fpp_graph.run_evaluation import evaluate_results
-    from fpp_graph.sources import open_source
+    from fpp_graph.evaluation.results import evaluate_results
+    from fpp_graph.slam.sources import open_source
 
     setup_logging("WARNING")
     metrics = evaluate_results(results, open_source(gt, load_config(config)))
@@ -82,7 +82,7 @@ def batch(
     overwrite: Annotated[bool, typer.Option("--overwrite")] = False,
 ) -> None:
     """Many sequences through a concurrent.futures executor (or Dask distributed)."""
-    from fpp_graph.batch import run_batch
+    from fpp_graph.slam.batch import run_batch
 
     setup_logging("WARNING")
     rows = run_batch(sequences, out, config, workers=workers, scheduler=scheduler, resume=resume, overwrite=overwrite)

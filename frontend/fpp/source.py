@@ -1,4 +1,4 @@
-"""The FPP sequence as a :class:`fpp_graph.sources.FrameSource` (registered as ``fpp``).
+"""The FPP sequence as a :class:`fpp_graph.slam.sources.FrameSource` (registered as ``fpp``).
 
 Reads a recorded sequence folder (``sequence.yaml`` + per-frame PNG stacks, the format the
 simulator writes and a real sensor's recordings must fit), decodes each frame through

@@ -118,7 +118,7 @@ class _Entry:
 
 
 class RgbdSource:
-    """:class:`fpp_graph.sources.FrameSource` for 7-Scenes and TUM RGB-D folders."""
+    """:class:`fpp_graph.slam.sources.FrameSource` for 7-Scenes and TUM RGB-D folders."""
 
     name = "rgbd"
 

@@ -6,10 +6,10 @@ order (GTSAM's tangent order); no gtsam type crosses this module's surface.
 - :class:`PoseGraph`: batch optimisation. Chordal initialisation (``gtsam.InitializePose3``,
   falling back to the given poses when it fails), Levenberg-Marquardt over every edge, then
   truncated least squares (GNC) only on evidence of an outlier loop (the rule is in
-  :mod:`fpp_graph.outliers`), or a Cauchy loss; an optional global-optimality certificate
-  (:mod:`fpp_graph.certificate`) and marginal covariances. Structural problems (disconnected parts, unconstrained poses) are found before
+  :mod:`fpp_graph.backend.outliers`), or a Cauchy loss; an optional global-optimality certificate
+  (:mod:`fpp_graph.backend.certificate`) and marginal covariances. Structural problems (disconnected parts, unconstrained poses) are found before
   solving and raised as :class:`~fpp_graph.errors.GraphError` naming the poses.
-- :class:`fpp_graph.incremental.IncrementalPoseGraph` (its own module): iSAM2 for live use.
+- :class:`fpp_graph.backend.incremental.IncrementalPoseGraph` (its own module): iSAM2 for live use.
 - :func:`sesync_objective`: the SE-Sync objective ``F`` of a graph at given poses, so results
   compare with published certified optima.
 
@@ -37,23 +37,23 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from fpp_graph.config import PoseGraphConfig
-from fpp_graph.errors import GraphError
-from fpp_graph.graph_diagnostics import check_constrained, connected_parts
-from fpp_graph.noise_model import isotropic_information, sesync_tau_kappa  # noqa: F401  (re-exported)
-from fpp_graph.outliers import (
+from fpp_graph.backend.graph_diagnostics import check_constrained, connected_parts
+from fpp_graph.backend.noise_model import isotropic_information, sesync_tau_kappa  # noqa: F401  (re-exported)
+from fpp_graph.backend.outliers import (
     CycleCheck,
     LoopScreen,
     describe_scale,
     family_bound,
     odometry_cycle_chi2,
 )
+from fpp_graph.config import PoseGraphConfig
+from fpp_graph.errors import GraphError
 from fpp_graph.types import Constraint, ConstraintKind
 
 if TYPE_CHECKING:  # gtsam is imported lazily so that importing this module stays cheap
     import gtsam
 
-    from fpp_graph.certificate import Certificate
+    from fpp_graph.backend.certificate import Certificate
 
 log = logging.getLogger(__name__)
 
@@ -160,7 +160,7 @@ class PoseGraphResult:
         The loops of ``rejected_loops`` removed by the consistency check (not by GNC).
     variance_factor : float
         Measured scale of the information (>= 1; 1 when no loop needed it, see
-        :mod:`fpp_graph.outliers`): the edges' errors are ``sqrt`` of it times the stated sigma.
+        :mod:`fpp_graph.backend.outliers`): the edges' errors are ``sqrt`` of it times the stated sigma.
     loop_bound : float
         The bound on a loop's whitened squared residual (family-wise chi-square at the variance
         factor); NaN for a graph without loops.
@@ -472,7 +472,7 @@ class PoseGraph:
         Steps: structure check (raises :class:`GraphError` naming unconstrained parts),
         initialisation (chordal or given), least squares over every edge (LM, or iSAM2 batch;
         the Cauchy loss on loops with ``robust="cauchy"``), then with ``robust="gnc"`` the
-        robust stage of :mod:`fpp_graph.outliers`: only when a loop's residual is evidence of
+        robust stage of :mod:`fpp_graph.backend.outliers`: only when a loop's residual is evidence of
         an outlier (family-wise chi-square test at the measured information scale) does
         truncated least squares (GNC) run; residuals are judged at convergence, or after a few
         iterations when a loop is also refuted by its odometry cycle (gross outliers). A graph
@@ -591,7 +591,7 @@ class PoseGraph:
         """Certify the solution over the kept edges; escape a local minimum and polish with LM.
 
         The certificate is of SE-Sync's objective at a critical point next to the solution
-        (:mod:`fpp_graph.certificate`); its suboptimality bound is re-stated for the returned
+        (:mod:`fpp_graph.backend.certificate`); its suboptimality bound is re-stated for the returned
         poses (which minimise GTSAM's log-map cost, not ``F``): ``F(returned) - F*``.
         """
         kept = self._kept_graph(problem, active)
@@ -610,7 +610,11 @@ class PoseGraph:
 
     def _undecided(self, problem: _Problem, values: gtsam.Values, active: NDArray[np.bool_], reason: str) -> Certificate:
         """A certificate that decides nothing: not certified, bound unknown (inf), ``reason`` as method."""
-        from fpp_graph.certificate import NUMERICAL_FLOOR, RELATIVE_SUBOPTIMALITY, Certificate
+        from fpp_graph.backend.certificate import (
+            NUMERICAL_FLOOR,
+            RELATIVE_SUBOPTIMALITY,
+            Certificate,
+        )
 
         poses = _poses_from(values, self._poses)
         F = sesync_objective(self._kept_graph(problem, active), poses)
@@ -693,7 +697,7 @@ class PoseGraph:
     ) -> Certificate:
         """Certify poses as a global optimum of SE-Sync's objective ``F`` (Rosen et al., IJRR 2019).
 
-        A thin wrapper of :func:`fpp_graph.certificate.certify_graph` (see there and the module
+        A thin wrapper of :func:`fpp_graph.backend.certificate.certify_graph` (see there and the module
         docstring for the method, the tolerance and the suboptimality bound). The certificate is
         for SE-Sync's isotropic model of the relative edges whatever noise model was used to
         optimise; priors are ignored and the anchor (first fixed pose, else the smallest key)
@@ -716,7 +720,7 @@ class PoseGraph:
         GraphError
             No edges, a missing pose, or edges that do not connect all poses.
         """
-        from fpp_graph.certificate import certify_graph
+        from fpp_graph.backend.certificate import certify_graph
 
         return certify_graph(self, poses, escape=escape, max_rank=max_rank,
                              relative_suboptimality=relative_suboptimality, numerical_floor=numerical_floor)
@@ -933,7 +937,7 @@ class _Problem:
         """Loops refuted by their odometry cycle: evidence against them that no solution enters.
 
         A loop is refuted when its cycle's chi-square exceeds the family-wise bound at the scale
-        the cycles show (:meth:`~fpp_graph.outliers.CycleCheck.measured_scale`, below 1 when the
+        the cycles show (:meth:`~fpp_graph.backend.outliers.CycleCheck.measured_scale`, below 1 when the
         information is conservative: the same scale GNC's start uses). The test propagates the
         odometry's covariance to first order; it is evidence only where that is accurate, i.e.
         where an odometry step's rotation error at that scale is small (:meth:`cycle_step_rad`
@@ -957,7 +961,7 @@ class _Problem:
         measure_scale: bool = True,
         cycles: CycleCheck | None = None,
     ) -> LoopScreen:
-        """The evidence against each active loop at ``values`` (see :mod:`fpp_graph.outliers`).
+        """The evidence against each active loop at ``values`` (see :mod:`fpp_graph.backend.outliers`).
 
         The information's scale is measured (odometry cycles) only when some loop exceeds the
         bound at unit scale: it can only widen the bound, so otherwise nothing is flagged.

@@ -8,7 +8,7 @@ Format (one record per line, ``#`` starts a comment)::
 
 A vertex holds ``T_world_sensor``. An edge's measurement is ``T_i_j``: it maps points of vertex
 ``j`` into vertex ``i``, so ``i`` is the target and ``j`` the source of a
-:class:`~fpp_graph.pose_graph.PoseGraphEdge`. The 21 numbers are the upper triangle (row by
+:class:`~fpp_graph.backend.pose_graph.PoseGraphEdge`. The 21 numbers are the upper triangle (row by
 row) of the 6x6 information matrix in g2o's ``[trans, rot]`` order; the project uses
 ``[rot, trans]`` and converts by permutation on read and write.
 
@@ -26,7 +26,7 @@ information is indefinite, through large rotation-translation coupling terms, wh
 diagonal blocks are positive definite. SE-Sync's own reader uses only the blocks. Such edges are
 read with the coupling dropped (see :func:`read_g2o`), with one warning per file; the ``isotropic``
 noise model (SE-Sync's tau and kappa) depends on the blocks only and is exact for them. The
-Python API (:meth:`~fpp_graph.pose_graph.PoseGraph.add_edge`) still refuses an indefinite
+Python API (:meth:`~fpp_graph.backend.pose_graph.PoseGraph.add_edge`) still refuses an indefinite
 information matrix. Writing uses the shortest
 repr that parses back to the same double (``gtsam.writeG2o`` keeps 6 digits), and quaternions
 read from a file are written back as read, so write-then-read reproduces poses bit for bit.
@@ -44,8 +44,8 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
 from fpp_graph.atomic import atomic_open
+from fpp_graph.backend.pose_graph import PoseGraph, PoseGraphEdge
 from fpp_graph.errors import InputDataError
-from fpp_graph.pose_graph import PoseGraph, PoseGraphEdge
 from fpp_graph.types import ConstraintKind
 
 log = logging.getLogger(__name__)
@@ -174,7 +174,7 @@ def _checked_information(info: NDArray[np.float64], lines: list[int], path: Path
 
 
 def read_g2o(path: str | os.PathLike[str]) -> PoseGraph:
-    """Read a 3D g2o pose graph into a :class:`~fpp_graph.pose_graph.PoseGraph`.
+    """Read a 3D g2o pose graph into a :class:`~fpp_graph.backend.pose_graph.PoseGraph`.
 
     Vertices become poses (initial values), ``FIX`` lines fixed poses, edges edges with
     information converted to ``[rot, trans]`` order. Raises
@@ -319,7 +319,7 @@ def write_g2o(path: str | os.PathLike[str], graph: PoseGraph, poses: Mapping[int
         Vertex poses to write instead of the graph's current ones (e.g. a result's
         ``poses_world_sensor``); keys absent here keep the graph's pose.
     """
-    from fpp_graph.pose_graph import _as_pose
+    from fpp_graph.backend.pose_graph import _as_pose
 
     current = graph._poses
     if poses is not None:

@@ -34,10 +34,10 @@ import numpy as np
 from fpp_graph.atomic import atomic_write_text
 from fpp_graph.config import Config, dump_config
 from fpp_graph.errors import FppError, InputDataError, OutputError
-from fpp_graph.frame_store import FrameStore, load_frame, save_frame
 from fpp_graph.geometry import compose
-from fpp_graph.keyframes import KeyframeManager, SlamResult
-from fpp_graph.sources import FrameSource
+from fpp_graph.slam.frame_store import FrameStore, load_frame, save_frame
+from fpp_graph.slam.keyframes import KeyframeManager, SlamResult
+from fpp_graph.slam.sources import FrameSource
 from fpp_graph.trajectory import Trajectory, write_tum
 from fpp_graph.types import Frame, FusedMap, MapFuser
 
@@ -214,8 +214,8 @@ def odometry_only_poses(result: SlamResult) -> dict[int, np.ndarray]:
 # -- step 4: trajectory and graph -----------------------------------------------------------
 def write_trajectory_and_graph(out: Path, result: SlamResult, timestamps: dict[int, float]) -> None:
     """``trajectory.tum`` (every frame) and ``graph.g2o`` (keyframes, accepted edges)."""
-    from fpp_graph.g2o import write_g2o
-    from fpp_graph.pose_graph import PoseGraph
+    from fpp_graph.backend.g2o import write_g2o
+    from fpp_graph.backend.pose_graph import PoseGraph
 
     ids = sorted(result.poses_world_sensor)
     write_tum(out / "trajectory.tum", Trajectory.from_poses([timestamps[i] for i in ids], [result.poses_world_sensor[i] for i in ids]))
@@ -235,9 +235,9 @@ def fuse_map(
     fuser: MapFuser | None = None,
 ) -> FusedMap:
     """Re-fuse keyframes under the optimised poses with ``fuser`` (default: a
-    :class:`~fpp_graph.fusion.VoxelMapFuser` from ``config.fusion``); writes ``map.ply`` and,
+    :class:`~fpp_graph.fusion.voxel_map.VoxelMapFuser` from ``config.fusion``); writes ``map.ply`` and,
     when the map has a mesh, ``mesh.ply``."""
-    from fpp_graph.fusion import VoxelMapFuser, write_mesh_ply, write_point_cloud_ply
+    from fpp_graph.fusion.voxel_map import VoxelMapFuser, write_mesh_ply, write_point_cloud_ply
 
     if fuser is None:
         fuser = VoxelMapFuser(
@@ -259,7 +259,7 @@ def fuse_map(
 
 def fuse_points_only(result_poses: dict[int, np.ndarray], keyframe_ids: list[int], store: FrameStore, voxel_size_m: float):
     """Voxel-grid map under given poses, without a mesh (for before/after comparisons)."""
-    from fpp_graph.fusion import VoxelMapFuser
+    from fpp_graph.fusion.voxel_map import VoxelMapFuser
 
     fuser = VoxelMapFuser(voxel_size_m=voxel_size_m, tsdf_voxel_m=voxel_size_m, tsdf_truncation_m=4 * voxel_size_m, mesh=False)
     for kf in keyframe_ids:
@@ -309,7 +309,7 @@ def _finite(x: float) -> float | None:
 
 
 def write_plots(out: Path, result: SlamResult, before_points: np.ndarray | None, after_points: np.ndarray | None, gt_poses: dict[int, np.ndarray] | None = None) -> None:
-    from fpp_graph.plots import plot_map_before_after, plot_trajectory_top_view
+    from fpp_graph.evaluation.plots import plot_map_before_after, plot_trajectory_top_view
 
     accepted = [(r.query_id, r.match_id) for r in result.loop_records if r.verified and not r.rejected_by_backend]
     rejected = [(r.query_id, r.match_id) for r in result.loop_records if (not r.verified) or r.rejected_by_backend]
@@ -335,7 +335,7 @@ class Pipeline:
         progress: ProgressCallback | None = None,
         map_fuser: MapFuser | None = None,
     ) -> None:
-        """``map_fuser`` fuses the global map (default: :class:`~fpp_graph.fusion.VoxelMapFuser`
+        """``map_fuser`` fuses the global map (default: :class:`~fpp_graph.fusion.voxel_map.VoxelMapFuser`
         from ``config.fusion``)."""
         self.source = source
         self.config = source.resolve_config(config)
@@ -381,8 +381,8 @@ class Pipeline:
                 gt_poses = {fid: T for fid, T in zip(ids, gt.poses_world_sensor, strict=True)}
             write_plots(out, report.slam, before.points_world_m, fused.points_world_m, gt_poses)
         report.metrics = slam_summary(report)
-        if gt_poses is not None:  # loop candidates against ground truth (fpp_graph.loop_evaluation)
-            from fpp_graph.loop_evaluation import evaluate_results_loops
+        if gt_poses is not None:  # loop candidates against ground truth (fpp_graph.evaluation.loops)
+            from fpp_graph.evaluation.loops import evaluate_results_loops
 
             report.metrics["loop_evaluation"] = evaluate_results_loops(out, gt_poses).as_dict()
         atomic_write_text(out / "metrics.json", json.dumps(report.metrics, indent=1, default=float))
@@ -425,7 +425,7 @@ def run_sequence(
     one), load the configuration (packaged defaults overridden by ``config_path``) and run the
     pipeline into ``out``."""
     from fpp_graph.config import load_config
-    from fpp_graph.sources import open_source
+    from fpp_graph.slam.sources import open_source
 
     config = load_config(config_path)
     source = open_source(sequence, config, kind=kind)

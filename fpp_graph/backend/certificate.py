@@ -6,7 +6,7 @@ The problem certified is SE-Sync's isotropic one, whatever noise model the graph
 
 over the relative edges ``e = (source s, target t)`` measuring ``T_target_source = (R_ts, t_ts)``,
 with ``tau_e, kappa_e`` from each edge's information blocks
-(:func:`~fpp_graph.noise_model.sesync_tau_kappa`). ``R_i, t_i`` are the world-from-sensor rotation
+(:func:`~fpp_graph.backend.noise_model.sesync_tau_kappa`). ``R_i, t_i`` are the world-from-sensor rotation
 and position (metres) of pose ``i``. Priors and fixed poses play no part: ``F`` is invariant under
 a rigid motion of all poses (the gauge), and the returned poses are moved rigidly so that the
 anchor (the first fixed pose, else the smallest key) keeps its given value.
@@ -22,7 +22,7 @@ Steps of :func:`certify_graph`:
 2. Refinement. Chordal + LM minimises GTSAM's log-map cost, whose optimum is ~1e-4 relative away
    from a critical point of ``F``. Damped Riemannian Newton steps on ``(SO(3) x R^3)^n`` (exact
    Hessian assembled edge by edge, polar retraction) move the poses to a first-order critical
-   point of ``F`` (:mod:`fpp_graph.certificate_refinement`). The Hessian is factorised once from
+   point of ``F`` (:mod:`fpp_graph.backend.certificate_refinement`). The Hessian is factorised once from
    a good start (LM's solution): later steps reuse that factorisation (chord steps) while each
    shrinks the gradient at least tenfold, and factorise afresh otherwise.
 3. Certificate. ``Lambda = SymBlockDiag(Q R^T R)`` (3x3 blocks, closed form) and ``S = Q - Lambda``.
@@ -74,7 +74,7 @@ import scipy.sparse.linalg as spla
 from numpy.typing import ArrayLike, NDArray
 from scipy.sparse.csgraph import connected_components
 
-from fpp_graph.certificate_refinement import (
+from fpp_graph.backend.certificate_refinement import (
     block_diagonal,
     multipliers,
     newton,
@@ -85,12 +85,12 @@ from fpp_graph.certificate_refinement import (
     stack_blocks,
     symmetric_lu,
 )
+from fpp_graph.backend.graph_diagnostics import connected_parts
+from fpp_graph.backend.noise_model import sesync_tau_kappa
 from fpp_graph.errors import GraphError
-from fpp_graph.graph_diagnostics import connected_parts
-from fpp_graph.noise_model import sesync_tau_kappa
 
 if TYPE_CHECKING:
-    from fpp_graph.pose_graph import PoseGraph
+    from fpp_graph.backend.pose_graph import PoseGraph
 
 log = logging.getLogger(__name__)
 

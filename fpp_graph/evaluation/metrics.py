@@ -1,7 +1,7 @@
 """Accuracy figures of a SLAM run: ATE/RPE, turntable loop return, circle fit, map accuracy.
 
 Plain functions returning frozen result dataclasses (metres, degrees); nothing prints. Reporting
-in millimetres is the caller's job (:mod:`fpp_graph.run_evaluation`).
+in millimetres is the caller's job (:mod:`fpp_graph.evaluation.results`).
 
 - :func:`ate_rpe` uses evo (optional ``[eval]`` extra, GPL-3.0): association by timestamps and
   SE(3) Umeyama alignment *without* scale, because the FPP sensor is metric; a Sim(3) alignment

@@ -33,9 +33,9 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
+from fpp_graph.backend.pose_graph import PoseGraph, sesync_tau_kappa
 from fpp_graph.errors import GraphError
 from fpp_graph.geometry import invert, make_pose, se3_exp
-from fpp_graph.pose_graph import PoseGraph, sesync_tau_kappa
 from fpp_graph.types import ConstraintKind
 
 Array = NDArray[np.float64]
@@ -76,7 +76,7 @@ class SyntheticGraph:
     def write_g2o(self, path: str | os.PathLike[str], *, include_false: bool = True) -> None:
         """Write the graph as a benchmark-style g2o file: vertices at the odometry chain, every
         edge, and no ``FIX`` record (readers anchor the smallest id, as with SE-Sync's files)."""
-        from fpp_graph.g2o import write_g2o
+        from fpp_graph.backend.g2o import write_g2o
 
         write_g2o(path, self.graph(include_false=include_false, fix_first=False))
 

@@ -21,7 +21,7 @@ from fpp_graph.types import Frame, PairRegistrar
 
 log = logging.getLogger(__name__)
 
-ENTRY_POINT_GROUP = "fpp_graph.sources"
+ENTRY_POINT_GROUP = "fpp_graph.sources"  # the group third-party sources register under: fixed
 
 
 @runtime_checkable

@@ -1,7 +1,7 @@
 """Evidence against loop edges: the statistics behind the robust stage of the pose graph.
 
 The robust stage may only drop a loop on evidence. The rule (used by
-:meth:`fpp_graph.pose_graph.PoseGraph.optimize` with ``robust="gnc"``):
+:meth:`fpp_graph.backend.pose_graph.PoseGraph.optimize` with ``robust="gnc"``):
 
 1. **Least squares first.** The graph is solved with every edge (chordal initialisation +
    Levenberg-Marquardt): a graph without outliers comes out exactly as plain gtsam gives it.

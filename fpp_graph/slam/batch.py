@@ -69,15 +69,15 @@ def run_one(sequence: str, out: str, config_path: str | None, resume: bool, over
         # (a Dask worker is a daemon process and could not start a pool of its own anyway)
         config = config_from_dict({**config.model_dump(mode="json"), "run": {**config.run.model_dump(mode="json"), "workers": 1}})
         if Path(sequence).suffix.lower() == ".g2o":
-            from fpp_graph.graph_run import run_graph_file
-            from fpp_graph.pipeline import prepare_results_dir
+            from fpp_graph.backend.graph_run import run_graph_file
+            from fpp_graph.slam.pipeline import prepare_results_dir
 
             if not Path(sequence).is_file():
                 raise InputDataError(f"pose graph {sequence} does not exist")
             metrics = run_graph_file(Path(sequence), config, prepare_results_dir(Path(out), resume, overwrite))
         else:
-            from fpp_graph.pipeline import Pipeline
-            from fpp_graph.sources import open_source
+            from fpp_graph.slam.pipeline import Pipeline
+            from fpp_graph.slam.sources import open_source
 
             metrics = Pipeline(open_source(sequence, config), config, Path(out), resume=resume, overwrite=overwrite).run().metrics
         row.update({k: metrics[k] for k in ROW_METRICS if k in metrics})

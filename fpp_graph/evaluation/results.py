@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 
 from fpp_graph.errors import InputDataError
-from fpp_graph.sources import FrameSource
+from fpp_graph.slam.sources import FrameSource
 from fpp_graph.trajectory import read_tum
 
 log = logging.getLogger(__name__)
@@ -27,7 +27,7 @@ def evaluate_results(results_dir: Path, gt_source: FrameSource, map_points_limit
     p95), ``loops_accepted``, ``loops_rejected``, ``frames``, ``seconds`` and, for a turntable,
     ``loop_return_mm`` per turn and ``circle``.
     """
-    from fpp_graph.evaluation import (
+    from fpp_graph.evaluation.metrics import (
         ate_rpe,
         fit_circle,
         load_mesh,

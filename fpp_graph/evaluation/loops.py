@@ -243,8 +243,8 @@ def evaluate_results_loops(
     tolerance_m: float = 0.005,
 ) -> LoopEvaluation:
     """:func:`evaluate_loops` on a results folder (``loops.json``, ``graph.g2o``, ``frames/``)."""
-    from fpp_graph.frame_store import load_frame
-    from fpp_graph.g2o import read_g2o
+    from fpp_graph.backend.g2o import read_g2o
+    from fpp_graph.slam.frame_store import load_frame
 
     results_dir = Path(results_dir)
     loops_path, graph_path = results_dir / "loops.json", results_dir / "graph.g2o"

@@ -15,7 +15,7 @@ is reduced to its occupied voxels before it is merged.
   whose pixels follow a distorted lens still land on the right rays.
 
 After a pose-graph update, :meth:`VoxelMapFuser.refuse` rebuilds the map from the frames (their
-``points``/``xyz_map``/``texture``, e.g. from the :class:`~fpp_graph.frame_store.FrameStore`);
+``points``/``xyz_map``/``texture``, e.g. from the :class:`~fpp_graph.slam.frame_store.FrameStore`);
 the raw fringe images are not needed again.
 
 Results are :class:`FusedMap`: numpy arrays only, so they pickle across processes. The PLY

@@ -1,6 +1,6 @@
 """SE-Sync's objective on stacked poses and its Riemannian Newton refinement.
 
-Part of the certificate (:mod:`fpp_graph.certificate`, whose module docstring states the problem,
+Part of the certificate (:mod:`fpp_graph.backend.certificate`, whose module docstring states the problem,
 the method and the tolerance): ``F``, its gradient and multipliers from edge residuals, the
 optimal positions for given rotations, the LDL^T-like factorisation with its inertia count, and
 the damped Newton method on ``(St(3, r) x R^r)^n`` that moves poses to a critical point of ``F``
@@ -19,7 +19,7 @@ import scipy.sparse.linalg as spla
 from numpy.typing import NDArray
 
 if TYPE_CHECKING:
-    from fpp_graph.certificate import SESyncData
+    from fpp_graph.backend.certificate import SESyncData
 
 log = logging.getLogger(__name__)
 

@@ -10,7 +10,7 @@
    that widens with the drift accumulated since the last closure, and appearance), verifies each
    through the ``PairRegistrar``, and logs every accepted and rejected candidate with its reason
    and figures;
-4. keeps its running estimate with iSAM2 (:class:`~fpp_graph.pose_graph.IncrementalPoseGraph`,
+4. keeps its running estimate with iSAM2 (:class:`~fpp_graph.backend.pose_graph.IncrementalPoseGraph`,
    one per connected part): the keyframe and its odometry go in, each verified loop goes in as
    a Gaussian factor after a per-edge innovation test (a loop that fails it is held out of the
    running estimate only, logged and counted, and still reaches the final solve), and one
@@ -20,11 +20,11 @@
 :meth:`KeyframeManager.finish` runs the final robust optimisation (GNC by default: odometry edges
 are known inliers, loops may be false) per connected component and returns poses for every frame;
 ``keyframes.batch_every`` can run it every K keyframes as well (0, the default: never).
-Only keyframes are kept (bounded by the :class:`~fpp_graph.frame_store.FrameStore`).
+Only keyframes are kept (bounded by the :class:`~fpp_graph.slam.frame_store.FrameStore`).
 
 Chain breaks: a new segment starts its own iSAM2 graph anchored at its first keyframe's pose
 (the last keyframe's pose, or the frame's pose guess); a loop that joins two parts merges their
-graphs (:meth:`~fpp_graph.pose_graph.IncrementalPoseGraph.absorb`, the newer part moved rigidly
+graphs (:meth:`~fpp_graph.backend.pose_graph.IncrementalPoseGraph.absorb`, the newer part moved rigidly
 onto the loop). Such a joining loop is accepted without the innovation test: it is the only link
 between the parts, so nothing can confirm or refute it yet (the batch solve treats it the same way).
 """
@@ -40,12 +40,12 @@ import networkx as nx
 import numpy as np
 from numpy.typing import NDArray
 
+from fpp_graph.backend.incremental import IncrementalPoseGraph
+from fpp_graph.backend.outliers import chi2_6_quantile
 from fpp_graph.config import Config
-from fpp_graph.frame_store import FrameStore
 from fpp_graph.geometry import adjoint, compose, invert, rotation_angle_rad
-from fpp_graph.incremental import IncrementalPoseGraph
-from fpp_graph.loop_closure import ProximityAppearanceLoopDetector
-from fpp_graph.outliers import chi2_6_quantile
+from fpp_graph.slam.frame_store import FrameStore
+from fpp_graph.slam.loop_closure import ProximityAppearanceLoopDetector
 from fpp_graph.types import (
     Constraint,
     ConstraintKind,
@@ -394,7 +394,7 @@ class KeyframeManager:
         return sorted(comps, key=lambda c: order[c[0]])
 
     def _optimize_components(self):
-        from fpp_graph.pose_graph import PoseGraph
+        from fpp_graph.backend.pose_graph import PoseGraph
 
         poses: dict[int, NDArray[np.float64]] = {}
         rejected: list[tuple[int, int]] = []

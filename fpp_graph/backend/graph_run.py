@@ -11,8 +11,8 @@ from pathlib import Path
 from typing import Any
 
 from fpp_graph.atomic import atomic_write_text
+from fpp_graph.backend.pose_graph import PoseGraph, PoseGraphResult
 from fpp_graph.config import Config, PoseGraphConfig, dump_config
-from fpp_graph.pose_graph import PoseGraph, PoseGraphResult
 
 
 @dataclass
@@ -28,7 +28,7 @@ class GraphRun:
 
 def optimize_g2o_file(path: Path, config: PoseGraphConfig) -> GraphRun:
     """Read a g2o file and optimise it with ``config`` (robust stage and certificate as configured)."""
-    from fpp_graph.g2o import read_g2o
+    from fpp_graph.backend.g2o import read_g2o
 
     started = time.perf_counter()
     graph = read_g2o(path)
@@ -44,7 +44,7 @@ def _finite_or_none(x: float) -> float | None:
 
 def graph_run_summary(run: GraphRun, certify: bool) -> dict[str, Any]:
     """The JSON summary of an optimisation (``fpp-slam optimize --json`` prints it as is)."""
-    from fpp_graph.pose_graph import sesync_objective
+    from fpp_graph.backend.pose_graph import sesync_objective
 
     graph, result, cert = run.graph, run.result, run.result.certificate
     return {
@@ -78,7 +78,7 @@ def graph_run_summary(run: GraphRun, certify: bool) -> dict[str, Any]:
 def run_graph_file(path: Path, config: Config, out: Path) -> dict[str, Any]:
     """``fpp-slam run GRAPH.g2o``: optimise with the configured back-end; write ``trajectory.tum``,
     ``graph.g2o``, ``config.yaml`` and ``metrics.json`` (the summary, plus ``frames``) into ``out``."""
-    from fpp_graph.g2o import write_g2o
+    from fpp_graph.backend.g2o import write_g2o
     from fpp_graph.trajectory import Trajectory, write_tum
 
     atomic_write_text(out / "config.yaml", dump_config(config))

@@ -1,5 +1,5 @@
 """iSAM2: the pose graph grown one keyframe at a time, for live use (the keyframe manager's
-running estimate); the batch optimiser is :class:`fpp_graph.pose_graph.PoseGraph`."""
+running estimate); the batch optimiser is :class:`fpp_graph.backend.pose_graph.PoseGraph`."""
 
 from __future__ import annotations
 
@@ -12,9 +12,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import ArrayLike
 
-from fpp_graph.config import PoseGraphConfig
-from fpp_graph.errors import GraphError
-from fpp_graph.pose_graph import (
+from fpp_graph.backend.pose_graph import (
     ANCHOR_STIFFNESS,
     Array,
     PoseGraph,
@@ -27,6 +25,8 @@ from fpp_graph.pose_graph import (
     _solver_error,
     isotropic_information,
 )
+from fpp_graph.config import PoseGraphConfig
+from fpp_graph.errors import GraphError
 from fpp_graph.types import Constraint, ConstraintKind
 
 if TYPE_CHECKING:
