@@ -998,6 +998,14 @@ class _Problem:
         4. The inlier set is made self-consistent: any left-out loop whose residual at the
            solution is under the bound is an inlier by the definition of truncated least
            squares (a true loop the first-order cycle test was too strict for comes back).
+        5. Loops still out are tested against the solution's prediction of them
+           (:meth:`predicted_chi2`: the residual against the loop's covariance plus the kept
+           graph's covariance of the relative pose), which is the residual test a loop left out
+           must pass: GNC drops runs of neighbouring true loops together, and without them
+           their region bends so that each looks bad on its own residual, while the kept graph
+           predicts that region only loosely. Those under the bound are re-admitted together and
+           the solve repeated; a group is accepted only if, at the new solution, no loop is over
+           the bound that was not before (else the better half by the prediction is tried).
         """
         try:
             needed = self.necessary_loops(active)
@@ -1017,6 +1025,8 @@ class _Problem:
             kept[rejected] = False
             left_out = sorted(set(rejected) | {int(i) for i in np.flatnonzero(active & ~candidates)})
             values, rejected, more = self._settle_inliers(values, kept, left_out, screen.bound, cfg)
+            iterations += more
+            values, rejected, more = self._readmit_predicted(values, kept, rejected, screen.bound, cfg)
             iterations += more
         except RuntimeError as exc:
             raise _solver_error(exc) from None
@@ -1115,6 +1125,117 @@ class _Problem:
             iterations += more
         return values, rejected, iterations
 
+
+    def _readmit_predicted(
+        self, values: gtsam.Values, kept: NDArray[np.bool_], rejected: list[int], bound: float, cfg: PoseGraphConfig
+    ) -> tuple[gtsam.Values, list[int], int]:
+        """Re-admit rejected loops that the kept graph predicts within the bound (see
+        :meth:`predicted_chi2`), jointly, re-solving; until no rejected loop passes.
+
+        A group is accepted when, at the least-squares solution with it, no loop of the kept
+        set or the group is over the bound that was not over it before: a true loop that the
+        prediction passes fits once its region is unbent, an outlier the prediction missed (the
+        first-order spread is loose) shows at the new solution. A group that fails is halved
+        (the half best predicted is tried); a single loop that fails stays out for good.
+        """
+        iterations = 0
+        refuted: set[int] = set()
+        for _ in range(_MAX_READMISSION_ROUNDS):
+            open_ = np.array([i for i in rejected if i not in refuted], dtype=np.int64)
+            if len(open_) == 0:
+                break
+            predicted = self.predicted_chi2(values, kept, open_, bound)
+            order = np.argsort(predicted, kind="stable")
+            group = [int(open_[n]) for n in order if predicted[n] <= bound]
+            if not group:
+                break
+            loops = np.flatnonzero(kept & self.is_loop)
+            over_before = {int(i) for i, r2 in zip(loops, self.loop_chi2(values, loops), strict=True) if r2 > bound}
+            while group:
+                trial = kept.copy()
+                trial[group] = True
+                candidate, more = _lm(self.gaussian_graph(trial), values, cfg.max_iterations, cfg.relative_error_tol)
+                iterations += more
+                loops = np.flatnonzero(trial & self.is_loop)
+                over = {int(i) for i, r2 in zip(loops, self.loop_chi2(candidate, loops), strict=True) if r2 > bound}
+                if over <= over_before:
+                    log.debug("%d loop(s) re-admitted on the kept graph's prediction (bound %.3g)", len(group), bound)
+                    kept[group] = True
+                    rejected = [i for i in rejected if i not in group]
+                    values = candidate
+                    values, rejected, more = self._readmit(values, kept, rejected, bound, cfg)
+                    iterations += more
+                    break
+                if len(group) == 1:
+                    refuted.add(group[0])
+                group = group[: len(group) // 2]
+        return values, rejected, iterations
+
+    def predicted_chi2(self, values: gtsam.Values, kept: NDArray[np.bool_], loops: NDArray[np.int64], bound: float) -> Array:
+        """Each loop's squared residual at ``values`` against its predicted spread.
+
+        ``b^T (I + A H^-1 A^T)^-1 b`` with ``b, A`` the loop's whitened residual and Jacobian at
+        ``values`` and ``H`` the Gauss-Newton information of the priors and the ``kept`` edges
+        (anchors held exactly): the first-order distribution of a loop's residual at the
+        least-squares solution of the graph without it is ``N(0, I + A H^-1 A^T)`` when the
+        loop is true, so the statistic is ``chi2(6)`` (at the variance factor's scale) and is
+        tested against the same bound as every loop. The odometry-cycle test of
+        :mod:`fpp_graph.outliers` is the special case of a kept graph of odometry alone; the
+        statistic is also the rise of the linearised least-squares cost when the loop is added.
+
+        Exact where it is at most ``bound``; above it the value may be the lower bound
+        ``|b|^4 / (|b|^2 + g^T H^-1 g)``, ``g = A^T b`` (Cauchy-Schwarz), which takes one sparse
+        solve instead of six (it decides most outliers).
+        """
+        import scipy.sparse as sp
+        import scipy.sparse.linalg as spla
+
+        anchored = set(self.anchors)
+        column = {k: 6 * n for n, k in enumerate(k for k in self.given_poses if k not in anchored)}
+        rows, cols, data = [], [], []
+        row = 0
+        for factor in [*self.prior_factors, *(self.gaussian[i] for i in np.flatnonzero(kept))]:
+            linear = factor.linearize(values)
+            A, _ = linear.jacobian()
+            for n, key in enumerate(linear.keys()):
+                if key in column:
+                    r, c = np.nonzero(A[:, 6 * n : 6 * n + 6])
+                    rows.append(row + r)
+                    cols.append(column[key] + c)
+                    data.append(A[r, 6 * n + c])
+            row += A.shape[0]
+        J = sp.csr_matrix((np.concatenate(data), (np.concatenate(rows), np.concatenate(cols))), shape=(row, 6 * len(column)))
+        # H is symmetric positive definite: a symmetric ordering and no pivoting keep the factor
+        # sparse. Right-hand sides go one column at a time: SuperLU's multi-column solve goes
+        # through threaded BLAS and is several times slower per column.
+        lu = spla.splu((J.T @ J).tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                       options={"SymmetricMode": True})
+        rhs = np.zeros(J.shape[1])
+        chi2 = np.empty(len(loops))
+        for m, i in enumerate(loops):
+            linear = self.gaussian[i].linearize(values)
+            A, b = linear.jacobian()
+            blocks = [(column[k], A[:, 6 * n : 6 * n + 6]) for n, k in enumerate(linear.keys()) if k in column]
+            for c, a in blocks:
+                rhs[c : c + 6] += a.T @ b
+            u = lu.solve(rhs)
+            spread_b = float(sum(rhs[c : c + 6] @ u[c : c + 6] for c, _ in blocks))
+            for c, _ in blocks:
+                rhs[c : c + 6] = 0.0
+            bb = float(b @ b)
+            chi2[m] = bb * bb / (bb + spread_b) if bb > 0.0 else 0.0
+            if chi2[m] > bound:
+                continue
+            spread = np.eye(6)
+            for j in range(6):
+                for c, a in blocks:
+                    rhs[c : c + 6] = a[j]
+                u = lu.solve(rhs)
+                for c, a in blocks:
+                    spread[:, j] += a @ u[c : c + 6]
+                    rhs[c : c + 6] = 0.0
+            chi2[m] = float(b @ np.linalg.solve(spread, b))
+        return chi2
 
     def _spans(self, inliers: NDArray[np.bool_]) -> bool:
         """True when the edges ``inliers`` and the priors tie every pose to an anchor."""
