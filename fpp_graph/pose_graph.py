@@ -998,14 +998,14 @@ class _Problem:
         4. The inlier set is made self-consistent: any left-out loop whose residual at the
            solution is under the bound is an inlier by the definition of truncated least
            squares (a true loop the first-order cycle test was too strict for comes back).
-        5. Loops still out are tested against the solution's prediction of them
-           (:meth:`predicted_chi2`: the residual against the loop's covariance plus the kept
-           graph's covariance of the relative pose), which is the residual test a loop left out
-           must pass: GNC drops runs of neighbouring true loops together, and without them
-           their region bends so that each looks bad on its own residual, while the kept graph
-           predicts that region only loosely. Those under the bound are re-admitted together and
-           the solve repeated; a group is accepted only if, at the new solution, no loop is over
-           the bound that was not before (else the better half by the prediction is tried).
+        5. Loops still out get the screen's test at the solution they would have: their residual
+           at the least-squares solution with them added, predicted to first order from the
+           kept graph (:meth:`predicted_chi2`). GNC drops runs of neighbouring true loops
+           together; without them their region bends so that each looks bad at the solution
+           without it, though each fits once they are back. Those predicted under the bound are
+           re-admitted together and the solve repeated; the group is kept only if, at the new
+           solution, no loop is over the bound that was not before (else its better half by the
+           prediction is tried).
         """
         try:
             needed = self.necessary_loops(active)
@@ -1129,14 +1129,14 @@ class _Problem:
     def _readmit_predicted(
         self, values: gtsam.Values, kept: NDArray[np.bool_], rejected: list[int], bound: float, cfg: PoseGraphConfig
     ) -> tuple[gtsam.Values, list[int], int]:
-        """Re-admit rejected loops that the kept graph predicts within the bound (see
-        :meth:`predicted_chi2`), jointly, re-solving; until no rejected loop passes.
+        """Re-admit rejected loops whose residual at the solution with them is predicted under
+        the bound (:meth:`predicted_chi2`), jointly, re-solving; until no rejected loop passes.
 
         A group is accepted when, at the least-squares solution with it, no loop of the kept
-        set or the group is over the bound that was not over it before: a true loop that the
-        prediction passes fits once its region is unbent, an outlier the prediction missed (the
-        first-order spread is loose) shows at the new solution. A group that fails is halved
-        (the half best predicted is tried); a single loop that fails stays out for good.
+        set or the group is over the bound that was not over it before (the screen's rule at
+        that solution): a true loop fits once its region is unbent, an outlier the first-order
+        prediction let through shows at the new solution. A group that fails is halved (the half
+        best predicted is tried); a single loop that fails stays out.
         """
         iterations = 0
         refuted: set[int] = set()
@@ -1172,20 +1172,22 @@ class _Problem:
         return values, rejected, iterations
 
     def predicted_chi2(self, values: gtsam.Values, kept: NDArray[np.bool_], loops: NDArray[np.int64], bound: float) -> Array:
-        """Each loop's squared residual at ``values`` against its predicted spread.
+        """Each loop's whitened squared residual at the least-squares solution with it added to
+        the ``kept`` edges, predicted to first order from ``values`` (their solution).
 
-        ``b^T (I + A H^-1 A^T)^-1 b`` with ``b, A`` the loop's whitened residual and Jacobian at
-        ``values`` and ``H`` the Gauss-Newton information of the priors and the ``kept`` edges
-        (anchors held exactly): the first-order distribution of a loop's residual at the
-        least-squares solution of the graph without it is ``N(0, I + A H^-1 A^T)`` when the
-        loop is true, so the statistic is ``chi2(6)`` (at the variance factor's scale) and is
-        tested against the same bound as every loop. The odometry-cycle test of
-        :mod:`fpp_graph.outliers` is the special case of a kept graph of odometry alone; the
-        statistic is also the rise of the linearised least-squares cost when the loop is added.
+        With ``b, A`` the loop's whitened residual and Jacobian at ``values`` and ``H`` the
+        Gauss-Newton information of the priors and the kept edges (anchors held exactly),
+        adding the loop moves its residual to ``(I + A H^-1 A^T)^-1 b``: a loop that its region
+        bends away from while it is left out (``b`` large) comes back close when the kept graph
+        predicts that region only loosely (``A H^-1 A^T`` large). This is the statistic the
+        screen tests at the least-squares solution, so it is compared to the same bound; the
+        odometry-cycle test of :mod:`fpp_graph.outliers` uses the same spread for a kept graph
+        of odometry alone. (``b^T (I + A H^-1 A^T)^-1 b``, the rise of the cost, is ``chi2(6)``
+        for a true loop and larger than the returned value.)
 
-        Exact where it is at most ``bound``; above it the value may be the lower bound
-        ``|b|^4 / (|b|^2 + g^T H^-1 g)``, ``g = A^T b`` (Cauchy-Schwarz), which takes one sparse
-        solve instead of six (it decides most outliers).
+        Exact to first order where it is at most ``bound``; above it the value may be the lower
+        bound ``|b|^2 (|b|^2 / (|b|^2 + g^T H^-1 g))^2``, ``g = A^T b`` (Cauchy-Schwarz twice),
+        which takes one sparse solve instead of six and decides most outliers.
         """
         import scipy.sparse as sp
         import scipy.sparse.linalg as spla
@@ -1223,7 +1225,7 @@ class _Problem:
             for c, _ in blocks:
                 rhs[c : c + 6] = 0.0
             bb = float(b @ b)
-            chi2[m] = bb * bb / (bb + spread_b) if bb > 0.0 else 0.0
+            chi2[m] = bb * (bb / (bb + spread_b)) ** 2 if bb > 0.0 else 0.0
             if chi2[m] > bound:
                 continue
             spread = np.eye(6)
@@ -1234,7 +1236,8 @@ class _Problem:
                 for c, a in blocks:
                     spread[:, j] += a @ u[c : c + 6]
                     rhs[c : c + 6] = 0.0
-            chi2[m] = float(b @ np.linalg.solve(spread, b))
+            moved = np.linalg.solve(spread, b)
+            chi2[m] = float(moved @ moved)
         return chi2
 
     def _spans(self, inliers: NDArray[np.bool_]) -> bool:
