@@ -15,6 +15,7 @@ from fpp_graph.config import PoseGraphConfig
 from fpp_graph.geometry import adjoint, invert, make_pose, se3_exp
 from fpp_graph.testing.synthetic_graphs import (
     add_false_loops,
+    add_false_loops_to_graph,
     corridor_trajectory,
     torus_graph,
     torus_graph_high_rotation_noise,
@@ -123,6 +124,24 @@ def test_group_of_mutually_consistent_false_loops_is_rejected():
     assert set(result.rejected_loops) - set(sim.false_loops) == set()
     assert sesync_objective(true_graph, result.poses_world_sensor) == pytest.approx(
         sesync_objective(true_graph, clean.poses_world_sensor), rel=1e-3)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_true_loops_next_to_random_false_ones_all_come_back(seed):
+    """A noisy 300-pose torus (sphere2500's noise) with 10 % random false loops: GNC also drops
+    true loops (a run of neighbours bends its region, so each looks bad without the others); the
+    kept graph's prediction of their residual brings every one back. Before it, one true loop
+    stayed out with F 2-5 % over the clean optimum."""
+    config = PoseGraphConfig(noise_model="isotropic")
+    graph = torus_graph(300, rng=np.random.default_rng(seed)).graph()
+    clean = graph.subgraph(list(graph.poses())).optimize(config)
+    corrupted, false = add_false_loops_to_graph(graph, 0.1, np.random.default_rng(seed), "random")
+    result = corrupted.optimize(config)
+    out = set(result.rejected_loops) | set(result.removed_loops)
+    assert false <= out
+    assert out - false == set()
+    assert sesync_objective(graph, result.poses_world_sensor) == pytest.approx(
+        sesync_objective(graph, clean.poses_world_sensor), rel=1e-3)
 
 
 def _cycle_check(graph: PoseGraph, information_scale: float = 1.0):

@@ -6,7 +6,7 @@ order (GTSAM's tangent order); no gtsam type crosses this module's surface.
 - :class:`PoseGraph`: batch optimisation. Chordal initialisation (``gtsam.InitializePose3``,
   falling back to the given poses when it fails), Levenberg-Marquardt over every edge, then
   truncated least squares (GNC) only on evidence of an outlier loop (the rule is in
-  :mod:`fpp_graph.backend.outliers`), or a Cauchy loss; an optional global-optimality certificate
+  :mod:`fpp_graph.backend.outliers`, the solver in :mod:`fpp_graph.backend.robust_stage`), or a Cauchy loss; an optional global-optimality certificate
   (:mod:`fpp_graph.backend.certificate`) and marginal covariances. Structural problems (disconnected parts, unconstrained poses) are found before
   solving and raised as :class:`~fpp_graph.errors.GraphError` naming the poses.
 - :class:`fpp_graph.backend.incremental.IncrementalPoseGraph` (its own module): iSAM2 for live use.
@@ -37,7 +37,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from fpp_graph.backend.graph_diagnostics import check_constrained, connected_parts
+from fpp_graph.backend.graph_diagnostics import check_constrained
 from fpp_graph.backend.noise_model import isotropic_information, sesync_tau_kappa  # noqa: F401  (re-exported)
 from fpp_graph.backend.outliers import (
     CycleCheck,
@@ -72,15 +72,6 @@ _SCREEN_AGAIN_AFTER = 5
 #: Largest median rotation error (rad, standard deviation at the measured scale) of an odometry
 #: step for which the first-order odometry-cycle test counts as evidence against a loop.
 _CYCLE_LINEAR_STEP_RAD = 0.1
-#: GNC-TLS: growth of the control parameter per round (Yang et al. 2020), most rounds, LM
-#: iterations per round (warm-started), and how close to 0/1 every weight must be to stop.
-_GNC_MU_STEP = 1.4
-_GNC_MAX_ROUNDS = 100
-_GNC_INNER_ITERATIONS = 3
-_GNC_BINARY_TOL = 1e-3
-#: Most rounds of re-admitting loops under the bound after GNC (each re-solves from the last;
-#: a round can bring the next loops under the bound, on noisy graphs for a dozen rounds).
-_MAX_READMISSION_ROUNDS = 50
 
 
 # ----------------------------------------------------------------------------------------------
@@ -1030,147 +1021,10 @@ class _Problem:
     def solve_tls(
         self, values: gtsam.Values, active: NDArray[np.bool_], screen: LoopScreen, cfg: PoseGraphConfig
     ) -> tuple[gtsam.Values, int, list[int]]:
-        """Truncated least squares on loop edges, run only on evidence of an outlier.
+        """Truncated least squares on loop edges (:func:`fpp_graph.backend.robust_stage.solve_tls`)."""
+        from fpp_graph.backend.robust_stage import solve_tls
 
-        ``values`` is the least-squares solution over all edges, which the outliers bend.
-
-        1. Loops whose cycle with the odometry is over the family-wise bound at the scale the
-           loops show disagree with the odometry beyond what the noise (the path's propagated
-           covariance included) explains: they are left out of the start (Kimera-RPGO's
-           odometry check).
-        2. Least squares over the odometry, the priors and the other loops (chordal start): a
-           start that the gross outliers did not bend.
-        3. GNC with the truncated-least-squares loss on those loops from that start (odometry,
-           priors and loops the graph cannot do without are known inliers; the truncation
-           threshold is the screen's bound); the loops left out of the start stay out of it:
-           at GNC's convex end every loop weighs in, and a few hundred gross outliers then pull
-           the solution out of the start's basin.
-        4. The inlier set is made self-consistent: any left-out loop whose residual at the
-           solution is under the bound is an inlier by the definition of truncated least
-           squares (a true loop the first-order cycle test was too strict for comes back).
-        """
-        try:
-            needed = self.necessary_loops(active)
-            candidates = active.copy()
-            if screen.cycles is not None:
-                # The start may use the scale the loops show even where it is below the stated
-                # one (conservative information lets gross outliers pass at unit scale): it only
-                # chooses where GNC starts, and every loop left out is re-decided after it.
-                start_bound = screen.bound / screen.variance_factor * screen.cycles.measured_scale()
-                inconsistent = screen.cycles.loop_index[screen.cycles.chi2 > start_bound]
-                candidates[[i for i in inconsistent if i not in needed]] = False
-            log.info("%d loop(s) inconsistent with the odometry are left out of the start", int(np.sum(active & ~candidates)))
-            start, iterations = self._start(values, candidates, cfg)
-            values, more, rejected = self._gnc_tls(start, candidates, needed, screen.bound, cfg)
-            iterations += more
-            kept = candidates.copy()
-            kept[rejected] = False
-            left_out = sorted(set(rejected) | {int(i) for i in np.flatnonzero(active & ~candidates)})
-            values, rejected, more = self._settle_inliers(values, kept, left_out, screen.bound, cfg)
-            iterations += more
-        except RuntimeError as exc:
-            raise _solver_error(exc) from None
-        for i in rejected:
-            log.info("loop edge %d->%d rejected: whitened squared residual %.3g > bound %.3g at the robust solution",
-                     *self.edges[i].pair, 2.0 * self.gaussian[i].error(values), screen.bound)
-        return values, iterations, rejected
-
-    def _start(self, values: gtsam.Values, edges: NDArray[np.bool_], cfg: PoseGraphConfig) -> tuple[gtsam.Values, int]:
-        """GNC's start: chordal initialisation over ``edges`` and the priors, a few LM steps.
-
-        Only a few: outliers the cycle test let through make LM crawl (minutes at 10^4 edges),
-        and GNC's first rounds are least squares anyway.
-        """
-        start = values
-        if cfg.initialization == "chordal" and self._spans(edges):
-            chordal, failure = self.chordal(edges)
-            if chordal is None:
-                log.debug("chordal initialisation over the consistent edges failed (%s)", failure)
-            else:
-                start = chordal
-        return _lm(self.gaussian_graph(edges), start, _SCREEN_AGAIN_AFTER, _GNC_INNER_RELATIVE_TOL)
-
-    def _gnc_tls(
-        self, start: gtsam.Values, active: NDArray[np.bool_], needed: set[int], bound: float, cfg: PoseGraphConfig
-    ) -> tuple[gtsam.Values, int, list[int]]:
-        """Graduated non-convexity for truncated least squares (Yang et al., RA-L 2020).
-
-        The TLS weights of loop edges are updated from their whitened squared residuals ``r2``
-        with the surrogate's control parameter ``mu`` growing by 1.4 per round (from the convex
-        end); odometry, priors and ``needed`` loops keep weight 1. Each round's weighted least
-        squares is warm-started from the previous round: GTSAM's ``GncOptimizer`` restarts every
-        inner solve from the initial values, which costs minutes on graphs of 10^4 edges.
-        Returns the values, the LM iterations and the loops whose weight ended below 0.5.
-        """
-        import gtsam
-
-        loops = np.array([i for i in np.flatnonzero(active & self.is_loop) if i not in needed], dtype=np.int64)
-        fixed = active.copy()
-        fixed[loops] = False
-        base = self.gaussian_graph(fixed)
-        values, iterations = start, 0
-        r2 = self.loop_chi2(values, loops)
-        worst = float(r2.max()) if len(r2) else 0.0
-        mu = bound / max(2.0 * worst - bound, 1e-12 * bound)
-        weights = np.ones(len(loops))
-        for _ in range(_GNC_MAX_ROUNDS):
-            weights = _tls_weights(r2, bound, mu)
-            graph = gtsam.NonlinearFactorGraph(base)
-            for i, w in zip(loops, weights, strict=True):
-                if w > 0.0:
-                    e = self.edges[i]
-                    noise = gtsam.noiseModel.Gaussian.Information(w * self.model_information[i])
-                    graph.add(gtsam.BetweenFactorPose3(e.target_id, e.source_id, self.measured[i], noise))
-            values, more = _lm(graph, values, _GNC_INNER_ITERATIONS, _GNC_INNER_RELATIVE_TOL)
-            iterations += more
-            r2 = self.loop_chi2(values, loops)
-            log.debug("GNC round: mu %.3g, %d LM iterations, %d loops with weight < 0.5", mu, more, int(np.sum(weights < 0.5)))
-            if np.all((weights < _GNC_BINARY_TOL) | (weights > 1.0 - _GNC_BINARY_TOL)) and mu > 1.0:
-                break
-            mu *= _GNC_MU_STEP
-        weights = _tls_weights(r2, bound, mu)
-        return values, iterations, [int(i) for i in loops[weights < 0.5]]
-
-    def _settle_inliers(
-        self, values: gtsam.Values, kept: NDArray[np.bool_], rejected: list[int], bound: float, cfg: PoseGraphConfig
-    ) -> tuple[gtsam.Values, list[int], int]:
-        """Least squares over GNC's inliers (and a chordal restart over them, safe once the
-        outliers are gone: the better of the two by their cost), then loops left out whose
-        residual is under the bound are re-admitted (an inlier by the definition of truncated
-        least squares) and the solve repeated until the inlier set is stable."""
-        values, iterations = _lm(self.gaussian_graph(kept), values, cfg.max_iterations, cfg.relative_error_tol)
-        if cfg.initialization == "chordal" and rejected:
-            restart, _ = self.chordal(kept)
-            if restart is not None:
-                candidate, more = _lm(self.gaussian_graph(kept), restart, cfg.max_iterations, cfg.relative_error_tol)
-                iterations += more
-                if self.cost(candidate, kept) < self.cost(values, kept):
-                    values = candidate
-        values, rejected, more = self._readmit(values, kept, rejected, bound, cfg)
-        return values, rejected, iterations + more
-
-    def _readmit(
-        self, values: gtsam.Values, kept: NDArray[np.bool_], rejected: list[int], bound: float, cfg: PoseGraphConfig
-    ) -> tuple[gtsam.Values, list[int], int]:
-        """Re-admit loops under the bound at ``values`` and re-solve over ``kept``, until stable."""
-        iterations = 0
-        for _ in range(_MAX_READMISSION_ROUNDS):
-            back = [i for i in rejected if 2.0 * self.gaussian[i].error(values) <= bound]
-            if not back:
-                break
-            log.debug("%d loop(s) re-admitted (whitened squared residual under the bound %.3g)", len(back), bound)
-            rejected = [i for i in rejected if i not in back]
-            kept[back] = True
-            values, more = _lm(self.gaussian_graph(kept), values, cfg.max_iterations, cfg.relative_error_tol)
-            iterations += more
-        return values, rejected, iterations
-
-
-    def _spans(self, inliers: NDArray[np.bool_]) -> bool:
-        """True when the edges ``inliers`` and the priors tie every pose to an anchor."""
-        parts = connected_parts(self.given_poses, (self.edges[i].pair for i in np.flatnonzero(inliers)))
-        anchored = set(self.anchors) | {p.key for p in self.priors}
-        return all(anchored.intersection(part) for part in parts)
+        return solve_tls(self, values, active, screen, cfg)
 
     # -- gauge -----------------------------------------------------------------------------
     def poses_with_gauge(self, values: gtsam.Values, given: Mapping[int, Array], anchors: Sequence[int], has_priors: bool) -> dict[int, Array]:
@@ -1196,13 +1050,6 @@ class _Problem:
         for key in anchors:
             poses[key] = given[key].copy()
         return poses
-
-
-def _tls_weights(r2: Array, bound: float, mu: float) -> Array:
-    """Weights of GNC's truncated-least-squares surrogate at control parameter ``mu``."""
-    w = np.sqrt(bound * mu * (mu + 1.0) / np.maximum(r2, 1e-300)) - mu
-    w = np.where(r2 <= mu / (mu + 1.0) * bound, 1.0, w)
-    return np.clip(np.where(r2 >= (mu + 1.0) / mu * bound, 0.0, w), 0.0, 1.0)
 
 
 def _lm(graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values, max_iterations: int, relative_error_tol: float) -> tuple[gtsam.Values, int]:

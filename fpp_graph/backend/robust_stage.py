@@ -1,0 +1,329 @@
+"""The robust stage of :meth:`fpp_graph.backend.pose_graph.PoseGraph.optimize`: truncated least squares
+on loop edges, run only on evidence of an outlier (the rule is in :mod:`fpp_graph.backend.outliers`).
+
+:func:`solve_tls` takes the least-squares solution over every edge and returns the robust one
+and the rejected loops: a start without the loops inconsistent with the odometry, GNC with the
+truncated-least-squares loss (Yang et al., RA-L 2020), least squares over its inliers, then loops
+left out are re-admitted when their residual at the solution (:func:`_readmit`) or, jointly,
+their predicted residual at the solution with them (:func:`predicted_chi2`) is under the bound.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import TYPE_CHECKING
+
+import numpy as np
+from numpy.typing import NDArray
+
+from fpp_graph.backend.graph_diagnostics import connected_parts
+from fpp_graph.backend.outliers import LoopScreen
+from fpp_graph.backend.pose_graph import (
+    _GNC_INNER_RELATIVE_TOL,
+    _SCREEN_AGAIN_AFTER,
+    _lm,
+    _solver_error,
+)
+from fpp_graph.config import PoseGraphConfig
+
+if TYPE_CHECKING:
+    import gtsam
+
+    from fpp_graph.backend.pose_graph import _Problem
+
+log = logging.getLogger(__name__)
+
+Array = NDArray[np.float64]
+
+#: GNC-TLS: growth of the control parameter per round (Yang et al. 2020), most rounds, LM
+#: iterations per round (warm-started), and how close to 0/1 every weight must be to stop.
+_GNC_MU_STEP = 1.4
+_GNC_MAX_ROUNDS = 100
+_GNC_INNER_ITERATIONS = 3
+_GNC_BINARY_TOL = 1e-3
+#: Most rounds of re-admitting loops under the bound after GNC (each re-solves from the last;
+#: a round can bring the next loops under the bound, on noisy graphs for a dozen rounds).
+_MAX_READMISSION_ROUNDS = 50
+
+
+def solve_tls(
+    problem: _Problem, values: gtsam.Values, active: NDArray[np.bool_], screen: LoopScreen, cfg: PoseGraphConfig
+) -> tuple[gtsam.Values, int, list[int]]:
+    """Truncated least squares on loop edges, run only on evidence of an outlier.
+
+    ``values`` is the least-squares solution over all edges, which the outliers bend.
+
+    1. Loops whose cycle with the odometry is over the family-wise bound at the scale the
+       loops show disagree with the odometry beyond what the noise (the path's propagated
+       covariance included) explains: they are left out of the start (Kimera-RPGO's
+       odometry check).
+    2. Least squares over the odometry, the priors and the other loops (chordal start): a
+       start that the gross outliers did not bend.
+    3. GNC with the truncated-least-squares loss on those loops from that start (odometry,
+       priors and loops the graph cannot do without are known inliers; the truncation
+       threshold is the screen's bound); the loops left out of the start stay out of it:
+       at GNC's convex end every loop weighs in, and a few hundred gross outliers then pull
+       the solution out of the start's basin.
+    4. The inlier set is made self-consistent: any left-out loop whose residual at the
+       solution is under the bound is an inlier by the definition of truncated least
+       squares (a true loop the first-order cycle test was too strict for comes back).
+    5. Loops still out get the screen's test at the solution they would have: their residual
+       at the least-squares solution with them added, predicted to first order from the
+       kept graph (:func:`predicted_chi2`). GNC drops runs of neighbouring true loops
+       together; without them their region bends so that each looks bad at the solution
+       without it, though each fits once they are back. Those predicted under the bound are
+       re-admitted together and the solve repeated; the group is kept only if, at the new
+       solution, no loop is over the bound that was not before (else its better half by the
+       prediction is tried).
+    """
+    try:
+        needed = problem.necessary_loops(active)
+        candidates = active.copy()
+        if screen.cycles is not None:
+            # The start may use the scale the loops show even where it is below the stated
+            # one (conservative information lets gross outliers pass at unit scale): it only
+            # chooses where GNC starts, and every loop left out is re-decided after it.
+            start_bound = screen.bound / screen.variance_factor * screen.cycles.measured_scale()
+            inconsistent = screen.cycles.loop_index[screen.cycles.chi2 > start_bound]
+            candidates[[i for i in inconsistent if i not in needed]] = False
+        log.info("%d loop(s) inconsistent with the odometry are left out of the start", int(np.sum(active & ~candidates)))
+        start, iterations = _start(problem, values, candidates, cfg)
+        values, more, rejected = _gnc_tls(problem, start, candidates, needed, screen.bound, cfg)
+        iterations += more
+        kept = candidates.copy()
+        kept[rejected] = False
+        left_out = sorted(set(rejected) | {int(i) for i in np.flatnonzero(active & ~candidates)})
+        values, rejected, more = _settle_inliers(problem, values, kept, left_out, screen.bound, cfg)
+        iterations += more
+        values, rejected, more = _readmit_predicted(problem, values, kept, rejected, screen.bound, cfg)
+        iterations += more
+    except RuntimeError as exc:
+        raise _solver_error(exc) from None
+    for i in rejected:
+        log.info("loop edge %d->%d rejected: whitened squared residual %.3g > bound %.3g at the robust solution",
+                 *problem.edges[i].pair, 2.0 * problem.gaussian[i].error(values), screen.bound)
+    return values, iterations, rejected
+
+
+def _start(problem: _Problem, values: gtsam.Values, edges: NDArray[np.bool_], cfg: PoseGraphConfig) -> tuple[gtsam.Values, int]:
+    """GNC's start: chordal initialisation over ``edges`` and the priors, a few LM steps.
+
+    Only a few: outliers the cycle test let through make LM crawl (minutes at 10^4 edges),
+    and GNC's first rounds are least squares anyway.
+    """
+    start = values
+    if cfg.initialization == "chordal" and _spans(problem, edges):
+        chordal, failure = problem.chordal(edges)
+        if chordal is None:
+            log.debug("chordal initialisation over the consistent edges failed (%s)", failure)
+        else:
+            start = chordal
+    return _lm(problem.gaussian_graph(edges), start, _SCREEN_AGAIN_AFTER, _GNC_INNER_RELATIVE_TOL)
+
+
+def _gnc_tls(
+    problem: _Problem, start: gtsam.Values, active: NDArray[np.bool_], needed: set[int], bound: float, cfg: PoseGraphConfig
+) -> tuple[gtsam.Values, int, list[int]]:
+    """Graduated non-convexity for truncated least squares (Yang et al., RA-L 2020).
+
+    The TLS weights of loop edges are updated from their whitened squared residuals ``r2``
+    with the surrogate's control parameter ``mu`` growing by 1.4 per round (from the convex
+    end); odometry, priors and ``needed`` loops keep weight 1. Each round's weighted least
+    squares is warm-started from the previous round: GTSAM's ``GncOptimizer`` restarts every
+    inner solve from the initial values, which costs minutes on graphs of 10^4 edges.
+    Returns the values, the LM iterations and the loops whose weight ended below 0.5.
+    """
+    import gtsam
+
+    loops = np.array([i for i in np.flatnonzero(active & problem.is_loop) if i not in needed], dtype=np.int64)
+    fixed = active.copy()
+    fixed[loops] = False
+    base = problem.gaussian_graph(fixed)
+    values, iterations = start, 0
+    r2 = problem.loop_chi2(values, loops)
+    worst = float(r2.max()) if len(r2) else 0.0
+    mu = bound / max(2.0 * worst - bound, 1e-12 * bound)
+    weights = np.ones(len(loops))
+    for _ in range(_GNC_MAX_ROUNDS):
+        weights = _tls_weights(r2, bound, mu)
+        graph = gtsam.NonlinearFactorGraph(base)
+        for i, w in zip(loops, weights, strict=True):
+            if w > 0.0:
+                e = problem.edges[i]
+                noise = gtsam.noiseModel.Gaussian.Information(w * problem.model_information[i])
+                graph.add(gtsam.BetweenFactorPose3(e.target_id, e.source_id, problem.measured[i], noise))
+        values, more = _lm(graph, values, _GNC_INNER_ITERATIONS, _GNC_INNER_RELATIVE_TOL)
+        iterations += more
+        r2 = problem.loop_chi2(values, loops)
+        log.debug("GNC round: mu %.3g, %d LM iterations, %d loops with weight < 0.5", mu, more, int(np.sum(weights < 0.5)))
+        if np.all((weights < _GNC_BINARY_TOL) | (weights > 1.0 - _GNC_BINARY_TOL)) and mu > 1.0:
+            break
+        mu *= _GNC_MU_STEP
+    weights = _tls_weights(r2, bound, mu)
+    return values, iterations, [int(i) for i in loops[weights < 0.5]]
+
+
+def _settle_inliers(
+    problem: _Problem, values: gtsam.Values, kept: NDArray[np.bool_], rejected: list[int], bound: float, cfg: PoseGraphConfig
+) -> tuple[gtsam.Values, list[int], int]:
+    """Least squares over GNC's inliers (and a chordal restart over them, safe once the
+    outliers are gone: the better of the two by their cost), then loops left out whose
+    residual is under the bound are re-admitted (an inlier by the definition of truncated
+    least squares) and the solve repeated until the inlier set is stable."""
+    values, iterations = _lm(problem.gaussian_graph(kept), values, cfg.max_iterations, cfg.relative_error_tol)
+    if cfg.initialization == "chordal" and rejected:
+        restart, _ = problem.chordal(kept)
+        if restart is not None:
+            candidate, more = _lm(problem.gaussian_graph(kept), restart, cfg.max_iterations, cfg.relative_error_tol)
+            iterations += more
+            if problem.cost(candidate, kept) < problem.cost(values, kept):
+                values = candidate
+    values, rejected, more = _readmit(problem, values, kept, rejected, bound, cfg)
+    return values, rejected, iterations + more
+
+
+def _readmit(
+    problem: _Problem, values: gtsam.Values, kept: NDArray[np.bool_], rejected: list[int], bound: float, cfg: PoseGraphConfig
+) -> tuple[gtsam.Values, list[int], int]:
+    """Re-admit loops under the bound at ``values`` and re-solve over ``kept``, until stable."""
+    iterations = 0
+    for _ in range(_MAX_READMISSION_ROUNDS):
+        back = [i for i in rejected if 2.0 * problem.gaussian[i].error(values) <= bound]
+        if not back:
+            break
+        log.debug("%d loop(s) re-admitted (whitened squared residual under the bound %.3g)", len(back), bound)
+        rejected = [i for i in rejected if i not in back]
+        kept[back] = True
+        values, more = _lm(problem.gaussian_graph(kept), values, cfg.max_iterations, cfg.relative_error_tol)
+        iterations += more
+    return values, rejected, iterations
+
+
+def _readmit_predicted(
+    problem: _Problem, values: gtsam.Values, kept: NDArray[np.bool_], rejected: list[int], bound: float, cfg: PoseGraphConfig
+) -> tuple[gtsam.Values, list[int], int]:
+    """Re-admit rejected loops whose residual at the solution with them is predicted under
+    the bound (:func:`predicted_chi2`), jointly, re-solving; until no rejected loop passes.
+
+    A group is accepted when, at the least-squares solution with it, no loop of the kept
+    set or the group is over the bound that was not over it before (the screen's rule at
+    that solution): a true loop fits once its region is unbent, an outlier the first-order
+    prediction let through shows at the new solution. A group that fails is halved (the half
+    best predicted is tried); a single loop that fails stays out.
+    """
+    iterations = 0
+    refuted: set[int] = set()
+    for _ in range(_MAX_READMISSION_ROUNDS):
+        open_ = np.array([i for i in rejected if i not in refuted], dtype=np.int64)
+        if len(open_) == 0:
+            break
+        predicted = predicted_chi2(problem, values, kept, open_, bound)
+        order = np.argsort(predicted, kind="stable")
+        group = [int(open_[n]) for n in order if predicted[n] <= bound]
+        if not group:
+            break
+        loops = np.flatnonzero(kept & problem.is_loop)
+        over_before = {int(i) for i, r2 in zip(loops, problem.loop_chi2(values, loops), strict=True) if r2 > bound}
+        while group:
+            trial = kept.copy()
+            trial[group] = True
+            candidate, more = _lm(problem.gaussian_graph(trial), values, cfg.max_iterations, cfg.relative_error_tol)
+            iterations += more
+            loops = np.flatnonzero(trial & problem.is_loop)
+            over = {int(i) for i, r2 in zip(loops, problem.loop_chi2(candidate, loops), strict=True) if r2 > bound}
+            if over <= over_before:
+                log.debug("%d loop(s) re-admitted on the kept graph's prediction (bound %.3g)", len(group), bound)
+                kept[group] = True
+                rejected = [i for i in rejected if i not in group]
+                values = candidate
+                values, rejected, more = _readmit(problem, values, kept, rejected, bound, cfg)
+                iterations += more
+                break
+            if len(group) == 1:
+                refuted.add(group[0])
+            group = group[: len(group) // 2]
+    return values, rejected, iterations
+
+
+def predicted_chi2(problem: _Problem, values: gtsam.Values, kept: NDArray[np.bool_], loops: NDArray[np.int64], bound: float) -> Array:
+    """Each loop's whitened squared residual at the least-squares solution with it added to
+    the ``kept`` edges, predicted to first order from ``values`` (their solution).
+
+    With ``b, A`` the loop's whitened residual and Jacobian at ``values`` and ``H`` the
+    Gauss-Newton information of the priors and the kept edges (anchors held exactly),
+    adding the loop moves its residual to ``(I + A H^-1 A^T)^-1 b``: a loop that its region
+    bends away from while it is left out (``b`` large) comes back close when the kept graph
+    predicts that region only loosely (``A H^-1 A^T`` large). This is the statistic the
+    screen tests at the least-squares solution, so it is compared to the same bound; the
+    odometry-cycle test of :mod:`fpp_graph.backend.outliers` uses the same spread for a kept graph
+    of odometry alone. (``b^T (I + A H^-1 A^T)^-1 b``, the rise of the cost, is ``chi2(6)``
+    for a true loop and larger than the returned value.)
+
+    Exact to first order where it is at most ``bound``; above it the value may be the lower
+    bound ``|b|^2 (|b|^2 / (|b|^2 + g^T H^-1 g))^2``, ``g = A^T b`` (Cauchy-Schwarz twice),
+    which takes one sparse solve instead of six and decides most outliers.
+    """
+    import scipy.sparse as sp
+    import scipy.sparse.linalg as spla
+
+    anchored = set(problem.anchors)
+    column = {k: 6 * n for n, k in enumerate(k for k in problem.given_poses if k not in anchored)}
+    rows, cols, data = [], [], []
+    row = 0
+    for factor in [*problem.prior_factors, *(problem.gaussian[i] for i in np.flatnonzero(kept))]:
+        linear = factor.linearize(values)
+        A, _ = linear.jacobian()
+        for n, key in enumerate(linear.keys()):
+            if key in column:
+                r, c = np.nonzero(A[:, 6 * n : 6 * n + 6])
+                rows.append(row + r)
+                cols.append(column[key] + c)
+                data.append(A[r, 6 * n + c])
+        row += A.shape[0]
+    J = sp.csr_matrix((np.concatenate(data), (np.concatenate(rows), np.concatenate(cols))), shape=(row, 6 * len(column)))
+    # H is symmetric positive definite: a symmetric ordering and no pivoting keep the factor
+    # sparse. Right-hand sides go one column at a time: SuperLU's multi-column solve goes
+    # through threaded BLAS and is several times slower per column.
+    lu = spla.splu((J.T @ J).tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                   options={"SymmetricMode": True})
+    rhs = np.zeros(J.shape[1])
+    chi2 = np.empty(len(loops))
+    for m, i in enumerate(loops):
+        linear = problem.gaussian[i].linearize(values)
+        A, b = linear.jacobian()
+        blocks = [(column[k], A[:, 6 * n : 6 * n + 6]) for n, k in enumerate(linear.keys()) if k in column]
+        for c, a in blocks:
+            rhs[c : c + 6] += a.T @ b
+        u = lu.solve(rhs)
+        spread_b = float(sum(rhs[c : c + 6] @ u[c : c + 6] for c, _ in blocks))
+        for c, _ in blocks:
+            rhs[c : c + 6] = 0.0
+        bb = float(b @ b)
+        chi2[m] = bb * (bb / (bb + spread_b)) ** 2 if bb > 0.0 else 0.0
+        if chi2[m] > bound:
+            continue
+        spread = np.eye(6)
+        for j in range(6):
+            for c, a in blocks:
+                rhs[c : c + 6] = a[j]
+            u = lu.solve(rhs)
+            for c, a in blocks:
+                spread[:, j] += a @ u[c : c + 6]
+                rhs[c : c + 6] = 0.0
+        moved = np.linalg.solve(spread, b)
+        chi2[m] = float(moved @ moved)
+    return chi2
+
+
+def _spans(problem: _Problem, inliers: NDArray[np.bool_]) -> bool:
+    """True when the edges ``inliers`` and the priors tie every pose to an anchor."""
+    parts = connected_parts(problem.given_poses, (problem.edges[i].pair for i in np.flatnonzero(inliers)))
+    anchored = set(problem.anchors) | {p.key for p in problem.priors}
+    return all(anchored.intersection(part) for part in parts)
+
+
+def _tls_weights(r2: Array, bound: float, mu: float) -> Array:
+    """Weights of GNC's truncated-least-squares surrogate at control parameter ``mu``."""
+    w = np.sqrt(bound * mu * (mu + 1.0) / np.maximum(r2, 1e-300)) - mu
+    w = np.where(r2 <= mu / (mu + 1.0) * bound, 1.0, w)
+    return np.clip(np.where(r2 >= (mu + 1.0) / mu * bound, 0.0, w), 0.0, 1.0)
