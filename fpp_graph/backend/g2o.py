@@ -319,7 +319,7 @@ def write_g2o(path: str | os.PathLike[str], graph: PoseGraph, poses: Mapping[int
         Vertex poses to write instead of the graph's current ones (e.g. a result's
         ``poses_world_sensor``); keys absent here keep the graph's pose.
     """
-    from fpp_graph.backend.pose_graph import _as_pose
+    from fpp_graph.backend.gtsam_bridge import as_pose
 
     current = graph._poses
     if poses is not None:
@@ -334,7 +334,7 @@ def write_g2o(path: str | os.PathLike[str], graph: PoseGraph, poses: Mapping[int
         if poses is not None and key in poses:
             given = np.asarray(poses[key], dtype=np.float64)
             if not np.array_equal(given, T):
-                T = _as_pose(given, f"write_g2o: pose {key}")
+                T = as_pose(given, f"write_g2o: pose {key}")
         matrices.append(T)
         q = graph._pose_quat_xyzw.get(key)
         if q is not None and T is current[key]:

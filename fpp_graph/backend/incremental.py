@@ -12,19 +12,17 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import ArrayLike
 
-from fpp_graph.backend.pose_graph import (
+from fpp_graph.backend.gtsam_bridge import (
     ANCHOR_STIFFNESS,
     Array,
-    PoseGraph,
-    PoseGraphEdge,
-    PoseGraphResult,
-    _as_information,
-    _as_pose,
-    _poses_from,
-    _short,
-    _solver_error,
-    isotropic_information,
+    as_information,
+    as_pose,
+    poses_from,
+    short_message,
+    solver_error,
 )
+from fpp_graph.backend.noise_model import isotropic_information
+from fpp_graph.backend.pose_graph import PoseGraph, PoseGraphEdge, PoseGraphResult
 from fpp_graph.config import PoseGraphConfig
 from fpp_graph.errors import GraphError
 from fpp_graph.types import Constraint, ConstraintKind
@@ -295,7 +293,7 @@ class IncrementalPoseGraph:
                     for _ in range(self.loop_extra_updates):
                         results.append(self._isam.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), params))
             except RuntimeError as exc:
-                raise _solver_error(exc) from None
+                raise solver_error(exc) from None
             self._in_isam.update(new_keys)
             self._new_factors.resize(0)
             self._new_values.clear()
@@ -347,7 +345,7 @@ class IncrementalPoseGraph:
     def _read_all(self) -> None:
         """Every pose from iSAM2 at once (one back-substitution, vectorised extraction)."""
         anchor = self._anchor_key
-        poses = _poses_from(self._isam.calculateEstimate())
+        poses = poses_from(self._isam.calculateEstimate())
         if anchor is not None and anchor in poses:
             poses[anchor] = self._graph._poses[anchor]
         self._estimate.update(poses)
@@ -416,7 +414,7 @@ class IncrementalPoseGraph:
             self.update()
         T_ts_est = np.linalg.inv(self.pose(t)) @ self.pose(s)
         r = se3_log(np.linalg.inv(np.asarray(constraint.T_target_source, dtype=np.float64)) @ T_ts_est)
-        cov = np.linalg.inv(self._information(_as_information(constraint.information, f"loop {s}->{t}")))
+        cov = np.linalg.inv(self._information(as_information(constraint.information, f"loop {s}->{t}")))
         if relative_covariance is not None:
             cov = cov + np.asarray(relative_covariance, dtype=np.float64).reshape(6, 6)
         elif s in self._in_isam and t in self._in_isam:
@@ -426,7 +424,7 @@ class IncrementalPoseGraph:
                 blocks = np.block([[joint.at(t, t), joint.at(t, s)], [joint.at(s, t), joint.at(s, s)]])
                 cov = cov + J @ blocks @ J.T
             except RuntimeError as exc:
-                log.warning("loop %d->%d: no joint marginal from iSAM2 (%s); testing against the loop's covariance alone", s, t, _short(exc))
+                log.warning("loop %d->%d: no joint marginal from iSAM2 (%s); testing against the loop's covariance alone", s, t, short_message(exc))
         cov = 0.5 * (cov + cov.T)
         return float(r @ np.linalg.solve(cov, r))
 
@@ -448,7 +446,7 @@ class IncrementalPoseGraph:
             correction = mine[t] @ T_ts @ np.linalg.inv(theirs[s])
         else:
             correction = mine[s] @ np.linalg.inv(T_ts) @ np.linalg.inv(theirs[t])
-        correction = _as_pose(correction, "absorb: rigid correction")
+        correction = as_pose(correction, "absorb: rigid correction")
         poses = dict(mine)
         for k in other.keys():
             poses[k] = correction @ theirs[k]

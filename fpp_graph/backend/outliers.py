@@ -57,6 +57,9 @@ from fpp_graph.geometry import adjoint, invert
 
 log = logging.getLogger(__name__)
 
+#: LM iterations before loops flagged at the initial values are screened again.
+SCREEN_AGAIN_AFTER = 5
+
 Array = NDArray[np.float64]
 
 #: Median and lower quartile of the chi-square distribution with 6 degrees of freedom.

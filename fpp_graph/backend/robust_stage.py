@@ -17,19 +17,14 @@ import numpy as np
 from numpy.typing import NDArray
 
 from fpp_graph.backend.graph_diagnostics import connected_parts
-from fpp_graph.backend.outliers import LoopScreen
-from fpp_graph.backend.pose_graph import (
-    _GNC_INNER_RELATIVE_TOL,
-    _SCREEN_AGAIN_AFTER,
-    _lm,
-    _solver_error,
-)
+from fpp_graph.backend.gtsam_bridge import GNC_INNER_RELATIVE_TOL, run_lm, solver_error
+from fpp_graph.backend.outliers import SCREEN_AGAIN_AFTER, LoopScreen
 from fpp_graph.config import PoseGraphConfig
 
 if TYPE_CHECKING:
     import gtsam
 
-    from fpp_graph.backend.pose_graph import _Problem
+    from fpp_graph.backend.problem import GraphProblem
 
 log = logging.getLogger(__name__)
 
@@ -47,7 +42,7 @@ _MAX_READMISSION_ROUNDS = 50
 
 
 def solve_tls(
-    problem: _Problem, values: gtsam.Values, active: NDArray[np.bool_], screen: LoopScreen, cfg: PoseGraphConfig
+    problem: GraphProblem, values: gtsam.Values, active: NDArray[np.bool_], screen: LoopScreen, cfg: PoseGraphConfig
 ) -> tuple[gtsam.Values, int, list[int]]:
     """Truncated least squares on loop edges, run only on evidence of an outlier.
 
@@ -98,14 +93,14 @@ def solve_tls(
         values, rejected, more = _readmit_predicted(problem, values, kept, rejected, screen.bound, cfg)
         iterations += more
     except RuntimeError as exc:
-        raise _solver_error(exc) from None
+        raise solver_error(exc) from None
     for i in rejected:
         log.info("loop edge %d->%d rejected: whitened squared residual %.3g > bound %.3g at the robust solution",
                  *problem.edges[i].pair, 2.0 * problem.gaussian[i].error(values), screen.bound)
     return values, iterations, rejected
 
 
-def _start(problem: _Problem, values: gtsam.Values, edges: NDArray[np.bool_], cfg: PoseGraphConfig) -> tuple[gtsam.Values, int]:
+def _start(problem: GraphProblem, values: gtsam.Values, edges: NDArray[np.bool_], cfg: PoseGraphConfig) -> tuple[gtsam.Values, int]:
     """GNC's start: chordal initialisation over ``edges`` and the priors, a few LM steps.
 
     Only a few: outliers the cycle test let through make LM crawl (minutes at 10^4 edges),
@@ -118,11 +113,11 @@ def _start(problem: _Problem, values: gtsam.Values, edges: NDArray[np.bool_], cf
             log.debug("chordal initialisation over the consistent edges failed (%s)", failure)
         else:
             start = chordal
-    return _lm(problem.gaussian_graph(edges), start, _SCREEN_AGAIN_AFTER, _GNC_INNER_RELATIVE_TOL)
+    return run_lm(problem.gaussian_graph(edges), start, SCREEN_AGAIN_AFTER, GNC_INNER_RELATIVE_TOL)
 
 
 def _gnc_tls(
-    problem: _Problem, start: gtsam.Values, active: NDArray[np.bool_], needed: set[int], bound: float, cfg: PoseGraphConfig
+    problem: GraphProblem, start: gtsam.Values, active: NDArray[np.bool_], needed: set[int], bound: float, cfg: PoseGraphConfig
 ) -> tuple[gtsam.Values, int, list[int]]:
     """Graduated non-convexity for truncated least squares (Yang et al., RA-L 2020).
 
@@ -152,7 +147,7 @@ def _gnc_tls(
                 e = problem.edges[i]
                 noise = gtsam.noiseModel.Gaussian.Information(w * problem.model_information[i])
                 graph.add(gtsam.BetweenFactorPose3(e.target_id, e.source_id, problem.measured[i], noise))
-        values, more = _lm(graph, values, _GNC_INNER_ITERATIONS, _GNC_INNER_RELATIVE_TOL)
+        values, more = run_lm(graph, values, _GNC_INNER_ITERATIONS, GNC_INNER_RELATIVE_TOL)
         iterations += more
         r2 = problem.loop_chi2(values, loops)
         log.debug("GNC round: mu %.3g, %d LM iterations, %d loops with weight < 0.5", mu, more, int(np.sum(weights < 0.5)))
@@ -164,17 +159,17 @@ def _gnc_tls(
 
 
 def _settle_inliers(
-    problem: _Problem, values: gtsam.Values, kept: NDArray[np.bool_], rejected: list[int], bound: float, cfg: PoseGraphConfig
+    problem: GraphProblem, values: gtsam.Values, kept: NDArray[np.bool_], rejected: list[int], bound: float, cfg: PoseGraphConfig
 ) -> tuple[gtsam.Values, list[int], int]:
     """Least squares over GNC's inliers (and a chordal restart over them, safe once the
     outliers are gone: the better of the two by their cost), then loops left out whose
     residual is under the bound are re-admitted (an inlier by the definition of truncated
     least squares) and the solve repeated until the inlier set is stable."""
-    values, iterations = _lm(problem.gaussian_graph(kept), values, cfg.max_iterations, cfg.relative_error_tol)
+    values, iterations = run_lm(problem.gaussian_graph(kept), values, cfg.max_iterations, cfg.relative_error_tol)
     if cfg.initialization == "chordal" and rejected:
         restart, _ = problem.chordal(kept)
         if restart is not None:
-            candidate, more = _lm(problem.gaussian_graph(kept), restart, cfg.max_iterations, cfg.relative_error_tol)
+            candidate, more = run_lm(problem.gaussian_graph(kept), restart, cfg.max_iterations, cfg.relative_error_tol)
             iterations += more
             if problem.cost(candidate, kept) < problem.cost(values, kept):
                 values = candidate
@@ -183,7 +178,7 @@ def _settle_inliers(
 
 
 def _readmit(
-    problem: _Problem, values: gtsam.Values, kept: NDArray[np.bool_], rejected: list[int], bound: float, cfg: PoseGraphConfig
+    problem: GraphProblem, values: gtsam.Values, kept: NDArray[np.bool_], rejected: list[int], bound: float, cfg: PoseGraphConfig
 ) -> tuple[gtsam.Values, list[int], int]:
     """Re-admit loops under the bound at ``values`` and re-solve over ``kept``, until stable."""
     iterations = 0
@@ -194,13 +189,13 @@ def _readmit(
         log.debug("%d loop(s) re-admitted (whitened squared residual under the bound %.3g)", len(back), bound)
         rejected = [i for i in rejected if i not in back]
         kept[back] = True
-        values, more = _lm(problem.gaussian_graph(kept), values, cfg.max_iterations, cfg.relative_error_tol)
+        values, more = run_lm(problem.gaussian_graph(kept), values, cfg.max_iterations, cfg.relative_error_tol)
         iterations += more
     return values, rejected, iterations
 
 
 def _readmit_predicted(
-    problem: _Problem, values: gtsam.Values, kept: NDArray[np.bool_], rejected: list[int], bound: float, cfg: PoseGraphConfig
+    problem: GraphProblem, values: gtsam.Values, kept: NDArray[np.bool_], rejected: list[int], bound: float, cfg: PoseGraphConfig
 ) -> tuple[gtsam.Values, list[int], int]:
     """Re-admit rejected loops whose residual at the solution with them is predicted under
     the bound (:func:`predicted_chi2`), jointly, re-solving; until no rejected loop passes.
@@ -227,7 +222,7 @@ def _readmit_predicted(
         while group:
             trial = kept.copy()
             trial[group] = True
-            candidate, more = _lm(problem.gaussian_graph(trial), values, cfg.max_iterations, cfg.relative_error_tol)
+            candidate, more = run_lm(problem.gaussian_graph(trial), values, cfg.max_iterations, cfg.relative_error_tol)
             iterations += more
             loops = np.flatnonzero(trial & problem.is_loop)
             over = {int(i) for i, r2 in zip(loops, problem.loop_chi2(candidate, loops), strict=True) if r2 > bound}
@@ -245,7 +240,7 @@ def _readmit_predicted(
     return values, rejected, iterations
 
 
-def predicted_chi2(problem: _Problem, values: gtsam.Values, kept: NDArray[np.bool_], loops: NDArray[np.int64], bound: float) -> Array:
+def predicted_chi2(problem: GraphProblem, values: gtsam.Values, kept: NDArray[np.bool_], loops: NDArray[np.int64], bound: float) -> Array:
     """Each loop's whitened squared residual at the least-squares solution with it added to
     the ``kept`` edges, predicted to first order from ``values`` (their solution).
 
@@ -315,7 +310,7 @@ def predicted_chi2(problem: _Problem, values: gtsam.Values, kept: NDArray[np.boo
     return chi2
 
 
-def _spans(problem: _Problem, inliers: NDArray[np.bool_]) -> bool:
+def _spans(problem: GraphProblem, inliers: NDArray[np.bool_]) -> bool:
     """True when the edges ``inliers`` and the priors tie every pose to an anchor."""
     parts = connected_parts(problem.given_poses, (problem.edges[i].pair for i in np.flatnonzero(inliers)))
     anchored = set(problem.anchors) | {p.key for p in problem.priors}

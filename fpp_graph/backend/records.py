@@ -1,0 +1,123 @@
+"""What a pose graph holds and returns: its edges, priors and the result of an optimisation."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+import numpy as np
+from numpy.typing import NDArray
+
+from fpp_graph.types import ConstraintKind
+
+if TYPE_CHECKING:
+    from fpp_graph.backend.certificate import Certificate
+
+Array = NDArray[np.float64]
+
+
+# ----------------------------------------------------------------------------------------------
+# Data
+# ----------------------------------------------------------------------------------------------
+@dataclass(frozen=True, eq=False)
+class PoseGraphEdge:
+    """One relative-pose edge as stored in a :class:`PoseGraph`.
+
+    Attributes
+    ----------
+    source_id, target_id : int
+        Pose keys; the measurement maps source-frame points into the target frame.
+    T_target_source : (4, 4) float64
+        Measured relative pose (metres).
+    information_rot_trans : (6, 6) float64
+        Information of the measurement, ``[rot, trans]`` order (the file's, not the
+        solver's noise model when an isotropic model is chosen at optimisation time).
+    kind : ConstraintKind
+        ``odometry`` (a known inlier for GNC) or ``loop`` (may be rejected).
+    """
+
+    source_id: int
+    target_id: int
+    T_target_source: Array
+    information_rot_trans: Array
+    kind: ConstraintKind = ConstraintKind.ODOMETRY
+
+    @property
+    def pair(self) -> tuple[int, int]:
+        """``(source_id, target_id)``, the key used in rejection lists."""
+        return (self.source_id, self.target_id)
+
+
+@dataclass(frozen=True, eq=False)
+class PosePrior:
+    """A unary prior ``T_world_sensor`` on one pose with 6x6 ``[rot, trans]`` information."""
+
+    key: int
+    T_world_sensor: Array
+    information_rot_trans: Array
+
+
+@dataclass(frozen=True)
+class PoseGraphResult:
+    """Outcome of :meth:`PoseGraph.optimize`.
+
+    Attributes
+    ----------
+    poses_world_sensor : dict[int, (4, 4) float64]
+        Optimised poses.
+    initial_cost : float
+        ``0.5 * sum ||whitened residual||^2`` over all edges and priors at the poses the graph
+        held before optimising (solver noise model, no robust loss).
+    final_cost : float
+        The same cost at the solution, over the edges kept (rejected loops excluded).
+    iterations : int
+        Levenberg-Marquardt (or iSAM2) iterations: the solve, GNC's polish and restarts (not
+        GNC's inner iterations, which GTSAM does not report) and consistency re-solves.
+    seconds : float
+        Wall time of the whole call (checks, initialisation, solving, consistency check).
+    rejected_loops : list of (source_id, target_id)
+        Every loop edge left out of the solution: by truncated least squares (GNC) or removed
+        by the consistency check.
+    inconsistent_loops : list of (source_id, target_id)
+        Loop edges whose whitened squared residual exceeded the bound: those removed (one at
+        a time, worst first, re-optimising after each, when ``remove_inconsistent_loops`` is
+        set) and those left in (removal off, or the loop alone ties part of the graph to its
+        anchor).
+    initialization : str
+        ``"chordal"`` or ``"given"``, with the reason when chordal initialisation failed.
+    initialized_cost : float
+        The cost at the initial values handed to the solver (after initialisation).
+    noise_model, robust, solver : str
+        The options used.
+    removed_loops : list of (source_id, target_id)
+        The loops of ``rejected_loops`` removed by the consistency check (not by GNC).
+    variance_factor : float
+        Measured scale of the information (>= 1; 1 when no loop needed it, see
+        :mod:`fpp_graph.backend.outliers`): the edges' errors are ``sqrt`` of it times the stated sigma.
+    loop_bound : float
+        The bound on a loop's whitened squared residual (family-wise chi-square at the variance
+        factor); NaN for a graph without loops.
+    certificate : Certificate or None
+        With ``certify``: the global-optimality certificate of the returned poses (its
+        ``suboptimality_bound`` is of their SE-Sync objective). When least squares stopped at
+        its iteration limit the certificate is not attempted: ``certified`` is False, the bound
+        is inf and ``method`` says why.
+    """
+
+    poses_world_sensor: dict[int, Array]
+    initial_cost: float
+    final_cost: float
+    iterations: int
+    seconds: float
+    rejected_loops: list[tuple[int, int]]
+    inconsistent_loops: list[tuple[int, int]]
+    initialization: str
+    initialized_cost: float = math.nan
+    noise_model: str = "file"
+    robust: str = "none"
+    solver: str = "lm"
+    removed_loops: list[tuple[int, int]] = field(default_factory=list)
+    variance_factor: float = 1.0
+    loop_bound: float = math.nan
+    certificate: Certificate | None = None
