@@ -31,8 +31,6 @@ import time
 from collections import defaultdict
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
 
 class ExclusiveTimers:
     """Wall/CPU time per stage, exclusive of nested timed stages."""

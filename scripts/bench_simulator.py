@@ -13,13 +13,10 @@ from __future__ import annotations
 
 import argparse
 import statistics
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from frontend.sim import FppSimulator, default_pattern_spec, default_rig, load_simulation, scenes  # noqa: E402
 

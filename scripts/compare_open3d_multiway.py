@@ -38,8 +38,6 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
 
 def cpu_seconds() -> float:
     """CPU of this process and of its finished children (worker processes)."""

@@ -22,8 +22,6 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
 COLUMNS = [
     ("scene", "{}"), ("seed", "{}"), ("frames", "{}"), ("ATE mm", "{:.4f}"), ("loop return mm per turn", "{}"),
     ("map RMSE mm", "{:.4f}"), ("map p95 mm", "{:.4f}"), ("loops acc.", "{}"), ("loops rej.", "{}"),

@@ -18,8 +18,6 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
 DEFAULT_SEQ = Path(__file__).resolve().parents[2] / "shared/data/rgbd/7scenes_chess_150_199"
 DEFAULT_PAIRS = ["150:152", "155:158", "160:165", "165:170", "170:180", "180:190", "150:170", "185:199"]
 

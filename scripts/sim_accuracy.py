@@ -17,13 +17,10 @@
 from __future__ import annotations
 
 import argparse
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from frontend.fpp.sensor import FppSensor  # noqa: E402
 from frontend.sim import (  # noqa: E402

@@ -3,9 +3,6 @@ scripts/registration_acceptance.py still reports beside the photometric localisa
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
 import cv2
 import numpy as np
 import pytest
@@ -14,8 +11,6 @@ from fpp_graph.errors import InputDataError
 from fpp_graph.geometry import invert, se3_exp
 from frontend.localization import DenseReference
 from frontend.testing.synthetic_frames import bumpy_wall_scene, render_frame, wall_pose
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # as the scripts do: the repository root
 from scripts.experimental.dense_localization import (  # noqa: E402
     localize_dense,
     localize_dense_map,
