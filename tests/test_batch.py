@@ -18,7 +18,7 @@ import pytest
 from fpp_graph.backend.g2o import write_g2o
 from fpp_graph.cli import main as cli_main
 from fpp_graph.errors import InputDataError
-from fpp_graph.slam.batch import _result_or_error, plain_row, results_name, run_batch, run_one
+from fpp_graph.slam.batch import plain_row, result_or_error, results_name, run_batch, run_one
 from fpp_graph.testing.synthetic_graphs import ate_rmse_m, corridor_trajectory
 from fpp_graph.trajectory import read_tum
 
@@ -221,5 +221,5 @@ def test_dead_worker_becomes_an_error_row():
     """A task whose worker died (BrokenProcessPool, Dask's KilledWorker) is a row, not a crash."""
     future: Future = Future()
     future.set_exception(RuntimeError("worker process exited"))
-    row = _result_or_error(future, "seq", "out/seq")
+    row = result_or_error(future, "seq", "out/seq")
     assert row == {"sequence": "seq", "results": "out/seq", "error": "worker failed (RuntimeError: worker process exited)"}

@@ -96,9 +96,9 @@ def test_strong_prior_holds_its_directions(wall):
     held = align_dense(surf_a, surf_b, T0, prior_information=pin)
     moved = np.linalg.inv(T0) @ held.T_target_source
     from fpp_graph.geometry import se3_log
-    from frontend.registration import _centred_coordinates
+    from frontend.registration import centred_coordinates
 
-    xi_c = np.linalg.solve(_centred_coordinates(free.source_points), se3_log(moved))
+    xi_c = np.linalg.solve(centred_coordinates(free.source_points), se3_log(moved))
     along_pinned = deg.directions @ xi_c
     assert np.max(np.abs(along_pinned)) < 1e-7
     # ... while the free directions moved by the perturbation's size

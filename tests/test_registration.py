@@ -15,8 +15,8 @@ from fpp_graph.types import Frame, PairRegistrar
 from frontend.registration import (
     FppPairRegistrar,
     IcpResult,
-    _disagreement_along,
     check_degeneracy,
+    disagreement_along,
     fit_pinhole,
     information_from_icp,
     information_from_keypoints,
@@ -177,9 +177,9 @@ def test_plane_directions_are_the_in_plane_shifts_and_the_spin_about_the_normal(
     info = np.diag([1e6] * 3 + [1e8] * 3)
     along = make_pose(np.eye(3), 1e-3 * np.cross(normal, [0.0, 1.0, 0.0]))
     across = make_pose(np.eye(3), 1e-3 * normal)
-    m2_along = _disagreement_along(along, np.eye(4), info, plane, p)
+    m2_along = disagreement_along(along, np.eye(4), info, plane, p)
     assert m2_along > 50
-    assert _disagreement_along(across, np.eye(4), info, plane, p) < 1e-3 * m2_along
+    assert disagreement_along(across, np.eye(4), info, plane, p) < 1e-3 * m2_along
 
 
 def test_no_overlap_is_rejected_with_reason(wall):
@@ -453,7 +453,7 @@ def test_sensor_fixed_matches_are_dropped_unless_most_are_fixed():
 
 def test_weak_directions_come_from_the_keypoints_and_lose_icp_information():
     from fpp_graph.geometry import make_pose
-    from frontend.registration import Degeneracy, _weak_directions_from, without_weak_directions
+    from frontend.registration import Degeneracy, weak_directions_from, without_weak_directions
 
     rng = np.random.default_rng(0)
     wall = np.column_stack([rng.uniform(-0.2, 0.2, 500), rng.uniform(-0.1, 0.1, 500), np.full(500, 0.5)])
@@ -463,7 +463,7 @@ def test_weak_directions_come_from_the_keypoints_and_lose_icp_information():
     deg = Degeneracy(True, np.zeros(6), ["x", "y", "spin"], dirs)
     T_icp = make_pose(np.eye(3), [0.002, 0.001, 0.0001])  # ICP drifted 2 mm in-plane, normal right
     T_keypoints = make_pose(np.eye(3), [0.0, 0.0, 0.0005])  # keypoints right in-plane, 0.5 mm off the normal
-    T = _weak_directions_from(T_icp, T_keypoints, deg, wall)
+    T = weak_directions_from(T_icp, T_keypoints, deg, wall)
     np.testing.assert_allclose(T[:3, 3], [0.0, 0.0, 0.0001], atol=1e-9)
     np.testing.assert_allclose(T[:3, :3], np.eye(3), atol=1e-12)
     # ICP's information keeps the normal, the tilts, and nothing along the weak directions

@@ -268,14 +268,14 @@ def test_odometry_forest_is_networkx_breadth_first_tree():
     common ancestors are those of the tree."""
     import networkx as nx
 
-    from fpp_graph.backend.outliers import _lowest_common_ancestors, _odometry_forest
+    from fpp_graph.backend.outliers import lowest_common_ancestors, odometry_forest
 
     rng = np.random.default_rng(3)
     n = 80
     ends = rng.integers(0, n - 10, size=(120, 2))  # cycles, parallel edges, self-loops
     ends = np.concatenate([ends, ends[:15, ::-1], [[n - 3, n - 2]]])  # plus isolated nodes, a 2-node tree
     roots = [5, 40]
-    order, parent, parent_edge, tree = _odometry_forest(n, ends, roots)
+    order, parent, parent_edge, tree = odometry_forest(n, ends, roots)
 
     graph = nx.Graph()
     graph.add_nodes_from(range(n))
@@ -306,7 +306,7 @@ def test_odometry_forest_is_networkx_breadth_first_tree():
 
     u, v = rng.integers(0, n, size=(2, 300))
     same = tree[u] == tree[v]
-    lca = _lowest_common_ancestors(parent, u[same], v[same])
+    lca = lowest_common_ancestors(parent, u[same], v[same])
     for a, b, c in zip(u[same], v[same], lca, strict=True):
         up_b = set(ancestors(b))
         assert c == next(x for x in ancestors(a) if x in up_b)

@@ -12,8 +12,8 @@ from fpp_graph.types import Frame
 from frontend.features.detect import detect_and_describe, make_detector, match_descriptors
 from frontend.features.surf import (
     SurfParams,
-    _hessian_layer,
-    _hessian_layer_dense,
+    hessian_layer,
+    hessian_layer_dense,
     surf_detect_and_compute,
 )
 
@@ -30,8 +30,8 @@ def test_dense_and_integral_hessian_agree():
     pad = 40
     ii = cv2.integral(cv2.copyMakeBorder(img, pad, pad, pad, pad, cv2.BORDER_REPLICATE), sdepth=cv2.CV_64F)
     for L in (9, 15, 27):
-        a, sa = _hessian_layer(ii, pad, 1, img.shape[0], img.shape[1], L)
-        b, sb = _hessian_layer_dense(img, L)
+        a, sa = hessian_layer(ii, pad, 1, img.shape[0], img.shape[1], L)
+        b, sb = hessian_layer_dense(img, L)
         inner = (slice(20, -20), slice(20, -20))
         assert np.abs(a - b)[inner].max() < 1e-6 * np.abs(a[inner]).max()
 
@@ -115,22 +115,22 @@ def test_match_ratio_and_mutual():
 
 
 def test_block_sums_equal_area_averaging():
-    from frontend.features.surf import _block_sums
+    from frontend.features.surf import block_sums
 
     img = _texture(6, (240, 320))
-    sums = _block_sums(img, 2)
+    sums = block_sums(img, 2)
     assert sums.dtype == np.uint16 and sums.shape == (120, 160)
     area = cv2.resize(img.astype(np.float32), (160, 120), interpolation=cv2.INTER_AREA)
     assert np.allclose(sums / 4.0, area, atol=1e-4)
-    assert _block_sums(img, 1) is img
+    assert block_sums(img, 1) is img
 
 
 def test_integer_working_image_gives_the_float_responses():
     # fast_hessian on exact integer block sums (value_scale) must equal it on the [0, 1] image
-    from frontend.features.surf import _block_sums, fast_hessian
+    from frontend.features.surf import block_sums, fast_hessian
 
     img = _texture(7, (240, 320))
-    ints = _block_sums(img, 2)
+    ints = block_sums(img, 2)
     floats = ints.astype(np.float32) / np.float32(4 * 255)
     p = SurfParams(hessian_threshold=1e-4)
     a = fast_hessian(floats, p)
@@ -169,7 +169,7 @@ def test_haar_bank_matches_box_sums_at_pixels():
 
 def test_l2_nearest_matches_brute_force_with_ties_and_chunks():
     # the column nearest neighbours come from the column minima and the first row holding them
-    from frontend.features.detect import _l2_nearest
+    from frontend.features.detect import l2_nearest
 
     rng = np.random.default_rng(9)
     a = rng.normal(size=(70, 8)).astype(np.float32)
@@ -178,7 +178,7 @@ def test_l2_nearest_matches_brute_force_with_ties_and_chunks():
     a[10] = a[11]  # two rows equally near every column: the first must win
     D = ((a[:, None, :].astype(np.float64) - b[None, :, :]) ** 2).sum(axis=2)
     for chunk in (2048, 16):
-        ia, ib, score, nn_ba = _l2_nearest(a, b, 0.9, chunk_rows=chunk)
+        ia, ib, score, nn_ba = l2_nearest(a, b, 0.9, chunk_rows=chunk)
         assert np.array_equal(nn_ba, np.argmin(D, axis=0))
         assert np.array_equal(ib, np.argmin(D, axis=1)[ia])
         srt = np.sort(D, axis=1)
@@ -188,23 +188,23 @@ def test_l2_nearest_matches_brute_force_with_ties_and_chunks():
 
 def test_integer_integral_gives_the_float_hessian_layers():
     # octaves >= 2 read an int32 integral image when the sums fit; same det(H) as float64
-    from frontend.features.surf import _block_sums, _integral
+    from frontend.features.surf import block_sums, integral_image
 
-    img = _block_sums(_texture(10, (240, 320)), 2)
+    img = block_sums(_texture(10, (240, 320)), 2)
     pad = 40
     padded = cv2.copyMakeBorder(img, pad, pad, pad, pad, cv2.BORDER_REPLICATE)
-    ii32 = _integral(padded, 51)
+    ii32 = integral_image(padded, 51)
     ii64 = cv2.integral(padded, sdepth=cv2.CV_64F)
     assert ii32.dtype == np.int32 and np.array_equal(ii32, ii64)
     for step, L in ((2, 39), (2, 51), (4, 51)):
         ny, nx = img.shape[0] // step, img.shape[1] // step
-        a, sa = _hessian_layer(ii32, pad, step, ny, nx, L, value_scale=1 / 1020)
-        b, sb = _hessian_layer(ii64, pad, step, ny, nx, L, value_scale=1 / 1020)
+        a, sa = hessian_layer(ii32, pad, step, ny, nx, L, value_scale=1 / 1020)
+        b, sb = hessian_layer(ii64, pad, step, ny, nx, L, value_scale=1 / 1020)
         assert a.dtype == b.dtype == np.float32
         assert np.abs(a - b).max() < 1e-5 * np.abs(b).max()
         assert np.array_equal(sa, sb)
     # sums that could overflow int32 stay float64
-    assert _integral(np.full((200, 200), 60000, np.uint16), 195).dtype == np.float64
+    assert integral_image(np.full((200, 200), 60000, np.uint16), 195).dtype == np.float64
 
 
 def test_dense_layer_with_shared_padding_is_the_same():
@@ -212,12 +212,12 @@ def test_dense_layer_with_shared_padding_is_the_same():
     P = 9
     padded = (cv2.copyMakeBorder(img, P, P, P, P, cv2.BORDER_REPLICATE), P)
     for L in (9, 15, 27):
-        a, sa = _hessian_layer_dense(img, L, value_scale=1 / 1020)
-        b, sb = _hessian_layer_dense(img, L, value_scale=1 / 1020, padded=padded)
+        a, sa = hessian_layer_dense(img, L, value_scale=1 / 1020)
+        b, sb = hessian_layer_dense(img, L, value_scale=1 / 1020, padded=padded)
         assert np.array_equal(a, b) and np.array_equal(sa, sb)
 
 
 def _block_sums_of(seed: int) -> np.ndarray:
-    from frontend.features.surf import _block_sums
+    from frontend.features.surf import block_sums
 
-    return _block_sums(_texture(seed, (240, 320)), 2)
+    return block_sums(_texture(seed, (240, 320)), 2)

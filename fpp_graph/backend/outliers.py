@@ -117,7 +117,7 @@ class CycleCheck:
         return max(1.0, self.measured_scale())
 
 
-def _odometry_forest(
+def odometry_forest(
     n: int, ends: NDArray[np.int64], roots: Sequence[int]
 ) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]:
     """Breadth-first spanning forest of the odometry graph on nodes ``0..n-1``.
@@ -163,7 +163,7 @@ def _odometry_forest(
     return order.astype(np.int64), parent, parent_edge, labels.astype(np.int64)
 
 
-def _lowest_common_ancestors(parent: NDArray[np.int64], u: NDArray[np.int64], v: NDArray[np.int64]) -> NDArray[np.int64]:
+def lowest_common_ancestors(parent: NDArray[np.int64], u: NDArray[np.int64], v: NDArray[np.int64]) -> NDArray[np.int64]:
     """Lowest common ancestors of the node pairs ``(u, v)`` (each in one tree; a root is its own
     parent), by binary lifting: ``log2(depth)`` vectorised steps."""
     # ancestor tables up[k] (the 2^k-th ancestor, a root past it) and depths by pointer jumping
@@ -230,7 +230,7 @@ def odometry_cycle_chi2(
     root_index = sorter[np.searchsorted(key_array, [int(r) for r in roots if int(r) in known], sorter=sorter)]
     odometry = np.flatnonzero(~is_loop)
     covariance = np.linalg.inv(information_rot_trans)
-    order, parent, parent_edge, tree = _odometry_forest(n, ends[odometry].reshape(-1, 2), root_index)
+    order, parent, parent_edge, tree = odometry_forest(n, ends[odometry].reshape(-1, 2), root_index)
 
     # pose of each node from its tree's root: P_child = P_parent @ (T_t_s or its inverse)
     child = order[parent[order] != order]
@@ -255,7 +255,7 @@ def odometry_cycle_chi2(
     loops, src, tgt = loops[same], src[same], tgt[same]
     if len(loops) == 0:
         return CycleCheck(np.zeros(0, dtype=np.int64), np.zeros(0))
-    lca = _lowest_common_ancestors(parent, src, tgt)
+    lca = lowest_common_ancestors(parent, src, tgt)
 
     disagreement = invert(T_target_source[loops]) @ (invert(P[tgt]) @ P[src])
     error = np.array([gtsam.Pose3.Logmap(gtsam.Pose3(T)) for T in disagreement])

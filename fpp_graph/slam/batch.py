@@ -137,7 +137,7 @@ def _dask_logs_at_caller_level() -> Iterator[None]:
         dask_log.setLevel(before)
 
 
-def _result_or_error(future: Any, sequence: str, out: str) -> dict[str, Any]:
+def result_or_error(future: Any, sequence: str, out: str) -> dict[str, Any]:
     """A task's row; a task that died with its worker process becomes an error row too."""
     try:
         return future.result()
@@ -167,5 +167,5 @@ def run_batch(
             stack.callback(obj.close)
         stack.callback(executor.shutdown, wait=True)
         futures = [executor.submit(run_one, seq, seq_out, config_arg, bool(resume), bool(overwrite)) for seq, seq_out in tasks]
-        rows = [_result_or_error(f, seq, seq_out) for f, (seq, seq_out) in zip(futures, tasks, strict=True)]
+        rows = [result_or_error(f, seq, seq_out) for f, (seq, seq_out) in zip(futures, tasks, strict=True)]
     return [{**row, "sequence": str(seq)} for row, seq in zip(rows, sequences, strict=True)]  # as the user named it

@@ -183,7 +183,7 @@ def match_descriptors(
     if a.dtype == np.uint8:
         ia_arr, ib_arr, score_arr, nn_ba = _hamming_nearest(a, b, ratio, mutual)
     else:
-        ia_arr, ib_arr, score_arr, nn_ba = _l2_nearest(np.ascontiguousarray(a, dtype=np.float32), np.ascontiguousarray(b, dtype=np.float32), ratio)
+        ia_arr, ib_arr, score_arr, nn_ba = l2_nearest(np.ascontiguousarray(a, dtype=np.float32), np.ascontiguousarray(b, dtype=np.float32), ratio)
     if mutual:
         keep = nn_ba[ib_arr] == ia_arr
         ia_arr, ib_arr, score_arr = ia_arr[keep], ib_arr[keep], score_arr[keep]
@@ -191,7 +191,7 @@ def match_descriptors(
     return np.stack([ia_arr[order], ib_arr[order]], axis=1).astype(np.int64)
 
 
-def _l2_nearest(a: NDArray[np.float32], b: NDArray[np.float32], ratio: float, chunk_rows: int = 2048) -> tuple[NDArray, NDArray, NDArray, NDArray]:
+def l2_nearest(a: NDArray[np.float32], b: NDArray[np.float32], ratio: float, chunk_rows: int = 2048) -> tuple[NDArray, NDArray, NDArray, NDArray]:
     """Ratio-test matches a -> b and b's nearest neighbour in a, by L2 distance.
 
     Squared distances ``|a|^2 + |b|^2 - 2 a.b`` come from one float32 matrix product per block of

@@ -111,13 +111,13 @@ class SurfKeypoints:
         return int(self.uv.shape[0])
 
 
-def _hessian_layer(
+def hessian_layer(
     ii: NDArray, pad: int, step: int, ny: int, nx: int, L: int, with_sign: bool = True, value_scale: float = 1.0
 ) -> tuple[NDArray, NDArray | None]:
     """det(H) (float32) and, if asked, the trace sign of one filter size over the sampling grid
     ``y = pad + step i, x = pad + step j`` of the integral image ``ii`` of the image padded by
     ``pad`` (``value_scale`` converts the image's values to [0, 1]). ``ii`` is float64, or int32
-    holding exact integer sums (see :func:`_integral`): half the memory traffic of the strided
+    holding exact integer sums (see :func:`integral_image`): half the memory traffic of the strided
     reads, and the products are then formed in float32 like the dense layers'.
 
     The box sums are separable differences of ``ii``: first across the boxes' columns at the
@@ -184,11 +184,11 @@ def _hessian_layer(
     return det.astype(np.float32), sign
 
 
-def _hessian_layer_dense(
+def hessian_layer_dense(
     img: NDArray, L: int, with_sign: bool = True, value_scale: float = 1.0, padded: tuple[NDArray, int] | None = None
 ) -> tuple[NDArray, NDArray | None]:
     """det(H) and (if asked) the trace sign at every pixel (sampling step 1) with cv2.boxFilter;
-    equals :func:`_hessian_layer` with ``step = 1`` but runs on SIMD box filters. ``img`` is
+    equals :func:`hessian_layer` with ``step = 1`` but runs on SIMD box filters. ``img`` is
     float32, or uint8/uint16 (exact integer box sums, twice as fast) with ``value_scale``
     converting its values to [0, 1]. ``padded`` may pass ``(img padded by P, P)`` with
     ``P >= L // 3`` (replicated border), shared by the layers of an octave."""
@@ -249,7 +249,7 @@ def _trace_sign_at(ii: NDArray, pad: int, y: NDArray, x: NDArray, L: int) -> NDA
     return np.sign(dxx + dyy).astype(np.int8)
 
 
-def _integral(padded: NDArray, max_filter: int) -> NDArray:
+def integral_image(padded: NDArray, max_filter: int) -> NDArray:
     """Integral image of ``padded``: int32 for an integer image whose total and whose largest
     filter's combined box sums fit (exact), else float64."""
     ii = cv2.integral(padded, sdepth=cv2.CV_64F)
@@ -275,7 +275,7 @@ def fast_hessian(image01: NDArray, params: SurfParams, value_scale: float = 1.0)
     max_L = _filter_size(params.n_octaves - 1, params.n_intervals - 1)
     pad = max_L // 2 + 2
     padded = cv2.copyMakeBorder(image01, pad, pad, pad, pad, cv2.BORDER_REPLICATE)
-    integral = _integral(padded, max_L)
+    integral = integral_image(padded, max_L)
     out_uv, out_s, out_r, out_sign = [], [], [], []
     computed: dict[int, tuple[int, NDArray]] = {}
     dense_padded: tuple[NDArray, int] | None = None
@@ -300,9 +300,9 @@ def fast_hessian(image01: NDArray, params: SurfParams, value_scale: float = 1.0)
                 if dense_padded is None:  # one replicated border for the octave's layers
                     P = max(sizes) // 3
                     dense_padded = (cv2.copyMakeBorder(image01, P, P, P, P, cv2.BORDER_REPLICATE), P)
-                det, _ = _hessian_layer_dense(image01, L, with_sign=False, value_scale=value_scale, padded=dense_padded)
+                det, _ = hessian_layer_dense(image01, L, with_sign=False, value_scale=value_scale, padded=dense_padded)
             else:
-                det, _ = _hessian_layer(integral, pad, step, ny, nx, L, with_sign=False, value_scale=value_scale)
+                det, _ = hessian_layer(integral, pad, step, ny, nx, L, with_sign=False, value_scale=value_scale)
             computed[L] = (step, det)
             layers.append(det)
         for i in range(1, params.n_intervals - 1):
@@ -553,7 +553,7 @@ def _descriptors(bank: _HaarBank, uv: NDArray, scale: NDArray, theta: NDArray) -
     return desc
 
 
-def _block_sums(img: NDArray[np.uint8], factor: int) -> NDArray:
+def block_sums(img: NDArray[np.uint8], factor: int) -> NDArray:
     """Sums of ``factor x factor`` pixel blocks (uint16 up to factor 16, else float32); the
     image itself for factor 1. A partial last block row/column is dropped."""
     if factor == 1:
@@ -599,7 +599,7 @@ def surf_detect_and_compute(texture: NDArray, params: SurfParams | None = None) 
         factor = int(math.ceil(img.shape[1] / p.max_working_width))
     # the working image holds exact sums of factor x factor pixel blocks (area averaging without
     # rounding; integer box filters run twice as fast as float ones)
-    work = _block_sums(img, factor)
+    work = block_sums(img, factor)
     uv, scale, resp, sign = fast_hessian(work, p, value_scale=1.0 / (255.0 * factor * factor))
     if uv.shape[0] > p.max_features:
         keep = np.argpartition(-resp, p.max_features - 1)[: p.max_features]

@@ -80,13 +80,13 @@ from frontend.registration.registrar import FppPairRegistrar, with_features
 from frontend.registration.texture import TextureAgreement, TextureCamera, texture_agreement
 from frontend.registration.weak_directions import (
     Degeneracy,
-    _centred_coordinates,  # noqa: F401  (private; the tests import it from here)
-    _disagreement_along,  # noqa: F401  (private; the tests import it from here)
-    _weak_directions_from,  # noqa: F401  (private; the tests import it from here)
+    centred_coordinates,  # noqa: F401  (private; the tests import it from here)
     check_degeneracy,
+    disagreement_along,  # noqa: F401  (private; the tests import it from here)
     joint_keypoint_step,
     plane_directions,
     weak_direction_pin,
+    weak_directions_from,  # noqa: F401  (private; the tests import it from here)
     without_weak_directions,
 )
 

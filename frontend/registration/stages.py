@@ -39,11 +39,11 @@ from frontend.registration.weak_directions import (
     _CHI2_3DOF_9999,
     _CHI2_6DOF_999,
     Degeneracy,
-    _disagreement_along,
-    _weak_directions_from,
     check_degeneracy,
+    disagreement_along,
     joint_keypoint_step,
     plane_directions,
+    weak_directions_from,
     without_weak_directions,
 )
 
@@ -311,7 +311,7 @@ def _weak_candidate(
         plane = plane_directions(icp.information_raw, fit.source_points)
         meta["plane_spin_ratio"] = float(plane.eigenvalue_ratios[2])
         info_keypoints = cfg.keypoint_information_scale * information_from_keypoints(ransac.T_target_source, Ps_in, np.full(Ps_in.shape[0], ransac.inlier_rmse_m))
-        m2 = _disagreement_along(fit.T_target_source, ransac.T_target_source, info_keypoints, plane, fit.source_points)
+        m2 = disagreement_along(fit.T_target_source, ransac.T_target_source, info_keypoints, plane, fit.source_points)
         meta["plane_keypoint_mahalanobis2"] = m2
         # (with the rig's texture camera the texture sets the plane's directions later: always)
         if m2 > _CHI2_3DOF_9999 or lost_keypoints or texture_sets_planes:
@@ -354,7 +354,7 @@ def handle_weak_directions(
     meta.update(candidate_meta)
     if weak is not None:
         if rule is WeakRule.FLAT_FROM_RANSAC:
-            T_new = _weak_directions_from(T, ransac.T_target_source, weak, fit.source_points)
+            T_new = weak_directions_from(T, ransac.T_target_source, weak, fit.source_points)
         else:
             # the keypoints' optimum given ICP's normal shift and tilts (RANSAC's own in-plane
             # estimate carries its tilt error through the lever arm of a narrow overlap strip)

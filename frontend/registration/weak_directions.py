@@ -68,7 +68,7 @@ def joint_keypoint_step(
     return xi
 
 
-def _centred_coordinates(source_points: NDArray) -> Array:
+def centred_coordinates(source_points: NDArray) -> Array:
     """``M`` with ``xi = M xi_c``: ``xi`` in ``[rot, trans]`` about the origin, ``xi_c`` about the
     centroid of ``source_points`` with rotations as arc length at their RMS radius (the
     coordinates :func:`check_degeneracy` compares directions in)."""
@@ -103,7 +103,7 @@ def without_weak_directions(information: NDArray, deg: Degeneracy, source_points
     Q = _weak_basis(deg)
     if Q is None:
         return info.copy()
-    M = _centred_coordinates(source_points)
+    M = centred_coordinates(source_points)
     info_c = M.T @ info @ M
     proj = np.eye(6) - Q @ Q.T
     info_c = proj @ info_c @ proj
@@ -120,7 +120,7 @@ def weak_direction_pin(deg: Degeneracy, source_points: NDArray, strength: float,
     Q = _weak_basis(deg)
     if Q is None:
         return float(strength) * np.eye(6) if complement else np.zeros((6, 6))
-    M_inv = np.linalg.inv(_centred_coordinates(source_points))
+    M_inv = np.linalg.inv(centred_coordinates(source_points))
     P = Q @ Q.T
     out = M_inv.T @ (float(strength) * (np.eye(6) - P if complement else P)) @ M_inv
     return 0.5 * (out + out.T)
@@ -154,7 +154,7 @@ def plane_directions(information: NDArray, source_points: NDArray) -> Degeneracy
     directions = np.zeros((3, 6))
     directions[0, 3:], directions[1, 3:], directions[2, :3] = u, v, n
     names = [f"translation along ({a[0]:.2f}, {a[1]:.2f}, {a[2]:.2f})" for a in (u, v)] + [f"rotation about ({n[0]:.2f}, {n[1]:.2f}, {n[2]:.2f})"]
-    M = _centred_coordinates(source_points)
+    M = centred_coordinates(source_points)
     info_c = M.T @ info @ M
     norm = max(float(np.trace(info_c[3:, 3:])), 1e-300)
     # the information along each in-plane direction, on check_degeneracy's scale
@@ -162,26 +162,26 @@ def plane_directions(information: NDArray, source_points: NDArray) -> Degeneracy
     return Degeneracy(True, ratios, names, directions)
 
 
-def _weak_directions_from(T_icp: NDArray, T_other: NDArray, deg: Degeneracy, source_points: NDArray) -> Array:
+def weak_directions_from(T_icp: NDArray, T_other: NDArray, deg: Degeneracy, source_points: NDArray) -> Array:
     """``T_icp`` moved to ``T_other`` along ``deg.directions`` only (centred, length-normalised
     coordinates of :func:`check_degeneracy`), kept along the others."""
     Q = _weak_basis(deg)
     if Q is None:
         return np.asarray(T_icp, dtype=np.float64).copy()
-    M = _centred_coordinates(source_points)
+    M = centred_coordinates(source_points)
     xi = se3_log(invert(T_icp) @ np.asarray(T_other, dtype=np.float64))
     xi_c = np.linalg.solve(M, xi)  # xi = M xi_c
     return np.asarray(T_icp, dtype=np.float64) @ se3_exp(M @ (Q @ (Q.T @ xi_c)))
 
 
-def _disagreement_along(T_a: NDArray, T_b: NDArray, information_b: NDArray, deg: Degeneracy, source_points: NDArray) -> float:
+def disagreement_along(T_a: NDArray, T_b: NDArray, information_b: NDArray, deg: Degeneracy, source_points: NDArray) -> float:
     """Squared Mahalanobis distance of ``T_a`` from ``T_b`` along ``deg.directions`` only, under
     the covariance of ``T_b`` conditional on the other directions (centred, length-normalised
     coordinates of :func:`check_degeneracy`). Conditional, because the other directions are
     the ones ``T_a`` pins (a wall's tilts): keypoints in a narrow strip know the tilts poorly,
     and their marginal in-plane covariance would carry that through the lever arm."""
     V = np.asarray(deg.directions, dtype=np.float64).reshape(-1, 6)
-    M = _centred_coordinates(source_points)
+    M = centred_coordinates(source_points)
     d_c = np.linalg.solve(M, se3_log(invert(np.asarray(T_b, dtype=np.float64)) @ np.asarray(T_a, dtype=np.float64)))
     info_c = M.T @ np.asarray(information_b, dtype=np.float64) @ M
     try:
@@ -198,7 +198,7 @@ def _weak_direction_sigma_m(information: NDArray, deg: Degeneracy, source_points
     except np.linalg.LinAlgError:
         return float("inf")
     # covariance in the centred, length-normalised coordinates of check_degeneracy
-    M = np.linalg.inv(_centred_coordinates(source_points))
+    M = np.linalg.inv(centred_coordinates(source_points))
     cov_c = M @ cov @ M.T
     variances = [float(v @ cov_c @ v) for v in deg.directions]
     worst = max(variances) if variances and all(np.isfinite(variances)) else float("nan")
@@ -249,7 +249,7 @@ def check_degeneracy(information: NDArray, source_points: NDArray, ratio: float 
     Degeneracy
     """
     info = np.asarray(information, dtype=np.float64)
-    M = _centred_coordinates(source_points)
+    M = centred_coordinates(source_points)
     info_c = M.T @ info @ M
     info_c = 0.5 * (info_c + info_c.T)
     w, V = np.linalg.eigh(info_c)
