@@ -5,7 +5,7 @@ on loop edges, run only on evidence of an outlier (the rule is in :mod:`fpp_grap
 and the rejected loops: a start without the loops inconsistent with the odometry, GNC with the
 truncated-least-squares loss (Yang et al., RA-L 2020), least squares over its inliers, then loops
 left out are re-admitted when their residual at the solution (:func:`_readmit`) or, jointly,
-their predicted residual at the solution with them (:func:`predicted_chi2`) is under the bound.
+their chi-square against the kept graph's prediction (:func:`predicted_chi2`) is under the bound.
 """
 
 from __future__ import annotations
@@ -62,18 +62,20 @@ def solve_tls(
     4. The inlier set is made self-consistent: any left-out loop whose residual at the
        solution is under the bound is an inlier by the definition of truncated least
        squares (a true loop the first-order cycle test was too strict for comes back).
-    5. Loops still out get the screen's test at the solution they would have: their residual
-       at the least-squares solution with them added, predicted to first order from the
-       kept graph (:func:`predicted_chi2`). GNC drops runs of neighbouring true loops
-       together; without them their region bends so that each looks bad at the solution
-       without it, though each fits once they are back. Those predicted under the bound are
-       re-admitted together and the solve repeated; the group is kept only if, at the new
-       solution, no loop is over the bound that was not before (else its better half by the
-       prediction is tried).
+    5. Loops still out whose cycle with the odometry is under the start's bound are tested against the
+       kept graph's prediction of them
+       (:func:`predicted_chi2`: the rise of the cost when one is added, chi2(6) for a true
+       loop, which the kept graph's covariance of the loop's relative pose widens). GNC drops
+       runs of neighbouring true loops together; without them their region bends so that each
+       looks bad on its residual at the solution without it, though each fits once they are
+       back. Those under the bound are re-admitted together and the solve repeated; the group
+       is kept only if the truncated least-squares cost does not rise and no loop is over the
+       bound that was not before (else its better half by the prediction is tried).
     """
     try:
         needed = problem.necessary_loops(active)
         candidates = active.copy()
+        start_bound = screen.bound
         if screen.cycles is not None:
             # The start may use the scale the loops show even where it is below the stated
             # one (conservative information lets gross outliers pass at unit scale): it only
@@ -90,8 +92,14 @@ def solve_tls(
         left_out = sorted(set(rejected) | {int(i) for i in np.flatnonzero(active & ~candidates)})
         values, rejected, more = _settle_inliers(problem, values, kept, left_out, screen.bound, cfg)
         iterations += more
-        values, rejected, more = _readmit_predicted(problem, values, kept, rejected, screen.bound, cfg)
-        iterations += more
+        if screen.cycles is not None:
+            # the odometry's evidence, independent of the (bent) solution, at the scale the loops
+            # show (as for the start): only loops it supports get this second chance; the others
+            # keep the truncated-least-squares verdict
+            odometry_consistent = {int(i) for i in screen.cycles.loop_index[screen.cycles.chi2 <= start_bound]}
+            eligible = [i for i in rejected if i in odometry_consistent]
+            values, rejected, more = _readmit_predicted(problem, values, kept, rejected, eligible, screen.bound, cfg)
+            iterations += more
     except RuntimeError as exc:
         raise solver_error(exc) from None
     for i in rejected:
@@ -195,21 +203,30 @@ def _readmit(
 
 
 def _readmit_predicted(
-    problem: GraphProblem, values: gtsam.Values, kept: NDArray[np.bool_], rejected: list[int], bound: float, cfg: PoseGraphConfig
+    problem: GraphProblem, values: gtsam.Values, kept: NDArray[np.bool_], rejected: list[int], eligible: list[int],
+    bound: float, cfg: PoseGraphConfig,
 ) -> tuple[gtsam.Values, list[int], int]:
-    """Re-admit rejected loops whose residual at the solution with them is predicted under
-    the bound (:func:`predicted_chi2`), jointly, re-solving; until no rejected loop passes.
+    """Re-admit rejected loops that the kept graph predicts within the bound
+    (:func:`predicted_chi2`), jointly, re-solving; until no rejected loop passes.
 
-    A group is accepted when, at the least-squares solution with it, no loop of the kept
-    set or the group is over the bound that was not over it before (the screen's rule at
-    that solution): a true loop fits once its region is unbent, an outlier the first-order
-    prediction let through shows at the new solution. A group that fails is halved (the half
-    best predicted is tried); a single loop that fails stays out.
+    Only ``eligible`` loops are tried: those whose cycle with the odometry is under the bound at
+    the scale the loops show (evidence independent of the current solution; the first-order prediction is meaningless
+    for a loop off by a large rotation, and on graphs of weak loops many outliers would pass
+    it).
+
+    A group is accepted when, at the least-squares solution with it, (a) the truncated
+    least-squares cost is not higher than without it (the cost over the kept edges and the
+    group rises by at most the bound per loop of the group: the group's loops would otherwise
+    be cheaper truncated) and (b) no loop of the kept set or the group is over the bound that
+    was not over it before (the screen's rule at that solution). A true loop fits once its
+    region is unbent; an outlier the first-order prediction let through shows at the new
+    solution. A group that fails is halved (the half best predicted is tried); a single loop
+    that fails stays out.
     """
     iterations = 0
     refuted: set[int] = set()
     for _ in range(_MAX_READMISSION_ROUNDS):
-        open_ = np.array([i for i in rejected if i not in refuted], dtype=np.int64)
+        open_ = np.array([i for i in eligible if i in set(rejected) and i not in refuted], dtype=np.int64)
         if len(open_) == 0:
             break
         predicted = predicted_chi2(problem, values, kept, open_, bound)
@@ -219,6 +236,7 @@ def _readmit_predicted(
             break
         loops = np.flatnonzero(kept & problem.is_loop)
         over_before = {int(i) for i, r2 in zip(loops, problem.loop_chi2(values, loops), strict=True) if r2 > bound}
+        cost_before = problem.cost(values, kept)
         while group:
             trial = kept.copy()
             trial[group] = True
@@ -226,7 +244,8 @@ def _readmit_predicted(
             iterations += more
             loops = np.flatnonzero(trial & problem.is_loop)
             over = {int(i) for i, r2 in zip(loops, problem.loop_chi2(candidate, loops), strict=True) if r2 > bound}
-            if over <= over_before:
+            rise = 2.0 * (problem.cost(candidate, trial) - cost_before)
+            if rise <= len(group) * bound and over <= over_before:
                 log.debug("%d loop(s) re-admitted on the kept graph's prediction (bound %.3g)", len(group), bound)
                 kept[group] = True
                 rejected = [i for i in rejected if i not in group]
@@ -241,22 +260,24 @@ def _readmit_predicted(
 
 
 def predicted_chi2(problem: GraphProblem, values: gtsam.Values, kept: NDArray[np.bool_], loops: NDArray[np.int64], bound: float) -> Array:
-    """Each loop's whitened squared residual at the least-squares solution with it added to
-    the ``kept`` edges, predicted to first order from ``values`` (their solution).
+    """Each loop's chi-square against the kept graph's prediction of it: the rise of the
+    (whitened, squared) least-squares cost when the loop is added to the ``kept`` edges,
+    predicted to first order from ``values`` (their solution).
 
-    With ``b, A`` the loop's whitened residual and Jacobian at ``values`` and ``H`` the
-    Gauss-Newton information of the priors and the kept edges (anchors held exactly),
-    adding the loop moves its residual to ``(I + A H^-1 A^T)^-1 b``: a loop that its region
-    bends away from while it is left out (``b`` large) comes back close when the kept graph
-    predicts that region only loosely (``A H^-1 A^T`` large). This is the statistic the
-    screen tests at the least-squares solution, so it is compared to the same bound; the
-    odometry-cycle test of :mod:`fpp_graph.backend.outliers` uses the same spread for a kept graph
-    of odometry alone. (``b^T (I + A H^-1 A^T)^-1 b``, the rise of the cost, is ``chi2(6)``
-    for a true loop and larger than the returned value.)
+    ``b^T (I + A H^-1 A^T)^-1 b`` with ``b, A`` the loop's whitened residual and Jacobian at
+    ``values`` and ``H`` the Gauss-Newton information of the priors and the kept edges (anchors
+    held exactly). For a true loop its residual at the solution without it is
+    ``N(0, I + A H^-1 A^T)`` to first order, so the statistic is ``chi2(6)`` at the variance
+    factor's scale and the family-wise bound applies to it as to every loop; it is also what
+    truncated least squares weighs: adding the loop lowers the TLS cost exactly when the rise
+    is under the truncation bound. A loop that its region bends away from while it is left out
+    (``b`` large) passes when the kept graph predicts that region only loosely (``A H^-1 A^T``
+    large). The odometry-cycle test of :mod:`fpp_graph.backend.outliers` is the case of a kept graph of
+    odometry alone.
 
-    Exact to first order where it is at most ``bound``; above it the value may be the lower
-    bound ``|b|^2 (|b|^2 / (|b|^2 + g^T H^-1 g))^2``, ``g = A^T b`` (Cauchy-Schwarz twice),
-    which takes one sparse solve instead of six and decides most outliers.
+    Exact (to first order) where it is at most ``bound``; above it the value may be the lower
+    bound ``|b|^4 / (|b|^2 + g^T H^-1 g)``, ``g = A^T b`` (Cauchy-Schwarz), which takes one
+    sparse solve instead of six and decides most outliers.
     """
     import scipy.sparse as sp
     import scipy.sparse.linalg as spla
@@ -294,7 +315,7 @@ def predicted_chi2(problem: GraphProblem, values: gtsam.Values, kept: NDArray[np
         for c, _ in blocks:
             rhs[c : c + 6] = 0.0
         bb = float(b @ b)
-        chi2[m] = bb * (bb / (bb + spread_b)) ** 2 if bb > 0.0 else 0.0
+        chi2[m] = bb * bb / (bb + spread_b) if bb > 0.0 else 0.0
         if chi2[m] > bound:
             continue
         spread = np.eye(6)
@@ -305,8 +326,7 @@ def predicted_chi2(problem: GraphProblem, values: gtsam.Values, kept: NDArray[np
             for c, a in blocks:
                 spread[:, j] += a @ u[c : c + 6]
                 rhs[c : c + 6] = 0.0
-        moved = np.linalg.solve(spread, b)
-        chi2[m] = float(moved @ moved)
+        chi2[m] = float(b @ np.linalg.solve(spread, b))
     return chi2
 
 
