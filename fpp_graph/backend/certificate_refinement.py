@@ -19,7 +19,7 @@ import scipy.sparse.linalg as spla
 from numpy.typing import NDArray
 
 if TYPE_CHECKING:
-    from fpp_graph.backend.certificate import SESyncData
+    from fpp_graph.backend.certificate_matrix import SESyncData
 
 log = logging.getLogger(__name__)
 
