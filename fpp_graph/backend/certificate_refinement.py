@@ -19,7 +19,7 @@ import scipy.sparse.linalg as spla
 from numpy.typing import NDArray
 
 if TYPE_CHECKING:
-    from fpp_graph.backend.certificate import SESyncData
+    from fpp_graph.backend.certificate_matrix import SESyncData
 
 log = logging.getLogger(__name__)
 
@@ -251,6 +251,7 @@ def tangent_hessian(data: SESyncData, B: Array, Lambda: Array, gauge: NDArray[np
 def newton(
     data: SESyncData, X: Array, anchor: int, max_iterations: int = _MAX_NEWTON_ITERATIONS
 ) -> tuple[Array, float, float, int]:
+    # 96 lines: one damped-Newton loop whose chord and fresh-factorisation branches share mu, the last LU and the gradient history
     """Minimise ``F`` over ``(St(3, r) x R^r)^n`` from ``X`` (r, 4n): damped Newton, exact Hessian.
 
     The step solves ``(H + mu I) xi = -g`` in tangent coordinates, with the anchor's coordinates

@@ -37,6 +37,7 @@ from __future__ import annotations
 import logging
 import os
 from collections.abc import Mapping
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -173,28 +174,21 @@ def _checked_information(info: NDArray[np.float64], lines: list[int], path: Path
     return info
 
 
-def read_g2o(path: str | os.PathLike[str]) -> PoseGraph:
-    """Read a 3D g2o pose graph into a :class:`~fpp_graph.backend.pose_graph.PoseGraph`.
+@dataclass(frozen=True)
+class _Records:
+    """The records of a g2o file as read line by line, each with its line number."""
 
-    Vertices become poses (initial values), ``FIX`` lines fixed poses, edges edges with
-    information converted to ``[rot, trans]`` order. Raises
-    :class:`~fpp_graph.errors.InputDataError` naming the line of any malformed record.
+    vertex_ids: list[int]
+    vertex_values: list[list[float]]  # tx ty tz qx qy qz qw
+    vertex_lines: list[int]
+    edge_ids: list[tuple[int, int]]  # (i, j): target i, source j
+    edge_values: list[list[float]]  # tx ty tz qx qy qz qw and 21 information entries
+    edge_lines: list[int]
+    fixed: list[tuple[int, int]]  # (vertex id, line)
 
-    An edge's information must be positive definite in its rotation block and in its
-    translation block. When only the full 6x6 matrix is not (the rotation-translation coupling
-    makes it indefinite, as in some SE-Sync benchmark files), the edge keeps the two diagonal
-    blocks and loses the coupling: a block-diagonal matrix is positive definite exactly when its
-    blocks are, so this projection keeps all the file says about each block (all that SE-Sync's
-    reader and the ``isotropic`` noise model use) and needs no eigenvalue clipping threshold.
-    One warning per file gives the number of such edges and the first line; writing the graph
-    back writes the projected matrices.
-    """
-    path = Path(path)
-    try:
-        data = path.read_bytes()
-    except OSError as exc:
-        raise InputDataError(f"cannot read pose graph {path}: {exc.strerror}") from None
 
+def _read_records(path: Path, data: bytes) -> _Records:
+    """Tokenise every line of ``data`` into vertex, edge and FIX records (strict, see the module)."""
     v_ids: list[int] = []
     v_vals: list[list[float]] = []
     v_lines: list[int] = []
@@ -236,30 +230,38 @@ def read_g2o(path: str | os.PathLike[str]) -> PoseGraph:
             raise _fail(path, lineno, f"{tag} is a 2D record; only 3D graphs (VERTEX_SE3:QUAT, EDGE_SE3:QUAT) are supported")
         else:
             raise _fail(path, lineno, f"unknown record {tag!r}; expected {VERTEX_TAG}, {EDGE_TAG} or {FIX_TAG}")
+    return _Records(v_ids, v_vals, v_lines, e_ids, e_vals, e_lines, fixed)
 
-    if not v_ids:
+
+def _parse_vertices(records: _Records, path: Path) -> tuple[dict[int, int], NDArray[np.float64], NDArray[np.float64]]:
+    """Checked vertices: each id's line, the (n, 7) values and the (n, 4, 4) ``T_world_sensor``."""
+    if not records.vertex_ids:
         raise InputDataError(f"{path}: no {VERTEX_TAG} records; not a 3D g2o pose graph")
-
-    # vertices
     vertex_line: dict[int, int] = {}
-    for key, lineno in zip(v_ids, v_lines, strict=True):
+    for key, lineno in zip(records.vertex_ids, records.vertex_lines, strict=True):
         if key in vertex_line:
             raise _fail(path, lineno, f"vertex {key} is defined twice (first on line {vertex_line[key]})")
         vertex_line[key] = lineno
-    v = np.asarray(v_vals, dtype=np.float64).reshape(-1, 7)
+    v = np.asarray(records.vertex_values, dtype=np.float64).reshape(-1, 7)
     bad = np.flatnonzero(~np.all(np.isfinite(v), axis=1))
     if len(bad):
-        raise _fail(path, v_lines[int(bad[0])], f"{VERTEX_TAG}: NaN or infinite value")
+        raise _fail(path, records.vertex_lines[int(bad[0])], f"{VERTEX_TAG}: NaN or infinite value")
     poses = np.tile(np.eye(4), (len(v), 1, 1))
-    poses[:, :3, :3] = _rotations_from_quats(v[:, 3:], v_lines, path, VERTEX_TAG)
+    poses[:, :3, :3] = _rotations_from_quats(v[:, 3:], records.vertex_lines, path, VERTEX_TAG)
     poses[:, :3, 3] = v[:, :3]
+    return vertex_line, v, poses
 
-    # edges
-    e = np.asarray(e_vals, dtype=np.float64).reshape(-1, 28)
+
+def _parse_edges(
+    records: _Records, vertex_line: Mapping[int, int], path: Path
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """Checked edges: the (m, 28) values, (m, 3, 3) rotations and (m, 6, 6) ``[rot, trans]`` information."""
+    e_lines = records.edge_lines
+    e = np.asarray(records.edge_values, dtype=np.float64).reshape(-1, 28)
     bad = np.flatnonzero(~np.all(np.isfinite(e), axis=1))
     if len(bad):
         raise _fail(path, e_lines[int(bad[0])], f"{EDGE_TAG}: NaN or infinite value")
-    for (i, j), lineno in zip(e_ids, e_lines, strict=True):
+    for (i, j), lineno in zip(records.edge_ids, e_lines, strict=True):
         for key in (i, j):
             if key not in vertex_line:
                 raise _fail(path, lineno, f"edge {i}->{j} refers to vertex {key}, which has no {VERTEX_TAG} record")
@@ -271,26 +273,58 @@ def read_g2o(path: str | os.PathLike[str]) -> PoseGraph:
     info_g2o = info_g2o + np.transpose(np.triu(info_g2o, 1), (0, 2, 1))
     info = info_g2o[:, _G2O_FROM_ROT_TRANS][:, :, _G2O_FROM_ROT_TRANS]
     info = _checked_information(info, e_lines, path)
+    return e, rotations, info
 
-    for key, lineno in fixed:
-        if key not in vertex_line:
-            raise _fail(path, lineno, f"FIX refers to vertex {key}, which has no {VERTEX_TAG} record")
 
-    order = np.sort(np.asarray(v_ids, dtype=np.int64))
+def _graph_edges(
+    records: _Records, e: NDArray[np.float64], rotations: NDArray[np.float64], info: NDArray[np.float64]
+) -> list[PoseGraphEdge]:
+    """The edges as read-only :class:`PoseGraphEdge`: odometry between vertices adjacent in id order."""
+    order = np.sort(np.asarray(records.vertex_ids, dtype=np.int64))
     rank = {int(k): r for r, k in enumerate(order)}
     info.setflags(write=False)
     edges = []
-    for n, (i, j) in enumerate(e_ids):
+    for n, (i, j) in enumerate(records.edge_ids):
         T = np.eye(4)
         T[:3, :3] = rotations[n]
         T[:3, 3] = e[n, :3]
         T.setflags(write=False)
         kind = ConstraintKind.ODOMETRY if abs(rank[i] - rank[j]) == 1 else ConstraintKind.LOOP
         edges.append(PoseGraphEdge(source_id=j, target_id=i, T_target_source=T, information_rot_trans=info[n], kind=kind))
+    return edges
 
+
+def read_g2o(path: str | os.PathLike[str]) -> PoseGraph:
+    """Read a 3D g2o pose graph into a :class:`~fpp_graph.backend.pose_graph.PoseGraph`.
+
+    Vertices become poses (initial values), ``FIX`` lines fixed poses, edges edges with
+    information converted to ``[rot, trans]`` order. Raises
+    :class:`~fpp_graph.errors.InputDataError` naming the line of any malformed record.
+
+    An edge's information must be positive definite in its rotation block and in its
+    translation block. When only the full 6x6 matrix is not (the rotation-translation coupling
+    makes it indefinite, as in some SE-Sync benchmark files), the edge keeps the two diagonal
+    blocks and loses the coupling: a block-diagonal matrix is positive definite exactly when its
+    blocks are, so this projection keeps all the file says about each block (all that SE-Sync's
+    reader and the ``isotropic`` noise model use) and needs no eigenvalue clipping threshold.
+    One warning per file gives the number of such edges and the first line; writing the graph
+    back writes the projected matrices.
+    """
+    path = Path(path)
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise InputDataError(f"cannot read pose graph {path}: {exc.strerror}") from None
+    records = _read_records(path, data)
+    vertex_line, v, poses = _parse_vertices(records, path)
+    e, rotations, info = _parse_edges(records, vertex_line, path)
+    for key, lineno in records.fixed:
+        if key not in vertex_line:
+            raise _fail(path, lineno, f"FIX refers to vertex {key}, which has no {VERTEX_TAG} record")
+    edges = _graph_edges(records, e, rotations, info)
     graph = PoseGraph()
-    graph._load(v_ids, poses, v[:, 3:].copy(), edges, e[:, 3:7].copy(), [k for k, _ in fixed])
-    log.debug("read %s: %d vertices, %d edges, %d fixed", path, len(v_ids), len(edges), len(fixed))
+    graph._load(records.vertex_ids, poses, v[:, 3:].copy(), edges, e[:, 3:7].copy(), [k for k, _ in records.fixed])
+    log.debug("read %s: %d vertices, %d edges, %d fixed", path, len(records.vertex_ids), len(edges), len(records.fixed))
     return graph
 
 

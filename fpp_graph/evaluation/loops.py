@@ -151,6 +151,22 @@ class LoopEvaluation:
         }
 
 
+def _stage_figures(
+    sets: Mapping[str, set[tuple[int, int]]], true_set: set[tuple[int, int]], wrong: set[tuple[int, int]]
+) -> dict[str, StageFigures]:
+    """Precision and recall of each stage's pairs; ``wrong`` (a wrong pose) are false once verified."""
+    stages: dict[str, StageFigures] = {}
+    for name, pairs in sets.items():
+        good = {p for p in pairs if p in true_set and not (name in ("verified", "accepted") and p in wrong)}
+        stages[name] = StageFigures(
+            pairs=len(pairs),
+            true_pairs=len(good),
+            precision=len(good) / len(pairs) if pairs else math.nan,
+            recall=len(good) / len(true_set) if true_set else math.nan,
+        )
+    return stages
+
+
 def evaluate_loops(
     loop_rows: list[Mapping[str, Any]],
     keyframe_ids: list[int],
@@ -214,15 +230,7 @@ def evaluate_loops(
                 false_verified.append(info)
                 if accepted:
                     false_accepted.append(info)
-    stages: dict[str, StageFigures] = {}
-    for name, pairs in sets.items():
-        good = {p for p in pairs if p in true_set and not (name in ("verified", "accepted") and p in wrong)}
-        stages[name] = StageFigures(
-            pairs=len(pairs),
-            true_pairs=len(good),
-            precision=len(good) / len(pairs) if pairs else math.nan,
-            recall=len(good) / len(true_set) if true_set else math.nan,
-        )
+    stages = _stage_figures(sets, true_set, wrong)
     missed = sorted(true_set - sets["accepted"], key=lambda p: -overlaps.get(p, 0.0))
     return LoopEvaluation(
         stages=stages,

@@ -157,6 +157,7 @@ def torus_graph(
     rot_sigma_rad: float | None = None,
     trans_sigma_m: float | None = None,
 ) -> SyntheticGraph:
+    # 117 lines: a 50-line docstring; the body is one construction (geometry, odometry, loops) on one rng stream
     """A robot winding around a torus, like SE-Sync's torus3D (5000 poses, 9048 edges).
 
     The robot goes round the tube ``P = round(sqrt(num_poses / 2))`` poses per winding while
@@ -439,6 +440,7 @@ def add_false_loops_to_graph(
     min_separation: int = 20,
     reference_poses: Mapping[int, ArrayLike] | None = None,
 ) -> tuple[PoseGraph, set[tuple[int, int]]]:
+    # 113 lines: a 40-line docstring; both modes share the copy, the information and the add/free bookkeeping
     """A copy of ``graph`` with wrong loop edges added; the input is not changed.
 
     Parameters

@@ -1,0 +1,223 @@
+"""SE-Sync's data matrix and the certificate matrix ``S = Q - Lambda``, with its inertia and eigen tests.
+
+Part of the certificate (:mod:`fpp_graph.backend.certificate`, whose module docstring states the problem,
+the method and the tolerance): the sparse assembly of ``M`` (step 1) and, on the grounded augmented
+matrix, the LDL^T inertia count of ``S + eta I`` and the smallest eigenpairs of ``S`` (step 3).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+from numpy.typing import NDArray
+
+from fpp_graph.backend.certificate_refinement import block_diagonal, symmetric_lu
+
+log = logging.getLogger(__name__)
+
+Array = NDArray[np.float64]
+
+#: Matrices of S up to this size are decomposed densely (ARPACK needs k < size).
+_DENSE_EIGEN_SIZE = 30
+#: Eigenpairs computed: the 3 gauge ones and the first non-gauge one (the spectral gap).
+_NUM_EIGENPAIRS = 4
+
+
+# ----------------------------------------------------------------------------------------------
+# Problem data
+# ----------------------------------------------------------------------------------------------
+@dataclass(frozen=True, eq=False)
+class SESyncData:
+    """SE-Sync's data matrix of a graph.
+
+    Attributes
+    ----------
+    keys : (n,) int64
+        Pose keys, in the order of the variables.
+    M : (4n, 4n) scipy.sparse.csr_matrix
+        ``F = tr(X M X^T)`` with ``X = [R_1 .. R_n | t_1 .. t_n]``.
+    grounded : int
+        Index of the pose whose position is held at 0 when translations are eliminated.
+    translation_factor : SuperLU
+        Factorisation of the grounded translation Laplacian ((n-1) x (n-1)).
+    spectral_scale : float
+        Largest diagonal entry of the rotation block of ``M`` (scale of ``S``'s spectrum).
+    target_index, source_index, R_target_source, t_target_source, tau, kappa
+        The edges (see :func:`build_data`), for ``F`` and its gradient in residual form.
+    to_source, to_target : (n, m) scipy.sparse.csr_matrix
+        Incidence (sums of per-edge terms into their source / target pose).
+    """
+
+    keys: NDArray[np.int64]
+    M: sp.csr_matrix
+    grounded: int
+    translation_factor: spla.SuperLU
+    spectral_scale: float
+    target_index: NDArray[np.int64]
+    source_index: NDArray[np.int64]
+    R_target_source: Array
+    t_target_source: Array
+    tau: Array
+    kappa: Array
+    to_source: sp.csr_matrix
+    to_target: sp.csr_matrix
+
+    @property
+    def n(self) -> int:
+        return len(self.keys)
+
+
+def build_data(
+    keys: NDArray[np.int64],
+    target_index: NDArray[np.int64],
+    source_index: NDArray[np.int64],
+    R_target_source: Array,
+    t_target_source: Array,
+    tau: Array,
+    kappa: Array,
+    grounded: int = 0,
+) -> SESyncData:
+    """Assemble ``M`` (vectorised over edges) and factor the grounded translation Laplacian.
+
+    Parameters
+    ----------
+    keys : (n,) int
+    target_index, source_index : (m,) int
+        Variable indices (into ``keys``) of each edge's target ``t`` and source ``s``.
+    R_target_source : (m, 3, 3)
+    t_target_source : (m, 3)
+        Metres.
+    tau, kappa : (m,)
+        SE-Sync's translation and rotation precisions.
+    grounded : int
+        Variable index whose position is grounded.
+    """
+    n = len(keys)
+    i, j = np.asarray(target_index), np.asarray(source_index)
+    m = len(i)
+    e3 = np.arange(3)
+    rows, cols, vals = [], [], []
+
+    def block(r0: Array, c0: Array, values: Array) -> None:
+        """(m, 3, 3) blocks at rows r0+a, cols c0+b."""
+        rows.append((r0[:, None, None] + e3[None, :, None] + 0 * e3[None, None, :]).ravel())
+        cols.append((c0[:, None, None] + 0 * e3[None, :, None] + e3[None, None, :]).ravel())
+        vals.append(values.ravel())
+
+    eye = np.broadcast_to(np.eye(3), (m, 3, 3))
+    k = kappa[:, None, None]
+    tt = tau[:, None, None] * np.einsum("ma,mb->mab", t_target_source, t_target_source)
+    # rotation term kappa ||R_s - R_t R_ts||^2: blocks (s,s) = (t,t) = kappa I, (t,s) = -kappa R_ts
+    block(3 * j, 3 * j, k * eye)
+    block(3 * i, 3 * i, k * eye + tt)
+    block(3 * i, 3 * j, -k * R_target_source)
+    block(3 * j, 3 * i, -k * np.transpose(R_target_source, (0, 2, 1)))
+    # translation term tau ||t_s - t_t - R_t t_ts||^2
+    ti, tj = 3 * n + i, 3 * n + j
+    rows += [ti, tj, ti, tj]
+    cols += [ti, tj, tj, ti]
+    vals += [tau, tau, -tau, -tau]
+    coupling = tau[:, None] * t_target_source  # (m, 3): +at (R_t, t_t), - at (R_t, t_s)
+    r_rot = (3 * i)[:, None] + e3[None, :]
+    for t_col, sign in ((ti, 1.0), (tj, -1.0)):
+        c = np.broadcast_to(t_col[:, None], (m, 3))
+        rows += [r_rot.ravel(), c.ravel()]
+        cols += [c.ravel(), r_rot.ravel()]
+        vals += [(sign * coupling).ravel(), (sign * coupling).ravel()]
+    M = sp.csr_matrix(
+        (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(4 * n, 4 * n)
+    )
+    M.sum_duplicates()
+    M = ((M + M.T) * 0.5).tocsr()  # exact symmetry
+    keep = np.delete(np.arange(n), grounded) + 3 * n
+    L_t = M[keep][:, keep].tocsc()
+    factor = spla.splu(L_t, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
+    scale = float(M.diagonal()[: 3 * n].max())
+    ones = np.ones(m)
+    to_source = sp.csr_matrix((ones, (j, np.arange(m))), shape=(n, m))
+    to_target = sp.csr_matrix((ones, (i, np.arange(m))), shape=(n, m))
+    return SESyncData(np.asarray(keys, dtype=np.int64), M, int(grounded), factor, scale, i, j,
+                      np.asarray(R_target_source, dtype=np.float64), np.asarray(t_target_source, dtype=np.float64),
+                      np.asarray(tau, dtype=np.float64), np.asarray(kappa, dtype=np.float64), to_source, to_target)
+
+
+# ----------------------------------------------------------------------------------------------
+# The certificate matrix S = Q - Lambda
+# ----------------------------------------------------------------------------------------------
+class CertificateMatrix:
+    """``S = Q - Lambda`` (3n x 3n) through the grounded augmented matrix (never dense ``Q``)."""
+
+    def __init__(self, data: SESyncData, Lambda: Array) -> None:
+        n = data.n
+        self.data = data
+        self.size = 3 * n
+        keep = np.concatenate([np.arange(3 * n), 3 * n + np.delete(np.arange(n), data.grounded)])
+        self.augmented = (data.M[keep][:, keep] - block_diagonal(Lambda, len(keep))).tocsc()
+        self._M_RR = self.augmented[: 3 * n, : 3 * n]
+        self._M_tR = self.augmented[3 * n :, : 3 * n].tocsr()
+        self._M_Rt = self.augmented[: 3 * n, 3 * n :].tocsr()
+
+    def shifted(self, sigma: float) -> sp.csc_matrix:
+        """The augmented matrix of ``S - sigma I``."""
+        shift = sp.diags(np.r_[np.full(self.size, sigma), np.zeros(self.augmented.shape[0] - self.size)])
+        return (self.augmented - shift).tocsc()
+
+    def matvec(self, v: Array) -> Array:
+        """``S v`` for ``v`` of shape (3n,) or (3n, k)."""
+        y = self.data.translation_factor.solve(np.ascontiguousarray(self._M_tR @ v))
+        return self._M_RR @ v - self._M_Rt @ y
+
+    def dense(self) -> Array:
+        return self.matvec(np.eye(self.size))
+
+    def negative_count(self, sigma: float) -> tuple[spla.SuperLU | None, int]:
+        """Factorisation of ``S - sigma I`` (augmented) and its number of negative eigenvalues."""
+        return symmetric_lu(self.shifted(sigma))
+
+    def smallest(self, eta: float, k: int = _NUM_EIGENPAIRS) -> tuple[bool, Array, Array]:
+        """Inertia test of ``S + eta I`` and the ``k`` smallest eigenpairs of ``S``.
+
+        Returns
+        -------
+        psd : bool
+            ``S + eta I`` has no negative eigenvalue (``lambda_min >= -eta``).
+        eigenvalues : (k,)
+            Ascending.
+        eigenvectors : (3n, k)
+        """
+        lu, negatives = self.negative_count(-eta)
+        if self.size <= _DENSE_EIGEN_SIZE or lu is None or negatives < 0:
+            w, V = np.linalg.eigh(self.dense())
+            k = min(k, self.size)
+            if negatives < 0:
+                log.debug("certificate: LDL^T inertia unavailable; decided on dense eigenvalues")
+                negatives = int(np.count_nonzero(w < -eta))
+            return negatives == 0, w[:k], V[:, :k]
+        sigma = -eta
+        while negatives > 0:  # move the shift below lambda_min (all eigenvalues >= sigma)
+            sigma *= 10.0
+            lu, negatives = self.negative_count(sigma)
+            if lu is None or negatives < 0:
+                w, V = np.linalg.eigh(self.dense())
+                return False, w[:k], V[:, :k]
+        psd = sigma == -eta
+        pad = self.augmented.shape[0] - self.size
+
+        def solve(b: Array) -> Array:
+            return lu.solve(np.r_[b, np.zeros(pad)])[: self.size]
+
+        op = spla.LinearOperator((self.size, self.size), matvec=self.matvec, dtype=np.float64)
+        inverse = spla.LinearOperator((self.size, self.size), matvec=solve, dtype=np.float64)
+        v0 = np.random.default_rng(0).standard_normal(self.size)  # deterministic results
+        _, V = spla.eigsh(op, k=k, sigma=sigma, which="LM", OPinv=inverse, v0=v0, tol=1e-10)
+        # Rayleigh-Ritz with S itself: the shift-inverted values carry the solves' rounding
+        # magnified by 1/eta (a relative error of ~1e-8 on the gap); Rayleigh quotients of the
+        # Ritz vectors are exact to rounding in S (errors quadratic in the vectors').
+        V, _ = np.linalg.qr(V)
+        projected = V.T @ self.matvec(V)
+        w, U = np.linalg.eigh(0.5 * (projected + projected.T))
+        return psd, w, V @ U
