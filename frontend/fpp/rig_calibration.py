@@ -571,7 +571,7 @@ def transfer_rms_px(calibration: RigCalibration, observations: Sequence[PoseObse
 
 def board_pose_visible(calibration: RigCalibration, board: Chessboard, T_camera_board: NDArray, margin_px: float = 20.0) -> bool:
     """True when all board corners (and a one-square border) are inside camera and projector."""
-    from frontend.fpp.triangulation import project_to_camera, project_to_projector
+    from frontend.fpp.lens import project_to_camera, project_to_projector
 
     nx, ny = board.corners
     s = board.square_m
@@ -613,7 +613,7 @@ def simulate_graycode_captures(
     list of (patterns, white, black)
         Per pose, as :func:`read_graycode_capture` returns them.
     """
-    from frontend.fpp.triangulation import project_to_projector, undistort_pixels
+    from frontend.fpp.lens import project_to_projector, undistort_pixels
 
     cam, proj = calibration.camera, calibration.projector
     H, W = cam.height, cam.width
