@@ -25,8 +25,9 @@ import numpy as np  # noqa: E402
 from scipy.spatial.transform import Rotation  # noqa: E402
 
 from fpp_graph.geometry import make_pose  # noqa: E402
+from frontend.fpp.lens import project_to_projector  # noqa: E402
 from frontend.fpp.rig import PinholeModel, RigCalibration  # noqa: E402
-from frontend.fpp.triangulation import Triangulator, project_to_projector  # noqa: E402
+from frontend.fpp.triangulation import Triangulator  # noqa: E402
 
 cv2.setNumThreads(1)
 

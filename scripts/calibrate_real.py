@@ -21,14 +21,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from frontend.fpp.calibration_board import Chessboard
 from frontend.fpp.calibration_io import read_procam_calibration, read_slmaster_calibration
 from frontend.fpp.rig import save_calibration
-from frontend.fpp.rig_calibration import (
-    Chessboard,
-    calibrate_rig,
-    observe_graycode_folders,
-    transfer_rms_px,
-)
+from frontend.fpp.rig_calibration import calibrate_rig, observe_graycode_folders, transfer_rms_px
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -12,24 +12,24 @@ from scipy.spatial.transform import Rotation
 
 from fpp_graph.errors import CalibrationError
 from fpp_graph.geometry import make_pose
+from frontend.fpp.calibration_board import Chessboard, projector_corners
+from frontend.fpp.calibration_captures import sample_board_poses, simulate_graycode_captures
 from frontend.fpp.calibration_io import (
     read_any_calibration,
     read_procam_calibration,
     read_slmaster_calibration,
 )
-from frontend.fpp.rig import PinholeModel, RigCalibration, load_calibration, save_calibration
-from frontend.fpp.rig_calibration import (
-    Chessboard,
-    calibrate_from_captures,
-    calibrate_from_graycode_folders,
-    calibrate_rig,
+from frontend.fpp.graycode import (
     decode_gray_code,
     gray_code_bit_counts,
     gray_code_patterns,
-    projector_corners,
     read_graycode_capture,
-    sample_board_poses,
-    simulate_graycode_captures,
+)
+from frontend.fpp.rig import PinholeModel, RigCalibration, load_calibration, save_calibration
+from frontend.fpp.rig_calibration import (
+    calibrate_from_captures,
+    calibrate_from_graycode_folders,
+    calibrate_rig,
     transfer_rms_px,
 )
 

@@ -143,10 +143,10 @@ def test_integer_working_image_gives_the_float_responses():
 
 def test_haar_bank_matches_box_sums_at_pixels():
     # dx = (right half - left half) of a 2h x 2h window centred between pixels, read by remap
-    from frontend.features.surf import _HaarBank
+    from frontend.features.surf_descriptors import HaarBank
 
     img = _texture(8, (120, 160)).astype(np.float32)
-    bank = _HaarBank(img)
+    bank = HaarBank(img)
     ii = cv2.integral(img, sdepth=cv2.CV_64F)
 
     def box(y0, y1, x0, x1):  # rows y0..y1-1, cols x0..x1-1

@@ -10,14 +10,14 @@ from scipy.spatial.transform import Rotation
 
 from fpp_graph.errors import CalibrationError, InputDataError
 from fpp_graph.geometry import make_pose
-from frontend.fpp.rig import PinholeModel, RigCalibration
-from frontend.fpp.triangulation import (
-    Triangulator,
+from frontend.fpp.lens import (
     distort_normalized,
     project_to_camera,
     project_to_projector,
     undistort_pixels,
 )
+from frontend.fpp.rig import PinholeModel, RigCalibration
+from frontend.fpp.triangulation import Triangulator
 
 CAM_DIST = np.array([-0.12, 0.08, 0.001, -0.0005, -0.02])
 PROJ_DIST = np.array([-0.05, 0.1, 0.0008, 0.0004, 0.0])

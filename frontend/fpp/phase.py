@@ -68,11 +68,17 @@ from numpy.typing import NDArray
 
 from fpp_graph.config import DecodeConfig
 from fpp_graph.errors import ConfigError, InputDataError
-from frontend.fpp.patterns import PatternSpec, unwrapping_scheme
+from frontend.fpp.patterns import PatternSpec
+from frontend.fpp.unwrapping import (
+    order_from_gray,
+    order_multi_frequency,
+    read_gray_code,
+    unwrap_chain,
+)
+from frontend.fpp.wrapped_phase import TWO_PI, Scratch, phase_weights, wrapped_phase_band
 
 logger = logging.getLogger(__name__)
 
-TWO_PI = 2.0 * math.pi
 INVALID_REASONS = ("low_modulation", "saturated", "shadow", "bad_order")
 # The decoder's output maps (keys of its band dictionaries) and their pixel types.
 _OUTPUT_DTYPES = {"phi": np.float32, "u": np.float32, "mod": np.float32, "tex": np.uint8, "mask": np.uint8, "order": np.int16}
@@ -127,79 +133,6 @@ class DecodeResult:
     @property
     def valid_fraction(self) -> float:
         return float(np.count_nonzero(self.mask)) / max(self.mask.size, 1)
-
-
-def _phase_weights(n_steps: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """sin and cos of the phase shifts ``delta_n``, with exact 0 and +-1 where they belong."""
-    delta = TWO_PI * np.arange(n_steps) / n_steps
-    sin, cos = np.sin(delta), np.cos(delta)
-    for w in (sin, cos):  # exact values let the sums skip zero weights
-        w[np.abs(w) < 1e-12] = 0.0
-        w[np.abs(w - 1) < 1e-12] = 1.0
-        w[np.abs(w + 1) < 1e-12] = -1.0
-    return sin, cos
-
-
-class _Scratch:
-    """Named work buffers of one band size, reused across bands and frames (one per thread)."""
-
-    def __init__(self, rows: int, width: int) -> None:
-        self.rows, self.width = rows, width
-        self._buffers: dict[tuple[str, str], NDArray] = {}
-
-    def get(self, name: str, dtype: type, rows: int) -> NDArray:
-        key = (name, np.dtype(dtype).str)
-        buf = self._buffers.get(key)
-        if buf is None:
-            buf = np.empty((self.rows, self.width), dtype=dtype)
-            self._buffers[key] = buf
-        return buf[:rows]  # a leading row slice of a C-contiguous array stays contiguous
-
-    def const(self, name: str, value: float, dtype: type, rows: int) -> NDArray:
-        key = ("const:" + name, np.dtype(dtype).str)
-        buf = self._buffers.get(key)
-        if buf is None:
-            buf = np.full((self.rows, self.width), value, dtype=dtype)
-            self._buffers[key] = buf
-        return buf[:rows]
-
-
-def _wrapped_phase_band(imgs: list[NDArray], sin: NDArray, cos: NDArray, phi: NDArray, mod: NDArray, work: _Scratch) -> None:
-    """eq. 2 into ``phi`` ([0, 2 pi)) and ``mod`` (b), from one frequency's N images.
-
-    S and C are summed over symmetric pairs: ``sin delta_(N-n) = -sin delta_n`` and
-    ``cos delta_(N-n) = cos delta_n``, so each pair costs one integer difference and one
-    integer sum (exact), and N = 4 needs no multiplication at all.
-    """
-    n = len(imgs)
-    r = imgs[0].shape[0]
-    idt = np.int32 if imgs[0].dtype == np.uint16 else np.int16
-    s = work.get("S", np.float32, r)
-    c = work.get("C", np.float32, r)
-    ti = work.get("tmp_int", idt, r)
-    tf = work.get("tmp_float", np.float32, r)
-    if n % 2 == 0:
-        np.subtract(imgs[0], imgs[n // 2], out=ti, dtype=idt)  # cos 0 = 1, cos pi = -1
-        np.copyto(c, ti, casting="unsafe")
-    else:
-        np.copyto(c, imgs[0], casting="unsafe")
-    for k in range(1, (n - 1) // 2 + 1):
-        sk, ck = float(sin[k]), float(cos[k])
-        np.subtract(imgs[k], imgs[n - k], out=ti, dtype=idt)
-        if k == 1:
-            if sk == 1.0:  # N = 4
-                np.copyto(s, ti, casting="unsafe")
-            else:
-                np.multiply(ti, np.float32(sk), out=s, casting="unsafe")
-        else:
-            np.copyto(tf, ti, casting="unsafe")
-            cv2.scaleAdd(tf, sk, s, dst=s)
-        if ck != 0.0:
-            np.add(imgs[k], imgs[n - k], out=ti, dtype=idt)
-            np.copyto(tf, ti, casting="unsafe")
-            cv2.scaleAdd(tf, ck, c, dst=c)
-    cv2.cartToPolar(c, s, mod, phi)  # |(C, S)| and atan2(S, C) in [0, 2 pi) (cv2.phase's), in one pass
-    np.multiply(mod, np.float32(2.0 / n), out=mod)
 
 
 def _as_stack(images: NDArray | Sequence[NDArray], expected: int, what: str) -> NDArray:
@@ -274,32 +207,13 @@ class Decoder:
         self._code_index = [i for i, im in enumerate(layout) if im.role == "gray"] + [i for i, im in enumerate(layout) if im.role == "complementary"]
         self._white_index = next((i for i, im in enumerate(layout) if im.role == "white"), None)
         self._black_index = next((i for i, im in enumerate(layout) if im.role == "black"), None)
-        self._sin, self._cos = _phase_weights(spec.phase_steps)
+        self._sin, self._cos = phase_weights(spec.phase_steps)
         self._finest = int(np.argmax(spec.periods))
         self.periods_finest = spec.periods[self._finest]
         self.pitch_px = self.axis_length / self.periods_finest
         if spec.kind == "multi_frequency":
-            self._chain = self._unwrap_chain()
+            self._chain = unwrap_chain(spec.periods)
         self._local = threading.local()
-
-    def _unwrap_chain(self) -> list[tuple]:
-        """The coarse-to-fine unwrapping steps: a list of (periods, recipe) from one period up.
-
-        A recipe is ``("freq", f)`` (the wrapped phase of frequency f) or ``("beat", a, b)``
-        (``wrap(phase_a - phase_b)`` where a, b are recipes).
-        """
-        p = self.spec.periods
-        if unwrapping_scheme(p) == "hierarchical":
-            return [(p[f], ("freq", f)) for f in np.argsort(p)]
-        order = [int(i) for i in np.argsort(p)[::-1]]  # descending period counts
-        if len(order) == 2:
-            i1, i2 = order
-            return [(1, ("beat", ("freq", i1), ("freq", i2))), (p[i1], ("freq", i1))]
-        i1, i2, i3 = order
-        p12, p23 = p[i1] - p[i2], p[i2] - p[i3]
-        b12, b23 = ("beat", ("freq", i1), ("freq", i2)), ("beat", ("freq", i2), ("freq", i3))
-        b123 = ("beat", b12, b23) if p12 > p23 else ("beat", b23, b12)
-        return [(1, b123), (p12, b12), (p[i1], ("freq", i1))]
 
     # ------------------------------------------------------------------ input checks
     def _describe(self) -> str:
@@ -344,7 +258,7 @@ class Decoder:
         rows = self.band_rows if 0 < self.band_rows < h else h
         scratch = getattr(self._local, "scratch", None)
         if scratch is None or scratch.rows != rows or scratch.width != w:
-            scratch = _Scratch(rows, w)
+            scratch = Scratch(rows, w)
             self._local.scratch = scratch
         out = self._output_arrays(h, w) if out is None else self._reuse_outputs(out, h, w)
         counts = np.zeros(5, dtype=np.int64)  # the four reasons, then all invalid
@@ -398,7 +312,7 @@ class Decoder:
                 )
         return arrays
 
-    def _decode_band(self, stack: NDArray, out: dict[str, NDArray], work: _Scratch) -> NDArray[np.int64]:
+    def _decode_band(self, stack: NDArray, out: dict[str, NDArray], work: Scratch) -> NDArray[np.int64]:
         """Decode rows of a frame into the given output views; returns the invalid counts."""
         cfg = self.config
         n = self.spec.phase_steps
@@ -440,22 +354,7 @@ class Decoder:
         if saturated is not None:
             cv2.bitwise_or(invalid, saturated, dst=invalid)
 
-        if self.spec.kind == "multi_frequency":
-            order = out["order"]
-            self._order_multi_frequency(phases, order, work)
-            unsigned_order = order.view(np.uint16)
-        else:
-            if self._white_index is not None:
-                # (white + black) / 2; rounding down costs at most half a grey level.
-                threshold = work.get("ref_threshold", stack.dtype, r)
-                acc = work.get("ref_sum", np.uint32 if wide else np.uint16, r)
-                np.add(stack[self._white_index], stack[self._black_index], out=acc, dtype=acc.dtype)
-                np.right_shift(acc, 1, out=acc)
-                np.copyto(threshold, acc, casting="unsafe")
-            code = self._read_code(stack, threshold, work)
-            unsigned_order = self._order_gray(code, out["phi"], work)
-            order = out["order"]
-            np.copyto(order, unsigned_order, casting="unsafe")
+        order, unsigned_order = self._fringe_order(stack, phases, threshold, out, work)
 
         # Orders outside 0..P-1 (negative ones wrap to huge unsigned values) are invalid code words.
         bad = work.get("bad", np.uint8, r)
@@ -480,10 +379,30 @@ class Decoder:
             dtype=np.int64,
         )
 
-    def _wrapped_phase(self, imgs: list[NDArray], phi: NDArray, mod: NDArray, work: _Scratch) -> None:
-        _wrapped_phase_band(imgs, self._sin, self._cos, phi, mod, work)
+    def _fringe_order(self, stack: NDArray, phases: list[NDArray], threshold: NDArray, out: dict[str, NDArray], work: Scratch) -> tuple[NDArray, NDArray]:
+        """The band's fringe order into ``out["order"]``; returns it and its unsigned view (or code type)."""
+        if self.spec.kind == "multi_frequency":
+            order = out["order"]
+            order_multi_frequency(self._chain, phases, order, work)
+            return order, order.view(np.uint16)
+        if self._white_index is not None:
+            # (white + black) / 2; rounding down costs at most half a grey level.
+            r = stack.shape[1]
+            threshold = work.get("ref_threshold", stack.dtype, r)
+            acc = work.get("ref_sum", np.uint32 if stack.dtype == np.uint16 else np.uint16, r)
+            np.add(stack[self._white_index], stack[self._black_index], out=acc, dtype=acc.dtype)
+            np.right_shift(acc, 1, out=acc)
+            np.copyto(threshold, acc, casting="unsafe")
+        code = read_gray_code(stack, self._code_index, threshold, work)
+        unsigned_order = order_from_gray(self.spec.kind, code, out["phi"], work)
+        order = out["order"]
+        np.copyto(order, unsigned_order, casting="unsafe")
+        return order, unsigned_order
 
-    def _background_sum(self, imgs: list[NDArray], work: _Scratch) -> NDArray:
+    def _wrapped_phase(self, imgs: list[NDArray], phi: NDArray, mod: NDArray, work: Scratch) -> None:
+        wrapped_phase_band(imgs, self._sin, self._cos, phi, mod, work)
+
+    def _background_sum(self, imgs: list[NDArray], work: Scratch) -> NDArray:
         """Sum of the N images (uint16 for 8-bit input, float32 for 16-bit: exact either way)."""
         acc_dtype = np.uint16 if imgs[0].dtype == np.uint8 and len(imgs) <= 257 else np.float32
         total = work.get("total", acc_dtype, imgs[0].shape[0])
@@ -492,7 +411,7 @@ class Decoder:
             np.add(total, img, out=total, casting="unsafe")
         return total
 
-    def _saturation(self, imgs: list[NDArray], work: _Scratch, first: bool) -> NDArray:
+    def _saturation(self, imgs: list[NDArray], work: Scratch, first: bool) -> NDArray:
         """OR the saturation of these images into the band's saturation mask."""
         r = imgs[0].shape[0]
         peak = work.get("peak", imgs[0].dtype, r)
@@ -508,99 +427,6 @@ class Decoder:
             np.greater_equal(peak, level, out=tmp.view(np.bool_))
             cv2.bitwise_or(sat, tmp, dst=sat)
         return sat
-
-    def _read_code(self, stack: NDArray, threshold: NDArray, work: _Scratch) -> NDArray:
-        """Binarise the code images and Gray-decode them (MSB first) to an unsigned integer image.
-
-        Gray to binary: bit k of the value is the XOR of the Gray bits 0..k (MSB first), so the
-        value is the XOR over j of "Gray bit j, spread over bits j..last". For up to 8 code
-        images each bit costs three same-type uint8 OpenCV passes (compare: 0/255; threshold:
-        0/low-bits mask; XOR into the value); beyond 8 the value is uint16 (numpy).
-        """
-        r = stack.shape[1]
-        nbits = len(self._code_index)
-        bit = work.get("bit", np.uint8, r)
-        if nbits <= 8:
-            value = work.get("value", np.uint8, r)
-            for j, i in enumerate(self._code_index):
-                low_bits = (1 << (nbits - j)) - 1  # bits j..last of the value (MSB first)
-                target = value if j == 0 else bit
-                if low_bits == 0xFF:
-                    cv2.compare(stack[i], threshold, cv2.CMP_GT, dst=target)
-                else:
-                    cv2.compare(stack[i], threshold, cv2.CMP_GT, dst=bit)
-                    cv2.threshold(bit, 0, low_bits, cv2.THRESH_BINARY, dst=target)
-                if j > 0:
-                    cv2.bitwise_xor(value, bit, dst=value)
-            return value
-        binary = work.get("binary", np.uint8, r)
-        value = work.get("value", np.uint16, r)
-        for j, i in enumerate(self._code_index):
-            # Gray to binary on the fly: b_j = b_(j-1) xor g_j; masks are 0/255.
-            if j == 0:
-                cv2.compare(stack[i], threshold, cv2.CMP_GT, dst=binary)
-            else:
-                cv2.compare(stack[i], threshold, cv2.CMP_GT, dst=bit)
-                cv2.bitwise_xor(binary, bit, dst=binary)
-            term = np.left_shift((binary & 1).astype(np.uint16), np.uint16(nbits - 1 - j))
-            if j == 0:
-                value[...] = term
-            else:
-                value |= term
-        return value
-
-    def _order_gray(self, code: NDArray, phi: NDArray, work: _Scratch) -> NDArray:
-        """Fringe order from the Gray code value (plain) or the half-period index (complementary).
-
-        Returns the order in the code's unsigned type; an order of -1 wraps to the type's
-        maximum, so one unsigned comparison with ``P - 1`` finds every invalid order.
-        """
-        if self.spec.kind == "gray":
-            return code
-        r = code.shape[0]
-        zone = work.get("zone", np.uint8, r)
-        k1 = work.get("k1", code.dtype, r)
-        k2 = work.get("k2", code.dtype, r)
-        np.right_shift(code, 1, out=k1)  # K1 = V2 >> 1: edges at the phase jumps
-        np.subtract(code, k1, out=k2)  # K2 = (V2 + 1) >> 1 = V2 - K1: edges at mid-period
-        np.less_equal(phi, np.float32(0.5 * math.pi), out=zone.view(np.bool_))
-        cv2.copyTo(k2, zone, k1)
-        np.subtract(k2, 1, out=k2)  # K2 - 1 (wraps for K2 = 0)
-        np.greater_equal(phi, np.float32(1.5 * math.pi), out=zone.view(np.bool_))
-        cv2.copyTo(k2, zone, k1)
-        return k1
-
-    def _order_multi_frequency(self, phases: list[NDArray], order: NDArray, work: _Scratch) -> None:
-        """Fringe order of the finest frequency by hierarchical or heterodyne unwrapping."""
-        r = order.shape[0]
-        neg = work.get("neg", np.uint8, r)
-        made: dict[tuple, NDArray] = {}
-
-        def phase_of(recipe: tuple) -> NDArray:
-            if recipe[0] == "freq":
-                return phases[recipe[1]]
-            if recipe not in made:
-                buf = work.get("beat" + repr(recipe), np.float32, r)  # one buffer per distinct beat
-                np.subtract(phase_of(recipe[1]), phase_of(recipe[2]), out=buf)
-                np.less(buf, np.float32(0.0), out=neg.view(np.bool_))
-                cv2.add(buf, TWO_PI, dst=buf, mask=neg)
-                made[recipe] = buf
-            return made[recipe]
-
-        p_prev, recipe = self._chain[0]
-        unwrapped = phase_of(recipe)  # one period: the wrapped phase is absolute
-        guess = work.get("guess", np.float32, r)
-        absolute = work.get("absolute", np.float32, r)
-        for p, recipe in self._chain[1:]:
-            wrapped = phase_of(recipe)
-            # K = round((Phi_prev * p / p_prev - phi) / 2 pi), then Phi = phi + 2 pi K.
-            np.multiply(unwrapped, np.float32(p / p_prev / TWO_PI), out=guess)
-            cv2.scaleAdd(wrapped, -1.0 / TWO_PI, guess, dst=guess)
-            np.rint(guess, out=guess)
-            cv2.scaleAdd(guess, TWO_PI, wrapped, dst=absolute)
-            unwrapped, p_prev = absolute, p
-        np.copyto(order, guess, casting="unsafe")
-
 
 def decode(
     images: NDArray | Sequence[NDArray],
@@ -636,16 +462,16 @@ def compute_wrapped_phase(images: NDArray | Sequence[NDArray], band_rows: int = 
     stack = _as_stack(images, n, f"{n}-step phase shifting")
     h, w = stack.shape[1:]
     rows = band_rows if 0 < band_rows < h else h
-    sin, cos = _phase_weights(n)
+    sin, cos = phase_weights(n)
     phi = np.empty((h, w), np.float32)
     mod = np.empty((h, w), np.float32)
     background = np.empty((h, w), np.float32)
-    work = _Scratch(rows, w)
+    work = Scratch(rows, w)
     acc_dtype = np.uint16 if stack.dtype == np.uint8 and n <= 257 else np.float32
     for r0 in range(0, h, rows):
         r1 = min(h, r0 + rows)
         imgs = [stack[i, r0:r1] for i in range(n)]
-        _wrapped_phase_band(imgs, sin, cos, phi[r0:r1], mod[r0:r1], work)
+        wrapped_phase_band(imgs, sin, cos, phi[r0:r1], mod[r0:r1], work)
         total = work.get("total", acc_dtype, r1 - r0)
         np.add(imgs[0], imgs[1], out=total, dtype=acc_dtype)
         for img in imgs[2:]:

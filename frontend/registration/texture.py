@@ -39,6 +39,37 @@ class TextureAgreement:
 
 
 # One body: projection and the per-block statistics share the sample layout (h, w, b) end to end.
+def _score_blocks(
+    in_view: NDArray, geo: NDArray, tex_s: NDArray, tex_t: NDArray, valid_s: NDArray, h: int, w: int, b: int, min_ncc: float, min_std_grey: float
+) -> TextureAgreement:
+    """Per ``b x b`` block of the (h, w) sample grid: seen, same shape, textured, NCC; the agreement over the informative blocks."""
+
+    def blocks(a: NDArray) -> NDArray:
+        return a.reshape(h // b, b, w // b, b).swapaxes(1, 2).reshape(h // b, w // b, b * b)
+
+    n_view = blocks(in_view).sum(axis=2)
+    m = blocks(geo)
+    n = m.sum(axis=2)
+    xs, xt = blocks(tex_s) * m, blocks(tex_t) * m
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean_s, mean_t = xs.sum(axis=2) / n, xt.sum(axis=2) / n
+        var_s = (xs * xs).sum(axis=2) / n - mean_s**2
+        var_t = (xt * xt).sum(axis=2) / n - mean_t**2
+        cov = (xs * xt).sum(axis=2) / n - mean_s * mean_t
+        ncc = cov / np.sqrt(np.maximum(var_s, 0) * np.maximum(var_t, 0))
+    seen = n_view >= 0.5 * b * b
+    shape_ok = n >= 0.8 * n_view
+    textured = (var_s > min_std_grey**2) & (var_t > min_std_grey**2)
+    informative = seen & (~shape_ok | textured)
+    agree = seen & shape_ok & textured & (ncc >= min_ncc)
+    count = int(informative.sum())
+    source_blocks = int((blocks(valid_s.astype(np.float32)).sum(axis=2) >= 0.5 * b * b).sum())
+    overlap = float(seen.sum()) / max(source_blocks, 1)
+    if count == 0:
+        return TextureAgreement(float("nan"), 0, overlap)
+    return TextureAgreement(float(agree.sum()) / count, count, overlap)
+
+
 def texture_agreement(
     target: Frame,
     source: Frame,
@@ -106,30 +137,7 @@ def texture_agreement(
     tex_t = np.zeros(n_px, np.float32)
     tex_t[idx[same]] = np.asarray(target.texture[v[same], u[same]], dtype=np.float32)
 
-    def blocks(a: NDArray) -> NDArray:
-        return a.reshape(h // b, b, w // b, b).swapaxes(1, 2).reshape(h // b, w // b, b * b)
-
-    n_view = blocks(in_view).sum(axis=2)
-    m = blocks(geo)
-    n = m.sum(axis=2)
-    xs, xt = blocks(tex_s) * m, blocks(tex_t) * m
-    with np.errstate(invalid="ignore", divide="ignore"):
-        mean_s, mean_t = xs.sum(axis=2) / n, xt.sum(axis=2) / n
-        var_s = (xs * xs).sum(axis=2) / n - mean_s**2
-        var_t = (xt * xt).sum(axis=2) / n - mean_t**2
-        cov = (xs * xt).sum(axis=2) / n - mean_s * mean_t
-        ncc = cov / np.sqrt(np.maximum(var_s, 0) * np.maximum(var_t, 0))
-    seen = n_view >= 0.5 * b * b
-    shape_ok = n >= 0.8 * n_view
-    textured = (var_s > min_std_grey**2) & (var_t > min_std_grey**2)
-    informative = seen & (~shape_ok | textured)
-    agree = seen & shape_ok & textured & (ncc >= min_ncc)
-    count = int(informative.sum())
-    source_blocks = int((blocks(valid_s.astype(np.float32)).sum(axis=2) >= 0.5 * b * b).sum())
-    overlap = float(seen.sum()) / max(source_blocks, 1)
-    if count == 0:
-        return TextureAgreement(float("nan"), 0, overlap)
-    return TextureAgreement(float(agree.sum()) / count, count, overlap)
+    return _score_blocks(in_view, geo, tex_s, tex_t, valid_s, h, w, b, min_ncc, min_std_grey)
 
 
 @dataclass(frozen=True)

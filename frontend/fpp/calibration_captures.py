@@ -1,0 +1,152 @@
+"""Synthetic Gray-code calibration captures of a chessboard for a known rig (for validation).
+
+Board poses seen whole by camera and projector (:func:`sample_board_poses`), rendered as a rig
+would capture them (:func:`simulate_graycode_captures`); :func:`frontend.fpp.rig_calibration.calibrate_from_captures`
+calibrates from them.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from fpp_graph.errors import CalibrationError
+from fpp_graph.geometry import make_pose
+from frontend.fpp.calibration_board import Chessboard
+from frontend.fpp.graycode import gray_code_patterns
+from frontend.fpp.lens import project_to_camera, project_to_projector, undistort_pixels
+from frontend.fpp.rig import RigCalibration
+
+
+def board_pose_visible(calibration: RigCalibration, board: Chessboard, T_camera_board: NDArray, margin_px: float = 20.0) -> bool:
+    """True when all board corners (and a one-square border) are inside camera and projector."""
+    nx, ny = board.corners
+    s = board.square_m
+    outline = np.array([[-s, -s, 0], [nx * s, -s, 0], [nx * s, ny * s, 0], [-s, ny * s, 0]])
+    pts = np.vstack([board.object_points_m, outline])
+    X = pts @ T_camera_board[:3, :3].T + T_camera_board[:3, 3]
+    if np.any(X[:, 2] <= 0):
+        return False
+    for (u, v), dev in ((project_to_camera(calibration, X), calibration.camera), (project_to_projector(calibration, X), calibration.projector)):
+        if not (np.all(np.isfinite(u)) and u.min() >= margin_px and v.min() >= margin_px and u.max() <= dev.width - 1 - margin_px and v.max() <= dev.height - 1 - margin_px):
+            return False
+    return True
+
+
+def simulate_graycode_captures(
+    calibration: RigCalibration,
+    board: Chessboard,
+    T_camera_board_list: Sequence[NDArray],
+    rng: np.random.Generator,
+    *,
+    supersample: int = 3,
+    noise_grey: float = 1.0,
+    blur_sigma_px: float = 0.6,
+    albedo_black: float = 0.1,
+    albedo_white: float = 0.9,
+    ambient: float = 0.05,
+    gain: float = 230.0,
+) -> list[tuple[NDArray[np.uint8], NDArray[np.uint8], NDArray[np.uint8]]]:
+    """Render Gray-code calibration captures of a chessboard for a known rig (for validation).
+
+    The board lies on an infinite plane (the paper margin is one square wide, the plane beyond
+    has albedo 0.5). Each camera pixel integrates ``supersample**2`` rays (camera distortion
+    included); each ray sees the board's albedo times (ambient + projector pattern), the
+    projector pixel being the one the surface point projects to (projector distortion
+    included). Then Gaussian blur, Gaussian noise, 8-bit quantisation.
+
+    Returns
+    -------
+    list of (patterns, white, black)
+        Per pose, as :func:`read_graycode_capture` returns them.
+    """
+    cam, proj = calibration.camera, calibration.projector
+    H, W = cam.height, cam.width
+    offsets = (np.arange(supersample) + 0.5) / supersample - 0.5
+    ox, oy = np.meshgrid(offsets, offsets)
+    vv, uu = np.mgrid[0:H, 0:W].astype(np.float64)
+    rays = np.empty((supersample * supersample, H, W, 2), dtype=np.float32)
+    for k, (dx, dy) in enumerate(zip(ox.ravel(), oy.ravel(), strict=True)):
+        xy, _ = undistort_pixels(cam, np.column_stack([(uu + dx).ravel(), (vv + dy).ravel()]))
+        rays[k] = xy.reshape(H, W, 2)
+    patterns_proj = gray_code_patterns(proj.width, proj.height).astype(np.float32) / 255.0
+    n_pat = len(patterns_proj)
+    nx, ny = board.corners
+    s = board.square_m
+    captures = []
+    for T in T_camera_board_list:
+        R, t = T[:3, :3], T[:3, 3]
+        normal = R[:, 2]
+        acc = np.zeros((n_pat + 2, H, W), dtype=np.float32)
+        for k in range(len(rays)):
+            r = np.concatenate([rays[k].astype(np.float64), np.ones((H, W, 1))], axis=-1)
+            lam = (normal @ t) / (r @ normal)
+            X = r * lam[..., None]
+            b = (X - t) @ R  # board coordinates
+            bx, by = b[..., 0] / s, b[..., 1] / s
+            checker = (np.floor(bx) + np.floor(by)) % 2 == 0
+            albedo = np.where(checker, albedo_black, albedo_white)
+            on_paper = (bx >= -2) & (bx <= nx + 1) & (by >= -2) & (by <= ny + 1)
+            in_squares = (bx >= -1) & (bx <= nx) & (by >= -1) & (by <= ny)
+            albedo = np.where(in_squares, albedo, np.where(on_paper, albedo_white, 0.5))
+            albedo = np.where(lam > 0, albedo, 0.0)
+            u_p, v_p = project_to_projector(calibration, X)
+            col = np.floor(u_p + 0.5)
+            row = np.floor(v_p + 0.5)
+            lit = np.isfinite(col) & np.isfinite(row) & (col >= 0) & (col < proj.width) & (row >= 0) & (row < proj.height)
+            ci = np.where(lit, col, 0).astype(np.intp)
+            ri = np.where(lit, row, 0).astype(np.intp)
+            pattern_values = patterns_proj[:, ri, ci] * lit  # (n_pat, H, W)
+            acc[:n_pat] += albedo * (ambient + pattern_values)
+            acc[n_pat] += albedo * (ambient + lit)
+            acc[n_pat + 1] += albedo * ambient
+        acc *= gain / len(rays)
+        images = []
+        for img in acc:
+            if blur_sigma_px > 0:
+                img = cv2.GaussianBlur(img, (0, 0), blur_sigma_px)
+            img = img + rng.normal(0.0, noise_grey, img.shape).astype(np.float32)
+            images.append(np.clip(np.rint(img), 0, 255).astype(np.uint8))
+        stack = np.stack(images)
+        captures.append((stack[:n_pat], stack[n_pat], stack[n_pat + 1]))
+    return captures
+
+
+def sample_board_poses(
+    calibration: RigCalibration,
+    board: Chessboard,
+    n: int,
+    rng: np.random.Generator,
+    depth_range_m: tuple[float, float] = (0.45, 0.8),
+    max_tilt_deg: float = 35.0,
+    max_spin_deg: float = 25.0,
+    max_tries: int = 20000,
+) -> list[NDArray[np.float64]]:
+    """Random board poses ``T_camera_board`` seen whole by both camera and projector.
+
+    The board centre is drawn between the camera axis and the projector's, at a depth in
+    ``depth_range_m``; tilts about the board's x and y axes up to ``max_tilt_deg`` (varied
+    tilts are what make focal lengths observable), spin about its normal up to ``max_spin_deg``.
+    """
+    from scipy.spatial.transform import Rotation
+
+    nx, ny = board.corners
+    centre_board = np.array([(nx - 1) / 2, (ny - 1) / 2, 0.0]) * board.square_m
+    C_p = -calibration.T_projector_camera[:3, :3].T @ calibration.T_projector_camera[:3, 3]
+    poses = []
+    for _ in range(max_tries):
+        z = rng.uniform(*depth_range_m)
+        a = rng.uniform(0.0, 1.0)
+        centre = np.array([a * C_p[0], a * C_p[1], z]) + rng.normal(0, 0.03, 3) * [1, 1, 0]
+        tilt = rng.uniform(-max_tilt_deg, max_tilt_deg, 2)
+        spin = rng.uniform(-max_spin_deg, max_spin_deg)
+        R = Rotation.from_euler("xyz", [tilt[0], tilt[1], spin], degrees=True).as_matrix()
+        T = make_pose(R, centre - R @ centre_board)
+        if board_pose_visible(calibration, board, T):
+            poses.append(T)
+            if len(poses) == n:
+                return poses
+    raise CalibrationError(f"could not place {n} board poses visible to camera and projector in {max_tries} tries (found {len(poses)}); enlarge the depth range or shrink the board")
