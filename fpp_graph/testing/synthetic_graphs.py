@@ -129,7 +129,7 @@ def torus_rings_graph(
 
 
 # Noise regime of SE-Sync's sphere2500.g2o, measured from the file (scripts/bench_pose_graph_peer.py
-# and tests/test_synthetic_graphs.py use it): every edge has translation information 10 I3 (tau = 10,
+# and tests/backend/test_synthetic_graphs.py use it): every edge has translation information 10 I3 (tau = 10,
 # sigma 0.316 m per axis) and rotation information about diag(400, 400, 99.2) (kappa = 99.0, the
 # isotropic sigma sqrt(1 / (2 kappa)) = 0.0711 rad per axis); the median odometry step is 4.54 m
 # and turns 0.128 rad. Translation noise is therefore 0.0696 of the step length.

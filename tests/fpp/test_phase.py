@@ -306,7 +306,7 @@ def test_load_image_stack_errors(tmp_path: Path, good_images) -> None:
 # ---------------------------------------------------------------------------------- real captures
 @pytest.fixture(scope="module")
 def decode_real() -> dict:
-    return runpy.run_path(str(Path(__file__).resolve().parents[1] / "scripts" / "decode_real.py"))
+    return runpy.run_path(str(Path(__file__).resolve().parents[2] / "scripts" / "decode_real.py"))
 
 
 def test_slmaster_heterodyne_regression(decode_real) -> None:
