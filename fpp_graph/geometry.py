@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.spatial.transform import Rotation
 
 from fpp_graph.errors import InputDataError
 
@@ -56,13 +55,39 @@ def transform_points(T_a_b: ArrayLike, points_b: ArrayLike) -> Array:
     return P @ np.ascontiguousarray(T[:3, :3].T) + T[:3, 3]
 
 
+def rotations_from_quats_xyzw(quats_xyzw: ArrayLike) -> Array:
+    """Rotation matrices (..., 3, 3) of quaternions (..., 4) in ``x y z w`` order, normalised first.
+
+    The products are scipy's (``Rotation.from_quat(q).as_matrix()``), written out here because
+    importing ``scipy.spatial`` costs a short ``fpp-slam optimize`` about 0.07 s.
+    """
+    q = np.asarray(quats_xyzw, dtype=np.float64)
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    x, y, z, w = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    x2, y2, z2, w2 = x * x, y * y, z * z, w * w
+    xy, zw, xz, yw, yz, xw = x * y, z * w, x * z, y * w, y * z, x * w
+    R = np.empty(q.shape[:-1] + (3, 3))
+    R[..., 0, 0] = x2 - y2 - z2 + w2
+    R[..., 1, 0] = 2 * (xy + zw)
+    R[..., 2, 0] = 2 * (xz - yw)
+    R[..., 0, 1] = 2 * (xy - zw)
+    R[..., 1, 1] = -x2 + y2 - z2 + w2
+    R[..., 2, 1] = 2 * (yz + xw)
+    R[..., 0, 2] = 2 * (xz + yw)
+    R[..., 1, 2] = 2 * (yz - xw)
+    R[..., 2, 2] = -x2 - y2 + z2 + w2
+    return R
+
+
 def pose_from_quat_xyzw(translation: ArrayLike, quat_xyzw: ArrayLike) -> Array:
     """Pose from a translation and a unit quaternion in ``x y z w`` order."""
-    return make_pose(Rotation.from_quat(np.asarray(quat_xyzw, dtype=np.float64)).as_matrix(), translation)
+    return make_pose(rotations_from_quats_xyzw(quat_xyzw), translation)
 
 
 def quat_xyzw_from_pose(T: ArrayLike) -> Array:
     """Unit quaternion ``x y z w`` of a pose's rotation, with ``w >= 0``."""
+    from scipy.spatial.transform import Rotation  # imported on use: see rotations_from_quats_xyzw
+
     q = Rotation.from_matrix(np.asarray(T, dtype=np.float64)[:3, :3]).as_quat()
     return -q if q[3] < 0 else q
 
@@ -85,6 +110,8 @@ def _left_jacobian_so3(omega: Array) -> Array:
 
 def se3_exp(xi_rot_trans: ArrayLike) -> Array:
     """Exponential map of a twist ``[omega (rad), v (m)]`` to a 4x4 pose (GTSAM's Pose3.Expmap)."""
+    from scipy.spatial.transform import Rotation  # imported on use: see rotations_from_quats_xyzw
+
     xi = np.asarray(xi_rot_trans, dtype=np.float64).reshape(6)
     omega, v = xi[:3], xi[3:]
     return make_pose(Rotation.from_rotvec(omega).as_matrix(), _left_jacobian_so3(omega) @ v)
@@ -92,6 +119,8 @@ def se3_exp(xi_rot_trans: ArrayLike) -> Array:
 
 def se3_log(T: ArrayLike) -> Array:
     """Logarithm of a 4x4 pose as a twist ``[omega (rad), v (m)]`` (GTSAM's Pose3.Logmap)."""
+    from scipy.spatial.transform import Rotation  # imported on use: see rotations_from_quats_xyzw
+
     T = np.asarray(T, dtype=np.float64)
     omega = Rotation.from_matrix(T[:3, :3]).as_rotvec()
     v = np.linalg.solve(_left_jacobian_so3(omega), T[:3, 3])
@@ -100,6 +129,8 @@ def se3_log(T: ArrayLike) -> Array:
 
 def rotation_angle_rad(R: ArrayLike) -> float:
     """Angle of a rotation matrix in radians, numerically safe near 0 and pi."""
+    from scipy.spatial.transform import Rotation  # imported on use: see rotations_from_quats_xyzw
+
     return float(np.linalg.norm(Rotation.from_matrix(np.asarray(R, dtype=np.float64)).as_rotvec()))
 
 

@@ -45,3 +45,15 @@ def test_is_rigid_and_pose_error(rng):
     assert abs(trans_err - 1e-4) < 1e-12
     q = g.quat_xyzw_from_pose(T)
     np.testing.assert_allclose(g.pose_from_quat_xyzw(T[:3, 3], q), T, atol=1e-12)
+
+
+def test_rotations_from_quats_match_scipy_bitwise_and_normalise():
+    from scipy.spatial.transform import Rotation
+
+    from fpp_graph.geometry import rotations_from_quats_xyzw
+
+    q = np.random.default_rng(3).normal(size=(1000, 4))
+    np.testing.assert_array_equal(rotations_from_quats_xyzw(q), Rotation.from_quat(q).as_matrix())
+    R = rotations_from_quats_xyzw(q[0] * 7.0)  # one quaternion, not of unit norm
+    np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-14)
+    assert rotations_from_quats_xyzw(np.zeros((0, 4))).shape == (0, 3, 3)

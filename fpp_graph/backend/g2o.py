@@ -42,11 +42,11 @@ from pathlib import Path
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.spatial.transform import Rotation
 
 from fpp_graph.atomic import atomic_open
 from fpp_graph.backend.pose_graph import PoseGraph, PoseGraphEdge
 from fpp_graph.errors import InputDataError
+from fpp_graph.geometry import rotations_from_quats_xyzw
 from fpp_graph.types import ConstraintKind
 
 log = logging.getLogger(__name__)
@@ -97,7 +97,7 @@ def _rotations_from_quats(quats_xyzw: NDArray[np.float64], lines: list[int], pat
         i = int(bad[0])
         kind = "zero quaternion" if norms[i] == 0 else f"quaternion norm {norms[i]:.6g} is not 1 (tolerance {_QUAT_NORM_TOLERANCE})"
         raise _fail(path, lines[i], f"{what}: {kind}; write qx qy qz qw of a unit quaternion")
-    return Rotation.from_quat(quats_xyzw).as_matrix()
+    return rotations_from_quats_xyzw(quats_xyzw)
 
 
 def _eigenvalues(matrices: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -331,6 +331,10 @@ def read_g2o(path: str | os.PathLike[str]) -> PoseGraph:
 def _quats_for(matrices: NDArray[np.float64]) -> NDArray[np.float64]:
     if len(matrices) == 0:
         return np.zeros((0, 4))
+    from scipy.spatial.transform import (
+        Rotation,  # imported on use: reading a graph does not need it
+    )
+
     q = Rotation.from_matrix(matrices).as_quat()
     return np.where(q[:, 3:4] < 0, -q, q)
 
