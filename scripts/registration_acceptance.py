@@ -26,9 +26,9 @@ corners, and :func:`frontend.localization.localize_photometric` against one and 
 
 Usage::
 
-    .venv/bin/python scripts/registration_acceptance.py            # full resolution, all lines
-    .venv/bin/python scripts/registration_acceptance.py --quick    # 640x400, few pairs (minutes)
-    .venv/bin/python scripts/registration_acceptance.py --groups "" --features surf --map-triples 12 --skip-rejection  # localisation only
+    .venv/bin/python -m scripts.registration_acceptance            # full resolution, all lines
+    .venv/bin/python -m scripts.registration_acceptance --quick    # 640x400, few pairs (minutes)
+    .venv/bin/python -m scripts.registration_acceptance --groups "" --features surf --map-triples 12 --skip-rejection  # localisation only
 """
 
 from __future__ import annotations
