@@ -33,11 +33,8 @@ import numpy as np
 
 from fpp_graph.backend.g2o import read_g2o
 from fpp_graph.backend.incremental import IncrementalPoseGraph
-from fpp_graph.backend.pose_graph import (
-    PoseGraph,
-    isotropic_information,
-    sesync_objective,
-)
+from fpp_graph.backend.noise_model import isotropic_information
+from fpp_graph.backend.pose_graph import PoseGraph, sesync_objective
 from fpp_graph.config import PoseGraphConfig
 from fpp_graph.testing.synthetic_graphs import ate_rmse_m, corridor_trajectory, torus_graph
 from fpp_graph.types import Constraint

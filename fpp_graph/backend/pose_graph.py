@@ -39,17 +39,16 @@ from numpy.typing import ArrayLike, NDArray
 
 from fpp_graph.backend.graph_diagnostics import check_constrained
 from fpp_graph.backend.gtsam_bridge import (
-    ANCHOR_STIFFNESS,  # noqa: F401  (re-exported: callers size their own priors by it)
     as_information,
     as_pose,
     poses_from,
     solver_error,
     values_from,
 )
-from fpp_graph.backend.noise_model import isotropic_information, sesync_tau_kappa  # noqa: F401  (re-exported)
+from fpp_graph.backend.noise_model import sesync_tau_kappa
 from fpp_graph.backend.outliers import SCREEN_AGAIN_AFTER, LoopScreen
 from fpp_graph.backend.problem import GraphProblem
-from fpp_graph.backend.records import PoseGraphEdge, PoseGraphResult, PosePrior  # noqa: F401  (re-exported)
+from fpp_graph.backend.records import PoseGraphEdge, PoseGraphResult, PosePrior
 from fpp_graph.config import PoseGraphConfig
 from fpp_graph.errors import GraphError
 from fpp_graph.types import Constraint, ConstraintKind

@@ -33,7 +33,8 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from fpp_graph.backend.pose_graph import PoseGraph, sesync_tau_kappa
+from fpp_graph.backend.noise_model import sesync_tau_kappa
+from fpp_graph.backend.pose_graph import PoseGraph
 from fpp_graph.errors import GraphError
 from fpp_graph.geometry import invert, make_pose, se3_exp
 from fpp_graph.types import ConstraintKind

@@ -7,7 +7,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from fpp_graph.backend.certificate import certify_graph
-from fpp_graph.backend.pose_graph import PoseGraph, sesync_objective, sesync_tau_kappa
+from fpp_graph.backend.noise_model import sesync_tau_kappa
+from fpp_graph.backend.pose_graph import PoseGraph, sesync_objective
 from fpp_graph.config import PoseGraphConfig
 from fpp_graph.errors import GraphError
 

@@ -16,12 +16,8 @@ from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 from fpp_graph.backend.g2o import read_g2o, write_g2o
-from fpp_graph.backend.pose_graph import (
-    PoseGraph,
-    isotropic_information,
-    sesync_objective,
-    sesync_tau_kappa,
-)
+from fpp_graph.backend.noise_model import isotropic_information, sesync_tau_kappa
+from fpp_graph.backend.pose_graph import PoseGraph, sesync_objective
 from fpp_graph.cli import main as cli_main
 from fpp_graph.config import PoseGraphConfig
 from fpp_graph.errors import GraphError, InputDataError

@@ -8,12 +8,8 @@ from conftest import shared_data_path
 from scipy.spatial.transform import Rotation
 
 from fpp_graph.backend.incremental import IncrementalPoseGraph
-from fpp_graph.backend.pose_graph import (
-    PoseGraph,
-    isotropic_information,
-    sesync_objective,
-    sesync_tau_kappa,
-)
+from fpp_graph.backend.noise_model import isotropic_information, sesync_tau_kappa
+from fpp_graph.backend.pose_graph import PoseGraph, sesync_objective
 from fpp_graph.config import PoseGraphConfig
 from fpp_graph.errors import FppError, GraphError
 from fpp_graph.geometry import invert, make_pose, se3_exp
