@@ -37,7 +37,7 @@ from fpp_graph.errors import FppError, InputDataError, OutputError
 from fpp_graph.geometry import compose
 from fpp_graph.slam.frame_store import FrameStore, load_frame, save_frame
 from fpp_graph.slam.keyframes import KeyframeManager, SlamResult
-from fpp_graph.slam.sources import FrameSource
+from fpp_graph.slam.sources import FrameSource, check_frame_source
 from fpp_graph.trajectory import Trajectory, write_tum
 from fpp_graph.types import Frame, FusedMap, MapFuser
 
@@ -338,6 +338,7 @@ class Pipeline:
         """``map_fuser`` fuses the global map (default: :class:`~fpp_graph.fusion.voxel_map.VoxelMapFuser`
         from ``config.fusion``)."""
         self.source = source
+        check_frame_source(source)
         self.config = source.resolve_config(config)
         self.map_fuser = map_fuser
         self.out = Path(out)

@@ -70,6 +70,18 @@ class FrameSource(Protocol):
         ...
 
 
+def check_frame_source(source: object) -> None:
+    """Raise :class:`InputDataError` naming what ``source`` lacks of the :class:`FrameSource`
+    declaration (a plug-in written against an older or partial declaration)."""
+    members = sorted({n for n in vars(FrameSource) if not n.startswith("_")} | set(FrameSource.__annotations__))
+    missing = [n for n in members if not hasattr(source, n)]
+    if missing:
+        raise InputDataError(
+            f"frame source {type(source).__name__} lacks {', '.join(missing)} of the FrameSource protocol: "
+            "implement every member declared in fpp_graph.slam.sources.FrameSource"
+        )
+
+
 def available_sources() -> dict[str, type]:
     """Registered source classes by name."""
     found: dict[str, type] = {}

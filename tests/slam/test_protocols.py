@@ -16,10 +16,11 @@ import numpy as np
 import pytest
 
 from fpp_graph.config import config_from_dict
+from fpp_graph.errors import InputDataError
 from fpp_graph.geometry import invert, make_pose, se3_exp, transform_points
 from fpp_graph.slam.keyframes import KeyframeManager
 from fpp_graph.slam.pipeline import Pipeline
-from fpp_graph.slam.sources import FrameSource
+from fpp_graph.slam.sources import FrameSource, check_frame_source
 from fpp_graph.trajectory import Trajectory
 from fpp_graph.types import (
     Constraint,
@@ -175,7 +176,7 @@ def test_pipeline_runs_on_a_foreign_source_and_map_fuser(tmp_path):
     assert metrics["loops_accepted"] >= VIEWS
 
 
-def test_a_source_without_the_declared_resolve_config_is_refused_by_the_type_check():
+def test_a_source_without_the_declared_members_is_refused_naming_them():
     class Incomplete:
         name = "incomplete"
 
@@ -183,5 +184,6 @@ def test_a_source_without_the_declared_resolve_config_is_refused_by_the_type_che
             return []
 
     assert not isinstance(Incomplete(), FrameSource)
-    with pytest.raises(AttributeError):
+    with pytest.raises(InputDataError, match="Incomplete lacks .*resolve_config.* of the FrameSource protocol"):
         Pipeline(Incomplete(), config_from_dict({}), Path("unused"))
+    check_frame_source(TurntableSource())  # a complete one passes
