@@ -44,6 +44,7 @@ def demo(
     from frontend.sim import simulate_sequence
 
     setup_logging("WARNING")
+    config = load_config(None)
     start = time.perf_counter()
     sequence_dir = out / "sequence"
     results_dir = out / "results"
@@ -52,8 +53,8 @@ def demo(
         simulate_sequence(DEFAULT_SCENE, sequence_dir, preview=not full, max_frames=frames or None, overwrite=True)
     typer.echo(f"simulated in {time.perf_counter() - start:.1f} s; running SLAM ...")
     with RichProgress() as progress:
-        report = run_sequence(sequence_dir, None, results_dir, resume=False, overwrite=True, kind="fpp", progress=progress)
-    metrics = evaluate_results(results_dir, open_source(sequence_dir, load_config(None)))
+        report = run_sequence(sequence_dir, config, results_dir, resume=False, overwrite=True, kind="fpp", progress=progress)
+    metrics = evaluate_results(results_dir, open_source(sequence_dir, config))
     keep = (
         "frames", "keyframes", "loops_accepted", "loops_rejected", "ate_rmse_mm", "rpe_trans_rmse_mm",
         "rpe_rot_rmse_deg", "loop_return_mm", "map_rmse_mm", "map_p95_mm", "run_seconds",

@@ -52,7 +52,7 @@ def run_ours(seq: Path, out: Path, config_path: Path | None = None) -> dict:
     from fpp_graph.slam.sources import open_source
 
     wall0, cpu0 = time.perf_counter(), cpu_seconds()
-    run_sequence(seq, config_path, out, resume=False, overwrite=True, kind=None)
+    run_sequence(seq, load_config(config_path), out, resume=False, overwrite=True, kind=None)
     wall, cpu = time.perf_counter() - wall0, cpu_seconds() - cpu0
     metrics = evaluate_results(out, open_source(seq, load_config(None)))
     return {"wall_s": wall, "cpu_s": cpu, **metrics}

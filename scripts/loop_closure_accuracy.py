@@ -37,7 +37,7 @@ def run_one(scene: str, seed: int, folder: Path, full: bool, frames: int | None,
     from frontend.demo import simulate_once
 
     seq = simulate_once(scene, folder / "sequence", full, frames, seed)
-    report = run_sequence(seq, config_path, folder / "results", resume=False, overwrite=True, kind=None)
+    report = run_sequence(seq, load_config(config_path), folder / "results", resume=False, overwrite=True, kind=None)
     m = evaluate_results(folder / "results", open_source(seq, load_config(None)))
     run = report.metrics
     row = {

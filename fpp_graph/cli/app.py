@@ -48,8 +48,8 @@ def add_commands(names: list[str] | None = None) -> None:
     """Attach built-in commands (all by default, with the ``config`` group and the plug-ins).
 
     Typer turns every attached command's signature into a parser (with a pydantic validator
-    per option) at each call, so a run attaches only the command it runs: ``fpp-slam optimize``
-    on a small graph is a process of about half a second, and the other commands cost ~0.04 s.
+    per option) at each call, so a run attaches only the command it runs (``fpp-slam optimize``
+    on a small graph is a process of about half a second).
     """
     for name in names if names is not None else [*COMMANDS, "config"]:
         if name in _added:

@@ -45,7 +45,7 @@ def run(
 
     setup_logging(cfg.run.log_level)
     with RichProgress() as progress:
-        report = run_sequence(sequence, config, out, resume=resume, overwrite=overwrite, kind=kind, progress=progress)
+        report = run_sequence(sequence, cfg, out, resume=resume, overwrite=overwrite, kind=kind, progress=progress)
     m = report.metrics
     typer.echo(
         f"{m['frames']}/{m['frames_total']} frames, {m['keyframes']} keyframes, loops {m['loops_accepted']} accepted / "

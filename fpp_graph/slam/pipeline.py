@@ -419,15 +419,12 @@ class Pipeline:
 
 
 def run_sequence(
-    sequence: Path, config_path: Path | None, out: Path, resume: bool = False, overwrite: bool = False,
+    sequence: Path, config: Config, out: Path, resume: bool = False, overwrite: bool = False,
     kind: str | None = None, progress: ProgressCallback | None = None,
 ) -> RunReport:
     """``fpp-slam run SEQUENCE``: open the sequence with its registered source (``kind`` forces
-    one), load the configuration (packaged defaults overridden by ``config_path``) and run the
-    pipeline into ``out``."""
-    from fpp_graph.config import load_config
+    one) and run the pipeline into ``out`` under ``config`` (e.g. ``load_config(path)``)."""
     from fpp_graph.slam.sources import open_source
 
-    config = load_config(config_path)
     source = open_source(sequence, config, kind=kind)
     return Pipeline(source, config, out, resume=resume, overwrite=overwrite, progress=progress).run()
