@@ -70,7 +70,12 @@ def prepare_results_dir(out: Path, resume: bool = False, overwrite: bool = False
     if out.exists() and any(out.iterdir()):
         ours = (out / RESULTS_MARKER).exists()
         if resume and ours:
-            log.info("resuming in %s", out)
+            # temp files of writes an interrupted run did not finish (fpp_graph.atomic names them
+            # .<target>.<random>.tmp); their targets are absent or whole, so they are only litter
+            stale = [p for p in out.rglob(".*.tmp") if p.is_file()]
+            for p in stale:
+                p.unlink()
+            log.info("resuming in %s (%d unfinished temp file(s) of the interrupted run removed)", out, len(stale))
             return out
         if overwrite and ours:
             log.info("overwriting the earlier results in %s", out)

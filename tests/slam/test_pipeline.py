@@ -320,3 +320,15 @@ def test_colour_is_resampled_onto_the_depth_grid():
     peak = np.unravel_index(np.argmax(registered), registered.shape)
     assert abs(peak[0] - 300) <= 1 and abs(peak[1] - 100) <= 1
     assert abs(u - 100) > 10  # pasting pixel for pixel would have been 15 px off here
+
+
+def test_resume_removes_the_temp_files_of_interrupted_writes_only(tmp_path):
+    from fpp_graph.slam.pipeline import RESULTS_MARKER, prepare_results_dir
+
+    out = prepare_results_dir(tmp_path / "out")
+    (out / "frames").mkdir()
+    (out / "frames" / "frame_000001.npz").write_bytes(b"whole")
+    (out / "frames" / ".frame_000002.npz.abc123.tmp").write_bytes(b"half")
+    (out / "notes.tmp").write_text("a user's file, not an atomic-write temp")
+    assert prepare_results_dir(out, resume=True) == out
+    assert sorted(p.name for p in out.rglob("*")) == sorted([RESULTS_MARKER, "frames", "frame_000001.npz", "notes.tmp"])
