@@ -158,7 +158,7 @@ def torus_graph(
     rot_sigma_rad: float | None = None,
     trans_sigma_m: float | None = None,
 ) -> SyntheticGraph:
-    # 117 lines: a 50-line docstring; the body is one construction (geometry, odometry, loops) on one rng stream
+    # 91 lines: a 14-line signature and a 50-line docstring over a 25-line body (steps: _torus_poses, _torus_loop_candidates)
     """A robot winding around a torus, like SE-Sync's torus3D (5000 poses, 9048 edges).
 
     The robot goes round the tube ``P = round(sqrt(num_poses / 2))`` poses per winding while
@@ -223,6 +223,22 @@ def torus_graph(
     sigmas = np.array([rotation_sigma_rad] * 3 + [translation_sigma_m] * 3, dtype=np.float64)
     info = np.diag(1.0 / sigmas**2)
 
+    poses, centres, per_winding = _torus_poses(num_poses, step_m)
+    sim = SyntheticGraph(poses)
+    for i in range(1, num_poses):
+        sim.edges.append((i, i - 1, _measure(invert(poses[i - 1]) @ poses[i], sigmas, rng), info, ConstraintKind.ODOMETRY))
+    candidates = _torus_loop_candidates(centres, per_winding, step_m)
+    count = min(len(candidates), round(loops_per_pose * num_poses))
+    chosen = np.sort(rng.choice(len(candidates), size=count, replace=False))
+    for c in chosen:
+        s, t = candidates[int(c)]
+        sim.edges.append((s, t, _measure(invert(poses[t]) @ poses[s], sigmas, rng), info, ConstraintKind.LOOP))
+    return sim
+
+
+def _torus_poses(num_poses: int, step_m: float) -> tuple[dict[int, Array], Array, int]:
+    """True poses of the torus (one winding round the tube every ``per_winding`` steps, once
+    round the axis in all): poses, their centres (n, 3) and ``per_winding``."""
     per_winding = max(4, round(math.sqrt(num_poses / 2)))
     minor = step_m * per_winding / (2 * math.pi)
     major = 2.0 * minor
@@ -238,14 +254,13 @@ def torus_graph(
     x = velocity - np.sum(velocity * normal, axis=1, keepdims=True) * normal
     x /= np.linalg.norm(x, axis=1, keepdims=True)
     y = np.cross(normal, x)
-    poses: dict[int, Array] = {}
-    for i in range(num_poses):
-        poses[i] = make_pose(np.stack([x[i], y[i], normal[i]], axis=1), centres[i])
+    poses = {i: make_pose(np.stack([x[i], y[i], normal[i]], axis=1), centres[i]) for i in range(num_poses)}
+    return poses, centres, per_winding
 
-    sim = SyntheticGraph(poses)
-    for i in range(1, num_poses):
-        sim.edges.append((i, i - 1, _measure(invert(poses[i - 1]) @ poses[i], sigmas, rng), info, ConstraintKind.ODOMETRY))
-    # loop candidates: each pose's nearest pose at least half a winding back, within 2 steps
+
+def _torus_loop_candidates(centres: Array, per_winding: int, step_m: float) -> list[tuple[int, int]]:
+    """Each pose's nearest pose at least half a winding back, within 2 steps: (source, target)."""
+    num_poses = len(centres)
     tree = cKDTree(centres)
     neighbours = min(num_poses, 4 * per_winding)
     dist, idx = tree.query(centres, k=neighbours, distance_upper_bound=2.0 * step_m)
@@ -254,12 +269,7 @@ def torus_graph(
         ok = (idx[s] < num_poses) & (idx[s] <= s - per_winding // 2)
         if np.any(ok):
             candidates.append((s, int(idx[s][np.flatnonzero(ok)[0]])))
-    count = min(len(candidates), round(loops_per_pose * num_poses))
-    chosen = np.sort(rng.choice(len(candidates), size=count, replace=False))
-    for c in chosen:
-        s, t = candidates[int(c)]
-        sim.edges.append((s, t, _measure(invert(poses[t]) @ poses[s], sigmas, rng), info, ConstraintKind.LOOP))
-    return sim
+    return candidates
 
 
 def torus_graph_high_rotation_noise(num_poses: int = 5000, rng: np.random.Generator | None = None, **kwargs: float) -> SyntheticGraph:
@@ -441,7 +451,6 @@ def add_false_loops_to_graph(
     min_separation: int = 20,
     reference_poses: Mapping[int, ArrayLike] | None = None,
 ) -> tuple[PoseGraph, set[tuple[int, int]]]:
-    # 113 lines: a 40-line docstring; both modes share the copy, the information and the add/free bookkeeping
     """A copy of ``graph`` with wrong loop edges added; the input is not changed.
 
     Parameters
@@ -489,60 +498,83 @@ def add_false_loops_to_graph(
     info_cov = np.linalg.inv(info)
     scale = _typical_length_m(graph)
     poses = graph.poses() if reference_poses is None else {int(k): np.asarray(T, dtype=np.float64) for k, T in reference_poses.items()}
-    existing = {frozenset(e.pair) for e in graph.edges()}
+    adder = _FalseLoops(out, info, {frozenset(e.pair) for e in graph.edges()})
     base = sum(e.kind is ConstraintKind.LOOP for e in graph.edges()) or graph.num_edges
-    n = len(keys)
-    false: set[tuple[int, int]] = set()
-
-    def free(s: int, t: int) -> bool:
-        return frozenset((s, t)) not in existing
-
-    def add(s: int, t: int, T: Array) -> None:
-        out.add_edge(s, t, T, info, ConstraintKind.LOOP)
-        existing.add(frozenset((s, t)))
-        false.add((s, t))
-
     if mode == "random":
-        count = round(fraction * base)
-        if n <= min_separation + 1 and count:
-            raise GraphError(f"add_false_loops_to_graph: {n} poses cannot hold loops {min_separation} apart")
-        attempts = 0
-        while len(false) < count:
-            attempts += 1
-            if attempts > 1000 * max(count, 1):
-                raise GraphError(f"add_false_loops_to_graph: found only {len(false)} of {count} free pose pairs")
-            i, j = (int(x) for x in rng.choice(n, size=2, replace=False))
-            s, t = keys[i], keys[j]
-            if abs(i - j) < min_separation or not free(s, t):
-                continue
-            add(s, t, _random_relative_pose(rng, scale))
+        _add_random_false_loops(adder, keys, round(fraction * base), min_separation, scale, rng)
     elif mode == "group":
         count = groups if groups is not None else max(1, round(fraction * base / group_size))
-        if n < 2 * group_size + min_separation:
-            raise GraphError(f"add_false_loops_to_graph: {n} poses are too few for groups of {group_size}")
-        centres = np.array([poses[k][:3, 3] for k in keys])
-        used: set[int] = set()  # key positions already in a group's region
-        for g in range(count):
-            for attempt in range(10000):
-                i, j = (int(x) for x in rng.integers(0, n - group_size + 1, size=2))
-                a = list(range(i, i + group_size))
-                b = list(range(j, j + group_size))
-                far_enough = attempt >= 5000 or np.linalg.norm(centres[i] - centres[j]) > 4.0 * scale
-                if (abs(i - j) >= min_separation + group_size and far_enough and not used & {*a, *b}
-                        and all(free(keys[p], keys[q]) for p, q in zip(a, b, strict=True))):
-                    break
-            else:
-                raise GraphError(f"add_false_loops_to_graph: no room for group {g + 1} of {count}")
-            used |= {*a, *b}
-            W = _random_relative_pose(rng, scale)
-            T_w_a0, T_w_b0 = poses[keys[i]], poses[keys[j]]
-            for p, q in zip(a, b, strict=True):
-                noise = rng.multivariate_normal(np.zeros(6), info_cov)
-                T = invert(poses[keys[p]]) @ T_w_a0 @ W @ invert(T_w_b0) @ poses[keys[q]] @ se3_exp(noise)
-                add(keys[q], keys[p], T)  # source b_i, target a_i
+        _add_group_false_loops(adder, keys, poses, count, group_size, min_separation, scale, info_cov, rng)
     else:
         raise GraphError(f"add_false_loops_to_graph: mode must be 'random' or 'group', got {mode!r}")
-    return out, false
+    return out, adder.added
+
+
+@dataclass
+class _FalseLoops:
+    """The graph false loops go into, with the pose pairs already linked and those added."""
+
+    graph: PoseGraph
+    information: Array
+    linked: set[frozenset[int]]
+    added: set[tuple[int, int]] = field(default_factory=set)
+
+    def free(self, s: int, t: int) -> bool:
+        return frozenset((s, t)) not in self.linked
+
+    def add(self, s: int, t: int, T: Array) -> None:
+        self.graph.add_edge(s, t, T, self.information, ConstraintKind.LOOP)
+        self.linked.add(frozenset((s, t)))
+        self.added.add((s, t))
+
+
+def _add_random_false_loops(
+    adder: _FalseLoops, keys: list[int], count: int, min_separation: int, scale: float, rng: np.random.Generator
+) -> None:
+    """``count`` loops between random pose pairs at least ``min_separation`` apart, random relative poses."""
+    n = len(keys)
+    if n <= min_separation + 1 and count:
+        raise GraphError(f"add_false_loops_to_graph: {n} poses cannot hold loops {min_separation} apart")
+    attempts = 0
+    while len(adder.added) < count:
+        attempts += 1
+        if attempts > 1000 * max(count, 1):
+            raise GraphError(f"add_false_loops_to_graph: found only {len(adder.added)} of {count} free pose pairs")
+        i, j = (int(x) for x in rng.choice(n, size=2, replace=False))
+        s, t = keys[i], keys[j]
+        if abs(i - j) < min_separation or not adder.free(s, t):
+            continue
+        adder.add(s, t, _random_relative_pose(rng, scale))
+
+
+def _add_group_false_loops(
+    adder: _FalseLoops, keys: list[int], poses: Mapping[int, Array], count: int, group_size: int,
+    min_separation: int, scale: float, info_cov: Array, rng: np.random.Generator,
+) -> None:
+    """``count`` groups of ``group_size`` mutually consistent wrong loops between two distant regions."""
+    n = len(keys)
+    if n < 2 * group_size + min_separation:
+        raise GraphError(f"add_false_loops_to_graph: {n} poses are too few for groups of {group_size}")
+    centres = np.array([poses[k][:3, 3] for k in keys])
+    used: set[int] = set()  # key positions already in a group's region
+    for g in range(count):
+        for attempt in range(10000):
+            i, j = (int(x) for x in rng.integers(0, n - group_size + 1, size=2))
+            a = list(range(i, i + group_size))
+            b = list(range(j, j + group_size))
+            far_enough = attempt >= 5000 or np.linalg.norm(centres[i] - centres[j]) > 4.0 * scale
+            if (abs(i - j) >= min_separation + group_size and far_enough and not used & {*a, *b}
+                    and all(adder.free(keys[p], keys[q]) for p, q in zip(a, b, strict=True))):
+                break
+        else:
+            raise GraphError(f"add_false_loops_to_graph: no room for group {g + 1} of {count}")
+        used |= {*a, *b}
+        W = _random_relative_pose(rng, scale)
+        T_w_a0, T_w_b0 = poses[keys[i]], poses[keys[j]]
+        for p, q in zip(a, b, strict=True):
+            noise = rng.multivariate_normal(np.zeros(6), info_cov)
+            T = invert(poses[keys[p]]) @ T_w_a0 @ W @ invert(T_w_b0) @ poses[keys[q]] @ se3_exp(noise)
+            adder.add(keys[q], keys[p], T)  # source b_i, target a_i
 
 
 def ate_rmse_m(poses: dict[int, Array], reference: dict[int, Array]) -> float:
