@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -251,7 +252,6 @@ def tangent_hessian(data: SESyncData, B: Array, Lambda: Array, gauge: NDArray[np
 def newton(
     data: SESyncData, X: Array, anchor: int, max_iterations: int = _MAX_NEWTON_ITERATIONS
 ) -> tuple[Array, float, float, int]:
-    # 96 lines: one damped-Newton loop whose chord and fresh-factorisation branches share mu, the last LU and the gradient history
     """Minimise ``F`` over ``(St(3, r) x R^r)^n`` from ``X`` (r, 4n): damped Newton, exact Hessian.
 
     The step solves ``(H + mu I) xi = -g`` in tangent coordinates, with the anchor's coordinates
@@ -314,25 +314,10 @@ def newton(
                 X_new, chord = None, False
         previous_gradient = gradient_norm
         if X_new is None:
-            XM = half_gradient(data, X)
-            Lambda = np.einsum("nri,nrj->nij", Y, rotation_blocks(XM, n))
-            H = tangent_hessian(data, B, 0.5 * (Lambda + Lambda.transpose(0, 2, 1)), gauge)
-            h_scale = float(np.abs(H.diagonal()).max())
-            previous_lu = None
-            for _ in range(40):
-                lu, negatives = symmetric_lu(H + mu * sp.identity(len(free), format="csc") if mu else H)
-                if lu is not None and negatives == 0:
-                    X_new = step(X, B, lu, g_free)
-                    F_new = objective(data, X_new) if X_new is not None else math.inf
-                    if F_new <= F + 1e-15 * abs(F):
-                        previous_lu = lu if mu == 0.0 else None
-                        break
-                    X_new = None
-                mu = max(10.0 * mu, 1e-9 * h_scale)
+            X_new, F_new, mu, previous_lu = _damped_step(data, X, B, gauge, g_free, F, mu, step)
             if X_new is None:
                 log.debug("newton (r=%d): no decreasing step at F=%.12g; stopping", r, F)
                 break
-            mu = 0.0 if mu <= 1e-6 * h_scale else mu / 10.0
         decrease = F - F_new
         X, F = X_new, F_new
         # A stalled Newton step ends; chord steps converge linearly and go on while the
@@ -344,3 +329,28 @@ def newton(
         log.warning("newton (r=%d): %d iterations without converging (|grad| %.3g): not a critical point",
                     r, iterations, float(np.linalg.norm(g)))
     return X, F, float(np.linalg.norm(g)), iterations
+
+
+def _damped_step(
+    data: SESyncData, X: Array, B: Array, gauge: Array, g_free: Array, F: float, mu: float,
+    step: Callable[[Array, Array, spla.SuperLU, Array], Array | None],
+) -> tuple[Array | None, float, float, spla.SuperLU | None]:
+    """One Newton step on a fresh Hessian, damped (``H + mu I``) until it is positive definite
+    and lowers ``F``. Returns the new point and its ``F`` (None, inf when no damping up to 40
+    tenfold increases gives one), the next ``mu`` (relaxed tenfold, 0 once negligible) and the
+    factorisation a chord step may reuse (only an undamped one)."""
+    n = data.n
+    Y = rotation_blocks(X, n)
+    XM = half_gradient(data, X)
+    Lambda = np.einsum("nri,nrj->nij", Y, rotation_blocks(XM, n))
+    H = tangent_hessian(data, B, 0.5 * (Lambda + Lambda.transpose(0, 2, 1)), gauge)
+    h_scale = float(np.abs(H.diagonal()).max())
+    for _ in range(40):
+        lu, negatives = symmetric_lu(H + mu * sp.identity(H.shape[0], format="csc") if mu else H)
+        if lu is not None and negatives == 0:
+            X_new = step(X, B, lu, g_free)
+            F_new = objective(data, X_new) if X_new is not None else math.inf
+            if F_new <= F + 1e-15 * abs(F):
+                return X_new, F_new, (0.0 if mu <= 1e-6 * h_scale else mu / 10.0), (lu if mu == 0.0 else None)
+        mu = max(10.0 * mu, 1e-9 * h_scale)
+    return None, math.inf, mu, None
