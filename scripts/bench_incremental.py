@@ -1,10 +1,12 @@
 """Running estimate at constant cost: iSAM2 as the keyframe manager drives it, against the old
 batch re-solve after every loop.
 
-The graph (``synthetic_graphs.circuit_laps``): 20 laps of a 50-keyframe circuit (0.3 m between
-keyframes, about 6 x 2 m), keyframe k of each lap looping to keyframe k of the previous lap, so
-every keyframe after the first lap brings a loop; RGB-D-like noise (4 mm / 4 mrad odometry per
-step, 3 mm / 3 mrad loops). 1000 keyframes, 950 loops.
+The graph (``synthetic_graphs.circuit_laps``): by default 100 laps of a 10-keyframe circuit
+(0.3 m between keyframes: a room walked round and round), keyframe k of each lap looping to
+keyframe k of the previous lap, so every keyframe after the first ten brings a loop; RGB-D-like
+noise (4 mm / 4 mrad odometry per step, 3 mm / 3 mrad loops). 1000 keyframes, 990 loops.
+``--laps 20 --per-lap 50`` is the larger circuit (loops spanning 50 keyframes, none in the
+first 50).
 
 Each keyframe goes through ``IncrementalPoseGraph`` as ``KeyframeManager`` feeds it: add the
 keyframe with its odometry, test each loop's innovation against the chi-square bound with the
@@ -12,16 +14,16 @@ drift-based relative covariance, add it, one update. The time per keyframe cover
 
 Constant cost means: flat once the active frontier has formed. The keyframes loops may still
 reach (a lap here) form the top of iSAM2's Bayes tree; its separators grow from a few keyframes
-to a lap's worth over laps 2-3, so keyframes 0..99 (lap 1 carries no loops) and 50..149 are
-cheaper than any later 100 by construction. The script prints the last 100 against all three
-references, wall clock and this thread's CPU time (steadier on a shared machine).
+to a lap's worth over the first laps. The script prints the last 100 against the first 100 and
+two later references, wall clock, this thread's CPU time (steadier on a shared machine) and the
+variables iSAM2 re-eliminated per update (the re-solved part of the tree: load-independent).
 
 The old way (``PoseGraph.optimize`` with the default GNC config after every loop, as
 ``KeyframeManager`` did before) runs on a prefix only: its cost grows with the graph.
 
 Run from the repository root::
 
-    PYTHONPATH=. .venv/bin/python scripts/bench_incremental.py [--laps 20] [--per-lap 50] [--batch-prefix 200] [--repeats 3]
+    PYTHONPATH=. .venv/bin/python scripts/bench_incremental.py [--laps 100] [--per-lap 10] [--batch-prefix 200] [--repeats 3]
 """
 
 from __future__ import annotations
@@ -50,13 +52,14 @@ def by_source(sim: SyntheticGraph) -> dict[int, list[Constraint]]:
     return out
 
 
-def incremental_run(sim: SyntheticGraph) -> tuple[np.ndarray, np.ndarray, dict[int, np.ndarray], int]:
-    """Milliseconds per keyframe (wall clock, this thread's CPU time), final estimate, loops held out."""
+def incremental_run(sim: SyntheticGraph) -> tuple[np.ndarray, np.ndarray, dict[int, np.ndarray], int, np.ndarray]:
+    """Milliseconds per keyframe (wall clock, this thread's CPU time), final estimate, loops held
+    out, variables re-eliminated per keyframe."""
     edges = by_source(sim)
     graph = IncrementalPoseGraph(PoseGraphConfig())
     drift: dict[int, np.ndarray] = {}  # as KeyframeManager: covariance since the last closure
     poses: dict[int, np.ndarray] = {}
-    ms, cpu, held_out = [], [], 0
+    ms, cpu, held_out, reeliminated = [], [], 0, []
     for key in sorted(sim.poses_true):
         cons = edges.get(key, [])
         odometry = next((c for c in cons if c.kind is ConstraintKind.ODOMETRY), None)
@@ -87,7 +90,8 @@ def incremental_run(sim: SyntheticGraph) -> tuple[np.ndarray, np.ndarray, dict[i
             poses[k] = estimate[k]
         ms.append(1e3 * (time.perf_counter() - start))
         cpu.append(1e3 * (time.thread_time() - start_cpu))
-    return np.array(ms), np.array(cpu), graph.estimate(), held_out
+        reeliminated.append(graph.reeliminated_variables)
+    return np.array(ms), np.array(cpu), graph.estimate(), held_out, np.array(reeliminated, float)
 
 
 def batch_run(sim: SyntheticGraph, prefix: int) -> list[tuple[int, float]]:
@@ -118,8 +122,8 @@ def batch_run(sim: SyntheticGraph, prefix: int) -> list[tuple[int, float]]:
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--laps", type=int, default=20)
-    parser.add_argument("--per-lap", type=int, default=50)
+    parser.add_argument("--laps", type=int, default=100)
+    parser.add_argument("--per-lap", type=int, default=10)
     parser.add_argument("--batch-prefix", type=int, default=200)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--repeats", type=int, default=3, help="iSAM2 runs; each keyframe's time is the median over them")
@@ -137,15 +141,17 @@ def main() -> int:
     print(f"iSAM2 (add keyframe + odometry, innovation test + add loop, update), per keyframe, "
           f"median over {args.repeats} run(s) of each keyframe's time:")
     formed = 3 * args.per_lap  # the active frontier (a lap of keyframes with loops still to come) has formed
-    for label, ms in (("wall clock", np.median([r[0] for r in runs], axis=0)), ("thread CPU", np.median([r[1] for r in runs], axis=0))):
+    series = (("wall clock", np.median([r[0] for r in runs], axis=0), "ms"), ("thread CPU", np.median([r[1] for r in runs], axis=0), "ms"),
+              ("re-eliminated", runs[-1][4], "variables"))
+    for label, ms, unit in series:
         first, last = ms[:100].mean(), ms[-100:].mean()
         steady = ms[args.per_lap:args.per_lap + 100].mean()
         later = ms[formed:formed + 100].mean()
-        print(f" {label}: mean {ms.mean():.2f} ms, median {np.median(ms):.2f} ms, p95 {np.percentile(ms, 95):.2f} ms, max {ms.max():.1f} ms")
-        print(f"  first 100 {first:.2f} ms, last 100 {last:.2f} ms, last/first {last / first:.2f}")
-        print(f"  first 100 with a loop (keyframes {args.per_lap}..{args.per_lap + 99}) {steady:.2f} ms, last/that {last / steady:.2f}")
-        print(f"  keyframes {formed}..{formed + 99} (frontier formed) {later:.2f} ms, last/that {last / later:.2f}")
-        print("  per 100 keyframes:", " ".join(f"{ms[i:i + 100].mean():.1f}" for i in range(0, n, 100)), "ms")
+        print(f" {label}: mean {ms.mean():.2f} {unit}, median {np.median(ms):.2f}, p95 {np.percentile(ms, 95):.2f}, max {ms.max():.1f}")
+        print(f"  first 100 {first:.2f}, last 100 {last:.2f}, last/first {last / first:.2f}")
+        print(f"  first 100 with a loop (keyframes {args.per_lap}..{args.per_lap + 99}) {steady:.2f}, last/that {last / steady:.2f}")
+        print(f"  keyframes {formed}..{formed + 99} (frontier formed) {later:.2f}, last/that {last / later:.2f}")
+        print("  per 100 keyframes:", " ".join(f"{ms[i:i + 100].mean():.1f}" for i in range(0, n, 100)), unit)
     print(f"  loops held out by the innovation test: {held_out} of {loops}")
 
     batch_graph = sim.graph(initial=estimate)

@@ -4,6 +4,7 @@ running estimate); the batch optimiser is :class:`fpp_graph.backend.pose_graph.P
 from __future__ import annotations
 
 import logging
+from collections import deque
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import replace
 from types import MappingProxyType
@@ -48,16 +49,19 @@ class IncrementalPoseGraph:
     constrained COLAMD puts *every* key a new factor observes last, so each loop pulls an old
     keyframe up to the root and the tree's top grows with the map (on 20 laps of a 50-keyframe
     circuit with a loop per keyframe the re-eliminated variables grow from ~30 to ~120 and the
-    update time about tenfold over 1000 keyframes). Here the last ``ordering_window``
-    keyframes form the last ordering group instead: the active region stays at the root, old
-    keyframes a loop touches are eliminated below it, and the re-eliminated part stays bounded
-    by the window. Every iSAM2 step of an update needs that ordering: the extra steps after a
-    loop used to run with iSAM2's default, which re-ordered the re-eliminated top by plain
-    COLAMD and left old keyframes (one per lap, a cut across the whole map) in the root clique,
-    so the update time grew with the map again (6.6x from the first to the last 100 keyframes
-    of the 1000-keyframe circuit). What remains is the problem's own frontier: the keyframes
-    loops may still reach (a lap on the circuit) form the top of the tree, so the cost rises
-    while that frontier forms (the first three laps there) and is flat after it.
+    update time about tenfold over 1000 keyframes). Here the most recent keyframes form the
+    last ordering group instead: the active region stays at the root, old keyframes a loop
+    touches are eliminated below it, and the re-eliminated part stays bounded by that group.
+    The group is the loop frontier: one keyframe more than the longest span (in keyframes) of
+    the loops added within the last ``ordering_window`` keyframes, so a loop's target is in
+    it, and no larger (a fixed 100-keyframe group re-eliminated ~45 variables per update on a
+    10-keyframe circuit where the frontier needs ~17). Every iSAM2 step of an update needs
+    that ordering: the extra steps after a loop used to run with iSAM2's default, which
+    re-ordered the re-eliminated top by plain COLAMD and left old keyframes (one per lap, a cut
+    across the whole map) in the root clique, so the update time grew with the map again (6.6x
+    from the first to the last 100 keyframes of the 1000-keyframe circuit). What remains is
+    the problem's own frontier, which forms over the first laps and is flat after them
+    (:attr:`reeliminated_variables` reports it per update).
 
     Parameters
     ----------
@@ -70,8 +74,8 @@ class IncrementalPoseGraph:
     loop_extra_updates : int
         Additional iSAM2 steps after an update that brought loops (re-linearisation settles).
     ordering_window : int
-        The most recent keyframes kept last in the elimination order (see above); 0 leaves
-        iSAM2's default ordering. The extra steps after a loop keep the same ordering (with
+        The longest loop frontier kept last in the elimination order, and how far back (in
+        keyframes) loops count towards it (see above); 0 leaves iSAM2's default ordering. The extra steps after a loop keep the same ordering (with
         iSAM2's default there, old keyframes drift up to the root and the cost grows again).
     refresh_per_update : int
         Older keyframes whose cached pose each :meth:`update` re-reads from iSAM2, round robin
@@ -109,12 +113,17 @@ class IncrementalPoseGraph:
         self._graph = PoseGraph()  # bookkeeping of what iSAM2 holds: poses (guesses), edges
         self._rejected: list[tuple[int, int]] = []
         self._order: list[int] = []  # keys in the order they were added
+        self._position: dict[int, int] = {}  # key -> its index in self._order
+        # (position of the newest keyframe when the loop came, loop span in keyframes) of the
+        # loops added within the last ordering_window keyframes: they set the frontier
+        self._recent_loops: deque[tuple[int, int]] = deque()
         self._reset_isam()
         self._estimate: dict[int, Array] = {}
         self._stale = False  # some cached poses may lag iSAM2 (see "Reading the estimate")
         self._sweep = 0  # round-robin position over self._order for the refresh of older keys
         self._refreshed: list[int] = []
         self._pending_loops = False
+        self._reeliminated = 0
 
     def _reset_isam(self) -> None:
         import gtsam
@@ -210,6 +219,7 @@ class IncrementalPoseGraph:
         self._graph.add_pose(key, guess)
         T = self._graph._poses[key]
         self._new_values.insert(int(key), gtsam.Pose3(T))
+        self._position[int(key)] = len(self._order)
         self._order.append(int(key))
         if first:
             self._graph.fix_pose(key)
@@ -225,6 +235,19 @@ class IncrementalPoseGraph:
                 raise GraphError(f"loop {constraint.source_id}->{constraint.target_id}: keyframe {k} is not in the graph")
         self._add_edge(constraint, ConstraintKind.LOOP)
         self._pending_loops = True
+        span = abs(self._position[int(constraint.source_id)] - self._position[int(constraint.target_id)])
+        self._recent_loops.append((len(self._order) - 1, span))
+
+    def _frontier_size(self) -> int:
+        """How many of the most recent keyframes form the last ordering group: one more than
+        the longest span (in keyframes) of the loops added within the last ``ordering_window``
+        keyframes, at most ``ordering_window``; 0 (iSAM2's default) without recent loops."""
+        recent = self._recent_loops
+        while recent and recent[0][0] < len(self._order) - self.ordering_window:
+            recent.popleft()
+        if not recent:
+            return 0
+        return min(self.ordering_window, 1 + max(span for _, span in recent))
 
     def _information(self, info: Array) -> Array:
         return isotropic_information(info) if self.config.noise_model == "isotropic" else info
@@ -263,10 +286,11 @@ class IncrementalPoseGraph:
         import gtsam
 
         params = gtsam.ISAM2UpdateParams()
-        recent = [k for k in self._order[-self.ordering_window:] if k in self._in_isam or self._new_values.exists(k)]
+        frontier = self._frontier_size()
+        recent = [k for k in self._order[-frontier:] if k in self._in_isam or self._new_values.exists(k)] if frontier else []
         # Constraint groups must be consecutive from 0 and fewer than the variables iSAM2
         # re-orders (CCOLAMD's rule); with two or more present, group 1 always qualifies.
-        if self.ordering_window > 0 and len(recent) >= 2:
+        if len(recent) >= 2:
             groups = gtsam.KeyGroupMap()
             for k in recent:
                 groups.insert2(k, 1)
@@ -283,7 +307,7 @@ class IncrementalPoseGraph:
         """
         import gtsam
 
-        self._refreshed = []
+        self._refreshed, self._reeliminated = [], 0
         if self._graph.num_edges and (self._new_factors.size() or self._new_values.size()):
             new_keys = [int(k) for k in self._new_values.keys()]
             try:
@@ -308,15 +332,19 @@ class IncrementalPoseGraph:
     def _refresh(self, new_keys: list[int], results: list) -> None:
         """Re-read from iSAM2 the poses the last update re-solved (see the class notes)."""
         n = len(self._order)
+        self._reeliminated = sum(r.getVariablesReeliminated() for r in results)
         keys = dict.fromkeys(new_keys)
         for r in results:
             keys.update(dict.fromkeys(int(k) for k in r.getMarkedKeys()))
-        keys.update(dict.fromkeys(self._order[-max(self.ordering_window, 1):]))
+        # the last ordering_window keyframes (the most a frontier can span) are re-read, not just
+        # the current frontier: the variables a loop re-eliminated then stay among those read
+        top = max(self.ordering_window, 1)
+        keys.update(dict.fromkeys(self._order[-top:]))
         reeliminated = max(r.getVariablesReeliminated() for r in results)
         if self._stale_all or any(r.getBatchReorderTriggered() for r in results) or reeliminated > len(keys) or n <= self._FULL_READ_RATIO * (len(keys) + self.refresh_per_update):
             self._read_all()
             return
-        older = n - max(self.ordering_window, 1)
+        older = n - top
         if older > 0 and self.refresh_per_update > 0:
             start = self._sweep % older
             stop = start + min(self.refresh_per_update, older)
@@ -351,6 +379,12 @@ class IncrementalPoseGraph:
         self._estimate.update(poses)
         self._refreshed = list(poses)
         self._stale = self._stale_all = False
+
+    @property
+    def reeliminated_variables(self) -> int:
+        """Variables iSAM2 re-eliminated in the last :meth:`update` (all its steps): the part
+        of the Bayes tree the update re-solved, which sets its cost."""
+        return self._reeliminated
 
     @property
     def refreshed_keys(self) -> list[int]:
@@ -455,6 +489,7 @@ class IncrementalPoseGraph:
         order = [*self._order, *other._order]
         self._restart(poses, order, edges)
         other._graph, other._order, other._estimate = PoseGraph(), [], {}
+        other._position, other._recent_loops = {}, deque()
         other._reset_isam()
 
     @classmethod
@@ -488,6 +523,8 @@ class IncrementalPoseGraph:
         anchor = self._anchor_key
         self._graph = PoseGraph()
         self._order = [int(k) for k in order]
+        self._position = {k: i for i, k in enumerate(self._order)}
+        self._recent_loops.clear()  # a batch step: the frontier forms anew from the next loops
         self._reset_isam()
         for key in self._order:
             self._graph.add_pose(key, poses[key])

@@ -16,6 +16,7 @@ from fpp_graph.geometry import invert, make_pose, se3_exp
 from fpp_graph.testing.synthetic_graphs import (
     add_false_loops,
     ate_rmse_m,
+    circuit_laps,
     corridor_trajectory,
     torus_graph,
 )
@@ -486,3 +487,30 @@ def test_chordal_initialisation_holds_for_stiff_icp_information():
     result = graph.optimize(LM)
     assert result.initialization == "chordal"
     assert np.isfinite(result.final_cost)
+
+
+@pytest.mark.parametrize("per_lap", [10, 30])
+def test_isam2_update_cost_follows_the_loop_frontier_not_the_map(per_lap):
+    # A loop at every keyframe after the first lap, each spanning one lap: the part of the
+    # Bayes tree an update re-solves is set by that span and must not grow with the map.
+    sim = circuit_laps(laps=300 // per_lap, per_lap=per_lap, rng=np.random.default_rng(1))
+    by_source: dict[int, list[Constraint]] = {}
+    for s, t, T, info, kind in sim.edges:
+        by_source.setdefault(s, []).append(Constraint(s, t, T, info, kind=kind))
+    graph = IncrementalPoseGraph(PoseGraphConfig())
+    reeliminated = []
+    for key in sorted(sim.poses_true):
+        cons = by_source.get(key, [])
+        odometry = next((c for c in cons if c.kind is ConstraintKind.ODOMETRY), None)
+        graph.add_keyframe(key, sim.poses_true[key] if odometry is None else None, odometry)
+        for c in cons:
+            if c.kind is ConstraintKind.LOOP:
+                graph.add_loop(c)
+        graph.update()
+        reeliminated.append(graph.reeliminated_variables)
+    after_first_laps = np.mean(reeliminated[3 * per_lap:3 * per_lap + 50])
+    last = np.mean(reeliminated[-50:])
+    assert last <= 1.3 * after_first_laps
+    # bounded by a few frontiers' worth of keyframes, far below the 300 in the map
+    assert last < 4 * (per_lap + 1)
+    assert ate_rmse_m(graph.estimate(), sim.poses_true) < 0.02
