@@ -8,7 +8,7 @@ orders of magnitude, so registration thresholds below centimetre floors are rais
 
 Layouts
 -------
-7-Scenes: ``frame-XXXXXX.color.png``, ``frame-XXXXXX.depth.png`` (uint16 millimetres, 0 and
+7-Scenes: ``frame-XXXXXX.color.png`` (or ``.color.jpg``), ``frame-XXXXXX.depth.png`` (uint16 millimetres, 0 and
 65535 invalid), ``frame-XXXXXX.pose.txt`` (4x4 camera-to-world = ``T_world_sensor``, metres),
 optional ``camera-intrinsics.txt`` (3x3; default fx = fy = 585, cx = 320, cy = 240). Colour and
 depth are not registered to each other in 7-Scenes (two cameras of a Kinect v1, different focal
@@ -76,7 +76,8 @@ RGBD_INFORMATION_SCALE = 3e-4
 # colour camera sits ~2.5 cm along +x of the depth (IR) camera.
 KINECT_V1_COLOR_K = np.array([[525.0, 0.0, 319.5], [0.0, 525.0, 239.5], [0.0, 0.0, 1.0]])
 KINECT_V1_T_COLOR_DEPTH = np.array([[1.0, 0, 0, -0.025], [0, 1.0, 0, 0], [0, 0, 1.0, 0], [0, 0, 0, 1.0]])
-_SEVEN_SCENES = re.compile(r"frame-(\d+)\.color\.png$")
+# 7-Scenes is distributed with PNG colour and, in common re-packagings, JPEG colour
+_SEVEN_SCENES = re.compile(r"frame-(\d+)\.color\.(?:png|jpe?g)$", re.IGNORECASE)
 
 
 def depth_to_xyz_map(depth_m: np.ndarray, K: np.ndarray) -> np.ndarray:
@@ -170,7 +171,7 @@ class RgbdSource:
             m = _SEVEN_SCENES.search(p.name)
             if not m:
                 continue
-            stem = p.name[: -len(".color.png")]
+            stem = p.name[: m.start() + len(f"frame-{m.group(1)}")]
             index = int(m.group(1))
             pose_file = self.path / f"{stem}.pose.txt"
             T = None

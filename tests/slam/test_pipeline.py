@@ -332,3 +332,32 @@ def test_resume_removes_the_temp_files_of_interrupted_writes_only(tmp_path):
     (out / "notes.tmp").write_text("a user's file, not an atomic-write temp")
     assert prepare_results_dir(out, resume=True) == out
     assert sorted(p.name for p in out.rglob("*")) == sorted([RESULTS_MARKER, "frames", "frame_000001.npz", "notes.tmp"])
+
+
+def test_7scenes_with_jpeg_colour_reads_as_with_png(tmp_path):
+    import shutil
+
+    import cv2
+
+    from conftest import shared_data_path
+    from fpp_graph.config import Config
+    from frontend.rgbd.source import RgbdSource
+
+    original = shared_data_path("rgbd/7scenes_chess_150_199")
+    jpeg = tmp_path / "chess_jpg"
+    jpeg.mkdir()
+    shutil.copy(original / "camera-intrinsics.txt", jpeg)
+    for index in (150, 151, 152):
+        stem = f"frame-{index:06d}"
+        shutil.copy(original / f"{stem}.depth.png", jpeg)
+        shutil.copy(original / f"{stem}.pose.txt", jpeg)
+        colour = cv2.imread(str(original / f"{stem}.color.png"))
+        cv2.imwrite(str(jpeg / f"{stem}.color.jpg"), colour, [cv2.IMWRITE_JPEG_QUALITY, 95])
+    source = RgbdSource(jpeg, Config())
+    assert source.frame_ids() == [150, 151, 152]
+    frame = source.load_frame(151)
+    reference = RgbdSource(original, Config()).load_frame(151)
+    np.testing.assert_array_equal(frame.points, reference.points)
+    # JPEG at quality 95 moves grey levels by a few units, not the geometry
+    assert np.median(np.abs(frame.texture.astype(float) - reference.texture.astype(float))) <= 3
+    np.testing.assert_array_equal(source.ground_truth().poses_world_sensor, RgbdSource(original, Config()).ground_truth().poses_world_sensor[:3])
