@@ -84,15 +84,15 @@ class IncrementalPoseGraph:
     Reading the estimate. ``calculateEstimate()`` back-substitutes and copies every variable,
     O(map) per update; :meth:`update` instead re-reads from iSAM2 (one
     ``calculateEstimatePose3`` each) only the keys it re-solved: the new keyframes, the keys
-    the new factors observe and those iSAM2 re-linearised (its marked keys), the last
-    ``max(ordering_window, 1)`` keyframes (the top of the Bayes tree, where a new keyframe and
-    its loops land), and ``refresh_per_update`` older keyframes in turn. The rest of the cache
-    can lag iSAM2 by the small corrections its back-substitution carries below the top of the
-    tree (refreshed within ``n / refresh_per_update`` updates); when iSAM2 re-eliminated more
-    variables than were re-read (a large loop, a reorder), the whole estimate is read at once
-    (that update was O(map) anyway), and so it is while the map has fewer than about five
-    times as many keyframes as are re-read (one read of all is then the cheaper; above that
-    the read-out no longer grows with the map). :meth:`estimate` reads every pose, so
+    the new factors observe and those iSAM2 re-linearised (its marked keys), the loop
+    frontier (the top of the Bayes tree, where a new keyframe and its loops land), and
+    ``refresh_per_update`` older keyframes in turn. The rest of the cache can lag iSAM2 by the
+    small corrections its back-substitution carries below the top of the tree (refreshed
+    within ``n / refresh_per_update`` updates). The whole estimate is read at once after a
+    reorder, and whenever what the update should re-read (those keys, or every variable it
+    re-eliminated if that is more: a loop reaching deep) is more than a fifth of the map: one
+    read of all is then the cheaper. Above that the read-out no longer grows with the map.
+    :meth:`estimate` reads every pose, so
     it is exact; :meth:`loop_innovation` re-reads the loop's two keyframes.
     """
 
@@ -336,12 +336,13 @@ class IncrementalPoseGraph:
         keys = dict.fromkeys(new_keys)
         for r in results:
             keys.update(dict.fromkeys(int(k) for k in r.getMarkedKeys()))
-        # the last ordering_window keyframes (the most a frontier can span) are re-read, not just
-        # the current frontier: the variables a loop re-eliminated then stay among those read
-        top = max(self.ordering_window, 1)
+        top = max(self._frontier_size(), 1)
         keys.update(dict.fromkeys(self._order[-top:]))
         reeliminated = max(r.getVariablesReeliminated() for r in results)
-        if self._stale_all or any(r.getBatchReorderTriggered() for r in results) or reeliminated > len(keys) or n <= self._FULL_READ_RATIO * (len(keys) + self.refresh_per_update):
+        # what this update should re-read: the keys above, or all it re-eliminated if more; one
+        # read of everything is cheaper once that is more than 1/_FULL_READ_RATIO of the map
+        wanted = max(len(keys) + self.refresh_per_update, reeliminated)
+        if self._stale_all or any(r.getBatchReorderTriggered() for r in results) or n <= self._FULL_READ_RATIO * wanted:
             self._read_all()
             return
         older = n - top
