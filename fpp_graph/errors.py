@@ -36,3 +36,11 @@ class RegistrationError(FppError):
 
 class OutputError(FppError):
     """An output location cannot be written (exists, not writable)."""
+
+
+class Interrupted(FppError):
+    """The run was stopped by Ctrl-C (SIGINT) or SIGTERM; what was done is kept for ``--resume``."""
+
+    def __init__(self, message: str, signal_number: int = 2) -> None:
+        super().__init__(message)
+        self.exit_code = 128 + signal_number  # the shell's convention for a death by signal

@@ -11,6 +11,7 @@ stderr and exit 2. Front-ends add commands through the ``fpp_graph.cli`` entry-p
 
 from __future__ import annotations
 
+import signal
 import sys
 
 import typer
@@ -78,20 +79,33 @@ def add_plugin_commands() -> None:
         app.command(ep.name)(ep.load())
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised where the program is, so that clean-up runs as for Ctrl-C."""
+
+    signal_number = signal.SIGTERM
+
+
+def _terminated(signum: int, frame: object) -> None:
+    raise Terminated()
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``fpp-slam`` (and ``python -m fpp_graph.cli``): runs the app, turning
     FppError into one line + exit 2."""
     args = sys.argv[1:] if argv is None else list(argv)
     # only the command that runs (see add_commands); everything for --help or a plug-in command
     add_commands([args[0]] if args and args[0] in {*COMMANDS, "config"} else None)
+    # SIGTERM (a scheduler, `kill`) takes the same path as Ctrl-C: the command's clean-up runs
+    # (worker processes end, outputs stay whole) instead of the process vanishing mid-write
+    signal.signal(signal.SIGTERM, _terminated)
     try:
         app(args=args, prog_name="fpp-slam", standalone_mode=False)
     except FppError as exc:
         typer.echo(f"fpp-slam: error: {exc}", err=True)
         return exc.exit_code
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as exc:
         typer.echo("fpp-slam: interrupted", err=True)
-        return 130
+        return 128 + getattr(exc, "signal_number", signal.SIGINT)
     except typer.Exit as exc:  # raised by --help and typer.Exit(code)
         return int(exc.exit_code or 0)
     except Exception as exc:
@@ -100,7 +114,8 @@ def main(argv: list[str] | None = None) -> int:
         if callable(getattr(exc, "show", None)) and isinstance(getattr(exc, "exit_code", None), int):
             exc.show()
             return int(exc.exit_code)
-        if type(exc).__name__ == "Abort":
-            return 1
+        if type(exc).__name__ == "Abort":  # the click engine's wrapper of KeyboardInterrupt
+            typer.echo("fpp-slam: interrupted", err=True)
+            return 128 + getattr(exc.__context__, "signal_number", signal.SIGINT)
         raise
     return 0

@@ -17,7 +17,7 @@ from fpp_graph.cli.common import (
     print_metrics_table,
     setup_logging,
 )
-from fpp_graph.errors import InputDataError
+from fpp_graph.errors import InputDataError, Interrupted
 
 
 def run(
@@ -44,8 +44,14 @@ def run(
     from fpp_graph.slam.pipeline import run_sequence
 
     setup_logging(cfg.run.log_level)
-    with RichProgress() as progress:
-        report = run_sequence(sequence, cfg, out, resume=resume, overwrite=overwrite, kind=kind, progress=progress)
+    try:
+        with RichProgress() as progress:
+            report = run_sequence(sequence, cfg, out, resume=resume, overwrite=overwrite, kind=kind, progress=progress)
+    except KeyboardInterrupt as exc:  # Ctrl-C or SIGTERM: the pipeline has ended its workers
+        raise Interrupted(
+            f"interrupted; {out} keeps the frames done so far: continue with "
+            f"fpp-slam run {sequence} --out {out} --resume", getattr(exc, "signal_number", 2),
+        ) from None
     m = report.metrics
     typer.echo(
         f"{m['frames']}/{m['frames_total']} frames, {m['keyframes']} keyframes, loops {m['loops_accepted']} accepted / "

@@ -22,6 +22,7 @@ import logging
 import multiprocessing
 import os
 import shutil
+import signal
 import time
 from collections.abc import Callable, Iterator
 from concurrent.futures import Executor, Future, ProcessPoolExecutor
@@ -96,6 +97,9 @@ _WORKER_SOURCE: FrameSource | None = None
 def _init_worker(source: FrameSource) -> None:
     global _WORKER_SOURCE
     _WORKER_SOURCE = source
+    # Ctrl-C reaches the whole process group: the parent stops the run and shuts the pool
+    # down; a worker interrupted mid-frame would only add a traceback (its cache write is atomic)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     # one worker process per core; keep each single-threaded so they do not oversubscribe
     try:
         import cv2
@@ -368,12 +372,12 @@ class Pipeline:
                 timestamps[frame.id] = frame.timestamp
                 yield frame
 
-        with self._timed(report, "decode+track"):
-            report.slam = track(frames_with_timestamps(), self.source, self.config, store, self.progress)
+        try:
+            with self._timed(report, "decode+track"):
+                report.slam = track(frames_with_timestamps(), self.source, self.config, store, self.progress)
+        finally:  # done, failed or interrupted: the worker processes end with the tracking
+            self._shutdown_executor()
         report.frames_used = len(timestamps)
-        if getattr(self, "_owns_executor", False):  # the worker processes are done: free them
-            self.executor.shutdown()
-            self.executor, self._owns_executor = None, False
         with self._timed(report, "write_graph"):
             write_trajectory_and_graph(out, report.slam, timestamps)
             write_loop_log(out, report.slam)
@@ -393,6 +397,13 @@ class Pipeline:
             report.metrics["loop_evaluation"] = evaluate_results_loops(out, gt_poses).as_dict()
         atomic_write_text(out / "metrics.json", json.dumps(report.metrics, indent=1, default=float))
         return report
+
+    def _shutdown_executor(self) -> None:
+        """End the worker pool this pipeline started: queued frames are cancelled, frames being
+        decoded finish (their cache writes are atomic), and no worker process outlives the run."""
+        if getattr(self, "_owns_executor", False):
+            self.executor.shutdown(wait=True, cancel_futures=True)
+            self.executor, self._owns_executor = None, False
 
     def _executor(self) -> Executor | None:
         if self.executor is not None:

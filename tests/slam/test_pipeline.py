@@ -361,3 +361,62 @@ def test_7scenes_with_jpeg_colour_reads_as_with_png(tmp_path):
     # JPEG at quality 95 moves grey levels by a few units, not the geometry
     assert np.median(np.abs(frame.texture.astype(float) - reference.texture.astype(float))) <= 3
     np.testing.assert_array_equal(source.ground_truth().poses_world_sensor, RgbdSource(original, Config()).ground_truth().poses_world_sensor[:3])
+
+
+def _children(pid: int) -> set[int]:
+    """Process ids whose parent is ``pid`` (Linux /proc)."""
+    found = set()
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[1]) == pid:
+            found.add(int(stat.parent.name))
+    return found
+
+
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="needs Linux /proc to list child processes")
+def test_sigterm_ends_the_workers_and_resume_completes(tmp_path):
+    """SIGTERM mid-run: the decode workers end with the run, the exit is non-zero with one line
+    that says how to resume, and --resume then completes the run."""
+    import os
+    import signal
+    import subprocess
+    import time
+
+    import yaml
+
+    seq = write_tum_rgbd_sequence(tmp_path / "seq", xs=np.linspace(-0.25, 0.25, 14).tolist())
+    out = tmp_path / "out"
+    cfg_path = _rgbd_config(tmp_path)
+    cfg = yaml.safe_load(cfg_path.read_text())
+    cfg.setdefault("run", {})["workers"] = 2  # a worker pool even on a one-core machine
+    cfg_path.write_text(yaml.safe_dump(cfg))
+    proc = subprocess.Popen([*_FPP_SLAM, "run", str(seq), "--out", str(out), "--config", str(cfg_path)],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    workers: set[int] = set()
+    deadline = time.monotonic() + 300
+    while proc.poll() is None and time.monotonic() < deadline:
+        workers |= _children(proc.pid)
+        if (out / "frames").exists() and len(list((out / "frames").glob("*.npz"))) >= 2 and workers:
+            break
+        time.sleep(0.02)
+    if proc.poll() is not None:
+        pytest.skip("the run finished before it could be stopped")
+    workers |= _children(proc.pid)
+    os.kill(proc.pid, signal.SIGTERM)
+    _, stderr = proc.communicate(timeout=120)
+    assert proc.returncode == 128 + signal.SIGTERM, stderr[-2000:]
+    last = stderr.strip().splitlines()[-1]
+    assert last.startswith("fpp-slam: error: interrupted") and "--resume" in last, stderr[-2000:]
+    assert "Traceback" not in stderr
+    assert workers, "the run started no worker process"
+    time.sleep(0.5)
+    alive = {pid for pid in workers if Path(f"/proc/{pid}").exists() and "zombie" not in Path(f"/proc/{pid}/status").read_text()}
+    assert not alive, f"worker processes outlived the run: {alive}"
+    assert not (out / "metrics.json").exists()
+    result = _cli("run", str(seq), "--out", str(out), "--config", str(cfg_path), "--resume")
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert json.loads((out / "metrics.json").read_text())["frames"] == 14
+    _assert_outputs_whole(out)
