@@ -338,8 +338,8 @@ def test_7scenes_with_jpeg_colour_reads_as_with_png(tmp_path):
     import shutil
 
     import cv2
-
     from conftest import shared_data_path
+
     from fpp_graph.config import Config
     from frontend.rgbd.source import RgbdSource
 
