@@ -18,10 +18,15 @@ colour camera model :data:`KINECT_V1_COLOR_K` / :data:`KINECT_V1_T_COLOR_DEPTH` 
 the depth pixel that saw the same surface point. Pasting the colour pixel-for-pixel onto the
 depth grid instead puts image corners ~30 px (~10 cm at 2 m) away from their depth.
 
-TUM RGB-D: ``rgb.txt`` and ``depth.txt`` (``timestamp path`` lines), depth uint16 with factor
-5000 per metre, optional ``groundtruth.txt`` (TUM trajectory), optional ``intrinsics.txt``
-(``fx fy cx cy``; default the ROS default 525, 525, 319.5, 239.5). TUM depth is already
-registered to the colour image.
+TUM RGB-D: ``rgb.txt`` and ``depth.txt`` (``timestamp path`` lines; colour and depth are
+associated by nearest timestamp within 20 ms, as the benchmark's tools do), depth uint16 with
+factor 5000 per metre, optional ``groundtruth.txt`` (TUM trajectory at 100 Hz, interpolated to
+each frame's time: slerp in rotation, linear in position), optional ``intrinsics.txt`` (``fx fy
+cx cy [k1 k2 p1 p2 k3]``). TUM depth is registered to the colour image, so both share the colour
+camera's model: without ``intrinsics.txt`` it is the benchmark's published calibration of the
+camera named in ``rgb.txt``'s header or the folder name (freiburg1/2/3, :data:`TUM_CAMERAS`,
+with lens distortion), else the ROS default 525, 525, 319.5, 239.5 with a warning. Depth
+pixels are lifted along the undistorted rays of that model.
 
 Configuration
 -------------
@@ -76,19 +81,48 @@ RGBD_INFORMATION_SCALE = 3e-4
 # colour camera sits ~2.5 cm along +x of the depth (IR) camera.
 KINECT_V1_COLOR_K = np.array([[525.0, 0.0, 319.5], [0.0, 525.0, 239.5], [0.0, 0.0, 1.0]])
 KINECT_V1_T_COLOR_DEPTH = np.array([[1.0, 0, 0, -0.025], [0, 1.0, 0, 0], [0, 0, 1.0, 0], [0, 0, 0, 1.0]])
+# The TUM RGB-D benchmark's published colour-camera calibrations (fx, fy, cx, cy, OpenCV k1 k2 p1
+# p2 k3), https://vision.in.tum.de/data/datasets/rgbd-dataset/file_formats; freiburg3's images
+# are undistorted already.
+TUM_CAMERAS = {
+    "freiburg1": ((517.3, 516.5, 318.6, 255.3), (0.2624, -0.9531, -0.0054, 0.0026, 1.1633)),
+    "freiburg2": ((520.9, 521.0, 325.1, 249.7), (0.2312, -0.7849, -0.0033, -0.0001, 0.9172)),
+    "freiburg3": ((535.4, 539.2, 320.1, 247.6), (0.0, 0.0, 0.0, 0.0, 0.0)),
+}
+ROS_DEFAULT_K = np.array([[525.0, 0.0, 319.5], [0.0, 525.0, 239.5], [0.0, 0.0, 1.0]])
 # 7-Scenes is distributed with PNG colour and, in common re-packagings, JPEG colour
 _SEVEN_SCENES = re.compile(r"frame-(\d+)\.color\.(?:png|jpe?g)$", re.IGNORECASE)
 
 
-def depth_to_xyz_map(depth_m: np.ndarray, K: np.ndarray) -> np.ndarray:
-    """Organised points (H, W, 3) in metres, camera frame, NaN where depth is invalid (<= 0)."""
-    h, w = depth_m.shape
-    u = np.arange(w, dtype=np.float64)
-    v = np.arange(h, dtype=np.float64)[:, None]
+def pixel_rays(K: np.ndarray, shape: tuple[int, int], distortion: np.ndarray | None = None) -> np.ndarray:
+    """(H, W, 2) normalised image coordinates (x/z, y/z) of every pixel centre: ``K^-1 [u v 1]``
+    with the lens ``distortion`` (OpenCV k1 k2 p1 p2 k3) undone when given."""
+    h, w = shape
+    if distortion is None or not np.any(distortion):
+        u = np.arange(w, dtype=np.float64)
+        v = np.arange(h, dtype=np.float64)[:, None]
+        rays = np.empty((h, w, 2))
+        rays[..., 0] = (u - K[0, 2]) / K[0, 0]
+        rays[..., 1] = (v - K[1, 2]) / K[1, 1]
+        return rays
+    grid = np.stack(np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64)), axis=-1)
+    # iterated to convergence: the default 5 iterations leave ~0.1 px in the image corners
+    # under freiburg1's strong k1..k3
+    undistorted = cv2.undistortPoints(grid.reshape(-1, 1, 2), K, np.asarray(distortion, np.float64), None, None, None,
+                                      (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-10))
+    return undistorted.reshape(h, w, 2)
+
+
+def depth_to_xyz_map(depth_m: np.ndarray, K: np.ndarray, rays: np.ndarray | None = None) -> np.ndarray:
+    """Organised points (H, W, 3) in metres, camera frame, NaN where depth is invalid (<= 0).
+
+    ``rays`` (from :func:`pixel_rays`, e.g. with lens distortion) replaces the pinhole ``K``."""
+    if rays is None:
+        rays = pixel_rays(K, depth_m.shape)
     z = np.where(depth_m > 0, depth_m, np.nan).astype(np.float64)
-    xyz = np.empty((h, w, 3))
-    xyz[..., 0] = (u - K[0, 2]) / K[0, 0] * z
-    xyz[..., 1] = (v - K[1, 2]) / K[1, 1] * z
+    xyz = np.empty((*depth_m.shape, 3))
+    xyz[..., 0] = rays[..., 0] * z
+    xyz[..., 1] = rays[..., 1] * z
     xyz[..., 2] = z
     return xyz
 
@@ -109,6 +143,27 @@ def register_color_to_depth(color: np.ndarray, xyz_map: np.ndarray, K_color: np.
     return cv2.remap(color, map_u, map_v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
 
 
+def interpolate_pose(trajectory: Trajectory, t: float, max_gap_s: float) -> np.ndarray | None:
+    """``T_world_sensor`` of ``trajectory`` at time ``t``: slerp in rotation and linear in position
+    between the two samples around ``t`` (a motion-capture stream at 100 Hz: the nearest sample
+    can be 5 ms off, 2-3 mm and 0.25 deg at hand-held speeds). None outside the trajectory or
+    across a gap longer than ``max_gap_s``."""
+    from scipy.spatial.transform import Rotation, Slerp
+
+    times = trajectory.timestamps_s
+    k = int(np.searchsorted(times, t))
+    if k < len(times) and times[k] == t:
+        return trajectory.poses_world_sensor[k]
+    if k == 0 or k == len(times) or times[k] - times[k - 1] > max_gap_s:
+        return None
+    poses = trajectory.poses_world_sensor[k - 1:k + 1]
+    a = (t - times[k - 1]) / (times[k] - times[k - 1])
+    T = np.eye(4)
+    T[:3, :3] = Slerp(times[k - 1:k + 1], Rotation.from_matrix(poses[:, :3, :3]))([t]).as_matrix()[0]
+    T[:3, 3] = (1 - a) * poses[0, :3, 3] + a * poses[1, :3, 3]
+    return T
+
+
 @dataclass
 class _Entry:
     frame_id: int
@@ -127,6 +182,8 @@ class RgbdSource:
         self.path = Path(path)
         self.config = config
         self.K_color: np.ndarray | None = None  # None: colour already on the depth grid
+        self.distortion: np.ndarray | None = None  # lens distortion of the depth grid's camera
+        self._rays: np.ndarray | None = None  # pixel_rays of the depth grid, computed on first use
         self.T_color_depth = KINECT_V1_T_COLOR_DEPTH
         if (self.path / "rgb.txt").exists() and (self.path / "depth.txt").exists():
             self.layout = "tum"
@@ -201,24 +258,38 @@ class RgbdSource:
         if not depth:
             return [], None, 5000.0
         depth_t = np.array([t for t, _ in depth])
-        K = np.array([[525.0, 0, 319.5], [0, 525.0, 239.5], [0, 0, 1]])
-        kfile = self.path / "intrinsics.txt"
-        if kfile.exists():
-            fx, fy, cx, cy = np.loadtxt(kfile).reshape(-1)[:4]
-            K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]])
+        K, self.distortion = self._tum_camera()
         gt = read_tum(self.path / "groundtruth.txt") if (self.path / "groundtruth.txt").exists() else None
         entries = []
         for t, rgb_name in rgb:
             j = int(np.argmin(np.abs(depth_t - t)))
             if abs(depth_t[j] - t) > 0.02:
                 continue
-            T = None
-            if gt is not None and len(gt):
-                k = int(np.argmin(np.abs(gt.timestamps_s - t)))
-                if abs(gt.timestamps_s[k] - t) < 0.02:
-                    T = gt.poses_world_sensor[k]
+            T = None if gt is None else interpolate_pose(gt, t, max_gap_s=0.05)
             entries.append(_Entry(len(entries), t, self.path / rgb_name, self.path / depth[j][1], T))
         return entries, K, 5000.0
+
+    def _tum_camera(self) -> tuple[np.ndarray, np.ndarray | None]:
+        """K and lens distortion of a TUM folder: intrinsics.txt, else the published calibration
+        of the camera its rgb.txt header or its name mentions, else the ROS default."""
+        kfile = self.path / "intrinsics.txt"
+        if kfile.exists():
+            try:
+                values = np.loadtxt(kfile).reshape(-1)
+            except ValueError as exc:
+                raise InputDataError(f"{kfile}: expected 'fx fy cx cy [k1 k2 p1 p2 k3]' ({exc})") from None
+            if len(values) not in (4, 8, 9):
+                raise InputDataError(f"{kfile}: expected 'fx fy cx cy [k1 k2 p1 p2 k3]', got {len(values)} numbers")
+            fx, fy, cx, cy = values[:4]
+            return np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]]), (values[4:] if len(values) > 4 else None)
+        header = "\n".join(line for line in (self.path / "rgb.txt").read_text().splitlines()[:5] if line.startswith("#"))
+        for name, ((fx, fy, cx, cy), distortion) in TUM_CAMERAS.items():
+            if name in header or name in self.path.name or name.replace("freiburg", "fr") in self.path.name:
+                log.info("%s: %s camera, the benchmark's published intrinsics and distortion", self.path, name)
+                return np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]]), np.array(distortion)
+        log.warning("%s: camera not named (freiburg1/2/3) and no intrinsics.txt; using the ROS default "
+                    "intrinsics 525/525/319.5/239.5 without distortion: add intrinsics.txt for accurate depth", self.path)
+        return ROS_DEFAULT_K.copy(), None
 
     # -- FrameSource -----------------------------------------------------------------------
     def frame_ids(self) -> list[int]:
@@ -236,7 +307,9 @@ class RgbdSource:
             raise InputDataError(f"{e.color}: missing or corrupt colour image")
         depth_m = depth.astype(np.float64) / self.depth_per_m
         depth_m[depth == 65535] = 0.0
-        xyz = depth_to_xyz_map(depth_m, self.K)
+        if self._rays is None or self._rays.shape[:2] != depth_m.shape:
+            self._rays = pixel_rays(self.K, depth_m.shape, self.distortion)
+        xyz = depth_to_xyz_map(depth_m, self.K, self._rays)
         valid = np.isfinite(xyz[..., 2])
         if not valid.any():
             raise InputDataError(f"{e.depth}: no valid depth")
@@ -254,7 +327,8 @@ class RgbdSource:
             colors=np.repeat(color[valid][:, None] / 255.0, 3, axis=1),
             xyz_map=xyz,
             texture=color,
-            metadata={"K": self.K.tolist(), "sensor": "rgbd"},
+            metadata={"K": self.K.tolist(), "sensor": "rgbd",
+                      **({"distortion": self.distortion.tolist()} if self.distortion is not None else {})},
         )
         return detect_and_describe(frame, self.registration_config())
 
@@ -287,4 +361,5 @@ class RgbdSource:
         return None
 
     def describe(self) -> dict[str, Any]:
-        return {"sensor": "rgbd", "layout": self.layout, "frames": len(self.entries), "K": self.K.tolist()}
+        return {"sensor": "rgbd", "layout": self.layout, "frames": len(self.entries), "K": self.K.tolist(),
+                "distortion": None if self.distortion is None else self.distortion.tolist()}

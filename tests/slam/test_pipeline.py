@@ -420,3 +420,65 @@ def test_sigterm_ends_the_workers_and_resume_completes(tmp_path):
     assert result.returncode == 0, result.stderr[-2000:]
     assert json.loads((out / "metrics.json").read_text())["frames"] == 14
     _assert_outputs_whole(out)
+
+
+def test_distorted_pixel_rays_project_back_onto_their_pixels():
+    import cv2
+
+    from frontend.rgbd.source import TUM_CAMERAS, pixel_rays
+
+    (fx, fy, cx, cy), distortion = TUM_CAMERAS["freiburg1"]
+    K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]])
+    rays = pixel_rays(K, (48, 64), np.array(distortion))
+    points = np.concatenate([rays.reshape(-1, 2), np.ones((48 * 64, 1))], axis=1)
+    uv, _ = cv2.projectPoints(points, np.zeros(3), np.zeros(3), K, np.array(distortion))
+    grid = np.stack(np.meshgrid(np.arange(64.0), np.arange(48.0)), axis=-1).reshape(-1, 2)
+    np.testing.assert_allclose(uv.reshape(-1, 2), grid, atol=1e-6)
+    # the lens matters: ~8 px at the corner of a 640x480 image, not a rounding
+    pinhole = pixel_rays(K, (480, 640))
+    corner = pixel_rays(K, (480, 640), np.array(distortion))[0, 0]
+    assert np.linalg.norm((corner - pinhole[0, 0]) * fx) > 3
+
+
+def test_ground_truth_is_interpolated_at_the_frame_time():
+    from scipy.spatial.transform import Rotation
+
+    from frontend.rgbd.source import interpolate_pose
+
+    T0, T1 = np.eye(4), np.eye(4)
+    T1[:3, :3] = Rotation.from_euler("z", 2, degrees=True).as_matrix()
+    T1[:3, 3] = [0.01, 0.0, 0.0]
+    gt = Trajectory.from_poses([10.0, 10.01, 10.5], [T0, T1, T1])
+    T = interpolate_pose(gt, 10.0025, max_gap_s=0.05)
+    np.testing.assert_allclose(T[:3, 3], [0.0025, 0, 0], atol=1e-12)
+    assert Rotation.from_matrix(T[:3, :3]).as_euler("xyz", degrees=True)[2] == pytest.approx(0.5, abs=1e-9)
+    np.testing.assert_array_equal(interpolate_pose(gt, 10.01, max_gap_s=0.05), T1)
+    assert interpolate_pose(gt, 10.2, max_gap_s=0.05) is None  # inside a 0.49 s gap of the stream
+    assert interpolate_pose(gt, 9.0, max_gap_s=0.05) is None
+
+
+def test_tum_camera_comes_from_intrinsics_file_or_the_named_camera(tmp_path, tum_sequence):
+    import shutil
+
+    from fpp_graph.config import Config
+    from frontend.rgbd.source import TUM_CAMERAS, RgbdSource
+
+    seq = tmp_path / "rgbd_dataset_freiburg2_xyz"
+    shutil.copytree(tum_sequence, seq)
+    (seq / "intrinsics.txt").unlink()
+    source = RgbdSource(seq, Config())
+    assert source.K[0, 0] == TUM_CAMERAS["freiburg2"][0][0]
+    np.testing.assert_array_equal(source.distortion, TUM_CAMERAS["freiburg2"][1])
+    (seq / "intrinsics.txt").write_text("500 500 160 100 0.1\n")
+    with pytest.raises(InputDataError, match=r"intrinsics.txt: expected 'fx fy cx cy \[k1 k2 p1 p2 k3\]', got 5 numbers"):
+        RgbdSource(seq, Config())
+
+
+def test_tum_subset_uses_the_freiburg1_calibration_and_every_frame_has_ground_truth():
+    from conftest import shared_data_path
+    from fpp_graph.config import Config
+    from frontend.rgbd.source import TUM_CAMERAS, RgbdSource
+
+    source = RgbdSource(shared_data_path("rgbd/tum_fr1_rpy_subset"), Config())
+    assert source.K[0, 0] == TUM_CAMERAS["freiburg1"][0][0] and source.distortion is not None
+    assert len(source.frame_ids()) == 100 and len(source.ground_truth()) == 100
