@@ -476,6 +476,7 @@ def test_tum_camera_comes_from_intrinsics_file_or_the_named_camera(tmp_path, tum
 
 def test_tum_subset_uses_the_freiburg1_calibration_and_every_frame_has_ground_truth():
     from conftest import shared_data_path
+
     from fpp_graph.config import Config
     from frontend.rgbd.source import TUM_CAMERAS, RgbdSource
 
