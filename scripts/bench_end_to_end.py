@@ -88,7 +88,7 @@ def instrument(timers: ExclusiveTimers) -> None:
     timers.wrap(fpp_graph.slam.keyframes.KeyframeManager, "process", "keyframes + loop detection")
     timers.wrap(fpp_graph.slam.keyframes.KeyframeManager, "finish", "keyframes + loop detection")
     timers.wrap(pipeline, "fuse_map", "fusion (map + TSDF mesh)")
-    timers.wrap(pipeline, "fuse_points_only", "plots + outputs")
+    timers.wrap(pipeline, "points_under_poses", "plots + outputs")
     timers.wrap(pipeline, "write_plots", "plots + outputs")
     timers.wrap(pipeline, "write_trajectory_and_graph", "plots + outputs")
     timers.wrap(pipeline, "save_frame", "frame cache I/O")

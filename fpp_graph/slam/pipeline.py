@@ -241,11 +241,13 @@ def write_trajectory_and_graph(out: Path, result: SlamResult, timestamps: dict[i
 # -- step 5: map ----------------------------------------------------------------------------
 def fuse_map(
     out: Path, result: SlamResult, store: FrameStore, config: Config, progress: ProgressCallback | None = None,
-    fuser: MapFuser | None = None,
+    fuser: MapFuser | None = None, plot_samples: dict[int, np.ndarray] | None = None,
 ) -> FusedMap:
     """Re-fuse keyframes under the optimised poses with ``fuser`` (default: a
     :class:`~fpp_graph.fusion.voxel_map.VoxelMapFuser` from ``config.fusion``); writes ``map.ply`` and,
-    when the map has a mesh, ``mesh.ply``."""
+    when the map has a mesh, ``mesh.ply``. ``plot_samples``, when given, receives a random subset
+    of each keyframe's points (sensor frame, :data:`PLOT_POINTS` over all keyframes) in the same
+    pass, so the "before loop closure" map is drawn without reading the frames again."""
     from fpp_graph.fusion.voxel_map import VoxelMapFuser, write_mesh_ply, write_point_cloud_ply
 
     if fuser is None:
@@ -255,8 +257,13 @@ def fuse_map(
             tsdf_truncation_m=config.fusion.tsdf_truncation_m,
             mesh=config.fusion.mesh,
         )
+    per_keyframe = -(-PLOT_POINTS // max(len(result.keyframe_ids), 1))
     for i, kf in enumerate(result.keyframe_ids):
-        fuser.integrate(store.get(kf), result.poses_world_sensor[kf])
+        frame = store.get(kf)
+        fuser.integrate(frame, result.poses_world_sensor[kf])
+        if plot_samples is not None:
+            pick = np.random.default_rng(kf).permutation(len(frame.points))[:per_keyframe]
+            plot_samples[kf] = np.asarray(frame.points, dtype=np.float64)[np.sort(pick)]
         if progress:
             progress("fuse", i + 1, len(result.keyframe_ids))
     fused = fuser.result()
@@ -267,13 +274,23 @@ def fuse_map(
 
 
 def fuse_points_only(result_poses: dict[int, np.ndarray], keyframe_ids: list[int], store: FrameStore, voxel_size_m: float):
-    """Voxel-grid map under given poses, without a mesh (for before/after comparisons)."""
+    """Voxel-grid map under given poses, without a mesh (for before/after accuracy comparisons)."""
     from fpp_graph.fusion.voxel_map import VoxelMapFuser
 
     fuser = VoxelMapFuser(voxel_size_m=voxel_size_m, tsdf_voxel_m=voxel_size_m, tsdf_truncation_m=4 * voxel_size_m, mesh=False)
     for kf in keyframe_ids:
         fuser.integrate(store.get(kf), result_poses[kf])
     return fuser.result()
+
+
+# Points drawn per map in map_before_after.png (plot_map_before_after subsamples to this anyway).
+PLOT_POINTS = 200_000
+
+
+def points_under_poses(samples: dict[int, np.ndarray], poses_world_sensor: dict[int, np.ndarray]) -> np.ndarray:
+    """The keyframes' point samples (sensor frame) moved into the world by ``poses_world_sensor``."""
+    moved = [samples[kf] @ poses_world_sensor[kf][:3, :3].T + poses_world_sensor[kf][:3, 3] for kf in samples]
+    return np.concatenate(moved) if moved else np.empty((0, 3))
 
 
 # -- step 6: metrics and plots --------------------------------------------------------------
@@ -381,15 +398,16 @@ class Pipeline:
         with self._timed(report, "write_graph"):
             write_trajectory_and_graph(out, report.slam, timestamps)
             write_loop_log(out, report.slam)
+        samples: dict[int, np.ndarray] = {}
         with self._timed(report, "fuse"):
-            fused = fuse_map(out, report.slam, store, self.config, self.progress, self.map_fuser)
+            fused = fuse_map(out, report.slam, store, self.config, self.progress, self.map_fuser, plot_samples=samples)
         with self._timed(report, "plots"):
-            before = fuse_points_only(odometry_only_poses(report.slam), report.slam.keyframe_ids, store, max(self.config.fusion.voxel_size_m, 0.002))
+            before_points = points_under_poses(samples, odometry_only_poses(report.slam))
             gt = self.source.ground_truth()
             gt_poses = None
             if gt is not None and len(gt) == report.frames_total:
                 gt_poses = {fid: T for fid, T in zip(ids, gt.poses_world_sensor, strict=True)}
-            write_plots(out, report.slam, before.points_world_m, fused.points_world_m, gt_poses)
+            write_plots(out, report.slam, before_points, fused.points_world_m, gt_poses)
         report.metrics = slam_summary(report)
         if gt_poses is not None:  # loop candidates against ground truth (fpp_graph.evaluation.loops)
             from fpp_graph.evaluation.loops import evaluate_results_loops
