@@ -60,7 +60,7 @@ class FppSensor:
         self.spec = spec
         proj = calibration.projector
         self.decoder = Decoder(spec, proj.width, proj.height, decode_config)
-        self.triangulator = Triangulator(calibration, axis=spec.axis, depth_range_m=depth_range_m)
+        self.triangulator = Triangulator(calibration, axis=spec.coded_axis, depth_range_m=depth_range_m)
         self.edge_max_angle_deg = edge_max_angle_deg
         self.edge_noise_floor_m = float(edge_noise_floor_m)
         K = calibration.camera.K
