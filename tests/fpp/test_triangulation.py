@@ -234,3 +234,18 @@ def test_out_buffer_must_be_contiguous():
     tri = Triangulator(make_rig(projector_dist=np.zeros(5)))
     with pytest.raises(InputDataError, match="C-contiguous"):
         tri.triangulate(np.zeros((400, 640), np.float32), out=np.empty((400, 640, 6))[..., ::2])
+
+
+def test_projector_distortion_fit_reports_once_at_debug(caplog):
+    """Building a Triangulator with projector distortion logs one DEBUG line and no warning."""
+    import logging
+
+    with caplog.at_level(logging.DEBUG, logger="frontend.fpp.triangulation"):
+        Triangulator(make_rig())
+    records = [r for r in caplog.records if r.name == "frontend.fpp.triangulation"]
+    assert [r.levelno for r in records] == [logging.DEBUG]
+    assert "projector inverse distortion" in records[0].getMessage()
+    caplog.clear()
+    with caplog.at_level(logging.DEBUG, logger="frontend.fpp.triangulation"):
+        Triangulator(make_rig(projector_dist=np.zeros(5)))
+    assert not [r for r in caplog.records if r.name == "frontend.fpp.triangulation"]
