@@ -110,6 +110,9 @@ def _depth_bounds(
     return z_lo, z_hi, bad
 
 
+_FIT_ERROR_WARNING_PX = 0.1
+
+
 class Triangulator:
     """Fast per-frame triangulation for one rig calibration (precomputes per-pixel constants).
 
@@ -444,11 +447,13 @@ class Triangulator:
         self.projector_fit_degree = fit.degree
         self.projector_fit_max_error_px, unfitted = self._check_projector_fit((slice(None, None, 5), slice(None, None, 5)), fit.nodes)
         above = self.projector_fit_max_error_px > tolerance_px
-        # One line per Triangulator. Sampled ray points without a fit lie where the polynomial
-        # table does not reach (the projector's extreme corners, at the depth bounds): those
-        # pixels stay invalid there, which is the right answer, so this is not a warning.
+        # One DEBUG line per Triangulator. Sampled ray points without a fit lie where the
+        # polynomial table does not reach (the projector's extreme corners, at the depth bounds):
+        # those pixels stay invalid there, which is the right answer. A fit error above the
+        # (strict) tolerance but below a tenth of a projector pixel is far below any phase noise;
+        # only beyond that does the user need to hear of it.
         log.log(
-            logging.WARNING if above else logging.DEBUG,
+            logging.WARNING if self.projector_fit_max_error_px > _FIT_ERROR_WARNING_PX else logging.DEBUG,
             "projector inverse distortion: degree %d polynomials on %d epipolar lines (fit error %.3g px), "
             "max error %.3g px on sampled pixels (tolerance %.3g px)%s%s",
             fit.degree, FIT_TABLE_LINES, fit.table_error_px, self.projector_fit_max_error_px, tolerance_px,
