@@ -224,20 +224,21 @@ def write_capture_outputs(out_dir: str | os.PathLike[str], capture: CaptureResul
     _write_ply(paths["points.ply"], xyz[valid], capture.texture[valid])
     with atomic_open(paths["xyz_map.npy"], "wb") as handle:
         np.save(handle, xyz.astype(np.float32))
-    _write_png(paths["texture.png"], capture.texture)
+    write_png(paths["texture.png"], capture.texture)
     depth_units = np.where(valid, np.rint(np.where(valid, xyz[..., 2], 0.0) / DEPTH_UNIT_M), 0.0)
     too_far = depth_units > np.iinfo(np.uint16).max
     depth_units[too_far] = 0
-    _write_png(paths["depth.png"], depth_units.astype(np.uint16))
+    write_png(paths["depth.png"], depth_units.astype(np.uint16))
     report = {**capture.report, "depth_png": {"unit_m": DEPTH_UNIT_M, "invalid": 0, "too_far_written_as_0": int(np.count_nonzero(too_far))}}
     atomic_write_text(paths["decode.json"], json.dumps(report, indent=1) + "\n")
     return paths
 
 
-def _write_png(path: Path, image: NDArray) -> None:
+def write_png(path: str | os.PathLike[str], image: NDArray) -> None:
+    """Write an 8- or 16-bit image as PNG, atomically."""
     ok, buf = cv2.imencode(".png", image)
     if not ok:
-        raise OutputError(f"cannot encode {path.name} as PNG")
+        raise OutputError(f"cannot encode {Path(path).name} as PNG")
     atomic_write_bytes(path, buf.tobytes())
 
 
