@@ -108,3 +108,47 @@ def decode(
     span = f"depth {1e3 * depth['p01']:.1f}-{1e3 * depth['p99']:.1f} mm (p1-p99)" if depth.get("count") else "no depth"
     total_s = sum(r["seconds"].values())
     typer.echo(f"{r['valid_pixels']} valid points ({100 * r['valid_pixels'] / (r['image_size'][0] * r['image_size'][1]):.1f} % of pixels), {span}, {total_s:.2f} s -> {out}")
+
+
+def calibrate(
+    board_captures: Annotated[Path, typer.Argument(help="Folder with one sub-folder of pattern images per chessboard pose.")],
+    patterns: PatternsOption,
+    board: Annotated[str, typer.Option("--board", help="Chessboard inner corners COLSxROWS (e.g. 7x9).")],
+    square_mm: Annotated[float, typer.Option("--square-mm", help="Chessboard square side, millimetres.")],
+    projector: Annotated[str, typer.Option("--projector", help="Projector WxH in pixels.")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Calibration YAML to write (fpp-graph format, millimetres).")],
+    images: Annotated[Optional[str], typer.Option("--images", help="Glob picking each pose's images (default: every image file).")] = None,  # noqa: UP045
+    poses: Annotated[str, typer.Option("--poses", help="Glob picking the pose sub-folders.")] = "*",
+    black_threshold: Annotated[float, typer.Option("--black-threshold", help="Valid pixels have white - black above this (grey levels).")] = 40.0,
+    white_threshold: Annotated[float, typer.Option("--white-threshold", help="... and every Gray bit differs from its inverse by at least this.")] = 5.0,
+    skip_missing_board: Annotated[bool, typer.Option("--skip-missing-board", help="Skip poses whose board is not found instead of stopping.")] = False,
+) -> None:
+    """Camera + projector calibration from chessboard captures; prints per-view and overall reprojection RMS."""
+    from fpp_graph.cli import RichProgress, setup_logging
+    from fpp_graph.config import DecodeConfig
+    from fpp_graph.errors import ConfigError
+    from frontend.fpp.calibration_board import Chessboard
+    from frontend.fpp.calibration_folders import calibrate_pose_folders, pose_folders
+    from frontend.fpp.pattern_file import load_pattern_spec
+    from frontend.fpp.rig import save_calibration
+
+    setup_logging("WARNING")
+    corners = parse_size(board, "--board")
+    size = parse_size(projector, "--projector")
+    if not square_mm > 0:
+        raise ConfigError(f"--square-mm must be positive, got {square_mm}")
+    spec = load_pattern_spec(patterns)
+    # half the white - black contrast; +0.25 makes "above the threshold" strict on integer images
+    decode_config = DecodeConfig(min_modulation=black_threshold / 2 + 0.25, min_background=0.0, min_code_contrast=white_threshold)
+    folders = pose_folders(board_captures, poses)
+    with RichProgress() as progress:
+        report = calibrate_pose_folders(folders, spec, Chessboard(corners, square_mm * 1e-3), size, decode_config, images=images, skip_missing_board=skip_missing_board, progress=progress)
+    save_calibration(out, report.calibration)
+    rms = report.calibration.reprojection_rms_px
+    typer.echo(f"{'pose':<40s} {'camera px':>10s} {'projector px':>13s}")
+    for name, errors in report.per_view_rms_px.items():
+        typer.echo(f"{Path(name).name:<40s} {errors['camera']:10.3f} {errors['projector']:13.3f}")
+    for name, why in report.skipped_poses.items():
+        typer.echo(f"{Path(name).name:<40s} skipped: {why}")
+    typer.echo(f"RMS reprojection: camera {rms['camera']:.3f} px, projector {rms['projector']:.3f} px, stereo {rms['stereo']:.3f} px; "
+               f"baseline {1e3 * report.calibration.baseline_m:.1f} mm -> {out}")

@@ -52,7 +52,7 @@ OUTPUT_FILES = ("points.ply", "xyz_map.npy", "texture.png", "depth.png", "decode
 Progress = Callable[[str, int, int], None]
 
 
-def _natural_key(path: Path) -> list[Any]:
+def natural_key(path: Path) -> list[Any]:
     """``img2.png`` before ``img10.png``."""
     return [int(t) if t.isdigit() else t.lower() for t in re.split(r"(\d+)", path.name)]
 
@@ -77,15 +77,23 @@ def capture_image_paths(folder: str | os.PathLike[str], spec: PatternSpec, patte
     folder = Path(folder)
     if not folder.is_dir():
         raise InputDataError(f"capture folder {folder} does not exist (or is not a folder)")
-    files = sorted((p for p in folder.glob(pattern or "*") if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES), key=_natural_key)
+    files = sorted((p for p in folder.glob(pattern or "*") if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES), key=natural_key)
     n = spec.image_count()
     if len(files) != n:
         which = f"matching {pattern!r}" if pattern else "(all image files)"
         raise InputDataError(
             f"{folder}: {len(files)} images {which} but the pattern spec describes {n} "
-            f"({', '.join(im.token() for im in spec.layout())}); pick the images with --images GLOB or fix the spec's order"
+            f"({describe_order(spec)}); pick the images with --images GLOB or fix the spec's order"
         )
     return files
+
+
+def describe_order(spec: PatternSpec, keep: int = 4) -> str:
+    """The spec's image roles in order, the middle elided for long sets."""
+    tokens = [im.token() for im in spec.layout()]
+    if len(tokens) <= 2 * keep + 1:
+        return ", ".join(tokens)
+    return ", ".join(tokens[:keep]) + f", ... ({len(tokens) - 2 * keep} more), " + ", ".join(tokens[-keep:])
 
 
 @dataclass(frozen=True, eq=False)
