@@ -152,3 +152,32 @@ def calibrate(
         typer.echo(f"{Path(name).name:<40s} skipped: {why}")
     typer.echo(f"RMS reprojection: camera {rms['camera']:.3f} px, projector {rms['projector']:.3f} px, stereo {rms['stereo']:.3f} px; "
                f"baseline {1e3 * report.calibration.baseline_m:.1f} mm -> {out}")
+
+
+def import_captures(
+    captures_root: Annotated[Path, typer.Argument(help="Folder with one sub-folder of pattern images per frame.")],
+    patterns: PatternsOption,
+    calibration: CalibrationOption,
+    out: Annotated[Path, typer.Option("--out", "-o", help="Sequence folder to write (sequence.yaml + frames).")],
+    copy: Annotated[bool, typer.Option("--copy/--reference", help="Copy the images into the sequence, or refer to them where they are.")] = True,
+    images: Annotated[Optional[str], typer.Option("--images", help="Glob picking each frame's images (default: every image file).")] = None,  # noqa: UP045
+    frames: Annotated[str, typer.Option("--frames", help="Glob picking the frame sub-folders.")] = "*",
+    frame_period_s: Annotated[float, typer.Option("--frame-period", help="Seconds between frames (timestamps).")] = 1.0,
+    projector: ProjectorOption = None,
+    overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace an earlier sequence in --out.")] = False,
+) -> None:
+    """Per-frame capture folders -> a sequence folder that `fpp-slam run` reads."""
+    from fpp_graph.cli import RichProgress, setup_logging
+    from frontend.fpp.calibration_io import read_any_calibration
+    from frontend.fpp.capture import import_captures as import_folders
+    from frontend.fpp.pattern_file import load_pattern_spec
+
+    setup_logging("WARNING")
+    spec = load_pattern_spec(patterns)
+    rig = read_any_calibration(calibration, projector_size=parse_size(projector, "--projector"))
+    with RichProgress() as progress:
+        path = import_folders(captures_root, spec, rig, out, images=images, frames=frames, copy=copy, frame_period_s=frame_period_s, overwrite=overwrite, progress=progress)
+    from frontend.fpp.sequence import read_sequence
+
+    sequence = read_sequence(path)
+    typer.echo(f"{len(sequence)} frames of {spec.image_count()} images ({'copied' if copy else 'referenced'}) -> {path}; run it with `fpp-slam run {path}`")

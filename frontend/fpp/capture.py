@@ -265,3 +265,65 @@ def _write_ply(path: Path, points_m: NDArray, grey: NDArray) -> None:
     buf.write(header.encode("ascii"))
     buf.write(rows.tobytes())
     atomic_write_bytes(path, buf.getvalue())
+
+
+def import_captures(
+    root: str | os.PathLike[str],
+    spec: PatternSpec,
+    calibration: RigCalibration,
+    out: str | os.PathLike[str],
+    *,
+    images: str | None = None,
+    frames: str = "*",
+    copy: bool = True,
+    frame_period_s: float = 1.0,
+    overwrite: bool = False,
+    progress: Progress | None = None,
+) -> Path:
+    """A folder with one sub-folder of images per frame -> a sequence folder ``fpp-slam run`` reads.
+
+    Parameters
+    ----------
+    root : path
+        Capture root; its sub-folders matching ``frames`` (natural name order) are the frames.
+    spec, calibration
+        The pattern set (image order within a frame) and the rig, written into ``sequence.yaml``.
+    out : path
+        The sequence folder (:mod:`frontend.fpp.sequence`).
+    images : str, optional
+        Glob picking each frame's images.
+    copy : bool
+        True: the images are re-written as grey PNGs into the sequence. False: ``sequence.yaml``
+        refers to the capture folders where they are (relative paths: keep both folders together).
+    frame_period_s : float
+        Timestamps are ``frame index * frame_period_s``.
+
+    Raises
+    ------
+    InputDataError
+        No frame folders, a frame with the wrong image count, unreadable images.
+    CalibrationError
+        A frame's image size differs from the calibration's camera.
+    """
+    from frontend.fpp.sequence import FrameRecord, SequenceWriter
+
+    root = Path(root)
+    if not root.is_dir():
+        raise InputDataError(f"capture root {root} does not exist (or is not a folder)")
+    folders = sorted((p for p in root.glob(frames) if p.is_dir()), key=natural_key)
+    if not folders:
+        raise InputDataError(f"{root} has no frame sub-folders matching {frames!r}; put each frame's images in a sub-folder of its own")
+    writer = SequenceWriter(out, calibration, spec, overwrite=overwrite, source={"imported_from": str(root.resolve()), "copied": copy})
+    out_path = Path(out).resolve()
+    for k, folder in enumerate(folders):
+        paths = capture_image_paths(folder, spec, images)
+        if copy:
+            writer.add_frame(k, k * frame_period_s, load_image_stack(paths))
+        else:
+            first = load_image_stack(paths[:1])  # one image per frame: size and type (all are checked on reading)
+            calibration.check_image_size(first.shape[2], first.shape[1], f"{folder} (calibration camera)")
+            rel = os.path.relpath(folder.resolve(), out_path)
+            writer.frames.append(FrameRecord(k, k * frame_period_s, rel, tuple(p.name for p in paths)))
+        if progress is not None:
+            progress("import", k + 1, len(folders))
+    return writer.close()
