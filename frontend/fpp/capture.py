@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import io
 import json
+import logging
 import os
 import re
 import time
@@ -43,6 +44,8 @@ from frontend.fpp.images import load_image_stack
 from frontend.fpp.patterns import PatternSpec
 from frontend.fpp.phase import DecodeResult
 from frontend.fpp.rig import RigCalibration
+
+log = logging.getLogger(__name__)
 
 IMAGE_SUFFIXES = (".png", ".bmp", ".tif", ".tiff", ".jpg", ".jpeg", ".pgm")
 DEPTH_UNIT_M = 1e-4  # depth.png: 0.1 mm per count
@@ -140,7 +143,8 @@ def decode_capture(
     calibration, spec, decode_config
         Rig, pattern set and decoder thresholds (default: the packaged ones).
     edge_filter : bool
-        The mixed-pixel / discontinuity filter of the pipeline (on by default).
+        The mixed-pixel / discontinuity filter of the pipeline (on by default; never applied to
+        Gray code alone, whose stripe staircase it would reject entirely).
     depth_range_m : (near, far)
         Accepted depths along the camera axis, metres.
     where : str
@@ -156,6 +160,11 @@ def decode_capture(
     from frontend.fpp.sensor import FppSensor
 
     config = decode_config or DecodeConfig()
+    if spec.kind == "gray_code" and edge_filter:
+        # A stripe-quantised map is a staircase of projector stripe planes: its local normals
+        # are those planes', seen at grazing angles, so the filter would drop every pixel.
+        log.info("%s: Gray code alone gives a staircase depth map; the mixed-pixel edge filter is not applied", where)
+        edge_filter = False
     seconds: dict[str, float] = {}
     t0 = time.perf_counter()
     sensor = FppSensor(calibration, spec, config, depth_range_m=depth_range_m, edge_max_angle_deg=75.0 if edge_filter else None)
