@@ -118,7 +118,7 @@ def calibrate_pose_folders(
         folders, spec, board, projector_size, decode_config, images=images, skip_missing_board=skip_missing_board, progress=progress
     )
     if len(observations) < 3:
-        raise CalibrationError(f"only {len(observations)} of {len(folders)} poses show the board; calibration needs at least 3")
+        raise CalibrationError(f"only {len(observations)} of {len(folders)} poses show the board; calibration needs at least 3: check --board (inner corners) or capture more poses with the whole board in view")
     report = calibrate_rig(observations, board, camera_size, projector_size)
     finite = [np.isfinite(o.projector_px).all(axis=1).sum() for o in observations]
     log.info("calibrated from %d poses (%d projector corners)", len(observations), int(sum(finite)))
