@@ -28,7 +28,12 @@ from frontend.fpp.capture import capture_image_paths, natural_key
 from frontend.fpp.images import load_image_stack
 from frontend.fpp.patterns import PatternSpec
 from frontend.fpp.phase import Decoder
-from frontend.fpp.rig_calibration import PoseObservation, RigCalibrationReport, calibrate_rig, observe_pose
+from frontend.fpp.rig_calibration import (
+    PoseObservation,
+    RigCalibrationReport,
+    calibrate_rig,
+    observe_pose,
+)
 
 log = logging.getLogger(__name__)
 

@@ -31,8 +31,8 @@ Conventions (the decoder in :mod:`frontend.fpp.phase` relies on every one of the
   (``gray_order="lsb_first"`` reverses it).
 * Gray code alone (``kind="gray_code"``): ``periods[0]`` = ``S`` stripes across the axis (default
   ``2 ** gray_bits``), stripe ``k = floor(S j / W)`` of projector pixel ``j``; the decoder returns
-  the stripe centre ``(k + 1/2) W / S - 1/2``, exact to ``+- W / (2 S)`` (RMS
-  ``W / (S sqrt 12)``). ``S = W`` with ``gray_bits = ceil(log2 W)`` is OpenCV's column code.
+  the centre of the stripe's pixels (``(k + 1/2) W / S - 1/2`` when ``W / S`` is an integer),
+  exact to half a stripe (RMS ``W / (S sqrt 12)``). ``S = W`` with ``gray_bits = ceil(log2 W)`` is OpenCV's column code.
   It needs either white/black references or inverse images to binarise the bits.
 * Single period (``kind="single_frequency"``, ``periods=(1,)``): one fringe across the axis,
   the wrapped phase is already absolute.

@@ -2,10 +2,11 @@
 
 No phase images: each bit is binarised against ``(white + black) / 2`` or against its inverse
 image, the bits are Gray-decoded (:func:`frontend.fpp.unwrapping.read_gray_code`) to the stripe
-index ``k`` and the projector coordinate is the stripe centre ``(k + 1/2) W / S - 1/2``
-(pixel-centre convention, :mod:`frontend.fpp.patterns`). Its error is uniform over the stripe:
-at most ``W / (2 S)`` and ``W / (S sqrt 12)`` RMS projector pixels, before camera blur and
-noise move code edges.
+index ``k`` and the projector coordinate is the centre of the stripe's projector pixels
+``j0 .. j1`` (``j0 = ceil(k W / S)``, ``j1 = ceil((k + 1) W / S) - 1``): ``(j0 + j1) / 2``, which
+is ``(k + 1/2) W / S - 1/2`` when ``W / S`` is an integer (pixel-centre convention,
+:mod:`frontend.fpp.patterns`). Its error is uniform over the stripe: at most half a stripe and
+``W / (S sqrt 12)`` RMS projector pixels, before camera blur and noise move code edges.
 
 Validity, counted under the decoder's reasons: ``low_modulation`` where half the white - black
 contrast (without references: half the smallest bit - inverse contrast) is below
@@ -46,6 +47,14 @@ def binary_images(layout: Sequence[PatternImage], axis: str) -> tuple[list[int],
     return index, inverse
 
 
+def stripe_centres(length_px: int, stripes: int, bits: int) -> NDArray[np.float32]:
+    """Projector coordinate of each code's stripe centre (NaN for codes that are no stripe)."""
+    k = np.arange(2**bits, dtype=np.int64)
+    first = -((-k * length_px) // stripes)  # ceil(k W / S), exact in integers
+    last = -((-(k + 1) * length_px) // stripes) - 1
+    return np.where(k < stripes, 0.5 * (first + last), np.nan).astype(np.float32)
+
+
 class StripeCode:
     """Decodes the bands of a Gray-code-only set (see the module docstring)."""
 
@@ -56,6 +65,10 @@ class StripeCode:
         self.stripes = {name: spec.periods[k] for k, (name, _, _) in enumerate(self.axes)}
         self.pitch_px = {
             name: (projector_height if axis == "rows" else projector_width) / self.stripes[name] for name, _, axis in self.axes
+        }
+        self.centre_px = {
+            name: stripe_centres(projector_height if axis == "rows" else projector_width, self.stripes[name], bits)
+            for (name, _, axis), bits in zip(self.axes, (spec.gray_bits, spec.gray_bits_rows), strict=False)
         }
         self.white_index, self.black_index = white_index, black_index
 
@@ -81,8 +94,7 @@ class StripeCode:
             # codes of n bits reach 2 ** n - 1: compare with S - 1 in the code's own type
             np.greater(code, code.dtype.type(min(self.stripes[name] - 1, np.iinfo(code.dtype).max)), out=tmp.view(np.bool_))
             cv2.bitwise_or(bad, tmp, dst=bad)
-            pitch = self.pitch_px[name]
-            cv2.addWeighted(order, pitch, order, 0.0, 0.5 * pitch - 0.5, dst=out[key], dtype=cv2.CV_32F)
+            np.take(self.centre_px[name], code, out=out[key], mode="clip")
         cv2.bitwise_or(invalid, bad, dst=invalid)
         for _, key, _ in self.axes:
             cv2.copyTo(work.const("nan", np.nan, np.float32, r), invalid, out[key])

@@ -15,14 +15,13 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from cli_helpers import run_cli, write_pattern_file
 
 from frontend.fpp.patterns import PatternSpec
 from frontend.fpp.rig import save_calibration
 from frontend.fpp.triangulation import Triangulator
 from frontend.sim import FppSimulator, RigParameters, plane_scene, sphere_scene
 from frontend.sim.render import project_points
-
-from cli_helpers import run_cli, write_pattern_file
 
 PREVIEW_RIG = RigParameters().calibration(preview=True)  # 640x400 camera, 912x1140 projector
 # rows need a baseline across them: the projector above the camera
