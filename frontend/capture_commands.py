@@ -31,6 +31,12 @@ def parse_size(text: str | None, what: str) -> tuple[int, int] | None:
     return int(parts[0]), int(parts[1])
 
 
+def required_size(text: str, what: str) -> tuple[int, int]:
+    size = parse_size(text, what)
+    assert size is not None  # a required option
+    return size
+
+
 def parse_range(text: str, what: str) -> tuple[float, float]:
     from fpp_graph.errors import ConfigError
 
@@ -133,8 +139,8 @@ def calibrate(
     from frontend.fpp.rig import save_calibration
 
     setup_logging("WARNING")
-    corners = parse_size(board, "--board")
-    size = parse_size(projector, "--projector")
+    corners = required_size(board, "--board")
+    size = required_size(projector, "--projector")
     if not square_mm > 0:
         raise ConfigError(f"--square-mm must be positive, got {square_mm}")
     spec = load_pattern_spec(patterns)

@@ -88,6 +88,7 @@ def observe_pose_folders(
             raise InputDataError(f"{folder}: images are {size[0]}x{size[1]}, earlier poses {camera_size[0]}x{camera_size[1]}; one camera, one size")
         camera_size = size
         result = decoder.decode(stack)
+        assert result.v_projector_px is not None  # axis both
         white = stack[white_index] if white_index is not None else result.texture
         try:
             observations.append(observe_pose(str(folder), white, result.u_projector_px, result.v_projector_px, board, result.mask))

@@ -63,9 +63,6 @@ class StripeCode:
         self.axes = [("", "u", spec.coded_axis)] + ([("rows", "v", "rows")] if spec.axis == "both" else [])
         self.codes = {name: binary_images(layout, name) for name, _, _ in self.axes}
         self.stripes = {name: spec.periods[k] for k, (name, _, _) in enumerate(self.axes)}
-        self.pitch_px = {
-            name: (projector_height if axis == "rows" else projector_width) / self.stripes[name] for name, _, axis in self.axes
-        }
         self.centre_px = {
             name: stripe_centres(projector_height if axis == "rows" else projector_width, self.stripes[name], bits)
             for (name, _, axis), bits in zip(self.axes, (spec.gray_bits, spec.gray_bits_rows), strict=False)
