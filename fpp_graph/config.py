@@ -32,6 +32,7 @@ class DecodeConfig(StrictModel):
     min_modulation: float = Field(4.0, ge=0, description="minimum fringe modulation b, grey levels")
     saturation_level: float = Field(254.0, gt=0, description="grey level at or above which a pixel is saturated")
     min_background: float = Field(2.0, ge=0, description="minimum background a; darker pixels are shadow")
+    min_code_contrast: float = Field(0.0, ge=0, description="a Gray bit read against its inverse image needs |bit - inverse| >= this (grey levels), else low_modulation")
 
 
 class RegistrationConfig(StrictModel):

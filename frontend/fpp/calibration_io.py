@@ -1,6 +1,6 @@
 """Readers of third-party projector-camera calibration files into :class:`RigCalibration`.
 
-Both formats are OpenCV FileStorage files (YAML or XML) with lengths in millimetres; the readers
+:func:`read_any_calibration` recognises the format by content. All third-party formats are OpenCV FileStorage files (YAML or XML) with lengths in millimetres; the readers
 convert to metres. Every problem (unreadable file, missing node, wrong matrix shape, a rotation
 that is not one) raises :class:`CalibrationError` naming the file and the node.
 
@@ -41,6 +41,16 @@ are in the unit of the chessboard square size given to ``calibrate.py``; its hel
 cm or m". The shipped sample used 75 (a 75 mm square, 10x8 squares = a 750 x 600 mm board; read as
 centimetres the baseline would be 6.4 m), so millimetres is the default ``length_unit``. The
 projector size is not stored either: the sample is a 1024 x 768 projector.
+
+SLStudio-style XML (``Kc kc Kp kp Rp Tp``)
+-----------------------------------------
+jakobwilm/slstudio's ``CalibrationData::saveXML`` (and tools derived from it) writes ``Kc``/``kc``
+(camera intrinsics, 5 distortion terms), ``Kp``/``kp`` (projector), ``Rp``/``Tp``, the RMS errors
+``cam_error``/``proj_error``/``stereo_error`` (px), ``frameWidth``/``frameHeight`` (camera) and
+``screenResX``/``screenResY`` (projector). ``Rp``/``Tp`` come from ``cv::stereoCalibrate`` with
+the camera first: they map camera-frame points into the projector frame (``T_projector_camera``),
+in the unit of the calibration board, millimetres. Matrices are float32: the rotation is
+re-orthonormalised on reading.
 """
 
 from __future__ import annotations
@@ -200,27 +210,99 @@ def read_procam_calibration(
     return RigCalibration(camera, projector, make_pose(R, t * _UNIT_TO_M[length_unit]), reprojection_rms_px=rms)
 
 
-def read_any_calibration(path: str | os.PathLike[str], **kwargs) -> RigCalibration:
-    """Read a calibration in any supported format, recognised by its content.
+def read_slstudio_calibration(
+    path: str | os.PathLike[str],
+    projector_size: tuple[int, int] | None = None,
+    camera_size: tuple[int, int] | None = None,
+    length_unit: str = "mm",
+) -> RigCalibration:
+    """Read an SLStudio-style OpenCV FileStorage calibration (``Kc kc Kp kp Rp Tp``).
 
-    fpp-graph's own YAML (``format: fpp-graph rig calibration v1``), SLMaster ``caliInfo.yml``
-    (``M1``, ``M4``, ``Rlp``) or procam-calibration XML (``cam_int``, ``proj_int``). Keyword
-    arguments go to the matching reader.
+    Parameters
+    ----------
+    path : path-like
+    projector_size, camera_size : (width, height), optional
+        Override (or supply, when the file lacks them) ``screenResX/Y`` and ``frameWidth/Height``.
+    length_unit : {"mm", "cm", "m"}
+        Unit of ``Tp`` (SLStudio: millimetres).
+
+    Returns
+    -------
+    RigCalibration
+        ``T_projector_camera`` from ``Rp``/``Tp`` in metres, with the file's RMS errors.
+    """
+    if length_unit not in _UNIT_TO_M:
+        raise CalibrationError(f"length_unit must be one of {sorted(_UNIT_TO_M)}, got {length_unit!r}")
+    st = _Storage(path)
+    try:
+        camera_size = camera_size or _size_nodes(st, "frameWidth", "frameHeight", "camera", "the captures' size")
+        projector_size = projector_size or _size_nodes(st, "screenResX", "screenResY", "projector", "--projector WxH")
+        camera = _device(st, "Kc", "kc", *camera_size)
+        projector = _device(st, "Kp", "kp", *projector_size)
+        R = _rotation(st, "Rp")
+        t = st.matrix("Tp", ((3,),))
+        rms = {key: st.real(node) for key, node in (("camera", "cam_error"), ("projector", "proj_error"), ("stereo", "stereo_error")) if st.has(node)}
+    finally:
+        st.release()
+    return RigCalibration(camera, projector, make_pose(R, t * _UNIT_TO_M[length_unit]), reprojection_rms_px=rms)
+
+
+def _size_nodes(st: _Storage, w_name: str, h_name: str, device: str, how: str) -> tuple[int, int]:
+    if not (st.has(w_name) and st.has(h_name)):
+        raise CalibrationError(f"{st.path}: the {device} size ({w_name}/{h_name}) is missing; give it ({how})")
+    size = (int(round(st.real(w_name))), int(round(st.real(h_name))))
+    if min(size) <= 0:
+        raise CalibrationError(f"{st.path}: the {device} size {w_name}/{h_name} is {size[0]}x{size[1]}; give the real one ({how})")
+    return size
+
+
+#: The formats :func:`read_any_calibration` recognises, as (name, nodes that identify it).
+KNOWN_FORMATS = (
+    ("fpp-graph rig calibration YAML", "format: fpp-graph rig calibration v1"),
+    ("SLMaster caliInfo.yml", "M1, D1, M4, D4, Rlp, Tlp"),
+    ("procam-calibration calibration_result.xml", "cam_int, cam_dist, proj_int, proj_dist, roration, translation"),
+    ("SLStudio-style XML", "Kc, kc, Kp, kp, Rp, Tp, screenResX, screenResY"),
+)
+
+
+def read_any_calibration(path: str | os.PathLike[str], projector_size: tuple[int, int] | None = None, **kwargs) -> RigCalibration:
+    """Read a calibration in any supported format (:data:`KNOWN_FORMATS`), recognised by content.
+
+    ``projector_size`` (width, height) is for formats that do not store it (SLMaster,
+    procam-calibration) or overrides it (SLStudio); for the project's YAML it must agree with
+    the file. Other keyword arguments go to the matching reader.
+
+    Raises
+    ------
+    CalibrationError
+        Missing or unreadable file, an unknown format (the message lists the known ones), a
+        malformed node, or a projector size that contradicts the file.
     """
     path = Path(path)
     if not path.is_file():
         raise CalibrationError(f"calibration file {path} does not exist (or is not a file)")
     head = path.read_text(encoding="utf-8", errors="replace")[:4096]
+    size_kw = {"projector_size": tuple(projector_size)} if projector_size is not None else {}
     if "fpp-graph rig calibration" in head:
-        return load_calibration(path)
-    st = _Storage(path)
+        cal = load_calibration(path)
+        if projector_size is not None and tuple(projector_size) != (cal.projector.width, cal.projector.height):
+            raise CalibrationError(f"{path}: its projector is {cal.projector.width}x{cal.projector.height}, not the {projector_size[0]}x{projector_size[1]} given; drop --projector or fix the file")
+        return cal
+    known = "; ".join(f"{name} ({nodes})" for name, nodes in KNOWN_FORMATS)
+    try:
+        st = _Storage(path)
+    except CalibrationError as exc:
+        raise CalibrationError(f"{exc}; known calibration formats: {known}") from None
     try:
         is_slmaster = st.has("M1") and st.has("M4")
         is_procam = st.has("cam_int") and st.has("proj_int")
+        is_slstudio = st.has("Kc") and st.has("Kp") and st.has("Rp")
     finally:
         st.release()
     if is_slmaster:
-        return read_slmaster_calibration(path, **kwargs)
+        return read_slmaster_calibration(path, **size_kw, **kwargs)
     if is_procam:
-        return read_procam_calibration(path, **kwargs)
-    raise CalibrationError(f"{path}: unknown calibration format (expected fpp-graph YAML, SLMaster caliInfo with M1/M4, or procam-calibration XML with cam_int/proj_int)")
+        return read_procam_calibration(path, **size_kw, **kwargs)
+    if is_slstudio:
+        return read_slstudio_calibration(path, **size_kw, **kwargs)
+    raise CalibrationError(f"{path}: unknown calibration format; known formats: {known}")

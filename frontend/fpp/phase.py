@@ -68,7 +68,8 @@ from numpy.typing import NDArray
 
 from fpp_graph.config import DecodeConfig
 from fpp_graph.errors import ConfigError, InputDataError
-from frontend.fpp.patterns import PatternSpec
+from frontend.fpp.patterns import PatternImage, PatternSpec
+from frontend.fpp.stripe_decoding import StripeCode, binary_images
 from frontend.fpp.unwrapping import (
     order_from_gray,
     order_multi_frequency,
@@ -109,9 +110,16 @@ class DecodeResult:
         Pixels failing each check (``low_modulation``, ``saturated``, ``shadow``, ``bad_order``);
         a pixel may fail several.
     pitch_px : float
-        Fringe pitch ``lambda`` of the highest frequency, projector pixels.
-    axis : {"columns", "rows"}
-        The encoded projector axis.
+        Fringe pitch ``lambda`` of the highest frequency (Gray code alone: the stripe width),
+        projector pixels.
+    axis : {"columns", "rows", "both"}
+        The encoded projector axis (``u_projector_px`` holds the columns for ``"both"``).
+    v_projector_px : float32 or None
+        The projector row of an ``axis="both"`` set; NaN where invalid.
+
+    For Gray code alone (``kind="gray_code"``) there is no phase: ``wrapped_phase`` is NaN,
+    ``modulation`` is half the white - black (or bit - inverse) contrast, ``texture`` the mean of
+    those two images and ``fringe_order`` the stripe index.
     """
 
     wrapped_phase: NDArray[np.float32]
@@ -123,6 +131,7 @@ class DecodeResult:
     invalid_counts: dict[str, int]
     pitch_px: float
     axis: str = "columns"
+    v_projector_px: NDArray[np.float32] | None = None
 
     @cached_property
     def absolute_phase(self) -> NDArray[np.float32]:
@@ -199,32 +208,57 @@ class Decoder:
         self.projector_height = int(projector_height)
         self.config = config if config is not None else DecodeConfig()
         self.band_rows = int(band_rows)
-        self.axis_length = self.projector_width if spec.axis == "columns" else self.projector_height
+        self.axis_length = self.projector_height if spec.coded_axis == "rows" else self.projector_width
         layout = spec.layout()
         self.image_count = len(layout)
-        n_freq = len(spec.periods) if spec.kind == "multi_frequency" else 1
-        self._phase_index = [[i for i, im in enumerate(layout) if im.role == "phase" and im.frequency == f] for f in range(n_freq)]
-        self._code_index = [i for i, im in enumerate(layout) if im.role == "gray"] + [i for i, im in enumerate(layout) if im.role == "complementary"]
+        self._phase_index = [self._phase_steps_of(layout, f) for f in range(spec.n_frequencies)]
+        m = round(spec.phase_origin_rad * spec.phase_steps / TWO_PI)
+        # the part of the phase origin that reordering the steps cannot remove, subtracted from phi
+        self._origin_residual = float(np.angle(np.exp(1j * (spec.phase_origin_rad - m * TWO_PI / spec.phase_steps))))
+        self._code_index, self._code_inverse = binary_images(layout, "")
+        self._row_code_index, self._row_code_inverse = binary_images(layout, "rows")
         self._white_index = next((i for i, im in enumerate(layout) if im.role == "white"), None)
         self._black_index = next((i for i, im in enumerate(layout) if im.role == "black"), None)
         self._sin, self._cos = phase_weights(spec.phase_steps)
-        self._finest = int(np.argmax(spec.periods))
+        self._finest = int(np.argmax(spec.periods)) if spec.kind != "gray_code" else 0
         self.periods_finest = spec.periods[self._finest]
         self.pitch_px = self.axis_length / self.periods_finest
+        if spec.kind == "gray_code":
+            self._stripes = StripeCode(spec, self.projector_width, self.projector_height, self._white_index, self._black_index)
         if spec.kind == "multi_frequency":
             self._chain = unwrap_chain(spec.periods)
         self._local = threading.local()
 
+    def _phase_steps_of(self, layout: Sequence[PatternImage], frequency: int) -> list[int]:
+        """Image indices of one frequency in the order of eq. 1's steps (forward, origin 0).
+
+        A projected step ``s`` shows ``cos(phi + phi_0 -+ delta_s)``; with ``phi_0 = m 2 pi / N
+        + r`` that is our step ``n = s - m`` (forward) or ``n = -s - m`` (reverse) of the phase
+        ``phi + r``: reordering removes the direction and ``m``, ``r`` is subtracted after eq. 2.
+        """
+        spec = self.spec
+        n_steps = spec.phase_steps
+        by_step = {im.step: i for i, im in enumerate(layout) if im.role == "phase" and im.frequency == frequency}
+        m = round(spec.phase_origin_rad * n_steps / TWO_PI)
+        if spec.shift_direction == "forward":
+            return [by_step[(n + m) % n_steps] for n in range(n_steps)]
+        return [by_step[(-n - m) % n_steps] for n in range(n_steps)]
+
     # ------------------------------------------------------------------ input checks
     def _describe(self) -> str:
         s = self.spec
-        parts = [s.kind, f"{s.phase_steps}-step"]
-        if s.kind == "multi_frequency":
+        parts = [s.kind] if s.kind == "gray_code" else [s.kind, f"{s.phase_steps}-step"]
+        if s.kind in ("multi_frequency", "single_frequency"):
             parts.append(f"x {len(s.periods)} frequencies {s.periods}")
         else:
-            parts.append(f"+ {s.gray_bits} Gray bits" + (" + 1 complementary bit" if s.kind == "complementary_gray" else ""))
+            bits = f"{s.gray_bits}" + (f" + {s.gray_bits_rows} row" if s.axis == "both" else "")
+            parts.append(f"+ {bits} Gray bits" + (" + 1 complementary bit" if s.kind == "complementary_gray" else ""))
+            if s.gray_inverse:
+                parts.append("with inverses")
         if s.with_reference:
             parts.append("+ white + black")
+        if s.order:
+            parts.append("in the spec's explicit order")
         return " ".join(parts)
 
     def _check_images(self, images: NDArray | Sequence[NDArray]) -> NDArray:
@@ -261,12 +295,16 @@ class Decoder:
             scratch = Scratch(rows, w)
             self._local.scratch = scratch
         out = self._output_arrays(h, w) if out is None else self._reuse_outputs(out, h, w)
+        if self.spec.axis == "both" and "v" not in out:
+            out["v"] = np.empty((h, w), np.float32)
         counts = np.zeros(5, dtype=np.int64)  # the four reasons, then all invalid
         for r0 in range(0, h, rows):
             r1 = min(h, r0 + rows)
             band = {k: v[r0:r1] for k, v in out.items()}
-            counts += self._decode_band(stack[:, r0:r1], band, scratch)
-        out = {k: v for k, v in out.items() if k in _OUTPUT_DTYPES}
+            if self.spec.kind == "gray_code":
+                counts += self._stripes.decode_band(stack[:, r0:r1], band, scratch, self.config)
+            else:
+                counts += self._decode_band(stack[:, r0:r1], band, scratch)
         invalid_counts = dict(zip(INVALID_REASONS, (int(c) for c in counts[:4]), strict=True))
         if counts[4] == h * w:
             cfg = self.config
@@ -286,6 +324,7 @@ class Decoder:
             invalid_counts=invalid_counts,
             pitch_px=self.pitch_px,
             axis=self.spec.axis,
+            v_projector_px=out.get("v"),
         )
 
     @staticmethod
@@ -304,11 +343,13 @@ class Decoder:
             "mask": previous.mask.view(np.uint8) if previous.mask.dtype == np.bool_ else previous.mask,
             "order": previous.fringe_order,
         }
+        if previous.v_projector_px is not None:
+            arrays["v"] = previous.v_projector_px
         for k, a in arrays.items():
-            if a.shape != (h, w) or a.dtype != _OUTPUT_DTYPES[k] or not a.flags.c_contiguous or not a.flags.writeable:
+            if a.shape != (h, w) or a.dtype != _OUTPUT_DTYPES.get(k, np.float32) or not a.flags.c_contiguous or not a.flags.writeable:
                 raise InputDataError(
                     f"decode: out holds a {a.shape[1] if a.ndim > 1 else '?'}x{a.shape[0]} {a.dtype} map where this frame needs a "
-                    f"writable {w}x{h} {np.dtype(_OUTPUT_DTYPES[k])} one; pass a result of a frame of the same size, or none"
+                    f"writable {w}x{h} {np.dtype(_OUTPUT_DTYPES.get(k, np.float32))} one; pass a result of a frame of the same size, or none"
                 )
         return arrays
 
@@ -328,6 +369,8 @@ class Decoder:
             phi = out["phi"] if finest else work.get(f"phi{f}", np.float32, r)
             mod = out["mod"] if finest else work.get("mod", np.float32, r)
             self._wrapped_phase(imgs, phi, mod, work)
+            if self._origin_residual:
+                self._remove_origin_residual(phi, work)
             phases.append(phi)
             np.less(mod, np.float32(cfg.min_modulation), out=(low_mod if f == 0 else tmp8).view(np.bool_))
             if f > 0:
@@ -385,7 +428,13 @@ class Decoder:
             order = out["order"]
             order_multi_frequency(self._chain, phases, order, work)
             return order, order.view(np.uint16)
-        if self._white_index is not None:
+        if self.spec.kind == "single_frequency":  # one period: the wrapped phase is absolute
+            order = out["order"]
+            order.fill(0)
+            return order, order.view(np.uint16)
+        if self._code_inverse:  # each bit against its own inverse image
+            threshold = [stack[i] for i in self._code_inverse]
+        elif self._white_index is not None:
             # (white + black) / 2; rounding down costs at most half a grey level.
             r = stack.shape[1]
             threshold = work.get("ref_threshold", stack.dtype, r)
@@ -398,6 +447,15 @@ class Decoder:
         order = out["order"]
         np.copyto(order, unsigned_order, casting="unsafe")
         return order, unsigned_order
+
+    def _remove_origin_residual(self, phi: NDArray, work: Scratch) -> None:
+        """phi - r, wrapped back into [0, 2 pi) (see :meth:`_phase_steps_of`)."""
+        np.subtract(phi, np.float32(self._origin_residual), out=phi)
+        neg = work.get("neg", np.uint8, phi.shape[0])
+        np.less(phi, np.float32(0.0), out=neg.view(np.bool_))
+        cv2.add(phi, TWO_PI, dst=phi, mask=neg)
+        np.greater_equal(phi, np.float32(TWO_PI), out=neg.view(np.bool_))
+        cv2.subtract(phi, TWO_PI, dst=phi, mask=neg)
 
     def _wrapped_phase(self, imgs: list[NDArray], phi: NDArray, mod: NDArray, work: Scratch) -> None:
         wrapped_phase_band(imgs, self._sin, self._cos, phi, mod, work)

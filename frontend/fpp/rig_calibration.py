@@ -77,6 +77,8 @@ class RigCalibrationReport:
     camera_corners: int
     projector_corners: int
     skipped_poses: dict[str, str] = field(default_factory=dict)
+    #: per pose of the stereo fit: RMS reprojection error in the camera and in the projector, px
+    per_view_rms_px: dict[str, dict[str, float]] = field(default_factory=dict)
 
     def summary(self) -> str:
         rms = self.calibration.reprojection_rms_px
@@ -173,8 +175,9 @@ def calibrate_rig(
     rms_p, K_p, d_p, _, _ = cv2.calibrateCamera(proj_obj, proj_img, tuple(int(v) for v in projector_size), None, None, flags=calibration_flags)
     flags = cv2.CALIB_USE_INTRINSIC_GUESS if refine_intrinsics else cv2.CALIB_FIX_INTRINSIC
     criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-10)
-    rms_s, K_c, d_c, K_p, d_p, R, T, _, _ = cv2.stereoCalibrate(
-        proj_obj, stereo_cam, proj_img, K_c, d_c, K_p, d_p, tuple(int(v) for v in camera_size), flags=flags | calibration_flags, criteria=criteria
+    rms_s, K_c, d_c, K_p, d_p, R, T, _, _, _, _, per_view = cv2.stereoCalibrateExtended(
+        proj_obj, stereo_cam, proj_img, K_c, d_c, K_p, d_p, tuple(int(v) for v in camera_size), None, None,
+        flags=flags | calibration_flags, criteria=criteria,
     )
     calibration = RigCalibration(
         camera=PinholeModel(int(camera_size[0]), int(camera_size[1]), K_c, d_c.ravel()),
@@ -188,6 +191,7 @@ def calibrate_rig(
         camera_corners=sum(len(c) for c in cam_img),
         projector_corners=sum(len(p) for p in proj_img),
         skipped_poses=skipped,
+        per_view_rms_px={name: {"camera": float(e[0]), "projector": float(e[1])} for name, e in zip(names, np.asarray(per_view).reshape(-1, 2), strict=True)},
     )
     log.info("rig calibration: %s", report.summary())
     return report

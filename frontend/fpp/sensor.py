@@ -60,7 +60,7 @@ class FppSensor:
         self.spec = spec
         proj = calibration.projector
         self.decoder = Decoder(spec, proj.width, proj.height, decode_config)
-        self.triangulator = Triangulator(calibration, axis=spec.axis, depth_range_m=depth_range_m)
+        self.triangulator = Triangulator(calibration, axis=spec.coded_axis, depth_range_m=depth_range_m)
         self.edge_max_angle_deg = edge_max_angle_deg
         self.edge_noise_floor_m = float(edge_noise_floor_m)
         K = calibration.camera.K
@@ -78,6 +78,26 @@ class FppSensor:
             )
         self.calibration.check_image_size(stack.shape[2], stack.shape[1], where)
         return self.decoder.decode(stack)
+
+    def points_from_decoding(self, result: DecodeResult) -> tuple[NDArray[np.float64], int]:
+        """Triangulate a decoded capture and apply the mixed-pixel / discontinuity filter.
+
+        Returns
+        -------
+        xyz_map : (H, W, 3) float64
+            Metres, camera (sensor) frame, NaN where invalid.
+        edge_rejected : int
+            Decoded pixels the edge filter removed.
+        """
+        xyz = self.triangulator.triangulate(result.u_projector_px, result.mask)
+        edge_rejected = 0
+        if self.edge_max_angle_deg is not None and self.edge_max_angle_deg < 90:
+            decoded = np.isfinite(xyz[..., 2])
+            keep = edge_filter_mask(xyz, self._focal_px, self.edge_max_angle_deg, self.edge_noise_floor_m)
+            drop = decoded & ~keep
+            edge_rejected = int(np.count_nonzero(drop))
+            xyz[drop] = np.nan
+        return xyz, edge_rejected
 
     def frame_from_images(
         self,
@@ -99,14 +119,7 @@ class FppSensor:
         """
         where = f"frame {frame_id}"
         result = self.decode(images, where)
-        xyz = self.triangulator.triangulate(result.u_projector_px, result.mask)
-        edge_rejected = 0
-        if self.edge_max_angle_deg is not None and self.edge_max_angle_deg < 90:
-            decoded = np.isfinite(xyz[..., 2])
-            keep = edge_filter_mask(xyz, self._focal_px, self.edge_max_angle_deg, self.edge_noise_floor_m)
-            drop = decoded & ~keep
-            edge_rejected = int(np.count_nonzero(drop))
-            xyz[drop] = np.nan
+        xyz, edge_rejected = self.points_from_decoding(result)
         valid = np.isfinite(xyz[..., 2])
         points = xyz[valid]
         grey = result.texture[valid].astype(np.float64) / 255.0

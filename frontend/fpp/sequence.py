@@ -22,7 +22,9 @@ Folder layout (DESIGN.md)::
     source: {...}              # free-form provenance (simulator settings, capture software)
 
 A real sensor's recording fits this format as is: the frame folders hold whatever the camera
-captured, in capture order, and the calibration comes from the rig calibration.
+captured, in capture order, and the calibration comes from the rig calibration. A frame's
+``folder`` is relative to the sequence folder and may lie outside it (``fpp-slam import
+--reference`` refers to the capture folders where they are, e.g. ``../captures/view1``).
 """
 
 from __future__ import annotations

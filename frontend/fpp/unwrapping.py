@@ -38,8 +38,10 @@ def unwrap_chain(periods: Sequence[int]) -> list[tuple]:
     return [(1, b123), (p12, b12), (p[i1], ("freq", i1))]
 
 
-def read_gray_code(stack: NDArray, code_index: list[int], threshold: NDArray, work: Scratch) -> NDArray:
+def read_gray_code(stack: NDArray, code_index: list[int], threshold: NDArray | list[NDArray], work: Scratch) -> NDArray:
     """Binarise the code images and Gray-decode them (MSB first) to an unsigned integer image.
+
+    ``threshold`` is one image for every bit, or one per bit (e.g. each bit's inverse image).
 
     Gray to binary: bit k of the value is the XOR of the Gray bits 0..k (MSB first), so the
     value is the XOR over j of "Gray bit j, spread over bits j..last". For up to 8 code
@@ -48,6 +50,7 @@ def read_gray_code(stack: NDArray, code_index: list[int], threshold: NDArray, wo
     """
     r = stack.shape[1]
     nbits = len(code_index)
+    thresholds = threshold if isinstance(threshold, list) else [threshold] * nbits
     bit = work.get("bit", np.uint8, r)
     if nbits <= 8:
         value = work.get("value", np.uint8, r)
@@ -55,9 +58,9 @@ def read_gray_code(stack: NDArray, code_index: list[int], threshold: NDArray, wo
             low_bits = (1 << (nbits - j)) - 1  # bits j..last of the value (MSB first)
             target = value if j == 0 else bit
             if low_bits == 0xFF:
-                cv2.compare(stack[i], threshold, cv2.CMP_GT, dst=target)
+                cv2.compare(stack[i], thresholds[j], cv2.CMP_GT, dst=target)
             else:
-                cv2.compare(stack[i], threshold, cv2.CMP_GT, dst=bit)
+                cv2.compare(stack[i], thresholds[j], cv2.CMP_GT, dst=bit)
                 cv2.threshold(bit, 0, low_bits, cv2.THRESH_BINARY, dst=target)
             if j > 0:
                 cv2.bitwise_xor(value, bit, dst=value)
@@ -67,9 +70,9 @@ def read_gray_code(stack: NDArray, code_index: list[int], threshold: NDArray, wo
     for j, i in enumerate(code_index):
         # Gray to binary on the fly: b_j = b_(j-1) xor g_j; masks are 0/255.
         if j == 0:
-            cv2.compare(stack[i], threshold, cv2.CMP_GT, dst=binary)
+            cv2.compare(stack[i], thresholds[j], cv2.CMP_GT, dst=binary)
         else:
-            cv2.compare(stack[i], threshold, cv2.CMP_GT, dst=bit)
+            cv2.compare(stack[i], thresholds[j], cv2.CMP_GT, dst=bit)
             cv2.bitwise_xor(binary, bit, dst=binary)
         term = np.left_shift((binary & 1).astype(np.uint16), np.uint16(nbits - 1 - j))
         if j == 0:

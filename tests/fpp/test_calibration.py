@@ -265,3 +265,59 @@ def test_missing_and_unknown_files(tmp_path):
         read_procam_calibration(other)
     with pytest.raises(CalibrationError, match="length_unit"):
         read_procam_calibration(other, length_unit="inch")
+
+
+def _write_slstudio(path, R, t_mm, screen=(1280, 800), frame=(1688, 1352)):
+    """An SLStudio-style calibration as its saveXML writes it: float32 matrices, mm."""
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
+    fs.write("Kc", np.array([[2400.0, 0, 840.0], [0, 2401.0, 670.0], [0, 0, 1]], np.float32))
+    fs.write("kc", np.array([[-0.08, 0.12, 0.0005, -0.0003, 0.0]], np.float32))
+    fs.write("cam_error", 0.21)
+    fs.write("Kp", np.array([[1500.0, 0, 640.0], [0, 1500.0, 790.0], [0, 0, 1]], np.float32))
+    fs.write("kp", np.array([[0.02, -0.05, 0.0, 0.0, 0.0]], np.float32))
+    fs.write("proj_error", 0.15)
+    fs.write("Rp", R.astype(np.float32))
+    fs.write("Tp", np.asarray(t_mm, np.float32).reshape(3, 1))
+    fs.write("stereo_error", 0.3)
+    fs.write("frameWidth", frame[0])
+    fs.write("frameHeight", frame[1])
+    if screen is not None:
+        fs.write("screenResX", screen[0])
+        fs.write("screenResY", screen[1])
+    fs.release()
+    return path
+
+
+def test_read_slstudio_xml_by_content(tmp_path):
+    R = cv2.Rodrigues(np.array([0.02, -0.31, 0.01]))[0]
+    path = _write_slstudio(tmp_path / "calibration.xml", R, [-180.5, 3.2, 40.0])
+    cal = read_any_calibration(path)
+    assert (cal.camera.width, cal.camera.height) == (1688, 1352)
+    assert (cal.projector.width, cal.projector.height) == (1280, 800)
+    Rr, t = cal.T_projector_camera[:3, :3], cal.T_projector_camera[:3, 3]
+    assert np.allclose(t, [-0.1805, 0.0032, 0.040], atol=1e-9)  # millimetres -> metres
+    assert np.abs(Rr.T @ Rr - np.eye(3)).max() < 1e-12  # float32 re-orthonormalised
+    assert np.abs(Rr - R).max() < 1e-6
+    assert cal.reprojection_rms_px["stereo"] == pytest.approx(0.3)
+    assert read_any_calibration(path, projector_size=(1920, 1080)).projector.width == 1920
+
+
+def test_slstudio_without_screen_size_asks_for_it(tmp_path):
+    path = _write_slstudio(tmp_path / "cal.xml", np.eye(3), [-100.0, 0, 0], screen=None)
+    with pytest.raises(CalibrationError, match="projector size .*--projector") as info:
+        read_any_calibration(path)
+    assert str(path) in str(info.value)
+    assert read_any_calibration(path, projector_size=(1024, 768)).projector.height == 768
+
+
+def test_unknown_calibration_lists_the_known_formats(tmp_path):
+    other = write(tmp_path, "other.yml", "%YAML:1.0\n---\nfoo: 1\n")
+    with pytest.raises(CalibrationError) as info:
+        read_any_calibration(other)
+    message = str(info.value)
+    assert str(other) in message and "\n" not in message
+    for name in ("fpp-graph", "SLMaster", "procam-calibration", "SLStudio"):
+        assert name in message
+    junk = write(tmp_path, "junk.txt", "not a calibration at all\n")
+    with pytest.raises(CalibrationError, match="known calibration formats"):
+        read_any_calibration(junk)

@@ -180,3 +180,62 @@ def test_bad_generation_arguments() -> None:
         generate_patterns(spec, 64, 8, gamma=0)
     with pytest.raises(ConfigError, match="pattern index 11 out of range"):
         pattern_intensity(spec, 11, np.zeros(1), np.zeros(1), 64, 8)
+
+
+# ---------------------------------------------------------------------------- pattern sets as data
+
+
+def test_explicit_order_names_every_image_and_round_trips() -> None:
+    spec = PatternSpec("complementary_gray", phase_steps=3, periods=(8,), gray_bits=3, order=("black", "phase.0.2", "gray.2", "white", "phase.0.0", "complementary", "gray.0", "phase.0.1", "gray.1", "skip"))
+    assert spec.with_reference and not spec.gray_inverse
+    assert [im.token() for im in spec.layout()] == list(spec.order)
+    again = PatternSpec.from_dict(spec.to_dict(), "x")
+    assert again == spec and again.layout() == spec.layout()
+    images = generate_patterns(spec, 64, 8)
+    assert images[0].max() == 0 and images[3].min() == 255 and images[9].max() == 0  # black, white, skip
+
+
+def test_default_orders_references_first_lsb_first_and_inverses() -> None:
+    spec = PatternSpec("gray_code", gray_bits=3, with_reference=True, reference_position="start", gray_order="lsb_first", gray_inverse=True)
+    assert [im.token() for im in spec.layout()] == ["white", "black", "gray.2", "gray.2.inv", "gray.1", "gray.1.inv", "gray.0", "gray.0.inv"]
+    assert spec.periods == (8,)  # stripes: 2 ** gray_bits by default
+    both = PatternSpec("gray_code", axis="both", gray_bits=4, gray_bits_rows=3, periods=(16, 6), with_reference=True)
+    assert [im.token() for im in both.layout()][-5:] == ["gray_rows.0", "gray_rows.1", "gray_rows.2", "white", "black"]
+    images = generate_patterns(both, 32, 12)
+    assert np.all(images[4] == images[4][:, :1])  # the first row bit varies along rows only
+    assert np.all(images[0] == images[0][:1])  # the first column bit along columns only
+
+
+def test_old_sequence_dicts_keep_their_meaning() -> None:
+    old = {"kind": "complementary_gray", "phase_steps": 4, "periods": [64], "gray_bits": 6, "axis": "columns", "with_reference": False}
+    spec = PatternSpec.from_dict(old, "sequence.yaml: patterns")
+    assert spec.to_dict() == old  # nothing new is written for the project's own sets
+    assert [im.role for im in spec.layout()] == ["phase"] * 4 + ["gray"] * 6 + ["complementary"]
+
+
+def test_shift_direction_and_phase_origin_render_as_stated() -> None:
+    spec = PatternSpec("single_frequency", phase_steps=4, shift_direction="reverse", phase_origin_rad=-np.pi)
+    u = np.arange(100.0)
+    for n in range(4):
+        expected = 0.5 + 0.5 * np.cos(2 * np.pi * u / 100 - np.pi + 2 * np.pi * n / 4)
+        assert np.allclose(pattern_intensity(spec, n, u, np.zeros(1), 100, 10), expected)
+
+
+@pytest.mark.parametrize(
+    ("data", "message"),
+    [
+        ({"kind": "gray_code", "gray_bits": 4}, "needs white/black references"),
+        ({"kind": "single_frequency", "periods": [8]}, "one period across the projector"),
+        ({"kind": "gray", "axis": "both"}, "axis 'both' is for Gray code alone"),
+        ({"kind": "gray_code", "gray_bits": 2, "order": ["white", "black", "gray.0", "gray.1", "gray.1"]}, "names gray.1 more than once"),
+        ({"kind": "gray_code", "gray_bits": 2, "order": ["white", "black", "gray.0", "gray.1", "phase.0.0"]}, "roles this set does not use: phase.0.0"),
+        ({"kind": "gray_code", "gray_bits": 2, "order": ["white", "black", "gray.0", "gray_rows.1"]}, "row bits exist only with axis 'both'"),
+        ({"kind": "gray", "shift_direction": "backwards"}, "shift_direction 'backwards' is unknown"),
+        ({"kind": "gray", "phase_origin_rad": "pi"}, "phase_origin_rad must be a finite number"),
+        ({"kind": "gray", "gray_inverse": 1}, "gray_inverse must be true or false"),
+    ],
+)
+def test_bad_new_spec_keys_raise_config_errors(data: dict, message: str) -> None:
+    with pytest.raises(ConfigError) as info:
+        PatternSpec.from_dict(data, "patterns.yaml")
+    assert str(info.value).startswith("patterns.yaml: ") and message in str(info.value)

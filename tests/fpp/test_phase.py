@@ -11,7 +11,7 @@ import pytest
 from conftest import run_in_threads, shared_data_path
 
 from fpp_graph.config import DecodeConfig
-from fpp_graph.errors import InputDataError
+from fpp_graph.errors import ConfigError, InputDataError
 from frontend.fpp.images import load_image_stack
 from frontend.fpp.patterns import PatternSpec
 from frontend.fpp.phase import Decoder, compute_wrapped_phase, decode
@@ -337,3 +337,74 @@ def test_compute_wrapped_phase_alone(scene) -> None:
     assert np.allclose(modulation, 2000.0, rtol=1e-3) and np.allclose(background, 3000.0, atol=0.5)
     with pytest.raises(InputDataError, match="at least 3 images"):
         compute_wrapped_phase(images[:2])
+
+
+# ---------------------------------------------------------------------------- pattern sets as data
+
+PW, PH = 640, 400
+
+
+@pytest.fixture(scope="module")
+def smooth_map():
+    return smooth_projector_map(320, 240, PW, PH)
+
+
+@pytest.mark.parametrize(
+    ("spec", "max_rms_px"),
+    [
+        (PatternSpec("gray", phase_steps=4, periods=(32,), gray_bits=5, phase_origin_rad=0.3), None),  # plain Gray: order errors at edges
+        (PatternSpec("complementary_gray", phase_steps=4, periods=(32,), gray_bits=5, phase_origin_rad=0.3), 0.05),
+        (PatternSpec("complementary_gray", phase_steps=5, periods=(32,), gray_bits=5, shift_direction="reverse", phase_origin_rad=-2.0), 0.05),
+        (PatternSpec("complementary_gray", phase_steps=4, periods=(32,), gray_bits=5, gray_inverse=True), 0.05),
+        (PatternSpec("multi_frequency", phase_steps=4, periods=(16, 15), shift_direction="reverse", phase_origin_rad=np.pi), 0.1),
+        (PatternSpec("single_frequency", phase_steps=12), 1.0),
+    ],
+)
+def test_direction_origin_and_inverses_decode_to_the_truth(smooth_map, spec, max_rms_px):
+    u, v = smooth_map
+    result = Decoder(spec, PW, PH).decode(render_captures(spec, u, v, PW, PH, noise_sigma=1.0))
+    err = result.u_projector_px - u
+    assert result.valid_fraction > 0.99
+    if max_rms_px is None:  # the phase is right wherever the order is (origin removed exactly)
+        assert np.nanmedian(np.abs(err)) < 0.03
+    else:
+        assert np.sqrt(np.nanmean(err**2)) < max_rms_px
+
+
+@pytest.mark.parametrize("order", ["msb_first", "lsb_first"])
+def test_gray_code_alone_decodes_stripe_centres(smooth_map, order):
+    u, v = smooth_map
+    spec = PatternSpec("gray_code", gray_bits=7, with_reference=True, reference_position="start", gray_order=order)
+    result = Decoder(spec, PW, PH).decode(render_captures(spec, u, v, PW, PH))
+    stripe = PW / 128  # 5 px
+    err = result.u_projector_px - u
+    assert result.valid_fraction > 0.99 and np.isnan(result.wrapped_phase).all()
+    assert np.sqrt(np.nanmean(err**2)) == pytest.approx(stripe / np.sqrt(12), rel=0.05)  # uniform over the stripe
+    assert np.nanmax(np.abs(err)) <= stripe / 2 + 1e-3  # noise-free: never beyond the stripe
+    k = np.floor((np.floor(u + 0.5)) * 128 / PW)
+    assert np.array_equal(result.fringe_order[result.mask], k[result.mask].astype(np.int16))
+
+
+def test_gray_code_both_axes_with_inverses_and_contrast_rules(smooth_map):
+    u, v = smooth_map
+    spec = PatternSpec("gray_code", axis="both", gray_bits=10, gray_bits_rows=9, periods=(PW, PH), gray_inverse=True)
+    images = render_captures(spec, u, v, PW, PH, modulation=40.0)
+    result = Decoder(spec, PW, PH).decode(images)
+    assert result.v_projector_px is not None and result.valid_fraction > 0.99
+    assert np.nanmax(np.abs(result.u_projector_px - u)) <= 0.5 + 1e-3
+    assert np.nanmax(np.abs(result.v_projector_px - v)) <= 0.5 + 1e-3
+    # a bit whose inverse differs by less than min_code_contrast invalidates the pixel (|bit - inv| = 80 here)
+    assert Decoder(spec, PW, PH, DecodeConfig(min_code_contrast=79.0)).decode(images).valid_fraction > 0.99
+    with pytest.raises(InputDataError, match="low_modulation 76800"):
+        Decoder(spec, PW, PH, DecodeConfig(min_code_contrast=81.0)).decode(images)
+
+
+def test_partial_inverses_and_skipped_images():
+    with pytest.raises(ConfigError, match="misses gray.1.inv"):  # inverses: every bit's, or none
+        PatternSpec("gray_code", gray_bits=2, order=("white", "black", "gray.0", "gray.0.inv", "gray.1"))
+    spec = PatternSpec("complementary_gray", phase_steps=4, periods=(8,), gray_bits=3, order=("skip", "phase.0.0", "phase.0.1", "phase.0.2", "phase.0.3", "gray.0", "gray.1", "gray.2", "complementary", "skip"))
+    u, v = smooth_projector_map(80, 60, 64, 8)
+    images = render_captures(spec, u, v, 64, 8)
+    images[0] = 255  # skipped images do not matter
+    result = Decoder(spec, 64, 8).decode(images)
+    assert np.nanmax(np.abs(result.u_projector_px - u)) < 0.05

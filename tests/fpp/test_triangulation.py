@@ -234,3 +234,35 @@ def test_out_buffer_must_be_contiguous():
     tri = Triangulator(make_rig(projector_dist=np.zeros(5)))
     with pytest.raises(InputDataError, match="C-contiguous"):
         tri.triangulate(np.zeros((400, 640), np.float32), out=np.empty((400, 640, 6))[..., ::2])
+
+
+def test_projector_distortion_fit_reports_once_at_debug(caplog):
+    """Building a Triangulator with projector distortion logs one DEBUG line and no warning."""
+    import logging
+
+    with caplog.at_level(logging.DEBUG, logger="frontend.fpp.triangulation"):
+        Triangulator(make_rig())
+    records = [r for r in caplog.records if r.name == "frontend.fpp.triangulation"]
+    assert [r.levelno for r in records] == [logging.DEBUG]
+    assert "projector inverse distortion" in records[0].getMessage()
+    caplog.clear()
+    with caplog.at_level(logging.DEBUG, logger="frontend.fpp.triangulation"):
+        Triangulator(make_rig(projector_dist=np.zeros(5)))
+    assert not [r for r in caplog.records if r.name == "frontend.fpp.triangulation"]
+
+
+def test_projector_distortion_fit_is_quiet_on_the_real_slmaster_rig(caplog):
+    """SLMaster's calibration (strong projector distortion) used to warn on every Triangulator."""
+    import logging
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "real_fpp" / "slmaster_monocular" / "caliInfo.yml"
+    if not path.is_file():
+        pytest.skip(f"real data absent: {path}")
+    from frontend.fpp.calibration_io import read_slmaster_calibration
+
+    with caplog.at_level(logging.DEBUG, logger="frontend.fpp.triangulation"):
+        tri = Triangulator(read_slmaster_calibration(path))
+    records = [r for r in caplog.records if r.name == "frontend.fpp.triangulation"]
+    assert [r.levelno for r in records] == [logging.DEBUG]
+    assert tri.projector_fit_max_error_px < 0.1

@@ -1,0 +1,189 @@
+"""``fpp-slam patterns | decode | calibrate | import``: real captures in, results out, no Python.
+
+Registered as command plug-ins of ``fpp-slam`` (entry point group ``fpp_graph.cli``, see
+``pyproject.toml``) because they need the FPP front-end, which the back-end must not import.
+Each command is a thin wrapper over a library function; heavy modules are imported inside the
+commands so that ``fpp-slam --help`` stays instant. User errors are FppErrors: one line.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+
+CalibrationOption = Annotated[Path, typer.Option("--calibration", help="Rig calibration: fpp-graph YAML, SLMaster caliInfo.yml, procam-calibration XML or SLStudio-style XML (detected by content).")]
+PatternsOption = Annotated[Path, typer.Option("--patterns", help="Pattern file (YAML; `fpp-slam patterns` prints its schema) or a sequence.yaml.")]
+ProjectorOption = Annotated[Optional[str], typer.Option("--projector", help="Projector WxH in pixels, for calibration files that do not store it (SLMaster: 1920x1080, procam-calibration: 1024x768 by default).")]  # noqa: UP045
+ConfigOption = Annotated[Optional[Path], typer.Option("--config", "-c", help="YAML overriding the packaged defaults (the decode section's thresholds).")]  # noqa: UP045
+
+
+def parse_size(text: str | None, what: str) -> tuple[int, int] | None:
+    """``"1920x1080"`` -> (1920, 1080); ConfigError naming the option otherwise."""
+    from fpp_graph.errors import ConfigError
+
+    if text is None:
+        return None
+    parts = text.lower().replace(" ", "").split("x")
+    if len(parts) != 2 or not all(p.isdigit() and int(p) > 0 for p in parts):
+        raise ConfigError(f"{what} {text!r} is not WIDTHxHEIGHT in pixels (e.g. 1920x1080)")
+    return int(parts[0]), int(parts[1])
+
+
+def required_size(text: str, what: str) -> tuple[int, int]:
+    size = parse_size(text, what)
+    assert size is not None  # a required option
+    return size
+
+
+def parse_range(text: str, what: str) -> tuple[float, float]:
+    from fpp_graph.errors import ConfigError
+
+    try:
+        near, far = (float(v) for v in text.split(","))
+    except ValueError:
+        raise ConfigError(f"{what} {text!r} is not NEAR,FAR in metres (e.g. 0.05,10)") from None
+    if not 0 < near < far:
+        raise ConfigError(f"{what} {text!r}: need 0 < near < far (metres)")
+    return near, far
+
+
+def patterns(
+    spec: Annotated[Optional[Path], typer.Argument(help="A pattern file to check; without it the file's schema is printed.")] = None,  # noqa: UP045
+    projector: Annotated[Optional[str], typer.Option("--projector", help="Also render the patterns for a WxH projector ...")] = None,  # noqa: UP045
+    render_to: Annotated[Optional[Path], typer.Option("--render-to", help="... into this folder as 000.png, 001.png, ...")] = None,  # noqa: UP045
+) -> None:
+    """Print the pattern-file schema, or check a pattern file and list its images in capture order."""
+    from frontend.fpp.pattern_file import SCHEMA, load_pattern_spec
+
+    if spec is None:
+        typer.echo(SCHEMA)
+        return
+    pattern_spec = load_pattern_spec(spec)
+    typer.echo(f"{spec}: valid, {pattern_spec.kind} on axis {pattern_spec.axis}, {pattern_spec.image_count()} images per capture")
+    for i, image in enumerate(pattern_spec.layout()):
+        typer.echo(f"  {i:3d}  {image.token()}")
+    size = parse_size(projector, "--projector")
+    if render_to is not None:
+        from fpp_graph.errors import ConfigError
+        from frontend.fpp.capture import write_png
+        from frontend.fpp.patterns import generate_patterns
+
+        if size is None:
+            raise ConfigError("--render-to needs --projector WxH (the projector's size in pixels)")
+        for i, image in enumerate(generate_patterns(pattern_spec, *size)):
+            write_png(render_to / f"{i:03d}.png", image)
+        typer.echo(f"rendered {pattern_spec.image_count()} {size[0]}x{size[1]} images into {render_to}")
+
+
+def decode(
+    capture: Annotated[Path, typer.Argument(help="Folder with one capture's images, in the order the pattern file states (natural name order).")],
+    calibration: CalibrationOption,
+    patterns: PatternsOption,
+    out: Annotated[Path, typer.Option("--out", "-o", help="Output folder: points.ply, xyz_map.npy, texture.png, depth.png, decode.json.")],
+    images: Annotated[Optional[str], typer.Option("--images", help="Glob picking the capture's images (default: every image file).")] = None,  # noqa: UP045
+    projector: ProjectorOption = None,
+    edge_filter: Annotated[bool, typer.Option("--edge-filter/--no-edge-filter", help="The pipeline's mixed-pixel / discontinuity filter.")] = True,
+    depth_range: Annotated[str, typer.Option("--depth-range", help="Accepted depths NEAR,FAR along the camera axis, metres.")] = "0.05,10",
+    config: ConfigOption = None,
+) -> None:
+    """One capture -> coloured point cloud (metres), xyz map, texture, 16-bit depth image and a report."""
+    from fpp_graph.cli import RichProgress, setup_logging
+    from fpp_graph.config import load_config
+    from frontend.fpp.calibration_io import read_any_calibration
+    from frontend.fpp.capture import decode_capture, read_capture, write_capture_outputs
+    from frontend.fpp.pattern_file import load_pattern_spec
+
+    setup_logging("WARNING")
+    cfg = load_config(config)
+    near_far = parse_range(depth_range, "--depth-range")
+    spec = load_pattern_spec(patterns)
+    rig = read_any_calibration(calibration, projector_size=parse_size(projector, "--projector"))
+    with RichProgress() as progress:
+        stack = read_capture(capture, spec, images)
+        progress("read", 1, 1)
+        result = decode_capture(
+            stack, rig, spec, cfg.decode, edge_filter=edge_filter, depth_range_m=near_far,
+            where=f"{capture} (calibration {calibration})", progress=progress,
+        )
+        write_capture_outputs(out, result)
+        progress("decode", 4, 4)
+    r = result.report
+    depth = r["depth_m"]
+    span = f"depth {1e3 * depth['p01']:.1f}-{1e3 * depth['p99']:.1f} mm (p1-p99)" if depth.get("count") else "no depth"
+    total_s = sum(r["seconds"].values())
+    typer.echo(f"{r['valid_pixels']} valid points ({100 * r['valid_pixels'] / (r['image_size'][0] * r['image_size'][1]):.1f} % of pixels), {span}, {total_s:.2f} s -> {out}")
+
+
+def calibrate(
+    board_captures: Annotated[Path, typer.Argument(help="Folder with one sub-folder of pattern images per chessboard pose.")],
+    patterns: PatternsOption,
+    board: Annotated[str, typer.Option("--board", help="Chessboard inner corners COLSxROWS (e.g. 7x9).")],
+    square_mm: Annotated[float, typer.Option("--square-mm", help="Chessboard square side, millimetres.")],
+    projector: Annotated[str, typer.Option("--projector", help="Projector WxH in pixels.")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Calibration YAML to write (fpp-graph format, millimetres).")],
+    images: Annotated[Optional[str], typer.Option("--images", help="Glob picking each pose's images (default: every image file).")] = None,  # noqa: UP045
+    poses: Annotated[str, typer.Option("--poses", help="Glob picking the pose sub-folders.")] = "*",
+    black_threshold: Annotated[float, typer.Option("--black-threshold", help="Valid pixels have white - black above this (grey levels).")] = 40.0,
+    white_threshold: Annotated[float, typer.Option("--white-threshold", help="... and every Gray bit differs from its inverse by at least this.")] = 5.0,
+    skip_missing_board: Annotated[bool, typer.Option("--skip-missing-board", help="Skip poses whose board is not found instead of stopping.")] = False,
+) -> None:
+    """Camera + projector calibration from chessboard captures; prints per-view and overall reprojection RMS."""
+    from fpp_graph.cli import RichProgress, setup_logging
+    from fpp_graph.config import DecodeConfig
+    from fpp_graph.errors import ConfigError
+    from frontend.fpp.calibration_board import Chessboard
+    from frontend.fpp.calibration_folders import calibrate_pose_folders, pose_folders
+    from frontend.fpp.pattern_file import load_pattern_spec
+    from frontend.fpp.rig import save_calibration
+
+    setup_logging("WARNING")
+    corners = required_size(board, "--board")
+    size = required_size(projector, "--projector")
+    if not square_mm > 0:
+        raise ConfigError(f"--square-mm must be positive, got {square_mm}")
+    spec = load_pattern_spec(patterns)
+    # half the white - black contrast; +0.25 makes "above the threshold" strict on integer images
+    decode_config = DecodeConfig(min_modulation=black_threshold / 2 + 0.25, min_background=0.0, min_code_contrast=white_threshold)
+    folders = pose_folders(board_captures, poses)
+    with RichProgress() as progress:
+        report = calibrate_pose_folders(folders, spec, Chessboard(corners, square_mm * 1e-3), size, decode_config, images=images, skip_missing_board=skip_missing_board, progress=progress)
+    save_calibration(out, report.calibration)
+    rms = report.calibration.reprojection_rms_px
+    typer.echo(f"{'pose':<40s} {'camera px':>10s} {'projector px':>13s}")
+    for name, errors in report.per_view_rms_px.items():
+        typer.echo(f"{Path(name).name:<40s} {errors['camera']:10.3f} {errors['projector']:13.3f}")
+    for name, why in report.skipped_poses.items():
+        typer.echo(f"{Path(name).name:<40s} skipped: {why}")
+    typer.echo(f"RMS reprojection: camera {rms['camera']:.3f} px, projector {rms['projector']:.3f} px, stereo {rms['stereo']:.3f} px; "
+               f"baseline {1e3 * report.calibration.baseline_m:.1f} mm -> {out}")
+
+
+def import_captures(
+    captures_root: Annotated[Path, typer.Argument(help="Folder with one sub-folder of pattern images per frame.")],
+    patterns: PatternsOption,
+    calibration: CalibrationOption,
+    out: Annotated[Path, typer.Option("--out", "-o", help="Sequence folder to write (sequence.yaml + frames).")],
+    copy: Annotated[bool, typer.Option("--copy/--reference", help="Copy the images into the sequence, or refer to them where they are.")] = True,
+    images: Annotated[Optional[str], typer.Option("--images", help="Glob picking each frame's images (default: every image file).")] = None,  # noqa: UP045
+    frames: Annotated[str, typer.Option("--frames", help="Glob picking the frame sub-folders.")] = "*",
+    frame_period_s: Annotated[float, typer.Option("--frame-period", help="Seconds between frames (timestamps).")] = 1.0,
+    projector: ProjectorOption = None,
+    overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace an earlier sequence in --out.")] = False,
+) -> None:
+    """Per-frame capture folders -> a sequence folder that `fpp-slam run` reads."""
+    from fpp_graph.cli import RichProgress, setup_logging
+    from frontend.fpp.calibration_io import read_any_calibration
+    from frontend.fpp.capture import import_captures as import_folders
+    from frontend.fpp.pattern_file import load_pattern_spec
+
+    setup_logging("WARNING")
+    spec = load_pattern_spec(patterns)
+    rig = read_any_calibration(calibration, projector_size=parse_size(projector, "--projector"))
+    with RichProgress() as progress:
+        path = import_folders(captures_root, spec, rig, out, images=images, frames=frames, copy=copy, frame_period_s=frame_period_s, overwrite=overwrite, progress=progress)
+    from frontend.fpp.sequence import read_sequence
+
+    sequence = read_sequence(path)
+    typer.echo(f"{len(sequence)} frames of {spec.image_count()} images ({'copied' if copy else 'referenced'}) -> {path}; run it with `fpp-slam run {path}`")

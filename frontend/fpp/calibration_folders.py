@@ -1,0 +1,131 @@
+"""Rig calibration from board-capture folders described by a pattern file (``fpp-slam calibrate``).
+
+A root folder holds one sub-folder per chessboard pose, each with that pose's pattern images in
+the order the pattern file states. The pattern set must give both projector coordinates
+(``axis: both``, e.g. OpenCV's Gray code with inverses as procam-calibration captures it). Each
+pose is decoded with :class:`frontend.fpp.phase.Decoder`, the chessboard is found in its white
+image (the decoded texture when the set has none), and :func:`calibrate_rig` does the rest.
+
+procam-calibration's validity rules map onto the decoder's thresholds: a pixel is valid when
+``white - black > 40`` (``decode.min_modulation = 20.25``, half the contrast, as integers) and
+every bit differs from its inverse by at least 5 grey levels (``decode.min_code_contrast = 5``);
+:data:`PROCAM_DECODE` holds them.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from fpp_graph.config import DecodeConfig
+from fpp_graph.errors import CalibrationError, ConfigError, InputDataError
+from frontend.fpp.calibration_board import Chessboard
+from frontend.fpp.capture import capture_image_paths, natural_key
+from frontend.fpp.images import load_image_stack
+from frontend.fpp.patterns import PatternSpec
+from frontend.fpp.phase import Decoder
+from frontend.fpp.rig_calibration import (
+    PoseObservation,
+    RigCalibrationReport,
+    calibrate_rig,
+    observe_pose,
+)
+
+log = logging.getLogger(__name__)
+
+PROCAM_DECODE = DecodeConfig(min_modulation=20.25, min_background=0.0, min_code_contrast=5.0)
+
+
+def pose_folders(root: str | os.PathLike[str], pattern: str = "*") -> list[Path]:
+    """The sub-folders of ``root`` matching ``pattern`` (one per board pose), in natural name order."""
+    root = Path(root)
+    if not root.is_dir():
+        raise InputDataError(f"board-capture folder {root} does not exist (or is not a folder)")
+    folders = sorted((p for p in root.glob(pattern) if p.is_dir()), key=natural_key)
+    if not folders:
+        raise InputDataError(f"{root} has no sub-folders matching {pattern!r}; put each board pose's images in a sub-folder of its own")
+    return folders
+
+
+def observe_pose_folders(
+    folders: Sequence[str | os.PathLike[str]],
+    spec: PatternSpec,
+    board: Chessboard,
+    projector_size: tuple[int, int],
+    decode_config: DecodeConfig = PROCAM_DECODE,
+    *,
+    images: str | None = None,
+    skip_missing_board: bool = False,
+    progress=None,
+) -> tuple[list[PoseObservation], tuple[int, int]]:
+    """Decode each pose folder and find the board's corners in the camera and the projector.
+
+    Raises
+    ------
+    ConfigError
+        The pattern set does not give both projector coordinates.
+    InputDataError
+        A folder's image count differs from the spec, or image sizes differ between poses.
+    CalibrationError
+        The board is not found in a pose (unless ``skip_missing_board``: then it is skipped
+        with a warning).
+    """
+    if spec.axis != "both":
+        raise ConfigError(f"calibration needs both projector coordinates: the pattern set encodes only its {spec.axis}; use a set with axis: both (e.g. datasets/patterns/procam_graycode_1024x768.yaml)")
+    decoder = Decoder(spec, *projector_size, decode_config)
+    white_index = next((i for i, im in enumerate(spec.layout()) if im.role == "white"), None)
+    observations: list[PoseObservation] = []
+    camera_size = None
+    for k, folder in enumerate(folders):
+        paths = capture_image_paths(folder, spec, images)
+        stack = load_image_stack(paths)
+        size = (stack.shape[2], stack.shape[1])
+        if camera_size is not None and size != camera_size:
+            raise InputDataError(f"{folder}: images are {size[0]}x{size[1]}, earlier poses {camera_size[0]}x{camera_size[1]}; one camera, one size")
+        camera_size = size
+        result = decoder.decode(stack)
+        assert result.v_projector_px is not None  # axis both
+        white = stack[white_index] if white_index is not None else result.texture
+        try:
+            observations.append(observe_pose(str(folder), white, result.u_projector_px, result.v_projector_px, board, result.mask))
+        except CalibrationError:
+            where = paths[white_index] if white_index is not None else Path(folder)
+            message = (
+                f"{where}: no chessboard with {board.corners[0]}x{board.corners[1]} inner corners found; check --board "
+                "(inner corners, not squares) and that the whole board is in view, or remove this pose"
+            )
+            if not skip_missing_board:
+                raise CalibrationError(message + " (or pass --skip-missing-board)") from None
+            log.warning("%s; pose skipped", message)
+        if progress is not None:
+            progress("poses", k + 1, len(folders))
+    if camera_size is None:
+        raise InputDataError("no pose folders given")
+    return observations, camera_size
+
+
+def calibrate_pose_folders(
+    folders: Sequence[str | os.PathLike[str]],
+    spec: PatternSpec,
+    board: Chessboard,
+    projector_size: tuple[int, int],
+    decode_config: DecodeConfig = PROCAM_DECODE,
+    *,
+    images: str | None = None,
+    skip_missing_board: bool = False,
+    progress=None,
+) -> RigCalibrationReport:
+    """:func:`observe_pose_folders` then :func:`calibrate_rig` (intrinsics fixed in the stereo step)."""
+    observations, camera_size = observe_pose_folders(
+        folders, spec, board, projector_size, decode_config, images=images, skip_missing_board=skip_missing_board, progress=progress
+    )
+    if len(observations) < 3:
+        raise CalibrationError(f"only {len(observations)} of {len(folders)} poses show the board; calibration needs at least 3: check --board (inner corners) or capture more poses with the whole board in view")
+    report = calibrate_rig(observations, board, camera_size, projector_size)
+    finite = [np.isfinite(o.projector_px).all(axis=1).sum() for o in observations]
+    log.info("calibrated from %d poses (%d projector corners)", len(observations), int(sum(finite)))
+    return report
