@@ -82,6 +82,10 @@ class KeyframeConfig(StrictModel):
     min_translation_m: float = Field(0.0, ge=0)
     min_rotation_deg: float = Field(0.0, ge=0)
     max_overlap: float = Field(1.0, gt=0, le=1, description="a frame overlapping the last keyframe more than this is skipped")
+    min_view_change: float = Field(
+        0.05, ge=0, le=1,
+        description="a new keyframe once the view moved by this fraction of the image's smaller side since the last keyframe (pixel flow at the scene's median depth, in the sensor's own pixels: ~95 % overlap left); 0: every frame",
+    )
     loop_check_probability: float = Field(0.999, gt=0, lt=1, description="a verified loop whose innovation against the running estimate exceeds this chi-square quantile is held out of it (not dropped: the batch solve decides)")
     batch_every: int = Field(0, ge=0, description="run the robust batch pose-graph solve every this many keyframes as well as at the end, restarting the running (iSAM2) estimate from it (0: only at the end)")
 

@@ -195,6 +195,10 @@ class KeyframeManager:
         T = odometry.T_target_source
         overlap = odometry.overlap if math.isfinite(odometry.overlap) else odometry.fitness
         criteria = []
+        if cfg.min_view_change > 0:
+            change = view_change(self.store.get(odometry.target_id), T)
+            if change is not None:  # a frame without a camera model is judged by the others
+                criteria.append(change >= cfg.min_view_change)
         if cfg.min_translation_m > 0:
             criteria.append(float(np.linalg.norm(T[:3, 3])) >= cfg.min_translation_m)
         if cfg.min_rotation_deg > 0:
@@ -475,6 +479,32 @@ class KeyframeManager:
             optimization=stats,
             held_out_loops=list(self.held_out_loops),
         )
+
+
+def view_change(keyframe: Frame, T_keyframe_frame: NDArray[np.float64]) -> float | None:
+    """How far the image content moved from ``keyframe`` to a frame at ``T_keyframe_frame``, as
+    a fraction of the image's smaller side: the largest pixel displacement of nine points of the
+    keyframe's view (a 3x3 grid over the image at the keyframe's median depth) seen from the
+    frame. Rotation, translation against the scene's depth and roll all count, in the sensor's
+    own pixels, so the same fraction means the same loss of overlap for a 60-degree RGB-D camera
+    and a narrow FPP camera. None when the keyframe has no pinhole model (``metadata["K"]``) or
+    image size (``xyz_map``)."""
+    if "K" not in keyframe.metadata or keyframe.xyz_map is None or len(keyframe.points) == 0:
+        return None
+    K = np.asarray(keyframe.metadata["K"], dtype=np.float64)
+    h, w = keyframe.xyz_map.shape[:2]
+    depth_m = float(np.median(np.asarray(keyframe.points)[:, 2]))
+    if not depth_m > 0:
+        return None
+    u, v = np.meshgrid(np.array([1, 3, 5]) * w / 6.0, np.array([1, 3, 5]) * h / 6.0)
+    pixels = np.stack([u.ravel(), v.ravel()], axis=1)
+    rays = np.column_stack([(pixels - K[:2, 2]) / np.diag(K)[:2], np.ones(9)])
+    T_frame_keyframe = invert(T_keyframe_frame)
+    seen = (depth_m * rays) @ T_frame_keyframe[:3, :3].T + T_frame_keyframe[:3, 3]
+    if np.any(seen[:, 2] <= 0):
+        return 1.0  # part of the view is now behind the sensor
+    projected = seen[:, :2] / seen[:, 2:] * np.diag(K)[:2] + K[:2, 2]
+    return float(np.max(np.linalg.norm(projected - pixels, axis=1)) / min(h, w))
 
 
 def transport_covariance(

@@ -331,3 +331,44 @@ def test_periodic_batch_solve_every_k_keyframes(rng, monkeypatch):
     assert calls == [10, 20, len(poses)]
     errs = [pose_error(poses[0] @ result.poses_world_sensor[i], poses[i])[1] for i in range(len(poses))]
     assert max(errs) < 10 * TRANS_SIGMA * math.sqrt(VIEWS)
+
+
+def _camera_frame(frame_id: int, depth_m: float = 2.0, width: int = 640, height: int = 480, f_px: float = 500.0) -> Frame:
+    """A frame with a pinhole model and an image size (a flat scene at ``depth_m``)."""
+    K = np.array([[f_px, 0, width / 2], [0, f_px, height / 2], [0, 0, 1.0]])
+    xyz = np.full((height, width, 3), np.nan)
+    points = np.column_stack([np.zeros(50), np.zeros(50), np.full(50, depth_m)])
+    return Frame(id=frame_id, timestamp=float(frame_id), points=points, xyz_map=xyz, metadata={"K": K.tolist()})
+
+
+def test_view_change_is_pixel_flow_over_the_smaller_image_side():
+    from fpp_graph.slam.keyframes import view_change
+
+    keyframe = _camera_frame(0, depth_m=2.0)
+    # sideways by 0.096 m at 2 m depth: every point moves f * t / z = 24 px = 5 % of 480 px
+    assert view_change(keyframe, make_pose(np.eye(3), [0.096, 0, 0])) == pytest.approx(0.05, rel=1e-9)
+    # a pan of 2.75 deg moves the image centre by f tan(a) = 24.0 px and the grid's corners more
+    pan = make_pose(Rotation.from_euler("y", math.atan(24 / 500)).as_matrix(), [0, 0, 0])
+    assert 0.05 <= view_change(keyframe, pan) < 0.065
+    # roll about the optical axis moves the grid's outer points only
+    roll = make_pose(Rotation.from_euler("z", 5, degrees=True).as_matrix(), [0, 0, 0])
+    assert view_change(keyframe, roll) == pytest.approx(math.hypot(213.3333, 160) * 2 * math.sin(math.radians(2.5)) / 480, rel=1e-3)
+    assert view_change(keyframe, make_pose(np.eye(3), [0, 0, 3.0])) == 1.0  # the scene is behind it now
+    assert view_change(Frame(id=1, timestamp=0.0, points=np.zeros((1, 3))), np.eye(4)) is None
+
+
+def test_slow_camera_makes_a_keyframe_every_few_frames(rng):
+    # 1 cm per frame sideways at 2 m (2.5 px of 480): a keyframe each 5 % of the view, 10 frames
+    poses = [make_pose(np.eye(3), [0.01 * i, 0, 0]) for i in range(30)]
+    registrar = MockRegistrar(poses, rng)
+    manager = KeyframeManager(registrar, config_from_dict({"loop_closure": {"enabled": False}}))
+    for i in range(30):
+        manager.process(_camera_frame(i))
+    result = manager.finish()
+    assert result.keyframe_ids == [0, 10, 20]
+    assert len(result.poses_world_sensor) == 30
+    # 0 turns the criterion off: every frame is a keyframe, as for frames without a camera model
+    manager = KeyframeManager(MockRegistrar(poses, rng), config_from_dict({"keyframes": {"min_view_change": 0.0}, "loop_closure": {"enabled": False}}))
+    for i in range(30):
+        manager.process(_camera_frame(i))
+    assert len(manager.finish().keyframe_ids) == 30

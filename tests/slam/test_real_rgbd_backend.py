@@ -34,7 +34,8 @@ def chess_run(tmp_path_factory):
 @pytest.mark.slow
 def test_chess_keeps_the_verified_loops(chess_run):
     metrics, _ = chess_run
-    assert metrics["loops_verified"] >= 100
+    # 17 of the 50 frames are keyframes (keyframes.min_view_change), each with up to 8 candidates
+    assert metrics["keyframes"] < metrics["frames"] and metrics["loops_verified"] >= 40
     kept = metrics["loops_verified"] - metrics["loops_rejected_by_backend"]
     assert kept >= 0.9 * metrics["loops_verified"], metrics
 
