@@ -279,6 +279,8 @@ _IN_POINT_SIGMAS = {"ransac_threshold_m", "max_inlier_rmse_m", "max_icp_shift_m"
 def _converted(old: str, value: Any, data: dict[str, Any]) -> tuple[Any, str]:
     """An old metre threshold as the multiple it now is, and how it was read (else unchanged)."""
     noise = data.get("noise") or {}
+    if not isinstance(noise, dict):  # given as a NoiseModel
+        noise = noise.model_dump()
     sigma = noise.get("point_sigma_m") or FPP_NOISE.point_sigma_m
     voxel = noise.get("voxel_m") or data.get("icp_voxel_m") or FPP_NOISE.voxel_m
     if not isinstance(value, int | float) or isinstance(value, bool):
