@@ -332,3 +332,16 @@ def test_resume_removes_the_temp_files_of_interrupted_writes_only(tmp_path):
     (out / "notes.tmp").write_text("a user's file, not an atomic-write temp")
     assert prepare_results_dir(out, resume=True) == out
     assert sorted(p.name for p in out.rglob("*")) == sorted([RESULTS_MARKER, "frames", "frame_000001.npz", "notes.tmp"])
+
+
+def test_config_dump_for_a_sequence_shows_its_sensors_noise(tum_sequence, capsys):
+    import yaml
+
+    from fpp_graph.cli import main
+    from frontend.rgbd.source import KINECT_V1_NOISE
+
+    assert main(["config", "dump"]) == 0
+    assert yaml.safe_load(capsys.readouterr().out)["registration"]["noise"]["point_sigma_m"] is None
+    assert main(["config", "dump", "--sequence", str(tum_sequence)]) == 0
+    noise = yaml.safe_load(capsys.readouterr().out)["registration"]["noise"]
+    assert noise["point_sigma_m"] == KINECT_V1_NOISE.point_sigma_m and noise["voxel_m"] == KINECT_V1_NOISE.voxel_m
