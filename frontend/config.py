@@ -90,6 +90,7 @@ class KeypointsConfig(StrictModel):
     ratio_test: float = Field(0.9, gt=0, le=1, description="Lowe's ratio of best to second-best descriptor distance")
     mutual_check: bool = Field(True, description="keep only mutual nearest neighbours")
     information_scale: float = Field(0.1, gt=0, le=1, description="multiplies the keypoints' information in the constraint (their errors are correlated); the gates use it unscaled")
+    edge_sigmas: float = Field(10.0, gt=0, description="a keypoint whose four neighbouring pixels span more depth than this many noise.point_sigma_m sits on a depth edge: not lifted")
 
 
 class RansacConfig(StrictModel):
@@ -153,6 +154,7 @@ class GatesConfig(StrictModel):
     min_texture_agreement: float = Field(0.9, ge=0, le=1, description="appearance-only loop on weak geometry: share of overlap blocks whose textures correlate")
     min_texture_overlap: float = Field(0.7, ge=0, le=1, description="... and the share of the source view that overlap covers")
     min_agreement_blocks: int = Field(20, ge=1, description="fewer informative overlap blocks cannot tell a look-alike from a revisit")
+    texture_distance_sigmas: float = Field(6.0, gt=0, description="texture agreement: a target surface within this many noise.point_sigma_m of a source sample is the same surface")
     min_texture_px: int = Field(32, ge=1, description="smaller textures cannot hold a descriptor patch")
 
 
@@ -168,6 +170,8 @@ class Lengths:
     max_icp_shift_m: float
     max_weak_sigma_m: float
     icp_information_scale: float
+    keypoint_edge_step_m: float
+    texture_distance_m: float
 
 
 class RegistrationConfig(StrictModel):
@@ -219,6 +223,8 @@ class RegistrationConfig(StrictModel):
             max_icp_shift_m=self.gates.max_icp_shift_sigmas * sigma,
             max_weak_sigma_m=self.gates.max_weak_sigma_sigmas * sigma,
             icp_information_scale=self.icp.information_scale * noise.information_correlation,
+            keypoint_edge_step_m=self.keypoints.edge_sigmas * sigma,
+            texture_distance_m=self.gates.texture_distance_sigmas * sigma,
         )
 
 

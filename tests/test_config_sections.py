@@ -36,6 +36,8 @@ OLD_FPP_LENGTHS = {
     "max_icp_shift_m": 0.003,
     "max_weak_sigma_m": 0.002,
     "icp_information_scale": 1.0,
+    "keypoint_edge_step_m": 0.005,  # lift_keypoints' depth-edge step
+    "texture_distance_m": 0.003,  # texture_agreement's surface distance
 }
 
 

@@ -227,6 +227,7 @@ class WeakGeometryCheck:
 
 def check_weak_geometry(
     target: Frame, source: Frame, pose: PoseEstimate, support_points_m: Array, is_loop: bool, T_guess: NDArray | None,
+    config: RegistrationConfig,
 ) -> WeakGeometryCheck:
     """Weak joint geometry (one plane, an object on a table) is acceptable only if the keypoints pin
     those directions (``gates.max_weak_sigma_sigmas``) and, for a revisit proposed by appearance alone, only
@@ -246,7 +247,7 @@ def check_weak_geometry(
     meta["weak_direction_sigma_m"] = weak_sigma_m
     agreement = None
     if is_loop and T_guess is None:
-        agreement = texture_agreement(target, source, pose.T_target_source)
+        agreement = texture_agreement(target, source, pose.T_target_source, max_distance_m=config.lengths.texture_distance_m)
         meta.update({"texture_agreement": agreement.fraction, "texture_agreement_blocks": agreement.blocks, "texture_agreement_overlap": agreement.overlap})
     elif is_loop:
         meta["weak_loop_guess_deviation_m"] = float(np.linalg.norm(pose.T_target_source[:3, 3] - np.asarray(T_guess, dtype=np.float64)[:3, 3]))

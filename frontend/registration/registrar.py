@@ -222,7 +222,7 @@ class FppPairRegistrar:
         if rejected := rejection(Checkpoint.MATCHES, s, cfg):
             return rejected
         started = s.timer.start()  # the "ransac" time includes the lift
-        s.lifted = lift_matches(target, source, s.matches)
+        s.lifted = lift_matches(target, source, s.matches, cfg)
         if rejected := rejection(Checkpoint.LIFTED, s, cfg):
             return rejected
         s.ransac = self._ransac(s)
@@ -244,7 +244,7 @@ class FppPairRegistrar:
         s.meta.update(information.metadata)
         s.timer.stop("information", started)
         self._refine(s)  # dense, then photometric
-        s.check = check_weak_geometry(target, source, s.pose, s.weak.icp.source_points, ConstraintKind(kind) is ConstraintKind.LOOP, T_guess)
+        s.check = check_weak_geometry(target, source, s.pose, s.weak.icp.source_points, ConstraintKind(kind) is ConstraintKind.LOOP, T_guess, cfg)
         s.meta.update(s.check.metadata)
         return rejection(Checkpoint.FINAL, s, cfg) or self._accept(s)
 

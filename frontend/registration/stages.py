@@ -124,11 +124,12 @@ class LiftedMatches:
         return int(self.points_target_m.shape[0])
 
 
-def lift_matches(target: Frame, source: Frame, matched: KeypointMatches) -> LiftedMatches:
-    """:func:`~frontend.registration.keypoints.lift_keypoints` on both sides; rows valid in both kept."""
-    m = matched.matches
-    P_target, valid_target = lift_keypoints(target.xyz_map, matched.keypoints_uv_target[m[:, 0]])
-    P_source, valid_source = lift_keypoints(source.xyz_map, matched.keypoints_uv_source[m[:, 1]])
+def lift_matches(target: Frame, source: Frame, matched: KeypointMatches, config: RegistrationConfig) -> LiftedMatches:
+    """:func:`~frontend.registration.keypoints.lift_keypoints` on both sides (depth edges from the
+    noise model: ``keypoints.edge_sigmas``); rows valid in both kept."""
+    m, edge_m = matched.matches, config.lengths.keypoint_edge_step_m
+    P_target, valid_target = lift_keypoints(target.xyz_map, matched.keypoints_uv_target[m[:, 0]], edge_m)
+    P_source, valid_source = lift_keypoints(source.xyz_map, matched.keypoints_uv_source[m[:, 1]], edge_m)
     ok = valid_target & valid_source
     return LiftedMatches(P_target[ok], P_source[ok], m[ok])
 
