@@ -211,6 +211,7 @@ class RegistrationConfig(StrictModel):
 
     @property
     def lengths(self) -> Lengths:
+        """Every length threshold in metres: the section's multiples times the noise model."""
         noise = self.sensor_noise()
         sigma, voxel = noise.point_sigma_m, noise.voxel_m
         ransac_m = self.ransac.inlier_sigmas * sigma
