@@ -1,79 +1,43 @@
 """Configuration: pydantic models loaded from YAML, strict about keys.
 
-The documented defaults live in ``fpp_graph/default_config.yaml``; a user file overrides any
-subset of keys. Every model forbids unknown keys, and a misspelled key is reported with the
-nearest valid name (``registration.ransac_threshol_m: unknown key; did you mean
-'ransac_threshold_m'?``).
+The back-end owns its sections (``keyframes``, ``loop_closure``, ``pose_graph``, ``fusion``,
+``run``), documented in ``fpp_graph/default_config.yaml``. A front-end owns the sections of its
+sensor and registration (this project's ``frontend`` registers ``decode`` and ``registration``,
+documented in ``frontend/default_config.yaml``): it calls :func:`register_sections` when its
+package is imported, and :class:`Config` validates those sections with the registered models.
+``fpp_graph`` never imports a front-end by name: it imports the top-level package of every frame
+source registered under the ``fpp_graph.sources`` entry points (:func:`plugin_sections`), the
+same discovery that finds the sources themselves.
+
+A user file overrides any subset of keys. Every model forbids unknown keys, and a misspelled key
+is reported with the nearest valid name (``registration.ransac.inlier_sigma: unknown key; did
+you mean 'inlier_sigmas'?``).
 """
 
 from __future__ import annotations
 
 import copy
 import difflib
+import importlib
+import logging
 import os
+from collections.abc import Callable
 from importlib import resources
+from importlib.metadata import entry_points
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from fpp_graph.errors import ConfigError, FppError
+
+log = logging.getLogger(__name__)
 
 
 class StrictModel(BaseModel):
     """Base of every config section: unknown keys are errors, values are immutable."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
-
-
-class DecodeConfig(StrictModel):
-    """FPP decoding (phase retrieval, unwrapping, validity mask)."""
-
-    min_modulation: float = Field(4.0, ge=0, description="minimum fringe modulation b, grey levels")
-    saturation_level: float = Field(254.0, gt=0, description="grey level at or above which a pixel is saturated")
-    min_background: float = Field(2.0, ge=0, description="minimum background a; darker pixels are shadow")
-    min_code_contrast: float = Field(0.0, ge=0, description="a Gray bit read against its inverse image needs |bit - inverse| >= this (grey levels), else low_modulation")
-
-
-class RegistrationConfig(StrictModel):
-    """Pairwise registration: 2D features lifted to 3D, RANSAC, ICP, verification."""
-
-    feature: Literal["surf", "sift", "orb", "akaze"] = "surf"
-    max_features: int = Field(4000, gt=0)
-    feature_max_width_px: int = Field(1024, ge=0, description="wider textures are reduced by an integer factor before detection (0: never)")
-    surf_hessian_threshold: float = Field(3e-6, gt=0, description="SURF det(H) threshold on the contrast-stretched image in [0, 1]; low, so bland walls still yield keypoints (max_features keeps the strongest)")
-    ratio_test: float = Field(0.9, gt=0, le=1)
-    mutual_check: bool = True
-    ransac_threshold_m: float = Field(0.002, gt=0)
-    ransac_iterations: int = Field(10000, gt=0)
-    ransac_confidence: float = Field(0.9999, gt=0, lt=1)
-    min_inliers: int = Field(15, ge=3)
-    icp_method: Literal["gicp", "point_to_plane", "none"] = "gicp"
-    icp_voxel_m: float = Field(0.002, gt=0)
-    icp_max_correspondence_m: float = Field(0.004, gt=0)
-    icp_max_iterations: int = Field(50, gt=0)
-    min_fitness: float = Field(0.1, ge=0, le=1)
-    max_inlier_rmse_m: float = Field(0.002, gt=0)
-    min_overlap: float = Field(0.1, ge=0, le=1)
-    degeneracy_ratio: float = Field(0.02, gt=0, description="information eigenvalue over the trace of its translation block (length-normalised) below which a direction is unconstrained")
-    plane_from_keypoints: bool = Field(True, description="on plane-like pairs (two or more weak ICP directions) the in-plane shifts and the spin come from the keypoints, the normal shift and tilts from ICP")
-    max_weak_sigma_m: float = Field(0.002, gt=0, description="geometrically weak directions are accepted when the joint ICP + keypoint information constrains them to this standard deviation (appearance-only loops on weak geometry are refused regardless)")
-    min_texture_agreement: float = Field(0.9, ge=0, le=1, description="an appearance-only loop on weak geometry is accepted only when this share of its overlap's texture blocks correlate (look-alike places fail)")
-    min_texture_overlap: float = Field(0.7, ge=0, le=1, description="... and its overlap must cover this share of the source view (a look-alike's overlap can be the repeated object alone)")
-    max_icp_shift_m: float = Field(0.003, gt=0, description="ICP moving RANSAC's keypoint inliers further than this means a wrong basin: reject")
-    information_scale: float = Field(1.0, gt=0, description="multiplies the correspondence information; calibrated by NEES over simulated pairs")
-    dense_refinement: bool = Field(True, description="after ICP, align every dense_stride_px-th pixel of the two organised maps point-to-plane both ways (frames without an xyz_map skip it)")
-    dense_stride_px: int = Field(2, ge=1, description="pixel stride of the dense alignment's final iterations (1: every pixel, about 4x slower)")
-    dense_coarse_stride_px: int = Field(4, ge=1, description="pixel stride of its first iterations")
-    dense_max_points: int = Field(160000, ge=100, description="both strides grow until the final iterations sample at most this many pixels per map (a full-view wall has 4x the doll's pixels)")
-    dense_icp_voxel_m: float = Field(0.004, gt=0, description="voxel size of ICP when the dense refinement follows (ICP then only has to reach its basin and tell relief from a plane); plane-like pairs are redone on icp_voxel_m")
-    dense_coarse_iterations: int = Field(2, ge=0)
-    dense_fine_iterations: int = Field(1, ge=1)
-    dense_information_scale: float = Field(0.15, gt=0, description="multiplies the dense alignment's information (neighbouring pixels' errors are correlated); calibrated by NEES over simulated pairs")
-    photometric_plane_refinement: bool = Field(True, description="on plane-like pairs (a wall) whose in-plane shifts and spin came from the keypoints, align the source's texture to the target's FPP map photometrically along those directions only (needs the rig, FppPairRegistrar(texture_camera=...), and dense_refinement, which gives the tilts and distance held meanwhile)")
-    photometric_max_pixels: int = Field(100000, ge=1000, description="target pixels (the strongest texture gradients) in the photometric refinement")
-    photometric_information_scale: float = Field(0.01, gt=0, description="multiplies the photometric refinement's information (all six directions) (neighbouring pixels' errors are correlated); calibrated by NEES over simulated pairs")
-    keypoint_information_scale: float = Field(0.1, gt=0, le=1, description="multiplies the keypoints' share of the constraint information (their errors are correlated); the acceptance gates use it unscaled")
 
 
 class KeyframeConfig(StrictModel):
@@ -137,24 +101,129 @@ class RunConfig(StrictModel):
     log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = "INFO"
 
 
-class Config(StrictModel):
-    """The whole resolved configuration of a run."""
+# ---------------------------------------------------------------------------------------------
+# front-end sections
+# ---------------------------------------------------------------------------------------------
+SOURCES_ENTRY_POINT_GROUP = "fpp_graph.sources"  # fpp_graph.slam.sources.ENTRY_POINT_GROUP
 
-    decode: DecodeConfig = DecodeConfig()
-    registration: RegistrationConfig = RegistrationConfig()
+_SECTIONS: dict[str, type[StrictModel]] = {}
+_SECTION_DOCS: dict[str, Callable[[], str]] = {}
+_discovered = False
+
+
+def register_sections(models: dict[str, type[StrictModel]], documentation: Callable[[], str] | None = None) -> None:
+    """Add top-level config sections owned by a front-end (call it when its package is imported).
+
+    Parameters
+    ----------
+    models : {section name: model}
+        Each model's defaults are the section's defaults; its keys are checked like the back-end's.
+    documentation : callable returning YAML text, optional
+        The sections' documented defaults (with comments), shown by ``fpp-slam config defaults``.
+    """
+    for name, model in models.items():
+        if name in Config.model_fields:
+            raise ConfigError(f"config section {name!r} belongs to fpp_graph: a front-end section needs another name")
+        known = _SECTIONS.get(name)
+        if known is not None and known is not model:
+            raise ConfigError(
+                f"config section {name!r} is registered twice ({known.__module__}.{known.__name__} and "
+                f"{model.__module__}.{model.__name__}): two front-ends claim it; rename one"
+            )
+        _SECTIONS[name] = model
+    if documentation is not None:
+        _SECTION_DOCS[",".join(models)] = documentation
+
+
+def plugin_sections() -> dict[str, type[StrictModel]]:
+    """The registered front-end sections, after importing the package of every registered frame
+    source once (a broken plug-in is logged, not fatal)."""
+    global _discovered
+    if not _discovered:
+        _discovered = True
+        for ep in entry_points(group=SOURCES_ENTRY_POINT_GROUP):
+            package = ep.value.split(":")[0].split(".")[0]
+            try:
+                importlib.import_module(package)
+            except Exception as exc:  # noqa: BLE001 - a broken plug-in must not hide the others
+                log.warning("config sections of %r could not be loaded: %s", package, exc)
+    return dict(_SECTIONS)
+
+
+def _resolve_sections(data: dict[str, Any], source: str) -> dict[str, Any]:
+    """``data`` with every front-end section validated by its model (defaults where absent);
+    unknown top-level keys raise ConfigError with the nearest valid name."""
+    sections = plugin_sections()
+    out = dict(data)
+    messages = []
+    for name, model in sections.items():
+        value = out.get(name)
+        if isinstance(value, model):
+            continue
+        try:
+            out[name] = model() if value is None else model.model_validate(value)
+        except ValidationError as exc:
+            messages.extend(_validation_messages(exc, model, prefix=(name,)))
+        except ConfigError as exc:  # raised by a section's own validator (an old key given twice)
+            messages.append(str(exc))
+    valid = sorted([*Config.model_fields, *sections])
+    for key in out:
+        if key not in valid:
+            close = difflib.get_close_matches(str(key), valid, n=1, cutoff=0.5)
+            messages.append(f"{key}: unknown key" + (f"; did you mean '{close[0]}'?" if close else f"; valid keys: {', '.join(valid)}"))
+    if messages:
+        raise ConfigError(f"invalid config {source}: " + "; ".join(messages))
+    return out
+
+
+class Config(StrictModel):
+    """The whole resolved configuration of a run.
+
+    The back-end's sections are fields; a front-end's registered sections (``decode``,
+    ``registration``) are attributes of the same name, validated by their registered models.
+    """
+
+    model_config = ConfigDict(extra="allow", frozen=True)
+
     keyframes: KeyframeConfig = KeyframeConfig()
     loop_closure: LoopClosureConfig = LoopClosureConfig()
     pose_graph: PoseGraphConfig = PoseGraphConfig()
     fusion: FusionConfig = FusionConfig()
     run: RunConfig = RunConfig()
 
+    @model_validator(mode="before")
+    @classmethod
+    def _front_end_sections(cls, data: Any) -> Any:
+        if isinstance(data, dict):
+            return _resolve_sections(data, "(Config)")
+        return data
+
+    def section(self, name: str) -> StrictModel:
+        """A section by name (back-end or front-end)."""
+        value = getattr(self, name, None)
+        if not isinstance(value, StrictModel):
+            raise ConfigError(f"config has no section {name!r}; sections: {', '.join(self.section_names())}")
+        return value
+
+    def section_names(self) -> list[str]:
+        """Front-end sections first (they run first), then the back-end's."""
+        return [*(self.__pydantic_extra__ or {}), *type(self).model_fields]
+
 
 DEFAULT_CONFIG_RESOURCE = "default_config.yaml"
 
 
 def default_config_text() -> str:
-    """The documented default configuration file shipped with the package."""
-    return resources.files("fpp_graph").joinpath(DEFAULT_CONFIG_RESOURCE).read_text(encoding="utf-8")
+    """The documented default configuration: the front-ends' sections (their registered
+    documentation), then the back-end's, under the back-end file's header comment."""
+    backend = resources.files("fpp_graph").joinpath(DEFAULT_CONFIG_RESOURCE).read_text(encoding="utf-8")
+    plugin_sections()
+    lines = backend.splitlines(keepends=True)
+    header = 0
+    while header < len(lines) and (lines[header].startswith("#") or not lines[header].strip()):
+        header += 1
+    front = "".join(doc().rstrip("\n") + "\n\n" for doc in _SECTION_DOCS.values())
+    return "".join(lines[:header]) + front + "".join(lines[header:])
 
 
 def _default_config_dict() -> dict[str, Any]:
@@ -187,30 +256,34 @@ def _model_at(model: type[BaseModel], loc: tuple[Any, ...]) -> type[BaseModel] |
     return current
 
 
-def _format_validation_error(exc: ValidationError, source: str) -> str:
+def _validation_messages(exc: ValidationError, root: type[BaseModel], prefix: tuple[str, ...] = ()) -> list[str]:
+    """One message per error of ``exc`` (raised validating ``root`` at ``prefix``), each naming its dotted key."""
     messages = []
     for err in exc.errors():
         loc = tuple(err["loc"])
-        dotted = ".".join(str(p) for p in loc)
+        dotted = ".".join(str(p) for p in (*prefix, *loc))
         if err["type"] == "extra_forbidden":
-            parent = _model_at(Config, loc)
+            parent = _model_at(root, loc)
             valid = sorted(parent.model_fields) if parent else []
             close = difflib.get_close_matches(str(loc[-1]), valid, n=1, cutoff=0.5)
             hint = f"; did you mean '{close[0]}'?" if close else f"; valid keys: {', '.join(valid)}"
             messages.append(f"{dotted}: unknown key{hint}")
         else:
             messages.append(f"{dotted}: {err['msg']} (got {err.get('input')!r})")
-    return f"invalid config {source}: " + "; ".join(messages)
+    return messages
 
 
 def config_from_dict(data: dict[str, Any], source: str = "<dict>") -> Config:
     """Validate a (partial) config dict over the packaged defaults."""
-    defaults = _default_config_dict()
-    merged = _deep_merge(defaults, data)
+    # the back-end's sections over the packaged defaults; a front-end's from its model's defaults
+    # (the same values, a test keeps them equal), so that its validator sees the user's keys alone
+    sections = plugin_sections()
+    defaults = {k: v for k, v in _default_config_dict().items() if k not in sections}
+    merged = _resolve_sections(_deep_merge(defaults, data), source)
     try:
         return Config.model_validate(merged)
     except ValidationError as exc:
-        raise ConfigError(_format_validation_error(exc, source)) from None
+        raise ConfigError(f"invalid config {source}: " + "; ".join(_validation_messages(exc, Config))) from None
 
 
 def read_yaml_file(path: str | os.PathLike[str], error: type[FppError] = ConfigError, what: str = "config") -> Any:
@@ -249,4 +322,21 @@ def dump_config(config: Config) -> str:
     """The resolved config as YAML (what a run records in its results folder)."""
     import yaml
 
-    return yaml.safe_dump(config.model_dump(mode="json"), sort_keys=False)
+    dumped = config.model_dump(mode="json")
+    return yaml.safe_dump({name: dumped[name] for name in config.section_names()}, sort_keys=False)
+
+
+def __getattr__(name: str) -> Any:
+    """``fpp_graph.config.RegistrationConfig`` / ``DecodeConfig`` (and any front-end section
+    model) by their old import path, with a DeprecationWarning naming the owning module."""
+    import warnings
+
+    for model in plugin_sections().values():
+        if model.__name__ == name:
+            warnings.warn(
+                f"fpp_graph.config.{name} is deprecated: the front-end owns it; import it from {model.__module__}",
+                DeprecationWarning,
+                stacklevel=2,
+            )
+            return model
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -131,8 +131,8 @@ def calibrate(
 ) -> None:
     """Camera + projector calibration from chessboard captures; prints per-view and overall reprojection RMS."""
     from fpp_graph.cli import RichProgress, setup_logging
-    from fpp_graph.config import DecodeConfig
     from fpp_graph.errors import ConfigError
+    from frontend.config import DecodeConfig
     from frontend.fpp.calibration_board import Chessboard
     from frontend.fpp.calibration_folders import calibrate_pose_folders, pose_folders
     from frontend.fpp.pattern_file import load_pattern_spec

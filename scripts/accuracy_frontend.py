@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from fpp_graph.config import DecodeConfig
+from frontend.config import DecodeConfig
 from frontend.fpp.patterns import PatternSpec
 from frontend.fpp.phase import decode
 from frontend.testing.synthetic_captures import render_captures, smooth_projector_map

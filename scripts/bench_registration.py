@@ -3,9 +3,9 @@
 Stages: features on both frames (detect + describe), matching, lift + RANSAC, ICP cloud
 preparation (organised subsample, voxel grid, KD-trees, normals/covariances of the ICP subsets),
 ICP, information/verification, dense point-to-plane refinement. The bench wall's bumps are
-shallow enough to count as plane-like under the default ``degeneracy_ratio`` (the dense stage is
+shallow enough to count as plane-like under the default ``weak_directions.degeneracy_ratio`` (the dense stage is
 then skipped), so SURF also runs with ``--dense-ratio`` (default 0.01) to time the dense stage,
-and with ``dense_refinement`` off as the peer without it. A flat wall (same poses) times the
+and with ``dense.enabled`` off as the peer without it. A flat wall (same poses) times the
 plane-like path: with the rig's camera (``TextureCamera``) the dense fit holds the tilts and
 distance while the texture sets the in-plane directions (stage ``photometric``); without it the
 keypoints set them. The split is process CPU time per stage (the registrar's
@@ -33,8 +33,8 @@ os.environ["OPENBLAS_NUM_THREADS"] = "1"
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
-from fpp_graph.config import RegistrationConfig  # noqa: E402
 from fpp_graph.geometry import invert, pose_error  # noqa: E402
+from frontend.config import RegistrationConfig  # noqa: E402
 from frontend.registration import FppPairRegistrar, TextureCamera  # noqa: E402
 from frontend.testing.synthetic_frames import (  # noqa: E402
     bumpy_wall_scene,
@@ -56,9 +56,9 @@ def main() -> None:
     ap.add_argument("--features", default="surf,sift,orb")
     ap.add_argument("--width", type=int, default=1920)
     ap.add_argument("--height", type=int, default=1200)
-    ap.add_argument("--voxel-m", type=float, default=None, help="override registration.icp_voxel_m")
+    ap.add_argument("--voxel-m", type=float, default=None, help="override registration.noise.voxel_m")
     ap.add_argument("--no-flat", action="store_true", help="skip the flat-wall rows (plane-like path with and without the photometric refinement)")
-    ap.add_argument("--dense-ratio", type=float, default=0.01, help="degeneracy_ratio of the surf+dense row (the dense stage runs on this wall)")
+    ap.add_argument("--dense-ratio", type=float, default=0.01, help="weak_directions.degeneracy_ratio of the surf+dense row (the dense stage runs on this wall)")
     args = ap.parse_args()
     cv2.setNumThreads(1)
     scene = bumpy_wall_scene(seed=0)
@@ -74,7 +74,8 @@ def main() -> None:
     pairs = {"relief": (a, b)}
     camera = None
     if "surf" in args.features.split(","):
-        rows += [("surf+dense", "surf", {"degeneracy_ratio": args.dense_ratio}), ("surf-nodense", "surf", {"dense_refinement": False, "degeneracy_ratio": args.dense_ratio})]
+        weak = {"weak_directions": {"degeneracy_ratio": args.dense_ratio}}
+        rows += [("surf+dense", "surf", weak), ("surf-nodense", "surf", {"dense": {"enabled": False}, **weak})]
         if not args.no_flat:
             # a flat wall with the rig's camera: the plane-like path (dense fit holding the tilts and
             # distance, the texture setting the in-plane directions); the light sits at the camera
@@ -86,8 +87,8 @@ def main() -> None:
         overrides = dict(overrides)
         pa, pb = pairs[overrides.pop("_pair", "relief")]
         with_camera = overrides.pop("_camera", False)
-        extra = {} if args.voxel_m is None else {"icp_voxel_m": args.voxel_m}
-        reg = FppPairRegistrar(RegistrationConfig(feature=feat, **extra, **overrides), texture_camera=camera if with_camera else None)
+        extra = {} if args.voxel_m is None else {"noise": {"voxel_m": args.voxel_m}}
+        reg = FppPairRegistrar(RegistrationConfig(features={"type": feat}, **extra, **overrides), texture_camera=camera if with_camera else None)
         runs = []
         for _ in range(args.repeat):
             fa, fb = dataclasses.replace(pa), dataclasses.replace(pb)  # fresh objects: no cache hits

@@ -71,7 +71,7 @@ def open3d_multiway(ours_dir: Path, seq: Path, out: Path) -> dict:
     from fpp_graph.trajectory import Trajectory, write_tum
 
     config = load_config(ours_dir / "config.yaml")
-    voxel = config.registration.icp_voxel_m
+    voxel = config.registration.lengths.icp_voxel_m
     reg = o3d.pipelines.registration
     out.mkdir(parents=True, exist_ok=True)
     frame_files = sorted((ours_dir / "frames").glob("frame_*.npz"))

@@ -49,7 +49,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fpp_graph.config import DecodeConfig
+from frontend.config import DecodeConfig
 from frontend.fpp.images import load_image_stack
 from frontend.fpp.patterns import PatternSpec
 from frontend.fpp.phase import Decoder, DecodeResult

@@ -49,10 +49,10 @@ import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
 from fpp_graph.atomic import atomic_write_text  # noqa: E402
-from fpp_graph.config import RegistrationConfig, read_yaml_file  # noqa: E402
 from fpp_graph.errors import ConfigError  # noqa: E402
 from fpp_graph.geometry import invert, pose_error, se3_log  # noqa: E402
 from fpp_graph.types import ConstraintKind, Frame  # noqa: E402
+from frontend.config import RegistrationConfig, read_yaml_file  # noqa: E402
 from frontend.features.detect import match_descriptors  # noqa: E402
 from frontend.fpp.sensor import FppSensor  # noqa: E402
 from frontend.localization import DenseReference, localize_dlt, localize_photometric  # noqa: E402
@@ -116,7 +116,7 @@ def dlt_rows(reg: FppPairRegistrar, c, a: Frame, b: Frame, T_true: np.ndarray, K
     dense KLT refinement; compared with the truth and with the registration when accepted."""
     out: dict = {}
     A, B = reg.describe(a), reg.describe(b)
-    m = match_descriptors(A.descriptors, B.descriptors, reg.config.ratio_test, reg.config.mutual_check)
+    m = match_descriptors(A.descriptors, B.descriptors, reg.config.keypoints.ratio_test, reg.config.keypoints.mutual_check)
     X, ok = lift_keypoints(a.xyz_map, A.keypoints_uv[m[:, 0]])
     if ok.sum() < 6:
         return out
@@ -143,7 +143,7 @@ def dlt_rows(reg: FppPairRegistrar, c, a: Frame, b: Frame, T_true: np.ndarray, K
 
 def run_pairs(group: str, frames: SimulatedFrames, pairs: list[tuple[int, int]], features: list[str], with_dlt: bool) -> list[dict]:
     camera = TextureCamera.from_rig(frames.setup.calibration)  # as the pipeline's FPP source builds it
-    regs = {f: FppPairRegistrar(RegistrationConfig(feature=f), texture_camera=camera) for f in features}
+    regs = {f: FppPairRegistrar(RegistrationConfig(features={"type": f}), texture_camera=camera) for f in features}
     rows = []
     cache: dict[int, Frame] = {}
     for i, j in pairs:

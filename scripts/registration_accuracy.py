@@ -33,8 +33,8 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
-from fpp_graph.config import RegistrationConfig  # noqa: E402
 from fpp_graph.geometry import invert, pose_error, se3_log  # noqa: E402
+from frontend.config import RegistrationConfig  # noqa: E402
 from frontend.localization import localize_dlt  # noqa: E402
 from frontend.registration import FppPairRegistrar, lift_keypoints  # noqa: E402
 from frontend.testing.synthetic_frames import bumpy_wall_scene, render_frame, wall_pose  # noqa: E402
@@ -80,7 +80,7 @@ def pct(x, qs=(50, 90, 100)) -> str:
 def accuracy(pairs, features) -> dict:
     out = {}
     for feat in features:
-        reg = FppPairRegistrar(RegistrationConfig(feature=feat, information_scale=1.0))
+        reg = FppPairRegistrar(RegistrationConfig(features={"type": feat}, icp={"information_scale": 1.0}))
         rows = []
         for kind, a, b, T_true in pairs:
             t0 = time.perf_counter()

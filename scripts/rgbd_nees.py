@@ -3,7 +3,7 @@
     .venv/bin/python scripts/rgbd_nees.py [SEQUENCE_DIR] [--pairs 150:152 155:158 ...]
 
 Registers frame pairs with the RGB-D source's registrar (:mod:`frontend.rgbd.source`: colour resampled
-onto the depth grid, RGB-D floors, ``RGBD_INFORMATION_SCALE``) and prints, per pair, the
+onto the depth grid, the Kinect noise model ``KINECT_V1_NOISE``) and prints, per pair, the
 translation/rotation error against the sequence's poses, the 1-sigma the information claims and
 the NEES ``e^T I e`` (6 degrees of freedom: 6 on average when the information is right). The
 mean NEES / 6 over the pairs is the factor the information is still too confident by.
@@ -32,7 +32,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from fpp_graph.config import load_config
     from fpp_graph.geometry import invert
-    from frontend.rgbd.source import RGBD_INFORMATION_SCALE, RgbdSource
+    from frontend.rgbd.source import RgbdSource
 
     source = RgbdSource(args.sequence, load_config(None))
     gt = {e.frame_id: e.T_world_sensor for e in source.entries}
@@ -45,7 +45,7 @@ def main(argv: list[str] | None = None) -> int:
         return frames[i]
 
     nees = []
-    print(f"information scale {RGBD_INFORMATION_SCALE:g}")
+    print(f"information correlation {source.config.registration.noise.information_correlation:g}")
     for pair in args.pairs:
         a, b = (int(x) for x in pair.split(":"))
         c = registrar.register(frame(a), frame(b))

@@ -20,11 +20,11 @@ def test_defaults_file_matches_models():
 
 def test_partial_override_and_dump_round_trip(tmp_path):
     path = tmp_path / "c.yaml"
-    path.write_text("registration:\n  feature: sift\npose_graph:\n  robust: cauchy\n")
+    path.write_text("registration:\n  features:\n    type: sift\npose_graph:\n  robust: cauchy\n")
     cfg = load_config(path)
-    assert cfg.registration.feature == "sift"
+    assert cfg.registration.features.type == "sift"
     assert cfg.pose_graph.robust == "cauchy"
-    assert cfg.registration.min_inliers == Config().registration.min_inliers
+    assert cfg.registration.gates.min_inliers == Config().registration.gates.min_inliers
     dumped = tmp_path / "dumped.yaml"
     dumped.write_text(dump_config(cfg))
     assert load_config(dumped) == cfg
@@ -33,10 +33,13 @@ def test_partial_override_and_dump_round_trip(tmp_path):
 @pytest.mark.parametrize(
     ("text", "expected"),
     [
-        ("registration:\n  ransac_threshol_m: 0.1\n", "registration.ransac_threshol_m: unknown key; did you mean 'ransac_threshold_m'"),
+        ("registration:\n  ransac:\n    inlier_sigma: 4\n", "registration.ransac.inlier_sigma: unknown key; did you mean 'inlier_sigmas'"),
+        ("registration:\n  gatse:\n    min_inliers: 4\n", "registration.gatse: unknown key; did you mean 'gates'"),
+        ("registation:\n  gates: {}\n", "registation: unknown key; did you mean 'registration'"),
         ("pose_grapf:\n  solver: lm\n", "pose_grapf: unknown key; did you mean 'pose_graph'"),
         ("pose_graph:\n  solver: newton\n", "pose_graph.solver"),
-        ("registration:\n  min_inliers: 1\n", "registration.min_inliers"),
+        ("registration:\n  gates:\n    min_inliers: 1\n", "registration.gates.min_inliers"),
+        ("decode:\n  min_modulation: -1\n", "decode.min_modulation"),
         ("- a list\n", "must be a mapping"),
         ("registration: [unclosed\n", "not valid YAML"),
     ],
@@ -60,13 +63,13 @@ def test_cli_config_dump_prints_resolved_yaml(capsys, tmp_path):
 
 def test_cli_user_error_is_one_line_exit_2(tmp_path):
     path = tmp_path / "bad.yaml"
-    path.write_text("registration:\n  feature: sirf\n")
+    path.write_text("registration:\n  features:\n    type: sirf\n")
     exe = Path(sys.executable).parent / "fpp-slam"
     proc = subprocess.run([str(exe), "config", "dump", "--config", str(path)], capture_output=True, text=True)
     assert proc.returncode == 2
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1, proc.stderr
-    assert lines[0].startswith("fpp-slam: error:") and "registration.feature" in lines[0]
+    assert lines[0].startswith("fpp-slam: error:") and "registration.features.type" in lines[0]
     assert "Traceback" not in proc.stderr
 
 

@@ -2,16 +2,32 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+from typing import Annotated, Optional
+
 import typer
 
 from fpp_graph.cli.common import ConfigOption
 
+SequenceOption = Annotated[
+    Optional[Path],  # noqa: UP045 - typer reads the annotation at runtime
+    typer.Option(
+        "--sequence", "-s",
+        help="Resolve for this sequence's sensor: the values a run on it uses (its noise model where the config leaves it null).",
+    ),
+]
 
-def config_dump(config: ConfigOption = None) -> None:
+
+def config_dump(config: ConfigOption = None, sequence: SequenceOption = None) -> None:
     """Print the resolved configuration (defaults overridden by --config) as YAML."""
     from fpp_graph.config import dump_config, load_config
 
-    typer.echo(dump_config(load_config(config)), nl=False)
+    cfg = load_config(config)
+    if sequence is not None:
+        from fpp_graph.slam.sources import open_source
+
+        cfg = open_source(sequence, cfg).resolve_config(cfg)
+    typer.echo(dump_config(cfg), nl=False)
 
 
 def config_defaults() -> None:

@@ -64,9 +64,11 @@ class FrameSource(Protocol):
         ...
 
     def resolve_config(self, config: Config) -> Config:
-        """The run's configuration for this sensor: ``config`` with the source's own defaults
-        applied (an RGB-D room is metres wide, an FPP scene centimetres), or ``config`` itself
-        when the sensor needs none. Called once, before any frame is loaded."""
+        """The run's configuration for this sensor: ``config`` with the source's own values where
+        the config leaves them open (the sensor's noise model, which the registration thresholds
+        are multiples of; scene-scale fusion voxels: an RGB-D room is metres wide, an FPP scene
+        centimetres), or ``config`` itself when the sensor needs none. Called once, before any
+        frame is loaded; the values a user set win."""
         ...
 
 

@@ -22,9 +22,9 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from fpp_graph.config import RegistrationConfig
 from fpp_graph.errors import InputDataError
 from fpp_graph.types import Frame
+from frontend.config import RegistrationConfig
 from frontend.features.surf import SurfParams, surf_detect_and_compute
 
 log = logging.getLogger(__name__)
@@ -63,7 +63,7 @@ def _opencv_detector(make: Callable[[], cv2.Feature2D], max_features: int, max_w
 
 
 def make_detector(config: RegistrationConfig) -> Detector:
-    """Build the detector+descriptor selected by ``config.feature``.
+    """Build the detector+descriptor selected by ``config.features.type``.
 
     Returns
     -------
@@ -71,33 +71,35 @@ def make_detector(config: RegistrationConfig) -> Detector:
         ``detect(texture) -> (keypoints_uv (K, 2) float64 full-image pixels, descriptors (K, D))``;
         float32 descriptors for surf/sift, uint8 binary ones for orb/akaze.
     """
-    n = int(config.max_features)
-    width = int(config.feature_max_width_px)
-    if config.feature == "surf":
-        params = SurfParams(hessian_threshold=float(config.surf_hessian_threshold), max_features=n, max_working_width=width)
+    features = config.features
+    n = int(features.max_features)
+    width = int(features.max_width_px)
+    if features.type == "surf":
+        params = SurfParams(hessian_threshold=float(features.surf_hessian_threshold), max_features=n, max_working_width=width)
 
         def surf(image: NDArray[np.uint8]) -> tuple[NDArray[np.float64], NDArray]:
             kp = surf_detect_and_compute(image, params)
             return kp.uv, kp.descriptors
 
         return surf
-    if config.feature == "sift":
+    if features.type == "sift":
         return _opencv_detector(lambda: cv2.SIFT_create(nfeatures=n), n, width)
-    if config.feature == "orb":
+    if features.type == "orb":
         return _opencv_detector(lambda: cv2.ORB_create(nfeatures=n, scaleFactor=1.2, nlevels=8, fastThreshold=10), n, width)
-    if config.feature == "akaze":
+    if features.type == "akaze":
         # OpenCV 5 moved AKAZE to xfeatures2d; 4.x has it at top level
         factory = getattr(cv2, "AKAZE_create", None) or cv2.xfeatures2d.AKAZE_create
         return _opencv_detector(lambda: factory(threshold=5e-4), n, width)
-    raise InputDataError(f"unknown feature type {config.feature!r}; use surf, sift, orb or akaze")  # pragma: no cover
+    raise InputDataError(f"unknown feature type {features.type!r}; use surf, sift, orb or akaze")  # pragma: no cover
 
 
 def feature_signature(config: RegistrationConfig) -> str:
     """What the keypoints of a frame were computed with: frames cached by an earlier run are
     re-described when any detector setting differs, not just the feature type."""
-    sig = f"{config.feature}:n={int(config.max_features)}:w={int(config.feature_max_width_px)}"
-    if config.feature == "surf":
-        sig += f":h={float(config.surf_hessian_threshold):.3g}"
+    features = config.features
+    sig = f"{features.type}:n={int(features.max_features)}:w={int(features.max_width_px)}"
+    if features.type == "surf":
+        sig += f":h={float(features.surf_hessian_threshold):.3g}"
     return sig
 
 
@@ -141,7 +143,7 @@ def detect_and_describe(frame: Frame, config: RegistrationConfig, detector: Dete
     detect = detector or make_detector(config)
     uv, desc = detect(np.ascontiguousarray(stretch_contrast(texture)))
     meta = dict(frame.metadata)
-    meta["feature"] = config.feature
+    meta["feature"] = config.features.type
     meta["feature_signature"] = feature_signature(config)
     return dataclasses.replace(frame, keypoints_uv=uv, descriptors=desc, metadata=meta)
 

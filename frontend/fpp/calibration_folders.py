@@ -21,8 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
-from fpp_graph.config import DecodeConfig
 from fpp_graph.errors import CalibrationError, ConfigError, InputDataError
+from frontend.config import DecodeConfig
 from frontend.fpp.calibration_board import Chessboard
 from frontend.fpp.capture import capture_image_paths, natural_key
 from frontend.fpp.images import load_image_stack

@@ -38,8 +38,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from fpp_graph.atomic import atomic_open, atomic_write_bytes, atomic_write_text
-from fpp_graph.config import DecodeConfig
 from fpp_graph.errors import InputDataError, OutputError
+from frontend.config import DecodeConfig
 from frontend.fpp.images import load_image_stack
 from frontend.fpp.patterns import PatternSpec
 from frontend.fpp.phase import DecodeResult

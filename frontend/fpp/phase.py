@@ -66,8 +66,8 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from fpp_graph.config import DecodeConfig
 from fpp_graph.errors import ConfigError, InputDataError
+from frontend.config import DecodeConfig
 from frontend.fpp.patterns import PatternImage, PatternSpec
 from frontend.fpp.stripe_decoding import StripeCode, binary_images
 from frontend.fpp.unwrapping import (

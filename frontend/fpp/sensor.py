@@ -14,9 +14,9 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from fpp_graph.config import DecodeConfig
 from fpp_graph.errors import InputDataError
 from fpp_graph.types import Frame
+from frontend.config import DecodeConfig
 from frontend.fpp.patterns import PatternSpec
 from frontend.fpp.phase import Decoder, DecodeResult
 from frontend.fpp.rig import RigCalibration

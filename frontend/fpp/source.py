@@ -15,6 +15,7 @@ from typing import Any
 from fpp_graph.config import Config
 from fpp_graph.trajectory import Trajectory
 from fpp_graph.types import Frame
+from frontend.config import FPP_NOISE
 from frontend.fpp.sequence import SEQUENCE_FILE, read_sequence
 
 log = logging.getLogger(__name__)
@@ -27,7 +28,7 @@ class FppSequenceSource:
 
     def __init__(self, path: Path, config: Config) -> None:
         self.path = Path(path)
-        self.config = config
+        self.config = self.resolve_config(config)
         self.sequence = read_sequence(self.path)
         self._index = {rec.id: i for i, rec in enumerate(self.sequence.frames)}
         self._sensor = None
@@ -67,8 +68,9 @@ class FppSequenceSource:
         return detect_and_describe(frame, self.config.registration)
 
     def resolve_config(self, config: Config) -> Config:
-        """The FPP defaults are the packaged ones (an FPP scene is what they describe)."""
-        return config
+        """``config`` with the rig's noise model (:data:`frontend.config.FPP_NOISE`) where
+        ``registration.noise`` is left null (idempotent)."""
+        return config.model_copy(update={"registration": config.registration.with_noise(FPP_NOISE)})
 
     def make_registrar(self):
         from frontend.registration import FppPairRegistrar, TextureCamera

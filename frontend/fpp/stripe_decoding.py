@@ -24,8 +24,8 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from fpp_graph.config import DecodeConfig
 from fpp_graph.errors import ConfigError
+from frontend.config import DecodeConfig
 from frontend.fpp.patterns import PatternImage, PatternSpec
 from frontend.fpp.unwrapping import read_gray_code
 from frontend.fpp.wrapped_phase import Scratch

@@ -15,7 +15,7 @@ to a frozen result (:mod:`.stages`, :mod:`.refinement`), on a running :class:`~.
 4. :func:`~.stages.run_icp`: GICP or point-to-plane ICP (:func:`refine_icp`, small_gicp) on evenly
    strided subsets of the voxel-downsampled clouds (:class:`IcpCloud`), and its information
    (:func:`information_from_icp`, ``[rot, trans]``, scaled by the NEES-calibrated
-   ``information_scale``);
+   ``icp.information_scale`` and the sensor's ``noise.information_correlation``);
 5. :func:`~.stages.handle_weak_directions`: on plane-like pairs (a wall) whose ICP pose disagrees
    with the keypoints in the plane, the in-plane shifts and the spin (:func:`plane_directions`)
    go to the keypoints' optimum given ICP's normal shift and tilts (:func:`joint_keypoint_step`);
@@ -23,9 +23,9 @@ to a frozen result (:mod:`.stages`, :mod:`.refinement`), on a running :class:`~.
 6. :func:`~.stages.joint_information`: ICP's and the keypoints' information; on other weak pairs
    ICP's pose is checked against the joint optimum;
 7. :func:`~.refinement.dense_stage`: dense point-to-plane alignment of every
-   ``dense_stride_px``-th pixel of both organised maps (:meth:`FppPairRegistrar.refine_dense`,
+   ``dense.stride_px``-th pixel of both organised maps (:meth:`FppPairRegistrar.refine_dense`,
    :mod:`frontend.dense_alignment`) with the keypoints as prior; its information (scaled by
-   ``dense_information_scale``) replaces ICP's. Plane-like pairs (three weak directions) keep
+   ``dense.information_scale``) replaces ICP's. Plane-like pairs (three weak directions) keep
    step 5's pose, unless:
 8. :func:`~.refinement.photometric_stage`: with the rig's :class:`TextureCamera`
    (``FppPairRegistrar(texture_camera=...)``), plane-like pairs take every plane-like ICP pose

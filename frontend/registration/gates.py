@@ -15,15 +15,11 @@ from typing import Any
 
 import numpy as np
 
-from fpp_graph.config import RegistrationConfig
 from fpp_graph.types import Constraint, Frame
+from frontend.config import RegistrationConfig
 from frontend.registration.state import PairState
 
 log = logging.getLogger(__name__)
-
-MIN_AGREEMENT_BLOCKS = 20
-"""Fewer informative overlap blocks cannot tell a look-alike from a revisit."""
-
 
 class Checkpoint(enum.Enum):
     """Where in the pipeline a gate is checked: after the stage that fills what it reads."""
@@ -55,8 +51,8 @@ class Gate:
     reason : callable (state, config) -> str
         The rejection reason (only called when ``fails``).
     config_key : str or None
-        The :class:`~fpp_graph.config.RegistrationConfig` field that sets the threshold (None:
-        fixed in code).
+        The :class:`~frontend.config.RegistrationConfig` key that sets the threshold (dotted,
+        in its section; None: no threshold).
     metadata : callable (state) -> dict, optional
         The rejected constraint's metadata; default: everything the stages reported so far.
     """
@@ -88,8 +84,8 @@ def _frame_gates(role: str) -> list[Gate]:
              lambda s, c: f"{role} frame {frame(s).id} has no texture image: no keypoints", None),
         Gate(f"{role}_points", Checkpoint.INPUT, no_points,
              lambda s, c: f"{role} frame {frame(s).id} has no valid 3D points", None),
-        Gate(f"{role}_texture_size", Checkpoint.INPUT, lambda s, c: min(frame(s).texture.shape) < 32,
-             lambda s, c: f"{role} frame {frame(s).id}: texture {frame(s).texture.shape} too small for keypoints", None),
+        Gate(f"{role}_texture_size", Checkpoint.INPUT, lambda s, c: min(frame(s).texture.shape) < c.gates.min_texture_px,
+             lambda s, c: f"{role} frame {frame(s).id}: texture {frame(s).texture.shape} too small for keypoints", "gates.min_texture_px"),
     ]
 
 
@@ -103,7 +99,7 @@ def _with_weak_directions(s: PairState) -> dict[str, Any]:
 
 def _agreement_fails(s: PairState, c: RegistrationConfig) -> bool:
     a = s.check.agreement
-    return a is not None and not (a.fraction >= c.min_texture_agreement and a.blocks >= MIN_AGREEMENT_BLOCKS)
+    return a is not None and not (a.fraction >= c.gates.min_texture_agreement and a.blocks >= c.gates.min_agreement_blocks)
 
 
 GATES: tuple[Gate, ...] = (
@@ -111,43 +107,43 @@ GATES: tuple[Gate, ...] = (
     *_frame_gates("source"),
     Gate("features", Checkpoint.FEATURES, lambda s, c: s.matches.error is not None,
          lambda s, c: f"features failed: {s.matches.error}", None),
-    Gate("matches", Checkpoint.MATCHES, lambda s, c: s.matches.count < c.min_inliers,
-         lambda s, c: f"too few matches ({s.matches.count} < {c.min_inliers})", "min_inliers"),
-    Gate("matches_3d", Checkpoint.LIFTED, lambda s, c: s.lifted.count < c.min_inliers,
-         lambda s, c: f"too few matches with valid 3D ({s.lifted.count} < {c.min_inliers})", "min_inliers",
+    Gate("matches", Checkpoint.MATCHES, lambda s, c: s.matches.count < c.gates.min_inliers,
+         lambda s, c: f"too few matches ({s.matches.count} < {c.gates.min_inliers})", "gates.min_inliers"),
+    Gate("matches_3d", Checkpoint.LIFTED, lambda s, c: s.lifted.count < c.gates.min_inliers,
+         lambda s, c: f"too few matches with valid 3D ({s.lifted.count} < {c.gates.min_inliers})", "gates.min_inliers",
          metadata=lambda s: {"matches": s.matches.count}),
-    Gate("ransac_inliers", Checkpoint.RANSAC, lambda s, c: s.ransac.num_inliers < c.min_inliers,
-         lambda s, c: f"too few inliers ({s.ransac.num_inliers} < {c.min_inliers} RANSAC inliers of {s.lifted.count})", "min_inliers"),
+    Gate("ransac_inliers", Checkpoint.RANSAC, lambda s, c: s.ransac.num_inliers < c.gates.min_inliers,
+         lambda s, c: f"too few inliers ({s.ransac.num_inliers} < {c.gates.min_inliers} RANSAC inliers of {s.lifted.count})", "gates.min_inliers"),
     Gate("icp_points", Checkpoint.ICP, lambda s, c: s.icp.too_few_voxels is not None,
          lambda s, c: "too few points for ICP ({} target, {} source voxels of {:g} mm)".format(*s.icp.too_few_voxels[:2], 1e3 * s.icp.too_few_voxels[2]), None),
     Gate("icp_finite", Checkpoint.ICP, lambda s, c: not np.all(np.isfinite(s.icp.icp.T_target_source)),
          lambda s, c: "ICP diverged (non-finite pose)", None),
-    Gate("icp_basin", Checkpoint.POSE, lambda s, c: s.weak.shift_m > c.max_icp_shift_m,
-         lambda s, c: f"ICP left the RANSAC basin (moved keypoint inliers by {1e3 * s.weak.shift_m:.2f} mm > {1e3 * c.max_icp_shift_m:.2f} mm)", "max_icp_shift_m"),
-    Gate("keypoints_after_icp", Checkpoint.POSE, lambda s, c: s.weak.keypoint_inliers < c.min_inliers,
-         lambda s, c: f"too few inliers after ICP ({s.weak.keypoint_inliers} < {c.min_inliers} keypoints agree)", "min_inliers"),
-    Gate("fitness", Checkpoint.POSE, lambda s, c: s.weak.icp.fitness < c.min_fitness,
-         lambda s, c: f"low fitness ({s.weak.icp.fitness:.3f} < {c.min_fitness})", "min_fitness"),
-    Gate("overlap", Checkpoint.POSE, lambda s, c: s.weak.icp.overlap < c.min_overlap,
-         lambda s, c: f"low overlap ({s.weak.icp.overlap:.3f} < {c.min_overlap})", "min_overlap"),
-    Gate("inlier_rmse", Checkpoint.POSE, lambda s, c: not s.weak.icp.inlier_rmse_m <= c.max_inlier_rmse_m,
-         lambda s, c: f"high inlier RMSE ({1e3 * s.weak.icp.inlier_rmse_m:.3f} mm > {1e3 * c.max_inlier_rmse_m:.3f} mm)", "max_inlier_rmse_m"),
+    Gate("icp_basin", Checkpoint.POSE, lambda s, c: s.weak.shift_m > c.lengths.max_icp_shift_m,
+         lambda s, c: f"ICP left the RANSAC basin (moved keypoint inliers by {1e3 * s.weak.shift_m:.2f} mm > {1e3 * c.lengths.max_icp_shift_m:.2f} mm)", "gates.max_icp_shift_sigmas"),
+    Gate("keypoints_after_icp", Checkpoint.POSE, lambda s, c: s.weak.keypoint_inliers < c.gates.min_inliers,
+         lambda s, c: f"too few inliers after ICP ({s.weak.keypoint_inliers} < {c.gates.min_inliers} keypoints agree)", "gates.min_inliers"),
+    Gate("fitness", Checkpoint.POSE, lambda s, c: s.weak.icp.fitness < c.gates.min_fitness,
+         lambda s, c: f"low fitness ({s.weak.icp.fitness:.3f} < {c.gates.min_fitness})", "gates.min_fitness"),
+    Gate("overlap", Checkpoint.POSE, lambda s, c: s.weak.icp.overlap < c.gates.min_overlap,
+         lambda s, c: f"low overlap ({s.weak.icp.overlap:.3f} < {c.gates.min_overlap})", "gates.min_overlap"),
+    Gate("inlier_rmse", Checkpoint.POSE, lambda s, c: not s.weak.icp.inlier_rmse_m <= c.lengths.max_inlier_rmse_m,
+         lambda s, c: f"high inlier RMSE ({1e3 * s.weak.icp.inlier_rmse_m:.3f} mm > {1e3 * c.lengths.max_inlier_rmse_m:.3f} mm)", "gates.max_inlier_rmse_sigmas"),
     Gate("texture_agreement", Checkpoint.FINAL, _agreement_fails,
          lambda s, c: "look-alike place: degenerate geometry (unconstrained " + _weak_unconstrained(s)
          + f") and the textures agree on only {100 * s.check.agreement.fraction:.1f} % of {s.check.agreement.blocks} overlap blocks"
-         + f" (< {100 * c.min_texture_agreement:.0f} % of >= {MIN_AGREEMENT_BLOCKS}) for an appearance-only candidate",
-         "min_texture_agreement", metadata=_with_weak_directions),
+         + f" (< {100 * c.gates.min_texture_agreement:.0f} % of >= {c.gates.min_agreement_blocks}) for an appearance-only candidate",
+         "gates.min_texture_agreement", metadata=_with_weak_directions),
     # the agreeing overlap may be the repeated object alone (poster twins on opposite walls
     # registered 0.2 m apart agreed on 100 % of their 0.37-0.63 overlap)
-    Gate("texture_overlap", Checkpoint.FINAL, lambda s, c: s.check.agreement is not None and not s.check.agreement.overlap >= c.min_texture_overlap,
+    Gate("texture_overlap", Checkpoint.FINAL, lambda s, c: s.check.agreement is not None and not s.check.agreement.overlap >= c.gates.min_texture_overlap,
          lambda s, c: "possible look-alike place: degenerate geometry (unconstrained " + _weak_unconstrained(s)
          + f") and the agreeing overlap covers only {100 * s.check.agreement.overlap:.0f} % of the view"
-         + f" (< {100 * c.min_texture_overlap:.0f} %) for an appearance-only candidate",
-         "min_texture_overlap", metadata=_with_weak_directions),
-    Gate("weak_directions_pinned", Checkpoint.FINAL, lambda s, c: s.check.degeneracy.degenerate and not s.check.weak_sigma_m <= c.max_weak_sigma_m,
+         + f" (< {100 * c.gates.min_texture_overlap:.0f} %) for an appearance-only candidate",
+         "gates.min_texture_overlap", metadata=_with_weak_directions),
+    Gate("weak_directions_pinned", Checkpoint.FINAL, lambda s, c: s.check.degeneracy.degenerate and not s.check.weak_sigma_m <= c.lengths.max_weak_sigma_m,
          lambda s, c: "degenerate geometry: unconstrained " + _weak_unconstrained(s)
-         + f" (sigma {1e3 * s.check.weak_sigma_m:.3f} mm > {1e3 * c.max_weak_sigma_m:.3f} mm even with keypoints)",
-         "max_weak_sigma_m", metadata=_with_weak_directions),
+         + f" (sigma {1e3 * s.check.weak_sigma_m:.3f} mm > {1e3 * c.lengths.max_weak_sigma_m:.3f} mm even with keypoints)",
+         "gates.max_weak_sigma_sigmas", metadata=_with_weak_directions),
 )
 
 
@@ -166,4 +162,4 @@ def reject(state: PairState, reason: str, metadata: dict[str, Any]) -> Constrain
     return Constraint.rejected(state.source.id, state.target.id, reason, kind=state.kind, metadata=meta, **state.quality)
 
 
-__all__ = ["GATES", "MIN_AGREEMENT_BLOCKS", "Checkpoint", "Gate", "rejection"]
+__all__ = ["GATES", "Checkpoint", "Gate", "rejection"]

@@ -1,7 +1,7 @@
 """The stages of :meth:`FppPairRegistrar.register` after the joint information, each a function
 from typed inputs to a frozen result:
 
-7. :func:`dense_stage`: dense point-to-plane refinement on every ``dense_stride_px``-th pixel;
+7. :func:`dense_stage`: dense point-to-plane refinement on every ``dense.stride_px``-th pixel;
 8. :func:`photometric_stage`: a plane's in-plane shifts and spin from the texture;
 9. :func:`check_weak_geometry`: what the final gates need when the joint information is weak
    (how well the keypoints pin it; for appearance-only loops, the textures' agreement).
@@ -21,8 +21,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from fpp_graph.config import RegistrationConfig
 from fpp_graph.types import Frame
+from frontend.config import RegistrationConfig
 from frontend.dense_alignment import DenseAlignment
 from frontend.registration.stages import (
     IcpOutcome,
@@ -81,9 +81,9 @@ def _held_plane_fit(
     tilts, 0.017 mm with these. If every pixel sees relief after all (a doll on a table) the
     unheld re-check decides instead (None)."""
     held, _ = refine(target, source, pose.T_target_source, pose.information_keypoints, weak.directions, weak.icp.source_points)
-    if held is None or len(check_degeneracy(held.information, held.source_points, config.degeneracy_ratio).unconstrained) < 3:
+    if held is None or len(check_degeneracy(held.information, held.source_points, config.weak_directions.degeneracy_ratio).unconstrained) < 3:
         return None
-    if not _max_motion_m(held.T_target_source, T_ransac, ransac_inliers_source_m) <= config.max_icp_shift_m:
+    if not _max_motion_m(held.T_target_source, T_ransac, ransac_inliers_source_m) <= config.lengths.max_icp_shift_m:
         return None
     return held
 
@@ -107,7 +107,7 @@ def dense_stage(
         if held is not None:
             meta.update({"T_before_dense": pose.T_target_source, "dense_pinned": list(weak.directions.unconstrained), "dense_iterations": held.iterations,
                          "dense_residuals": held.num_residuals, "dense_sigma_m": held.sigma_m})
-            info_geometry = without_weak_directions(cfg.dense_information_scale * held.information, weak.directions, support)
+            info_geometry = without_weak_directions(cfg.dense.information_scale * held.information, weak.directions, support)
             return DenseOutcome(keypoints.at(held.T_target_source, info_geometry), False, meta)
     pinned, T_start = weak.directions, pose.T_target_source
     if weak.rule is WeakRule.PLANE:
@@ -126,7 +126,7 @@ def dense_stage(
         meta["dense_pinned"] = list(pinned.unconstrained)
     relief_took_over = False
     if dense is not None:
-        dense_deg = check_degeneracy(dense.information, dense.source_points, cfg.degeneracy_ratio)
+        dense_deg = check_degeneracy(dense.information, dense.source_points, cfg.weak_directions.degeneracy_ratio)
         meta["dense_eigenvalue_ratios"] = dense_deg.eigenvalue_ratios
         # (against RANSAC's pose, as ICP's shift is: the keypoints' basin)
         shift_dense = _max_motion_m(dense.T_target_source, T_ransac, ransac_inliers_source_m)
@@ -136,11 +136,11 @@ def dense_stage(
             # its tilts and normal shift came out no better than ICP's (9 simulated corridor
             # pairs: 0.064 -> 0.098 mm median) and the in-plane directions are the keypoints'
             why_not = "plane-like geometry (" + "; ".join(dense_deg.unconstrained) + ")"
-        elif shift_dense > cfg.max_icp_shift_m:
+        elif shift_dense > cfg.lengths.max_icp_shift_m:
             why_not = f"moved the keypoint inliers by {1e3 * shift_dense:.2f} mm"
         else:
             meta["T_before_dense"] = pose.T_target_source
-            info_dense = cfg.dense_information_scale * dense.information
+            info_dense = cfg.dense.information_scale * dense.information
             if pinned is not None:
                 info_dense = without_weak_directions(info_dense, pinned, support)
             pose, relief_took_over = keypoints.at(dense.T_target_source, info_dense), True
@@ -182,7 +182,7 @@ def photometric_stage(
     weak: WeakDirectionOutcome, ransac_inliers_source_m: Array, config: RegistrationConfig,
 ) -> PhotometricOutcome:
     """The weak directions from the texture (:meth:`FppPairRegistrar.refine_plane_photometric`),
-    kept when they move the keypoint inliers by at most ``ransac_threshold_m``."""
+    kept when they move the keypoint inliers by at most RANSAC's inlier distance."""
     meta: dict[str, Any] = {}
     information = np.zeros((6, 6))
     T = pose.T_target_source
@@ -190,7 +190,7 @@ def photometric_stage(
     if T_photo is not None:
         shift_photo = _max_motion_m(T_photo, T, ransac_inliers_source_m)
         meta["photometric_shift_m"] = shift_photo
-        if shift_photo > config.ransac_threshold_m:
+        if shift_photo > config.lengths.ransac_inlier_m:
             why_not = f"moved the keypoint inliers by {1e3 * shift_photo:.2f} mm"
         else:
             meta["T_before_photometric"] = T
@@ -227,9 +227,10 @@ class WeakGeometryCheck:
 
 def check_weak_geometry(
     target: Frame, source: Frame, pose: PoseEstimate, support_points_m: Array, is_loop: bool, T_guess: NDArray | None,
+    config: RegistrationConfig,
 ) -> WeakGeometryCheck:
     """Weak joint geometry (one plane, an object on a table) is acceptable only if the keypoints pin
-    those directions (``max_weak_sigma_m``) and, for a revisit proposed by appearance alone, only
+    those directions (``gates.max_weak_sigma_sigmas``) and, for a revisit proposed by appearance alone, only
     if the textures agree over the whole overlap: look-alike places (repeated posters) fool
     keypoints, whose inliers all sit on the repeated object while the surroundings differ
     (simulated corridor: true revisits 0.989-1.000 of the blocks, look-alike posters 0.37-0.81)."""
@@ -246,7 +247,7 @@ def check_weak_geometry(
     meta["weak_direction_sigma_m"] = weak_sigma_m
     agreement = None
     if is_loop and T_guess is None:
-        agreement = texture_agreement(target, source, pose.T_target_source)
+        agreement = texture_agreement(target, source, pose.T_target_source, max_distance_m=config.lengths.texture_distance_m)
         meta.update({"texture_agreement": agreement.fraction, "texture_agreement_blocks": agreement.blocks, "texture_agreement_overlap": agreement.overlap})
     elif is_loop:
         meta["weak_loop_guess_deviation_m"] = float(np.linalg.norm(pose.T_target_source[:3, 3] - np.asarray(T_guess, dtype=np.float64)[:3, 3]))

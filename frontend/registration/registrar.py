@@ -7,10 +7,10 @@ import weakref
 import numpy as np
 from numpy.typing import NDArray
 
-from fpp_graph.config import RegistrationConfig
 from fpp_graph.errors import FppError
 from fpp_graph.geometry import invert
 from fpp_graph.types import Constraint, ConstraintKind, Frame
+from frontend.config import RegistrationConfig
 from frontend.dense_alignment import DenseAlignment, OrganisedSurface, align_dense
 from frontend.features.detect import Detector, detect_and_describe, feature_signature, make_detector
 from frontend.registration.gates import Checkpoint, rejection
@@ -48,7 +48,7 @@ class FppPairRegistrar:
         RANSAC sampling seed (results are reproducible).
     texture_camera : TextureCamera, optional
         The rig's camera and projector centre; enables the photometric refinement of plane-like
-        pairs (``photometric_plane_refinement``).
+        pairs (``photometric.enabled``).
     """
 
     def __init__(self, config: RegistrationConfig | None = None, seed: int = 0, texture_camera: TextureCamera | None = None):
@@ -81,8 +81,8 @@ class FppPairRegistrar:
         return described
 
     def icp_cloud(self, frame: Frame, voxel_m: float | None = None) -> IcpCloud:
-        """The frame's voxel-downsampled ICP cloud (cached per voxel size; default ``icp_voxel_m``)."""
-        voxel = float(self.config.icp_voxel_m if voxel_m is None else voxel_m)
+        """The frame's voxel-downsampled ICP cloud (cached per voxel size; default ``noise.voxel_m``)."""
+        voxel = float(self.config.lengths.icp_voxel_m if voxel_m is None else voxel_m)
         per_frame = self._clouds.setdefault(frame, {})
         cached = per_frame.get(voxel)
         if cached is None:
@@ -112,18 +112,19 @@ class FppPairRegistrar:
         -------
         (DenseAlignment or None, why it was not used)
         """
-        cfg = self.config
-        if not cfg.dense_refinement or target.xyz_map is None or source.xyz_map is None:
+        cfg, dense_cfg = self.config, self.config.dense
+        if not dense_cfg.enabled or target.xyz_map is None or source.xyz_map is None:
             return None, "off"
-        prior = cfg.keypoint_information_scale * np.asarray(information_keypoints, dtype=np.float64)
+        prior = cfg.keypoints.information_scale * np.asarray(information_keypoints, dtype=np.float64)
         if weak is not None and len(weak.directions):
-            prior = prior + weak_direction_pin(weak, source_points, strength=1e6 * max(float(np.trace(prior)), 1.0))
+            strength = cfg.weak_directions.hold_ratio * max(float(np.trace(prior)), 1.0)
+            prior = prior + weak_direction_pin(weak, source_points, strength=strength)
         try:
             dense = align_dense(
                 self.dense_surface(target), self.dense_surface(source), T_target_source, prior_information=prior,
-                coarse_stride_px=cfg.dense_coarse_stride_px, fine_stride_px=cfg.dense_stride_px,
-                max_iterations=cfg.dense_coarse_iterations, fine_iterations=cfg.dense_fine_iterations, max_points=cfg.dense_max_points,
-                max_distance_m=cfg.icp_max_correspondence_m,
+                coarse_stride_px=dense_cfg.coarse_stride_px, fine_stride_px=dense_cfg.stride_px,
+                max_iterations=dense_cfg.coarse_iterations, fine_iterations=dense_cfg.fine_iterations, max_points=dense_cfg.max_points,
+                max_distance_m=cfg.lengths.icp_max_correspondence_m,
             )
         except FppError as exc:
             return None, str(exc)
@@ -149,20 +150,20 @@ class FppPairRegistrar:
         """
         cfg = self.config
         cam = self.texture_camera
-        if not cfg.photometric_plane_refinement or cam is None:
-            return None, None, "off" if not cfg.photometric_plane_refinement else "no texture camera"
+        if not cfg.photometric.enabled or cam is None:
+            return None, None, "off" if not cfg.photometric.enabled else "no texture camera"
         if target.texture is None or source.texture is None or target.xyz_map is None or source.xyz_map is None:
             return None, None, "no texture or xyz map"
         from frontend.localization import DenseReference, localize_photometric
 
         # holds: the complement of the weak directions, far above the texture's information
-        strength = 1e6 * max(float(np.trace(information_geometry)), 1.0)
+        strength = cfg.weak_directions.hold_ratio * max(float(np.trace(information_geometry)), 1.0)
         prior = weak_direction_pin(weak, source_points, strength, complement=True)
         try:
             result = localize_photometric(
                 [DenseReference(target.xyz_map, target.texture, np.eye(4))], source.texture, invert(np.asarray(T_target_source, dtype=np.float64)),
                 cam.K, cam.dist, projector_centre_m=cam.projector_centre_m, valid_query=np.isfinite(source.xyz_map[..., 2]),
-                max_pixels=cfg.photometric_max_pixels, prior_information=prior,
+                max_pixels=cfg.photometric.max_pixels, prior_information=prior,
             )
         except FppError as exc:
             return None, None, str(exc)
@@ -173,7 +174,7 @@ class FppPairRegistrar:
         # (a wall's shift trades against its tilt), and only the joint matrix with the geometry's
         # tilt information carries that into the in-plane covariance (the weak directions' part
         # alone put the corridor NEES mean at 55 for 9.6 with the whole matrix, scale 0.01).
-        return invert(result.T_camera_world), cfg.photometric_information_scale * result.information, ""
+        return invert(result.T_camera_world), cfg.photometric.information_scale * result.information, ""
 
     # -- the pair ------------------------------------------------------------------------------
     @property
@@ -182,7 +183,7 @@ class FppPairRegistrar:
         photometric and dense refinements are on): ICP then keeps its coarse pose on planes, the
         plane rule always applies, and the dense fit holds the plane's directions."""
         cfg = self.config
-        return self.texture_camera is not None and cfg.photometric_plane_refinement and cfg.dense_refinement
+        return self.texture_camera is not None and cfg.photometric.enabled and cfg.dense.enabled
 
     def register(
         self,
@@ -221,12 +222,12 @@ class FppPairRegistrar:
         if rejected := rejection(Checkpoint.MATCHES, s, cfg):
             return rejected
         started = s.timer.start()  # the "ransac" time includes the lift
-        s.lifted = lift_matches(target, source, s.matches)
+        s.lifted = lift_matches(target, source, s.matches, cfg)
         if rejected := rejection(Checkpoint.LIFTED, s, cfg):
             return rejected
         s.ransac = self._ransac(s)
         s.timer.stop("ransac", started)
-        s.meta.update(ransac_metadata(s.matches, s.lifted, s.ransac, cfg.feature))
+        s.meta.update(ransac_metadata(s.matches, s.lifted, s.ransac, cfg.features.type))
         if rejected := rejection(Checkpoint.RANSAC, s, cfg):
             return rejected
         s.icp = run_icp(target, source, s.ransac.T_target_source, cfg, self.icp_cloud, self.texture_sets_planes, s.timer)
@@ -243,7 +244,7 @@ class FppPairRegistrar:
         s.meta.update(information.metadata)
         s.timer.stop("information", started)
         self._refine(s)  # dense, then photometric
-        s.check = check_weak_geometry(target, source, s.pose, s.weak.icp.source_points, ConstraintKind(kind) is ConstraintKind.LOOP, T_guess)
+        s.check = check_weak_geometry(target, source, s.pose, s.weak.icp.source_points, ConstraintKind(kind) is ConstraintKind.LOOP, T_guess, cfg)
         s.meta.update(s.check.metadata)
         return rejection(Checkpoint.FINAL, s, cfg) or self._accept(s)
 
@@ -252,7 +253,7 @@ class FppPairRegistrar:
         cfg, lifted = self.config, s.lifted
         rng = np.random.default_rng([self.seed, s.source.id & 0xFFFFFFFF, s.target.id & 0xFFFFFFFF])
         extra = [np.asarray(s.T_guess, dtype=np.float64)] if s.T_guess is not None else None
-        return ransac_rigid(lifted.points_target_m, lifted.points_source_m, cfg.ransac_threshold_m, cfg.ransac_iterations, cfg.ransac_confidence, rng, extra)
+        return ransac_rigid(lifted.points_target_m, lifted.points_source_m, cfg.lengths.ransac_inlier_m, cfg.ransac.max_iterations, cfg.ransac.confidence, rng, extra)
 
     def _refine(self, s: PairState) -> None:
         """The dense stage, then (when the texture sets a plane's directions) the photometric step."""
@@ -282,7 +283,7 @@ class FppPairRegistrar:
             # are worth fewer than n independent points. Calibrated by NEES on simulated pairs:
             # the corridor median fell from 64 to 10 at 0.1 with the turntable unchanged (4.6:
             # there ICP's information dominates every direction).
-            information=s.pose.information_geometry + self.config.keypoint_information_scale * s.pose.information_keypoints + photometric,
+            information=s.pose.information_geometry + self.config.keypoints.information_scale * s.pose.information_keypoints + photometric,
             kind=s.kind,
             metadata=s.meta,
             **s.quality,

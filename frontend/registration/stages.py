@@ -22,10 +22,10 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 
-from fpp_graph.config import RegistrationConfig
 from fpp_graph.errors import FppError
 from fpp_graph.geometry import se3_exp
 from fpp_graph.types import Frame
+from frontend.config import RegistrationConfig, chi2_quantile
 from frontend.features.detect import match_descriptors
 from frontend.registration.icp import IcpCloud, IcpResult, information_from_icp, refine_icp
 from frontend.registration.keypoints import (
@@ -36,8 +36,6 @@ from frontend.registration.keypoints import (
     lift_keypoints,
 )
 from frontend.registration.weak_directions import (
-    _CHI2_3DOF_9999,
-    _CHI2_6DOF_999,
     Degeneracy,
     check_degeneracy,
     disagreement_along,
@@ -51,10 +49,6 @@ if TYPE_CHECKING:
     from frontend.registration.state import StageTimer
 
 Array = NDArray[np.float64]
-
-MIN_ICP_VOXELS = 30
-"""Fewer voxels in either cloud than this and ICP is not attempted."""
-
 
 # ---------------------------------------------------------------------------------------------
 # 1-2: features, matching, lifting
@@ -101,7 +95,7 @@ def match_keypoints(
         described_target, described_source = describe(target), describe(source)
         timer.stop("features", started)
         started = timer.start()
-        matches = match_descriptors(described_target.descriptors, described_source.descriptors, config.ratio_test, config.mutual_check)
+        matches = match_descriptors(described_target.descriptors, described_source.descriptors, config.keypoints.ratio_test, config.keypoints.mutual_check)
         timer.stop("match", started)
     except FppError as exc:
         return KeypointMatches(np.zeros((0, 2), np.int64), empty, empty, error=str(exc))
@@ -130,11 +124,12 @@ class LiftedMatches:
         return int(self.points_target_m.shape[0])
 
 
-def lift_matches(target: Frame, source: Frame, matched: KeypointMatches) -> LiftedMatches:
-    """:func:`~frontend.registration.keypoints.lift_keypoints` on both sides; rows valid in both kept."""
-    m = matched.matches
-    P_target, valid_target = lift_keypoints(target.xyz_map, matched.keypoints_uv_target[m[:, 0]])
-    P_source, valid_source = lift_keypoints(source.xyz_map, matched.keypoints_uv_source[m[:, 1]])
+def lift_matches(target: Frame, source: Frame, matched: KeypointMatches, config: RegistrationConfig) -> LiftedMatches:
+    """:func:`~frontend.registration.keypoints.lift_keypoints` on both sides (depth edges from the
+    noise model: ``keypoints.edge_sigmas``); rows valid in both kept."""
+    m, edge_m = matched.matches, config.lengths.keypoint_edge_step_m
+    P_target, valid_target = lift_keypoints(target.xyz_map, matched.keypoints_uv_target[m[:, 0]], edge_m)
+    P_source, valid_source = lift_keypoints(source.xyz_map, matched.keypoints_uv_source[m[:, 1]], edge_m)
     ok = valid_target & valid_source
     return LiftedMatches(P_target[ok], P_source[ok], m[ok])
 
@@ -170,7 +165,7 @@ class IcpOutcome:
     coarse_plane_like : bool
         The coarse voxels read as a plane, so ICP was redone on the fine ones.
     too_few_voxels : (target voxels, source voxels, voxel_m) or None
-        Clouds below :data:`MIN_ICP_VOXELS`.
+        Clouds below ``icp.min_voxels``.
     information_raw : (6, 6) or None
         :func:`~frontend.registration.icp.information_from_icp` at ICP's pose (None: diverged).
     degeneracy : Degeneracy or None
@@ -208,7 +203,7 @@ def run_icp(
     texture_sets_planes: bool,
     timer: StageTimer,
 ) -> IcpOutcome:
-    """ICP from ``T_ransac``, on ``dense_icp_voxel_m`` voxels when the dense refinement follows.
+    """ICP from ``T_ransac``, on ``icp.coarse_voxels`` voxels when the dense refinement follows.
 
     With the dense refinement on, ICP only has to reach its basin and tell relief from a plane:
     coarser voxels do that (turntable pairs: same final error, ICP stages 2.4x faster). A plane
@@ -216,9 +211,9 @@ def run_icp(
     the fine voxels, unless the texture sets the plane's directions (``texture_sets_planes``):
     then the dense fit gives the tilts and the texture the rest.
     """
-    cfg = config
-    dense_follows = cfg.dense_refinement and cfg.dense_icp_voxel_m > cfg.icp_voxel_m
-    voxels = [cfg.dense_icp_voxel_m, cfg.icp_voxel_m] if dense_follows else [cfg.icp_voxel_m]
+    cfg, lengths = config, config.lengths
+    dense_follows = cfg.dense.enabled and lengths.icp_coarse_voxel_m > lengths.icp_voxel_m
+    voxels = [lengths.icp_coarse_voxel_m, lengths.icp_voxel_m] if dense_follows else [lengths.icp_voxel_m]
     timer.zero("icp_prepare", "icp")
     ran_voxel_m: float | None = None
     coarse_plane_like = False
@@ -229,17 +224,17 @@ def run_icp(
         # KD-trees, normals, covariances of the ICP subsets (lazy, kept for the frame's next pairs)
         _ = (tcloud.target, scloud.source)
         timer.stop("icp_prepare", started, accumulate=True)
-        if min(tcloud.size, scloud.size) < MIN_ICP_VOXELS:
+        if min(tcloud.size, scloud.size) < cfg.icp.min_voxels:
             return IcpOutcome(None, tcloud, scloud, ran_voxel_m, coarse_plane_like, (tcloud.size, scloud.size, voxel))
         started = timer.start()
-        icp = refine_icp(tcloud, scloud, T_ransac, cfg.icp_method, cfg.icp_max_correspondence_m, cfg.icp_max_iterations)
+        icp = refine_icp(tcloud, scloud, T_ransac, cfg.icp.method, lengths.icp_max_correspondence_m, cfg.icp.max_iterations)
         timer.stop("icp", started, accumulate=True)
         ran_voxel_m = voxel
         if not np.all(np.isfinite(icp.T_target_source)):
             return IcpOutcome(icp, tcloud, scloud, voxel, coarse_plane_like)  # rejected by the gates
-        info_raw = information_from_icp(icp, scale=cfg.information_scale)
-        degeneracy = check_degeneracy(info_raw, icp.source_points, cfg.degeneracy_ratio)
-        if voxel == cfg.icp_voxel_m or len(degeneracy.unconstrained) < 3 or texture_sets_planes:
+        info_raw = information_from_icp(icp, scale=lengths.icp_information_scale)
+        degeneracy = check_degeneracy(info_raw, icp.source_points, cfg.weak_directions.degeneracy_ratio)
+        if voxel == lengths.icp_voxel_m or len(degeneracy.unconstrained) < 3 or texture_sets_planes:
             break
         coarse_plane_like = True
     return IcpOutcome(icp, tcloud, scloud, ran_voxel_m, coarse_plane_like, None, info_raw, degeneracy)
@@ -274,7 +269,7 @@ class WeakDirectionOutcome:
     keypoint_residuals_m : (n,)
         ``|P_target - T P_source|`` of every lifted match.
     keypoint_inliers : int
-        Residuals below ``ransac_threshold_m``.
+        Residuals below RANSAC's inlier distance.
     shift_m : float
         Largest move of RANSAC's keypoint inliers from RANSAC's pose: a large move means ICP
         left RANSAC's basin.
@@ -306,15 +301,15 @@ def _weak_candidate(
     """The directions to take from the keypoints (see :func:`handle_weak_directions`), if any."""
     cfg, fit, deg_icp = config, icp.icp, icp.degeneracy
     meta: dict[str, Any] = {}
-    if cfg.plane_from_keypoints and len(deg_icp.unconstrained) >= 2:
+    if cfg.weak_directions.plane_from_keypoints and len(deg_icp.unconstrained) >= 2:
         Ps_in = lifted.points_source_m[ransac.inliers]
         plane = plane_directions(icp.information_raw, fit.source_points)
         meta["plane_spin_ratio"] = float(plane.eigenvalue_ratios[2])
-        info_keypoints = cfg.keypoint_information_scale * information_from_keypoints(ransac.T_target_source, Ps_in, np.full(Ps_in.shape[0], ransac.inlier_rmse_m))
+        info_keypoints = cfg.keypoints.information_scale * information_from_keypoints(ransac.T_target_source, Ps_in, np.full(Ps_in.shape[0], ransac.inlier_rmse_m))
         m2 = disagreement_along(fit.T_target_source, ransac.T_target_source, info_keypoints, plane, fit.source_points)
         meta["plane_keypoint_mahalanobis2"] = m2
         # (with the rig's texture camera the texture sets the plane's directions later: always)
-        if m2 > _CHI2_3DOF_9999 or lost_keypoints or texture_sets_planes:
+        if m2 > chi2_quantile(cfg.weak_directions.plane_disagreement_probability, 3) or lost_keypoints or texture_sets_planes:
             return plane, WeakRule.PLANE, meta
     if lost_keypoints and deg_icp.degenerate:
         return deg_icp, WeakRule.FLAT_FROM_RANSAC, meta
@@ -331,7 +326,7 @@ def handle_weak_directions(
 
     - plane-like pairs (two or more weak ICP directions: a wall, an object on a big table) whose
       ICP pose disagrees with the keypoints in the plane (chi-square, 3 dof, 0.9999, under the
-      keypoints' covariance given ICP's other directions): the in-plane shifts and the spin
+      keypoints' covariance given ICP's other directions; ``weak_directions.plane_disagreement_probability``): the in-plane shifts and the spin
       about the normal go to the keypoints' optimum given ICP's normal shift and tilts. On
       simulated corridor walls GICP slid 1.5-4 mm in-plane on most pairs (faint relief, the
       decoder's texture-correlated ripple) while the keypoints were within 0.1-0.5 mm; over 104
@@ -343,13 +338,13 @@ def handle_weak_directions(
 
     The new pose is kept only if it stays in RANSAC's basin with enough keypoint inliers.
     """
-    cfg, fit = config, icp.icp
+    cfg, lengths, fit = config, config.lengths, icp.icp
     T = fit.T_target_source
-    shift_m, residuals, agree = _keypoint_fit(T, lifted, ransac, cfg.ransac_threshold_m)
+    shift_m, residuals, agree = _keypoint_fit(T, lifted, ransac, lengths.ransac_inlier_m)
     kp_inliers = int(np.sum(agree))
     meta: dict[str, Any] = {"icp_shift_m": shift_m, "keypoint_inliers_after_icp": kp_inliers, "matches_used": lifted.matches[agree]}
     meta["icp_eigenvalue_ratios"] = icp.degeneracy.eigenvalue_ratios
-    lost_keypoints = shift_m > cfg.max_icp_shift_m or kp_inliers < cfg.min_inliers
+    lost_keypoints = shift_m > lengths.max_icp_shift_m or kp_inliers < cfg.gates.min_inliers
     weak, rule, candidate_meta = _weak_candidate(lifted, ransac, icp, lost_keypoints, cfg, texture_sets_planes)
     meta.update(candidate_meta)
     if weak is not None:
@@ -361,9 +356,9 @@ def handle_weak_directions(
             info_rest = without_weak_directions(icp.information_raw, weak, fit.source_points)
             step = joint_keypoint_step(T, info_rest, lifted.points_source_m[ransac.inliers], lifted.points_target_m[ransac.inliers], iterations=5)
             T_new = T @ se3_exp(step)
-        shift_new_m, residuals_new, agree_new = _keypoint_fit(T_new, lifted, ransac, cfg.ransac_threshold_m)
-        if shift_new_m <= cfg.max_icp_shift_m and int(np.sum(agree_new)) >= cfg.min_inliers:
-            remeasured = refine_icp(icp.target_cloud, icp.source_cloud, T_new, "none", cfg.icp_max_correspondence_m, 0)
+        shift_new_m, residuals_new, agree_new = _keypoint_fit(T_new, lifted, ransac, lengths.ransac_inlier_m)
+        if shift_new_m <= lengths.max_icp_shift_m and int(np.sum(agree_new)) >= cfg.gates.min_inliers:
+            remeasured = refine_icp(icp.target_cloud, icp.source_cloud, T_new, "none", lengths.icp_max_correspondence_m, 0)
             kp_inliers_new = int(np.sum(agree_new))
             meta.update({"icp_shift_m": shift_new_m, "weak_directions_from_keypoints": weak.unconstrained, "icp_drift_m": shift_m})
             meta.update({"keypoint_inliers_after_icp": kp_inliers_new, "matches_used": lifted.matches[agree_new]})
@@ -444,17 +439,17 @@ def joint_information(lifted: LiftedMatches, icp: IcpOutcome, weak: WeakDirectio
     drift along them (0.45 mm on a flat-wall test pair whose RANSAC pose was within 0.01 mm, more
     on thinned clouds) while the information claims the keypoints pin them. When ICP's pose is
     inconsistent with the joint optimum of ICP's and the keypoints' costs (chi-square, 6 dof,
-    0.999), move there and take the information there; otherwise keep ICP's pose, which on
+    0.999: ``weak_directions.joint_optimum_probability``), move there and take the information there; otherwise keep ICP's pose, which on
     relief is the more precise (over 36 synthetic pairs moving always doubled the median
     translation error).
     """
-    cfg = config
+    cfg, lengths = config, config.lengths
     # ICP's information at the final pose: the one computed by ICP unless the pose moved
     info_icp = icp.information_raw
     if weak.directions is not None:
-        info_icp = without_weak_directions(information_from_icp(weak.icp, scale=cfg.information_scale), weak.directions, weak.icp.source_points)
-    inliers = keypoint_inliers(weak.keypoint_residuals_m, cfg.ransac_threshold_m)
-    term = KeypointTerm(lifted.points_target_m, lifted.points_source_m, inliers, weak.icp.source_points, cfg.degeneracy_ratio)
+        info_icp = without_weak_directions(information_from_icp(weak.icp, scale=lengths.icp_information_scale), weak.directions, weak.icp.source_points)
+    inliers = keypoint_inliers(weak.keypoint_residuals_m, lengths.ransac_inlier_m)
+    term = KeypointTerm(lifted.points_target_m, lifted.points_source_m, inliers, weak.icp.source_points, cfg.weak_directions.degeneracy_ratio)
     T = weak.T_target_source
     pose = term.at(T, info_icp)
     meta: dict[str, Any] = {}
@@ -463,7 +458,7 @@ def joint_information(lifted: LiftedMatches, icp: IcpOutcome, weak: WeakDirectio
         m2 = float(step @ pose.information @ step)
         meta["joint_keypoint_step"] = step
         meta["joint_keypoint_step_mahalanobis2"] = m2
-        if m2 > _CHI2_6DOF_999:
+        if m2 > chi2_quantile(cfg.weak_directions.joint_optimum_probability, 6):
             meta["moved_to_joint_optimum"] = True
             pose = term.at(T @ se3_exp(step), info_icp)
     return InformationOutcome(pose, term, meta)

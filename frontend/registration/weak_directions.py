@@ -21,10 +21,6 @@ from frontend.registration.keypoints import information_from_keypoints, keypoint
 Array = NDArray[np.float64]
 
 
-_CHI2_6DOF_999 = 22.458  # chi-square quantile, 6 degrees of freedom, probability 0.999
-_CHI2_3DOF_9999 = 21.108  # ... 3 degrees of freedom, probability 0.9999
-
-
 def joint_keypoint_step(
     T_target_source: NDArray, information_icp: NDArray, source_points: NDArray, target_points: NDArray, iterations: int = 3
 ) -> Array:

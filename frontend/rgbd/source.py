@@ -2,9 +2,9 @@
 
 It shows the back-end working under a non-FPP sensor: depth images become organised xyz maps,
 the colour image becomes the texture, and the same 2D-keypoint + RANSAC + ICP registration of
-:mod:`frontend.registration` produces the constraints. Depth cameras are noisier than FPP by two
-orders of magnitude, so registration thresholds below centimetre floors are raised (see
-:data:`RGBD_REGISTRATION_FLOORS`).
+:mod:`frontend.registration` produces the constraints. Depth cameras are noisier than FPP by an
+order of magnitude and more: the registration reads the Kinect's noise model
+(:data:`KINECT_V1_NOISE`), and its thresholds, multiples of that noise, follow.
 
 Layouts
 -------
@@ -30,12 +30,11 @@ pixels are lifted along the undistorted rays of that model.
 
 Configuration
 -------------
-Defaults of the project are sized for millimetre FPP scenes; an RGB-D scene is metres wide and
-its depth noise is centimetres. :meth:`RgbdSource.resolve_config` raises registration thresholds
-to :data:`RGBD_REGISTRATION_FLOORS`, fusion voxels to :data:`RGBD_FUSION_FLOORS` (a 1 mm TSDF over
-a 3 m room is ~10^10 voxels) and scales the registration information by
-:data:`RGBD_INFORMATION_SCALE`. The pipeline runs on the resolved config and writes it to the
-results folder.
+The registration's length thresholds are multiples of ``registration.noise``
+(:mod:`frontend.config`); :meth:`RgbdSource.resolve_config` fills the noise values a config leaves
+null with :data:`KINECT_V1_NOISE` (a user's own noise values win) and raises the fusion voxels to
+:data:`RGBD_FUSION_FLOORS` (a scene-scale matter, not noise: a 1 mm TSDF over a 3 m room is ~10^10
+voxels). The pipeline runs on the resolved config and writes it to the results folder.
 """
 
 from __future__ import annotations
@@ -49,34 +48,34 @@ from typing import Any
 import cv2
 import numpy as np
 
-from fpp_graph.config import Config, RegistrationConfig
+from fpp_graph.config import Config
 from fpp_graph.errors import InputDataError
 from fpp_graph.trajectory import Trajectory, read_tum
 from fpp_graph.types import Frame
+from frontend.config import SensorNoise
 
 log = logging.getLogger(__name__)
 
-RGBD_REGISTRATION_FLOORS = {
-    "ransac_threshold_m": 0.03,
-    "icp_voxel_m": 0.01,
-    "icp_max_correspondence_m": 0.05,
-    "max_inlier_rmse_m": 0.03,
-    "max_icp_shift_m": 0.05,
-    "max_weak_sigma_m": 0.02,
-}
+KINECT_V1_NOISE = SensorNoise(point_sigma_m=0.0075, voxel_m=0.01, information_correlation=3e-4)
+"""The Kinect v1 depth camera's noise model (see ``registration.noise``).
+
+- ``point_sigma_m``: its random depth error is ~1.4e-3 z^2 m (Khoshelham and Elberink, Sensors
+  2012), 7.5 mm at z = 2.3 m, the far half of an indoor scene; a keypoint's pixel error adds
+  ~3.5 mm per pixel at 2 m, inside that.
+- ``voxel_m``: 1 cm holds ~3 x 3 depth pixels at 2 m, above the noise, so a voxel's normal is the
+  surface's; finer voxels give ICP the speckle's noise as normals.
+- ``information_correlation``: ICP's information assumes independent residuals; Kinect depth errors
+  are correlated over the image (quantisation steps, structured-light speckle, low-frequency depth
+  distortion), so its raw information is ~10^3-10^4 times too confident and the robust back-end
+  rejected every true loop as inconsistent with odometry. The keypoint part of the information is
+  not scaled and stays somewhat overconfident: scripts/rgbd_nees.py on 8 pairs of the 7-Scenes
+  chess frames gives mean NEES / 6 of 3.6 at 1e-3 and 5.7 at 3e-4.
+"""
 RGBD_FUSION_FLOORS = {
     "voxel_size_m": 0.01,
     "tsdf_voxel_m": 0.01,
     "tsdf_truncation_m": 0.04,
 }
-# ICP's information assumes independent residuals; Kinect depth errors are correlated over the
-# image (quantisation steps, structured-light speckle, low-frequency depth distortion), so its
-# raw information is ~10^3-10^4 times too confident and the robust back-end rejected every true
-# loop as inconsistent with odometry. The keypoint part of the information is not scaled and
-# stays somewhat overconfident: scripts/rgbd_nees.py on 8 pairs of the 7-Scenes chess frames
-# gives mean NEES / 6 of 3.6 at 1e-3 and 5.7 at 3e-4 (with GNC the 50-frame run then keeps
-# 304 of 332 loop candidates).
-RGBD_INFORMATION_SCALE = 3e-4
 # Kinect v1 colour camera (the ROS/OpenNI defaults) and its offset from the depth camera: the
 # colour camera sits ~2.5 cm along +x of the depth (IR) camera.
 KINECT_V1_COLOR_K = np.array([[525.0, 0.0, 319.5], [0.0, 525.0, 239.5], [0.0, 0.0, 1.0]])
@@ -330,27 +329,21 @@ class RgbdSource:
             metadata={"K": self.K.tolist(), "sensor": "rgbd",
                       **({"distortion": self.distortion.tolist()} if self.distortion is not None else {})},
         )
-        return detect_and_describe(frame, self.registration_config())
+        return detect_and_describe(frame, self.config.registration)
 
     @staticmethod
     def resolve_config(config: Config) -> Config:
-        """``config`` with the RGB-D floors on registration thresholds and fusion voxels
-        (idempotent). The registrar also multiplies ``information_scale`` by
-        :data:`RGBD_INFORMATION_SCALE` (:meth:`registration_config`)."""
-        reg = config.registration
-        reg = reg.model_copy(update={k: max(getattr(reg, k), v) for k, v in RGBD_REGISTRATION_FLOORS.items()})
+        """``config`` with the Kinect's noise model where ``registration.noise`` is left null and
+        the RGB-D floors on fusion voxels (idempotent)."""
+        reg = config.registration.with_noise(KINECT_V1_NOISE)
         fus = config.fusion
         fus = fus.model_copy(update={k: max(getattr(fus, k), v) for k, v in RGBD_FUSION_FLOORS.items()})
         return config.model_copy(update={"registration": reg, "fusion": fus})
 
-    def registration_config(self) -> RegistrationConfig:
-        cfg = self.config.registration
-        return cfg.model_copy(update={"information_scale": cfg.information_scale * RGBD_INFORMATION_SCALE})
-
     def make_registrar(self):
         from frontend.registration import FppPairRegistrar
 
-        return FppPairRegistrar(self.registration_config())
+        return FppPairRegistrar(self.config.registration)
 
     def ground_truth(self) -> Trajectory | None:
         if any(e.T_world_sensor is None for e in self.entries):

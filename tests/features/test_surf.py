@@ -6,9 +6,9 @@ import cv2
 import numpy as np
 import pytest
 
-from fpp_graph.config import RegistrationConfig
 from fpp_graph.errors import InputDataError
 from fpp_graph.types import Frame
+from frontend.config import RegistrationConfig
 from frontend.features.detect import detect_and_describe, make_detector, match_descriptors
 from frontend.features.surf import (
     SurfParams,
@@ -87,7 +87,7 @@ def test_surf_rejects_bad_images():
 @pytest.mark.parametrize("feature", ["surf", "sift", "orb", "akaze"])
 def test_detector_factory(feature):
     img = _texture(4)
-    cfg = RegistrationConfig(feature=feature, max_features=300)
+    cfg = RegistrationConfig(features={"type": feature, "max_features": 300})
     uv, desc = make_detector(cfg)(img)
     assert uv.shape[0] == desc.shape[0] > 20
     assert uv.shape[0] <= 300 or feature == "akaze"

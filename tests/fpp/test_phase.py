@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 from conftest import run_in_threads, shared_data_path
 
-from fpp_graph.config import DecodeConfig
 from fpp_graph.errors import ConfigError, InputDataError
+from frontend.config import DecodeConfig
 from frontend.fpp.images import load_image_stack
 from frontend.fpp.patterns import PatternSpec
 from frontend.fpp.phase import Decoder, compute_wrapped_phase, decode

@@ -6,9 +6,9 @@ import cv2
 import numpy as np
 import pytest
 
-from fpp_graph.config import RegistrationConfig
 from fpp_graph.errors import InputDataError
 from fpp_graph.geometry import invert, se3_exp
+from frontend.config import RegistrationConfig
 from frontend.localization import (
     DenseReference,
     decompose_projection,

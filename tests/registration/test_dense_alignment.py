@@ -8,9 +8,9 @@ import cv2
 import numpy as np
 import pytest
 
-from fpp_graph.config import RegistrationConfig
 from fpp_graph.errors import InputDataError
 from fpp_graph.geometry import invert, pose_error, se3_exp
+from frontend.config import RegistrationConfig
 from frontend.dense_alignment import OrganisedSurface, align_dense
 from frontend.registration import FppPairRegistrar, plane_directions, weak_direction_pin
 from frontend.testing.synthetic_frames import bumpy_wall_scene, render_frame, wall_pose
@@ -120,13 +120,13 @@ def test_bad_input_is_an_fpp_error(wall):
 def test_registrar_refines_relief_and_leaves_a_plane_to_the_keypoints(wall):
     a, b, T_true = _pair(wall, 2e-4)
     # this wall's bumps are shallow: its third-weakest direction sits at 0.018 of the information,
-    # plane-like under the default degeneracy_ratio (0.02); the corridor's walls reach 0.016
-    c = FppPairRegistrar(RegistrationConfig(degeneracy_ratio=0.01)).register(a, b)
+    # plane-like under the default weak_directions.degeneracy_ratio (0.02); the corridor's walls reach 0.016
+    c = FppPairRegistrar(RegistrationConfig(weak_directions={"degeneracy_ratio": 0.01})).register(a, b)
     assert c.accepted, c.rejection_reason
     assert c.metadata.get("dense_iterations", 0) >= 2 and "dense_not_used" not in c.metadata
     rot, trans = pose_error(c.T_target_source, T_true)
     assert math.degrees(rot) < 0.01 and trans < 1e-4
-    c_off = FppPairRegistrar(RegistrationConfig(dense_refinement=False)).register(a, b)
+    c_off = FppPairRegistrar(RegistrationConfig(dense={"enabled": False})).register(a, b)
     assert "dense_iterations" not in c_off.metadata
     flat = bumpy_wall_scene(seed=5, flat=True)
     fa = render_frame(flat, wall_pose(0.0), W, H, frame_id=0)

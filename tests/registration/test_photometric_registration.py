@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from fpp_graph.config import RegistrationConfig
 from fpp_graph.geometry import invert, pose_error, se3_exp, se3_log
+from frontend.config import RegistrationConfig
 from frontend.localization import DenseReference, localize_photometric
 from frontend.registration import FppPairRegistrar, TextureCamera
 

@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from fpp_graph.config import RegistrationConfig
 from fpp_graph.errors import InputDataError
 from fpp_graph.geometry import invert, make_pose, pose_error, se3_exp, se3_log
 from fpp_graph.types import Frame, PairRegistrar
+from frontend.config import RegistrationConfig
 from frontend.registration import (
     FppPairRegistrar,
     IcpResult,
@@ -192,7 +192,7 @@ def test_no_overlap_is_rejected_with_reason(wall):
 
 def test_flat_wall_flags_weak_directions_and_rejects_when_keypoints_do_not_pin_them():
     # One plane leaves 2 shifts and 1 spin to the keypoints: flagged, accepted while the
-    # keypoints pin them (sigma <= max_weak_sigma_m), rejected with the directions otherwise.
+    # keypoints pin them (sigma <= gates.max_weak_sigma_sigmas x noise.point_sigma_m), rejected with the directions otherwise.
     scene = bumpy_wall_scene(seed=8, flat=True)
     a = render_frame(scene, wall_pose(0.0), W, H, frame_id=0)
     b = render_frame(scene, wall_pose(0.1), W, H, frame_id=1)
@@ -205,7 +205,7 @@ def test_flat_wall_flags_weak_directions_and_rejects_when_keypoints_do_not_pin_t
     assert np.linalg.norm(c.T_target_source[:3, 3] - T_true[:3, 3]) < 1e-4
     weak = " ".join(c.metadata["weak_directions_from_keypoints"])
     assert weak.count("translation") == 2 and weak.count("rotation") == 1
-    strict = RegistrationConfig(max_weak_sigma_m=1e-9)
+    strict = RegistrationConfig(gates={"max_weak_sigma_sigmas": 2e-6})
     c = FppPairRegistrar(strict).register(a, b)
     assert not c.accepted
     assert "degenerate" in c.rejection_reason and "translation" in c.rejection_reason

@@ -496,3 +496,14 @@ def test_tum_subset_uses_the_freiburg1_calibration_and_every_frame_has_ground_tr
     source = RgbdSource(shared_data_path("rgbd/tum_fr1_rpy_subset"), Config())
     assert source.K[0, 0] == TUM_CAMERAS["freiburg1"][0][0] and source.distortion is not None
     assert len(source.frame_ids()) == 100 and len(source.ground_truth()) == 100
+def test_config_dump_for_a_sequence_shows_its_sensors_noise(tum_sequence, capsys):
+    import yaml
+
+    from fpp_graph.cli import main
+    from frontend.rgbd.source import KINECT_V1_NOISE
+
+    assert main(["config", "dump"]) == 0
+    assert yaml.safe_load(capsys.readouterr().out)["registration"]["noise"]["point_sigma_m"] is None
+    assert main(["config", "dump", "--sequence", str(tum_sequence)]) == 0
+    noise = yaml.safe_load(capsys.readouterr().out)["registration"]["noise"]
+    assert noise["point_sigma_m"] == KINECT_V1_NOISE.point_sigma_m and noise["voxel_m"] == KINECT_V1_NOISE.voxel_m

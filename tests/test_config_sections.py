@@ -1,0 +1,153 @@
+"""Front-end config sections, the noise model the registration thresholds derive from, old keys."""
+
+from __future__ import annotations
+
+import warnings
+
+import pytest
+
+from fpp_graph import config as config_module
+from fpp_graph.config import (
+    Config,
+    StrictModel,
+    config_from_dict,
+    default_config_text,
+    load_config,
+    register_sections,
+)
+from fpp_graph.errors import ConfigError
+from frontend.config import (
+    FPP_NOISE,
+    LEGACY_KEYS,
+    DecodeConfig,
+    RegistrationConfig,
+    SensorNoise,
+    chi2_quantile,
+)
+from frontend.rgbd.source import KINECT_V1_NOISE, RgbdSource
+
+# the FPP thresholds before they were expressed from the noise model: the defaults must give them exactly
+OLD_FPP_LENGTHS = {
+    "ransac_inlier_m": 0.002,
+    "icp_voxel_m": 0.002,
+    "icp_coarse_voxel_m": 0.004,
+    "icp_max_correspondence_m": 0.004,
+    "max_inlier_rmse_m": 0.002,
+    "max_icp_shift_m": 0.003,
+    "max_weak_sigma_m": 0.002,
+    "icp_information_scale": 1.0,
+    "keypoint_edge_step_m": 0.005,  # lift_keypoints' depth-edge step
+    "texture_distance_m": 0.003,  # texture_agreement's surface distance
+}
+
+
+def test_front_end_sections_are_registered_and_typed():
+    cfg = Config()
+    assert isinstance(cfg.registration, RegistrationConfig)
+    assert isinstance(cfg.decode, DecodeConfig)
+    assert cfg.section_names()[:2] == ["decode", "registration"]
+    assert "registration:" in default_config_text() and "pose_graph:" in default_config_text()
+
+
+def test_default_thresholds_are_the_fpp_rigs():
+    lengths = RegistrationConfig().lengths
+    assert {k: getattr(lengths, k) for k in OLD_FPP_LENGTHS} == OLD_FPP_LENGTHS
+    assert RegistrationConfig().with_noise(FPP_NOISE).lengths == lengths
+
+
+def test_rgbd_differs_from_fpp_by_its_noise_model_only():
+    fpp, rgbd = Config().registration, RgbdSource.resolve_config(Config()).registration
+    assert rgbd.model_copy(update={"noise": fpp.noise}) == fpp
+    assert rgbd.sensor_noise() == KINECT_V1_NOISE
+    sigma = KINECT_V1_NOISE.point_sigma_m
+    lengths = rgbd.lengths
+    assert lengths.ransac_inlier_m == pytest.approx(4 * sigma)
+    assert lengths.max_inlier_rmse_m == pytest.approx(4 * sigma)
+    assert lengths.icp_voxel_m == KINECT_V1_NOISE.voxel_m
+    assert lengths.icp_max_correspondence_m == pytest.approx(4 * sigma + KINECT_V1_NOISE.voxel_m)
+    assert lengths.icp_information_scale == pytest.approx(KINECT_V1_NOISE.information_correlation)
+    # idempotent, and a user's own noise value wins over the source's
+    assert RgbdSource.resolve_config(RgbdSource.resolve_config(Config())) == RgbdSource.resolve_config(Config())
+    mine = config_from_dict({"registration": {"noise": {"point_sigma_m": 0.004}}})
+    resolved = RgbdSource.resolve_config(mine).registration
+    assert resolved.noise.point_sigma_m == 0.004 and resolved.noise.voxel_m == KINECT_V1_NOISE.voxel_m
+
+
+def test_chi_square_probabilities_give_the_former_constants():
+    cfg = RegistrationConfig().weak_directions
+    assert chi2_quantile(cfg.plane_disagreement_probability, 3) == pytest.approx(21.108, abs=1e-3)
+    assert chi2_quantile(cfg.joint_optimum_probability, 6) == pytest.approx(22.458, abs=1e-3)
+
+
+def test_old_flat_keys_still_work_with_a_warning_naming_the_new_key(tmp_path):
+    path = tmp_path / "old.yaml"
+    path.write_text("registration:\n  min_inliers: 20\n  ransac_threshold_m: 0.003\n  feature: orb\n  dense_refinement: false\n")
+    with pytest.warns(DeprecationWarning) as caught:
+        cfg = load_config(path)
+    text = " ".join(str(w.message) for w in caught)
+    assert "registration.gates.min_inliers" in text and "registration.ransac.inlier_sigmas" in text
+    assert "registration.features.type" in text and "registration.dense.enabled" in text
+    reg = cfg.registration
+    assert reg.gates.min_inliers == 20 and reg.features.type == "orb" and not reg.dense.enabled
+    assert reg.lengths.ransac_inlier_m == pytest.approx(0.003)
+
+
+def test_every_old_metre_key_keeps_its_length():
+    old = {"ransac_threshold_m": 0.0025, "icp_voxel_m": 0.003, "icp_max_correspondence_m": 0.007, "dense_icp_voxel_m": 0.006,
+           "max_inlier_rmse_m": 0.0021, "max_icp_shift_m": 0.0041, "max_weak_sigma_m": 0.0013}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecationWarning)
+        lengths = RegistrationConfig(**old).lengths
+    assert lengths.ransac_inlier_m == pytest.approx(0.0025)
+    assert lengths.icp_voxel_m == pytest.approx(0.003)
+    assert lengths.icp_max_correspondence_m == pytest.approx(0.007)
+    assert lengths.icp_coarse_voxel_m == pytest.approx(0.006)
+    assert lengths.max_inlier_rmse_m == pytest.approx(0.0021)
+    assert lengths.max_icp_shift_m == pytest.approx(0.0041)
+    assert lengths.max_weak_sigma_m == pytest.approx(0.0013)
+
+
+def test_every_old_key_names_an_existing_new_key():
+    for old, new in LEGACY_KEYS.items():
+        section, key = new.split(".")
+        assert key in RegistrationConfig.model_fields[section].annotation.model_fields, old
+
+
+def test_old_key_errors_name_the_new_key(tmp_path):
+    path = tmp_path / "bad.yaml"
+    path.write_text("registration:\n  min_inliers: 1\n")
+    with pytest.warns(DeprecationWarning), pytest.raises(ConfigError, match=r"registration\.gates\.min_inliers"):
+        load_config(path)
+    path.write_text("registration:\n  min_inliers: 20\n  gates:\n    min_inliers: 15\n")
+    with pytest.raises(ConfigError, match=r"registration\.min_inliers and registration\.gates\.min_inliers are both set"):
+        load_config(path)
+
+
+def test_old_import_path_of_the_section_models_warns():
+    with pytest.warns(DeprecationWarning, match="frontend.config"):
+        assert config_module.RegistrationConfig is RegistrationConfig
+    with pytest.raises(AttributeError):
+        _ = config_module.NoSuchConfig
+
+
+def test_a_third_party_section_is_validated_like_the_others():
+    class LidarConfig(StrictModel):
+        max_range_m: float = 30.0
+
+    register_sections({"lidar_test": LidarConfig})
+    try:
+        assert Config().lidar_test == LidarConfig()
+        assert config_from_dict({"lidar_test": {"max_range_m": 5.0}}).lidar_test.max_range_m == 5.0
+        with pytest.raises(ConfigError, match=r"lidar_test\.max_rang: unknown key; did you mean 'max_range_m'"):
+            config_from_dict({"lidar_test": {"max_rang": 5.0}})
+        with pytest.raises(ConfigError, match="registered twice"):
+            register_sections({"lidar_test": DecodeConfig})
+        with pytest.raises(ConfigError, match="belongs to fpp_graph"):
+            register_sections({"pose_graph": LidarConfig})
+    finally:
+        config_module._SECTIONS.pop("lidar_test")
+
+
+def test_sensor_noise_fills_only_unset_values():
+    reg = RegistrationConfig(noise={"voxel_m": 0.005}).with_noise(SensorNoise(0.001, 0.01, 0.5))
+    assert (reg.noise.point_sigma_m, reg.noise.voxel_m, reg.noise.information_correlation) == (0.001, 0.005, 0.5)
