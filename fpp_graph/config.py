@@ -331,6 +331,8 @@ def __getattr__(name: str) -> Any:
     model) by their old import path, with a DeprecationWarning naming the owning module."""
     import warnings
 
+    if name.startswith("__"):  # the import system probes e.g. __path__: no plug-in sections for that
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
     for model in plugin_sections().values():
         if model.__name__ == name:
             warnings.warn(

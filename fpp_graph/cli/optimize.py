@@ -25,14 +25,20 @@ def optimize_graph(
     import json
 
     from fpp_graph.backend.graph_run import graph_run_summary, optimize_g2o_file
-    from fpp_graph.config import load_config
+    from fpp_graph.config import PoseGraphConfig, RunConfig, load_config
 
-    cfg = load_config(config)
+    if config is None:
+        # the back-end's own sections only: a pose graph needs no sensor, so the front-ends'
+        # config sections (found through the frame-source entry points) are not loaded
+        pose_graph, run = PoseGraphConfig(), RunConfig()
+    else:
+        cfg = load_config(config)  # the whole file is still validated
+        pose_graph, run = cfg.pose_graph, cfg.run
     if as_json:  # keep stdout for the JSON object alone
         logging.basicConfig(level="WARNING", stream=sys.stderr, format="%(levelname)s %(name)s: %(message)s", force=True)
     else:
-        setup_logging(cfg.run.log_level)
-    pg_config = cfg.pose_graph.model_copy(update={**_choices(noise_model=noise_model, robust=robust), "certify": certify})
+        setup_logging(run.log_level)
+    pg_config = pose_graph.model_copy(update={**_choices(noise_model=noise_model, robust=robust), "certify": certify})
     run = optimize_g2o_file(graph_file, pg_config)
     if out is not None:
         from fpp_graph.backend.g2o import write_g2o

@@ -436,6 +436,26 @@ def test_cli_optimize_json(tmp_path, capsys):
     assert unchecked["certified"] is None and unchecked["suboptimality_bound"] is None
 
 
+def test_cli_optimize_loads_no_front_end(tmp_path):
+    """The back-end alone on a pose graph: no sensor's config sections, no front-end import (it
+    costs start-up time on every optimisation); with --config the whole file is still read."""
+    import subprocess
+    import sys
+
+    src = tmp_path / "in.g2o"
+    write_g2o(src, corridor_trajectory(laps=1, side_poses=(6, 3), rng=np.random.default_rng(1)).graph())
+    probe = ("import sys; from fpp_graph.cli.app import main; code = main(sys.argv[1:]); "
+             "print('FRONTEND' if 'frontend' in sys.modules else 'BACKEND-ONLY', code)")
+    result = subprocess.run([sys.executable, "-c", probe, "optimize", str(src), "--json"], capture_output=True, text=True, timeout=300)
+    assert result.stdout.strip().splitlines()[-1] == "BACKEND-ONLY 0", result.stdout + result.stderr
+    config = tmp_path / "cfg.yaml"
+    config.write_text("pose_graph:\n  robust: none\nregistration:\n  gates:\n    min_inliers: 20\n")
+    result = subprocess.run([sys.executable, "-c", probe, "optimize", str(src), "--json", "--config", str(config)],
+                            capture_output=True, text=True, timeout=300)
+    lines = result.stdout.strip().splitlines()
+    assert lines[-1] == "FRONTEND 0" and json.loads(lines[0])["robust"] == "none", result.stdout + result.stderr
+
+
 def test_cli_optimize_errors_are_one_line(tmp_path, capsys):
     bad = write(tmp_path, replace_line(VALID, 3, "VERTEX_SE3:QUAT 1 1 0 0 0 0 0 0"))
     assert cli_main(["optimize", str(bad)]) == 2
