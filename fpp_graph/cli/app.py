@@ -16,6 +16,7 @@ import sys
 
 import typer
 
+from fpp_graph.cli.common import on_stop_signal, stop_signal
 from fpp_graph.cli.config_commands import config_defaults, config_dump
 from fpp_graph.cli.optimize import optimize_graph
 from fpp_graph.cli.run import batch, eval_, run
@@ -79,16 +80,6 @@ def add_plugin_commands() -> None:
         app.command(ep.name)(ep.load())
 
 
-class Terminated(KeyboardInterrupt):
-    """SIGTERM, raised where the program is, so that clean-up runs as for Ctrl-C."""
-
-    signal_number = signal.SIGTERM
-
-
-def _terminated(signum: int, frame: object) -> None:
-    raise Terminated()
-
-
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``fpp-slam`` (and ``python -m fpp_graph.cli``): runs the app, turning
     FppError into one line + exit 2."""
@@ -97,7 +88,16 @@ def main(argv: list[str] | None = None) -> int:
     add_commands([args[0]] if args and args[0] in {*COMMANDS, "config"} else None)
     # SIGTERM (a scheduler, `kill`) takes the same path as Ctrl-C: the command's clean-up runs
     # (worker processes end, outputs stay whole) instead of the process vanishing mid-write
-    signal.signal(signal.SIGTERM, _terminated)
+    previous = {sig: signal.signal(sig, on_stop_signal) for sig in (signal.SIGTERM, signal.SIGINT)}
+    try:
+        return _run_app(args)
+    finally:  # main() called in-process (tests, scripts) leaves the caller's handlers as they were
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
+def _run_app(args: list[str]) -> int:
+    """The app on ``args``, with user errors, usage errors and stops turned into exit codes."""
     try:
         app(args=args, prog_name="fpp-slam", standalone_mode=False)
     except FppError as exc:
@@ -109,6 +109,9 @@ def main(argv: list[str] | None = None) -> int:
     except typer.Exit as exc:  # raised by --help and typer.Exit(code)
         return int(exc.exit_code or 0)
     except Exception as exc:
+        if stop_signal() is not None:  # stopped inside a C extension, which raised its own error
+            typer.echo("fpp-slam: interrupted", err=True)
+            return 128 + stop_signal()
         # Usage errors of the click engine under typer (vendored in recent typer releases, so
         # matched by behaviour rather than by class): they know how to show themselves.
         if callable(getattr(exc, "show", None)) and isinstance(getattr(exc, "exit_code", None), int):

@@ -6,6 +6,7 @@ Module-level imports stay light (typer only) so that ``fpp-slam --help`` is inst
 from __future__ import annotations
 
 import logging
+import signal
 import time
 from pathlib import Path
 from typing import Annotated, Any, Optional
@@ -17,6 +18,31 @@ ConfigOption = Annotated[
     typer.Option("--config", "-c", help="YAML file overriding the packaged defaults."),
 ]
 OutOption = Annotated[Optional[Path], typer.Option("--out", "-o", help="Results folder (default: results/<sequence>-<time>).")]  # noqa: UP045
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised where the program is, so that clean-up runs as for Ctrl-C."""
+
+    signal_number = signal.SIGTERM
+
+
+_stop_signal: int | None = None  # the signal that is stopping the command, once one came
+
+
+def on_stop_signal(signum: int, frame: object) -> None:
+    """Handler for SIGTERM (and the record of Ctrl-C): raise where the program is."""
+    global _stop_signal
+    _stop_signal = signum
+    if signum == signal.SIGINT:
+        raise KeyboardInterrupt()
+    raise Terminated()
+
+
+def stop_signal() -> int | None:
+    """The signal that is stopping the command, if any. A signal can land inside a C extension's
+    import or call, which then reports its own error (``ImportError: initialization failed``)
+    instead of the KeyboardInterrupt: the command is being stopped all the same."""
+    return _stop_signal
 
 
 def setup_logging(level: str = "INFO", log_file: Path | None = None) -> None:

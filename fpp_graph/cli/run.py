@@ -16,6 +16,7 @@ from fpp_graph.cli.common import (
     default_out,
     print_metrics_table,
     setup_logging,
+    stop_signal,
 )
 from fpp_graph.errors import InputDataError, Interrupted
 
@@ -47,15 +48,23 @@ def run(
     try:
         with RichProgress() as progress:
             report = run_sequence(sequence, cfg, out, resume=resume, overwrite=overwrite, kind=kind, progress=progress)
-    except KeyboardInterrupt as exc:  # Ctrl-C or SIGTERM: the pipeline has ended its workers
-        raise Interrupted(
-            f"interrupted; {out} keeps the frames done so far: continue with "
-            f"fpp-slam run {sequence} --out {out} --resume", getattr(exc, "signal_number", 2),
-        ) from None
+    except Exception:
+        if stop_signal() is None:
+            raise
+        raise _interrupted(sequence, out) from None
+    except KeyboardInterrupt:  # Ctrl-C or SIGTERM: the pipeline has ended its workers
+        raise _interrupted(sequence, out) from None
     m = report.metrics
     typer.echo(
         f"{m['frames']}/{m['frames_total']} frames, {m['keyframes']} keyframes, loops {m['loops_accepted']} accepted / "
         f"{m['loops_rejected']} rejected, {len(m['components'])} part(s), {m['seconds']:.1f} s -> {report.results_dir}"
+    )
+
+
+def _interrupted(sequence: Path, out: Path) -> Interrupted:
+    return Interrupted(
+        f"interrupted; {out} keeps the frames done so far: continue with fpp-slam run {sequence} --out {out} --resume",
+        stop_signal() or 2,
     )
 
 

@@ -507,3 +507,28 @@ def test_config_dump_for_a_sequence_shows_its_sensors_noise(tum_sequence, capsys
     assert main(["config", "dump", "--sequence", str(tum_sequence)]) == 0
     noise = yaml.safe_load(capsys.readouterr().out)["registration"]["noise"]
     assert noise["point_sigma_m"] == KINECT_V1_NOISE.point_sigma_m and noise["voxel_m"] == KINECT_V1_NOISE.voxel_m
+
+
+def test_a_stop_signal_inside_a_c_extension_still_reads_as_interrupted(tmp_path, tum_sequence, monkeypatch, capsys):
+    """SIGTERM landing inside a C extension's import surfaces as that extension's error
+    (``ImportError: initialization failed``): the run is reported as stopped, not as a crash."""
+    import signal
+
+    import fpp_graph.slam.pipeline as pipeline
+    from fpp_graph.cli import common
+    from fpp_graph.cli.app import main
+
+    def stopped_inside_an_import(*args, **kwargs):
+        monkeypatch.setattr(common, "_stop_signal", signal.SIGTERM)
+        raise ImportError("initialization failed")
+
+    monkeypatch.setattr(pipeline, "run_sequence", stopped_inside_an_import)
+    code = main(["run", str(tum_sequence), "--out", str(tmp_path / "out")])
+    assert code == 128 + signal.SIGTERM
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert lines[-1].startswith("fpp-slam: error: interrupted") and "--resume" in lines[-1]
+    # without a stop signal the same error is a crash, shown as one
+    monkeypatch.setattr(pipeline, "run_sequence", lambda *a, **k: (_ for _ in ()).throw(ImportError("initialization failed")))
+    monkeypatch.setattr(common, "_stop_signal", None)
+    with pytest.raises(ImportError):
+        main(["run", str(tum_sequence), "--out", str(tmp_path / "out2")])
