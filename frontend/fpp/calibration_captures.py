@@ -7,7 +7,7 @@ calibrates from them.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 
 import cv2
 import numpy as np
@@ -41,6 +41,20 @@ def simulate_graycode_captures(
     board: Chessboard,
     T_camera_board_list: Sequence[NDArray],
     rng: np.random.Generator,
+    **kwargs: float,
+) -> list[tuple[NDArray[np.uint8], NDArray[np.uint8], NDArray[np.uint8]]]:
+    """Render Gray-code calibration captures of a chessboard for a known rig (for validation).
+
+    The list of :func:`iter_graycode_captures` (same keyword arguments).
+    """
+    return list(iter_graycode_captures(calibration, board, T_camera_board_list, rng, **kwargs))
+
+
+def iter_graycode_captures(
+    calibration: RigCalibration,
+    board: Chessboard,
+    T_camera_board_list: Sequence[NDArray],
+    rng: np.random.Generator,
     *,
     supersample: int = 3,
     noise_grey: float = 1.0,
@@ -49,8 +63,10 @@ def simulate_graycode_captures(
     albedo_white: float = 0.9,
     ambient: float = 0.05,
     gain: float = 230.0,
-) -> list[tuple[NDArray[np.uint8], NDArray[np.uint8], NDArray[np.uint8]]]:
-    """Render Gray-code calibration captures of a chessboard for a known rig (for validation).
+    square_scale: float = 1.0,
+    bow_m: float = 0.0,
+) -> Iterator[tuple[NDArray[np.uint8], NDArray[np.uint8], NDArray[np.uint8]]]:
+    """Render Gray-code calibration captures of a chessboard, one pose at a time.
 
     The board lies on an infinite plane (the paper margin is one square wide, the plane beyond
     has albedo 0.5). Each camera pixel integrates ``supersample**2`` rays (camera distortion
@@ -58,12 +74,17 @@ def simulate_graycode_captures(
     projector pixel being the one the surface point projects to (projector distortion
     included). Then Gaussian blur, Gaussian noise, 8-bit quantisation.
 
-    Returns
-    -------
-    list of (patterns, white, black)
+    Board errors a real target has: ``square_scale`` is the printed square over the nominal
+    ``board.square_m`` (a printing or measuring error the calibration cannot see, so it scales
+    the estimated baseline); ``bow_m`` bends the board into a paraboloid that rises by this much
+    (towards the camera when positive) at the corner-grid centre, zero at the outer corners.
+
+    Yields
+    ------
+    (patterns, white, black)
         Per pose, as :func:`read_graycode_capture` returns them.
     """
-    cam, proj = calibration.camera, calibration.projector
+    cam = calibration.camera
     H, W = cam.height, cam.width
     offsets = (np.arange(supersample) + 0.5) / supersample - 0.5
     ox, oy = np.meshgrid(offsets, offsets)
@@ -72,37 +93,12 @@ def simulate_graycode_captures(
     for k, (dx, dy) in enumerate(zip(ox.ravel(), oy.ravel(), strict=True)):
         xy, _ = undistort_pixels(cam, np.column_stack([(uu + dx).ravel(), (vv + dy).ravel()]))
         rays[k] = xy.reshape(H, W, 2)
-    patterns_proj = gray_code_patterns(proj.width, proj.height).astype(np.float32) / 255.0
-    n_pat = len(patterns_proj)
-    nx, ny = board.corners
-    s = board.square_m
-    captures = []
+    patterns_proj = gray_code_patterns(calibration.projector.width, calibration.projector.height).astype(np.float32) / 255.0
+    looks = dict(albedo_black=albedo_black, albedo_white=albedo_white, ambient=ambient, square_scale=square_scale, bow_m=bow_m)
     for T in T_camera_board_list:
-        R, t = T[:3, :3], T[:3, 3]
-        normal = R[:, 2]
-        acc = np.zeros((n_pat + 2, H, W), dtype=np.float32)
+        acc = np.zeros((len(patterns_proj) + 2, H, W), dtype=np.float32)
         for k in range(len(rays)):
-            r = np.concatenate([rays[k].astype(np.float64), np.ones((H, W, 1))], axis=-1)
-            lam = (normal @ t) / (r @ normal)
-            X = r * lam[..., None]
-            b = (X - t) @ R  # board coordinates
-            bx, by = b[..., 0] / s, b[..., 1] / s
-            checker = (np.floor(bx) + np.floor(by)) % 2 == 0
-            albedo = np.where(checker, albedo_black, albedo_white)
-            on_paper = (bx >= -2) & (bx <= nx + 1) & (by >= -2) & (by <= ny + 1)
-            in_squares = (bx >= -1) & (bx <= nx) & (by >= -1) & (by <= ny)
-            albedo = np.where(in_squares, albedo, np.where(on_paper, albedo_white, 0.5))
-            albedo = np.where(lam > 0, albedo, 0.0)
-            u_p, v_p = project_to_projector(calibration, X)
-            col = np.floor(u_p + 0.5)
-            row = np.floor(v_p + 0.5)
-            lit = np.isfinite(col) & np.isfinite(row) & (col >= 0) & (col < proj.width) & (row >= 0) & (row < proj.height)
-            ci = np.where(lit, col, 0).astype(np.intp)
-            ri = np.where(lit, row, 0).astype(np.intp)
-            pattern_values = patterns_proj[:, ri, ci] * lit  # (n_pat, H, W)
-            acc[:n_pat] += albedo * (ambient + pattern_values)
-            acc[n_pat] += albedo * (ambient + lit)
-            acc[n_pat + 1] += albedo * ambient
+            _accumulate_board_radiance(acc, calibration, board, T, rays[k], patterns_proj, looks)
         acc *= gain / len(rays)
         images = []
         for img in acc:
@@ -111,8 +107,72 @@ def simulate_graycode_captures(
             img = img + rng.normal(0.0, noise_grey, img.shape).astype(np.float32)
             images.append(np.clip(np.rint(img), 0, 255).astype(np.uint8))
         stack = np.stack(images)
-        captures.append((stack[:n_pat], stack[n_pat], stack[n_pat + 1]))
-    return captures
+        n_pat = len(patterns_proj)
+        yield stack[:n_pat], stack[n_pat], stack[n_pat + 1]
+
+
+def _board_hit(rays_xy: NDArray, T_camera_board: NDArray, board: Chessboard, bow_m: float) -> tuple[NDArray, NDArray, NDArray]:
+    """Where camera rays (normalised x, y) meet the (possibly bowed) board.
+
+    Returns the hit points in the camera frame (H, W, 3), the board-frame coordinates (H, W, 3)
+    and the ray parameter (H, W; <= 0 behind the camera).
+    """
+    R, t = T_camera_board[:3, :3], T_camera_board[:3, 3]
+    normal = R[:, 2]
+    r = np.concatenate([rays_xy.astype(np.float64), np.ones(rays_xy.shape[:2] + (1,))], axis=-1)
+    r_dot_n = r @ normal
+    lam = (normal @ t) / r_dot_n
+    X = r * lam[..., None]
+    b = (X - t) @ R
+    if bow_m:
+        # height above the board plane (board z axis points away from the camera for a board
+        # facing it, so "towards the camera" is -z); a few fixed-point steps converge far below
+        # a micrometre for a bow of a fraction of a millimetre
+        nx, ny = board.corners
+        centre = np.array([(nx - 1) / 2, (ny - 1) / 2]) * board.square_m
+        r2_max = float(np.sum(centre**2))
+        for _ in range(3):
+            r2 = (b[..., 0] - centre[0]) ** 2 + (b[..., 1] - centre[1]) ** 2
+            height = -bow_m * (1.0 - r2 / r2_max)
+            lam = (normal @ t + height) / r_dot_n
+            X = r * lam[..., None]
+            b = (X - t) @ R
+    return X, b, lam
+
+
+def _accumulate_board_radiance(acc: NDArray, calibration: RigCalibration, board: Chessboard, T_camera_board: NDArray, rays_xy: NDArray, patterns_proj: NDArray, looks: dict[str, float]) -> None:
+    """Add one sub-pixel ray set's radiance of every pattern (then white, black) into ``acc``."""
+    proj = calibration.projector
+    nx, ny = board.corners
+    s = board.square_m * looks["square_scale"]
+    X, b, lam = _board_hit(rays_xy, T_camera_board, board, looks["bow_m"])
+    bx, by = b[..., 0] / s, b[..., 1] / s
+    checker = (np.floor(bx) + np.floor(by)) % 2 == 0
+    albedo = np.where(checker, looks["albedo_black"], looks["albedo_white"])
+    on_paper = (bx >= -2) & (bx <= nx + 1) & (by >= -2) & (by <= ny + 1)
+    in_squares = (bx >= -1) & (bx <= nx) & (by >= -1) & (by <= ny)
+    albedo = np.where(in_squares, albedo, np.where(on_paper, looks["albedo_white"], 0.5))
+    albedo = np.where(lam > 0, albedo, 0.0).astype(np.float32)
+    u_p, v_p = project_to_projector(calibration, X)
+    col = np.floor(u_p + 0.5)
+    row = np.floor(v_p + 0.5)
+    lit = np.isfinite(col) & np.isfinite(row) & (col >= 0) & (col < proj.width) & (row >= 0) & (row < proj.height)
+    ci = np.where(lit, col, 0).astype(np.intp)
+    ri = np.where(lit, row, 0).astype(np.intp)
+    n_pat = len(patterns_proj)
+    ambient = np.float32(looks["ambient"])
+    for m in range(n_pat):  # one pattern at a time: a (n_pat, H, W) gather would not fit at 1920x1200
+        pattern = patterns_proj[m]
+        # Gray-code stripes vary along one axis only: a 1-D look-up is far cheaper than a 2-D gather
+        if np.all(pattern == pattern[:1]):
+            value = pattern[0][ci]
+        elif np.all(pattern == pattern[:, :1]):
+            value = pattern[:, 0][ri]
+        else:
+            value = pattern[ri, ci]
+        acc[m] += albedo * (ambient + value * lit)
+    acc[n_pat] += albedo * (ambient + lit)
+    acc[n_pat + 1] += albedo * ambient
 
 
 def sample_board_poses(
