@@ -184,12 +184,16 @@ def sample_board_poses(
     max_tilt_deg: float = 35.0,
     max_spin_deg: float = 25.0,
     max_tries: int = 20000,
+    image_coverage: float = 0.0,
 ) -> list[NDArray[np.float64]]:
     """Random board poses ``T_camera_board`` seen whole by both camera and projector.
 
     The board centre is drawn between the camera axis and the projector's, at a depth in
     ``depth_range_m``; tilts about the board's x and y axes up to ``max_tilt_deg`` (varied
     tilts are what make focal lengths observable), spin about its normal up to ``max_spin_deg``.
+    With ``image_coverage`` > 0 the centre is instead drawn uniformly over that fraction of the
+    camera image (about its centre), so that the corners reach the image edges, where the
+    lens distortion is observable, as a careful calibration does.
     """
     from scipy.spatial.transform import Rotation
 
@@ -201,6 +205,11 @@ def sample_board_poses(
         z = rng.uniform(*depth_range_m)
         a = rng.uniform(0.0, 1.0)
         centre = np.array([a * C_p[0], a * C_p[1], z]) + rng.normal(0, 0.03, 3) * [1, 1, 0]
+        if image_coverage > 0:
+            cam = calibration.camera
+            u = (cam.width - 1) / 2 + rng.uniform(-0.5, 0.5) * image_coverage * cam.width
+            v = (cam.height - 1) / 2 + rng.uniform(-0.5, 0.5) * image_coverage * cam.height
+            centre = z * np.linalg.solve(cam.K, [u, v, 1.0])
         tilt = rng.uniform(-max_tilt_deg, max_tilt_deg, 2)
         spin = rng.uniform(-max_spin_deg, max_spin_deg)
         R = Rotation.from_euler("xyz", [tilt[0], tilt[1], spin], degrees=True).as_matrix()
