@@ -18,6 +18,7 @@ from fpp_graph.geometry import make_pose
 from frontend.fpp.calibration_board import Chessboard
 from frontend.fpp.graycode import gray_code_patterns
 from frontend.fpp.lens import project_to_camera, project_to_projector, undistort_pixels
+from frontend.fpp.patterns import PatternSpec, pattern_intensity
 from frontend.fpp.rig import RigCalibration
 
 
@@ -56,6 +57,8 @@ def iter_graycode_captures(
     T_camera_board_list: Sequence[NDArray],
     rng: np.random.Generator,
     *,
+    pattern_specs: Sequence[PatternSpec] | None = None,
+    projector_exponent: float = 1.0,
     supersample: int = 3,
     noise_grey: float = 1.0,
     blur_sigma_px: float = 0.6,
@@ -65,6 +68,7 @@ def iter_graycode_captures(
     gain: float = 230.0,
     square_scale: float = 1.0,
     bow_m: float = 0.0,
+    shot_noise_gain: float = 0.0,
 ) -> Iterator[tuple[NDArray[np.uint8], NDArray[np.uint8], NDArray[np.uint8]]]:
     """Render Gray-code calibration captures of a chessboard, one pose at a time.
 
@@ -73,6 +77,10 @@ def iter_graycode_captures(
     included); each ray sees the board's albedo times (ambient + projector pattern), the
     projector pixel being the one the surface point projects to (projector distortion
     included). Then Gaussian blur, Gaussian noise, 8-bit quantisation.
+
+    ``pattern_specs`` replaces the Gray code by FPP pattern sets (e.g. phase shifting along the
+    columns, then along the rows; their images in that order), continuous in the projector
+    coordinate; ``projector_exponent`` is the projector's residual response ``P^exponent``.
 
     Board errors a real target has: ``square_scale`` is the printed square over the nominal
     ``board.square_m`` (a printing or measuring error the calibration cannot see, so it scales
@@ -93,21 +101,24 @@ def iter_graycode_captures(
     for k, (dx, dy) in enumerate(zip(ox.ravel(), oy.ravel(), strict=True)):
         xy, _ = undistort_pixels(cam, np.column_stack([(uu + dx).ravel(), (vv + dy).ravel()]))
         rays[k] = xy.reshape(H, W, 2)
-    patterns_proj = gray_code_patterns(calibration.projector.width, calibration.projector.height).astype(np.float32) / 255.0
+    n_pat, pattern_value = _pattern_values(calibration, pattern_specs, projector_exponent)
     looks = dict(albedo_black=albedo_black, albedo_white=albedo_white, ambient=ambient, square_scale=square_scale, bow_m=bow_m)
     for T in T_camera_board_list:
-        acc = np.zeros((len(patterns_proj) + 2, H, W), dtype=np.float32)
+        acc = np.zeros((n_pat + 2, H, W), dtype=np.float32)
         for k in range(len(rays)):
-            _accumulate_board_radiance(acc, calibration, board, T, rays[k], patterns_proj, looks)
+            _accumulate_board_radiance(acc, calibration, board, T, rays[k], n_pat, pattern_value, looks)
         acc *= gain / len(rays)
         images = []
         for img in acc:
             if blur_sigma_px > 0:
                 img = cv2.GaussianBlur(img, (0, 0), blur_sigma_px)
-            img = img + rng.normal(0.0, noise_grey, img.shape).astype(np.float32)
+            if shot_noise_gain:
+                sigma = np.sqrt(np.float32(noise_grey) ** 2 + np.float32(shot_noise_gain) * np.clip(img, 0, None))
+                img = img + rng.standard_normal(img.shape, dtype=np.float32) * sigma
+            else:
+                img = img + rng.normal(0.0, noise_grey, img.shape).astype(np.float32)
             images.append(np.clip(np.rint(img), 0, 255).astype(np.uint8))
         stack = np.stack(images)
-        n_pat = len(patterns_proj)
         yield stack[:n_pat], stack[n_pat], stack[n_pat + 1]
 
 
@@ -140,7 +151,35 @@ def _board_hit(rays_xy: NDArray, T_camera_board: NDArray, board: Chessboard, bow
     return X, b, lam
 
 
-def _accumulate_board_radiance(acc: NDArray, calibration: RigCalibration, board: Chessboard, T_camera_board: NDArray, rays_xy: NDArray, patterns_proj: NDArray, looks: dict[str, float]) -> None:
+def _pattern_values(calibration: RigCalibration, pattern_specs: Sequence[PatternSpec] | None, exponent: float):
+    """``(count, value(m, u_p, v_p, col, row))``: pattern m's projected value in [0, 1] at projector
+    coordinates (continuous ``u_p, v_p``, nearest pixel ``col, row``)."""
+    proj = calibration.projector
+    if pattern_specs is None:
+        patterns_proj = gray_code_patterns(proj.width, proj.height).astype(np.float32) / 255.0
+        column_only = [bool(np.all(p == p[:1])) for p in patterns_proj]
+        row_only = [bool(np.all(p == p[:, :1])) for p in patterns_proj]
+
+        def gray_value(m: int, u_p: NDArray, v_p: NDArray, col: NDArray, row: NDArray) -> NDArray:
+            # Gray-code stripes vary along one axis only: a 1-D look-up is far cheaper than a 2-D gather
+            if column_only[m]:
+                return patterns_proj[m][0][col]
+            if row_only[m]:
+                return patterns_proj[m][:, 0][row]
+            return patterns_proj[m][row, col]
+
+        return len(patterns_proj), gray_value
+    index = [(spec, j) for spec in pattern_specs for j in range(spec.image_count())]
+
+    def fringe_value(m: int, u_p: NDArray, v_p: NDArray, col: NDArray, row: NDArray) -> NDArray:
+        spec, j = index[m]
+        value = pattern_intensity(spec, j, u_p, v_p, proj.width, proj.height).astype(np.float32)
+        return value ** np.float32(exponent) if exponent != 1.0 else value
+
+    return len(index), fringe_value
+
+
+def _accumulate_board_radiance(acc: NDArray, calibration: RigCalibration, board: Chessboard, T_camera_board: NDArray, rays_xy: NDArray, n_pat: int, pattern_value, looks: dict[str, float]) -> None:
     """Add one sub-pixel ray set's radiance of every pattern (then white, black) into ``acc``."""
     proj = calibration.projector
     nx, ny = board.corners
@@ -159,18 +198,11 @@ def _accumulate_board_radiance(acc: NDArray, calibration: RigCalibration, board:
     lit = np.isfinite(col) & np.isfinite(row) & (col >= 0) & (col < proj.width) & (row >= 0) & (row < proj.height)
     ci = np.where(lit, col, 0).astype(np.intp)
     ri = np.where(lit, row, 0).astype(np.intp)
-    n_pat = len(patterns_proj)
+    u_safe = np.where(lit, u_p, 0.0)
+    v_safe = np.where(lit, v_p, 0.0)
     ambient = np.float32(looks["ambient"])
     for m in range(n_pat):  # one pattern at a time: a (n_pat, H, W) gather would not fit at 1920x1200
-        pattern = patterns_proj[m]
-        # Gray-code stripes vary along one axis only: a 1-D look-up is far cheaper than a 2-D gather
-        if np.all(pattern == pattern[:1]):
-            value = pattern[0][ci]
-        elif np.all(pattern == pattern[:, :1]):
-            value = pattern[:, 0][ri]
-        else:
-            value = pattern[ri, ci]
-        acc[m] += albedo * (ambient + value * lit)
+        acc[m] += albedo * (ambient + pattern_value(m, u_safe, v_safe, ci, ri) * lit)
     acc[n_pat] += albedo * (ambient + lit)
     acc[n_pat + 1] += albedo * ambient
 
