@@ -143,3 +143,19 @@ def test_calibration_report_script(estimated, cache_dir):
     text = format_report(report)
     for words in ("stereo", "0.295 px", "camera_fx_err_px", "projector_cy_err_px", "camera_k1_err", "baseline_err_mm", "rotation_err_deg"):
         assert words in text
+
+
+def test_single_view_plane_and_sphere_with_the_estimate(estimated):
+    from scripts.single_view_accuracy import measure
+
+    truth, est, _ = estimated
+    rows = measure(truth, {"true": truth, "estimated": est.calibration})
+    # 960x600 at 0.5 m: the noise alone gives 0.066 mm on the plane (the paper: 0.067 mm)
+    assert rows["plane / true"]["rms_mm"] < 0.08 and rows["sphere / true"]["rms_mm"] < 0.06
+    # the estimate puts the view off by a rigid offset of a few tenths of a millimetre (the frame
+    # its calibration defines, absorbed by the pose in SLAM); its shape error stays small
+    # (measured 0.080 / 0.046 mm after the rigid fit)
+    plane, sphere = rows["plane / estimated"], rows["sphere / estimated"]
+    assert plane["aligned_rms_mm"] < 0.11 and sphere["aligned_rms_mm"] < 0.07
+    assert plane["rms_mm"] > plane["aligned_rms_mm"]
+    assert plane["points"] > 0.8 * rows["plane / true"]["points"]
