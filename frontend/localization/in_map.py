@@ -33,7 +33,11 @@ from fpp_graph.trajectory import read_tum
 from fpp_graph.types import Frame
 from frontend.features.detect import make_detector, match_descriptors, stretch_contrast
 from frontend.localization.dlt import LocalizationResult, localize_dlt
-from frontend.localization.photometric import DenseReference, PhotometricLocalizationResult, localize_photometric
+from frontend.localization.photometric import (
+    DenseReference,
+    PhotometricLocalizationResult,
+    localize_photometric,
+)
 from frontend.registration.keypoints import lift_keypoints
 
 log = logging.getLogger(__name__)

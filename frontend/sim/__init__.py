@@ -22,7 +22,6 @@ from frontend.sim.calibration import (
     calibration_errors,
     estimate_rig_calibration,
 )
-
 from frontend.sim.materials import ImageMaterial, Material, ProceduralMaterial, VertexColorMaterial
 from frontend.sim.parts import (
     SurfacePart,

@@ -35,7 +35,13 @@ from frontend.fpp.calibration_captures import iter_graycode_captures, sample_boa
 from frontend.fpp.patterns import PatternSpec
 from frontend.fpp.phase import decode
 from frontend.fpp.rig import RigCalibration, load_calibration, save_calibration
-from frontend.fpp.rig_calibration import PoseObservation, calibrate_from_captures, calibrate_rig, observe_pose, transfer_rms_px
+from frontend.fpp.rig_calibration import (
+    PoseObservation,
+    calibrate_from_captures,
+    calibrate_rig,
+    observe_pose,
+    transfer_rms_px,
+)
 from frontend.sim.config import StrictModel, validate_section
 
 log = logging.getLogger(__name__)

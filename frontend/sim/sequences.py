@@ -25,10 +25,20 @@ from fpp_graph.errors import ConfigError
 from frontend.fpp.patterns import PatternSpec
 from frontend.fpp.rig import RigCalibration
 from frontend.fpp.sequence import SequenceWriter
-from frontend.sim.calibration import BoardCalibrationSettings, estimate_rig_calibration, parse_calibration_settings
+from frontend.sim.calibration import (
+    BoardCalibrationSettings,
+    estimate_rig_calibration,
+    parse_calibration_settings,
+)
 from frontend.sim.config import parse_model
 from frontend.sim.render import FppSimulator, RenderSettings, parse_render_settings
-from frontend.sim.rig import binned_calibration, build_rig, default_pattern_spec, parse_rig_parameters, with_camera_resolution
+from frontend.sim.rig import (
+    binned_calibration,
+    build_rig,
+    default_pattern_spec,
+    parse_rig_parameters,
+    with_camera_resolution,
+)
 from frontend.sim.scenes import (
     CorridorConfig,
     Scene,
