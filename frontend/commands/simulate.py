@@ -94,4 +94,7 @@ def simulate(
             definition, out, max_frames=frames, overwrite=overwrite, progress=progress, resolution=size,
             calibration_mode="true" if true_calibration else None,
         )
-    typer.echo(f"wrote {path} in {time.perf_counter() - start:.1f} s ({'true' if true_calibration else 'estimated'} calibration in sequence.yaml)")
+    from frontend.fpp.sequence import read_sequence
+
+    mode = read_sequence(path).source.get("calibration", "estimated")
+    typer.echo(f"wrote {path} in {time.perf_counter() - start:.1f} s ({mode} calibration in sequence.yaml, the truth in groundtruth_calibration.yaml)")

@@ -103,8 +103,8 @@ def load_simulation(
     native_calibration = build_rig(rig)
     if resolution is not None:
         rig = with_camera_resolution(rig, *resolution)
-    calibration_settings = parse_calibration_settings(config.get("calibration"), f"{where}: calibration")
     settings = parse_render_settings(config.get("render"), f"{where}: render")
+    calibration_settings = _board_captures_like_the_sequence(parse_calibration_settings(config.get("calibration"), f"{where}: calibration"), config.get("calibration") or {}, settings)
     spec = PatternSpec.from_dict(config["patterns"], f"{where}: patterns") if "patterns" in config else default_pattern_spec()
     calibration = build_rig(rig, preview=preview)
     if kind == "turntable":
@@ -124,6 +124,17 @@ def load_simulation(
     resolved["patterns"] = spec.to_dict()
     resolved["calibration"] = calibration_settings.model_dump(mode="json")
     return SimulationSetup(kind, calibration, native_calibration, calibration_settings, spec, settings, scene, poses, stamps, resolved)
+
+
+def _board_captures_like_the_sequence(calibration: BoardCalibrationSettings, given: dict[str, Any], render: RenderSettings) -> BoardCalibrationSettings:
+    """The board captures take the sequence camera's noise and the projector's response unless the
+    ``calibration:`` section sets them: the same rig captures both."""
+    same = {
+        "noise_grey": render.read_noise_grey,
+        "shot_noise_gain": render.shot_noise_gain,
+        "projector_response_exponent": render.projector_gamma / render.projector_gamma_compensation,
+    }
+    return calibration.model_copy(update={k: v for k, v in same.items() if k not in given})
 
 
 def simulate_sequence(

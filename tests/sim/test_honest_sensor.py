@@ -161,3 +161,14 @@ def test_single_view_plane_and_sphere_with_the_estimate(estimated):
     assert plane["aligned_rms_mm"] < 0.11 and sphere["aligned_rms_mm"] < 0.07
     assert plane["rms_mm"] > plane["aligned_rms_mm"]
     assert plane["points"] > 0.8 * rows["plane / true"]["points"]
+
+
+def test_board_captures_share_the_sequence_camera_and_projector():
+    from frontend.sim import load_simulation
+
+    default = load_simulation({"scene": "turntable"}, max_frames=1).calibration_settings
+    assert default.noise_grey == 0.8 and default.shot_noise_gain == 0.012 and default.projector_response_exponent == pytest.approx(1.1)
+    noisy = load_simulation({"scene": "turntable", "render": {"read_noise_grey": 2.0, "projector_gamma_compensation": 2.2}}, max_frames=1).calibration_settings
+    assert noisy.noise_grey == 2.0 and noisy.projector_response_exponent == pytest.approx(1.0)
+    told = load_simulation({"scene": "turntable", "render": {"read_noise_grey": 2.0}, "calibration": {"noise_grey": 0.5}}, max_frames=1).calibration_settings
+    assert told.noise_grey == 0.5
