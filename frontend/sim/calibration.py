@@ -56,10 +56,14 @@ class BoardCalibrationSettings(StrictModel):
     Defaults: a 10 x 8 square chessboard of 20 mm squares (200 x 160 mm, it fits the projector's
     0.31 m high image at 0.4 m with a margin), 15 poses between 0.40 and 0.65 m (the working
     volume around the 0.5 m working distance) tilted up to 35 degrees (tilts make the focal
-    lengths observable). The board errors are those of a good glass target: square size known
-    to 5e-5 (0.01 mm over 200 mm, the usual stated accuracy) and flat to 20 um. k3 is fixed at
-    zero as in common practice: with boards that fill a fraction of the image, a free k3 fits
-    noise at the image corners.
+    lengths observable) and centred anywhere over 80 % of the image (corners near the image
+    edges make the distortion observable). The board errors are those of a good glass target:
+    square size known to 5e-5 (0.01 mm over 200 mm, the usual stated accuracy) and flat to 20 um.
+    The captures use the rig's own phase patterns along both projector axes, the sequence
+    camera's noise and the projector's response (:func:`frontend.sim.sequences.load_simulation`
+    fills those from the ``render:`` section unless set here). k3 is fixed at zero as in common
+    practice: with boards that fill a fraction of the image, a free k3 fits noise at the image
+    corners.
     """
 
     mode: str = Field("estimated", pattern="^(estimated|true)$", description="'estimated' (a calibration from simulated board captures) or 'true' (the simulator's parameters, for comparisons)")
@@ -123,8 +127,8 @@ def estimate_rig_calibration(
     seed : int
         Board poses and capture noise.
     cache_dir : path, optional
-        Where estimates are kept (default :func:`default_cache_dir`); ``False``-y strings are not
-        allowed, pass a folder.
+        Where estimates are kept (default :func:`default_cache_dir`); a folder that cannot be
+        written only costs the recomputation next time.
     progress : callable, optional
         ``progress(done, total)`` per rendered board pose (not called on a cache hit).
 
