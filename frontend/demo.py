@@ -32,8 +32,13 @@ def demo(
     full: Annotated[bool, typer.Option("--full", help="1920x1200 instead of the 640x400 preview (slow).")] = False,
     frames: Annotated[int, typer.Option("--frames", help="Use only the first N views (0 = all 72).")] = 0,
     overwrite: Annotated[bool, typer.Option("--overwrite/--keep", help="Replace an earlier demo in --out.")] = True,
+    true_calibration: Annotated[bool, typer.Option("--true-calibration", help="Decode with the simulator's true calibration instead of one estimated from simulated board captures.")] = False,
 ) -> None:
-    """Simulate the default doll turntable (3 turns x 24 views, preview), run, evaluate, print a short table."""
+    """Simulate the default doll turntable (3 turns x 24 views, preview), run, evaluate, print a short table.
+
+    The sequence stores the rig calibration estimated from simulated chessboard captures (computed
+    once per rig and seed, then cached), as a real sensor has; ``--true-calibration`` for comparison.
+    """
     import time
 
     from fpp_graph.cli import RichProgress, print_metrics_table, setup_logging
@@ -50,7 +55,11 @@ def demo(
     results_dir = out / "results"
     if overwrite or not (sequence_dir / "sequence.yaml").exists():
         typer.echo(f"simulating the default turntable ({'1920x1200' if full else '640x400 preview'}) into {sequence_dir} ...")
-        simulate_sequence(DEFAULT_SCENE, sequence_dir, preview=not full, max_frames=frames or None, overwrite=True)
+        with RichProgress() as progress:
+            simulate_sequence(
+                DEFAULT_SCENE, sequence_dir, preview=not full, max_frames=frames or None, overwrite=True, progress=progress,
+                calibration_mode="true" if true_calibration else "estimated",
+            )
     typer.echo(f"simulated in {time.perf_counter() - start:.1f} s; running SLAM ...")
     with RichProgress() as progress:
         report = run_sequence(sequence_dir, config, results_dir, resume=False, overwrite=True, kind="fpp", progress=progress)
@@ -87,15 +96,17 @@ def scene_definition(name: str, seed: int | None = None) -> dict:
     return scene
 
 
-def simulate_once(name: str, folder: Path, full: bool = False, frames: int | None = None, seed: int | None = None) -> Path:
-    """Simulate ``scene_definition(name, seed)`` into ``folder`` unless the same one is there already."""
+def simulate_once(name: str, folder: Path, full: bool = False, frames: int | None = None, seed: int | None = None, calibration: str = "estimated") -> Path:
+    """Simulate ``scene_definition(name, seed)`` into ``folder`` unless the same one is there already.
+
+    ``calibration``: what ``sequence.yaml`` stores, ``estimated`` (default) or ``true``."""
     import json
 
     from frontend.sim import simulate_sequence
 
     stamp = folder / "simulated.json"
-    wanted = json.dumps({"scene": name, "full": full, "frames": frames, "seed": seed})
+    wanted = json.dumps({"scene": name, "full": full, "frames": frames, "seed": seed, "calibration": calibration})
     if not (stamp.exists() and stamp.read_text() == wanted and (folder / "sequence.yaml").exists()):
-        simulate_sequence(scene_definition(name, seed), folder, preview=not full, max_frames=frames, overwrite=True)
+        simulate_sequence(scene_definition(name, seed), folder, preview=not full, max_frames=frames, overwrite=True, calibration_mode=calibration)
         stamp.write_text(wanted)
     return folder

@@ -7,7 +7,7 @@ calibrates from them.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 
 import cv2
 import numpy as np
@@ -18,6 +18,7 @@ from fpp_graph.geometry import make_pose
 from frontend.fpp.calibration_board import Chessboard
 from frontend.fpp.graycode import gray_code_patterns
 from frontend.fpp.lens import project_to_camera, project_to_projector, undistort_pixels
+from frontend.fpp.patterns import PatternSpec, pattern_intensity
 from frontend.fpp.rig import RigCalibration
 
 
@@ -41,7 +42,23 @@ def simulate_graycode_captures(
     board: Chessboard,
     T_camera_board_list: Sequence[NDArray],
     rng: np.random.Generator,
+    **kwargs: float,
+) -> list[tuple[NDArray[np.uint8], NDArray[np.uint8], NDArray[np.uint8]]]:
+    """Render Gray-code calibration captures of a chessboard for a known rig (for validation).
+
+    The list of :func:`iter_graycode_captures` (same keyword arguments).
+    """
+    return list(iter_graycode_captures(calibration, board, T_camera_board_list, rng, **kwargs))
+
+
+def iter_graycode_captures(
+    calibration: RigCalibration,
+    board: Chessboard,
+    T_camera_board_list: Sequence[NDArray],
+    rng: np.random.Generator,
     *,
+    pattern_specs: Sequence[PatternSpec] | None = None,
+    projector_exponent: float = 1.0,
     supersample: int = 3,
     noise_grey: float = 1.0,
     blur_sigma_px: float = 0.6,
@@ -49,8 +66,11 @@ def simulate_graycode_captures(
     albedo_white: float = 0.9,
     ambient: float = 0.05,
     gain: float = 230.0,
-) -> list[tuple[NDArray[np.uint8], NDArray[np.uint8], NDArray[np.uint8]]]:
-    """Render Gray-code calibration captures of a chessboard for a known rig (for validation).
+    square_scale: float = 1.0,
+    bow_m: float = 0.0,
+    shot_noise_gain: float = 0.0,
+) -> Iterator[tuple[NDArray[np.uint8], NDArray[np.uint8], NDArray[np.uint8]]]:
+    """Render Gray-code calibration captures of a chessboard, one pose at a time.
 
     The board lies on an infinite plane (the paper margin is one square wide, the plane beyond
     has albedo 0.5). Each camera pixel integrates ``supersample**2`` rays (camera distortion
@@ -58,12 +78,21 @@ def simulate_graycode_captures(
     projector pixel being the one the surface point projects to (projector distortion
     included). Then Gaussian blur, Gaussian noise, 8-bit quantisation.
 
-    Returns
-    -------
-    list of (patterns, white, black)
+    ``pattern_specs`` replaces the Gray code by FPP pattern sets (e.g. phase shifting along the
+    columns, then along the rows; their images in that order), continuous in the projector
+    coordinate; ``projector_exponent`` is the projector's residual response ``P^exponent``.
+
+    Board errors a real target has: ``square_scale`` is the printed square over the nominal
+    ``board.square_m`` (a printing or measuring error the calibration cannot see, so it scales
+    the estimated baseline); ``bow_m`` bends the board into a paraboloid that rises by this much
+    (towards the camera when positive) at the corner-grid centre, zero at the outer corners.
+
+    Yields
+    ------
+    (patterns, white, black)
         Per pose, as :func:`read_graycode_capture` returns them.
     """
-    cam, proj = calibration.camera, calibration.projector
+    cam = calibration.camera
     H, W = cam.height, cam.width
     offsets = (np.arange(supersample) + 0.5) / supersample - 0.5
     ox, oy = np.meshgrid(offsets, offsets)
@@ -72,47 +101,110 @@ def simulate_graycode_captures(
     for k, (dx, dy) in enumerate(zip(ox.ravel(), oy.ravel(), strict=True)):
         xy, _ = undistort_pixels(cam, np.column_stack([(uu + dx).ravel(), (vv + dy).ravel()]))
         rays[k] = xy.reshape(H, W, 2)
-    patterns_proj = gray_code_patterns(proj.width, proj.height).astype(np.float32) / 255.0
-    n_pat = len(patterns_proj)
-    nx, ny = board.corners
-    s = board.square_m
-    captures = []
+    n_pat, pattern_value = _pattern_values(calibration, pattern_specs, projector_exponent)
+    looks = dict(albedo_black=albedo_black, albedo_white=albedo_white, ambient=ambient, square_scale=square_scale, bow_m=bow_m)
     for T in T_camera_board_list:
-        R, t = T[:3, :3], T[:3, 3]
-        normal = R[:, 2]
         acc = np.zeros((n_pat + 2, H, W), dtype=np.float32)
         for k in range(len(rays)):
-            r = np.concatenate([rays[k].astype(np.float64), np.ones((H, W, 1))], axis=-1)
-            lam = (normal @ t) / (r @ normal)
-            X = r * lam[..., None]
-            b = (X - t) @ R  # board coordinates
-            bx, by = b[..., 0] / s, b[..., 1] / s
-            checker = (np.floor(bx) + np.floor(by)) % 2 == 0
-            albedo = np.where(checker, albedo_black, albedo_white)
-            on_paper = (bx >= -2) & (bx <= nx + 1) & (by >= -2) & (by <= ny + 1)
-            in_squares = (bx >= -1) & (bx <= nx) & (by >= -1) & (by <= ny)
-            albedo = np.where(in_squares, albedo, np.where(on_paper, albedo_white, 0.5))
-            albedo = np.where(lam > 0, albedo, 0.0)
-            u_p, v_p = project_to_projector(calibration, X)
-            col = np.floor(u_p + 0.5)
-            row = np.floor(v_p + 0.5)
-            lit = np.isfinite(col) & np.isfinite(row) & (col >= 0) & (col < proj.width) & (row >= 0) & (row < proj.height)
-            ci = np.where(lit, col, 0).astype(np.intp)
-            ri = np.where(lit, row, 0).astype(np.intp)
-            pattern_values = patterns_proj[:, ri, ci] * lit  # (n_pat, H, W)
-            acc[:n_pat] += albedo * (ambient + pattern_values)
-            acc[n_pat] += albedo * (ambient + lit)
-            acc[n_pat + 1] += albedo * ambient
+            _accumulate_board_radiance(acc, calibration, board, T, rays[k], n_pat, pattern_value, looks)
         acc *= gain / len(rays)
         images = []
         for img in acc:
             if blur_sigma_px > 0:
                 img = cv2.GaussianBlur(img, (0, 0), blur_sigma_px)
-            img = img + rng.normal(0.0, noise_grey, img.shape).astype(np.float32)
+            if shot_noise_gain:
+                sigma = np.sqrt(np.float32(noise_grey) ** 2 + np.float32(shot_noise_gain) * np.clip(img, 0, None))
+                img = img + rng.standard_normal(img.shape, dtype=np.float32) * sigma
+            else:
+                img = img + rng.normal(0.0, noise_grey, img.shape).astype(np.float32)
             images.append(np.clip(np.rint(img), 0, 255).astype(np.uint8))
         stack = np.stack(images)
-        captures.append((stack[:n_pat], stack[n_pat], stack[n_pat + 1]))
-    return captures
+        yield stack[:n_pat], stack[n_pat], stack[n_pat + 1]
+
+
+def _board_hit(rays_xy: NDArray, T_camera_board: NDArray, board: Chessboard, bow_m: float) -> tuple[NDArray, NDArray, NDArray]:
+    """Where camera rays (normalised x, y) meet the (possibly bowed) board.
+
+    Returns the hit points in the camera frame (H, W, 3), the board-frame coordinates (H, W, 3)
+    and the ray parameter (H, W; <= 0 behind the camera).
+    """
+    R, t = T_camera_board[:3, :3], T_camera_board[:3, 3]
+    normal = R[:, 2]
+    r = np.concatenate([rays_xy.astype(np.float64), np.ones(rays_xy.shape[:2] + (1,))], axis=-1)
+    r_dot_n = r @ normal
+    lam = (normal @ t) / r_dot_n
+    X = r * lam[..., None]
+    b = (X - t) @ R
+    if bow_m:
+        # height above the board plane (board z axis points away from the camera for a board
+        # facing it, so "towards the camera" is -z); a few fixed-point steps converge far below
+        # a micrometre for a bow of a fraction of a millimetre
+        nx, ny = board.corners
+        centre = np.array([(nx - 1) / 2, (ny - 1) / 2]) * board.square_m
+        r2_max = float(np.sum(centre**2))
+        for _ in range(3):
+            r2 = (b[..., 0] - centre[0]) ** 2 + (b[..., 1] - centre[1]) ** 2
+            height = -bow_m * (1.0 - r2 / r2_max)
+            lam = (normal @ t + height) / r_dot_n
+            X = r * lam[..., None]
+            b = (X - t) @ R
+    return X, b, lam
+
+
+def _pattern_values(calibration: RigCalibration, pattern_specs: Sequence[PatternSpec] | None, exponent: float):
+    """``(count, value(m, u_p, v_p, col, row))``: pattern m's projected value in [0, 1] at projector
+    coordinates (continuous ``u_p, v_p``, nearest pixel ``col, row``)."""
+    proj = calibration.projector
+    if pattern_specs is None:
+        patterns_proj = gray_code_patterns(proj.width, proj.height).astype(np.float32) / 255.0
+        column_only = [bool(np.all(p == p[:1])) for p in patterns_proj]
+        row_only = [bool(np.all(p == p[:, :1])) for p in patterns_proj]
+
+        def gray_value(m: int, u_p: NDArray, v_p: NDArray, col: NDArray, row: NDArray) -> NDArray:
+            # Gray-code stripes vary along one axis only: a 1-D look-up is far cheaper than a 2-D gather
+            if column_only[m]:
+                return patterns_proj[m][0][col]
+            if row_only[m]:
+                return patterns_proj[m][:, 0][row]
+            return patterns_proj[m][row, col]
+
+        return len(patterns_proj), gray_value
+    index = [(spec, j) for spec in pattern_specs for j in range(spec.image_count())]
+
+    def fringe_value(m: int, u_p: NDArray, v_p: NDArray, col: NDArray, row: NDArray) -> NDArray:
+        spec, j = index[m]
+        value = pattern_intensity(spec, j, u_p, v_p, proj.width, proj.height).astype(np.float32)
+        return value ** np.float32(exponent) if exponent != 1.0 else value
+
+    return len(index), fringe_value
+
+
+def _accumulate_board_radiance(acc: NDArray, calibration: RigCalibration, board: Chessboard, T_camera_board: NDArray, rays_xy: NDArray, n_pat: int, pattern_value, looks: dict[str, float]) -> None:
+    """Add one sub-pixel ray set's radiance of every pattern (then white, black) into ``acc``."""
+    proj = calibration.projector
+    nx, ny = board.corners
+    s = board.square_m * looks["square_scale"]
+    X, b, lam = _board_hit(rays_xy, T_camera_board, board, looks["bow_m"])
+    bx, by = b[..., 0] / s, b[..., 1] / s
+    checker = (np.floor(bx) + np.floor(by)) % 2 == 0
+    albedo = np.where(checker, looks["albedo_black"], looks["albedo_white"])
+    on_paper = (bx >= -2) & (bx <= nx + 1) & (by >= -2) & (by <= ny + 1)
+    in_squares = (bx >= -1) & (bx <= nx) & (by >= -1) & (by <= ny)
+    albedo = np.where(in_squares, albedo, np.where(on_paper, looks["albedo_white"], 0.5))
+    albedo = np.where(lam > 0, albedo, 0.0).astype(np.float32)
+    u_p, v_p = project_to_projector(calibration, X)
+    col = np.floor(u_p + 0.5)
+    row = np.floor(v_p + 0.5)
+    lit = np.isfinite(col) & np.isfinite(row) & (col >= 0) & (col < proj.width) & (row >= 0) & (row < proj.height)
+    ci = np.where(lit, col, 0).astype(np.intp)
+    ri = np.where(lit, row, 0).astype(np.intp)
+    u_safe = np.where(lit, u_p, 0.0)
+    v_safe = np.where(lit, v_p, 0.0)
+    ambient = np.float32(looks["ambient"])
+    for m in range(n_pat):  # one pattern at a time: a (n_pat, H, W) gather would not fit at 1920x1200
+        acc[m] += albedo * (ambient + pattern_value(m, u_safe, v_safe, ci, ri) * lit)
+    acc[n_pat] += albedo * (ambient + lit)
+    acc[n_pat + 1] += albedo * ambient
 
 
 def sample_board_poses(
@@ -124,12 +216,16 @@ def sample_board_poses(
     max_tilt_deg: float = 35.0,
     max_spin_deg: float = 25.0,
     max_tries: int = 20000,
+    image_coverage: float = 0.0,
 ) -> list[NDArray[np.float64]]:
     """Random board poses ``T_camera_board`` seen whole by both camera and projector.
 
     The board centre is drawn between the camera axis and the projector's, at a depth in
     ``depth_range_m``; tilts about the board's x and y axes up to ``max_tilt_deg`` (varied
     tilts are what make focal lengths observable), spin about its normal up to ``max_spin_deg``.
+    With ``image_coverage`` > 0 the centre is instead drawn uniformly over that fraction of the
+    camera image (about its centre), so that the corners reach the image edges, where the
+    lens distortion is observable, as a careful calibration does.
     """
     from scipy.spatial.transform import Rotation
 
@@ -141,6 +237,11 @@ def sample_board_poses(
         z = rng.uniform(*depth_range_m)
         a = rng.uniform(0.0, 1.0)
         centre = np.array([a * C_p[0], a * C_p[1], z]) + rng.normal(0, 0.03, 3) * [1, 1, 0]
+        if image_coverage > 0:
+            cam = calibration.camera
+            u = (cam.width - 1) / 2 + rng.uniform(-0.5, 0.5) * image_coverage * cam.width
+            v = (cam.height - 1) / 2 + rng.uniform(-0.5, 0.5) * image_coverage * cam.height
+            centre = z * np.linalg.solve(cam.K, [u, v, 1.0])
         tilt = rng.uniform(-max_tilt_deg, max_tilt_deg, 2)
         spin = rng.uniform(-max_spin_deg, max_spin_deg)
         R = Rotation.from_euler("xyz", [tilt[0], tilt[1], spin], degrees=True).as_matrix()

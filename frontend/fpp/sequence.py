@@ -8,6 +8,8 @@ Folder layout (DESIGN.md)::
     ...
     groundtruth.tum          optional: timestamp tx ty tz qx qy qz qw of T_world_sensor (metres)
     groundtruth_mesh.ply     optional: the scene in the world frame (metres)
+    groundtruth_calibration.yaml  optional: the rig's true parameters when sequence.yaml holds an
+                             estimate (simulated sequences); only evaluation reads it
 
 ``sequence.yaml``::
 
@@ -18,7 +20,7 @@ Folder layout (DESIGN.md)::
     image_count: 11            # images per frame
     frames:
       - {id: 0, timestamp: 0.0, folder: frame_000000, images: [000.png, 001.png, ...]}
-    groundtruth: {trajectory: groundtruth.tum, mesh: groundtruth_mesh.ply}   # optional
+    groundtruth: {trajectory: groundtruth.tum, mesh: groundtruth_mesh.ply, calibration: ...}   # optional
     source: {...}              # free-form provenance (simulator settings, capture software)
 
 A real sensor's recording fits this format as is: the frame folders hold whatever the camera
@@ -48,7 +50,7 @@ from fpp_graph.errors import InputDataError, OutputError
 from fpp_graph.trajectory import Trajectory, read_tum, write_tum
 from frontend.fpp.images import load_image_stack
 from frontend.fpp.patterns import PatternSpec
-from frontend.fpp.rig import RigCalibration
+from frontend.fpp.rig import RigCalibration, load_calibration
 
 log = logging.getLogger(__name__)
 
@@ -56,6 +58,7 @@ FORMAT = "fpp-graph sequence v1"
 SEQUENCE_FILE = "sequence.yaml"
 GT_TRAJECTORY_FILE = "groundtruth.tum"
 GT_MESH_FILE = "groundtruth_mesh.ply"
+GT_CALIBRATION_FILE = "groundtruth_calibration.yaml"
 
 
 def frame_folder_name(frame_id: int) -> str:
@@ -125,6 +128,15 @@ class Sequence:
         if self.ground_truth is None:
             return None
         return self.ground_truth.poses_world_sensor[i]
+
+
+def read_ground_truth_calibration(path: str | os.PathLike[str]) -> RigCalibration | None:
+    """The true rig of a (simulated) sequence folder, or None when it has no such file.
+
+    Evaluation only: the decoder uses ``sequence.yaml``'s calibration, which may be an estimate.
+    """
+    gt_path = Path(path) / GT_CALIBRATION_FILE
+    return load_calibration(gt_path) if gt_path.is_file() else None
 
 
 def read_sequence(path: str | os.PathLike[str]) -> Sequence:
@@ -229,6 +241,7 @@ class SequenceWriter:
         self.frames: list[FrameRecord] = []
         self._has_gt_traj = False
         self._has_gt_mesh = False
+        self._has_gt_calibration = False
 
     def add_frame(self, frame_id: int, timestamp: float, images: NDArray | _Seq[NDArray]) -> FrameRecord:
         """Write one frame's images (M, H, W) uint8/uint16 as PNGs ``000.png``.. in capture order."""
@@ -268,6 +281,15 @@ class SequenceWriter:
             os.replace(tmp, self.path / GT_MESH_FILE)
             self._has_gt_mesh = True
 
+    def write_ground_truth_calibration(self, true_calibration: RigCalibration) -> None:
+        """Write the rig's true parameters to ``groundtruth_calibration.yaml`` (mm, full precision).
+
+        For sequences whose ``sequence.yaml`` holds an *estimated* calibration: the decoder never
+        reads this file, evaluation may.
+        """
+        atomic_write_text(self.path / GT_CALIBRATION_FILE, yaml.safe_dump(true_calibration.to_dict("mm"), sort_keys=False))
+        self._has_gt_calibration = True
+
     def close(self) -> Path:
         """Write ``sequence.yaml``; returns the sequence folder."""
         if not self.frames:
@@ -285,6 +307,8 @@ class SequenceWriter:
             gt["trajectory"] = GT_TRAJECTORY_FILE
         if self._has_gt_mesh:
             gt["mesh"] = GT_MESH_FILE
+        if self._has_gt_calibration:
+            gt["calibration"] = GT_CALIBRATION_FILE
         if gt:
             meta["groundtruth"] = gt
         if self.source:

@@ -16,6 +16,7 @@ from fpp_graph.config import Config
 from fpp_graph.trajectory import Trajectory
 from fpp_graph.types import Frame
 from frontend.config import FPP_NOISE
+from frontend.fpp.rig import RigCalibration
 from frontend.fpp.sequence import SEQUENCE_FILE, read_sequence
 
 log = logging.getLogger(__name__)
@@ -63,7 +64,7 @@ class FppSequenceSource:
         frame = Frame(
             id=frame.id, timestamp=frame.timestamp, points=frame.points, colors=frame.colors,
             xyz_map=frame.xyz_map, texture=frame.texture,
-            metadata={**frame.metadata, "K": self.sequence.calibration.camera.K.tolist()},
+            metadata={**frame.metadata, **camera_metadata(self.sequence.calibration)},
         )
         return detect_and_describe(frame, self.config.registration)
 
@@ -97,3 +98,15 @@ class FppSequenceSource:
         if scene_config.get("scene") == "turntable" or turntable:
             out["views_per_turn"] = int(turntable.get("views_per_turn", 13))
         return out
+
+
+def camera_metadata(calibration: RigCalibration) -> dict[str, Any]:
+    """What locating a camera image in the map needs of the rig, kept with every decoded frame:
+    the camera's ``K`` and OpenCV ``dist`` (pixels) and the projector centre in the camera frame
+    (metres; it lights the texture)."""
+    T = calibration.T_projector_camera
+    return {
+        "K": calibration.camera.K.tolist(),
+        "dist": calibration.camera.dist.tolist(),
+        "projector_centre_m": (-T[:3, :3].T @ T[:3, 3]).tolist(),
+    }

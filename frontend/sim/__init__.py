@@ -11,9 +11,17 @@ Modules, each depending only on those before it:
 - :mod:`~frontend.sim.rig`: the simulated rig's physical parameters into a calibration.
 - :mod:`~frontend.sim.render`: :class:`FppSimulator` (ray cast, shading, camera model) and its
   ground truth.
+- :mod:`~frontend.sim.calibration`: the rig calibrated from simulated chessboard captures (what a
+  sequence stores by default), cached per rig and seed.
 - :mod:`~frontend.sim.sequences`: scene YAML -> :class:`SimulationSetup` -> sequence folder.
 """
 
+from frontend.sim.calibration import (
+    BoardCalibrationSettings,
+    EstimatedCalibration,
+    calibration_errors,
+    estimate_rig_calibration,
+)
 from frontend.sim.materials import ImageMaterial, Material, ProceduralMaterial, VertexColorMaterial
 from frontend.sim.parts import (
     SurfacePart,
@@ -37,9 +45,11 @@ from frontend.sim.render import (
 from frontend.sim.rig import (
     PREVIEW_SIZE,
     RigParameters,
+    binned_calibration,
     build_rig,
     default_pattern_spec,
     default_rig,
+    with_camera_resolution,
 )
 from frontend.sim.scenes import (
     CorridorConfig,
@@ -58,6 +68,8 @@ from frontend.sim.sequences import SimulationSetup, load_simulation, simulate_se
 
 __all__ = [
     "PREVIEW_SIZE",
+    "BoardCalibrationSettings",
+    "EstimatedCalibration",
     "CorridorConfig",
     "FppSimulator",
     "GroundTruth",
@@ -73,7 +85,9 @@ __all__ = [
     "TextureConfig",
     "TurntableConfig",
     "VertexColorMaterial",
+    "binned_calibration",
     "box",
+    "calibration_errors",
     "build_corridor",
     "build_rig",
     "build_turntable",
@@ -82,6 +96,7 @@ __all__ = [
     "cylinder",
     "default_pattern_spec",
     "default_rig",
+    "estimate_rig_calibration",
     "frame_overlap",
     "load_mesh",
     "load_simulation",
@@ -95,4 +110,5 @@ __all__ = [
     "simulate_sequence",
     "sphere",
     "sphere_scene",
+    "with_camera_resolution",
 ]

@@ -14,7 +14,7 @@ Rendering one frame (:meth:`FppSimulator.render`)
    centre.
 3. Radiance of pattern image ``m``: ``albedo * (E_p * cos(theta_p) * (d0 / d_p)^2 * P_m + ambient)``
    with ``P_m`` the continuous pattern value (:func:`frontend.fpp.patterns.pattern_intensity`,
-   projector gamma and finite DMD contrast applied). Surfaces are two-sided Lambertian.
+   the projector's residual response ``P^(gamma / compensation)`` and finite DMD contrast applied). Surfaces are two-sided Lambertian.
 4. Camera: depth-dependent defocus (thin-lens blur circle, blended between two Gaussian blurs),
    shot noise (variance ``gain * signal``) plus read noise, the camera response (gamma),
    8-bit quantisation and saturation.
@@ -57,11 +57,12 @@ class RenderSettings(StrictModel):
 
     projector_irradiance_grey: float = Field(220.0, ge=0, description="grey level of a white Lambertian surface facing the projector at the working distance, full-white pattern")
     pattern_black_level: float = Field(0.01, ge=0, lt=1, description="DMD contrast: a black pattern pixel still emits this fraction")
-    projector_gamma: float = Field(1.0, gt=0, description="projector response exponent on the (already pre-corrected) pattern value")
+    projector_gamma: float = Field(2.2, gt=0, description="projector's native response exponent (a DLP projector's video gamma)")
+    projector_gamma_compensation: float = Field(2.0, gt=0, description="exponent the projector firmware pre-corrects with: the emitted level is P^(gamma / compensation); partial, as on LightCrafter-class firmware, so 2.2 / 2.0 leaves x^1.1")
     ambient_grey: float = Field(8.0, ge=0, description="ambient light on a white surface, grey levels")
     inverse_square: bool = Field(True, description="projector irradiance falls off as (reference distance / distance)^2")
     irradiance_reference_m: float = Field(0.5, gt=0, description="projector distance at which projector_irradiance_grey holds")
-    camera_gamma: float = Field(1.0, gt=0, description="camera response: out = 255 (in / 255)^(1 / gamma); 1 = linear")
+    camera_gamma: float = Field(1.0, gt=0, description="camera response: out = 255 (in / 255)^(1 / gamma); 1 = linear, as machine-vision cameras ship (gamma off), which FPP needs")
     read_noise_grey: float = Field(0.8, ge=0, description="signal-independent Gaussian noise sigma, grey levels")
     shot_noise_gain: float = Field(0.012, ge=0, description="signal-dependent noise variance per grey level of signal")
     blur_sigma_px: float = Field(0.6, ge=0, description="in-focus blur sigma (lens + pixel integration), camera pixels at full resolution")
@@ -451,8 +452,8 @@ class FppSimulator:
 
         def one(m: int) -> None:
             P = pattern_intensity(self.spec, m, u_lit, v_lit, proj.width, proj.height).astype(np.float32)
-            if s.projector_gamma != 1.0:
-                P = P ** np.float32(s.projector_gamma)
+            if s.projector_gamma != s.projector_gamma_compensation:
+                P = P ** np.float32(s.projector_gamma / s.projector_gamma_compensation)
             flat = ambient_img.copy()
             flat[lit_index] += gain_lit * (black + (np.float32(1.0) - black) * P)
             rng = np.random.default_rng([int(s.seed) & 0xFFFFFFFF, int(frame_index), m])

@@ -110,6 +110,53 @@ def build_rig(params: RigParameters | None = None, preview: bool = False) -> Rig
     return RigCalibration(camera=camera, projector=projector, T_projector_camera=T_projector_camera)
 
 
+def with_camera_resolution(params: RigParameters, width: int, height: int) -> RigParameters:
+    """The same rig with its camera binned or windowed to ``width x height`` at the same field of view.
+
+    Focal length and principal-point offset scale by ``width / camera_width`` (what binning the
+    sensor does, pixel-centre convention kept); the aspect ratio must be the camera's.
+
+    Raises
+    ------
+    ConfigError
+        A non-positive size or a different aspect ratio (the field of view would change).
+    """
+    if width <= 0 or height <= 0:
+        raise ConfigError(f"camera resolution must be positive, got {width}x{height}")
+    s = width / params.camera_width
+    if abs(params.camera_height * s - height) > 0.5:
+        raise ConfigError(
+            f"camera resolution {width}x{height} does not keep the rig camera's aspect "
+            f"{params.camera_width}x{params.camera_height}; pick e.g. {width}x{round(params.camera_height * s)}"
+        )
+    ox, oy = params.camera_principal_offset_px
+    return params.model_copy(update={
+        "camera_width": int(width), "camera_height": int(height),
+        "camera_focal_px": params.camera_focal_px * s, "camera_principal_offset_px": (ox * s, oy * s),
+    })
+
+
+def binned_calibration(calibration: RigCalibration, width: int, height: int) -> RigCalibration:
+    """The calibration of the same rig with its camera binned to ``width x height``.
+
+    What a user does with a binned camera: calibrate at the full sensor size, then scale the
+    camera matrix (pixel-centre convention: ``c' = (c + 0.5) s - 0.5``); distortion acts on
+    normalised coordinates and is unchanged. :func:`build_rig` bins the true rig the same way.
+    """
+    cam = calibration.camera
+    s = width / cam.width
+    if abs(cam.height * s - height) > 0.5:
+        raise ConfigError(f"cannot bin a {cam.width}x{cam.height} camera to {width}x{height}: the aspect differs")
+    K = cam.K.copy()
+    K[0, 0] *= s
+    K[0, 1] *= s
+    K[1, 1] *= s
+    K[0, 2] = (K[0, 2] + 0.5) * s - 0.5
+    K[1, 2] = (K[1, 2] + 0.5) * s - 0.5
+    camera = PinholeModel(int(width), int(height), K, cam.dist.copy())
+    return RigCalibration(camera, calibration.projector, calibration.T_projector_camera.copy(), dict(calibration.reprojection_rms_px))
+
+
 def default_rig(preview: bool = False) -> RigCalibration:
     """The paper-like default rig (1920x1200 camera, 912x1140 projector, 0.12 m baseline)."""
     return build_rig(RigParameters(), preview=preview)

@@ -4,6 +4,10 @@
 render settings, scene, trajectory); :func:`simulate_sequence` renders every pose with
 :class:`frontend.sim.render.FppSimulator` and writes a recorded sequence folder
 (:mod:`frontend.fpp.sequence`), the same format a real sensor's recordings take.
+
+The images are rendered with the rig's true parameters; by default ``sequence.yaml`` stores the
+calibration *estimated* from simulated board captures (:mod:`frontend.sim.calibration`), as a real
+rig has, and the truth goes to ``groundtruth_calibration.yaml`` for evaluation.
 """
 
 from __future__ import annotations
@@ -21,9 +25,20 @@ from fpp_graph.errors import ConfigError
 from frontend.fpp.patterns import PatternSpec
 from frontend.fpp.rig import RigCalibration
 from frontend.fpp.sequence import SequenceWriter
+from frontend.sim.calibration import (
+    BoardCalibrationSettings,
+    estimate_rig_calibration,
+    parse_calibration_settings,
+)
 from frontend.sim.config import parse_model
 from frontend.sim.render import FppSimulator, RenderSettings, parse_render_settings
-from frontend.sim.rig import build_rig, default_pattern_spec, parse_rig_parameters
+from frontend.sim.rig import (
+    binned_calibration,
+    build_rig,
+    default_pattern_spec,
+    parse_rig_parameters,
+    with_camera_resolution,
+)
 from frontend.sim.scenes import (
     CorridorConfig,
     Scene,
@@ -32,7 +47,7 @@ from frontend.sim.scenes import (
     build_turntable,
 )
 
-_CONFIG_KEYS = {"scene", "description", "patterns", "rig", "render", "turntable", "corridor"}
+_CONFIG_KEYS = {"scene", "description", "patterns", "rig", "render", "turntable", "corridor", "calibration"}
 
 
 @dataclass(frozen=True, eq=False)
@@ -41,6 +56,8 @@ class SimulationSetup:
 
     name: str
     calibration: RigCalibration
+    native_calibration: RigCalibration  # the true rig at the camera's full sensor size
+    calibration_settings: BoardCalibrationSettings
     spec: PatternSpec
     settings: RenderSettings
     scene: Scene
@@ -49,8 +66,16 @@ class SimulationSetup:
     config: dict[str, Any]
 
 
-def load_simulation(config: str | os.PathLike[str] | dict[str, Any], preview: bool = False, max_frames: int | None = None) -> SimulationSetup:
+def load_simulation(
+    config: str | os.PathLike[str] | dict[str, Any],
+    preview: bool = False,
+    max_frames: int | None = None,
+    resolution: tuple[int, int] | None = None,
+) -> SimulationSetup:
     """Resolve a scene definition (a ``datasets/*.yaml`` path or its dict) into a setup.
+
+    ``calibration`` in the result is the rig's *true* calibration; ``resolution`` (width, height)
+    bins the camera at the same field of view (:func:`frontend.sim.rig.with_camera_resolution`).
 
     Raises
     ------
@@ -75,7 +100,11 @@ def load_simulation(config: str | os.PathLike[str] | dict[str, Any], preview: bo
     if kind not in ("turntable", "corridor"):
         raise ConfigError(f"{where}: scene must be 'turntable' or 'corridor', got {kind!r}")
     rig = parse_rig_parameters(config.get("rig"), f"{where}: rig")
+    native_calibration = build_rig(rig)
+    if resolution is not None:
+        rig = with_camera_resolution(rig, *resolution)
     settings = parse_render_settings(config.get("render"), f"{where}: render")
+    calibration_settings = _board_captures_like_the_sequence(parse_calibration_settings(config.get("calibration"), f"{where}: calibration"), config.get("calibration") or {}, settings)
     spec = PatternSpec.from_dict(config["patterns"], f"{where}: patterns") if "patterns" in config else default_pattern_spec()
     calibration = build_rig(rig, preview=preview)
     if kind == "turntable":
@@ -93,7 +122,19 @@ def load_simulation(config: str | os.PathLike[str] | dict[str, Any], preview: bo
     resolved["rig"] = rig.model_dump(mode="json")
     resolved["render"] = settings.model_dump(mode="json")
     resolved["patterns"] = spec.to_dict()
-    return SimulationSetup(kind, calibration, spec, settings, scene, poses, stamps, resolved)
+    resolved["calibration"] = calibration_settings.model_dump(mode="json")
+    return SimulationSetup(kind, calibration, native_calibration, calibration_settings, spec, settings, scene, poses, stamps, resolved)
+
+
+def _board_captures_like_the_sequence(calibration: BoardCalibrationSettings, given: dict[str, Any], render: RenderSettings) -> BoardCalibrationSettings:
+    """The board captures take the sequence camera's noise and the projector's response unless the
+    ``calibration:`` section sets them: the same rig captures both."""
+    same = {
+        "noise_grey": render.read_noise_grey,
+        "shot_noise_gain": render.shot_noise_gain,
+        "projector_response_exponent": render.projector_gamma / render.projector_gamma_compensation,
+    }
+    return calibration.model_copy(update={k: v for k, v in same.items() if k not in given})
 
 
 def simulate_sequence(
@@ -103,6 +144,10 @@ def simulate_sequence(
     max_frames: int | None = None,
     overwrite: bool = False,
     progress: Any = None,
+    *,
+    resolution: tuple[int, int] | None = None,
+    calibration_mode: str | None = None,
+    cache_dir: str | os.PathLike[str] | None = None,
 ) -> Path:
     """Render a scene definition into a recorded sequence folder (images + ground truth).
 
@@ -119,17 +164,54 @@ def simulate_sequence(
     overwrite : bool
         Replace an existing sequence folder.
     progress : callable, optional
-        Called as ``progress(done, total)`` after each frame.
+        Called as ``progress(done, total)`` after each frame; with three arguments
+        (``progress(stage, done, total)``, stages ``calibrate`` and ``simulate``) when it accepts them.
+    resolution : (width, height), optional
+        Camera size at the same field of view (overrides ``preview``).
+    calibration_mode : {'estimated', 'true'}, optional
+        Overrides the scene's ``calibration.mode``: ``sequence.yaml`` gets the calibration
+        estimated from simulated board captures (default) or the true one.
+    cache_dir : path, optional
+        Cache of estimated calibrations (:func:`frontend.sim.calibration.default_cache_dir`).
     """
-    setup = load_simulation(config, preview=preview, max_frames=max_frames)
+    setup = load_simulation(config, preview=preview and resolution is None, max_frames=max_frames, resolution=resolution)
+    mode = calibration_mode or setup.calibration_settings.mode
+    if mode not in ("estimated", "true"):
+        raise ConfigError(f"calibration mode must be 'estimated' or 'true', got {mode!r}")
+    staged = _staged_progress(progress)
+    source: dict[str, Any] = {"simulator": "frontend.sim.FppSimulator", "preview": bool(preview), "config": setup.config, "calibration": mode}
+    stored = setup.calibration
+    if mode == "estimated":
+        # Calibrated at the camera's full size, then binned, as one does with a binned camera
+        # (boards at 640x400 give a far worse projector calibration than the sensor's own pixels).
+        estimate = estimate_rig_calibration(
+            setup.native_calibration, setup.calibration_settings, seed=setup.settings.seed, cache_dir=cache_dir,
+            progress=lambda done, total: staged("calibrate", done, total),
+        )
+        stored = binned_calibration(estimate.calibration, setup.calibration.camera.width, setup.calibration.camera.height)
+        source["calibration_report"] = estimate.report
     sim = FppSimulator(setup.calibration, setup.spec, setup.scene, setup.settings)
-    source = {"simulator": "frontend.sim.FppSimulator", "preview": bool(preview), "config": setup.config}
-    writer = SequenceWriter(out, setup.calibration, setup.spec, overwrite=overwrite, source=source)
+    writer = SequenceWriter(out, stored, setup.spec, overwrite=overwrite, source=source)
     n = len(setup.poses_world_sensor)
     for k, (T, ts) in enumerate(zip(setup.poses_world_sensor, setup.timestamps_s, strict=True)):
         frame = sim.render(T, frame_index=k)
         writer.add_frame(k, float(ts), frame.images)
-        if progress is not None:
-            progress(k + 1, n)
+        staged("simulate", k + 1, n)
     writer.write_ground_truth(setup.poses_world_sensor, setup.scene.to_open3d())
+    writer.write_ground_truth_calibration(setup.calibration)
     return writer.close()
+
+
+def _staged_progress(progress: Any) -> Any:
+    """``progress(stage, done, total)`` from a 2- or 3-argument callback (or None)."""
+    if progress is None:
+        return lambda stage, done, total: None
+    import inspect
+
+    try:
+        n_args = len(inspect.signature(progress).parameters)
+    except (TypeError, ValueError):
+        n_args = 2
+    if n_args >= 3:
+        return progress
+    return lambda stage, done, total: progress(done, total) if stage == "simulate" else None

@@ -129,7 +129,7 @@ def test_writer_refuses_to_clobber_and_needs_frames(tmp_path, tiny_rig, spec):
 def test_simulated_turntable_written_read_back_and_decoded(tmp_path):
     import open3d as o3d
 
-    out = simulate_sequence({"scene": "turntable", "turntable": {"turns": 2, "views_per_turn": 3}}, tmp_path / "tt", preview=True, max_frames=2)
+    out = simulate_sequence({"scene": "turntable", "turntable": {"turns": 2, "views_per_turn": 3}}, tmp_path / "tt", preview=True, max_frames=2, calibration_mode="true")
     seq = read_sequence(out)
     assert len(seq) == 2 and seq.ground_truth is not None and seq.ground_truth_mesh_path is not None
     assert seq.calibration.camera.width == 640

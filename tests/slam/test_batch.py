@@ -145,7 +145,7 @@ def fpp_sequence(tmp_path_factory):
     simulator = pytest.importorskip("frontend.sim")
     root = tmp_path_factory.mktemp("fpp_in")
     scene = {"scene": "turntable", "turntable": {"turns": 1, "views_per_turn": 24}}
-    return simulator.simulate_sequence(scene, root / "turntable", preview=True, max_frames=2)
+    return simulator.simulate_sequence(scene, root / "turntable", preview=True, max_frames=2, calibration_mode="true")
 
 
 @needs_dask

@@ -1,0 +1,328 @@
+"""The simulated rig calibrated as a real one is: chessboard captures in, an estimated calibration out.
+
+A real FPP rig never knows its true camera and projector parameters; it has what a calibration
+from board captures estimated, with a fraction of a pixel of reprojection error and a systematic
+error that every decoded view shares. :func:`estimate_rig_calibration` reproduces that: it
+renders Gray-code captures of a chessboard (with the board's printing-scale and flatness errors)
+at poses spread over the working volume, seen by the *true* rig, and calibrates with the
+project's calibration code (:func:`frontend.fpp.rig_calibration.calibrate_from_captures`). The
+simulator then renders with the truth and the sequence stores the estimate.
+
+Results are cached per (true rig, board set-up, seed): the same inputs always give the same
+estimate, and the demo does not recalibrate on every run.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import os
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+from pydantic import Field
+
+from fpp_graph.atomic import atomic_write_text
+from fpp_graph.errors import CalibrationError
+from fpp_graph.geometry import kabsch, rotation_angle_rad
+from frontend.fpp.calibration_board import Chessboard
+from frontend.fpp.calibration_captures import iter_graycode_captures, sample_board_poses
+from frontend.fpp.patterns import PatternSpec
+from frontend.fpp.phase import decode
+from frontend.fpp.rig import RigCalibration, load_calibration, save_calibration
+from frontend.fpp.rig_calibration import (
+    PoseObservation,
+    calibrate_from_captures,
+    calibrate_rig,
+    observe_pose,
+    transfer_rms_px,
+)
+from frontend.sim.config import StrictModel, validate_section
+
+log = logging.getLogger(__name__)
+
+CACHE_VERSION = 2
+"""Bump when the capture renderer or the calibration changes what a cached estimate would be."""
+
+
+class BoardCalibrationSettings(StrictModel):
+    """How the simulated rig is calibrated (the ``calibration:`` section of a scene YAML).
+
+    Defaults: a 10 x 8 square chessboard of 20 mm squares (200 x 160 mm, it fits the projector's
+    0.31 m high image at 0.4 m with a margin), 15 poses between 0.40 and 0.65 m (the working
+    volume around the 0.5 m working distance) tilted up to 35 degrees (tilts make the focal
+    lengths observable) and centred anywhere over 80 % of the image (corners near the image
+    edges make the distortion observable). The board errors are those of a good glass target:
+    square size known to 5e-5 (0.01 mm over 200 mm, the usual stated accuracy) and flat to 20 um.
+    The captures use the rig's own phase patterns along both projector axes, the sequence
+    camera's noise and the projector's response (:func:`frontend.sim.sequences.load_simulation`
+    fills those from the ``render:`` section unless set here). k3 is fixed at zero as in common
+    practice: with boards that fill a fraction of the image, a free k3 fits noise at the image
+    corners.
+    """
+
+    mode: str = Field("estimated", pattern="^(estimated|true)$", description="'estimated' (a calibration from simulated board captures) or 'true' (the simulator's parameters, for comparisons)")
+    board_corners: tuple[int, int] = Field((9, 7), description="inner corners per row, per column")
+    square_m: float = Field(0.02, gt=0, description="nominal square side")
+    poses: int = Field(15, ge=3, le=60)
+    depth_range_m: tuple[float, float] = Field((0.40, 0.65), description="board centre depth range (the working volume)")
+    max_tilt_deg: float = Field(35.0, ge=0, le=60)
+    printing_scale_error: float = Field(5e-5, description="printed square / nominal square - 1 (unknown to the calibration)")
+    flatness_bow_m: float = Field(2e-5, description="board bow at its centre, towards the camera")
+    noise_grey: float = Field(0.8, ge=0, description="read noise sigma of the board captures, grey levels (the sequences' camera: RenderSettings.read_noise_grey)")
+    shot_noise_gain: float = Field(0.012, ge=0, description="shot-noise variance per grey level of signal (RenderSettings.shot_noise_gain)")
+    supersample: int = Field(2, ge=1, le=4, description="rays per pixel side (pixel integration)")
+    fix_k3: bool = True
+    patterns: str = Field("phase", pattern="^(phase|graycode)$", description="'phase': the rig's own 4-step phase shifting with complementary Gray code along the columns and then the rows (sub-pixel projector coordinates); 'graycode': Gray code with inverses (procam-calibration's set, whole projector pixels)")
+    image_coverage: float = Field(0.8, ge=0, le=1, description="board centres drawn over this fraction of the camera image (0: between the two optical axes)")
+    refine_intrinsics: bool = Field(True, description="the stereo calibration refines both devices' intrinsics jointly over the shared board poses (20 Gray-code poses at 1920x1200: baseline error -0.030 % -> -0.018 %, focal -0.080 % -> -0.065 %) instead of keeping the single-device ones")
+    projector_response_exponent: float = Field(1.1, gt=0, description="the projector's residual response P^e during the board captures (RenderSettings gamma / compensation)")
+
+
+def parse_calibration_settings(data: dict[str, Any] | None, where: str) -> BoardCalibrationSettings:
+    """Validate a ``calibration:`` config section (unknown keys are errors)."""
+    return validate_section(BoardCalibrationSettings, data, where)
+
+
+@dataclass(frozen=True, eq=False)
+class EstimatedCalibration:
+    """An estimated rig calibration with its figures (``report`` is JSON-ready)."""
+
+    calibration: RigCalibration
+    report: dict[str, Any]
+
+
+def default_cache_dir() -> Path:
+    """``$FPP_GRAPH_CACHE/calibration`` or ``~/.cache/fpp-graph/calibration``."""
+    root = os.environ.get("FPP_GRAPH_CACHE") or Path.home() / ".cache" / "fpp-graph"
+    return Path(root) / "calibration"
+
+
+def cache_key(truth: RigCalibration, settings: BoardCalibrationSettings, seed: int) -> str:
+    """A digest of everything the estimate depends on."""
+    blob = json.dumps({"v": CACHE_VERSION, "rig": truth.to_dict("m"), "settings": settings.model_dump(mode="json"), "seed": int(seed)}, sort_keys=True, default=float)
+    return hashlib.sha256(blob.encode()).hexdigest()[:20]
+
+
+def estimate_rig_calibration(
+    truth: RigCalibration,
+    settings: BoardCalibrationSettings | None = None,
+    seed: int = 0,
+    cache_dir: str | os.PathLike[str] | None = None,
+    progress: Callable[[int, int], None] | None = None,
+) -> EstimatedCalibration:
+    """Calibrate the simulated rig ``truth`` from rendered chessboard captures (cached).
+
+    Parameters
+    ----------
+    truth : RigCalibration
+        The simulator's rig.
+    settings : BoardCalibrationSettings, optional
+        Board, poses and errors; defaults as documented there.
+    seed : int
+        Board poses and capture noise.
+    cache_dir : path, optional
+        Where estimates are kept (default :func:`default_cache_dir`); a folder that cannot be
+        written only costs the recomputation next time.
+    progress : callable, optional
+        ``progress(done, total)`` per rendered board pose (not called on a cache hit).
+
+    Raises
+    ------
+    CalibrationError
+        The board cannot be placed in view of both devices, or too few poses were usable.
+    """
+    settings = settings or BoardCalibrationSettings()
+    folder = Path(cache_dir) if cache_dir is not None else default_cache_dir()
+    key = cache_key(truth, settings, seed)
+    cal_path, report_path = folder / f"{key}.yaml", folder / f"{key}.json"
+    if cal_path.is_file() and report_path.is_file():
+        log.info("estimated calibration from the cache %s", cal_path)
+        return EstimatedCalibration(load_calibration(cal_path), json.loads(report_path.read_text()))
+    estimate = _calibrate_from_rendered_board(truth, settings, seed, progress)
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        save_calibration(cal_path, estimate.calibration, unit="m")
+        atomic_write_text(report_path, json.dumps(estimate.report, indent=1))
+    except OSError as exc:  # a read-only cache only costs time
+        log.warning("cannot cache the estimated calibration in %s: %s", folder, exc)
+    return estimate
+
+
+def board_pattern_specs(truth: RigCalibration) -> list[PatternSpec]:
+    """The phase pattern sets of the board captures: the sequences' 4-step phase shifting with
+    complementary Gray code, 64 periods along the columns, then the same pitch along the rows."""
+    rows_periods = int(round(64 * truth.projector.height / truth.projector.width))
+    gray_bits = int(np.ceil(np.log2(rows_periods)))
+    return [
+        PatternSpec(kind="complementary_gray", phase_steps=4, periods=(64,), gray_bits=6, axis="columns"),
+        PatternSpec(kind="complementary_gray", phase_steps=4, periods=(rows_periods,), gray_bits=gray_bits, axis="rows"),
+    ]
+
+
+def _phase_observations(truth: RigCalibration, board: Chessboard, captures: Any, specs: list[PatternSpec]) -> list[PoseObservation]:
+    """Decode column and row phase captures of each pose into its board corners (camera and projector)."""
+    proj = truth.projector
+    observations = []
+    for k, (stack, white, _black) in enumerate(captures):
+        n_columns = specs[0].image_count()
+        columns = decode(stack[:n_columns], specs[0], proj.width, proj.height)
+        rows = decode(stack[n_columns:], specs[1], proj.width, proj.height)
+        try:
+            observations.append(observe_pose(f"pose {k}", white, columns.u_projector_px, rows.u_projector_px, board, columns.mask & rows.mask))
+        except CalibrationError as exc:
+            log.warning("%s", exc)
+    return observations
+
+
+def _calibrate_from_rendered_board(truth: RigCalibration, settings: BoardCalibrationSettings, seed: int, progress: Callable[[int, int], None] | None) -> EstimatedCalibration:
+    board = Chessboard(tuple(settings.board_corners), settings.square_m)
+    rng = np.random.default_rng([int(seed), 20241125])
+    poses = sample_board_poses(
+        truth, board, settings.poses, rng, depth_range_m=tuple(settings.depth_range_m), max_tilt_deg=settings.max_tilt_deg, image_coverage=settings.image_coverage,
+    )
+    specs = board_pattern_specs(truth) if settings.patterns == "phase" else None
+    captures = iter_graycode_captures(
+        truth, board, poses, rng, pattern_specs=specs, projector_exponent=settings.projector_response_exponent, supersample=settings.supersample,
+        noise_grey=settings.noise_grey, shot_noise_gain=settings.shot_noise_gain, square_scale=1.0 + settings.printing_scale_error, bow_m=settings.flatness_bow_m,
+    )
+
+    def counted():
+        for k, capture in enumerate(captures):
+            yield capture
+            if progress is not None:
+                progress(k + 1, len(poses))
+
+    flags = cv2.CALIB_FIX_K3 if settings.fix_k3 else 0
+    projector_size = (truth.projector.width, truth.projector.height)
+    if specs is None:
+        report, observations = calibrate_from_captures(counted(), board, projector_size, calibration_flags=flags, refine_intrinsics=settings.refine_intrinsics)
+    else:
+        observations = _phase_observations(truth, board, counted(), specs)
+        camera_size = (truth.camera.width, truth.camera.height)
+        report = calibrate_rig(observations, board, camera_size, projector_size, calibration_flags=flags, refine_intrinsics=settings.refine_intrinsics)
+    if len(report.poses) < 3:
+        raise CalibrationError(f"only {len(report.poses)} of {len(poses)} simulated board poses were usable; enlarge calibration.depth_range_m or the board")
+    estimate = report.calibration
+    figures = {
+        "poses": len(report.poses), "camera_corners": report.camera_corners, "projector_corners": report.projector_corners,
+        "reprojection_rms_px": dict(estimate.reprojection_rms_px),
+        "transfer_rms_px": transfer_rms_px(estimate, observations, board)[0],
+        "errors_vs_truth": calibration_errors(truth, estimate),
+        "plane_error_at_0.5m": plane_error_from_calibration(truth, estimate),
+        "settings": settings.model_dump(mode="json"), "seed": int(seed),
+    }
+    log.info("estimated rig calibration: %s", report.summary())
+    return EstimatedCalibration(estimate, figures)
+
+
+def calibration_errors(truth: RigCalibration, estimate: RigCalibration) -> dict[str, float]:
+    """Estimated minus true parameters: focal lengths (px and %), principal points (px),
+    distortion coefficients, baseline (mm), projector centre (mm) and rotation (deg)."""
+    out: dict[str, float] = {}
+    for device in ("camera", "projector"):
+        K_true, K_est = getattr(truth, device).K, getattr(estimate, device).K
+        for name, (i, j) in {"fx": (0, 0), "fy": (1, 1), "cx": (0, 2), "cy": (1, 2)}.items():
+            out[f"{device}_{name}_err_px"] = float(K_est[i, j] - K_true[i, j])
+        out[f"{device}_fx_err_percent"] = float(100 * (K_est[0, 0] / K_true[0, 0] - 1))
+        out[f"{device}_fy_err_percent"] = float(100 * (K_est[1, 1] / K_true[1, 1] - 1))
+        d_true = np.zeros(5)
+        d_est = np.zeros(5)
+        d_true[: min(5, getattr(truth, device).dist.size)] = getattr(truth, device).dist[:5]
+        d_est[: min(5, getattr(estimate, device).dist.size)] = getattr(estimate, device).dist[:5]
+        for name, dt, de in zip(("k1", "k2", "p1", "p2", "k3"), d_true, d_est, strict=True):
+            out[f"{device}_{name}_err"] = float(de - dt)
+    out["baseline_err_mm"] = 1e3 * (estimate.baseline_m - truth.baseline_m)
+    out["baseline_err_percent"] = 100 * (estimate.baseline_m / truth.baseline_m - 1)
+    centre_true = -truth.T_projector_camera[:3, :3].T @ truth.T_projector_camera[:3, 3]
+    centre_est = -estimate.T_projector_camera[:3, :3].T @ estimate.T_projector_camera[:3, 3]
+    out["projector_centre_err_mm"] = 1e3 * float(np.linalg.norm(centre_est - centre_true))
+    R_err = estimate.T_projector_camera[:3, :3] @ truth.T_projector_camera[:3, :3].T
+    out["rotation_err_deg"] = float(np.degrees(rotation_angle_rad(R_err)))
+    return out
+
+
+def plane_error_from_calibration(truth: RigCalibration, estimate: RigCalibration, depth_m: float = 0.5, tilt_deg: float = -7.0, step_px: int = 4) -> dict[str, float]:
+    """Noise-free error a calibration alone causes on a plane filling the camera's view.
+
+    Every ``step_px``-th camera pixel sees the true plane (depth ``depth_m`` on the camera axis,
+    turned ``tilt_deg`` about the vertical); its true projector column is what a perfect decoder
+    would give; triangulated with ``estimate``, the point's distance to the true plane is the
+    calibration's error. Returns RMS, median, p95 and the mean signed distance (mm, positive
+    away from the camera), over the pixels the projector lights, and ``aligned_rms_mm``: the
+    3D point error left after the best rigid fit of the view to the truth (the view's shape
+    error; a rigid offset is absorbed by the frame's pose).
+    """
+    from frontend.fpp.lens import project_to_projector, undistort_pixels
+    from frontend.fpp.triangulation import Triangulator
+
+    cam = truth.camera
+    vv, uu = np.mgrid[0 : cam.height : step_px, 0 : cam.width : step_px].astype(np.float64)
+    xy, _ = undistort_pixels(cam, np.column_stack([uu.ravel(), vv.ravel()]))
+    rays = np.column_stack([xy, np.ones(len(xy))])
+    t = np.radians(tilt_deg)
+    normal = np.array([np.sin(t), 0.0, np.cos(t)])
+    points = rays * ((normal @ [0.0, 0.0, depth_m]) / (rays @ normal))[:, None]
+    u_p, v_p = project_to_projector(truth, points)
+    lit = np.isfinite(u_p) & (u_p >= 0) & (u_p <= truth.projector.width - 1) & (v_p >= 0) & (v_p <= truth.projector.height - 1)
+    # the estimate's camera sees the same pixels: a camera map of the true columns at full size
+    u_map = np.full((cam.height, cam.width), np.nan)
+    u_map[vv.astype(int).ravel()[lit], uu.astype(int).ravel()[lit]] = u_p[lit]
+    xyz = Triangulator(estimate, dtype=np.float64).triangulate(u_map, np.isfinite(u_map))
+    est = xyz[vv.astype(int).ravel()[lit], uu.astype(int).ravel()[lit]]
+    ok = np.all(np.isfinite(est), axis=1)
+    est, true_points = est[ok], points[lit][ok]
+    signed_mm = 1e3 * (est @ normal - normal @ [0.0, 0.0, depth_m])
+    d = np.abs(signed_mm)
+    # The sensor frame is what the calibration defines: a rigid offset of the whole view is taken
+    # up by the pose of every frame alike, so the shape error is what remains after the best
+    # rigid fit (per-pixel correspondences).
+    T = kabsch(true_points, est)
+    aligned_mm = 1e3 * np.linalg.norm(est @ T[:3, :3].T + T[:3, 3] - true_points, axis=1)
+    return {
+        "rms_mm": float(np.sqrt(np.mean(d**2))), "median_mm": float(np.median(d)), "p95_mm": float(np.percentile(d, 95)),
+        "mean_signed_mm": float(np.mean(signed_mm)), "aligned_rms_mm": float(np.sqrt(np.mean(aligned_mm**2))),
+    }
+
+
+def sensitivity(truth: RigCalibration, estimate: RigCalibration, depth_m: float = 0.5) -> dict[str, dict[str, float]]:
+    """Plane error (:func:`plane_error_from_calibration`) of the truth with one parameter group at a
+    time replaced by the estimate's value: which calibration error limits the accuracy.
+
+    Groups: camera focal lengths, camera principal point, camera distortion, the same three for
+    the projector, the rotation and the translation of ``T_projector_camera``; ``all`` is the
+    estimate itself. The estimate's actual error stands in for its uncertainty.
+    """
+    from frontend.fpp.rig import PinholeModel
+
+    def device(true_model: PinholeModel, est_model: PinholeModel, part: str) -> PinholeModel:
+        K = true_model.K.copy()
+        dist = true_model.dist.copy()
+        if part == "f":
+            K[0, 0], K[1, 1] = est_model.K[0, 0], est_model.K[1, 1]
+        elif part == "c":
+            K[0, 2], K[1, 2] = est_model.K[0, 2], est_model.K[1, 2]
+        elif part == "dist":
+            n = max(dist.size, est_model.dist.size)
+            dist = np.zeros(n)
+            dist[: est_model.dist.size] = est_model.dist
+        return PinholeModel(true_model.width, true_model.height, K, dist)
+
+    out = {}
+    for name in ("camera f", "camera c", "camera dist", "projector f", "projector c", "projector dist", "rotation", "translation"):
+        who, _, part = name.partition(" ")
+        cam = device(truth.camera, estimate.camera, part) if who == "camera" else truth.camera
+        proj = device(truth.projector, estimate.projector, part) if who == "projector" else truth.projector
+        T = truth.T_projector_camera.copy()
+        if name == "rotation":
+            T[:3, :3] = estimate.T_projector_camera[:3, :3]
+        elif name == "translation":
+            T[:3, 3] = estimate.T_projector_camera[:3, 3]
+        out[name] = plane_error_from_calibration(truth, RigCalibration(cam, proj, T), depth_m)
+    out["all"] = plane_error_from_calibration(truth, estimate, depth_m)
+    return out
