@@ -9,7 +9,7 @@ from pathlib import Path
 
 import yaml
 
-from frontend import capture_commands
+from frontend.commands import capture as capture_commands
 from frontend.fpp.pattern_file import pattern_spec_document
 from frontend.fpp.patterns import PatternSpec
 
