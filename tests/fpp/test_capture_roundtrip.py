@@ -21,7 +21,7 @@ from frontend.fpp.patterns import PatternSpec
 from frontend.fpp.rig import save_calibration
 from frontend.fpp.triangulation import Triangulator
 from frontend.sim import FppSimulator, RigParameters, plane_scene, sphere_scene
-from frontend.sim.render import project_points
+from frontend.sim.render import RenderSettings, project_points
 
 PREVIEW_RIG = RigParameters().calibration(preview=True)  # 640x400 camera, 912x1140 projector
 # rows need a baseline across them: the projector above the camera
@@ -32,9 +32,15 @@ def _scene(kind: str):
     return plane_scene(0.5, tilt_deg=-7.0, albedo=0.8) if kind == "plane" else sphere_scene(0.48, radius_m=0.09, resolution=120)
 
 
-def _round_trip(tmp_path: Path, spec: PatternSpec, scene_kind: str, rig=PREVIEW_RIG) -> dict:
+# The round trips check the pattern description -> image order -> decode path, so they render
+# with a linear projector; the default response (x^1.1) biases 3-step phase shifting, measured
+# on its own below.
+LINEAR_PROJECTOR = RenderSettings(projector_gamma=1.0, projector_gamma_compensation=1.0)
+
+
+def _round_trip(tmp_path: Path, spec: PatternSpec, scene_kind: str, rig=PREVIEW_RIG, settings=LINEAR_PROJECTOR) -> dict:
     """Render, write in order, decode with the CLI; returns errors against the ground truth."""
-    frame = FppSimulator(rig, spec, _scene(scene_kind)).render(np.eye(4), frame_index=0)
+    frame = FppSimulator(rig, spec, _scene(scene_kind), settings).render(np.eye(4), frame_index=0)
     capture = tmp_path / "capture"
     capture.mkdir()
     for i, image in enumerate(frame.images):
@@ -108,3 +114,17 @@ def test_phase_sets_round_trip(tmp_path, scene_kind, name, spec, rig, min_valid,
     assert r["median_mm"] < max_median_mm, (name, r)
     assert r["rms_mm"] < max_rms_mm, (name, r)
     assert r["report"]["valid_pixels"] > 0 and r["report"]["thresholds"]["edge_filter"]["enabled"]
+
+
+def test_projector_response_biases_three_steps_not_four(tmp_path):
+    """The default projector response (P^1.1) adds a second harmonic to the fringes: N-step phase
+    shifting cancels harmonics up to N - 2, so 3 steps are biased by it and 4 steps are not."""
+    three = PatternSpec("multi_frequency", phase_steps=3, periods=(16, 15))
+    four = PatternSpec("complementary_gray", phase_steps=4, periods=(64,), gray_bits=6)
+    errors = {}
+    for name, spec in (("three", three), ("four", four)):
+        for response, settings in (("linear", LINEAR_PROJECTOR), ("default", RenderSettings())):
+            (tmp_path / f"{name}_{response}").mkdir()
+            errors[name, response] = _round_trip(tmp_path / f"{name}_{response}", spec, "plane", settings=settings)["median_mm"]
+    assert errors["three", "default"] > 1.3 * errors["three", "linear"], errors
+    assert errors["four", "default"] < 1.2 * errors["four", "linear"] + 0.005, errors
