@@ -100,3 +100,17 @@ def test_python_m_and_the_console_script_list_the_same_commands():
     assert {"optimize", "run", "eval", "batch", "config", "demo"} <= names
     assert _command_names(module) == names
 
+
+
+def test_main_runs_from_a_worker_thread(capsys):
+    """Only the main thread may install signal handlers: main() called elsewhere runs without."""
+    import threading
+
+    from fpp_graph.cli.app import main
+
+    codes: list[int] = []
+    worker = threading.Thread(target=lambda: codes.append(main(["config", "dump"])))
+    worker.start()
+    worker.join()
+    assert codes == [0]
+    assert "pose_graph:" in capsys.readouterr().out

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import signal
 import sys
+import threading
 
 import typer
 
@@ -88,7 +89,9 @@ def main(argv: list[str] | None = None) -> int:
     add_commands([args[0]] if args and args[0] in {*COMMANDS, "config"} else None)
     # SIGTERM (a scheduler, `kill`) takes the same path as Ctrl-C: the command's clean-up runs
     # (worker processes end, outputs stay whole) instead of the process vanishing mid-write
-    previous = {sig: signal.signal(sig, on_stop_signal) for sig in (signal.SIGTERM, signal.SIGINT)}
+    # (only the main thread may set handlers: main() called from a worker thread runs without)
+    in_main_thread = threading.current_thread() is threading.main_thread()
+    previous = {sig: signal.signal(sig, on_stop_signal) for sig in (signal.SIGTERM, signal.SIGINT)} if in_main_thread else {}
     try:
         return _run_app(args)
     finally:  # main() called in-process (tests, scripts) leaves the caller's handlers as they were
