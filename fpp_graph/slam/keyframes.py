@@ -133,6 +133,9 @@ class KeyframeManager:
         self._drift_var_m2: dict[int, float] = {}
         # 6x6 [rot, trans] covariance (body frame) of each keyframe relative to its last closure
         self._drift_cov: dict[int, NDArray[np.float64]] = {}
+        # median depth of each keyframe's points (m), for view_change: once per keyframe, not
+        # once per frame registered to it (a median over ~2M points of an FPP frame)
+        self._median_depth_m: dict[int, float] = {}
         self._parent: dict[int, int] = {}  # union-find over keyframes joined by odometry or loops
         # The running estimate: one iSAM2 graph per connected part, shared by its keyframes.
         self._incremental: dict[int, IncrementalPoseGraph] = {}
@@ -196,7 +199,10 @@ class KeyframeManager:
         overlap = odometry.overlap if math.isfinite(odometry.overlap) else odometry.fitness
         criteria = []
         if cfg.min_view_change > 0:
-            change = view_change(self.store.get(odometry.target_id), T)
+            keyframe = self.store.get(odometry.target_id)
+            if keyframe.id not in self._median_depth_m:
+                self._median_depth_m[keyframe.id] = median_depth_m(keyframe)
+            change = view_change(keyframe, T, self._median_depth_m[keyframe.id])
             if change is not None:  # a frame without a camera model is judged by the others
                 criteria.append(change >= cfg.min_view_change)
         if cfg.min_translation_m > 0:
@@ -481,19 +487,25 @@ class KeyframeManager:
         )
 
 
-def view_change(keyframe: Frame, T_keyframe_frame: NDArray[np.float64]) -> float | None:
+def median_depth_m(frame: Frame) -> float:
+    """Median depth (z, metres) of a frame's points; NaN without points."""
+    return float(np.median(np.asarray(frame.points)[:, 2])) if len(frame.points) else math.nan
+
+
+def view_change(keyframe: Frame, T_keyframe_frame: NDArray[np.float64], depth_m: float | None = None) -> float | None:
     """How far the image content moved from ``keyframe`` to a frame at ``T_keyframe_frame``, as
     a fraction of the image's smaller side: the largest pixel displacement of nine points of the
     keyframe's view (a 3x3 grid over the image at the keyframe's median depth) seen from the
     frame. Rotation, translation against the scene's depth and roll all count, in the sensor's
     own pixels, so the same fraction means the same loss of overlap for a 60-degree RGB-D camera
     and a narrow FPP camera. None when the keyframe has no pinhole model (``metadata["K"]``) or
-    image size (``xyz_map``)."""
+    image size (``xyz_map``). ``depth_m``: the keyframe's :func:`median_depth_m`, when known."""
     if "K" not in keyframe.metadata or keyframe.xyz_map is None or len(keyframe.points) == 0:
         return None
     K = np.asarray(keyframe.metadata["K"], dtype=np.float64)
     h, w = keyframe.xyz_map.shape[:2]
-    depth_m = float(np.median(np.asarray(keyframe.points)[:, 2]))
+    if depth_m is None:
+        depth_m = median_depth_m(keyframe)
     if not depth_m > 0:
         return None
     u, v = np.meshgrid(np.array([1, 3, 5]) * w / 6.0, np.array([1, 3, 5]) * h / 6.0)
