@@ -184,6 +184,10 @@ def _subsample(points: NDArray, colors: NDArray | None, max_points: int, seed: i
     return points[pick], None if colors is None else colors[pick]
 
 
+# Points drawn per map in a before/after top view (each cloud is subsampled to this).
+MAP_PLOT_POINTS = 200_000
+
+
 def plot_map_before_after(
     path: str | os.PathLike[str],
     points_before: NDArray[np.float64],
@@ -192,7 +196,7 @@ def plot_map_before_after(
     colors: NDArray[np.float64] | None = None,
     colors_before: NDArray[np.float64] | None = None,
     titles: tuple[str, str] = ("before loop closure (odometry only)", "after loop closure"),
-    max_points: int = 200_000,
+    max_points: int = MAP_PLOT_POINTS,
     errors_before_m: NDArray[np.float64] | None = None,
     errors_after_m: NDArray[np.float64] | None = None,
     error_max_mm: float = 1.0,

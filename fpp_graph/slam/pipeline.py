@@ -246,8 +246,9 @@ def fuse_map(
     """Re-fuse keyframes under the optimised poses with ``fuser`` (default: a
     :class:`~fpp_graph.fusion.voxel_map.VoxelMapFuser` from ``config.fusion``); writes ``map.ply`` and,
     when the map has a mesh, ``mesh.ply``. ``plot_samples``, when given, receives a random subset
-    of each keyframe's points (sensor frame, :data:`PLOT_POINTS` over all keyframes) in the same
+    of each keyframe's points (sensor frame, :data:`~fpp_graph.evaluation.plots.MAP_PLOT_POINTS` over all keyframes) in the same
     pass, so the "before loop closure" map is drawn without reading the frames again."""
+    from fpp_graph.evaluation.plots import MAP_PLOT_POINTS
     from fpp_graph.fusion.voxel_map import VoxelMapFuser, write_mesh_ply, write_point_cloud_ply
 
     if fuser is None:
@@ -257,7 +258,7 @@ def fuse_map(
             tsdf_truncation_m=config.fusion.tsdf_truncation_m,
             mesh=config.fusion.mesh,
         )
-    per_keyframe = -(-PLOT_POINTS // max(len(result.keyframe_ids), 1))
+    per_keyframe = -(-MAP_PLOT_POINTS // max(len(result.keyframe_ids), 1))
     for i, kf in enumerate(result.keyframe_ids):
         frame = store.get(kf)
         fuser.integrate(frame, result.poses_world_sensor[kf])
@@ -281,10 +282,6 @@ def fuse_points_only(result_poses: dict[int, np.ndarray], keyframe_ids: list[int
     for kf in keyframe_ids:
         fuser.integrate(store.get(kf), result_poses[kf])
     return fuser.result()
-
-
-# Points drawn per map in map_before_after.png (plot_map_before_after subsamples to this anyway).
-PLOT_POINTS = 200_000
 
 
 def points_under_poses(samples: dict[int, np.ndarray], poses_world_sensor: dict[int, np.ndarray]) -> np.ndarray:
