@@ -71,9 +71,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
-import scipy.sparse as sp
 from numpy.typing import ArrayLike, NDArray
-from scipy.sparse.csgraph import connected_components
 
 from fpp_graph.backend.certificate_matrix import CertificateMatrix, SESyncData, build_data
 from fpp_graph.backend.certificate_refinement import (
@@ -85,7 +83,7 @@ from fpp_graph.backend.certificate_refinement import (
     rotation_blocks,
     stack_blocks,
 )
-from fpp_graph.backend.graph_diagnostics import connected_parts
+from fpp_graph.backend.graph_diagnostics import component_labels, connected_parts
 from fpp_graph.backend.noise_model import sesync_tau_kappa
 from fpp_graph.errors import GraphError
 
@@ -192,8 +190,7 @@ def data_from_graph(graph: PoseGraph, poses: Mapping[int, ArrayLike] | None = No
     ends = np.array([(e.target_id, e.source_id) for e in edges], dtype=np.int64)
     target, source = np.searchsorted(keys, ends).T  # edges join poses of the graph: all found
     n = len(keys)
-    adjacency = sp.coo_matrix((np.ones(len(edges)), (target, source)), shape=(n, n))
-    if connected_components(adjacency, directed=False)[0] > 1:
+    if np.any(component_labels(n, np.c_[target, source]) != 0):
         parts = connected_parts(keys.tolist(), (e.pair for e in edges))
         sizes = ", ".join(f"{len(p)} poses from {p[0]}" for p in parts[:5])
         raise GraphError(

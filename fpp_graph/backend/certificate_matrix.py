@@ -12,17 +12,26 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
-import scipy.sparse.linalg as spla
 from numpy.typing import NDArray
 
-from fpp_graph.backend.certificate_refinement import block_diagonal, symmetric_lu
+from fpp_graph.backend import symmetric_factor
+from fpp_graph.backend.certificate_refinement import block_diagonal
+from fpp_graph.backend.symmetric_factor import SymmetricFactor, factor_symmetric
 
 log = logging.getLogger(__name__)
 
 Array = NDArray[np.float64]
 
-#: Matrices of S up to this size are decomposed densely (ARPACK needs k < size).
-_DENSE_EIGEN_SIZE = 30
+#: Matrices S this small are always decomposed densely (ARPACK needs k < order).
+_ARPACK_MIN_ORDER = 30
+
+
+def dense_eigen_order() -> int:
+    """Largest order of S (3n) decomposed densely: half the order up to which the other systems
+    are factored densely (:data:`fpp_graph.backend.symmetric_factor.DENSE_ORDER`), because the
+    refinement's Newton Hessian (order 6n - 6) is twice S's; so a problem small enough for dense
+    Newton steps never imports scipy.sparse.linalg."""
+    return max(symmetric_factor.DENSE_ORDER // 2, _ARPACK_MIN_ORDER)
 #: Eigenpairs computed: the 3 gauge ones and the first non-gauge one (the spectral gap).
 _NUM_EIGENPAIRS = 4
 
@@ -42,7 +51,7 @@ class SESyncData:
         ``F = tr(X M X^T)`` with ``X = [R_1 .. R_n | t_1 .. t_n]``.
     grounded : int
         Index of the pose whose position is held at 0 when translations are eliminated.
-    translation_factor : SuperLU
+    translation_factor : SymmetricFactor
         Factorisation of the grounded translation Laplacian ((n-1) x (n-1)).
     spectral_scale : float
         Largest diagonal entry of the rotation block of ``M`` (scale of ``S``'s spectrum).
@@ -55,7 +64,7 @@ class SESyncData:
     keys: NDArray[np.int64]
     M: sp.csr_matrix
     grounded: int
-    translation_factor: spla.SuperLU
+    translation_factor: SymmetricFactor
     spectral_scale: float
     target_index: NDArray[np.int64]
     source_index: NDArray[np.int64]
@@ -135,7 +144,9 @@ def build_data(
     M = ((M + M.T) * 0.5).tocsr()  # exact symmetry
     keep = np.delete(np.arange(n), grounded) + 3 * n
     L_t = M[keep][:, keep].tocsc()
-    factor = spla.splu(L_t, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
+    factor, _ = factor_symmetric(L_t)
+    if factor is None:  # a connected, grounded Laplacian with positive weights is definite
+        raise ValueError("the grounded translation Laplacian is not positive definite (tau <= 0 or disconnected edges)")
     scale = float(M.diagonal()[: 3 * n].max())
     ones = np.ones(m)
     to_source = sp.csr_matrix((ones, (j, np.arange(m))), shape=(n, m))
@@ -174,9 +185,10 @@ class CertificateMatrix:
     def dense(self) -> Array:
         return self.matvec(np.eye(self.size))
 
-    def negative_count(self, sigma: float) -> tuple[spla.SuperLU | None, int]:
-        """Factorisation of ``S - sigma I`` (augmented) and its number of negative eigenvalues."""
-        return symmetric_lu(self.shifted(sigma))
+    def negative_count(self, sigma: float) -> tuple[SymmetricFactor | None, int]:
+        """Factorisation of ``S - sigma I`` (augmented) and its number of negative eigenvalues
+        (-1: unknown), always sparse: the inertia is what is asked."""
+        return factor_symmetric(self.shifted(sigma), dense_order=0)
 
     def smallest(self, eta: float, k: int = _NUM_EIGENPAIRS) -> tuple[bool, Array, Array]:
         """Inertia test of ``S + eta I`` and the ``k`` smallest eigenpairs of ``S``.
@@ -188,15 +200,21 @@ class CertificateMatrix:
         eigenvalues : (k,)
             Ascending.
         eigenvectors : (3n, k)
+            NaN when ``psd`` on the dense path (small problems): only a failed certificate's
+            staircase uses them, and eigenvalues alone cost a third of the decomposition.
         """
-        lu, negatives = self.negative_count(-eta)
-        if self.size <= _DENSE_EIGEN_SIZE or lu is None or negatives < 0:
-            w, V = np.linalg.eigh(self.dense())
-            k = min(k, self.size)
-            if negatives < 0:
+        dense = self.size <= dense_eigen_order()
+        lu, negatives = (None, -1) if dense else self.negative_count(-eta)
+        if lu is None or negatives < 0:
+            if not dense:
                 log.debug("certificate: LDL^T inertia unavailable; decided on dense eigenvalues")
-                negatives = int(np.count_nonzero(w < -eta))
-            return negatives == 0, w[:k], V[:, :k]
+            S = self.dense()
+            k = min(k, self.size)
+            w = np.linalg.eigvalsh(S)
+            if w[0] >= -eta:  # certified: the eigenvectors (the staircase's escape directions) are not needed
+                return True, w[:k], np.full((self.size, k), np.nan)
+            w, V = np.linalg.eigh(S)
+            return bool(w[0] >= -eta), w[:k], V[:, :k]
         sigma = -eta
         while negatives > 0:  # move the shift below lambda_min (all eigenvalues >= sigma)
             sigma *= 10.0
@@ -209,6 +227,8 @@ class CertificateMatrix:
 
         def solve(b: Array) -> Array:
             return lu.solve(np.r_[b, np.zeros(pad)])[: self.size]
+
+        import scipy.sparse.linalg as spla  # on use: small problems never import it
 
         op = spla.LinearOperator((self.size, self.size), matvec=self.matvec, dtype=np.float64)
         inverse = spla.LinearOperator((self.size, self.size), matvec=solve, dtype=np.float64)

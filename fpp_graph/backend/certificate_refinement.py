@@ -2,8 +2,7 @@
 
 Part of the certificate (:mod:`fpp_graph.backend.certificate`, whose module docstring states the problem,
 the method and the tolerance): ``F``, its gradient and multipliers from edge residuals, the
-optimal positions for given rotations, the LDL^T-like factorisation with its inertia count, and
-the damped Newton method on ``(St(3, r) x R^r)^n`` that moves poses to a critical point of ``F``
+optimal positions for given rotations, and the damped Newton method on ``(St(3, r) x R^r)^n`` that moves poses to a critical point of ``F``
 (step 2 of the certificate; also the inner solver of the Riemannian staircase).
 """
 
@@ -16,8 +15,9 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 import scipy.sparse as sp
-import scipy.sparse.linalg as spla
 from numpy.typing import NDArray
+
+from fpp_graph.backend.symmetric_factor import SymmetricFactor, factor_symmetric
 
 if TYPE_CHECKING:
     from fpp_graph.backend.certificate_matrix import SESyncData
@@ -124,24 +124,6 @@ def block_diagonal(blocks: Array, size: int) -> sp.csr_matrix:
     rows = np.broadcast_to(base + e3[None, :, None], (n, 3, 3)).ravel()
     cols = np.broadcast_to(base + e3[None, None, :], (n, 3, 3)).ravel()
     return sp.csr_matrix((blocks.ravel(), (rows, cols)), shape=(size, size))
-
-
-def symmetric_lu(A: sp.spmatrix) -> tuple[spla.SuperLU | None, int]:
-    """LDL^T-like factorisation (diagonal pivots, symmetric ordering) and its negative-pivot count.
-
-    With diagonal pivoting and the same row and column order, SuperLU's ``U = D L^T``, so by
-    Sylvester's law of inertia the number of negative diagonal entries of ``U`` is the number of
-    negative eigenvalues of ``A``. Returns ``(None, -1)`` when a zero pivot stops the
-    factorisation or the orders differ (the count is then unknown).
-    """
-    try:
-        lu = spla.splu(sp.csc_matrix(A), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
-                       options={"SymmetricMode": True})
-    except RuntimeError:
-        return None, -1
-    if not np.array_equal(lu.perm_r, lu.perm_c):
-        return lu, -1
-    return lu, int(np.count_nonzero(lu.U.diagonal() < 0.0))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -279,7 +261,7 @@ def newton(
         G = 2.0 * half_gradient(data, X)
         return np.r_[np.einsum("nac,npac->np", rotation_blocks(G, n), B).ravel(), G[:, 3 * n :].T.ravel()]
 
-    def step(X: Array, B: Array, lu: spla.SuperLU, g_free: Array) -> Array | None:
+    def step(X: Array, B: Array, lu: SymmetricFactor, g_free: Array) -> Array | None:
         """The retracted point of the step solving ``lu`` (None if it leaves SO(3))."""
         xi = np.zeros(dim)
         xi[free] = -lu.solve(g_free)
@@ -290,7 +272,7 @@ def newton(
 
     F = objective(data, X)
     mu = 0.0
-    previous_lu: spla.SuperLU | None = None  # undamped factorisation of the last step
+    previous_lu: SymmetricFactor | None = None  # undamped factorisation of the last step
     previous_gradient = math.inf
     iterations = 0
     for iterations in range(1, max_iterations + 1):  # noqa: B007
@@ -335,8 +317,8 @@ def newton(
 
 def _damped_step(
     data: SESyncData, X: Array, B: Array, gauge: Array, g_free: Array, F: float, mu: float,
-    step: Callable[[Array, Array, spla.SuperLU, Array], Array | None],
-) -> tuple[Array | None, float, float, spla.SuperLU | None]:
+    step: Callable[[Array, Array, SymmetricFactor, Array], Array | None],
+) -> tuple[Array | None, float, float, SymmetricFactor | None]:
     """One Newton step on a fresh Hessian, damped (``H + mu I``) until it is positive definite
     and lowers ``F``. Returns the new point and its ``F`` (None, inf when no damping up to 40
     tenfold increases gives one), the next ``mu`` (relaxed tenfold, 0 once negligible) and the
@@ -348,7 +330,7 @@ def _damped_step(
     H = tangent_hessian(data, B, 0.5 * (Lambda + Lambda.transpose(0, 2, 1)), gauge)
     h_scale = float(np.abs(H.diagonal()).max())
     for _ in range(40):
-        lu, negatives = symmetric_lu(H + mu * sp.identity(H.shape[0], format="csc") if mu else H)
+        lu, negatives = factor_symmetric(H + mu * sp.identity(H.shape[0], format="csc") if mu else H)
         if lu is not None and negatives == 0:
             X_new = step(X, B, lu, g_free)
             F_new = objective(data, X_new) if X_new is not None else math.inf

@@ -12,6 +12,17 @@ from fpp_graph.backend.pose_graph import PoseGraph, sesync_objective
 from fpp_graph.config import PoseGraphConfig
 from fpp_graph.errors import GraphError
 
+
+@pytest.fixture(autouse=True, params=["dense", "sparse"])
+def linear_algebra(request, monkeypatch):
+    """Every test runs with the small-problem dense factorisations and with SuperLU + ARPACK."""
+    from fpp_graph.backend import symmetric_factor
+
+    if request.param == "sparse":
+        monkeypatch.setattr(symmetric_factor, "DENSE_ORDER", 0)
+    return request.param
+
+
 ISOTROPIC = PoseGraphConfig(noise_model="isotropic", robust="none", remove_inconsistent_loops=False)
 FILE_MODEL = PoseGraphConfig(noise_model="file", robust="none", remove_inconsistent_loops=False)
 
@@ -121,7 +132,7 @@ def test_optimum_of_a_small_grid_is_certified(rng, config):
 
 
 def test_sparse_eigenvalues_match_a_dense_reference(rng):
-    graph = grid_graph(rng, side=3)  # 18 poses: S is 54 x 54, above the dense shortcut
+    graph = grid_graph(rng, side=3)  # 18 poses: S is 54 x 54, above ARPACK's dense shortcut
     graph.optimize(ISOTROPIC)
     cert = graph.certify()
     reference = dense_certificate_eigenvalues(graph, cert.poses_world_sensor)
@@ -200,3 +211,22 @@ def test_disconnected_graph_and_bad_rank_are_refused():
         graph.certify()
     with pytest.raises(GraphError, match="max_rank"):
         winding_cycle().certify(max_rank=3)
+
+
+def test_factor_symmetric_solves_and_counts_negative_eigenvalues(rng, linear_algebra):
+    import scipy.sparse as sp
+
+    from fpp_graph.backend.symmetric_factor import factor_symmetric
+
+    Q = np.linalg.qr(rng.normal(size=(40, 40)))[0]
+    definite = Q @ np.diag(np.linspace(0.5, 4.0, 40)) @ Q.T
+    factor, negatives = factor_symmetric(sp.csc_matrix(definite))
+    assert negatives == 0
+    b = rng.normal(size=(40, 3))
+    np.testing.assert_allclose(definite @ factor.solve(b), b, atol=1e-10)
+    indefinite = Q @ np.diag(np.r_[-1.0, -2.0, np.linspace(0.5, 4.0, 38)]) @ Q.T
+    factor, negatives = factor_symmetric(sp.csc_matrix(indefinite))
+    if linear_algebra == "sparse":  # the exact count (or -1: unknown, the pivots' orders differ)
+        assert negatives in (2, -1)
+    else:  # not definite, count not computed
+        assert factor is None and negatives == -1

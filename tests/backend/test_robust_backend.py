@@ -340,3 +340,19 @@ def test_benchmarks_reach_the_certified_optimum_with_default_flags(name, publish
         assert float(f"{F:.4g}") == published
     assert result.certificate is not None and result.certificate.certified
     assert result.certificate.suboptimality_bound <= 1e-3 * F
+
+
+def test_closed_form_chi2_6_quantile_matches_scipy_over_the_tails_the_bounds_use():
+    from scipy.special import chdtri
+
+    from fpp_graph.backend.outliers import chi2_6_survival, chi2_6_upper_quantile
+
+    tails = np.r_[np.logspace(-300, -1, 200), np.linspace(0.02, 0.999, 50)]
+    ours = np.array([chi2_6_upper_quantile(q) for q in tails])
+    np.testing.assert_allclose(ours, chdtri(6, tails), rtol=1e-12)
+    np.testing.assert_allclose([chi2_6_survival(x) for x in ours], tails, rtol=1e-10)
+    # the Bonferroni bound of 4049 loops at a 1 % family-wise false alarm
+    assert family_bound(4049, 0.01) == pytest.approx(chdtri(6, 0.01 / 4049), rel=1e-12)
+    for bad in (0.0, 1.0, -0.1, float("nan")):
+        with pytest.raises(ValueError, match="tail probability"):
+            chi2_6_upper_quantile(bad)
