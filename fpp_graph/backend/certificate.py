@@ -73,6 +73,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from fpp_graph.backend import certificate_refinement
 from fpp_graph.backend.certificate_matrix import CertificateMatrix, SESyncData, build_data
 from fpp_graph.backend.certificate_refinement import (
     multipliers,
@@ -329,6 +330,9 @@ def _staircase(
         lifted = _escape(data, lifted, lifted_V[:, 0], lifted_w[0])
         rank += 1
         lifted, F_lifted, _, steps = newton(data, lifted, anchor)
+        if steps >= certificate_refinement.MAX_NEWTON_ITERATIONS:  # not a critical point: its lifted certificate says nothing
+            log.info("staircase rank %d: Newton did not converge (F %.12g); rounding from here", rank, F_lifted)
+            break
         eta_lifted = _tolerance(data, F_lifted, relative_suboptimality, numerical_floor)
         lifted_psd, lifted_w, lifted_V = _certify_point(data, lifted, eta_lifted)
         log.info("staircase rank %d: F %.12g after %d Newton steps, lambda_min %.3g (%s)",
@@ -381,7 +385,13 @@ def certify_arrays(
     method = "refine"
     escaped = False
     relaxation_F = math.nan
-    if not psd and escape:
+    if not psd and escape and iterations >= certificate_refinement.MAX_NEWTON_ITERATIONS:
+        # The staircase escapes from a critical point (a saddle of the lifted problem); from
+        # anywhere else it costs minutes per rank and decides nothing. The weak-duality bound
+        # below still holds at any point.
+        method = f"refine: no critical point after {iterations} Newton steps (|grad| {gradient_norm:.3g}); no escape"
+        log.warning("certificate: %s", method)
+    elif not psd and escape:
         escaped = True
         candidate, F_candidate, gradient_candidate, rank, relaxation_F = _staircase(
             data, X, w, V, anchor, max_rank, relative_suboptimality, numerical_floor
@@ -397,6 +407,10 @@ def certify_arrays(
     lambda_min = float(w[0])
     gap = float(w[3]) if len(w) > 3 else math.nan
     bound = 3 * n * max(0.0, -lambda_min)
+    if iterations >= certificate_refinement.MAX_NEWTON_ITERATIONS and not escaped:
+        # weak duality bounds F at optimal positions for these rotations; Newton's positions
+        # are optimal only at a critical point
+        bound += max(0.0, F - objective(data, optimal_translations(data, X[:, : 3 * n])))
     if psd:
         bound = min(bound, 3 * n * eta) if lambda_min >= -eta else 3 * n * eta
     poses = _poses_in_gauge(X, T_world_sensor[anchor], anchor, data.keys)

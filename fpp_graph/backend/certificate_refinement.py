@@ -28,7 +28,9 @@ Array = NDArray[np.float64]
 
 #: Newton stops when the Riemannian gradient norm is below this times the gradient scale.
 _GRADIENT_RTOL = 1e-14
-_MAX_NEWTON_ITERATIONS = 100
+#: Newton iterations before the refinement gives up: a run that ends here has not reached a
+#: critical point (near one, Newton converges quadratically in a handful).
+MAX_NEWTON_ITERATIONS = 100
 #: A chord step (the last factorisation reused) is tried while the gradient shrank by this factor.
 #: Why 0.1: a fresh factorisation costs about ten solves, so a chord step pays while each one
 #: gains at least a decade (what a Newton step would give per factorisation near convergence).
@@ -234,7 +236,7 @@ def tangent_hessian(data: SESyncData, B: Array, Lambda: Array, gauge: NDArray[np
 
 
 def newton(
-    data: SESyncData, X: Array, anchor: int, max_iterations: int = _MAX_NEWTON_ITERATIONS
+    data: SESyncData, X: Array, anchor: int, max_iterations: int | None = None
 ) -> tuple[Array, float, float, int]:
     """Minimise ``F`` over ``(St(3, r) x R^r)^n`` from ``X`` (r, 4n): damped Newton, exact Hessian.
 
@@ -251,6 +253,7 @@ def newton(
     gradient_norm : float
     iterations : int
     """
+    max_iterations = MAX_NEWTON_ITERATIONS if max_iterations is None else max_iterations
     n, r = data.n, X.shape[0]
     P = 3 * (r - 2)
     dim = n * P + n * r

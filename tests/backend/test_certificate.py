@@ -230,3 +230,19 @@ def test_factor_symmetric_solves_and_counts_negative_eigenvalues(rng, linear_alg
         assert negatives in (2, -1)
     else:  # not definite, count not computed
         assert factor is None and negatives == -1
+
+
+def test_no_escape_from_a_point_the_refinement_did_not_make_critical(monkeypatch):
+    """The staircase escapes from critical points only; elsewhere the certificate says so and
+    keeps the weak-duality bound, which holds at any point (checked against the optimum)."""
+    from fpp_graph.backend import certificate_refinement
+
+    graph = winding_cycle()
+    optimum = graph.certify().objective  # 0.50735, found by the escape
+    start = {k: T @ pose([0.3, -0.2, 0.1], [0.1, 0.0, 0.0]) for k, T in graph.poses().items()}
+    monkeypatch.setattr(certificate_refinement, "MAX_NEWTON_ITERATIONS", 2)
+    cert = graph.certify(start)
+    assert not cert.certified and not cert.escaped
+    assert cert.method.startswith("refine: no critical point after 2 Newton steps")
+    assert cert.gradient_norm > 1e-3
+    assert cert.objective - optimum <= cert.suboptimality_bound
