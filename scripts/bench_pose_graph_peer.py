@@ -19,6 +19,13 @@ figures (difference at most half a unit of the 4th figure), the loops the projec
 wall seconds of each, and the ratio project / peer of the minimum times (and of the medians).
 Last line: the worst ratio. Acceptance target: ratio <= 1.2 on every graph.
 
+Where the peer stops at its iteration limit without converging (the 10x-rotation torus), where
+it stops depends on numerical details that do not change the problem: the peer is run once more
+with a gauge prior 100x softer (``--prior-sigma 1e-4``; the prior on the first pose does not
+move the optimum), and the two peer objectives are printed as its spread. "No harm" there is
+the project's F at most the larger of them with no loop lost; agreement to 4 significant figures
+between two runs that both stopped mid-descent is chance.
+
 Run from the repository root::
 
     PYTHONPATH=. .venv/bin/python scripts/bench_pose_graph_peer.py [--runs 5] [--budget 120] [--timeout 900]
@@ -54,8 +61,11 @@ def project_command(path: Path) -> list[str]:
     return [*head, "optimize", str(path), "--noise-model", "isotropic", "--json"]
 
 
-def peer_command(path: Path) -> list[str]:
-    return [sys.executable, str(PEER), str(path)]
+PEER_MAX_ITERATIONS = 100  # plain_gtsam_g2o.py's default, gtsam's own LM default
+
+
+def peer_command(path: Path, *options: str) -> list[str]:
+    return [sys.executable, str(PEER), str(path), *options]
 
 
 def run_json(command: list[str], timeout: float) -> tuple[float, dict | None]:
@@ -132,6 +142,14 @@ def main() -> int:
                 ratios.append((math.inf, math.inf, name))
                 continue
             f_proj, f_peer = float(proj["sesync_objective"]), float(peer["sesync_objective"])
+            spread = ""
+            if int(peer["iterations"]) >= PEER_MAX_ITERATIONS:  # stopped mid-descent: how far that is chance
+                _, softer = run_json(peer_command(path, "--prior-sigma", "1e-4"), args.timeout)
+                f_soft = float(softer["sesync_objective"]) if softer else math.nan
+                no_harm = f_proj <= max(f_peer, f_soft) and not proj.get("rejected_loops") and not proj.get("removed_loops")
+                spread = (f"  (peer stopped at its {PEER_MAX_ITERATIONS}-iteration limit; with a 100x softer gauge prior "
+                          f"it stops at F {f_soft:.6g}: spread {abs(f_soft - f_peer) / f_peer:.2%}; "
+                          f"project F within or below it, no loop lost: {'yes' if no_harm else 'NO'})")
             rejected = len(proj.get("rejected_loops", []))
             removed = str(len(proj["removed_loops"])) if "removed_loops" in proj else "-"
             ratio = min(times["project"]) / min(times["peer"])
@@ -141,7 +159,7 @@ def main() -> int:
             print(f"{name:<18}{proj['poses']:>6}{proj['edges']:>6}{f_proj:>13.6g}{f_peer:>13.6g}"
                   f"{'yes' if agree_4sf(f_proj, f_peer) else 'NO':>7}{rejected:>5}{removed:>5}{runs:>5}"
                   f"{min(times['project']):>11.2f}{statistics.median(times['project']):>11.2f}"
-                  f"{min(times['peer']):>11.2f}{statistics.median(times['peer']):>11.2f}{ratio:>7.2f}{ratio_med:>10.2f}",
+                  f"{min(times['peer']):>11.2f}{statistics.median(times['peer']):>11.2f}{ratio:>7.2f}{ratio_med:>10.2f}{spread}",
                   flush=True)
     worst, _, worst_name = max(ratios)
     print(f"worst ratio project/peer (min times): {worst:.2f} on {worst_name} (median times: {max(r[1] for r in ratios):.2f}); "
