@@ -74,7 +74,9 @@ def iter_graycode_captures(
 
     The board lies on an infinite plane (the paper margin is one square wide, the plane beyond
     has albedo 0.5). Each camera pixel integrates ``supersample**2`` rays (camera distortion
-    included); each ray sees the board's albedo times (ambient + projector pattern), the
+    included); each ray sees the board's albedo averaged over its share of the pixel (the
+    checker squares are area-filtered, :func:`_area_filtered_checker`, so that a square's edge
+    moves the pixel value continuously, as on a real sensor) times (ambient + projector pattern), the
     projector pixel being the one the surface point projects to (projector distortion
     included). Then Gaussian blur, Gaussian noise, 8-bit quantisation.
 
@@ -102,7 +104,7 @@ def iter_graycode_captures(
         xy, _ = undistort_pixels(cam, np.column_stack([(uu + dx).ravel(), (vv + dy).ravel()]))
         rays[k] = xy.reshape(H, W, 2)
     n_pat, pattern_value = _pattern_values(calibration, pattern_specs, projector_exponent)
-    looks = dict(albedo_black=albedo_black, albedo_white=albedo_white, ambient=ambient, square_scale=square_scale, bow_m=bow_m)
+    looks = dict(albedo_black=albedo_black, albedo_white=albedo_white, ambient=ambient, square_scale=square_scale, bow_m=bow_m, footprint_px=1.0 / supersample)
     for T in T_camera_board_list:
         acc = np.zeros((n_pat + 2, H, W), dtype=np.float32)
         for k in range(len(rays)):
@@ -186,8 +188,8 @@ def _accumulate_board_radiance(acc: NDArray, calibration: RigCalibration, board:
     s = board.square_m * looks["square_scale"]
     X, b, lam = _board_hit(rays_xy, T_camera_board, board, looks["bow_m"])
     bx, by = b[..., 0] / s, b[..., 1] / s
-    checker = (np.floor(bx) + np.floor(by)) % 2 == 0
-    albedo = np.where(checker, looks["albedo_black"], looks["albedo_white"])
+    black = _area_filtered_checker(bx, by, looks.get("footprint_px", 0.0))
+    albedo = looks["albedo_white"] + (looks["albedo_black"] - looks["albedo_white"]) * black
     on_paper = (bx >= -2) & (bx <= nx + 1) & (by >= -2) & (by <= ny + 1)
     in_squares = (bx >= -1) & (bx <= nx) & (by >= -1) & (by <= ny)
     albedo = np.where(in_squares, albedo, np.where(on_paper, looks["albedo_white"], 0.5))
@@ -205,6 +207,37 @@ def _accumulate_board_radiance(acc: NDArray, calibration: RigCalibration, board:
         acc[m] += albedo * (ambient + pattern_value(m, u_safe, v_safe, ci, ri) * lit)
     acc[n_pat] += albedo * (ambient + lit)
     acc[n_pat + 1] += albedo * ambient
+
+
+def _area_filtered_checker(bx: NDArray, by: NDArray, footprint_px: float) -> NDArray:
+    """Fraction of black in each sample's footprint of the checker (black where
+    ``floor(bx) + floor(by)`` is even), ``bx, by`` in squares on a grid of camera samples.
+
+    Point sampling (``footprint_px`` 0) puts every edge at the nearest sample: the pixel value
+    is a staircase of the edge position, and a corner found in such an image is off by up to a
+    few tenths of a pixel (0.08 px RMS at 2 x 2 samples per pixel, noise-free), an error no
+    real sensor has and that does not average out over a calibration's few poses. Here each
+    board axis is box-filtered over the sample's extent along it, ``footprint_px`` times the
+    local gradient of that coordinate per camera pixel (the product of the two filtered square
+    waves; exact for a footprint aligned with the squares, symmetric about the sample in any
+    case, so edges and corners stay where they are).
+    """
+    if footprint_px <= 0:
+        return ((np.floor(bx) + np.floor(by)) % 2 == 0).astype(np.float64)
+
+    def filtered_square_wave(x: NDArray) -> NDArray:
+        # mean over [x - w/2, x + w/2] of s(x) = +1 on [0, 1), -1 on [1, 2) (period 2), from
+        # its integral, the triangle wave 1 - |x mod 2 - 1|
+        gy, gx = np.gradient(x)
+        w = footprint_px * np.hypot(gx, gy)
+        point = 1.0 - 2.0 * (np.floor(x) % 2)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            tri_hi = 1.0 - np.abs(np.mod(x + w / 2, 2.0) - 1.0)
+            tri_lo = 1.0 - np.abs(np.mod(x - w / 2, 2.0) - 1.0)
+            box = (tri_hi - tri_lo) / w
+        return np.where(np.isfinite(w) & (w > 1e-9), box, point)
+
+    return 0.5 * (1.0 + filtered_square_wave(bx) * filtered_square_wave(by))
 
 
 def sample_board_poses(

@@ -46,7 +46,7 @@ from frontend.sim.config import StrictModel, validate_section
 
 log = logging.getLogger(__name__)
 
-CACHE_VERSION = 2
+CACHE_VERSION = 3
 """Bump when the capture renderer or the calibration changes what a cached estimate would be."""
 
 

@@ -127,6 +127,33 @@ def test_synthetic_calibration_recovers_rig(tmp_path):
     assert back.reprojection_rms_px == rms
 
 
+def test_rendered_board_corners_are_where_the_rig_projects_them():
+    """Noise-free board captures: the detected corners are the true projections to a few
+    hundredths of a pixel. Point-sampled squares (each edge snapped to the nearest of 2 x 2
+    samples per pixel) put them 0.11 px RMS off, up to 0.4 px, and biased a 15-pose
+    calibration's focal lengths by 0.05 %."""
+    from frontend.fpp.calibration_board import find_chessboard
+    from frontend.fpp.lens import project_to_camera
+
+    rng = np.random.default_rng(0)
+    truth = small_rig()
+    board = Chessboard((9, 7), 0.03)
+    poses = sample_board_poses(truth, board, 4, rng)
+    captures = simulate_graycode_captures(truth, board, poses, rng, pattern_specs=[], supersample=2, noise_grey=0.0)
+    errors = []
+    for (_patterns, white, _black), T in zip(captures, poses, strict=True):
+        found = find_chessboard(white, board)
+        assert found is not None
+        X = board.object_points_m @ T[:3, :3].T + T[:3, 3]
+        true_px = np.column_stack(project_to_camera(truth, X))
+        # a board with an even number of squares each way reads the same turned by 180 degrees
+        errors.append(min((found - true_px, found[::-1] - true_px), key=lambda e: float(np.sum(e**2))))
+    errors = np.concatenate(errors)
+    assert np.sqrt(np.mean(errors**2)) < 0.05
+    assert np.max(np.abs(errors)) < 0.12
+    assert np.all(np.abs(errors.mean(axis=0)) < 0.01)
+
+
 def test_calibrate_rig_needs_three_poses():
     board = Chessboard((4, 3), 0.02)
     with pytest.raises(CalibrationError, match="at least 3"):
