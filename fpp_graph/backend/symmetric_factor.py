@@ -11,8 +11,8 @@ Two implementations behind one call, :func:`factor_symmetric`:
   the diagonal of ``U``): linear memory, and the exact inertia by Sylvester's law.
 - **Dense** (numpy's LAPACK: Cholesky as the definiteness test, then the inverse), for systems
   of order up to :data:`DENSE_ORDER`. Why: ``scipy.sparse.linalg`` pulls in ``scipy.linalg``
-  on import, ~65 ms, which is a sixth of a whole ``fpp-slam optimize`` process on a small graph
-  (125 poses), where the dense factorisations take a few milliseconds. A failed Cholesky says "not
+  on import, ~65 ms, about a tenth of a whole ``fpp-slam optimize`` process on a small graph
+  (125 poses), where the dense factorisations cost less (~40 ms in all). A failed Cholesky says "not
   positive definite" without a count (``negatives = -1``), which is all the refinement needs;
   the certificate decides small problems on the dense eigenvalues instead.
 """
