@@ -26,7 +26,7 @@ def component_labels(n: int, ends: NDArray[np.int64]) -> NDArray[np.int64]:
 
     A union-find with path halving, written out rather than taken from
     ``scipy.sparse.csgraph``: that package imports ``scipy.sparse.linalg`` and ``scipy.linalg``
-    (~65 ms), a sixth of a whole ``fpp-slam optimize`` process on a small graph, and this runs
+    (~65 ms), a tenth of a whole ``fpp-slam optimize`` process on a small graph, and this runs
     before every solve. Linear in the edges (~1 us per edge).
     """
     root = list(range(n))

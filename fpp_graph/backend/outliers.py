@@ -161,7 +161,7 @@ def odometry_forest(
     the index into ``ends`` of the edge to its parent (-1 at a root) and each node's tree label.
     """
     # Breadth-first search written out: scipy.sparse.csgraph imports scipy.sparse.linalg and
-    # scipy.linalg (~65 ms), a sixth of an ``fpp-slam optimize`` process on a small graph.
+    # scipy.linalg (~65 ms), a tenth of an ``fpp-slam optimize`` process on a small graph.
     from collections import deque
 
     from fpp_graph.backend.graph_diagnostics import component_labels
