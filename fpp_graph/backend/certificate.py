@@ -373,7 +373,6 @@ def certify_arrays(
         Define ``eta`` (module docstring).
     """
     start = time.perf_counter()
-    n = data.n
     X = np.hstack([stack_blocks(T_world_sensor[:, :3, :3]), T_world_sensor[:, :3, 3].T])
     input_F = objective(data, X)
     X, F, gradient_norm, iterations = newton(data, X, anchor)
@@ -382,15 +381,10 @@ def certify_arrays(
     psd, w, V = _certify_point(data, X, eta)
     log.debug("certificate: refined F %.12g -> %.12g in %d Newton steps (%.3f s); lambda_min %.3g, eta %.3g",
               input_F, F, iterations, t_refine, w[0], eta)
-    method = "refine"
-    escaped = False
-    relaxation_F = math.nan
-    if not psd and escape and iterations >= certificate_refinement.MAX_NEWTON_ITERATIONS:
-        # The staircase escapes from a critical point (a saddle of the lifted problem); from
-        # anywhere else it costs minutes per rank and decides nothing. The weak-duality bound
-        # below still holds at any point.
-        method = f"refine: no critical point after {iterations} Newton steps (|grad| {gradient_norm:.3g}); no escape"
-        log.warning("certificate: %s", method)
+    critical = iterations < certificate_refinement.MAX_NEWTON_ITERATIONS
+    method, escaped, relaxation_F = "refine", False, math.nan
+    if not psd and escape and not critical:
+        method = _no_escape(iterations, gradient_norm)
     elif not psd and escape:
         escaped = True
         candidate, F_candidate, gradient_candidate, rank, relaxation_F = _staircase(
@@ -405,14 +399,7 @@ def certify_arrays(
             log.warning("staircase: the rounded solution (F %.12g) is no better than the start (F %.12g)",
                         F_candidate, F)
     lambda_min = float(w[0])
-    gap = float(w[3]) if len(w) > 3 else math.nan
-    bound = 3 * n * max(0.0, -lambda_min)
-    if iterations >= certificate_refinement.MAX_NEWTON_ITERATIONS and not escaped:
-        # weak duality bounds F at optimal positions for these rotations; Newton's positions
-        # are optimal only at a critical point
-        bound += max(0.0, F - objective(data, optimal_translations(data, X[:, : 3 * n])))
-    if psd:
-        bound = min(bound, 3 * n * eta) if lambda_min >= -eta else 3 * n * eta
+    bound = _suboptimality_bound(data, X, F, lambda_min, eta, psd, positions_optimal=critical or escaped)
     poses = _poses_in_gauge(X, T_world_sensor[anchor], anchor, data.keys)
     seconds = time.perf_counter() - start
     log.info("certificate: %s, F %.10g, lambda_min %.3g (eta %.3g), bound %.3g, %s, %.3f s",
@@ -420,7 +407,7 @@ def certify_arrays(
     return Certificate(
         certified=bool(psd),
         certificate_min_eigenvalue=lambda_min,
-        spectral_gap=gap,
+        spectral_gap=float(w[3]) if len(w) > 3 else math.nan,
         suboptimality_bound=float(bound),
         objective=float(F),
         input_objective=float(input_F),
@@ -434,6 +421,35 @@ def certify_arrays(
         gradient_norm=float(gradient_norm),
         relaxation_objective=float(relaxation_F),
     )
+
+
+def _no_escape(iterations: int, gradient_norm: float) -> str:
+    """The method string (and a warning) of a refinement that reached no critical point.
+
+    The staircase escapes from a critical point (a saddle of the lifted problem); from anywhere
+    else it costs minutes per rank and decides nothing. The weak-duality bound still holds.
+    """
+    method = f"refine: no critical point after {iterations} Newton steps (|grad| {gradient_norm:.3g}); no escape"
+    log.warning("certificate: %s", method)
+    return method
+
+
+def _suboptimality_bound(
+    data: SESyncData, X: Array, F: float, lambda_min: float, eta: float, psd: bool, *, positions_optimal: bool
+) -> float:
+    """``F(X) - F*`` bound: weak duality ``3n max(0, -lambda_min)`` (``3n eta`` when certified).
+
+    Weak duality bounds ``F`` at optimal positions for ``X``'s rotations; Newton's positions are
+    optimal only at a critical point, so elsewhere (``positions_optimal`` false) their own excess
+    over the optimal positions is added.
+    """
+    n = data.n
+    bound = 3 * n * max(0.0, -lambda_min)
+    if not positions_optimal:
+        bound += max(0.0, F - objective(data, optimal_translations(data, X[:, : 3 * n])))
+    if psd:
+        bound = min(bound, 3 * n * eta) if lambda_min >= -eta else 3 * n * eta
+    return bound
 
 
 def _poses_in_gauge(X: Array, T_anchor_given: Array, anchor: int, keys: NDArray[np.int64]) -> dict[int, Array]:

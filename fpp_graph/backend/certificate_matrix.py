@@ -32,6 +32,8 @@ def dense_eigen_order() -> int:
     refinement's Newton Hessian (order 6n - 6) is twice S's; so a problem small enough for dense
     Newton steps never imports scipy.sparse.linalg."""
     return max(symmetric_factor.DENSE_ORDER // 2, _ARPACK_MIN_ORDER)
+
+
 #: Eigenpairs computed: the 3 gauge ones and the first non-gauge one (the spectral gap).
 _NUM_EIGENPAIRS = 4
 

@@ -2,8 +2,10 @@
 
 Part of the certificate (:mod:`fpp_graph.backend.certificate`, whose module docstring states the problem,
 the method and the tolerance): ``F``, its gradient and multipliers from edge residuals, the
-optimal positions for given rotations, and the damped Newton method on ``(St(3, r) x R^r)^n`` that moves poses to a critical point of ``F``
-(step 2 of the certificate; also the inner solver of the Riemannian staircase).
+optimal positions for given rotations, and the damped Newton method on ``(St(3, r) x R^r)^n``
+that moves poses to a critical point of ``F`` (step 2 of the certificate; also the inner solver
+of the Riemannian staircase). Its linear systems go through
+:mod:`fpp_graph.backend.symmetric_factor`.
 """
 
 from __future__ import annotations

@@ -171,7 +171,8 @@ def odometry_forest(
     pairs, first = np.unique(pair, return_index=True)
     last = len(pair) - 1 - np.unique(pair[::-1], return_index=True)[1]
     neighbours: list[list[int]] = [[] for _ in range(n)]
-    for u, v in zip(a[np.sort(first)].tolist(), b[np.sort(first)].tolist(), strict=True):  # first-edge order
+    in_order = np.sort(first)  # each node pair's first edge, in edge order
+    for u, v in zip(a[in_order].tolist(), b[in_order].tolist(), strict=True):
         neighbours[u].append(v)
         neighbours[v].append(u)
     labels = component_labels(n, ends)
