@@ -23,8 +23,11 @@ import numpy as np
 
 from frontend.fpp.calibration_board import Chessboard
 from frontend.fpp.calibration_io import read_procam_calibration, read_slmaster_calibration
+from frontend.fpp.calibration_folders import observe_pose_folders, pose_folders
+from frontend.fpp.pattern_file import load_pattern_spec
+from frontend.fpp.patterns import opencv_gray_code_spec
 from frontend.fpp.rig import save_calibration
-from frontend.fpp.rig_calibration import calibrate_rig, observe_graycode_folders, transfer_rms_px
+from frontend.fpp.rig_calibration import calibrate_rig, transfer_rms_px
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -47,8 +50,9 @@ def main() -> None:
 
     board = Chessboard((9, 7), 0.075)
     projector_size = (1024, 768)
-    folders = sorted(args.data.glob("capture_*"))
-    observations, camera_size = observe_graycode_folders(folders, board, projector_size)
+    folders = pose_folders(args.data, "capture_*")
+    spec = load_pattern_spec(ROOT / "datasets" / "patterns" / "procam_graycode_1024x768.yaml")
+    observations, camera_size = observe_pose_folders(folders, spec, board, projector_size)
     report = calibrate_rig(observations, board, camera_size, projector_size)
     ours = report.calibration
     ref = read_procam_calibration(args.data / "calibration_result.xml", projector_size=projector_size)
@@ -78,8 +82,8 @@ def main() -> None:
     print(f"    reference {t_ref:.3f} (per pose {np.round(per_ref, 3).tolist()})")
 
     # The reference's projector coordinates turn out to be twice ours (a 2048x1536 projector
-    # decoded with Gray-code step 2 gives the same 42 images): compare in those units too.
-    obs2, _ = observe_graycode_folders(folders, board, (2048, 1536), step=2)
+    # with Gray-code step 2 gives the same 42 images): compare in those units too.
+    obs2, _ = observe_pose_folders(folders, opencv_gray_code_spec(2048, 1536, step=2), board, (2048, 1536))
     ours2 = calibrate_rig(obs2, board, camera_size, (2048, 1536)).calibration
     ref2 = read_procam_calibration(args.data / "calibration_result.xml", projector_size=(2048, 1536))
     r2 = ours2.reprojection_rms_px

@@ -60,28 +60,42 @@ def run_ours(seq: Path, out: Path, config_path: Path | None = None) -> dict:
 
 # -- the peer: Open3D multiway registration ----------------------------------------------------
 def open3d_multiway(ours_dir: Path, seq: Path, out: Path) -> dict:
+    """Open3D's multiway registration and TSDF on our frames and loop candidates; its metrics."""
     import open3d as o3d
 
     from fpp_graph.config import load_config
     from fpp_graph.evaluation.results import evaluate_results
-    from fpp_graph.fusion.voxel_map import intrinsics_of, render_depth
-    from fpp_graph.geometry import invert
     from fpp_graph.slam.frame_store import load_frame
     from fpp_graph.slam.sources import open_source
     from fpp_graph.trajectory import Trajectory, write_tum
 
     config = load_config(ours_dir / "config.yaml")
-    voxel = config.registration.lengths.icp_voxel_m
-    reg = o3d.pipelines.registration
     out.mkdir(parents=True, exist_ok=True)
-    frame_files = sorted((ours_dir / "frames").glob("frame_*.npz"))
     loops = json.loads((ours_dir / "loops.json").read_text())
     o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
 
     wall0, cpu0 = time.perf_counter(), cpu_seconds()
-    frames = [load_frame(p) for p in frame_files]
-    ids = [f.id for f in frames]
-    index = {fid: k for k, fid in enumerate(ids)}
+    frames = [load_frame(p) for p in sorted((ours_dir / "frames").glob("frame_*.npz"))]
+    poses, pairs, kept_loops = _open3d_pose_graph(frames, loops, config.registration.lengths.icp_voxel_m)
+    t_graph = time.perf_counter() - wall0
+    cloud = _open3d_tsdf(frames, poses, config.fusion.tsdf_voxel_m, config.fusion.tsdf_truncation_m)
+    wall, cpu = time.perf_counter() - wall0, cpu_seconds() - cpu0
+    if not o3d.io.write_point_cloud(str(out / "map.ply"), cloud):
+        raise RuntimeError(f"Open3D could not write {out / 'map.ply'} ({len(cloud.points)} points)")
+    write_tum(out / "trajectory.tum", Trajectory.from_poses([f.timestamp for f in frames], poses))
+    (out / "metrics.json").write_text(json.dumps({"seconds": wall, "loop_candidates": pairs}))
+    metrics = evaluate_results(out, open_source(seq, load_config(None)))
+    return {"wall_s": wall, "cpu_s": cpu, "graph_s": t_graph, "loop_edges": pairs, "loop_edges_kept": kept_loops, **metrics}
+
+
+def _open3d_pose_graph(frames: list, loops: list[dict], voxel: float) -> tuple[list[np.ndarray], int, int]:
+    """The tutorial's multiway registration: poses (T_world_frame), loop pairs tried, loop edges kept."""
+    import open3d as o3d
+
+    from fpp_graph.geometry import invert
+
+    reg = o3d.pipelines.registration
+    index = {f.id: k for k, f in enumerate(frames)}
     clouds = []
     for f in frames:
         pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.array(f.points, dtype=np.float64)))
@@ -143,15 +157,22 @@ def open3d_multiway(ours_dir: Path, seq: Path, out: Path) -> dict:
         max_correspondence_distance=fine, edge_prune_threshold=0.25, preference_loop_closure=2.0, reference_node=0
     )
     reg.global_optimization(graph, reg.GlobalOptimizationLevenbergMarquardt(), reg.GlobalOptimizationConvergenceCriteria(), option)
-    poses = [np.asarray(graph.nodes[k].pose) for k in range(len(frames))]
-    t_graph = time.perf_counter() - wall0
+    kept_loops = sum(1 for e in graph.edges if e.uncertain)
+    return [np.asarray(graph.nodes[k].pose) for k in range(len(frames))], len(pairs), kept_loops
 
-    # Open3D's TSDF: the tensor VoxelBlockGrid (the legacy ScalableTSDFVolume of open3d 0.20
-    # extracts nothing here, see fpp_graph/fusion/voxel_map.py), our TSDF voxel and truncation
-    voxel_t, trunc_voxels = config.fusion.tsdf_voxel_m, config.fusion.tsdf_truncation_m / config.fusion.tsdf_voxel_m
+
+def _open3d_tsdf(frames: list, poses: list[np.ndarray], voxel_m: float, truncation_m: float):
+    """Open3D's TSDF: the tensor VoxelBlockGrid (the legacy ScalableTSDFVolume of open3d 0.20
+    extracts nothing here, see fpp_graph/fusion/voxel_map.py), our TSDF voxel and truncation."""
+    import open3d as o3d
+
+    from fpp_graph.fusion.voxel_map import intrinsics_of, render_depth
+    from fpp_graph.geometry import invert
+
+    trunc_voxels = truncation_m / voxel_m
     volume = o3d.t.geometry.VoxelBlockGrid(
         attr_names=("tsdf", "weight", "color"), attr_dtypes=(o3d.core.float32, o3d.core.float32, o3d.core.float32),
-        attr_channels=((1), (1), (3)), voxel_size=voxel_t, block_resolution=16, block_count=50000,
+        attr_channels=((1), (1), (3)), voxel_size=voxel_m, block_resolution=16, block_count=50000,
         device=o3d.core.Device("CPU:0"),
     )
     for f, T in zip(frames, poses, strict=True):
@@ -164,15 +185,7 @@ def open3d_multiway(ours_dir: Path, seq: Path, out: Path) -> dict:
         depth_max = float(depth_m.max()) + 1.0
         blocks = volume.compute_unique_block_coordinates(depth, intrinsic, extrinsic, 1.0, depth_max, trunc_voxels)
         volume.integrate(blocks, depth, color, intrinsic, extrinsic, 1.0, depth_max, trunc_voxels)
-    cloud = volume.extract_point_cloud().to_legacy()
-    wall, cpu = time.perf_counter() - wall0, cpu_seconds() - cpu0
-    if not o3d.io.write_point_cloud(str(out / "map.ply"), cloud):
-        raise RuntimeError(f"Open3D could not write {out / 'map.ply'} ({len(cloud.points)} points)")
-    write_tum(out / "trajectory.tum", Trajectory.from_poses([f.timestamp for f in frames], poses))
-    (out / "metrics.json").write_text(json.dumps({"seconds": wall, "loop_candidates": len(pairs)}))
-    metrics = evaluate_results(out, open_source(seq, load_config(None)))
-    kept_loops = sum(1 for e in graph.edges if e.uncertain)
-    return {"wall_s": wall, "cpu_s": cpu, "graph_s": t_graph, "loop_edges": len(pairs), "loop_edges_kept": kept_loops, **metrics}
+    return volume.extract_point_cloud().to_legacy()
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -1,7 +1,7 @@
 """Synthetic Gray-code calibration captures of a chessboard for a known rig (for validation).
 
 Board poses seen whole by camera and projector (:func:`sample_board_poses`), rendered as a rig
-would capture them (:func:`simulate_graycode_captures`); :func:`frontend.fpp.rig_calibration.calibrate_from_captures`
+would capture them (:func:`simulate_graycode_captures`); :func:`frontend.fpp.calibration_folders.calibrate_from_captures`
 calibrates from them.
 """
 
@@ -16,9 +16,13 @@ from numpy.typing import NDArray
 from fpp_graph.errors import CalibrationError
 from fpp_graph.geometry import make_pose
 from frontend.fpp.calibration_board import Chessboard
-from frontend.fpp.graycode import gray_code_patterns
 from frontend.fpp.lens import project_to_camera, project_to_projector, undistort_pixels
-from frontend.fpp.patterns import PatternSpec, pattern_intensity
+from frontend.fpp.patterns import (
+    PatternSpec,
+    generate_patterns,
+    opencv_gray_code_spec,
+    pattern_intensity,
+)
 from frontend.fpp.rig import RigCalibration
 
 
@@ -92,7 +96,7 @@ def iter_graycode_captures(
     Yields
     ------
     (patterns, white, black)
-        Per pose, as :func:`read_graycode_capture` returns them.
+        Per pose: the pattern images, then the white and the black image, uint8.
     """
     cam = calibration.camera
     H, W = cam.height, cam.width
@@ -158,7 +162,7 @@ def _pattern_values(calibration: RigCalibration, pattern_specs: Sequence[Pattern
     coordinates (continuous ``u_p, v_p``, nearest pixel ``col, row``)."""
     proj = calibration.projector
     if pattern_specs is None:
-        patterns_proj = gray_code_patterns(proj.width, proj.height).astype(np.float32) / 255.0
+        patterns_proj = generate_patterns(opencv_gray_code_spec(proj.width, proj.height), proj.width, proj.height)[:-2].astype(np.float32) / 255.0
         column_only = [bool(np.all(p == p[:1])) for p in patterns_proj]
         row_only = [bool(np.all(p == p[:, :1])) for p in patterns_proj]
 

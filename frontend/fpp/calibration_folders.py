@@ -5,6 +5,8 @@ the order the pattern file states. The pattern set must give both projector coor
 (``axis: both``, e.g. OpenCV's Gray code with inverses as procam-calibration captures it). Each
 pose is decoded with :class:`frontend.fpp.phase.Decoder`, the chessboard is found in its white
 image (the decoded texture when the set has none), and :func:`calibrate_rig` does the rest.
+:func:`calibrate_from_captures` does the same for in-memory Gray-code captures (the simulator's
+board captures): one decoder for real and simulated boards.
 
 procam-calibration's validity rules map onto the decoder's thresholds: a pixel is valid when
 ``white - black > 40`` (``decode.min_modulation = 20.25``, half the contrast, as integers) and
@@ -16,17 +18,18 @@ from __future__ import annotations
 
 import logging
 import os
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 
 import numpy as np
+from numpy.typing import NDArray
 
 from fpp_graph.errors import CalibrationError, ConfigError, InputDataError
 from frontend.config import DecodeConfig
 from frontend.fpp.calibration_board import Chessboard
 from frontend.fpp.capture import capture_image_paths, natural_key
 from frontend.fpp.images import load_image_stack
-from frontend.fpp.patterns import PatternSpec
+from frontend.fpp.patterns import PatternSpec, opencv_gray_code_spec
 from frontend.fpp.phase import Decoder
 from frontend.fpp.rig_calibration import (
     PoseObservation,
@@ -77,7 +80,6 @@ def observe_pose_folders(
     if spec.axis != "both":
         raise ConfigError(f"calibration needs both projector coordinates: the pattern set encodes only its {spec.axis}; use a set with axis: both (e.g. datasets/patterns/procam_graycode_1024x768.yaml)")
     decoder = Decoder(spec, *projector_size, decode_config)
-    white_index = next((i for i, im in enumerate(spec.layout()) if im.role == "white"), None)
     observations: list[PoseObservation] = []
     camera_size = None
     for k, folder in enumerate(folders):
@@ -87,12 +89,10 @@ def observe_pose_folders(
         if camera_size is not None and size != camera_size:
             raise InputDataError(f"{folder}: images are {size[0]}x{size[1]}, earlier poses {camera_size[0]}x{camera_size[1]}; one camera, one size")
         camera_size = size
-        result = decoder.decode(stack)
-        assert result.v_projector_px is not None  # axis both
-        white = stack[white_index] if white_index is not None else result.texture
         try:
-            observations.append(observe_pose(str(folder), white, result.u_projector_px, result.v_projector_px, board, result.mask))
+            observations.append(observe_pose_stack(str(folder), stack, decoder, board))
         except CalibrationError:
+            white_index = _white_index(spec)
             where = paths[white_index] if white_index is not None else Path(folder)
             message = (
                 f"{where}: no chessboard with {board.corners[0]}x{board.corners[1]} inner corners found; check --board "
@@ -129,3 +129,52 @@ def calibrate_pose_folders(
     finite = [np.isfinite(o.projector_px).all(axis=1).sum() for o in observations]
     log.info("calibrated from %d poses (%d projector corners)", len(observations), int(sum(finite)))
     return report
+
+
+def _white_index(spec: PatternSpec) -> int | None:
+    return next((i for i, im in enumerate(spec.layout()) if im.role == "white"), None)
+
+
+def observe_pose_stack(name: str, stack: NDArray, decoder: Decoder, board: Chessboard) -> PoseObservation:
+    """Decode one pose's image stack (capture order) and find the board in camera and projector.
+
+    The corners are found in the set's white image, or in the decoded texture when it has none.
+    Raises CalibrationError when the board is not found.
+    """
+    result = decoder.decode(stack)
+    if result.v_projector_px is None:
+        raise ConfigError(f"{name}: calibration needs both projector coordinates; the pattern set encodes only its {decoder.spec.axis}")
+    white_index = _white_index(decoder.spec)
+    white = stack[white_index] if white_index is not None else result.texture
+    return observe_pose(name, white, result.u_projector_px, result.v_projector_px, board, result.mask)
+
+
+def calibrate_from_captures(
+    captures: Iterable[tuple[NDArray, NDArray, NDArray]],
+    board: Chessboard,
+    projector_size: tuple[int, int],
+    *,
+    names: Sequence[str] | None = None,
+    refine_intrinsics: bool = False,
+    calibration_flags: int = 0,
+) -> tuple[RigCalibrationReport, list[PoseObservation]]:
+    """Calibrate from in-memory Gray-code captures ``(patterns, white, black)`` of
+    :func:`~frontend.fpp.patterns.opencv_gray_code_spec` (procam-calibration's set and rules).
+
+    A pose whose board is not found is skipped with a warning (counted in the report's poses).
+    """
+    decoder = Decoder(opencv_gray_code_spec(*projector_size), *projector_size, PROCAM_DECODE)
+    observations = []
+    camera_size = None
+    for i, (patterns, white, black) in enumerate(captures):
+        name = names[i] if names is not None else f"pose {i}"
+        camera_size = (white.shape[1], white.shape[0])
+        stack = np.concatenate([patterns, white[None], black[None]])
+        try:
+            observations.append(observe_pose_stack(name, stack, decoder, board))
+        except CalibrationError as exc:
+            log.warning("%s; pose skipped", exc)
+    if camera_size is None:
+        raise CalibrationError("no captures given")
+    report = calibrate_rig(observations, board, camera_size, projector_size, refine_intrinsics=refine_intrinsics, calibration_flags=calibration_flags)
+    return report, observations

@@ -405,6 +405,24 @@ def unwrapping_scheme(periods: tuple[int, ...]) -> str | None:
     return None
 
 
+def opencv_gray_code_spec(projector_width: int, projector_height: int, step: int = 1) -> PatternSpec:
+    """OpenCV ``structured_light.GrayCodePattern`` as procam-calibration captures it.
+
+    ``ceil(log2 S)`` column bits, then row bits, MSB first, each image followed by its inverse,
+    then white and black; ``S = ceil(W / step)`` column and ``ceil(H / step)`` row stripes of
+    ``step`` projector pixels (checked against procam-calibration's pattern PNGs and OpenCV's
+    ``GrayCodePattern.generate`` by the tests). The decoder gives each stripe's centre.
+    """
+    width, height, step = int(projector_width), int(projector_height), int(step)
+    if width <= 0 or height <= 0 or step <= 0:
+        raise ConfigError(f"Gray-code set for a {projector_width}x{projector_height} projector with step {step}: sizes and step must be positive")
+    columns, rows = (width - 1) // step + 1, (height - 1) // step + 1
+    return PatternSpec(
+        kind="gray_code", axis="both", periods=(columns, rows), gray_bits=max(1, math.ceil(math.log2(columns))),
+        gray_bits_rows=max(1, math.ceil(math.log2(rows))), gray_inverse=True, with_reference=True, reference_position="end",
+    )
+
+
 def gray_encode(k: NDArray[np.integer]) -> NDArray[np.integer]:
     """Binary-reflected Gray code of non-negative integers."""
     k = np.asarray(k)

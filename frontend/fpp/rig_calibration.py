@@ -4,9 +4,9 @@ Input: a planar chessboard seen at several poses, each pose captured under struc
 tells, for every camera pixel, which projector pixel lights it (Gray code, phase shifting, or
 both). Steps, after Moreno & Taubin (3DIMPVT 2012) as kamino410/procam-calibration does them:
 
-1. :func:`~frontend.fpp.graycode.decode_gray_code`: per-pixel projector column and row from
-   Gray-code images with their inverses (OpenCV ``structured_light.GrayCodePattern`` order), or
-   any float projector coordinate maps from a phase decoder.
+1. :class:`~frontend.fpp.phase.Decoder`: per-pixel projector column and row from any pattern
+   set with ``axis: both`` (e.g. OpenCV's Gray code with inverses,
+   :func:`~frontend.fpp.patterns.opencv_gray_code_spec`), or column and row phase captures.
 2. :func:`~frontend.fpp.calibration_board.find_chessboard`: ``cv2.findChessboardCorners`` +
    ``cv2.cornerSubPix`` on the fully lit (white) image.
 3. :func:`~frontend.fpp.calibration_board.projector_corners`: each corner's projector coordinate
@@ -18,17 +18,15 @@ both). Steps, after Moreno & Taubin (3DIMPVT 2012) as kamino410/procam-calibrati
 
 Lengths: the board's square size is given in metres, so the translation comes out in metres.
 
-Modules: :mod:`frontend.fpp.graycode` (step 1 and the capture folders),
-:mod:`frontend.fpp.calibration_board` (steps 2 and 3), this module (step 4, whole-rig validation,
-calibration from folders or in-memory captures), :mod:`frontend.fpp.calibration_captures`
-(synthetic captures for validation).
+Modules: :mod:`frontend.fpp.calibration_board` (steps 2 and 3), this module (step 4 and
+whole-rig validation), :mod:`frontend.fpp.calibration_folders` (steps 1-4 from capture folders
+or in-memory captures), :mod:`frontend.fpp.calibration_captures` (synthetic captures).
 """
 
 from __future__ import annotations
 
 import logging
 import math
-import os
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
@@ -39,7 +37,6 @@ from numpy.typing import ArrayLike, NDArray
 from fpp_graph.errors import CalibrationError
 from fpp_graph.geometry import make_pose
 from frontend.fpp.calibration_board import Chessboard, find_chessboard, projector_corners
-from frontend.fpp.graycode import decode_gray_code, read_graycode_capture
 from frontend.fpp.rig import PinholeModel, RigCalibration
 
 log = logging.getLogger(__name__)
@@ -202,67 +199,6 @@ def _orthonormalize(R: NDArray) -> NDArray:
     return U @ Vt
 
 
-# ---------------------------------------------------------------------------- capture folders
-
-
-def observe_graycode_folders(
-    folders: Sequence[str | os.PathLike[str]],
-    board: Chessboard,
-    projector_size: tuple[int, int],
-    *,
-    step: int = 1,
-    white_threshold: float = 5.0,
-    black_threshold: float = 40.0,
-    window_half: int | None = None,
-) -> tuple[list[PoseObservation], tuple[int, int]]:
-    """Decode procam-calibration style capture folders and find the corners of each pose.
-
-    Each folder holds ``graycode_XX.png``: the Gray-code patterns with inverses in OpenCV order,
-    then white, then black. Poses whose board is not found are skipped with a warning.
-
-    Returns
-    -------
-    observations : list of PoseObservation
-    camera_size : (width, height)
-    """
-    observations = []
-    camera_size = None
-    for folder in folders:
-        patterns, white, black = read_graycode_capture(folder, projector_size, step)
-        size = (white.shape[1], white.shape[0])
-        if camera_size is None:
-            camera_size = size
-        elif size != camera_size:
-            raise CalibrationError(f"{folder}: images are {size[0]}x{size[1]}, earlier poses {camera_size[0]}x{camera_size[1]}")
-        dec = decode_gray_code(patterns, projector_size, white, black, white_threshold=white_threshold, black_threshold=black_threshold, step=step)
-        try:
-            observations.append(observe_pose(str(folder), white, dec.column, dec.row, board, dec.valid, window_half))
-        except CalibrationError as exc:
-            log.warning("%s", exc)
-    if camera_size is None:
-        raise CalibrationError("no capture folders given")
-    return observations, camera_size
-
-
-def calibrate_from_graycode_folders(
-    folders: Sequence[str | os.PathLike[str]],
-    board: Chessboard,
-    projector_size: tuple[int, int],
-    *,
-    step: int = 1,
-    white_threshold: float = 5.0,
-    black_threshold: float = 40.0,
-    window_half: int | None = None,
-    refine_intrinsics: bool = False,
-    calibration_flags: int = 0,
-) -> RigCalibrationReport:
-    """Calibrate from procam-calibration style capture folders (see :func:`observe_graycode_folders`)."""
-    observations, camera_size = observe_graycode_folders(
-        folders, board, projector_size, step=step, white_threshold=white_threshold, black_threshold=black_threshold, window_half=window_half
-    )
-    return calibrate_rig(observations, board, camera_size, projector_size, refine_intrinsics=refine_intrinsics, calibration_flags=calibration_flags)
-
-
 # ---------------------------------------------------------------------------- validation
 
 
@@ -298,33 +234,3 @@ def transfer_rms_px(calibration: RigCalibration, observations: Sequence[PoseObse
         per_pose.append(float(np.sqrt(e2.mean())))
     all_sq = np.concatenate(sq) if sq else np.array([np.nan])
     return float(np.sqrt(all_sq.mean())), per_pose
-
-
-# ---------------------------------------------------------------------------- in-memory captures
-
-
-def calibrate_from_captures(
-    captures: Sequence[tuple[NDArray, NDArray, NDArray]],
-    board: Chessboard,
-    projector_size: tuple[int, int],
-    *,
-    names: Sequence[str] | None = None,
-    window_half: int | None = None,
-    refine_intrinsics: bool = False,
-    calibration_flags: int = 0,
-) -> tuple[RigCalibrationReport, list[PoseObservation]]:
-    """Decode in-memory Gray-code captures ``(patterns, white, black)`` and calibrate the rig."""
-    observations = []
-    camera_size = None
-    for i, (patterns, white, black) in enumerate(captures):
-        name = names[i] if names is not None else f"pose {i}"
-        camera_size = (white.shape[1], white.shape[0])
-        dec = decode_gray_code(patterns, projector_size, white, black)
-        try:
-            observations.append(observe_pose(name, white, dec.column, dec.row, board, dec.valid, window_half))
-        except CalibrationError as exc:
-            log.warning("%s", exc)
-    if camera_size is None:
-        raise CalibrationError("no captures given")
-    report = calibrate_rig(observations, board, camera_size, projector_size, refine_intrinsics=refine_intrinsics, calibration_flags=calibration_flags)
-    return report, observations

@@ -5,7 +5,7 @@ from board captures estimated, with a fraction of a pixel of reprojection error 
 error that every decoded view shares. :func:`estimate_rig_calibration` reproduces that: it
 renders Gray-code captures of a chessboard (with the board's printing-scale and flatness errors)
 at poses spread over the working volume, seen by the *true* rig, and calibrates with the
-project's calibration code (:func:`frontend.fpp.rig_calibration.calibrate_from_captures`). The
+project's calibration code (:func:`frontend.fpp.calibration_folders.calibrate_from_captures`). The
 simulator then renders with the truth and the sequence stores the estimate.
 
 Results are cached per (true rig, board set-up, seed): the same inputs always give the same
@@ -32,12 +32,12 @@ from fpp_graph.errors import CalibrationError
 from fpp_graph.geometry import kabsch, rotation_angle_rad
 from frontend.fpp.calibration_board import Chessboard
 from frontend.fpp.calibration_captures import iter_graycode_captures, sample_board_poses
+from frontend.fpp.calibration_folders import calibrate_from_captures
 from frontend.fpp.patterns import PatternSpec
 from frontend.fpp.phase import decode
 from frontend.fpp.rig import RigCalibration, load_calibration, save_calibration
 from frontend.fpp.rig_calibration import (
     PoseObservation,
-    calibrate_from_captures,
     calibrate_rig,
     observe_pose,
     transfer_rms_px,

@@ -10,7 +10,7 @@ import pytest
 from conftest import shared_data_path
 from scipy.spatial.transform import Rotation
 
-from fpp_graph.errors import CalibrationError
+from fpp_graph.errors import CalibrationError, FppError
 from fpp_graph.geometry import make_pose
 from frontend.fpp.calibration_board import Chessboard, projector_corners
 from frontend.fpp.calibration_captures import sample_board_poses, simulate_graycode_captures
@@ -19,56 +19,61 @@ from frontend.fpp.calibration_io import (
     read_procam_calibration,
     read_slmaster_calibration,
 )
-from frontend.fpp.graycode import (
-    decode_gray_code,
-    gray_code_bit_counts,
-    gray_code_patterns,
-    read_graycode_capture,
-)
+from frontend.fpp.calibration_folders import PROCAM_DECODE, calibrate_from_captures, calibrate_pose_folders, observe_pose_folders
+from frontend.fpp.pattern_file import load_pattern_spec
+from frontend.fpp.patterns import generate_patterns, opencv_gray_code_spec
+from frontend.fpp.phase import Decoder
 from frontend.fpp.rig import PinholeModel, RigCalibration, load_calibration, save_calibration
-from frontend.fpp.rig_calibration import (
-    calibrate_from_captures,
-    calibrate_from_graycode_folders,
-    calibrate_rig,
-    transfer_rms_px,
-)
+from frontend.fpp.rig_calibration import calibrate_rig, transfer_rms_px
+
+PATTERNS = Path(__file__).resolve().parents[2] / "datasets" / "patterns"
 
 # ---------------------------------------------------------------- Gray code
 
 
 def test_gray_code_patterns_match_opencv():
     ok, ref = cv2.structured_light.GrayCodePattern.create(100, 60).generate()
-    ours = gray_code_patterns(100, 60)
-    assert gray_code_bit_counts(100, 60) == (7, 6)
-    assert len(ref) == len(ours) == 26
-    assert all(np.array_equal(a, b) for a, b in zip(ref, ours, strict=True))
+    spec = opencv_gray_code_spec(100, 60)
+    assert (spec.gray_bits, spec.gray_bits_rows) == (7, 6)
+    ours = generate_patterns(spec, 100, 60)
+    assert len(ref) == 26 and len(ours) == 28  # OpenCV's patterns, then white and black
+    assert all(np.array_equal(a, b) for a, b in zip(ref, ours, strict=False))
+    assert (ours[-2] == 255).all() and (ours[-1] == 0).all()
+
+
+def test_procam_pattern_file_is_the_opencv_set():
+    assert load_pattern_spec(PATTERNS / "procam_graycode_1024x768.yaml").layout() == opencv_gray_code_spec(1024, 768).layout()
 
 
 def test_decode_own_patterns_gives_identity():
-    pats = gray_code_patterns(100, 60)
-    dec = decode_gray_code(pats, (100, 60))
-    assert dec.valid.all()
-    assert np.array_equal(dec.column, np.broadcast_to(np.arange(100), (60, 100)))
-    assert np.array_equal(dec.row, np.broadcast_to(np.arange(60)[:, None], (60, 100)))
+    images = generate_patterns(opencv_gray_code_spec(100, 60), 100, 60)
+    dec = Decoder(opencv_gray_code_spec(100, 60), 100, 60, PROCAM_DECODE).decode(images)
+    assert dec.mask.all()
+    assert np.array_equal(dec.u_projector_px, np.broadcast_to(np.arange(100.0), (60, 100)))
+    assert np.array_equal(dec.v_projector_px, np.broadcast_to(np.arange(60.0)[:, None], (60, 100)))
 
 
 def test_decode_thresholds_and_step(rng):
-    pats = gray_code_patterns(50, 40).astype(float) * 0.5 + 20
-    pats += rng.normal(0, 0.5, pats.shape)
-    white = np.full((40, 50), 150.0)
-    black = np.full((40, 50), 20.0)
-    black[:5] = 140.0  # unlit: white - black below the black threshold
-    pats[4, 10:12, :] = pats[5, 10:12, :] + 1.0  # a bit without contrast: unreliable
-    dec = decode_gray_code(pats, (100, 80), white, black, step=2)
-    assert not dec.valid[:5].any() and not dec.valid[10:12].any()
-    assert np.all(dec.column[dec.valid] % 2 == 0)
-    assert np.array_equal(dec.column[20], 2 * np.arange(50))
-    assert np.all(dec.column[~dec.valid] == -1)
+    # Gray code of 50x40 stripes, 2 projector pixels each, on a 100x80 projector (step 2)
+    spec = opencv_gray_code_spec(100, 80, step=2)
+    images = generate_patterns(spec, 50, 40).astype(float) * 0.5 + 20
+    images += rng.normal(0, 0.5, images.shape)
+    images[-2], images[-1] = 150.0, 20.0
+    images[-1, :5] = 140.0  # unlit: white - black <= 40, procam-calibration's black threshold
+    images[4, 10:12, :] = images[5, 10:12, :] + 1.0  # a bit without contrast (< 5 levels): unreliable
+    dec = Decoder(spec, 100, 80, PROCAM_DECODE).decode(np.clip(images, 0, 255).astype(np.uint8))
+    assert not dec.mask[:5].any() and not dec.mask[10:12].any()
+    assert dec.mask[12:].all()
+    # each stripe's centre: projector pixels 2k and 2k + 1
+    assert np.array_equal(dec.u_projector_px[20], 2 * np.arange(50) + 0.5)
+    assert np.array_equal(dec.v_projector_px[20:, 7], 2 * np.arange(20, 40) + 0.5)
+    assert np.isnan(dec.u_projector_px[~dec.mask]).all()
 
 
 def test_decode_wrong_image_count():
-    with pytest.raises(CalibrationError, match="needs 40 images"):
-        decode_gray_code(np.zeros((38, 4, 4)), (1024, 768))
+    spec = opencv_gray_code_spec(1024, 768)
+    with pytest.raises(FppError, match="42"):
+        Decoder(spec, 1024, 768, PROCAM_DECODE).decode(np.zeros((40, 4, 4), np.uint8))
 
 
 def test_projector_corners_local_homography(rng):
@@ -161,14 +166,28 @@ def test_calibrate_rig_needs_three_poses():
 
 
 def test_capture_folder_errors(tmp_path):
-    with pytest.raises(CalibrationError, match="needs 42"):
-        read_graycode_capture(tmp_path, (1024, 768))
-    for i in range(4):  # a 2x2 projector: 1 column bit, 1 row bit, each with inverse
-        cv2.imwrite(str(tmp_path / f"graycode_{i:02d}.png"), np.zeros((10, 12), np.uint8))
-    cv2.imwrite(str(tmp_path / "graycode_04.png"), np.zeros((10, 12), np.uint8))
-    cv2.imwrite(str(tmp_path / "graycode_05.png"), np.zeros((11, 12), np.uint8))
-    with pytest.raises(CalibrationError, match="differs"):
-        read_graycode_capture(tmp_path, (2, 2))
+    spec, board = opencv_gray_code_spec(2, 2), Chessboard((4, 3), 0.02)  # 1 column and 1 row bit with inverses, white, black
+    pose = tmp_path / "pose_0"
+    pose.mkdir()
+    for i in range(5):
+        cv2.imwrite(str(pose / f"graycode_{i:02d}.png"), np.zeros((10, 12), np.uint8))
+    with pytest.raises(FppError, match="6"):  # five images, the set has six
+        observe_pose_folders([pose], spec, board, (2, 2))
+    cv2.imwrite(str(pose / "graycode_05.png"), np.zeros((11, 12), np.uint8))
+    with pytest.raises(FppError, match="graycode_05"):
+        observe_pose_folders([pose], spec, board, (2, 2))
+
+
+def test_calibrate_from_captures_skips_a_pose_without_the_board(caplog):
+    truth = small_rig()
+    board = Chessboard((9, 7), 0.03)
+    poses = sample_board_poses(truth, board, 4, np.random.default_rng(3))
+    captures = simulate_graycode_captures(truth, board, poses, np.random.default_rng(4), supersample=1)
+    patterns, white, black = captures[1]
+    blank = (patterns, np.full_like(white, 200), np.zeros_like(black))  # decodable, but no board in the white image
+    report, observations = calibrate_from_captures([captures[0], blank, *captures[2:]], board, (384, 288))
+    assert [o.name for o in observations] == ["pose 0", "pose 2", "pose 3"]
+    assert "pose 1" in caplog.text and "skipped" in caplog.text
 
 
 # ---------------------------------------------------------------- real data
@@ -177,7 +196,7 @@ def test_capture_folder_errors(tmp_path):
 def test_procam_real_calibration():
     root = shared_data_path("real_fpp", "procam_calibration")
     board = Chessboard((9, 7), 0.075)
-    report = calibrate_from_graycode_folders([root / f"capture_{i}" for i in range(5)], board, (1024, 768))
+    report = calibrate_pose_folders([root / f"capture_{i}" for i in range(5)], load_pattern_spec(PATTERNS / "procam_graycode_1024x768.yaml"), board, (1024, 768))
     rms = report.calibration.reprojection_rms_px
     # The reference result has a stereo RMS of 0.857 px; the local-homography corners fit better.
     assert rms["camera"] < 0.5 and rms["projector"] < 0.5 and rms["stereo"] < 0.857
