@@ -22,8 +22,8 @@ import cv2
 import numpy as np
 
 from frontend.fpp.calibration_board import Chessboard
-from frontend.fpp.calibration_io import read_procam_calibration, read_slmaster_calibration
 from frontend.fpp.calibration_folders import observe_pose_folders, pose_folders
+from frontend.fpp.calibration_io import read_procam_calibration, read_slmaster_calibration
 from frontend.fpp.pattern_file import load_pattern_spec
 from frontend.fpp.patterns import opencv_gray_code_spec
 from frontend.fpp.rig import save_calibration

@@ -14,12 +14,17 @@ from fpp_graph.errors import CalibrationError, FppError
 from fpp_graph.geometry import make_pose
 from frontend.fpp.calibration_board import Chessboard, projector_corners
 from frontend.fpp.calibration_captures import sample_board_poses, simulate_graycode_captures
+from frontend.fpp.calibration_folders import (
+    PROCAM_DECODE,
+    calibrate_from_captures,
+    calibrate_pose_folders,
+    observe_pose_folders,
+)
 from frontend.fpp.calibration_io import (
     read_any_calibration,
     read_procam_calibration,
     read_slmaster_calibration,
 )
-from frontend.fpp.calibration_folders import PROCAM_DECODE, calibrate_from_captures, calibrate_pose_folders, observe_pose_folders
 from frontend.fpp.pattern_file import load_pattern_spec
 from frontend.fpp.patterns import generate_patterns, opencv_gray_code_spec
 from frontend.fpp.phase import Decoder
