@@ -128,6 +128,7 @@ def calibrate(
     black_threshold: Annotated[float, typer.Option("--black-threshold", help="Valid pixels have white - black above this (grey levels).")] = 40.0,
     white_threshold: Annotated[float, typer.Option("--white-threshold", help="... and every Gray bit differs from its inverse by at least this.")] = 5.0,
     skip_missing_board: Annotated[bool, typer.Option("--skip-missing-board", help="Skip poses whose board is not found instead of stopping.")] = False,
+    release_board: Annotated[bool, typer.Option("--release-board", help="Estimate the board's corner positions too (a board that is not flat); needs 10+ varied poses, see the README.")] = False,
 ) -> None:
     """Camera + projector calibration from chessboard captures; prints per-view and overall reprojection RMS."""
     from fpp_graph.cli import RichProgress, setup_logging
@@ -148,7 +149,10 @@ def calibrate(
     decode_config = DecodeConfig(min_modulation=black_threshold / 2 + 0.25, min_background=0.0, min_code_contrast=white_threshold)
     folders = pose_folders(board_captures, poses)
     with RichProgress() as progress:
-        report = calibrate_pose_folders(folders, spec, Chessboard(corners, square_mm * 1e-3), size, decode_config, images=images, skip_missing_board=skip_missing_board, progress=progress)
+        report = calibrate_pose_folders(
+            folders, spec, Chessboard(corners, square_mm * 1e-3), size, decode_config, images=images, skip_missing_board=skip_missing_board,
+            progress=progress, release_board=release_board,
+        )
     save_calibration(out, report.calibration)
     rms = report.calibration.reprojection_rms_px
     typer.echo(f"{'pose':<40s} {'camera px':>10s} {'projector px':>13s}")
@@ -156,6 +160,8 @@ def calibrate(
         typer.echo(f"{Path(name).name:<40s} {errors['camera']:10.3f} {errors['projector']:13.3f}")
     for name, why in report.skipped_poses.items():
         typer.echo(f"{Path(name).name:<40s} skipped: {why}")
+    if report.board_deviation_m is not None:
+        typer.echo(f"board estimated: corners up to {1e3 * float(abs(report.board_deviation_m).max()):.3f} mm from the nominal flat board")
     typer.echo(f"RMS reprojection: camera {rms['camera']:.3f} px, projector {rms['projector']:.3f} px, stereo {rms['stereo']:.3f} px; "
                f"baseline {1e3 * report.calibration.baseline_m:.1f} mm -> {out}")
 

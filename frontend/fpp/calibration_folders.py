@@ -118,14 +118,16 @@ def calibrate_pose_folders(
     images: str | None = None,
     skip_missing_board: bool = False,
     progress=None,
+    release_board: bool = False,
 ) -> RigCalibrationReport:
-    """:func:`observe_pose_folders` then :func:`calibrate_rig` (intrinsics fixed in the stereo step)."""
+    """:func:`observe_pose_folders` then :func:`calibrate_rig` (intrinsics fixed in the stereo step
+    unless ``release_board``)."""
     observations, camera_size = observe_pose_folders(
         folders, spec, board, projector_size, decode_config, images=images, skip_missing_board=skip_missing_board, progress=progress
     )
     if len(observations) < 3:
         raise CalibrationError(f"only {len(observations)} of {len(folders)} poses show the board; calibration needs at least 3: check --board (inner corners) or capture more poses with the whole board in view")
-    report = calibrate_rig(observations, board, camera_size, projector_size)
+    report = calibrate_rig(observations, board, camera_size, projector_size, release_board=release_board)
     finite = [np.isfinite(o.projector_px).all(axis=1).sum() for o in observations]
     log.info("calibrated from %d poses (%d projector corners)", len(observations), int(sum(finite)))
     return report
@@ -157,6 +159,7 @@ def calibrate_from_captures(
     names: Sequence[str] | None = None,
     refine_intrinsics: bool = False,
     calibration_flags: int = 0,
+    release_board: bool = False,
 ) -> tuple[RigCalibrationReport, list[PoseObservation]]:
     """Calibrate from in-memory Gray-code captures ``(patterns, white, black)`` of
     :func:`~frontend.fpp.patterns.opencv_gray_code_spec` (procam-calibration's set and rules).
@@ -176,5 +179,7 @@ def calibrate_from_captures(
             log.warning("%s; pose skipped", exc)
     if camera_size is None:
         raise CalibrationError("no captures given")
-    report = calibrate_rig(observations, board, camera_size, projector_size, refine_intrinsics=refine_intrinsics, calibration_flags=calibration_flags)
+    report = calibrate_rig(
+        observations, board, camera_size, projector_size, refine_intrinsics=refine_intrinsics, calibration_flags=calibration_flags, release_board=release_board
+    )
     return report, observations

@@ -81,6 +81,7 @@ class BoardCalibrationSettings(StrictModel):
     patterns: str = Field("phase", pattern="^(phase|graycode)$", description="'phase': the rig's own 4-step phase shifting with complementary Gray code along the columns and then the rows (sub-pixel projector coordinates); 'graycode': Gray code with inverses (procam-calibration's set, whole projector pixels)")
     image_coverage: float = Field(0.8, ge=0, le=1, description="board centres drawn over this fraction of the camera image (0: between the two optical axes)")
     refine_intrinsics: bool = Field(True, description="the stereo calibration refines both devices' intrinsics jointly over the shared board poses (20 Gray-code poses at 1920x1200: baseline error -0.030 % -> -0.018 %, focal -0.080 % -> -0.065 %) instead of keeping the single-device ones")
+    release_board: bool = Field(True, description="estimate the board's corner positions too (object-releasing calibration, frontend.fpp.rig_calibration.calibrate_rig): the 15 poses constrain the board's shape to a few um, so its bow no longer turns into a focal-length (depth-scale) error; the scale still comes from the nominal square")
     projector_response_exponent: float = Field(1.1, gt=0, description="the projector's residual response P^e during the board captures (RenderSettings gamma / compensation)")
 
 
@@ -201,11 +202,15 @@ def _calibrate_from_rendered_board(truth: RigCalibration, settings: BoardCalibra
     flags = cv2.CALIB_FIX_K3 if settings.fix_k3 else 0
     projector_size = (truth.projector.width, truth.projector.height)
     if specs is None:
-        report, observations = calibrate_from_captures(counted(), board, projector_size, calibration_flags=flags, refine_intrinsics=settings.refine_intrinsics)
+        report, observations = calibrate_from_captures(
+            counted(), board, projector_size, calibration_flags=flags, refine_intrinsics=settings.refine_intrinsics, release_board=settings.release_board
+        )
     else:
         observations = _phase_observations(truth, board, counted(), specs)
         camera_size = (truth.camera.width, truth.camera.height)
-        report = calibrate_rig(observations, board, camera_size, projector_size, calibration_flags=flags, refine_intrinsics=settings.refine_intrinsics)
+        report = calibrate_rig(
+            observations, board, camera_size, projector_size, calibration_flags=flags, refine_intrinsics=settings.refine_intrinsics, release_board=settings.release_board
+        )
     if len(report.poses) < 3:
         raise CalibrationError(f"only {len(report.poses)} of {len(poses)} simulated board poses were usable; enlarge calibration.depth_range_m or the board")
     estimate = report.calibration

@@ -372,3 +372,25 @@ def test_unknown_calibration_lists_the_known_formats(tmp_path):
     junk = write(tmp_path, "junk.txt", "not a calibration at all\n")
     with pytest.raises(CalibrationError, match="known calibration formats"):
         read_any_calibration(junk)
+
+
+def test_released_board_takes_a_bow_out_of_the_focal_lengths():
+    # A board bowed by 0.4 mm at its centre (a printed target): a rigid-board calibration turns
+    # the bow into a focal-length error; estimating the corners too removes it and finds the bow.
+    truth, board = small_rig(), Chessboard((9, 7), 0.03)
+    rng = np.random.default_rng(11)
+    poses = sample_board_poses(truth, board, 12, rng, max_tilt_deg=35.0)
+    captures = simulate_graycode_captures(truth, board, poses, rng, supersample=2, noise_grey=0.5, bow_m=4e-4)
+    rigid, observations = calibrate_from_captures(captures, board, (384, 288), calibration_flags=cv2.CALIB_FIX_K3, refine_intrinsics=True)
+    released = calibrate_rig(observations, board, (480, 300), (384, 288), calibration_flags=cv2.CALIB_FIX_K3, release_board=True)
+    assert rigid.board_deviation_m is None
+
+    def focal_error(report):
+        return max(abs(getattr(report.calibration, dev).K[i, i] / getattr(truth, dev).K[i, i] - 1) for dev in ("camera", "projector") for i in (0, 1))
+
+    assert focal_error(rigid) > 3 * focal_error(released)
+    assert focal_error(released) < 2e-3
+    # the estimated board: its centre stands out of the plane of its corners by about the bow
+    dz = released.board_deviation_m[:, 2].reshape(7, 9)
+    rise = dz[3, 4] - 0.25 * (dz[0, 0] + dz[0, 8] + dz[6, 0] + dz[6, 8])
+    assert abs(abs(rise) - 4e-4) < 1e-4
