@@ -43,7 +43,8 @@ def format_report(report: dict[str, Any]) -> str:
     s = report["settings"]
     lines = [
         f"board {s['board_corners'][0]}x{s['board_corners'][1]} corners, {1e3 * s['square_m']:.1f} mm squares, printing scale error "
-        f"{s['printing_scale_error']:+.1e}, bow {1e6 * s['flatness_bow_m']:.0f} um, noise {s['noise_grey']} grey; "
+        f"{s['printing_scale_error']:+.1e}, bow {1e6 * s['flatness_bow_m']:.0f} um, noise {s['noise_grey']} grey, "
+        f"{'board shape estimated' if s.get('release_board') else 'rigid flat board'}; "
         f"{report['poses']} of {s['poses']} poses used, seed {report['seed']}",
         f"reprojection RMS: camera {rms['camera']:.4f} px, projector {rms['projector']:.4f} px, stereo {rms['stereo']:.4f} px "
         f"(real procam sample: stereo {REAL_PROCAM_STEREO_RMS_PX} px); camera->projector transfer {report['transfer_rms_px']:.4f} px",
@@ -62,12 +63,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--scale-error", type=float, default=None, help="board printing scale error (printed/nominal - 1)")
     parser.add_argument("--bow-m", type=float, default=None, help="board flatness bow, metres")
     parser.add_argument("--noise", type=float, default=None, help="board capture noise, grey levels")
+    parser.add_argument("--rigid-board", action="store_true", help="calibrate with the nominal flat board (calibration.release_board: false)")
     parser.add_argument("--sensitivity", action="store_true", help="plane error at 0.5 m with one parameter group at a time taken from the estimate")
     parser.add_argument("--json", action="store_true")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     scene = read_yaml_file(args.config, ConfigError, "scene config") if args.config else {}
-    overrides = {k: v for k, v in {"poses": args.poses, "printing_scale_error": args.scale_error, "flatness_bow_m": args.bow_m, "noise_grey": args.noise}.items() if v is not None}
+    overrides = {k: v for k, v in {"poses": args.poses, "printing_scale_error": args.scale_error, "flatness_bow_m": args.bow_m, "noise_grey": args.noise,
+                                        "release_board": False if args.rigid_board else None}.items() if v is not None}
     report = estimate_for_scene(scene, args.seed, overrides)
     print(json.dumps(report, indent=1) if args.json else format_report(report))
     if args.sensitivity:

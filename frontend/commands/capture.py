@@ -128,7 +128,7 @@ def calibrate(
     black_threshold: Annotated[float, typer.Option("--black-threshold", help="Valid pixels have white - black above this (grey levels).")] = 40.0,
     white_threshold: Annotated[float, typer.Option("--white-threshold", help="... and every Gray bit differs from its inverse by at least this.")] = 5.0,
     skip_missing_board: Annotated[bool, typer.Option("--skip-missing-board", help="Skip poses whose board is not found instead of stopping.")] = False,
-    release_board: Annotated[bool, typer.Option("--release-board", help="Estimate the board's corner positions too (a board that is not flat); needs 10+ varied poses, see the README.")] = False,
+    release_board: Annotated[bool, typer.Option("--release-board", help="Estimate the board's corner positions too (a board that is not flat); needs many varied poses (15 in the simulator; 5 are too few), see the README.")] = False,
 ) -> None:
     """Camera + projector calibration from chessboard captures; prints per-view and overall reprojection RMS."""
     from fpp_graph.cli import RichProgress, setup_logging
