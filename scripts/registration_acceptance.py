@@ -49,19 +49,27 @@ import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
 from fpp_graph.atomic import atomic_write_text  # noqa: E402
+from fpp_graph.config import read_yaml_file  # noqa: E402
 from fpp_graph.errors import ConfigError  # noqa: E402
 from fpp_graph.geometry import invert, pose_error, se3_log  # noqa: E402
 from fpp_graph.types import ConstraintKind, Frame  # noqa: E402
-from frontend.config import RegistrationConfig, read_yaml_file  # noqa: E402
+from frontend.config import RegistrationConfig  # noqa: E402
 from frontend.features.detect import match_descriptors  # noqa: E402
 from frontend.fpp.sensor import FppSensor  # noqa: E402
 from frontend.localization import DenseReference, localize_dlt, localize_photometric  # noqa: E402
 from frontend.registration import FppPairRegistrar, TextureCamera, lift_keypoints  # noqa: E402
-from frontend.sim import FppSimulator, load_simulation, look_at_pose  # noqa: E402
+from frontend.sim import (  # noqa: E402
+    FppSimulator,
+    binned_calibration,
+    estimate_rig_calibration,
+    load_simulation,
+    look_at_pose,
+)
 from scripts.experimental.dense_localization import localize_dense, localize_dense_map  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 RENDER_OVERRIDES: dict = {}  # RenderSettings fields set from the command line (--smooth-shading)
+DECODE_WITH_ESTIMATE = False  # --estimated-calibration: decode with the calibration `fpp-slam simulate` stores
 
 
 # ---------------------------------------------------------------------------------------------
@@ -81,10 +89,14 @@ class SimulatedFrames:
         self.setup = load_simulation(cfg, preview=preview)
         settings = self.setup.settings.model_copy(update=RENDER_OVERRIDES)
         self.sim = FppSimulator(self.setup.calibration, self.setup.spec, self.setup.scene, settings, threads=1)
-        self.sensor = FppSensor(self.setup.calibration, self.setup.spec)
+        decoding = self.setup.calibration
+        if DECODE_WITH_ESTIMATE:  # as simulate_sequence stores it: estimated at full size, then binned
+            estimate = estimate_rig_calibration(self.setup.native_calibration, self.setup.calibration_settings, seed=self.setup.settings.seed)
+            decoding = binned_calibration(estimate.calibration, decoding.camera.width, decoding.camera.height)
+        self.sensor = FppSensor(decoding, self.setup.spec)
         self.poses = self.setup.poses_world_sensor
-        self.K = self.setup.calibration.camera.K
-        self.dist = self.setup.calibration.camera.dist
+        self.K = decoding.camera.K
+        self.dist = decoding.camera.dist
         self.render_s = 0.0
 
     def frame(self, T_world_sensor: np.ndarray, frame_id: int) -> Frame:
@@ -394,6 +406,7 @@ def main() -> None:
     ap.add_argument("--photometric-pixels", type=int, default=200_000, help="map pixels per reference frame for the photometric localisation")
     ap.add_argument("--dense-max-points", type=int, default=4000, help="corners per map frame for the dense localisation")
     ap.add_argument("--dense-min-distance-px", type=int, default=None, help="their spacing (default: image width / 160)")
+    ap.add_argument("--estimated-calibration", action="store_true", help="decode with the calibration estimated from simulated board captures (the simulate default) instead of the truth; errors and NEES then include the estimate's own camera frame (a small fixed rotation and offset of the sensor frame), not only registration")
     ap.add_argument("--skip-rejection", action="store_true")
     ap.add_argument("--no-dlt", action="store_true")
     ap.add_argument("--seed", type=int, default=0)
@@ -404,6 +417,9 @@ def main() -> None:
     cv2.setNumThreads(1)
     if args.smooth_shading:
         RENDER_OVERRIDES["smooth_shading"] = True
+    if args.estimated_calibration:
+        global DECODE_WITH_ESTIMATE
+        DECODE_WITH_ESTIMATE = True
     res_name = "640x400" if args.preview else "1920x1200"
     print(f"fringe-simulator frames at {res_name}, features {args.features}")
     t_start = time.time()
