@@ -20,8 +20,9 @@ from scipy.spatial.transform import Rotation
 from fpp_graph.geometry import make_pose, rotation_angle_rad
 from frontend.fpp.calibration_board import Chessboard
 from frontend.fpp.calibration_captures import sample_board_poses, simulate_graycode_captures
+from frontend.fpp.calibration_folders import calibrate_from_captures
 from frontend.fpp.rig import PinholeModel, RigCalibration
-from frontend.fpp.rig_calibration import calibrate_from_captures, transfer_rms_px
+from frontend.fpp.rig_calibration import transfer_rms_px
 
 
 def virtual_rig(small: bool) -> RigCalibration:
