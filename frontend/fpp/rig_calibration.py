@@ -14,7 +14,9 @@ both). Steps, after Moreno & Taubin (3DIMPVT 2012) as kamino410/procam-calibrati
    wrong codes), evaluated at the sub-pixel camera corner.
 4. :func:`calibrate_rig`: ``cv2.calibrateCamera`` for the camera, again for the projector (its
    "image points" are the projector corners), then ``cv2.stereoCalibrate`` for the camera ->
-   projector pose (intrinsics fixed by default, or refined jointly).
+   projector pose (intrinsics fixed by default, or refined jointly). With ``release_board`` the
+   camera step is ``cv2.calibrateCameraRO`` and estimates the board's corners too, for a board
+   that is not flat; the stereo step then uses them and refines both devices.
 
 Lengths: the board's square size is given in metres, so the translation comes out in metres.
 
