@@ -164,7 +164,7 @@ def calibrate_from_captures(
     """Calibrate from in-memory Gray-code captures ``(patterns, white, black)`` of
     :func:`~frontend.fpp.patterns.opencv_gray_code_spec` (procam-calibration's set and rules).
 
-    A pose whose board is not found is skipped with a warning (counted in the report's poses).
+    A pose whose board is not found is skipped with a warning; the report's ``poses`` are the ones used.
     """
     decoder = Decoder(opencv_gray_code_spec(*projector_size), *projector_size, PROCAM_DECODE)
     observations = []

@@ -63,7 +63,8 @@ class BoardCalibrationSettings(StrictModel):
     camera's noise and the projector's response (:func:`frontend.sim.sequences.load_simulation`
     fills those from the ``render:`` section unless set here). k3 is fixed at zero as in common
     practice: with boards that fill a fraction of the image, a free k3 fits noise at the image
-    corners.
+    corners. The board's shape is estimated with the rig (``release_board``): a planar model
+    would turn the 20 um bow into a -0.035 % focal-length error, 0.23 mm of depth at 0.5 m.
     """
 
     mode: str = Field("estimated", pattern="^(estimated|true)$", description="'estimated' (a calibration from simulated board captures) or 'true' (the simulator's parameters, for comparisons)")
