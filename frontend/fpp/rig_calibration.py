@@ -157,48 +157,23 @@ def calibrate_rig(
         ``calibration.reprojection_rms_px`` holds ``camera``, ``projector`` (single-device RMS)
         and ``stereo`` (RMS of the final joint fit over both devices).
     """
-    obj_all = board.object_points_m.astype(np.float32)
-    cam_obj, cam_img, proj_obj, proj_img, stereo_cam = [], [], [], [], []
-    skipped: dict[str, str] = {}
-    names: list[str] = []
-    with_projector: list[PoseObservation] = []
-    for ob in observations:
-        if ob.camera_px.shape != (len(obj_all), 2):
-            raise CalibrationError(f"{ob.name}: {len(ob.camera_px)} camera corners, the board has {len(obj_all)}")
-        cam_obj.append(obj_all)
-        cam_img.append(ob.camera_px.astype(np.float32).reshape(-1, 1, 2))
-        ok = ob.projector_ok
-        if ok.sum() < 6:
-            skipped[ob.name] = f"only {int(ok.sum())} corners have projector coordinates"
-            continue
-        names.append(ob.name)
-        with_projector.append(ob)
-        proj_obj.append(obj_all[ok])
-        proj_img.append(ob.projector_px[ok].astype(np.float32).reshape(-1, 1, 2))
-        stereo_cam.append(ob.camera_px[ok].astype(np.float32).reshape(-1, 1, 2))
-    if len(cam_obj) < 3:
-        raise CalibrationError(f"rig calibration needs at least 3 board poses, got {len(cam_obj)}")
-    if len(proj_obj) < 3:
-        raise CalibrationError(f"rig calibration needs at least 3 poses with projector corners, got {len(proj_obj)} ({skipped})")
-    for name, why in skipped.items():
-        log.warning("pose %s left out of the projector calibration: %s", name, why)
-
+    pts = _board_correspondences(observations, board)
     size_c, size_p = tuple(int(v) for v in camera_size), tuple(int(v) for v in projector_size)
     deviation = None
     if release_board:
-        rms_c, K_c, d_c, board_m = _camera_with_released_board(cam_obj, cam_img, size_c, board, calibration_flags)
+        rms_c, K_c, d_c, board_m = _camera_with_released_board(pts.cam_obj, pts.cam_img, size_c, board, calibration_flags)
         deviation = board_m - board.object_points_m
-        stereo_obj = [board_m[ob.projector_ok].astype(np.float32) for ob in with_projector]
+        stereo_obj = [board_m[ob.projector_ok].astype(np.float32) for ob in pts.with_projector]
     else:
-        rms_c, K_c, d_c, _, _ = cv2.calibrateCamera(cam_obj, cam_img, size_c, None, None, flags=calibration_flags)
-        stereo_obj = proj_obj
+        rms_c, K_c, d_c, _, _ = cv2.calibrateCamera(pts.cam_obj, pts.cam_img, size_c, None, None, flags=calibration_flags)
+        stereo_obj = pts.proj_obj
     # the projector's single-device fit on the nominal (planar) board: OpenCV's closed-form start
     # needs a plane, and with a released board this is only the stereo step's starting point
-    rms_p, K_p, d_p, _, _ = cv2.calibrateCamera(proj_obj, proj_img, size_p, None, None, flags=calibration_flags)
+    rms_p, K_p, d_p, _, _ = cv2.calibrateCamera(pts.proj_obj, pts.proj_img, size_p, None, None, flags=calibration_flags)
     flags = cv2.CALIB_USE_INTRINSIC_GUESS if refine_intrinsics or release_board else cv2.CALIB_FIX_INTRINSIC
     criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-10)
     rms_s, K_c, d_c, K_p, d_p, R, T, _, _, _, _, per_view = cv2.stereoCalibrateExtended(
-        stereo_obj, stereo_cam, proj_img, K_c, d_c, K_p, d_p, size_c, None, None, flags=flags | calibration_flags, criteria=criteria,
+        stereo_obj, pts.stereo_cam, pts.proj_img, K_c, d_c, K_p, d_p, size_c, None, None, flags=flags | calibration_flags, criteria=criteria,
     )
     calibration = RigCalibration(
         camera=PinholeModel(int(camera_size[0]), int(camera_size[1]), K_c, d_c.ravel()),
@@ -208,15 +183,57 @@ def calibrate_rig(
     )
     report = RigCalibrationReport(
         calibration=calibration,
-        poses=names,
-        camera_corners=sum(len(c) for c in cam_img),
-        projector_corners=sum(len(p) for p in proj_img),
-        skipped_poses=skipped,
-        per_view_rms_px={name: {"camera": float(e[0]), "projector": float(e[1])} for name, e in zip(names, np.asarray(per_view).reshape(-1, 2), strict=True)},
+        poses=[ob.name for ob in pts.with_projector],
+        camera_corners=sum(len(c) for c in pts.cam_img),
+        projector_corners=sum(len(p) for p in pts.proj_img),
+        skipped_poses=pts.skipped,
+        per_view_rms_px={
+            ob.name: {"camera": float(e[0]), "projector": float(e[1])} for ob, e in zip(pts.with_projector, np.asarray(per_view).reshape(-1, 2), strict=True)
+        },
         board_deviation_m=deviation,
     )
     log.info("rig calibration: %s", report.summary())
     return report
+
+
+@dataclass
+class _BoardCorrespondences:
+    """OpenCV's per-pose point lists: all camera corners; the corners with a projector coordinate."""
+
+    cam_obj: list[NDArray] = field(default_factory=list)
+    cam_img: list[NDArray] = field(default_factory=list)
+    proj_obj: list[NDArray] = field(default_factory=list)
+    proj_img: list[NDArray] = field(default_factory=list)
+    stereo_cam: list[NDArray] = field(default_factory=list)
+    with_projector: list[PoseObservation] = field(default_factory=list)
+    skipped: dict[str, str] = field(default_factory=dict)
+
+
+def _board_correspondences(observations: Sequence[PoseObservation], board: Chessboard) -> _BoardCorrespondences:
+    """Split observations into OpenCV's lists; poses with under 6 projector corners are left out
+    of the projector and stereo steps (logged, listed in ``skipped``)."""
+    obj_all = board.object_points_m.astype(np.float32)
+    pts = _BoardCorrespondences()
+    for ob in observations:
+        if ob.camera_px.shape != (len(obj_all), 2):
+            raise CalibrationError(f"{ob.name}: {len(ob.camera_px)} camera corners, the board has {len(obj_all)}")
+        pts.cam_obj.append(obj_all)
+        pts.cam_img.append(ob.camera_px.astype(np.float32).reshape(-1, 1, 2))
+        ok = ob.projector_ok
+        if ok.sum() < 6:
+            pts.skipped[ob.name] = f"only {int(ok.sum())} corners have projector coordinates"
+            continue
+        pts.with_projector.append(ob)
+        pts.proj_obj.append(obj_all[ok])
+        pts.proj_img.append(ob.projector_px[ok].astype(np.float32).reshape(-1, 1, 2))
+        pts.stereo_cam.append(ob.camera_px[ok].astype(np.float32).reshape(-1, 1, 2))
+    if len(pts.cam_obj) < 3:
+        raise CalibrationError(f"rig calibration needs at least 3 board poses, got {len(pts.cam_obj)}")
+    if len(pts.proj_obj) < 3:
+        raise CalibrationError(f"rig calibration needs at least 3 poses with projector corners, got {len(pts.proj_obj)} ({pts.skipped})")
+    for name, why in pts.skipped.items():
+        log.warning("pose %s left out of the projector calibration: %s", name, why)
+    return pts
 
 
 def _camera_with_released_board(
