@@ -87,8 +87,8 @@ def projector_corners(
         Fewer valid pixels than this fraction of the window: the corner is skipped
         (procam-calibration requires ``window_half**2``, i.e. ~25%).
     outlier_px : float
-        Pixels whose decoded coordinate is farther than this from the first homography fit are
-        dropped and the homography refitted (wrong codes at black squares, edges).
+        Pixels whose decoded coordinate is farther than this from a RANSAC homography are
+        dropped and the homography refitted by least squares (wrong codes at black squares, edges).
 
     Returns
     -------
@@ -120,17 +120,18 @@ def projector_corners(
         # Fit in coordinates centred on the corner: better conditioned than raw pixels.
         src_c = src - (cx, cy)
         dst_mean = dst.mean(axis=0)
-        Hm, _ = cv2.findHomography(src_c, dst - dst_mean, 0)
+        # RANSAC first: wrong fringe orders (a period off, at noisy black squares) pull a
+        # least-squares fit so far that its residuals would condemn the good pixels too.
+        Hm, _ = cv2.findHomography(src_c, dst - dst_mean, cv2.RANSAC, outlier_px)
         if Hm is None:
             continue
         resid = np.linalg.norm(_apply_h(Hm, src_c) - (dst - dst_mean), axis=1)
         keep = resid <= outlier_px
         if keep.sum() < min_count:
             continue
-        if not keep.all():
-            Hm, _ = cv2.findHomography(src_c[keep], dst[keep] - dst_mean, 0)
-            if Hm is None:
-                continue
+        Hm, _ = cv2.findHomography(src_c[keep], dst[keep] - dst_mean, 0)
+        if Hm is None:
+            continue
         out[i] = _apply_h(Hm, np.zeros((1, 2)))[0] + dst_mean
     ok = np.all(np.isfinite(out), axis=1)
     return out, ok

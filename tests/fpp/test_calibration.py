@@ -101,6 +101,28 @@ def test_projector_corners_local_homography(rng):
     assert ok_f.all() and np.max(np.abs(out_f - q[:, :2] / q[:, 2:])) < 0.02
 
 
+def test_projector_corners_survive_wrong_fringe_orders(rng):
+    # A noisy camera (4 grey levels) reads a board's black squares with 0.5-1 px of phase noise
+    # and wrong Gray-code bits: some pixels whole periods (14.25 px) off, up to the full code
+    # range. A least-squares first fit leaned so far towards them that every pixel looked like
+    # an outlier and the corner was lost (0 of 63 corners of a simulated pose); the corner must
+    # come back as if they were absent.
+    Hm = np.array([[0.8, 0.05, 12.0], [-0.03, 0.9, 7.0], [1e-4, -5e-5, 1.0]])
+    vv, uu = np.mgrid[0:120, 0:160].astype(float)
+    p = np.stack([uu, vv, np.ones_like(uu)], -1) @ Hm.T
+    u, v = p[..., 0] / p[..., 2], p[..., 1] / p[..., 2]
+    corners = np.array([[51.3, 48.7], [100.2, 60.9]])
+    for cx, cy in corners:  # the black squares: two opposite quadrants round each corner
+        black = ((uu - cx) * (vv - cy) > 0) & (np.abs(uu - cx) < 9) & (np.abs(vv - cy) < 9)
+        u[black] += rng.normal(0, 0.7, black.sum())
+        v[black] += rng.normal(0, 0.7, black.sum())
+        wrong = black & (rng.random(uu.shape) < 0.1)
+        u[wrong] += 14.25 * rng.integers(-16, 17, wrong.sum())
+    out, ok = projector_corners(corners, u, v, window_half=8)
+    q = np.column_stack([corners, np.ones(2)]) @ Hm.T
+    assert ok.all() and np.max(np.abs(out - q[:, :2] / q[:, 2:])) < 0.2
+
+
 # ---------------------------------------------------------------- synthetic calibration
 
 
