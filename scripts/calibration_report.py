@@ -3,6 +3,7 @@
     .venv/bin/python -m scripts.calibration_report [--config datasets/turntable.yaml] [--seed 0] [--json]
     .venv/bin/python -m scripts.calibration_report --poses 20 --scale-error 0 --bow-m 0   # board errors off
     .venv/bin/python -m scripts.calibration_report --sensitivity   # which parameter's error limits a view
+    .venv/bin/python -m scripts.calibration_report --sensitivity --seeds 0,1,2,3,4   # ... typical over seeds
 
 The estimate is the one ``fpp-slam simulate`` stores in ``sequence.yaml`` (cached per rig and
 seed): Gray-code captures of a chessboard rendered with the true rig, calibrated with the
@@ -65,6 +66,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--noise", type=float, default=None, help="board capture noise, grey levels")
     parser.add_argument("--rigid-board", action="store_true", help="calibrate with the nominal flat board (calibration.release_board: false)")
     parser.add_argument("--sensitivity", action="store_true", help="plane error at 0.5 m with one parameter group at a time taken from the estimate")
+    parser.add_argument("--seeds", default=None, help="with --sensitivity: comma-separated seeds; each group's plane error is the RMS over their estimates "
+                        "(each seed's error a draw of the estimate's uncertainty), so a group's row is its effect at its typical error")
     parser.add_argument("--json", action="store_true")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
@@ -74,22 +77,33 @@ def main(argv: list[str] | None = None) -> int:
     report = estimate_for_scene(scene, args.seed, overrides)
     print(json.dumps(report, indent=1) if args.json else format_report(report))
     if args.sensitivity:
-        print_sensitivity(scene, args.seed, overrides)
+        seeds = [int(k) for k in args.seeds.split(",")] if args.seeds else [args.seed]
+        print_sensitivity(scene, seeds, overrides)
     return 0
 
 
-def print_sensitivity(scene: dict[str, Any], seed: int, overrides: dict[str, Any]) -> None:
+def print_sensitivity(scene: dict[str, Any], seeds: list[int], overrides: dict[str, Any]) -> None:
     """Which calibration error limits a single view: the truth with one parameter group at a time
-    replaced by the estimate's (its actual error standing in for its uncertainty)."""
+    replaced by the estimate's. With several seeds each estimate's error is one draw of its
+    uncertainty, and a group's row is the RMS of its plane errors over the draws (its effect at
+    a typical error: a one-at-a-time study at the Monte Carlo uncertainty)."""
+    import numpy as np
+
     from frontend.sim.calibration import sensitivity
 
     truth = build_rig(parse_rig_parameters(scene.get("rig"), "rig"))
     settings = parse_calibration_settings({**(scene.get("calibration") or {}), **overrides}, "calibration")
-    estimate = estimate_rig_calibration(truth, settings, seed=seed)
-    print("plane at 0.5 m filling the view, noise-free, error from the calibration alone (mm):")
+    rows: dict[str, list[dict[str, float]]] = {}
+    for seed in seeds:
+        estimate = estimate_rig_calibration(truth, settings, seed=seed)
+        for name, row in sensitivity(truth, estimate.calibration).items():
+            rows.setdefault(name, []).append(row)
+    over = f"RMS over seeds {', '.join(map(str, seeds))}" if len(seeds) > 1 else f"seed {seeds[0]}"
+    print(f"plane at 0.5 m filling the view, noise-free, error from the calibration alone (mm; {over}):")
     print(f"  {'parameters taken from the estimate':36s} {'RMS':>7s} {'mean signed':>11s} {'after rigid fit':>15s}")
-    for name, row in sensitivity(truth, estimate.calibration).items():
-        print(f"  {name:36s} {row['rms_mm']:7.4f} {row['mean_signed_mm']:+11.4f} {row['aligned_rms_mm']:15.4f}")
+    for name, draws in rows.items():
+        rms, signed, aligned = (float(np.sqrt(np.mean([d[key] ** 2 for d in draws]))) for key in ("rms_mm", "mean_signed_mm", "aligned_rms_mm"))
+        print(f"  {name:36s} {rms:7.4f} {signed:11.4f} {aligned:15.4f}" if len(draws) > 1 else f"  {name:36s} {rms:7.4f} {draws[0]['mean_signed_mm']:+11.4f} {aligned:15.4f}")
 
 
 if __name__ == "__main__":

@@ -25,6 +25,7 @@ from typing import Any
 
 import cv2
 import numpy as np
+from numpy.typing import NDArray
 from pydantic import Field
 
 from fpp_graph.atomic import atomic_write_text
@@ -253,17 +254,9 @@ def calibration_errors(truth: RigCalibration, estimate: RigCalibration) -> dict[
     return out
 
 
-def plane_error_from_calibration(truth: RigCalibration, estimate: RigCalibration, depth_m: float = 0.5, tilt_deg: float = -7.0, step_px: int = 4) -> dict[str, float]:
-    """Noise-free error a calibration alone causes on a plane filling the camera's view.
-
-    Every ``step_px``-th camera pixel sees the true plane (depth ``depth_m`` on the camera axis,
-    turned ``tilt_deg`` about the vertical); its true projector column is what a perfect decoder
-    would give; triangulated with ``estimate``, the point's distance to the true plane is the
-    calibration's error. Returns RMS, median, p95 and the mean signed distance (mm, positive
-    away from the camera), over the pixels the projector lights, and ``aligned_rms_mm``: the
-    3D point error left after the best rigid fit of the view to the truth (the view's shape
-    error; a rigid offset is absorbed by the frame's pose).
-    """
+def _plane_view(truth: RigCalibration, estimate: RigCalibration, depth_m: float, tilt_deg: float, step_px: int) -> tuple[NDArray, NDArray, NDArray]:
+    """A noise-free plane view decoded with ``estimate``: (true points, estimated points, plane
+    normal), camera frame, metres, per lit pixel (see :func:`plane_error_from_calibration`)."""
     from frontend.fpp.lens import project_to_projector, undistort_pixels
     from frontend.fpp.triangulation import Triangulator
 
@@ -282,7 +275,21 @@ def plane_error_from_calibration(truth: RigCalibration, estimate: RigCalibration
     xyz = Triangulator(estimate, dtype=np.float64).triangulate(u_map, np.isfinite(u_map))
     est = xyz[vv.astype(int).ravel()[lit], uu.astype(int).ravel()[lit]]
     ok = np.all(np.isfinite(est), axis=1)
-    est, true_points = est[ok], points[lit][ok]
+    return points[lit][ok], est[ok], normal
+
+
+def plane_error_from_calibration(truth: RigCalibration, estimate: RigCalibration, depth_m: float = 0.5, tilt_deg: float = -7.0, step_px: int = 4) -> dict[str, float]:
+    """Noise-free error a calibration alone causes on a plane filling the camera's view.
+
+    Every ``step_px``-th camera pixel sees the true plane (depth ``depth_m`` on the camera axis,
+    turned ``tilt_deg`` about the vertical); its true projector column is what a perfect decoder
+    would give; triangulated with ``estimate``, the point's distance to the true plane is the
+    calibration's error. Returns RMS, median, p95 and the mean signed distance (mm, positive
+    away from the camera), over the pixels the projector lights, and ``aligned_rms_mm``: the
+    3D point error left after the best rigid fit of the view to the truth (the view's shape
+    error; a rigid offset is absorbed by the frame's pose).
+    """
+    true_points, est, normal = _plane_view(truth, estimate, depth_m, tilt_deg, step_px)
     signed_mm = 1e3 * (est @ normal - normal @ [0.0, 0.0, depth_m])
     d = np.abs(signed_mm)
     # The sensor frame is what the calibration defines: a rigid offset of the whole view is taken
@@ -294,6 +301,19 @@ def plane_error_from_calibration(truth: RigCalibration, estimate: RigCalibration
         "rms_mm": float(np.sqrt(np.mean(d**2))), "median_mm": float(np.median(d)), "p95_mm": float(np.percentile(d, 95)),
         "mean_signed_mm": float(np.mean(signed_mm)), "aligned_rms_mm": float(np.sqrt(np.mean(aligned_mm**2))),
     }
+
+
+def T_estimate_true_sensor(truth: RigCalibration, estimate: RigCalibration, depth_m: float = 0.5, tilt_deg: float = -7.0, step_px: int = 8) -> NDArray[np.float64]:
+    """The estimated calibration's sensor frame relative to the true one (4x4, metres).
+
+    A rig decoding with ``estimate`` puts a true camera-frame point ``p`` at about
+    ``T @ p`` (the best rigid fit of a noise-free plane view at ``depth_m``, as in
+    :func:`plane_error_from_calibration`). Its frames' poses live in that frame, so a true
+    relative pose ``T_i_j`` reads ``T @ T_i_j @ inv(T)`` there: what registration of views
+    decoded with the estimate should return.
+    """
+    true_points, est, _ = _plane_view(truth, estimate, depth_m, tilt_deg, step_px)
+    return kabsch(est, true_points)
 
 
 def sensitivity(truth: RigCalibration, estimate: RigCalibration, depth_m: float = 0.5) -> dict[str, dict[str, float]]:

@@ -172,3 +172,21 @@ def test_board_captures_share_the_sequence_camera_and_projector():
     assert noisy.noise_grey == 2.0 and noisy.projector_response_exponent == pytest.approx(1.0)
     told = load_simulation({"scene": "turntable", "render": {"read_noise_grey": 2.0}, "calibration": {"noise_grey": 0.5}}, max_frames=1).calibration_settings
     assert told.noise_grey == 0.5
+
+
+def test_estimate_sensor_frame_offset(estimated):
+    """The estimate's sensor frame against the true one: identity for the truth itself, the
+    estimate's small fixed offset otherwise, and a view decoded with the estimate lands where the
+    offset puts the true points (what registration of such views must be compared with)."""
+    from fpp_graph.geometry import rotation_angle_rad
+    from frontend.sim.calibration import T_estimate_true_sensor, _plane_view
+
+    truth, est, _ = estimated
+    np.testing.assert_allclose(T_estimate_true_sensor(truth, truth), np.eye(4), atol=1e-6)  # the triangulation: 0.1 um
+    # the real estimate: a fraction of a millimetre and of a degree, and it explains the view
+    T = T_estimate_true_sensor(truth, est.calibration)
+    assert 1e3 * np.linalg.norm(T[:3, 3]) < 1.0 and np.degrees(rotation_angle_rad(T[:3, :3])) < 0.2
+    true_points, est_points, _ = _plane_view(truth, est.calibration, 0.5, -7.0, 8)
+    raw = np.linalg.norm(est_points - true_points, axis=1)
+    mapped = np.linalg.norm(est_points - (true_points @ T[:3, :3].T + T[:3, 3]), axis=1)
+    assert np.sqrt(np.mean(mapped**2)) < 0.5 * np.sqrt(np.mean(raw**2))
