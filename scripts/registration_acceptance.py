@@ -99,6 +99,7 @@ class SimulatedFrames:
             estimate = estimate_rig_calibration(self.setup.native_calibration, self.setup.calibration_settings, seed=self.setup.settings.seed)
             decoding = binned_calibration(estimate.calibration, decoding.camera.width, decoding.camera.height)
             self.T_estimate_true = T_estimate_true_sensor(self.setup.native_calibration, estimate.calibration)
+        self.decoding = decoding  # the calibration the frames are decoded with: the sensor model everything downstream uses
         self.sensor = FppSensor(decoding, self.setup.spec)
         self.poses = self.setup.poses_world_sensor
         self.K = decoding.camera.K
@@ -160,7 +161,7 @@ def dlt_rows(reg: FppPairRegistrar, c, a: Frame, b: Frame, T_true: np.ndarray, K
 
 
 def run_pairs(group: str, frames: SimulatedFrames, pairs: list[tuple[int, int]], features: list[str], with_dlt: bool) -> list[dict]:
-    camera = TextureCamera.from_rig(frames.setup.calibration)  # as the pipeline's FPP source builds it
+    camera = TextureCamera.from_rig(frames.decoding)  # as the pipeline's FPP source builds it: from the calibration it decodes with
     regs = {f: FppPairRegistrar(RegistrationConfig(features={"type": f}), texture_camera=camera) for f in features}
     rows = []
     cache: dict[int, Frame] = {}
@@ -258,7 +259,7 @@ def run_map_localisation(group: str, frames: SimulatedFrames, triples: list[tupl
     chained onto k-1's true pose.
     """
     P = frames.poses
-    Tpc = frames.setup.calibration.T_projector_camera
+    Tpc = frames.decoding.T_projector_camera
     proj_centre = -Tpc[:3, :3].T @ Tpc[:3, 3]
     reg = FppPairRegistrar(RegistrationConfig())
     rows = []
@@ -343,7 +344,7 @@ def corridor_lookalike_poses(frames: SimulatedFrames, offsets: list[tuple[float,
 
 
 def run_rejection(frames: SimulatedFrames, n_frames: int, n_lookalike_offsets: int, seed: int) -> dict:
-    reg = FppPairRegistrar(RegistrationConfig(), texture_camera=TextureCamera.from_rig(frames.setup.calibration))
+    reg = FppPairRegistrar(RegistrationConfig(), texture_camera=TextureCamera.from_rig(frames.decoding))
     poses = frames.poses
     centres = poses[:, :3, 3]
     looks = poses[:, :3, 2]
