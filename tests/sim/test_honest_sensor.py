@@ -190,3 +190,17 @@ def test_estimate_sensor_frame_offset(estimated):
     raw = np.linalg.norm(est_points - true_points, axis=1)
     mapped = np.linalg.norm(est_points - (true_points @ T[:3, :3].T + T[:3, 3]), axis=1)
     assert np.sqrt(np.mean(mapped**2)) < 0.5 * np.sqrt(np.mean(raw**2))
+
+
+def test_sensitivity_groups(estimated):
+    """One parameter group at a time: the truth's own groups give no error, the whole estimate
+    gives the plane error its report holds, and the principal points alone are far worse than
+    the estimate as a whole (the stereo fit trades them against the rotation)."""
+    from frontend.sim.calibration import plane_error_from_calibration, sensitivity
+
+    truth, est, _ = estimated
+    assert all(row["rms_mm"] < 1e-3 for row in sensitivity(truth, truth).values())  # the triangulation: 0.2 um
+    rows = sensitivity(truth, est.calibration)
+    assert set(rows) == {"camera f", "camera c", "camera dist", "projector f", "projector c", "projector dist", "rotation", "translation", "all"}
+    assert rows["all"]["rms_mm"] == pytest.approx(plane_error_from_calibration(truth, est.calibration)["rms_mm"], rel=1e-9)
+    assert max(rows["camera c"]["rms_mm"], rows["projector c"]["rms_mm"], rows["rotation"]["rms_mm"]) > rows["all"]["rms_mm"]
