@@ -316,6 +316,43 @@ def T_estimate_true_sensor(truth: RigCalibration, estimate: RigCalibration, dept
     return kabsch(est, true_points)
 
 
+def pair_error_from_calibration(truth: RigCalibration, estimate: RigCalibration, step_m: float = 0.31, depth_m: float = 0.5, step_px: int = 4) -> dict[str, float]:
+    """Noise-free relative-pose error a calibration alone causes between two views of a wall.
+
+    The sensor sees a fronto-parallel wall at ``depth_m`` from two positions ``step_m`` apart
+    along its x axis (a corridor step); every wall point both views see is placed where each view
+    decoded with ``estimate`` puts it (the estimate's error field, :func:`_plane_view`, is smooth,
+    so a point takes the error of its nearest sampled pixel), and the rigid fit of one view's
+    points to the other's is compared with the true step expressed in the estimate's sensor
+    frame (:func:`T_estimate_true_sensor`): what registration of such a pair returns at best.
+    Returns the translation error (mm, its norm and its x component: along the step), the
+    rotation error (deg) and the number of shared points.
+    """
+    from scipy.spatial import cKDTree
+
+    true_points, est, _ = _plane_view(truth, estimate, depth_m, 0.0, step_px)
+    error_field = cKDTree(true_points)
+
+    def decoded(points: NDArray) -> NDArray:
+        _, nearest = error_field.query(points)
+        return points + (est[nearest] - true_points[nearest])
+
+    step = np.array([step_m, 0.0, 0.0])
+    x_min, x_max = true_points[:, 0].min(), true_points[:, 0].max()
+    shared = true_points[(true_points[:, 0] - step_m >= x_min) & (true_points[:, 0] - step_m <= x_max)]
+    if len(shared) < 3:
+        raise CalibrationError(f"views {step_m} m apart share no wall at {depth_m} m")
+    T_est = kabsch(decoded(shared), decoded(shared - step))
+    T_true = np.eye(4)
+    T_true[:3, 3] = step
+    X = T_estimate_true_sensor(truth, estimate, depth_m=depth_m)
+    err = np.linalg.inv(X @ T_true @ np.linalg.inv(X)) @ T_est
+    return {
+        "translation_mm": 1e3 * float(np.linalg.norm(err[:3, 3])), "along_step_mm": 1e3 * float(err[0, 3]),
+        "rotation_deg": float(np.degrees(rotation_angle_rad(err[:3, :3]))), "shared_points": int(len(shared)),
+    }
+
+
 def sensitivity(truth: RigCalibration, estimate: RigCalibration, depth_m: float = 0.5) -> dict[str, dict[str, float]]:
     """Plane error (:func:`plane_error_from_calibration`) of the truth with one parameter group at a
     time replaced by the estimate's value: which calibration error limits the accuracy.

@@ -204,3 +204,19 @@ def test_sensitivity_groups(estimated):
     assert set(rows) == {"camera f", "camera c", "camera dist", "projector f", "projector c", "projector dist", "rotation", "translation", "all"}
     assert rows["all"]["rms_mm"] == pytest.approx(plane_error_from_calibration(truth, est.calibration)["rms_mm"], rel=1e-9)
     assert max(rows["camera c"]["rms_mm"], rows["projector c"]["rms_mm"], rows["rotation"]["rms_mm"]) > rows["all"]["rms_mm"]
+
+
+def test_pair_error_from_the_calibration_alone(estimated):
+    """Two views of a wall a corridor step apart: the truth registers them exactly, an estimate
+    leaves an error of its own, and a step wider than the view shares no wall."""
+    from fpp_graph.errors import CalibrationError
+    from frontend.sim.calibration import pair_error_from_calibration
+
+    truth, est, _ = estimated
+    exact = pair_error_from_calibration(truth, truth)
+    assert exact["translation_mm"] < 0.005 and exact["rotation_deg"] < 0.001 and exact["shared_points"] > 1000
+    pair = pair_error_from_calibration(truth, est.calibration)
+    assert pair["translation_mm"] > 10 * exact["translation_mm"]
+    assert abs(pair["along_step_mm"]) <= pair["translation_mm"]
+    with pytest.raises(CalibrationError, match="share no wall"):
+        pair_error_from_calibration(truth, truth, step_m=2.0)
