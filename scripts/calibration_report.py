@@ -93,21 +93,22 @@ def print_sensitivity(scene: dict[str, Any], seeds: list[int], overrides: dict[s
 
     truth = build_rig(parse_rig_parameters(scene.get("rig"), "rig"))
     settings = parse_calibration_settings({**(scene.get("calibration") or {}), **overrides}, "calibration")
+    estimates = {seed: estimate_rig_calibration(truth, settings, seed=seed).calibration for seed in seeds}
     rows: dict[str, list[dict[str, float]]] = {}
-    for seed in seeds:
-        estimate = estimate_rig_calibration(truth, settings, seed=seed)
-        for name, row in sensitivity(truth, estimate.calibration).items():
+    for estimate in estimates.values():
+        for name, row in sensitivity(truth, estimate).items():
             rows.setdefault(name, []).append(row)
     over = f"RMS over seeds {', '.join(map(str, seeds))}" if len(seeds) > 1 else f"seed {seeds[0]}"
     print(f"plane at 0.5 m filling the view, noise-free, error from the calibration alone (mm; {over}):")
-    signed = "mean signed" if len(seeds) == 1 else "RMS of mean"  # over seeds the signed offsets' RMS
-    print(f"  {'parameters taken from the estimate':36s} {'RMS':>7s} {signed:>11s} {'after rigid fit':>15s}")
+    offset_header = "mean signed" if len(seeds) == 1 else "RMS of mean"  # over seeds, the RMS of the signed offsets
+    print(f"  {'parameters taken from the estimate':36s} {'RMS':>7s} {offset_header:>11s} {'after rigid fit':>15s}")
     for name, draws in rows.items():
-        rms, signed, aligned = (float(np.sqrt(np.mean([d[key] ** 2 for d in draws]))) for key in ("rms_mm", "mean_signed_mm", "aligned_rms_mm"))
-        print(f"  {name:36s} {rms:7.4f} {signed:11.4f} {aligned:15.4f}" if len(draws) > 1 else f"  {name:36s} {rms:7.4f} {draws[0]['mean_signed_mm']:+11.4f} {aligned:15.4f}")
+        rms, offset, aligned = (float(np.sqrt(np.mean([d[key] ** 2 for d in draws]))) for key in ("rms_mm", "mean_signed_mm", "aligned_rms_mm"))
+        offset_text = f"{offset:11.4f}" if len(draws) > 1 else f"{draws[0]['mean_signed_mm']:+11.4f}"
+        print(f"  {name:36s} {rms:7.4f} {offset_text} {aligned:15.4f}")
     print("two views of a wall at 0.5 m, 0.31 m apart (a corridor step), noise-free: relative-pose error from the calibration alone")
-    for seed in seeds:
-        pair = pair_error_from_calibration(truth, estimate_rig_calibration(truth, settings, seed=seed).calibration)
+    for seed, estimate in estimates.items():
+        pair = pair_error_from_calibration(truth, estimate)
         print(f"  seed {seed}: translation {pair['translation_mm']:.4f} mm ({pair['along_step_mm']:+.4f} along the step), rotation {pair['rotation_deg']:.4f} deg")
 
 

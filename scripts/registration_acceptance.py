@@ -414,7 +414,7 @@ def main() -> None:
     ap.add_argument("--photometric-pixels", type=int, default=200_000, help="map pixels per reference frame for the photometric localisation")
     ap.add_argument("--dense-max-points", type=int, default=4000, help="corners per map frame for the dense localisation")
     ap.add_argument("--dense-min-distance-px", type=int, default=None, help="their spacing (default: image width / 160)")
-    ap.add_argument("--estimated-calibration", action="store_true", help="decode with the calibration estimated from simulated board captures (the simulate default) instead of the truth; the true relative poses are expressed in the estimate's sensor frame (frontend.sim.calibration.T_estimate_true_sensor), so errors and NEES are the registration's on views with the estimate's shape errors")
+    ap.add_argument("--estimated-calibration", action="store_true", help="decode with the calibration estimated from simulated board captures (the simulate default) instead of the truth; the true relative poses are expressed in the estimate's sensor frame (frontend.sim.calibration.T_estimate_true_sensor), so errors and NEES are the registration's on views with the estimate's shape errors (the --map-triples lines are not re-framed: they chain true poses)")
     ap.add_argument("--skip-rejection", action="store_true")
     ap.add_argument("--no-dlt", action="store_true")
     ap.add_argument("--seed", type=int, default=0)
