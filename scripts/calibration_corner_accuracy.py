@@ -1,0 +1,74 @@
+"""How far the simulated board captures' corners land from the truth, camera and projector apart.
+
+    .venv/bin/python -m scripts.calibration_corner_accuracy [--poses 4] [--noise 0]
+
+Renders the first board poses of the default simulated calibration (seed 0, linear projector,
+no board errors), finds the camera corners as the calibration does
+(:func:`frontend.fpp.calibration_board.find_chessboard`: cornerSubPix) and with OpenCV's
+``findChessboardCornersSB``, and reads the projector corners by local homographies both at the
+detected and at the true camera corners. The difference says which device's corners carry the
+calibration's residual.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import cv2
+import numpy as np
+from scipy.spatial import cKDTree
+
+from frontend.fpp.calibration_board import Chessboard, find_chessboard, projector_corners
+from frontend.fpp.calibration_captures import iter_graycode_captures, sample_board_poses
+from frontend.fpp.lens import project_to_projector
+from frontend.fpp.phase import decode
+from frontend.sim import build_rig
+from frontend.sim.calibration import BoardCalibrationSettings, board_pattern_specs
+from frontend.sim.rig import parse_rig_parameters
+
+
+def rms_px(err: np.ndarray) -> float:
+    return float(np.sqrt(np.nanmean(np.sum(err**2, axis=1))))
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--poses", type=int, default=4)
+    parser.add_argument("--noise", type=float, default=0.0, help="read noise, grey levels (shot noise off)")
+    args = parser.parse_args(argv)
+    truth = build_rig(parse_rig_parameters(None, "rig"))
+    settings = BoardCalibrationSettings()
+    board = Chessboard(tuple(settings.board_corners), settings.square_m)
+    rng = np.random.default_rng([0, 20241125])  # the simulated calibration's poses at seed 0
+    poses = sample_board_poses(truth, board, settings.poses, rng, depth_range_m=tuple(settings.depth_range_m),
+                               max_tilt_deg=settings.max_tilt_deg, image_coverage=settings.image_coverage)[: args.poses]
+    specs = board_pattern_specs(truth)
+    n_columns = specs[0].image_count()
+    captures = iter_graycode_captures(truth, board, poses, rng, pattern_specs=specs, supersample=settings.supersample, noise_grey=args.noise)
+    print("corner error against the truth, RMS px: camera (cornerSubPix / findChessboardCornersSB); projector at the detected / at the true camera corners")
+    for k, (stack, white, _black) in enumerate(captures):
+        points = board.object_points_m @ poses[k][:3, :3].T + poses[k][:3, 3]
+        true_camera = cv2.projectPoints(points, np.zeros(3), np.zeros(3), truth.camera.K, truth.camera.dist)[0].reshape(-1, 2)
+        true_projector = np.column_stack(project_to_projector(truth, points))
+        columns = decode(stack[:n_columns], specs[0], truth.projector.width, truth.projector.height)
+        rows = decode(stack[n_columns:], specs[1], truth.projector.width, truth.projector.height)
+        window = int(np.ceil(white.shape[1] / 180))
+        valid = columns.mask & rows.mask
+        detected = find_chessboard(white, board)
+        if detected is None:
+            print(f"  pose {k}: board not found")
+            continue
+        at_detected, _ = projector_corners(detected, columns.u_projector_px, rows.u_projector_px, valid, window)
+        at_true, _ = projector_corners(true_camera, columns.u_projector_px, rows.u_projector_px, valid, window)
+        found, sb = cv2.findChessboardCornersSB(white, board.corners, flags=cv2.CALIB_CB_ACCURACY | cv2.CALIB_CB_EXHAUSTIVE)
+        sb_text = "-"
+        if found:
+            sb = sb.reshape(-1, 2).astype(np.float64)
+            sb_text = f"{rms_px(sb[cKDTree(sb).query(true_camera)[1]] - true_camera):.4f}"
+        print(f"  pose {k}: camera {rms_px(detected - true_camera):.4f} / {sb_text}; "
+              f"projector {rms_px(at_detected - true_projector):.4f} / {rms_px(at_true - true_projector):.4f}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
