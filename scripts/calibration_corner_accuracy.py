@@ -22,6 +22,7 @@ from frontend.fpp.calibration_board import Chessboard, find_chessboard, projecto
 from frontend.fpp.calibration_captures import iter_graycode_captures, sample_board_poses
 from frontend.fpp.lens import project_to_projector
 from frontend.fpp.phase import decode
+from frontend.fpp.rig import RigCalibration
 from frontend.sim import build_rig
 from frontend.sim.calibration import BoardCalibrationSettings, board_pattern_specs
 from frontend.sim.rig import parse_rig_parameters
@@ -29,6 +30,32 @@ from frontend.sim.rig import parse_rig_parameters
 
 def rms_px(err: np.ndarray) -> float:
     return float(np.sqrt(np.nanmean(np.sum(err**2, axis=1))))
+
+
+def corner_errors(truth: RigCalibration, board: Chessboard, T_camera_board: np.ndarray, capture: tuple, specs: list) -> dict[str, float] | None:
+    """RMS corner errors (px) of one rendered pose: ``camera`` (cornerSubPix), ``camera_sb``
+    (findChessboardCornersSB, NaN if it fails), ``projector`` (read at the detected camera
+    corners) and ``projector_at_true`` (read at the true ones); None if the board is not found."""
+    stack, white, _black = capture
+    points = board.object_points_m @ T_camera_board[:3, :3].T + T_camera_board[:3, 3]
+    true_camera = cv2.projectPoints(points, np.zeros(3), np.zeros(3), truth.camera.K, truth.camera.dist)[0].reshape(-1, 2)
+    true_projector = np.column_stack(project_to_projector(truth, points))
+    n_columns = specs[0].image_count()
+    columns = decode(stack[:n_columns], specs[0], truth.projector.width, truth.projector.height)
+    rows = decode(stack[n_columns:], specs[1], truth.projector.width, truth.projector.height)
+    window, valid = int(np.ceil(white.shape[1] / 180)), columns.mask & rows.mask
+    detected = find_chessboard(white, board)
+    if detected is None:
+        return None
+    at_detected, _ = projector_corners(detected, columns.u_projector_px, rows.u_projector_px, valid, window)
+    at_true, _ = projector_corners(true_camera, columns.u_projector_px, rows.u_projector_px, valid, window)
+    found, sb = cv2.findChessboardCornersSB(white, board.corners, flags=cv2.CALIB_CB_ACCURACY | cv2.CALIB_CB_EXHAUSTIVE)
+    sb_rms = float("nan")
+    if found:
+        sb = sb.reshape(-1, 2).astype(np.float64)
+        sb_rms = rms_px(sb[cKDTree(sb).query(true_camera)[1]] - true_camera)  # SB may order the corners otherwise
+    return {"camera": rms_px(detected - true_camera), "camera_sb": sb_rms,
+            "projector": rms_px(at_detected - true_projector), "projector_at_true": rms_px(at_true - true_projector)}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -43,30 +70,14 @@ def main(argv: list[str] | None = None) -> int:
     poses = sample_board_poses(truth, board, settings.poses, rng, depth_range_m=tuple(settings.depth_range_m),
                                max_tilt_deg=settings.max_tilt_deg, image_coverage=settings.image_coverage)[: args.poses]
     specs = board_pattern_specs(truth)
-    n_columns = specs[0].image_count()
     captures = iter_graycode_captures(truth, board, poses, rng, pattern_specs=specs, supersample=settings.supersample, noise_grey=args.noise)
     print("corner error against the truth, RMS px: camera (cornerSubPix / findChessboardCornersSB); projector at the detected / at the true camera corners")
-    for k, (stack, white, _black) in enumerate(captures):
-        points = board.object_points_m @ poses[k][:3, :3].T + poses[k][:3, 3]
-        true_camera = cv2.projectPoints(points, np.zeros(3), np.zeros(3), truth.camera.K, truth.camera.dist)[0].reshape(-1, 2)
-        true_projector = np.column_stack(project_to_projector(truth, points))
-        columns = decode(stack[:n_columns], specs[0], truth.projector.width, truth.projector.height)
-        rows = decode(stack[n_columns:], specs[1], truth.projector.width, truth.projector.height)
-        window = int(np.ceil(white.shape[1] / 180))
-        valid = columns.mask & rows.mask
-        detected = find_chessboard(white, board)
-        if detected is None:
+    for k, capture in enumerate(captures):
+        e = corner_errors(truth, board, poses[k], capture, specs)
+        if e is None:
             print(f"  pose {k}: board not found")
             continue
-        at_detected, _ = projector_corners(detected, columns.u_projector_px, rows.u_projector_px, valid, window)
-        at_true, _ = projector_corners(true_camera, columns.u_projector_px, rows.u_projector_px, valid, window)
-        found, sb = cv2.findChessboardCornersSB(white, board.corners, flags=cv2.CALIB_CB_ACCURACY | cv2.CALIB_CB_EXHAUSTIVE)
-        sb_text = "-"
-        if found:
-            sb = sb.reshape(-1, 2).astype(np.float64)
-            sb_text = f"{rms_px(sb[cKDTree(sb).query(true_camera)[1]] - true_camera):.4f}"
-        print(f"  pose {k}: camera {rms_px(detected - true_camera):.4f} / {sb_text}; "
-              f"projector {rms_px(at_detected - true_projector):.4f} / {rms_px(at_true - true_projector):.4f}")
+        print(f"  pose {k}: camera {e['camera']:.4f} / {e['camera_sb']:.4f}; projector {e['projector']:.4f} / {e['projector_at_true']:.4f}")
     return 0
 
 
