@@ -18,13 +18,18 @@ import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
-from frontend.fpp.calibration_board import Chessboard, find_chessboard, projector_corners
+from fpp_graph.errors import CalibrationError
+from frontend.fpp.calibration_board import Chessboard, projector_corners
 from frontend.fpp.calibration_captures import iter_graycode_captures, sample_board_poses
 from frontend.fpp.lens import project_to_projector
-from frontend.fpp.phase import decode
 from frontend.fpp.rig import RigCalibration
+from frontend.fpp.rig_calibration import observe_pose
 from frontend.sim import build_rig
-from frontend.sim.calibration import BoardCalibrationSettings, board_pattern_specs
+from frontend.sim.calibration import (
+    BoardCalibrationSettings,
+    board_pattern_specs,
+    decode_board_phase,
+)
 from frontend.sim.rig import parse_rig_parameters
 
 
@@ -40,15 +45,14 @@ def corner_errors(truth: RigCalibration, board: Chessboard, T_camera_board: np.n
     points = board.object_points_m @ T_camera_board[:3, :3].T + T_camera_board[:3, 3]
     true_camera = cv2.projectPoints(points, np.zeros(3), np.zeros(3), truth.camera.K, truth.camera.dist)[0].reshape(-1, 2)
     true_projector = np.column_stack(project_to_projector(truth, points))
-    n_columns = specs[0].image_count()
-    columns = decode(stack[:n_columns], specs[0], truth.projector.width, truth.projector.height)
-    rows = decode(stack[n_columns:], specs[1], truth.projector.width, truth.projector.height)
-    window, valid = int(np.ceil(white.shape[1] / 180)), columns.mask & rows.mask
-    detected = find_chessboard(white, board)
-    if detected is None:
+    u_projector, v_projector, valid = decode_board_phase(truth, stack, specs)
+    window = int(np.ceil(white.shape[1] / 180))  # observe_pose's default (procam-calibration's)
+    try:  # the corners as the calibration finds them
+        observed = observe_pose("pose", white, u_projector, v_projector, board, valid, window_half=window)
+    except CalibrationError:
         return None
-    at_detected, _ = projector_corners(detected, columns.u_projector_px, rows.u_projector_px, valid, window)
-    at_true, _ = projector_corners(true_camera, columns.u_projector_px, rows.u_projector_px, valid, window)
+    detected, at_detected = observed.camera_px, observed.projector_px
+    at_true, _ = projector_corners(true_camera, u_projector, v_projector, valid, window)
     found, sb = cv2.findChessboardCornersSB(white, board.corners, flags=cv2.CALIB_CB_ACCURACY | cv2.CALIB_CB_EXHAUSTIVE)
     sb_rms = float("nan")
     if found:

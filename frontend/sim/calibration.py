@@ -168,16 +168,23 @@ def board_pattern_specs(truth: RigCalibration) -> list[PatternSpec]:
     ]
 
 
+def decode_board_phase(truth: RigCalibration, stack: NDArray, specs: list[PatternSpec]) -> tuple[NDArray, NDArray, NDArray]:
+    """One pose's column-then-row phase images (:func:`board_pattern_specs`) decoded: the projector
+    column and row per camera pixel and where both are valid."""
+    proj = truth.projector
+    n_columns = specs[0].image_count()
+    columns = decode(stack[:n_columns], specs[0], proj.width, proj.height)
+    rows = decode(stack[n_columns:], specs[1], proj.width, proj.height)
+    return columns.u_projector_px, rows.u_projector_px, columns.mask & rows.mask
+
+
 def _phase_observations(truth: RigCalibration, board: Chessboard, captures: Any, specs: list[PatternSpec]) -> list[PoseObservation]:
     """Decode column and row phase captures of each pose into its board corners (camera and projector)."""
-    proj = truth.projector
     observations = []
     for k, (stack, white, _black) in enumerate(captures):
-        n_columns = specs[0].image_count()
-        columns = decode(stack[:n_columns], specs[0], proj.width, proj.height)
-        rows = decode(stack[n_columns:], specs[1], proj.width, proj.height)
+        u_projector, v_projector, valid = decode_board_phase(truth, stack, specs)
         try:
-            observations.append(observe_pose(f"pose {k}", white, columns.u_projector_px, rows.u_projector_px, board, columns.mask & rows.mask))
+            observations.append(observe_pose(f"pose {k}", white, u_projector, v_projector, board, valid))
         except CalibrationError as exc:
             log.warning("%s", exc)
     return observations
