@@ -56,6 +56,14 @@ def format_report(report: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+def seed_list(text: str) -> list[int]:
+    """``--seeds 0,1,2`` as integers; anything else is a one-line usage error."""
+    try:
+        return [int(k) for k in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated integers such as 0,1,2, got {text!r}") from None
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--config", type=Path, default=None, help="scene YAML whose rig: and calibration: sections to use")
@@ -66,7 +74,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--noise", type=float, default=None, help="board capture noise, grey levels")
     parser.add_argument("--rigid-board", action="store_true", help="calibrate with the nominal flat board (calibration.release_board: false)")
     parser.add_argument("--sensitivity", action="store_true", help="plane error at 0.5 m with one parameter group at a time taken from the estimate")
-    parser.add_argument("--seeds", default=None, help="with --sensitivity: comma-separated seeds; each group's plane error is the RMS over their estimates "
+    parser.add_argument("--seeds", type=seed_list, default=None, help="with --sensitivity: comma-separated seeds; each group's plane error is the RMS over their estimates "
                         "(each seed's error a draw of the estimate's uncertainty), so a group's row is its effect at its typical error")
     parser.add_argument("--json", action="store_true")
     args = parser.parse_args(argv)
@@ -77,7 +85,7 @@ def main(argv: list[str] | None = None) -> int:
     report = estimate_for_scene(scene, args.seed, overrides)
     print(json.dumps(report, indent=1) if args.json else format_report(report))
     if args.sensitivity:
-        seeds = [int(k) for k in args.seeds.split(",")] if args.seeds else [args.seed]
+        seeds = args.seeds or [args.seed]
         print_sensitivity(scene, seeds, overrides)
     return 0
 

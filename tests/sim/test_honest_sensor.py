@@ -242,3 +242,11 @@ def test_board_corner_errors_are_the_camera_detectors():
         assert e is not None
         assert e["projector_at_true"] < 0.015 and 0.005 < e["camera"] < 0.15  # measured 0.007-0.009 and 0.027-0.031 at 960x600
         assert e["projector"] > 2 * e["projector_at_true"]
+
+
+def test_calibration_report_refuses_bad_seeds(capsys):
+    from scripts.calibration_report import main
+
+    with pytest.raises(SystemExit) as stop:
+        main(["--sensitivity", "--seeds", "0,x"])
+    assert stop.value.code == 2 and "comma-separated integers" in capsys.readouterr().err
