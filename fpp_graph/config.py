@@ -52,6 +52,7 @@ class KeyframeConfig(StrictModel):
     )
     loop_check_probability: float = Field(0.999, gt=0, lt=1, description="a verified loop whose innovation against the running estimate exceeds this chi-square quantile is held out of it (not dropped: the batch solve decides)")
     batch_every: int = Field(0, ge=0, description="run the robust batch pose-graph solve every this many keyframes as well as at the end, restarting the running (iSAM2) estimate from it (0: only at the end)")
+    verify_lag: int = Field(2, ge=0, description="a keyframe's loop candidates are verified while this many later keyframes are tracked, then applied in submission order (0: at once); the same value gives the same run with or without worker processes")
 
 
 class LoopClosureConfig(StrictModel):

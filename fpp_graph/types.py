@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import enum
 from collections.abc import Mapping, Sequence
+from concurrent.futures import Future
 from dataclasses import dataclass, field
 from typing import Any, Protocol, runtime_checkable
 
@@ -209,6 +210,23 @@ class PairRegistrar(Protocol):
         loop candidate may deserve stricter verification (look-alike places) than consecutive
         frames.
         """
+        ...
+
+
+@runtime_checkable
+class PairVerifier(Protocol):
+    """Registers pairs of stored keyframes off the tracking path (loop verification).
+
+    The keyframe manager submits every loop candidate of a keyframe as soon as it is proposed and
+    reads the results ``keyframes.verify_lag`` keyframes later, in submission order, so a run's
+    outcome does not depend on which worker finished first. An implementation may run the
+    registration at once (in-process) or on any executor; both frames are keyframes already
+    put in the manager's :class:`~fpp_graph.slam.frame_store.FrameStore`.
+    """
+
+    def submit(self, target_id: int, source_id: int, T_guess: NDArray[np.float64] | None, kind: ConstraintKind) -> Future[Constraint]:
+        """Start ``register(target, source, T_guess, kind=kind)`` of the two stored keyframes; its
+        result (a Constraint, accepted or rejected with a reason) or exception through the future."""
         ...
 
 

@@ -33,7 +33,9 @@ from __future__ import annotations
 
 import logging
 import math
+from collections import deque
 from collections.abc import Callable
+from concurrent.futures import Future
 from dataclasses import dataclass, field, replace
 
 import networkx as nx
@@ -46,6 +48,7 @@ from fpp_graph.config import Config
 from fpp_graph.geometry import adjoint, compose, invert, rotation_angle_rad
 from fpp_graph.slam.frame_store import FrameStore
 from fpp_graph.slam.loop_closure import ProximityAppearanceLoopDetector
+from fpp_graph.slam.verification import InlineVerifier
 from fpp_graph.types import (
     Constraint,
     ConstraintKind,
@@ -53,6 +56,7 @@ from fpp_graph.types import (
     LoopCandidate,
     LoopDetector,
     PairRegistrar,
+    PairVerifier,
 )
 
 log = logging.getLogger(__name__)
@@ -111,10 +115,15 @@ class KeyframeManager:
         loop_detector: LoopDetector | None = None,
         on_loop: Callable[[LoopRecord], None] | None = None,
         proximity_across_parts: bool = False,
+        verifier: PairVerifier | None = None,
     ) -> None:
         self.registrar = registrar
         self.config = config or Config()
         self.store = store if store is not None else FrameStore()
+        # loop candidates are registered by the verifier (in this process by default, or on the
+        # run's workers) and applied keyframes.verify_lag keyframes later, in submission order
+        self.verifier: PairVerifier = verifier if verifier is not None else InlineVerifier(registrar, self.store)
+        self._pending_loops: deque[tuple[int, list[tuple[LoopCandidate, Future[Constraint]]]]] = deque()
         self.loop_detector = loop_detector if loop_detector is not None else ProximityAppearanceLoopDetector(self.config.loop_closure)
         self.on_loop = on_loop
         # After a chain break the new part's poses are unrelated to the older parts' (it starts
@@ -289,6 +298,12 @@ class KeyframeManager:
 
     # -- loops -----------------------------------------------------------------------------
     def _close_loops(self, frame: Frame) -> None:
+        """Propose the keyframe's loop candidates and submit their verification; apply the
+        verifications that are due (those of the keyframe ``keyframes.verify_lag`` back)."""
+        self._submit_loops(frame)
+        self._apply_due_loops(keep=self.config.keyframes.verify_lag)
+
+    def _submit_loops(self, frame: Frame) -> None:
         sigma = math.sqrt(self._drift_var_m2[frame.id])
         # Proximity means something only within the query's connected part: after a chain break
         # the new part's poses are unrelated to the older parts' (unless the frame brings a prior
@@ -302,47 +317,62 @@ class KeyframeManager:
             self.loop_detector.candidates(frame, poses, position_sigma_m=sigma)
         )
         self.loop_detector.add(frame)
-        matched: list[int] = []  # loops that entered the running estimate
+        submitted = []
         for cand in candidates:
-            target = self.store.get(cand.match_id)
             T_guess = invert(self.T_world_keyframe[cand.match_id]) @ self.T_world_keyframe[frame.id]
             guess = T_guess if "proximity" in cand.source else None
-            constraint = self.registrar.register(target, frame, guess, kind=ConstraintKind.LOOP)
-            record = LoopRecord(
-                query_id=frame.id,
-                match_id=cand.match_id,
-                stage=cand.source,
-                score=cand.score,
-                verified=constraint.accepted,
-                reason=constraint.rejection_reason,
-                fitness=constraint.fitness,
-                inlier_rmse_m=constraint.inlier_rmse_m,
-                inlier_count=constraint.inlier_count,
+            submitted.append((cand, self.verifier.submit(cand.match_id, frame.id, guess, ConstraintKind.LOOP)))
+        self._pending_loops.append((frame.id, submitted))
+
+    def _apply_due_loops(self, keep: int = 0) -> None:
+        """Apply the verifications of the oldest keyframes until at most ``keep`` keyframes'
+        remain pending: in submission order, waiting for each result, so the order and the
+        running estimate never depend on which worker finished first."""
+        while len(self._pending_loops) > keep:
+            query_id, submitted = self._pending_loops.popleft()
+            matched = [cand.match_id for cand, future in submitted if self._apply_loop(query_id, cand, future.result())]
+            if matched:
+                self._closed_at(query_id, matched)
+
+    def _apply_loop(self, query_id: int, cand: LoopCandidate, constraint: Constraint) -> bool:
+        """Record one verified (or refused) candidate; whether it entered the running estimate."""
+        record = LoopRecord(
+            query_id=query_id,
+            match_id=cand.match_id,
+            stage=cand.source,
+            score=cand.score,
+            verified=constraint.accepted,
+            reason=constraint.rejection_reason,
+            fitness=constraint.fitness,
+            inlier_rmse_m=constraint.inlier_rmse_m,
+            inlier_count=constraint.inlier_count,
+        )
+        entered = False
+        if constraint.accepted:
+            log.info(
+                "loop %d->%d (%s, score %.3f) accepted: fitness %.3f, rmse %.3f mm, %d inliers",
+                query_id, cand.match_id, cand.source, cand.score, constraint.fitness,
+                constraint.inlier_rmse_m * 1e3, constraint.inlier_count,
             )
-            if constraint.accepted:
-                log.info(
-                    "loop %d->%d (%s, score %.3f) accepted: fitness %.3f, rmse %.3f mm, %d inliers",
-                    frame.id, cand.match_id, cand.source, cand.score, constraint.fitness,
-                    constraint.inlier_rmse_m * 1e3, constraint.inlier_count,
-                )
-                loop = replace(constraint, kind=ConstraintKind.LOOP)
-                self.loops.append(loop)  # every verified loop reaches the final batch solve
-                self._join(frame.id, cand.match_id)
-                if self._add_to_running_estimate(loop):
-                    matched.append(cand.match_id)
-                else:
-                    record = replace(record, held_out=True)
-            else:
-                log.info("loop %d->%d (%s, score %.3f) rejected: %s", frame.id, cand.match_id, cand.source, cand.score, constraint.rejection_reason)
-            self.loop_records.append(record)
-            if self.on_loop is not None:
-                self.on_loop(record)
-        if matched:
-            # The closure ties this keyframe to an older one: its drift is now that keyframe's.
-            self._drift_var_m2[frame.id] = min(self._drift_var_m2[m] for m in matched)
-            T_q = self.T_world_keyframe[frame.id]
-            moved = [transport_covariance(self._drift_cov[m], invert(self.T_world_keyframe[m]) @ T_q) for m in matched]
-            self._drift_cov[frame.id] = min(moved, key=lambda c: float(np.trace(c)))
+            loop = replace(constraint, kind=ConstraintKind.LOOP)
+            self.loops.append(loop)  # every verified loop reaches the final batch solve
+            self._join(query_id, cand.match_id)
+            entered = self._add_to_running_estimate(loop)
+            if not entered:
+                record = replace(record, held_out=True)
+        else:
+            log.info("loop %d->%d (%s, score %.3f) rejected: %s", query_id, cand.match_id, cand.source, cand.score, constraint.rejection_reason)
+        self.loop_records.append(record)
+        if self.on_loop is not None:
+            self.on_loop(record)
+        return entered
+
+    def _closed_at(self, query_id: int, matched: list[int]) -> None:
+        """The closure ties the query keyframe to older ones: its drift is now theirs."""
+        self._drift_var_m2[query_id] = min(self._drift_var_m2[m] for m in matched)
+        T_q = self.T_world_keyframe[query_id]
+        moved = [transport_covariance(self._drift_cov[m], invert(self.T_world_keyframe[m]) @ T_q) for m in matched]
+        self._drift_cov[query_id] = min(moved, key=lambda c: float(np.trace(c)))
 
     def _add_to_running_estimate(self, loop: Constraint) -> bool:
         """Put a verified loop into iSAM2 unless its innovation test fails; whether it went in.
@@ -447,7 +477,9 @@ class KeyframeManager:
         return poses, sorted(set(rejected)), stats
 
     def finish(self) -> SlamResult:
-        """Final robust optimisation; poses for every processed frame."""
+        """Apply the loops still being verified, then the final robust optimisation; poses for
+        every processed frame."""
+        self._apply_due_loops(keep=0)
         if self.keyframe_ids:
             poses, rejected, stats = self._optimize_components()
             self.T_world_keyframe.update(poses)

@@ -22,7 +22,6 @@ import logging
 import multiprocessing
 import os
 import shutil
-import signal
 import time
 from collections.abc import Callable, Iterator
 from concurrent.futures import Executor, Future, ProcessPoolExecutor
@@ -39,8 +38,10 @@ from fpp_graph.geometry import compose
 from fpp_graph.slam.frame_store import FrameStore, load_frame, save_frame
 from fpp_graph.slam.keyframes import KeyframeManager, SlamResult
 from fpp_graph.slam.sources import FrameSource, check_frame_source
+from fpp_graph.slam.verification import ExecutorVerifier
+from fpp_graph.slam.workers import decode_to_cache, init_worker
 from fpp_graph.trajectory import Trajectory, write_tum
-from fpp_graph.types import Frame, FusedMap, MapFuser
+from fpp_graph.types import Frame, FusedMap, MapFuser, PairVerifier
 
 log = logging.getLogger(__name__)
 
@@ -91,35 +92,6 @@ def prepare_results_dir(out: Path, resume: bool = False, overwrite: bool = False
 
 
 # -- step 2: frames -------------------------------------------------------------------------
-_WORKER_SOURCE: FrameSource | None = None
-
-
-def _init_worker(source: FrameSource) -> None:
-    global _WORKER_SOURCE
-    _WORKER_SOURCE = source
-    # Ctrl-C reaches the whole process group: the parent stops the run and shuts the pool
-    # down; a worker interrupted mid-frame would only add a traceback (its cache write is atomic)
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    # one worker process per core; keep each single-threaded so they do not oversubscribe
-    try:
-        import cv2
-
-        cv2.setNumThreads(1)
-    except ImportError:  # pragma: no cover - cv2 is a dependency, but the back-end does not need it
-        pass
-
-
-def _decode_to_cache(frame_id: int, cache_path: str) -> str | None:
-    """Worker: decode one frame and cache it; returns an error message instead of raising."""
-    assert _WORKER_SOURCE is not None
-    try:
-        frame = _WORKER_SOURCE.load_frame(frame_id)
-        save_frame(cache_path, frame)
-        return None
-    except FppError as exc:
-        return str(exc)
-
-
 def prepare_frames(
     source: FrameSource,
     cache_dir: Path,
@@ -150,7 +122,7 @@ def prepare_frames(
             if message:
                 skipped[fid] = message
         else:
-            pending[fid] = executor.submit(_decode_to_cache, fid, str(cache_path(fid)))
+            pending[fid] = executor.submit(decode_to_cache, fid, str(cache_path(fid)))
 
     next_submit = 0
     for done, fid in enumerate(ids):
@@ -194,9 +166,13 @@ def track(
     config: Config,
     store: FrameStore,
     progress: ProgressCallback | None = None,
+    verifier: PairVerifier | None = None,
 ) -> SlamResult:
-    """Keyframes, odometry, loop closure and the final robust pose-graph optimisation."""
-    manager = KeyframeManager(source.make_registrar(), config, store=store)
+    """Keyframes, odometry, loop closure and the final robust pose-graph optimisation.
+
+    ``verifier`` registers loop candidates (default: in this process, see
+    :class:`~fpp_graph.slam.keyframes.KeyframeManager`)."""
+    manager = KeyframeManager(source.make_registrar(), config, store=store, verifier=verifier)
     for frame in frames:
         manager.process(frame)
     if progress:
@@ -368,6 +344,7 @@ class Pipeline:
         self.resume = resume
         self.overwrite = overwrite
         self.executor = executor
+        self._owns_executor = False
         self.progress = progress
 
     def run(self) -> RunReport:
@@ -381,14 +358,18 @@ class Pipeline:
             raise InputDataError(f"sequence {getattr(self.source, 'path', '')} has no frames")
         timestamps: dict[int, float] = {}
 
+        executor = self._executor()
+        # loops are verified on the workers when they run the source (started by this pipeline)
+        verifier = ExecutorVerifier(executor, store) if executor is not None and self._owns_executor else None
+
         def frames_with_timestamps() -> Iterator[Frame]:
-            for frame in prepare_frames(self.source, out / "frames", self._executor(), report.skipped_frames, self.progress):
+            for frame in prepare_frames(self.source, out / "frames", executor, report.skipped_frames, self.progress):
                 timestamps[frame.id] = frame.timestamp
                 yield frame
 
         try:
             with self._timed(report, "decode+track"):
-                report.slam = track(frames_with_timestamps(), self.source, self.config, store, self.progress)
+                report.slam = track(frames_with_timestamps(), self.source, self.config, store, self.progress, verifier)
         finally:  # done, failed or interrupted: the worker processes end with the tracking
             self._shutdown_executor()
         report.frames_used = len(timestamps)
@@ -416,7 +397,7 @@ class Pipeline:
     def _shutdown_executor(self) -> None:
         """End the worker pool this pipeline started: queued frames are cancelled, frames being
         decoded finish (their cache writes are atomic), and no worker process outlives the run."""
-        if getattr(self, "_owns_executor", False):
+        if self._owns_executor:
             self.executor.shutdown(wait=True, cancel_futures=True)
             self.executor, self._owns_executor = None, False
 
@@ -431,7 +412,7 @@ class Pipeline:
         self._owns_executor = True
         self.executor = ProcessPoolExecutor(
             max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
-            initializer=_init_worker, initargs=(self.source,),
+            initializer=init_worker, initargs=(self.source,),
         )
         return self.executor
 

@@ -1,0 +1,85 @@
+"""What runs in the pipeline's worker processes: decoding frames ahead and verifying loops.
+
+A run's :class:`~concurrent.futures.ProcessPoolExecutor` starts each worker with
+:func:`init_worker` (the run's frame source, one thread per library); the main process then
+submits :func:`decode_to_cache` for frames ahead of tracking and :func:`verify_pair` for loop
+candidates (:class:`~fpp_graph.slam.verification.ExecutorVerifier`). Both read and write frames
+through the results folder's ``frames/`` cache, so only file paths and small results cross
+the process boundary.
+"""
+
+from __future__ import annotations
+
+import signal
+from collections import OrderedDict
+
+import numpy as np
+from numpy.typing import NDArray
+
+from fpp_graph.errors import FppError
+from fpp_graph.slam.frame_store import load_frame, save_frame
+from fpp_graph.slam.sources import FrameSource
+from fpp_graph.types import Constraint, ConstraintKind, Frame, PairRegistrar
+
+_SOURCE: FrameSource | None = None
+_REGISTRAR: PairRegistrar | None = None
+# Frames a worker read recently, held so the registrar's per-frame caches (keypoints, ICP clouds,
+# dense surfaces; weakly keyed by the Frame object) survive between the pairs a keyframe takes
+# part in: a revisit's candidates share their query, and neighbouring queries share matches.
+_FRAMES: OrderedDict[str, Frame] = OrderedDict()
+FRAMES_HELD_PER_WORKER = 4
+"""Enough for one query and its recent matches; a 1920x1200 FPP frame holds ~55 MB."""
+
+
+def init_worker(source: FrameSource) -> None:
+    """Process-pool initializer: the run's frame source, single-threaded libraries, SIGINT ignored."""
+    global _SOURCE, _REGISTRAR
+    _SOURCE, _REGISTRAR = source, None
+    _FRAMES.clear()
+    # Ctrl-C reaches the whole process group: the parent stops the run and shuts the pool
+    # down; a worker interrupted mid-frame would only add a traceback (its cache write is atomic)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    # one worker process per core; keep each single-threaded so they do not oversubscribe
+    try:
+        import cv2
+
+        cv2.setNumThreads(1)
+    except ImportError:  # pragma: no cover - cv2 is a dependency, but the back-end does not need it
+        pass
+
+
+def decode_to_cache(frame_id: int, cache_path: str) -> str | None:
+    """Decode one frame and cache it; returns an error message instead of raising."""
+    if _SOURCE is None:
+        raise RuntimeError("decode_to_cache runs in a worker started by init_worker")
+    try:
+        frame = _SOURCE.load_frame(frame_id)
+        save_frame(cache_path, frame)
+        return None
+    except FppError as exc:
+        return str(exc)
+
+
+def _held_frame(path: str) -> Frame:
+    frame = _FRAMES.get(path)
+    if frame is None:
+        frame = load_frame(path)
+        _FRAMES[path] = frame
+        while len(_FRAMES) > FRAMES_HELD_PER_WORKER:
+            _FRAMES.popitem(last=False)
+    _FRAMES.move_to_end(path)
+    return frame
+
+
+def verify_pair(target_path: str, source_path: str, T_guess: NDArray[np.float64] | None, kind: str) -> Constraint:
+    """``register(target, source, T_guess, kind)`` of two cached frames with the source's registrar.
+
+    The registrar is the one :meth:`FrameSource.make_registrar` gives the main process, made once
+    per worker; its RANSAC is seeded per pair, so the result does not depend on the worker.
+    """
+    global _REGISTRAR
+    if _SOURCE is None:
+        raise RuntimeError("verify_pair runs in a worker started by init_worker")
+    if _REGISTRAR is None:
+        _REGISTRAR = _SOURCE.make_registrar()
+    return _REGISTRAR.register(_held_frame(target_path), _held_frame(source_path), T_guess, kind=ConstraintKind(kind))
