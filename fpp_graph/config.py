@@ -64,6 +64,7 @@ class LoopClosureConfig(StrictModel):
     appearance_top_k: int = Field(3, ge=0)
     appearance_min_score: float = Field(0.1, ge=-1, le=1, description="minimum VLAD cosine similarity for an appearance candidate")
     min_frame_separation: int = Field(5, ge=1)
+    revisit_view_change: float = Field(1.0, ge=0, description="a keyframe is a loop candidate only once the camera's view has moved by this fraction of the image side away from it (1: the camera left the place); 0: only min_frame_separation")
     max_candidates_per_frame: int = Field(8, ge=1)
 
 

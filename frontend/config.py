@@ -58,6 +58,7 @@ class NoiseModel(StrictModel):
     point_sigma_m: float | None = Field(None, gt=0, description="standard deviation of a matched 3D point along each axis (keypoint localisation on the surface plus depth noise)")
     voxel_m: float | None = Field(None, gt=0, description="sampling at which ICP compares the surfaces (coarser than the depth noise, finer than the relief)")
     information_correlation: float | None = Field(None, gt=0, le=1, description="multiplies ICP's independent-residual information: the share of residuals that are independent")
+    shared_depth_sigma_per_m2: float | None = Field(None, ge=0, description="standard deviation (m) of the depth error a whole view shares, at 1 m, growing with the square of depth; no pair is known better than this error of both frames allows (0: none)")
 
 
 @dataclass(frozen=True)
@@ -67,6 +68,7 @@ class SensorNoise:
     point_sigma_m: float
     voxel_m: float
     information_correlation: float
+    shared_depth_sigma_per_m2: float = 0.0
 
 
 FPP_NOISE = SensorNoise(point_sigma_m=0.0005, voxel_m=0.002, information_correlation=1.0)
@@ -202,6 +204,7 @@ class RegistrationConfig(StrictModel):
             n.point_sigma_m if n.point_sigma_m is not None else FPP_NOISE.point_sigma_m,
             n.voxel_m if n.voxel_m is not None else FPP_NOISE.voxel_m,
             n.information_correlation if n.information_correlation is not None else FPP_NOISE.information_correlation,
+            n.shared_depth_sigma_per_m2 if n.shared_depth_sigma_per_m2 is not None else FPP_NOISE.shared_depth_sigma_per_m2,
         )
 
     def with_noise(self, noise: SensorNoise) -> RegistrationConfig:

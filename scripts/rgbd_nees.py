@@ -1,6 +1,6 @@
 """Pairwise registration of RGB-D frames against their reference poses: error and NEES.
 
-    .venv/bin/python scripts/rgbd_nees.py [SEQUENCE_DIR] [--pairs 150:152 155:158 ...]
+    .venv/bin/python scripts/rgbd_nees.py [SEQUENCE_DIR] [--pairs 150:152 155:158 ...]   (NEES_CONFIG=file.yaml: a config override)
 
 Registers frame pairs with the RGB-D source's registrar (:mod:`frontend.rgbd.source`: colour resampled
 onto the depth grid, the Kinect noise model ``KINECT_V1_NOISE``) and prints, per pair, the
@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import sys
 from pathlib import Path
 
@@ -34,7 +35,7 @@ def main(argv: list[str] | None = None) -> int:
     from fpp_graph.geometry import invert
     from frontend.rgbd.source import RgbdSource
 
-    source = RgbdSource(args.sequence, load_config(None))
+    source = RgbdSource(args.sequence, load_config(os.environ.get("NEES_CONFIG")))
     gt = {e.frame_id: e.T_world_sensor for e in source.entries}
     registrar = source.make_registrar()
     frames: dict = {}

@@ -49,6 +49,7 @@ from fpp_graph.geometry import adjoint, compose, invert, rotation_angle_rad
 from fpp_graph.slam.frame_store import FrameStore
 from fpp_graph.slam.loop_closure import ProximityAppearanceLoopDetector
 from fpp_graph.slam.verification import InlineVerifier
+from fpp_graph.slam.views import median_depth_m, view_change
 from fpp_graph.types import (
     Constraint,
     ConstraintKind,
@@ -517,38 +518,6 @@ class KeyframeManager:
             optimization=stats,
             held_out_loops=list(self.held_out_loops),
         )
-
-
-def median_depth_m(frame: Frame) -> float:
-    """Median depth (z, metres) of a frame's points; NaN without points."""
-    return float(np.median(np.asarray(frame.points)[:, 2])) if len(frame.points) else math.nan
-
-
-def view_change(keyframe: Frame, T_keyframe_frame: NDArray[np.float64], depth_m: float | None = None) -> float | None:
-    """How far the image content moved from ``keyframe`` to a frame at ``T_keyframe_frame``, as
-    a fraction of the image's smaller side: the largest pixel displacement of nine points of the
-    keyframe's view (a 3x3 grid over the image at the keyframe's median depth) seen from the
-    frame. Rotation, translation against the scene's depth and roll all count, in the sensor's
-    own pixels, so the same fraction means the same loss of overlap for a 60-degree RGB-D camera
-    and a narrow FPP camera. None when the keyframe has no pinhole model (``metadata["K"]``) or
-    image size (``xyz_map``). ``depth_m``: the keyframe's :func:`median_depth_m`, when known."""
-    if "K" not in keyframe.metadata or keyframe.xyz_map is None or len(keyframe.points) == 0:
-        return None
-    K = np.asarray(keyframe.metadata["K"], dtype=np.float64)
-    h, w = keyframe.xyz_map.shape[:2]
-    if depth_m is None:
-        depth_m = median_depth_m(keyframe)
-    if not depth_m > 0:
-        return None
-    u, v = np.meshgrid(np.array([1, 3, 5]) * w / 6.0, np.array([1, 3, 5]) * h / 6.0)
-    pixels = np.stack([u.ravel(), v.ravel()], axis=1)
-    rays = np.column_stack([(pixels - K[:2, 2]) / np.diag(K)[:2], np.ones(9)])
-    T_frame_keyframe = invert(T_keyframe_frame)
-    seen = (depth_m * rays) @ T_frame_keyframe[:3, :3].T + T_frame_keyframe[:3, 3]
-    if np.any(seen[:, 2] <= 0):
-        return 1.0  # part of the view is now behind the sensor
-    projected = seen[:, :2] / seen[:, 2:] * np.diag(K)[:2] + K[:2, 2]
-    return float(np.max(np.linalg.norm(projected - pixels, axis=1)) / min(h, w))
 
 
 def transport_covariance(

@@ -23,6 +23,8 @@ from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
 from fpp_graph.config import LoopClosureConfig
+from fpp_graph.geometry import invert
+from fpp_graph.slam.views import ViewModel
 from fpp_graph.types import Frame, LoopCandidate
 
 log = logging.getLogger(__name__)
@@ -131,8 +133,15 @@ class ProximityAppearanceLoopDetector:
     ``proximity_radius_m + proximity_sigma * sigma`` of the query, where ``sigma`` is the position
     standard deviation of the query's marginal covariance (so the gate widens as drift grows) and
     whose optical axes point within 90 degrees (a sensor facing away sees nothing in common).
-    Appearance: the best ``appearance_top_k`` bag-of-words matches. Keyframes closer than
-    ``min_frame_separation`` in the sequence are never proposed (that is odometry's job).
+    Appearance: the best ``appearance_top_k`` bag-of-words matches.
+
+    Neither proposes a keyframe of the query's local window: one closer than
+    ``min_frame_separation`` in the sequence, or one the camera has not left yet, i.e. whose
+    view has not moved by ``revisit_view_change`` (a fraction of the image side, see
+    :func:`~fpp_graph.slam.views.view_change`) at any keyframe since, under the current estimate.
+    Those are linked by the odometry chain through frames that keep seeing them; a revisit is
+    coming back to a place after leaving it. Keyframes without a pinhole view (no ``K``), or
+    outside the query's part of the trajectory, are outside every window.
     """
 
     def __init__(self, config: LoopClosureConfig | None = None) -> None:
@@ -140,11 +149,29 @@ class ProximityAppearanceLoopDetector:
         self.appearance = AppearanceIndex()
         self._order: list[int] = []
         self._index: dict[int, int] = {}  # frame id -> its (last) position in self._order
+        # keyframes the camera has not left yet, with their views (oldest first)
+        self._in_view: dict[int, ViewModel] = {}
 
     def add(self, frame: Frame) -> None:
         self._index[frame.id] = len(self._order)
         self._order.append(frame.id)
         self.appearance.add(frame.id, frame.descriptors)
+        view = ViewModel.of(frame) if self.config.revisit_view_change > 0 else None
+        if view is not None:
+            self._in_view[frame.id] = view
+
+    def local_window(self, frame_id: int, poses_world_sensor: Mapping[int, NDArray[np.float64]]) -> set[int]:
+        """Keyframes the camera has not left by ``frame_id``'s pose (updated with it: once left, never back)."""
+        T_world_query = poses_world_sensor.get(frame_id)
+        if T_world_query is None:
+            return set(self._in_view)
+        threshold = self.config.revisit_view_change
+        for fid in list(self._in_view):
+            T_world_kf = poses_world_sensor.get(fid)
+            # another part of the trajectory is not linked to the query by odometry: not local
+            if T_world_kf is None or self._in_view[fid].change(invert(T_world_kf) @ T_world_query) >= threshold:
+                del self._in_view[fid]
+        return set(self._in_view)
 
     def candidates(
         self,
@@ -161,6 +188,7 @@ class ProximityAppearanceLoopDetector:
         near = self._order[max(0, position_in_sequence - sep + 1): max(0, position_in_sequence + sep)]
         too_close = {fid for fid in near if abs(position_in_sequence - index_of[fid]) < sep}
         too_close.add(frame.id)
+        too_close |= self.local_window(frame.id, poses_world_sensor)
         found: dict[int, LoopCandidate] = {}
         T_world_query = poses_world_sensor.get(frame.id)
         if T_world_query is not None:

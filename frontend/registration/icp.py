@@ -307,3 +307,28 @@ def information_from_icp(icp: IcpResult, scale: float = 1.0, min_sigma_m: float 
     return 0.5 * (info + info.T)
 
 
+
+
+def with_shared_error_floor(information: NDArray, points_source_m: NDArray, sigma_per_m2: float) -> Array:
+    """``information`` of ``T_target_source`` (``[rot, trans]``) with the error both views share added.
+
+    A depth camera's error is not all pixel noise that averaging over a pair's points removes: a
+    smooth part (Kinect v1: the disparity's correlation window, its quantisation steps and a
+    low-frequency distortion over the image) moves a whole view at once. Modelled as a rigid
+    offset per view with ``sigma = sigma_per_m2 * z^2`` per axis at the points' median depth
+    ``z``, the pair's pose error has covariance ``2 sigma^2`` in translation and ``2 sigma^2 / r^2``
+    in rotation (``r``: the RMS distance of the points from their centroid, the lever that turns
+    an offset into a tilt). It adds to the covariance of the estimate, so the information becomes
+    ``(I^-1 + S)^-1 = I - I (I + S^-1)^-1 I`` (defined for a singular ``I`` too).
+    """
+    info = np.asarray(information, dtype=np.float64)
+    P = np.asarray(points_source_m, dtype=np.float64).reshape(-1, 3)
+    if sigma_per_m2 <= 0 or len(P) < 3:
+        return info
+    sigma_m = sigma_per_m2 * float(np.median(P[:, 2])) ** 2
+    lever_m = float(np.sqrt(np.mean(np.sum((P - P.mean(axis=0)) ** 2, axis=1))))
+    if not (sigma_m > 0 and lever_m > 0):
+        return info
+    shared_inv = np.diag(np.r_[np.full(3, lever_m**2), np.ones(3)] / (2.0 * sigma_m**2))
+    out = info - info @ np.linalg.solve(info + shared_inv, info)
+    return 0.5 * (out + out.T)

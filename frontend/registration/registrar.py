@@ -14,7 +14,7 @@ from frontend.config import RegistrationConfig
 from frontend.dense_alignment import DenseAlignment, OrganisedSurface, align_dense
 from frontend.features.detect import Detector, detect_and_describe, feature_signature, make_detector
 from frontend.registration.gates import Checkpoint, rejection
-from frontend.registration.icp import IcpCloud, organised_subsample, prepare_icp_cloud
+from frontend.registration.icp import IcpCloud, organised_subsample, prepare_icp_cloud, with_shared_error_floor
 from frontend.registration.keypoints import RansacResult, ransac_rigid
 from frontend.registration.refinement import (
     check_weak_geometry,
@@ -283,7 +283,10 @@ class FppPairRegistrar:
             # are worth fewer than n independent points. Calibrated by NEES on simulated pairs:
             # the corridor median fell from 64 to 10 at 0.1 with the turntable unchanged (4.6:
             # there ICP's information dominates every direction).
-            information=s.pose.information_geometry + self.config.keypoints.information_scale * s.pose.information_keypoints + photometric,
+            information=with_shared_error_floor(
+                s.pose.information_geometry + self.config.keypoints.information_scale * s.pose.information_keypoints + photometric,
+                s.weak.icp.source_points, self.config.sensor_noise().shared_depth_sigma_per_m2,
+            ),
             kind=s.kind,
             metadata=s.meta,
             **s.quality,

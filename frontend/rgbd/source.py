@@ -56,7 +56,7 @@ from frontend.config import SensorNoise
 
 log = logging.getLogger(__name__)
 
-KINECT_V1_NOISE = SensorNoise(point_sigma_m=0.0075, voxel_m=0.01, information_correlation=3e-4)
+KINECT_V1_NOISE = SensorNoise(point_sigma_m=0.0075, voxel_m=0.01, information_correlation=3e-4, shared_depth_sigma_per_m2=1.4e-3)
 """The Kinect v1 depth camera's noise model (see ``registration.noise``).
 
 - ``point_sigma_m``: its random depth error is ~1.4e-3 z^2 m (Khoshelham and Elberink, Sensors

@@ -344,7 +344,7 @@ def _camera_frame(frame_id: int, depth_m: float = 2.0, width: int = 640, height:
 
 
 def test_view_change_is_pixel_flow_over_the_smaller_image_side():
-    from fpp_graph.slam.keyframes import view_change
+    from fpp_graph.slam.views import view_change
 
     keyframe = _camera_frame(0, depth_m=2.0)
     # sideways by 0.096 m at 2 m depth: every point moves f * t / z = 24 px = 5 % of 480 px
@@ -374,3 +374,44 @@ def test_slow_camera_makes_a_keyframe_every_few_frames(rng):
     for i in range(30):
         manager.process(_camera_frame(i))
     assert len(manager.finish().keyframe_ids) == 30
+
+
+def test_loop_window_proposes_a_keyframe_only_after_the_camera_left_it():
+    """A camera slides sideways 2.4 m along a wall 2 m away and back: keyframes it never left are
+    not loop candidates (odometry links them), the start is one on the way back."""
+    from fpp_graph.config import LoopClosureConfig
+    from fpp_graph.slam.loop_closure import ProximityAppearanceLoopDetector
+
+    detector = ProximityAppearanceLoopDetector(LoopClosureConfig(proximity_radius_m=0.3, min_frame_separation=1, appearance_top_k=0))
+    xs = [0.0, 0.1, 0.2, 0.4, 1.0, 2.0, 2.4, 1.5, 0.6, 0.2, 0.1]
+    poses: dict[int, np.ndarray] = {}
+    proposed = {}
+    for i, x in enumerate(xs):
+        poses[i] = make_pose(np.eye(3), [x, 0, 0])
+        frame = _camera_frame(i)
+        proposed[i] = {c.match_id for c in detector.candidates(frame, poses)}
+        detector.add(frame)
+    # going out, every earlier keyframe is still in view (a 0.4 m shift at 2 m moves the view by 0.21 of 480 px)
+    assert all(not proposed[i] for i in range(4))
+    # f 500 px: a shift of 1.92 m at 2 m moves the view by 480 px, the image side. Keyframes 0-3
+    # (x <= 0.4) were left at x = 2.4; back at x = 0.2 and 0.1 they are the revisits
+    assert proposed[9] == {0, 1, 2, 3}
+    assert proposed[10] == {0, 1, 2}  # keyframe 3 is at the 0.3 m radius; keyframe 9 is in the window
+    assert all(not proposed[i] for i in range(4, 8))  # nothing near had been left on the way
+    assert proposed[8] == {3}  # x = 0.6 is back within 0.3 m of keyframe 3, which was left
+    # with the window off, the near neighbours are proposed at once
+    off = ProximityAppearanceLoopDetector(LoopClosureConfig(proximity_radius_m=0.3, min_frame_separation=1, appearance_top_k=0, revisit_view_change=0))
+    off.add(_camera_frame(0))
+    assert {c.match_id for c in off.candidates(_camera_frame(1), {0: poses[0], 1: poses[1]})} == {0}
+
+
+def test_loop_window_ignores_keyframes_of_another_part():
+    """After a chain break the older part is not linked by odometry: outside the window."""
+    from fpp_graph.config import LoopClosureConfig
+    from fpp_graph.slam.loop_closure import ProximityAppearanceLoopDetector
+
+    detector = ProximityAppearanceLoopDetector(LoopClosureConfig(min_frame_separation=1))
+    detector.add(_camera_frame(0))
+    detector.add(_camera_frame(1))
+    # the query's part holds keyframe 1 only: keyframe 0 leaves the window, keyframe 1 stays in it
+    assert detector.local_window(2, {1: np.eye(4), 2: np.eye(4)}) == {1}

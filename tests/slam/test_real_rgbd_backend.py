@@ -1,10 +1,10 @@
-"""Real RGB-D frames through the whole run: the back-end keeps the loops registration verified.
+"""Real RGB-D frames through the whole run: keyframes, the loop window and the trajectory.
 
-50 real 7-Scenes frames (../shared/data/rgbd/7scenes_chess_150_199, skipped when absent): every
-loop candidate is verified by the RGB-D registrar, whose ICP information is about 10^3 times too
-confident for Kinect depth. A back-end that trusts that scale threw every loop away (0 of 332,
-ATE 25.5 mm); the robust stage measures it. Takes a few minutes (the run decodes and registers
-every frame).
+50 real 7-Scenes frames (../shared/data/rgbd/7scenes_chess_150_199, skipped when absent), 1.7 s
+of a hand-held Kinect that never leaves its first view. Before the loop window every keyframe
+verified up to 8 of its own recent neighbours as "loops" (68 on 17 keyframes; earlier, with
+every frame a keyframe, 332, and a back-end that threw all of them away: ATE 25.5 mm). Takes
+about a minute (the run decodes and registers every frame).
 """
 
 from __future__ import annotations
@@ -32,12 +32,15 @@ def chess_run(tmp_path_factory):
 
 
 @pytest.mark.slow
-def test_chess_keeps_the_verified_loops(chess_run):
+def test_chess_proposes_no_loops_inside_the_local_window(chess_run):
     metrics, _ = chess_run
-    # 17 of the 50 frames are keyframes (keyframes.min_view_change), each with up to 8 candidates
-    assert metrics["keyframes"] < metrics["frames"] and metrics["loops_verified"] >= 40
-    kept = metrics["loops_verified"] - metrics["loops_rejected_by_backend"]
-    assert kept >= 0.9 * metrics["loops_verified"], metrics
+    # 17 of the 50 frames are keyframes (keyframes.min_view_change), and the camera never leaves
+    # the first keyframe's view: proximity proposes nothing (loop_closure.revisit_view_change);
+    # appearance may propose a keyframe the estimate puts out of the window, and none is kept
+    # against the odometry chain without being verified
+    assert 10 <= metrics["keyframes"] <= 25, metrics
+    assert metrics["loop_candidates"] <= 5 and metrics["loops_accepted"] <= metrics["loops_verified"], metrics
+    assert metrics["chain_breaks"] == [] and len(metrics["components"]) == 1
 
 
 @pytest.mark.slow

@@ -1,0 +1,70 @@
+"""How far a sensor's view moved: the keyframe policy's and the loop window's common measure.
+
+:func:`view_change` is the pixel flow of a keyframe's view seen from another pose, as a fraction
+of the image's smaller side, so one threshold means the same loss of overlap for a 60-degree
+RGB-D camera and a narrow FPP camera. :class:`ViewModel` keeps what it needs of a keyframe
+(intrinsics, image size, median depth), a few numbers instead of the frame.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from fpp_graph.geometry import invert
+from fpp_graph.types import Frame
+
+
+def median_depth_m(frame: Frame) -> float:
+    """Median depth (z, metres) of a frame's points; NaN without points."""
+    return float(np.median(np.asarray(frame.points)[:, 2])) if len(frame.points) else math.nan
+
+
+@dataclass(frozen=True)
+class ViewModel:
+    """A keyframe's pinhole view: ``K`` (3x3), image ``height_px`` x ``width_px``, median scene depth."""
+
+    K: NDArray[np.float64]
+    height_px: int
+    width_px: int
+    depth_m: float
+
+    @classmethod
+    def of(cls, frame: Frame, depth_m: float | None = None) -> ViewModel | None:
+        """The frame's view; None without a pinhole model (``metadata["K"]``), an image size
+        (``xyz_map``) or points in front of the sensor. ``depth_m``: its :func:`median_depth_m`, when known."""
+        if "K" not in frame.metadata or frame.xyz_map is None or len(frame.points) == 0:
+            return None
+        depth = median_depth_m(frame) if depth_m is None else depth_m
+        if not depth > 0:
+            return None
+        h, w = frame.xyz_map.shape[:2]
+        return cls(np.asarray(frame.metadata["K"], dtype=np.float64), int(h), int(w), float(depth))
+
+    def change(self, T_keyframe_frame: NDArray[np.float64]) -> float:
+        """See :func:`view_change`."""
+        K, h, w = self.K, self.height_px, self.width_px
+        u, v = np.meshgrid(np.array([1, 3, 5]) * w / 6.0, np.array([1, 3, 5]) * h / 6.0)
+        pixels = np.stack([u.ravel(), v.ravel()], axis=1)
+        rays = np.column_stack([(pixels - K[:2, 2]) / np.diag(K)[:2], np.ones(9)])
+        T_frame_keyframe = invert(T_keyframe_frame)
+        seen = (self.depth_m * rays) @ T_frame_keyframe[:3, :3].T + T_frame_keyframe[:3, 3]
+        if np.any(seen[:, 2] <= 0):
+            return 1.0  # part of the view is now behind the sensor
+        projected = seen[:, :2] / seen[:, 2:] * np.diag(K)[:2] + K[:2, 2]
+        return float(np.max(np.linalg.norm(projected - pixels, axis=1)) / min(h, w))
+
+
+def view_change(keyframe: Frame, T_keyframe_frame: NDArray[np.float64], depth_m: float | None = None) -> float | None:
+    """How far the image content moved from ``keyframe`` to a frame at ``T_keyframe_frame``, as
+    a fraction of the image's smaller side: the largest pixel displacement of nine points of the
+    keyframe's view (a 3x3 grid over the image at the keyframe's median depth) seen from the
+    frame. Rotation, translation against the scene's depth and roll all count, in the sensor's
+    own pixels, so the same fraction means the same loss of overlap for a 60-degree RGB-D camera
+    and a narrow FPP camera. None when the keyframe has no pinhole model (``metadata["K"]``) or
+    image size (``xyz_map``). ``depth_m``: the keyframe's :func:`median_depth_m`, when known."""
+    view = ViewModel.of(keyframe, depth_m)
+    return None if view is None else view.change(T_keyframe_frame)
