@@ -14,7 +14,12 @@ from frontend.config import RegistrationConfig
 from frontend.dense_alignment import DenseAlignment, OrganisedSurface, align_dense
 from frontend.features.detect import Detector, detect_and_describe, feature_signature, make_detector
 from frontend.registration.gates import Checkpoint, rejection
-from frontend.registration.icp import IcpCloud, organised_subsample, prepare_icp_cloud, with_shared_error_floor
+from frontend.registration.icp import (
+    IcpCloud,
+    organised_subsample,
+    prepare_icp_cloud,
+    with_shared_error_floor,
+)
 from frontend.registration.keypoints import RansacResult, ransac_rigid
 from frontend.registration.refinement import (
     check_weak_geometry,
