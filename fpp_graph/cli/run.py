@@ -28,8 +28,12 @@ def run(
     resume: Annotated[bool, typer.Option("--resume", help="Continue an interrupted run in --out.")] = False,
     overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace earlier results in --out.")] = False,
     kind: Annotated[Optional[str], typer.Option("--kind", help="Force the sequence reader (fpp, rgbd).")] = None,  # noqa: UP045
+    scheduler: Annotated[Optional[str], typer.Option("--scheduler", help="Decode frames and verify loops on Dask: a scheduler address, or 'local' for a local cluster of run.workers processes (needs the dask extra; --out must be on a file system every worker sees).")] = None,  # noqa: UP045
 ) -> None:
     """Raw sequence -> decode -> constraints -> keyframes and loops -> pose graph -> fused map."""
+    from contextlib import ExitStack
+    from os import cpu_count
+
     from fpp_graph.config import load_config
 
     out = out or default_out(sequence)
@@ -46,8 +50,16 @@ def run(
 
     setup_logging(cfg.run.log_level)
     try:
-        with RichProgress() as progress:
-            report = run_sequence(sequence, cfg, out, resume=resume, overwrite=overwrite, kind=kind, progress=progress)
+        with ExitStack() as stack, RichProgress() as progress:
+            executor = None
+            if scheduler is not None:
+                from fpp_graph.slam.batch import make_executor
+
+                executor, dask_objects = make_executor(cfg.run.workers or cpu_count() or 1, scheduler)
+                for obj in reversed(dask_objects):  # the client, then the local cluster
+                    stack.callback(obj.close)
+                stack.callback(executor.shutdown, wait=False)
+            report = run_sequence(sequence, cfg, out, resume=resume, overwrite=overwrite, kind=kind, progress=progress, executor=executor)
     except Exception:
         if stop_signal() is None:
             raise

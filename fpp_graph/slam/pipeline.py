@@ -99,8 +99,12 @@ def prepare_frames(
     skipped: dict[int, str] | None = None,
     progress: ProgressCallback | None = None,
     window: int = 4,
+    worker_source: tuple[FrameSource, str] | None = None,
 ) -> Iterator[Frame]:
     """Yield decoded frames in capture order, decoding ahead in ``executor``.
+
+    ``worker_source`` (the source and a token naming the run) goes with each task to workers
+    that :func:`~fpp_graph.slam.workers.init_worker` did not start (a Dask executor).
 
     Frames already in ``cache_dir`` (an interrupted earlier run) are loaded, not decoded. A frame
     that cannot be decoded is skipped with a warning and recorded in ``skipped``.
@@ -122,7 +126,7 @@ def prepare_frames(
             if message:
                 skipped[fid] = message
         else:
-            pending[fid] = executor.submit(decode_to_cache, fid, str(cache_path(fid)))
+            pending[fid] = executor.submit(decode_to_cache, fid, str(cache_path(fid)), *(worker_source or ()))
 
     next_submit = 0
     for done, fid in enumerate(ids):
@@ -359,11 +363,12 @@ class Pipeline:
         timestamps: dict[int, float] = {}
 
         executor = self._executor()
-        # loops are verified on the workers when they run the source (started by this pipeline)
-        verifier = ExecutorVerifier(executor, store) if executor is not None and self._owns_executor else None
+        # workers this pipeline did not start (Dask) receive the source with their tasks
+        worker_source = None if self._owns_executor else (self.source, f"{out.resolve()}@{time.time_ns()}")
+        verifier = ExecutorVerifier(executor, store, *(worker_source or ())) if executor is not None else None
 
         def frames_with_timestamps() -> Iterator[Frame]:
-            for frame in prepare_frames(self.source, out / "frames", executor, report.skipped_frames, self.progress):
+            for frame in prepare_frames(self.source, out / "frames", executor, report.skipped_frames, self.progress, worker_source=worker_source):
                 timestamps[frame.id] = frame.timestamp
                 yield frame
 
@@ -432,11 +437,13 @@ class Pipeline:
 
 def run_sequence(
     sequence: Path, config: Config, out: Path, resume: bool = False, overwrite: bool = False,
-    kind: str | None = None, progress: ProgressCallback | None = None,
+    kind: str | None = None, progress: ProgressCallback | None = None, executor: Executor | None = None,
 ) -> RunReport:
     """``fpp-slam run SEQUENCE``: open the sequence with its registered source (``kind`` forces
-    one) and run the pipeline into ``out`` under ``config`` (e.g. ``load_config(path)``)."""
+    one) and run the pipeline into ``out`` under ``config`` (e.g. ``load_config(path)``).
+    ``executor``: decode frames and verify loops there (e.g. Dask's) instead of a process pool
+    of ``run.workers`` processes the run starts and ends."""
     from fpp_graph.slam.sources import open_source
 
     source = open_source(sequence, config, kind=kind)
-    return Pipeline(source, config, out, resume=resume, overwrite=overwrite, progress=progress).run()
+    return Pipeline(source, config, out, resume=resume, overwrite=overwrite, progress=progress, executor=executor).run()

@@ -15,6 +15,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from fpp_graph.slam.frame_store import FrameStore
+from fpp_graph.slam.sources import FrameSource
 from fpp_graph.slam.workers import verify_pair
 from fpp_graph.types import Constraint, ConstraintKind, PairRegistrar
 
@@ -43,15 +44,19 @@ class ExecutorVerifier:
 
     Both frames are read there from the store's folder (they are keyframes, so the store has
     written them), and only paths, the initial guess and the resulting Constraint are pickled.
+    Workers the run did not start (Dask) get the frame ``source`` with each task and adopt it
+    once per ``token`` (see :func:`fpp_graph.slam.workers.decode_to_cache`).
     """
 
-    def __init__(self, executor: Executor, store: FrameStore) -> None:
+    def __init__(self, executor: Executor, store: FrameStore, source: FrameSource | None = None, token: str | None = None) -> None:
         if store.directory is None:
             raise ValueError("ExecutorVerifier needs a FrameStore with a directory: workers read the frames from it")
         self.executor = executor
         self.store = store
+        self.source, self.token = source, token
 
     def submit(self, target_id: int, source_id: int, T_guess: NDArray[np.float64] | None, kind: ConstraintKind) -> Future[Constraint]:
         return self.executor.submit(
-            verify_pair, str(self.store.path_of(target_id)), str(self.store.path_of(source_id)), T_guess, str(ConstraintKind(kind))
+            verify_pair, str(self.store.path_of(target_id)), str(self.store.path_of(source_id)), T_guess, str(ConstraintKind(kind)),
+            self.source, self.token,
         )

@@ -11,6 +11,7 @@ the process boundary.
 from __future__ import annotations
 
 import signal
+import threading
 from collections import OrderedDict
 
 import numpy as np
@@ -22,6 +23,7 @@ from fpp_graph.slam.sources import FrameSource
 from fpp_graph.types import Constraint, ConstraintKind, Frame, PairRegistrar
 
 _SOURCE: FrameSource | None = None
+_SOURCE_TOKEN: str | None = None
 _REGISTRAR: PairRegistrar | None = None
 # Frames a worker read recently, held so the registrar's per-frame caches (keypoints, ICP clouds,
 # dense surfaces; weakly keyed by the Frame object) survive between the pairs a keyframe takes
@@ -31,14 +33,16 @@ FRAMES_HELD_PER_WORKER = 4
 """Enough for one query and its recent matches; a 1920x1200 FPP frame holds ~55 MB."""
 
 
-def init_worker(source: FrameSource) -> None:
+def init_worker(source: FrameSource, token: str | None = None) -> None:
     """Process-pool initializer: the run's frame source, single-threaded libraries, SIGINT ignored."""
-    global _SOURCE, _REGISTRAR
-    _SOURCE, _REGISTRAR = source, None
+    global _SOURCE, _SOURCE_TOKEN, _REGISTRAR
+    _SOURCE, _SOURCE_TOKEN, _REGISTRAR = source, token, None
     _FRAMES.clear()
     # Ctrl-C reaches the whole process group: the parent stops the run and shuts the pool
-    # down; a worker interrupted mid-frame would only add a traceback (its cache write is atomic)
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    # down; a worker interrupted mid-frame would only add a traceback (its cache write is atomic).
+    # A Dask worker runs tasks off its main thread, and its nanny handles the signals.
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
     # one worker process per core; keep each single-threaded so they do not oversubscribe
     try:
         import cv2
@@ -48,10 +52,23 @@ def init_worker(source: FrameSource) -> None:
         pass
 
 
-def decode_to_cache(frame_id: int, cache_path: str) -> str | None:
-    """Decode one frame and cache it; returns an error message instead of raising."""
+def _adopt(source: FrameSource | None, token: str | None) -> None:
+    """A worker of an executor the run did not start (Dask) receives the source with each task:
+    adopt it once per run (``token``), keeping the registrar and held frames between tasks."""
+    if source is not None and token != _SOURCE_TOKEN:
+        init_worker(source, token)
     if _SOURCE is None:
-        raise RuntimeError("decode_to_cache runs in a worker started by init_worker")
+        raise RuntimeError("fpp_graph.slam.workers tasks need init_worker, or the source passed along")
+
+
+def decode_to_cache(frame_id: int, cache_path: str, source: FrameSource | None = None, token: str | None = None) -> str | None:
+    """Decode one frame and cache it; returns an error message instead of raising.
+
+    ``source`` (with a ``token`` naming the run) is for workers :func:`init_worker` did not start,
+    e.g. Dask's: they adopt it on their first task of the run.
+    """
+    _adopt(source, token)
+    assert _SOURCE is not None
     try:
         frame = _SOURCE.load_frame(frame_id)
         save_frame(cache_path, frame)
@@ -71,15 +88,19 @@ def _held_frame(path: str) -> Frame:
     return frame
 
 
-def verify_pair(target_path: str, source_path: str, T_guess: NDArray[np.float64] | None, kind: str) -> Constraint:
+def verify_pair(
+    target_path: str, source_path: str, T_guess: NDArray[np.float64] | None, kind: str,
+    source: FrameSource | None = None, token: str | None = None,
+) -> Constraint:
     """``register(target, source, T_guess, kind)`` of two cached frames with the source's registrar.
 
     The registrar is the one :meth:`FrameSource.make_registrar` gives the main process, made once
     per worker; its RANSAC is seeded per pair, so the result does not depend on the worker.
+    ``source`` and ``token``: see :func:`decode_to_cache`.
     """
     global _REGISTRAR
-    if _SOURCE is None:
-        raise RuntimeError("verify_pair runs in a worker started by init_worker")
+    _adopt(source, token)
+    assert _SOURCE is not None
     if _REGISTRAR is None:
         _REGISTRAR = _SOURCE.make_registrar()
     return _REGISTRAR.register(_held_frame(target_path), _held_frame(source_path), T_guess, kind=ConstraintKind(kind))

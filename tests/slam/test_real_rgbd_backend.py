@@ -47,3 +47,24 @@ def test_chess_proposes_no_loops_inside_the_local_window(chess_run):
 def test_chess_trajectory_within_9_mm(chess_run):
     _, evaluation = chess_run
     assert evaluation["ate_rmse_mm"] <= 9.0, evaluation
+
+
+@pytest.fixture(scope="module")
+def tum_run(tmp_path_factory):
+    sequence = shared_data_path("rgbd", "tum_fr1_rpy_subset")
+    out = tmp_path_factory.mktemp("tum")
+    config = load_config(None)
+    Pipeline(open_source(sequence, config), config, out).run()
+    metrics = json.loads((out / "metrics.json").read_text())
+    return metrics, evaluate_results(out, open_source(sequence, config))
+
+
+@pytest.mark.slow
+def test_tum_rpy_keeps_most_verified_loops_and_its_trajectory(tum_run):
+    """100 frames of TUM fr1_rpy (fast hand-held rotation; a few minutes): the README's row is
+    ATE 29.3 mm and 84 % of the verified loops kept (issue 22 asks <= 15 mm and 90 %; before the
+    loop window and the shared-error floor: 43.6 mm, 79 %)."""
+    metrics, evaluation = tum_run
+    assert metrics["loops_verified"] >= 100 and metrics["loops_accepted"] >= 0.8 * metrics["loops_verified"], metrics
+    assert evaluation["ate_rmse_mm"] <= 35.0, evaluation
+    assert len(metrics["components"]) == 1, metrics

@@ -111,26 +111,61 @@ def test_a_failing_registration_surfaces_when_its_loops_are_applied():
             manager.process(f)
 
 
-@pytest.mark.slow
-def test_worker_processes_give_the_in_process_run(tmp_path):
-    """20 real 7-Scenes frames: loops verified on the process pool = verified in the tracking process."""
+def _chess(tmp_path, first: int, last: int):
     chess = shared_data_path("rgbd", "7scenes_chess_150_199")
-    sequence = tmp_path / "chess20"
+    sequence = tmp_path / f"chess{first}-{last}"
     sequence.mkdir()
     for path in chess.iterdir():
-        if path.name == "camera-intrinsics.txt" or 150 <= int(path.name[6:12] if path.name.startswith("frame-") else -1) < 170:
+        if path.name == "camera-intrinsics.txt" or first <= int(path.name[6:12] if path.name.startswith("frame-") else -1) <= last:
             (sequence / path.name).symlink_to(path)
-    runs = {}
-    for workers in (1, 2):
-        config = load_config(None).model_copy(update={"run": Config().run.model_copy(update={"workers": workers})})
-        out = tmp_path / f"w{workers}"
-        Pipeline(open_source(sequence, config), config, out).run()
-        runs[workers] = (json.loads((out / "loops.json").read_text()), (out / "trajectory.tum").read_text())
-    loops1, traj1 = runs[1]
-    loops2, traj2 = runs[2]
+    return sequence
+
+
+def _chess_revisit(tmp_path):
+    """Chess frames 150-169 then 190-199, which come back to the first view."""
+    sequence = _chess(tmp_path, 150, 169)
+    for path in _chess(tmp_path, 190, 199).iterdir():
+        if path.name.startswith("frame-"):
+            (sequence / path.name).symlink_to(path.resolve())
+    return sequence
+
+
+def _results(out):
+    return json.loads((out / "loops.json").read_text()), (out / "trajectory.tum").read_text()
+
+
+@pytest.mark.slow
+def test_worker_processes_and_dask_give_the_in_process_run(tmp_path):
+    """Real 7-Scenes frames 150-169 and 190-199 (a revisit of the first view): loops verified in
+    the tracking process (one worker), on the process pool, and with ``fpp-slam run --scheduler
+    local`` (Dask workers that receive the source with their tasks) are the same loops, and the
+    trajectories agree."""
+    from typer.testing import CliRunner
+
+    from fpp_graph.cli.app import add_commands, app
+
+    add_commands()
+    sequence = _chess_revisit(tmp_path)
+    config = load_config(None).model_copy(update={"run": Config().run.model_copy(update={"workers": 1})})
+    Pipeline(open_source(sequence, config), config, tmp_path / "inline").run()
+    runs = {"inline": _results(tmp_path / "inline")}
+    schedulers = {"pool": []}
+    try:
+        import dask.distributed  # noqa: F401
+
+        schedulers["dask"] = ["--scheduler", "local"]
+    except ImportError:  # the dask extra is optional; make setup installs it
+        pass
+    for name, extra in schedulers.items():
+        result = CliRunner().invoke(app, ["run", str(sequence), "--out", str(tmp_path / name), *extra])
+        assert result.exit_code == 0, result.output
+        runs[name] = _results(tmp_path / name)
+    loops1, traj1 = runs.pop("inline")
     exact = ("query", "match", "stage", "verified", "rejected_by_backend", "reason", "inliers")
-    assert len(loops1) >= 3 and [[r[k] for k in exact] for r in loops1] == [[r[k] for k in exact] for r in loops2]
-    # figures equal to float round-off (BLAS and iSAM2 sum in a thread-dependent order)
-    for r1, r2 in zip(loops1, loops2, strict=True):
-        assert r2["score"] == pytest.approx(r1["score"], rel=1e-6) and r2["fitness"] == pytest.approx(r1["fitness"], rel=1e-9)
-    np.testing.assert_allclose(np.loadtxt(traj1.splitlines()), np.loadtxt(traj2.splitlines()), atol=1e-6)
+    assert len(loops1) >= 3
+    for name, (loops2, traj2) in runs.items():
+        assert [[r[k] for k in exact] for r in loops1] == [[r[k] for k in exact] for r in loops2], name
+        # figures equal to float round-off (BLAS and iSAM2 sum in a thread-dependent order)
+        for r1, r2 in zip(loops1, loops2, strict=True):
+            assert r2["score"] == pytest.approx(r1["score"], rel=1e-6) and r2["fitness"] == pytest.approx(r1["fitness"], rel=1e-9)
+        np.testing.assert_allclose(np.loadtxt(traj1.splitlines()), np.loadtxt(traj2.splitlines()), atol=1e-6, err_msg=name)
