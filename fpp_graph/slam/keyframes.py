@@ -7,9 +7,11 @@
    recorded and the run goes on as a new segment);
 2. decides whether the frame is a keyframe (motion and overlap thresholds);
 3. for a keyframe, asks the ``LoopDetector`` for revisit candidates (pose proximity with a gate
-   that widens with the drift accumulated since the last closure, and appearance), verifies each
-   through the ``PairRegistrar``, and logs every accepted and rejected candidate with its reason
-   and figures;
+   that widens with the drift accumulated since the last closure, and appearance; never a
+   keyframe of its local window), submits each to the ``PairVerifier`` (the ``PairRegistrar`` in
+   this process, or on the run's workers), applies the results ``keyframes.verify_lag``
+   keyframes later in submission order, and logs every accepted and rejected candidate with its
+   reason and figures;
 4. keeps its running estimate with iSAM2 (:class:`~fpp_graph.backend.pose_graph.IncrementalPoseGraph`,
    one per connected part): the keyframe and its odometry go in, each verified loop goes in as
    a Gaussian factor after a per-edge innovation test (a loop that fails it is held out of the
