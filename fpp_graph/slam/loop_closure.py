@@ -138,7 +138,8 @@ class ProximityAppearanceLoopDetector:
     Neither proposes a keyframe of the query's local window: one closer than
     ``min_frame_separation`` in the sequence, or one the camera has not left yet, i.e. whose
     view has not moved by ``revisit_view_change`` (a fraction of the image side, see
-    :func:`~fpp_graph.slam.views.view_change`) at any keyframe since, under the current estimate.
+    :func:`~fpp_graph.slam.views.view_change`), nor turned its optical axis by 90 degrees, at any
+    keyframe since, under the current estimate.
     Those are linked by the odometry chain through frames that keep seeing them; a revisit is
     coming back to a place after leaving it. Keyframes without a pinhole view (no ``K``), or
     outside the query's part of the trajectory, are outside every window.
@@ -168,8 +169,15 @@ class ProximityAppearanceLoopDetector:
         threshold = self.config.revisit_view_change
         for fid in list(self._in_view):
             T_world_kf = poses_world_sensor.get(fid)
-            # another part of the trajectory is not linked to the query by odometry: not local
-            if T_world_kf is None or self._in_view[fid].change(invert(T_world_kf) @ T_world_query) >= threshold:
+            # another part of the trajectory is not linked to the query by odometry: not local;
+            # optical axes 90 degrees apart or more: the keyframe's surfaces are seen edge-on or
+            # from behind (an orbit around an object keeps its centre in the image, so the
+            # pixel flow alone would call the far side of a turntable still in view)
+            if (
+                T_world_kf is None
+                or float(T_world_kf[:3, 2] @ T_world_query[:3, 2]) <= 0.0
+                or self._in_view[fid].change(invert(T_world_kf) @ T_world_query) >= threshold
+            ):
                 del self._in_view[fid]
         return set(self._in_view)
 

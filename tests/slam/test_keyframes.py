@@ -415,3 +415,15 @@ def test_loop_window_ignores_keyframes_of_another_part():
     detector.add(_camera_frame(1))
     # the query's part holds keyframe 1 only: keyframe 0 leaves the window, keyframe 1 stays in it
     assert detector.local_window(2, {1: np.eye(4), 2: np.eye(4)}) == {1}
+
+
+def test_loop_window_lets_go_of_a_keyframe_seen_from_90_degrees_around():
+    """An orbit keeps the object's centre in the image (little pixel flow); its far side is not in view."""
+    from fpp_graph.config import LoopClosureConfig
+    from fpp_graph.slam.loop_closure import ProximityAppearanceLoopDetector
+
+    detector = ProximityAppearanceLoopDetector(LoopClosureConfig(min_frame_separation=1))
+    poses = turntable_poses(turns=1)  # 13 views around an object 0.5 m away
+    detector.add(_camera_frame(0, depth_m=0.5))
+    assert detector.local_window(1, {0: poses[0], 1: poses[1]}) == {0}  # 28 deg around: still in view
+    assert detector.local_window(4, {0: poses[0], 4: poses[4]}) == set()  # 111 deg around: left
