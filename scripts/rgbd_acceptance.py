@@ -1,6 +1,6 @@
 """Real RGB-D sequences end to end, ours against the Open3D RGB-D recipe on the same frames.
 
-    .venv/bin/python scripts/rgbd_acceptance.py [SEQUENCE ...] [--out results/rgbd_acceptance] [--no-peer]
+    .venv/bin/python -m scripts.rgbd_acceptance [SEQUENCE ...] [--out results/rgbd_acceptance] [--no-peer]
 
 Default sequences: ../shared/data/rgbd/7scenes_chess_150_199 and ../shared/data/rgbd/tum_fr1_rpy_subset.
 Per sequence:
@@ -27,21 +27,16 @@ import argparse
 import json
 import logging
 import os
-import resource
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
+from scripts.compare_open3d_multiway import cpu_seconds
+
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data" / "rgbd"
 DEFAULT_SEQUENCES = [SHARED / "7scenes_chess_150_199", SHARED / "tum_fr1_rpy_subset"]
-
-
-def cpu_seconds() -> float:
-    """CPU of this process and of its finished children (worker processes)."""
-    children = resource.getrusage(resource.RUSAGE_CHILDREN)
-    return time.process_time() + children.ru_utime + children.ru_stime
 
 
 def constraint_nees(results: Path, gt_by_id: dict[int, np.ndarray]) -> dict[str, float]:
