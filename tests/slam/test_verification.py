@@ -169,3 +169,20 @@ def test_worker_processes_and_dask_give_the_in_process_run(tmp_path):
         for r1, r2 in zip(loops1, loops2, strict=True):
             assert r2["score"] == pytest.approx(r1["score"], rel=1e-6) and r2["fitness"] == pytest.approx(r1["fitness"], rel=1e-9)
         np.testing.assert_allclose(np.loadtxt(traj1.splitlines()), np.loadtxt(traj2.splitlines()), atol=1e-6, err_msg=name)
+
+
+def test_run_with_an_unreachable_scheduler_is_a_one_line_error(tmp_path, capsys):
+    """``fpp-slam run --scheduler ADDRESS`` with nothing listening: exit 2 and one line naming the address."""
+    pytest.importorskip("dask.distributed")
+    import socket
+
+    from fpp_graph.cli import main as cli_main
+
+    with socket.socket() as probe:  # a port nothing listens on once the probe is closed
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    address = f"tcp://127.0.0.1:{port}"
+    code = cli_main(["run", str(tmp_path), "--out", str(tmp_path / "out"), "--scheduler", address])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and "cannot reach the Dask scheduler" in err[0] and address in err[0], err
+    assert not (tmp_path / "out").exists()  # nothing written before the executor exists
