@@ -60,8 +60,19 @@ def sequence_dir(name: str, resolution: str) -> Path:
     return path
 
 
+def _rss_mb(process) -> float:
+    """RSS of a psutil process in MB, 0 when it has just ended."""
+    import psutil
+
+    try:
+        return process.memory_info().rss / 2**20
+    except psutil.Error:
+        return 0.0
+
+
 class RssSampler:
-    """Peak RSS per stage and RSS at frame counts, sampled every 20 ms in a thread."""
+    """Peak RSS per stage and RSS at frame counts, sampled every 20 ms in a thread; at frame
+    counts also the RSS of this process and all its children (the run's worker pool)."""
 
     def __init__(self) -> None:
         import psutil
@@ -70,6 +81,7 @@ class RssSampler:
         self.stage = "start"
         self.peak_mb: dict[str, float] = {}
         self.at_frames_mb: dict[int, float] = {}
+        self.tree_at_frames_mb: dict[int, float] = {}
         self._stop = False
         self._thread = threading.Thread(target=self._run, daemon=True)
 
@@ -83,6 +95,7 @@ class RssSampler:
         self.stage = stage
         if stage == "frames" and (done % 10 == 0 or done == total):
             self.at_frames_mb[done] = self.proc.memory_info().rss / 2**20
+            self.tree_at_frames_mb[done] = self.at_frames_mb[done] + sum(_rss_mb(c) for c in self.proc.children(recursive=True))
 
     def __enter__(self):
         self._thread.start()
