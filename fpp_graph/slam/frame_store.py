@@ -5,6 +5,14 @@ A dense FPP frame at 1920x1200 holds ~55 MB of xyz map, so a sequence cannot sta
 float32, ~30 nm resolution at 1 m, far below the sensor's noise); :class:`FrameStore` keeps the
 most recently used frames in memory and reloads the rest from disk on demand, so peak memory
 does not grow with the number of frames.
+
+Both sensors make ``points`` the finite pixels of ``xyz_map`` in row-major order and ``colors``
+the grey ``texture`` at those pixels, so storing them next to the map would double the file
+(8.8 MB instead of 4.7 MB for a 640x480 RGB-D frame). When a frame's arrays are exactly that,
+they are not stored: ``derived_from_map`` lists them and :func:`load_frame` rebuilds them, equal
+to what storing them would have given (points from the float32 map, colours as texture / 255).
+Any other frame (points filtered differently, no map, ...) stores them as they are. Files
+written before ``derived_from_map`` existed load unchanged.
 """
 
 from __future__ import annotations
@@ -27,23 +35,58 @@ log = logging.getLogger(__name__)
 
 
 def save_frame(path: str | os.PathLike[str], frame: Frame) -> None:
-    """Write ``frame`` to ``path`` (``.npz``) atomically."""
+    """Write ``frame`` to ``path`` (``.npz``) atomically.
+
+    ``points`` / ``colors`` that :func:`load_frame` can rebuild from ``xyz_map`` / ``texture``
+    are left out (see the module docstring); everything else is stored as it is.
+    """
     arrays: dict[str, np.ndarray] = {
         "id": np.array(frame.id),
         "timestamp": np.array(frame.timestamp),
-        "points": frame.points.astype(np.float32) if frame.xyz_map is not None else frame.points,
     }
     for name in ("texture", "keypoints_uv", "descriptors", "T_world_sensor_guess"):
         value = getattr(frame, name)
         if value is not None:
             arrays[name] = value
+    colors_u8 = None
     if frame.colors is not None:
-        arrays["colors"] = (np.clip(frame.colors, 0, 1) * 255).round().astype(np.uint8)
-    if frame.xyz_map is not None:
-        arrays["xyz_map"] = frame.xyz_map.astype(np.float32)
+        colors_u8 = (np.clip(frame.colors, 0, 1) * 255).round().astype(np.uint8)
+    derived: list[str] = []
+    if frame.xyz_map is None:
+        arrays["points"] = frame.points
+    else:
+        xyz32 = frame.xyz_map.astype(np.float32)
+        arrays["xyz_map"] = xyz32
+        points32 = frame.points.astype(np.float32)
+        valid = np.isfinite(xyz32[..., 2])
+        n_valid = int(np.count_nonzero(valid))
+        if points32.shape[0] == n_valid and np.array_equal(points32, _finite_pixels(xyz32, valid)):
+            derived.append("points")
+        else:
+            arrays["points"] = points32
+        texture = frame.texture
+        if (
+            colors_u8 is not None
+            and texture is not None
+            and texture.ndim == 2
+            and texture.dtype == np.uint8
+            and colors_u8.shape[0] == n_valid
+            and np.array_equal(colors_u8, np.repeat(texture[valid][:, None], 3, axis=1))
+        ):
+            derived.append("colors")
+            colors_u8 = None
+    if colors_u8 is not None:
+        arrays["colors"] = colors_u8
+    if derived:
+        arrays["derived_from_map"] = np.array(derived)
     arrays["metadata_json"] = np.array(json.dumps(dict(frame.metadata), default=_json_default))
     with atomic_open(path, "wb") as handle:
         np.savez(handle, **arrays)
+
+
+def _finite_pixels(xyz_map: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """``xyz_map[valid]`` (row-major), via ``np.compress``: ~4x faster than a boolean mask here."""
+    return np.compress(valid.ravel(), xyz_map.reshape(-1, 3), axis=0)
 
 
 def _json_default(value):
@@ -63,13 +106,22 @@ def load_frame(path: str | os.PathLike[str]) -> Frame:
     except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
         raise InputDataError(f"cannot read cached frame {path}: {exc}; delete it to recompute") from None
     try:
-        colors = get.get("colors")
+        derived = set(get["derived_from_map"].tolist()) if "derived_from_map" in get else set()
+        xyz32 = get["xyz_map"] if derived or "xyz_map" in get else None
+        valid = np.isfinite(xyz32[..., 2]) if derived else None
+        points = _finite_pixels(xyz32, valid) if "points" in derived else get["points"]
+        if "colors" in derived:
+            grey = get["texture"][valid] / 255.0
+            colors = np.repeat(grey[:, None], 3, axis=1)
+        else:
+            colors = get.get("colors")
+            colors = None if colors is None else colors.astype(np.float64) / 255.0
         return Frame(
             id=int(get["id"]),
             timestamp=float(get["timestamp"]),
-            points=get["points"].astype(np.float64),
-            colors=None if colors is None else colors.astype(np.float64) / 255.0,
-            xyz_map=None if "xyz_map" not in get else get["xyz_map"].astype(np.float64),
+            points=points.astype(np.float64),
+            colors=colors,
+            xyz_map=None if xyz32 is None else xyz32.astype(np.float64),
             texture=get.get("texture"),
             keypoints_uv=get.get("keypoints_uv"),
             descriptors=get.get("descriptors"),

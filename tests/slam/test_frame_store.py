@@ -1,0 +1,159 @@
+"""save_frame / load_frame: points and colours derivable from the map are not stored twice."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from fpp_graph.errors import InputDataError
+from fpp_graph.slam.frame_store import load_frame, save_frame
+from fpp_graph.types import Frame
+
+H, W = 120, 160
+
+
+def sensor_like_frame(rng: np.random.Generator) -> Frame:
+    """A frame built the way both sensors build theirs: points/colours = the map's finite pixels."""
+    # float32-representable values, so the float32 cache gives back exactly these numbers
+    xyz = (rng.normal(size=(H, W, 3)) + [0.0, 0.0, 2.0]).astype(np.float32).astype(np.float64)
+    xyz[rng.random((H, W)) < 0.1] = np.nan
+    xyz[:5, :7] = np.nan  # a hole, as a shadow gives
+    texture = rng.integers(0, 256, size=(H, W), dtype=np.uint8)
+    valid = np.isfinite(xyz[..., 2])
+    return Frame(
+        id=7,
+        timestamp=0.25,
+        points=xyz[valid],
+        colors=np.repeat(texture[valid][:, None] / 255.0, 3, axis=1),
+        xyz_map=xyz,
+        texture=texture,
+        keypoints_uv=rng.uniform(0, W, size=(4, 2)),
+        descriptors=rng.integers(0, 256, size=(4, 32), dtype=np.uint8),
+        metadata={"K": np.eye(3).tolist(), "sensor": "rgbd"},  # as the RGB-D source does
+    )
+
+
+def save_old_format(path, frame: Frame) -> None:
+    """The layout save_frame wrote before derivable points/colours were left out."""
+    np.savez(
+        path,
+        id=np.array(frame.id),
+        timestamp=np.array(frame.timestamp),
+        points=frame.points.astype(np.float32),
+        texture=frame.texture,
+        keypoints_uv=frame.keypoints_uv,
+        descriptors=frame.descriptors,
+        colors=(np.clip(frame.colors, 0, 1) * 255).round().astype(np.uint8),
+        xyz_map=frame.xyz_map.astype(np.float32),
+        metadata_json=np.array(json.dumps({"K": np.eye(3).tolist(), "sensor": "rgbd"})),
+    )
+
+
+def assert_same_frame(a: Frame, b: Frame) -> None:
+    assert (a.id, a.timestamp) == (b.id, b.timestamp)
+    for name in ("points", "colors", "xyz_map", "texture", "keypoints_uv", "descriptors"):
+        x, y = getattr(a, name), getattr(b, name)
+        assert x.dtype == y.dtype, name
+        np.testing.assert_array_equal(x, y, err_msg=name)
+    assert dict(a.metadata) == dict(b.metadata)
+
+
+def test_derivable_points_and_colors_round_trip_exactly_in_a_smaller_file(tmp_path, rng):
+    frame = sensor_like_frame(rng)
+    assert 0.8 * H * W < frame.num_points < 0.95 * H * W
+    save_frame(tmp_path / "new.npz", frame)
+    save_old_format(tmp_path / "old.npz", frame)
+
+    with np.load(tmp_path / "new.npz") as data:
+        assert "points" not in data.files and "colors" not in data.files
+        assert sorted(data["derived_from_map"].tolist()) == ["colors", "points"]
+    back = load_frame(tmp_path / "new.npz")
+    np.testing.assert_array_equal(back.points, frame.points)
+    np.testing.assert_array_equal(back.colors, frame.colors)
+    assert back.points.dtype == np.float64 and back.colors.dtype == np.float64
+    # exactly what the old layout gives back, every array
+    assert_same_frame(back, load_frame(tmp_path / "old.npz"))
+    # points (12 B/pt) + colours (3 B/pt) were half of the old file
+    new_size, old_size = (
+        (tmp_path / "new.npz").stat().st_size,
+        (tmp_path / "old.npz").stat().st_size,
+    )
+    assert new_size <= 0.6 * old_size, (new_size, old_size)
+
+
+def test_points_that_are_not_the_maps_finite_pixels_are_stored(tmp_path, rng):
+    frame = sensor_like_frame(rng)
+    valid = np.isfinite(frame.xyz_map[..., 2])
+    cases = {  # label: points, colours, the arrays left out of the file
+        "subset": (frame.points[::2], frame.colors[::2], []),
+        "reordered": (frame.points[::-1], frame.colors[::-1], []),
+        # the colours are still the texture at the map's finite pixels: only they are left out
+        "moved 1 mm": (frame.points + [0.0, 0.0, 1e-3], frame.colors, ["colors"]),
+    }
+    for label, (points, colors, derived) in cases.items():
+        odd = Frame(
+            id=1,
+            timestamp=0.0,
+            points=points,
+            colors=colors,
+            xyz_map=frame.xyz_map,
+            texture=frame.texture,
+        )
+        save_frame(tmp_path / "odd.npz", odd)
+        with np.load(tmp_path / "odd.npz") as data:
+            assert "points" in data.files and ("colors" in data.files) == (not derived), label
+            assert (
+                data["derived_from_map"].tolist() if "derived_from_map" in data.files else []
+            ) == derived, label
+        back = load_frame(tmp_path / "odd.npz")
+        np.testing.assert_array_equal(
+            back.points, points.astype(np.float32).astype(np.float64), err_msg=label
+        )
+        # colours k / 255 survive the uint8 cache exactly
+        np.testing.assert_array_equal(back.colors, colors, err_msg=label)
+
+    # points derivable but colours not the grey texture (a tint): only the points are dropped
+    tinted = frame.colors * [1.0, 0.5, 0.25]
+    odd = Frame(
+        id=2,
+        timestamp=0.0,
+        points=frame.points,
+        colors=tinted,
+        xyz_map=frame.xyz_map,
+        texture=frame.texture,
+    )
+    save_frame(tmp_path / "tint.npz", odd)
+    with np.load(tmp_path / "tint.npz") as data:
+        assert data["derived_from_map"].tolist() == ["points"] and "colors" in data.files
+    back = load_frame(tmp_path / "tint.npz")
+    np.testing.assert_array_equal(back.points, frame.points)
+    np.testing.assert_allclose(back.colors, tinted, atol=0.5 / 255)
+    assert np.count_nonzero(valid) == back.num_points
+
+    # no map: float64 points stored as they are, bit for bit
+    bare = Frame(id=3, timestamp=0.0, points=rng.normal(size=(50, 3)))
+    save_frame(tmp_path / "bare.npz", bare)
+    back = load_frame(tmp_path / "bare.npz")
+    np.testing.assert_array_equal(back.points, bare.points)
+    assert back.colors is None and back.xyz_map is None
+
+
+def test_old_format_file_still_loads(tmp_path, rng):
+    frame = sensor_like_frame(rng)
+    save_old_format(tmp_path / "old.npz", frame)
+    back = load_frame(tmp_path / "old.npz")
+    assert_same_frame(back, frame)
+
+
+def test_derived_marker_without_its_map_is_a_clear_error(tmp_path):
+    np.savez(
+        tmp_path / "bad.npz",
+        id=np.array(1),
+        timestamp=np.array(0.0),
+        derived_from_map=np.array(["points"]),
+        metadata_json=np.array("{}"),
+    )
+    with pytest.raises(InputDataError, match="lacks 'xyz_map'.*delete it to recompute"):
+        load_frame(tmp_path / "bad.npz")
