@@ -113,6 +113,7 @@ class IcpConfig(StrictModel):
     coarse_voxels: float = Field(2.0, gt=0, description="ICP's voxel in noise.voxel_m when the dense refinement follows")
     min_voxels: int = Field(30, ge=6, description="fewer voxels in either cloud and ICP is not attempted")
     information_scale: float = Field(1.0, gt=0, description="multiplies ICP's information (with noise.information_correlation); calibrated by NEES")
+    convergence_sigmas: float = Field(0.002, gt=0, description="ICP stops when its last step is below this many point_sigma_m (and as many radians per metre)")
 
 
 class WeakDirectionsConfig(StrictModel):
@@ -173,6 +174,7 @@ class Lengths:
     max_icp_shift_m: float
     max_weak_sigma_m: float
     icp_information_scale: float
+    icp_convergence_m: float
     keypoint_edge_step_m: float
     texture_distance_m: float
 
@@ -228,6 +230,7 @@ class RegistrationConfig(StrictModel):
             max_icp_shift_m=self.gates.max_icp_shift_sigmas * sigma,
             max_weak_sigma_m=self.gates.max_weak_sigma_sigmas * sigma,
             icp_information_scale=self.icp.information_scale * noise.information_correlation,
+            icp_convergence_m=self.icp.convergence_sigmas * sigma,
             keypoint_edge_step_m=self.keypoints.edge_sigmas * sigma,
             texture_distance_m=self.gates.texture_distance_sigmas * sigma,
         )

@@ -24,7 +24,7 @@ from frontend.config import (
     SensorNoise,
     chi2_quantile,
 )
-from frontend.rgbd.source import KINECT_V1_NOISE, RgbdSource
+from frontend.rgbd.source import KINECT_V1_NOISE, RGBD_DENSE_STRIDE_FLOOR_PX, RgbdSource
 
 # the FPP thresholds before they were expressed from the noise model: the defaults must give them exactly
 OLD_FPP_LENGTHS = {
@@ -55,9 +55,11 @@ def test_default_thresholds_are_the_fpp_rigs():
     assert RegistrationConfig().with_noise(FPP_NOISE).lengths == lengths
 
 
-def test_rgbd_differs_from_fpp_by_its_noise_model_only():
+def test_rgbd_differs_from_fpp_by_its_noise_model_and_dense_stride_only():
     fpp, rgbd = Config().registration, RgbdSource.resolve_config(Config()).registration
-    assert rgbd.model_copy(update={"noise": fpp.noise}) == fpp
+    assert rgbd.model_copy(update={"noise": fpp.noise, "dense": fpp.dense}) == fpp
+    # the Kinect's 9x9 correlation window: every 4th pixel (coarse steps every 8th), not FPP's 2nd
+    assert (rgbd.dense.stride_px, rgbd.dense.coarse_stride_px) == (RGBD_DENSE_STRIDE_FLOOR_PX, 2 * RGBD_DENSE_STRIDE_FLOOR_PX)
     assert rgbd.sensor_noise() == KINECT_V1_NOISE
     sigma = KINECT_V1_NOISE.point_sigma_m
     lengths = rgbd.lengths
@@ -66,11 +68,16 @@ def test_rgbd_differs_from_fpp_by_its_noise_model_only():
     assert lengths.icp_voxel_m == KINECT_V1_NOISE.voxel_m
     assert lengths.icp_max_correspondence_m == pytest.approx(4 * sigma + KINECT_V1_NOISE.voxel_m)
     assert lengths.icp_information_scale == pytest.approx(KINECT_V1_NOISE.information_correlation)
+    # ICP stops two orders under the noise: 1 um on FPP, 15 um on Kinect depth
+    assert lengths.icp_convergence_m == pytest.approx(0.002 * sigma)
+    assert fpp.lengths.icp_convergence_m == pytest.approx(1e-6)
     # idempotent, and a user's own noise value wins over the source's
     assert RgbdSource.resolve_config(RgbdSource.resolve_config(Config())) == RgbdSource.resolve_config(Config())
     mine = config_from_dict({"registration": {"noise": {"point_sigma_m": 0.004}}})
     resolved = RgbdSource.resolve_config(mine).registration
     assert resolved.noise.point_sigma_m == 0.004 and resolved.noise.voxel_m == KINECT_V1_NOISE.voxel_m
+    coarser = RgbdSource.resolve_config(config_from_dict({"registration": {"dense": {"stride_px": 6}}})).registration.dense
+    assert (coarser.stride_px, coarser.coarse_stride_px) == (6, 12)
 
 
 def test_chi_square_probabilities_give_the_former_constants():

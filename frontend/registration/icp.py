@@ -193,7 +193,8 @@ class IcpResult:
 
 
 # Long for its numpydoc docstring; alignment and the correspondence figures share one sample, so one body.
-def _align(tgt: IcpRole, src: IcpRole, T0: NDArray, method: str, max_correspondence_m: float, max_iterations: int) -> tuple[NDArray, bool, int]:
+def _align(tgt: IcpRole, src: IcpRole, T0: NDArray, method: str, max_correspondence_m: float, max_iterations: int,
+           convergence_m: float) -> tuple[NDArray, bool, int]:
     """small_gicp's alignment of ``src`` to ``tgt`` from ``T0``: ``(T_target_source, converged, iterations)``."""
     import small_gicp
 
@@ -209,10 +210,11 @@ def _align(tgt: IcpRole, src: IcpRole, T0: NDArray, method: str, max_corresponde
         max_correspondence_distance=max_correspondence_m,
         num_threads=1,
         max_iterations=max_iterations,
-        # small_gicp's defaults (0.1 deg, 1 mm) stop far above FPP precision; a last step
-        # below 1 urad and 1 um is two orders under the noise of a pair (tens of um)
-        rotation_epsilon=1e-6,
-        translation_epsilon=1e-6,
+        # small_gicp's defaults (0.1 deg, 1 mm) stop far above FPP precision; the stop is set
+        # by the sensor's noise instead (registration.icp.convergence_sigmas), in radians per
+        # metre of lever for the rotation
+        rotation_epsilon=convergence_m,
+        translation_epsilon=convergence_m,
     )
     return np.asarray(res.T_target_source, dtype=np.float64), bool(res.converged), int(res.iterations)
 
@@ -225,6 +227,7 @@ def refine_icp(
     max_correspondence_m: float = 0.004,
     max_iterations: int = 50,
     analysis_points: int = 6000,
+    convergence_m: float = 1e-6,
 ) -> IcpResult:
     """Refine ``T_target_source`` by GICP or point-to-plane ICP (small_gicp, one thread).
 
@@ -239,6 +242,8 @@ def refine_icp(
     analysis_points : int
         Correspondences for the quality figures and the information are measured on about this
         many evenly strided source (and target) voxels.
+    convergence_m : float
+        ICP stops when its last step moves less than this (metres; radians for the rotation).
 
     Returns
     -------
@@ -246,7 +251,7 @@ def refine_icp(
     """
     T0 = np.asarray(T_init, dtype=np.float64)
     tgt, src = target.target, source.source
-    T, converged, iterations = _align(tgt, src, T0, method, max_correspondence_m, max_iterations)
+    T, converged, iterations = _align(tgt, src, T0, method, max_correspondence_m, max_iterations, convergence_m)
     # the quality figures and the information need only a fixed-size, evenly spread sample of
     # the source voxels (the information is scaled to the count ICP aligned)
     stride = max(1, src.size // analysis_points)

@@ -227,7 +227,8 @@ def run_icp(
         if min(tcloud.size, scloud.size) < cfg.icp.min_voxels:
             return IcpOutcome(None, tcloud, scloud, ran_voxel_m, coarse_plane_like, (tcloud.size, scloud.size, voxel))
         started = timer.start()
-        icp = refine_icp(tcloud, scloud, T_ransac, cfg.icp.method, lengths.icp_max_correspondence_m, cfg.icp.max_iterations)
+        icp = refine_icp(tcloud, scloud, T_ransac, cfg.icp.method, lengths.icp_max_correspondence_m, cfg.icp.max_iterations,
+                         convergence_m=lengths.icp_convergence_m)
         timer.stop("icp", started, accumulate=True)
         ran_voxel_m = voxel
         if not np.all(np.isfinite(icp.T_target_source)):
