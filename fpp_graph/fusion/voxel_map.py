@@ -487,12 +487,19 @@ def render_depth(frame: Frame, K: NDArray[np.float64]) -> tuple[NDArray[np.float
     z = pts[:, 2]
     u = np.rint(K[0, 0] * pts[:, 0] / z + K[0, 1] * pts[:, 1] / z + K[0, 2]).astype(np.int64)
     v = np.rint(K[1, 1] * pts[:, 1] / z + K[1, 2]).astype(np.int64)
+    depth_m = np.zeros((h, w))
+    rgb = np.zeros((h, w, 3), dtype=np.uint8)
+    rows, cols = np.nonzero(valid)
+    if np.array_equal(u, cols) and np.array_equal(v, rows):
+        # a pinhole map under its own K (an undistorted depth camera): every point lands on its
+        # own pixel, one per pixel, so there is nothing to z-buffer
+        depth_m[valid] = z
+        rgb[valid] = colors
+        return depth_m, rgb
     inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
     u, v, z, colors = u[inside], v[inside], z[inside], colors[inside]
     # z-buffer: write far to near so the nearest point of each pixel wins
     order = np.argsort(-z, kind="stable")
-    depth_m = np.zeros((h, w))
-    rgb = np.zeros((h, w, 3), dtype=np.uint8)
     depth_m[v[order], u[order]] = z[order]
     rgb[v[order], u[order]] = colors[order]
     return depth_m, np.ascontiguousarray(rgb)

@@ -349,3 +349,18 @@ def test_surface_smoothing_leaves_isolated_points_and_edges():
     order = np.argsort(keys)
     moved = project_to_local_planes(keys[order], pts[order], np.ones(2), 0.001)
     np.testing.assert_array_equal(moved, pts[order])
+
+
+def test_render_depth_keeps_the_nearest_point_where_two_land_on_one_pixel():
+    # a map that is not its camera's own pinhole grid (a distorted lens): pixel (0, 1)'s point
+    # projects onto pixel (0, 0) as well, nearer; the z-buffer keeps the nearer one there
+    K2 = np.array([[100.0, 0.0, 0.0], [0.0, 100.0, 0.0], [0.0, 0.0, 1.0]])
+    xyz = np.full((2, 2, 3), np.nan)
+    xyz[0, 0] = [0.0, 0.0, 2.0]
+    xyz[0, 1] = [0.0, 0.0, 1.0]  # same ray as (0, 0), nearer
+    xyz[1, 1] = [0.01, 0.01, 1.0]  # on its own pixel
+    texture = np.array([[10, 20], [30, 40]], dtype=np.uint8)
+    frame = Frame(0, 0.0, xyz[np.isfinite(xyz[..., 2])], None, xyz, texture)
+    depth, rgb = render_depth(frame, K2)
+    np.testing.assert_allclose(depth, [[1.0, 0.0], [0.0, 1.0]])
+    assert rgb[0, 0, 0] == 20 and rgb[1, 1, 0] == 40 and rgb[0, 1, 0] == 0
