@@ -1,6 +1,6 @@
 """Real RGB-D sequences end to end, ours against the Open3D RGB-D recipe on the same frames.
 
-    .venv/bin/python -m scripts.rgbd_acceptance [SEQUENCE ...] [--out results/rgbd_acceptance] [--no-peer]
+    .venv/bin/python -m scripts.rgbd_acceptance [SEQUENCE ...] [--out results/rgbd_acceptance] [--no-peer] [--config YAML]
 
 Default sequences: ../shared/data/rgbd/7scenes_chess_150_199 and ../shared/data/rgbd/tum_fr1_rpy_subset.
 Per sequence:
@@ -60,14 +60,14 @@ def constraint_nees(results: Path, gt_by_id: dict[int, np.ndarray]) -> dict[str,
     }
 
 
-def run_ours(seq: Path, out: Path) -> dict:
+def run_ours(seq: Path, out: Path, config_path: Path | None = None) -> dict:
     from fpp_graph.config import load_config
     from fpp_graph.evaluation.results import evaluate_results
     from fpp_graph.slam.pipeline import run_sequence
     from fpp_graph.slam.sources import open_source
 
     wall0, cpu0 = time.perf_counter(), cpu_seconds()
-    report = run_sequence(seq, load_config(None), out, overwrite=True)
+    report = run_sequence(seq, load_config(config_path), out, overwrite=True)
     wall, cpu = time.perf_counter() - wall0, cpu_seconds() - cpu0
     source = open_source(seq, load_config(None))
     evaluation = evaluate_results(out, source)
@@ -153,6 +153,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("sequences", nargs="*", type=Path, default=DEFAULT_SEQUENCES)
     parser.add_argument("--out", type=Path, default=Path("results/rgbd_acceptance"))
     parser.add_argument("--no-peer", action="store_true", help="skip the Open3D recipe")
+    parser.add_argument("--config", type=Path, default=None, help="fpp-slam config YAML for our runs (default: the defaults)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     rows = {}
@@ -161,7 +162,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{seq}: not found, skipped", file=sys.stderr)
             continue
         ours_dir = args.out / seq.name / "ours"
-        ours = run_ours(seq, ours_dir)
+        ours = run_ours(seq, ours_dir, args.config)
         stages = ", ".join(f"{k} {v:.1f} s ({100 * v / ours['wall_s']:.0f} %)" for k, v in ours["stages_s"].items())
         kept = ours["loops_accepted"] / ours["loops_verified"] if ours["loops_verified"] else float("nan")
         print(f"== {seq.name}: {ours['frames']} frames, {ours['keyframes']} keyframes")
