@@ -17,6 +17,7 @@ pipeline). Every output file is written atomically (temp file + rename).
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import multiprocessing
@@ -373,7 +374,7 @@ class Pipeline:
                 yield frame
 
         try:
-            with self._timed(report, "decode+track"):
+            with self._timed(report, "decode+track"), self._library_threads():
                 report.slam = track(frames_with_timestamps(), self.source, self.config, store, self.progress, verifier)
         finally:  # done, failed or interrupted: the worker processes end with the tracking
             self._shutdown_executor()
@@ -398,6 +399,25 @@ class Pipeline:
             report.metrics["loop_evaluation"] = evaluate_results_loops(out, gt_poses).as_dict()
         atomic_write_text(out / "metrics.json", json.dumps(report.metrics, indent=1, default=float))
         return report
+
+    @contextlib.contextmanager
+    def _library_threads(self) -> Iterator[None]:
+        """While this pipeline's own worker pool (a process per core) runs beside the tracking,
+        the tracking process keeps its libraries on one thread too
+        (:func:`~fpp_graph.slam.workers.single_threaded_libraries`); fusion afterwards gets them all."""
+        if not self._owns_executor:
+            yield
+            return
+        import cv2
+        from threadpoolctl import threadpool_limits
+
+        cv_threads = cv2.getNumThreads()
+        with threadpool_limits(limits=1):
+            cv2.setNumThreads(1)
+            try:
+                yield
+            finally:
+                cv2.setNumThreads(cv_threads)
 
     def _shutdown_executor(self) -> None:
         """End the worker pool this pipeline started: queued frames are cancelled, frames being

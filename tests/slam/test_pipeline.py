@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import sys
 from pathlib import Path
 
@@ -532,3 +533,66 @@ def test_a_stop_signal_inside_a_c_extension_still_reads_as_interrupted(tmp_path,
     monkeypatch.setattr(common, "_stop_signal", None)
     with pytest.raises(ImportError):
         main(["run", str(tum_sequence), "--out", str(tmp_path / "out2")])
+
+
+def test_tracking_beside_its_own_worker_pool_keeps_libraries_on_one_thread(tmp_path):
+    # the run's pool puts a process on every core: more BLAS / OpenCV threads would only spin
+    import cv2
+    from threadpoolctl import threadpool_info
+
+    pipeline = Pipeline(WallSource(), config(), tmp_path / "out")
+    before = [i["num_threads"] for i in threadpool_info()]
+    cv_before = cv2.getNumThreads()
+    pipeline._owns_executor = True
+    with pipeline._library_threads():
+        assert all(i["num_threads"] == 1 for i in threadpool_info())
+        assert cv2.getNumThreads() == 1
+    assert [i["num_threads"] for i in threadpool_info()] == before and cv2.getNumThreads() == cv_before
+    pipeline._owns_executor = False  # a user's executor (e.g. Dask elsewhere): left alone
+    with pipeline._library_threads():
+        assert [i["num_threads"] for i in threadpool_info()] == before
+
+
+def test_worker_processes_run_their_libraries_on_one_thread():
+    import subprocess
+
+    code = ("import cv2, numpy; from threadpoolctl import threadpool_info; "
+            "from fpp_graph.slam.workers import single_threaded_libraries; single_threaded_libraries(); "
+            "print(max(i['num_threads'] for i in threadpool_info()), cv2.getNumThreads())")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, env={**os.environ, "OPENBLAS_NUM_THREADS": "2"})
+    assert out.stdout.split() == ["1", "1"]
+
+
+def test_workers_end_when_their_run_is_killed(tmp_path):
+    """A run killed without shutting its pool down (SIGKILL; SIGTERM to a script without a
+    handler) leaves no worker behind: each notices its parent is gone and exits."""
+    import signal
+    import subprocess
+    import time
+
+    import psutil
+
+    script = tmp_path / "pool.py"
+    script.write_text(
+        "import multiprocessing, os, sys, time\n"
+        "from concurrent.futures import ProcessPoolExecutor\n"
+        "from fpp_graph.slam.workers import init_worker\n"
+        "if __name__ == '__main__':\n"
+        "    pool = ProcessPoolExecutor(2, mp_context=multiprocessing.get_context('spawn'), initializer=init_worker, initargs=(None,))\n"
+        "    started = [pool.submit(os.getpid) for _ in range(4)]\n"
+        "    [f.result() for f in started]\n"
+        "    print(' '.join(str(p.pid) for p in pool._processes.values()), flush=True)\n"
+        "    time.sleep(600)\n"
+    )
+    proc = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, text=True)
+    workers = [psutil.Process(int(pid)) for pid in proc.stdout.readline().split()]
+    assert len(workers) == 2 and all(w.is_running() for w in workers)
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    deadline = time.monotonic() + 10
+    while time.monotonic() < deadline and any(w.is_running() and w.status() != psutil.STATUS_ZOMBIE for w in workers):
+        time.sleep(0.1)
+    alive = [w.pid for w in workers if w.is_running() and w.status() != psutil.STATUS_ZOMBIE]
+    for pid in alive:
+        os.kill(pid, signal.SIGKILL)
+    assert not alive, f"workers {alive} outlived their killed run"
