@@ -66,6 +66,7 @@ class LoopClosureConfig(StrictModel):
     min_frame_separation: int = Field(5, ge=1)
     revisit_view_change: float = Field(1.0, ge=0, description="a keyframe is a loop candidate only once the camera's view has moved by this fraction of the image side away from it (1: the camera left the place); 0: only min_frame_separation")
     max_candidates_per_frame: int = Field(8, ge=1)
+    query_view_change: float = Field(0.25, ge=0, description="a keyframe asks for loop candidates once the camera has gone this fraction of the way to leaving the last keyframe that asked (of an image side of pixel flow, or of 90 degrees of axis turn); 0: every keyframe")
 
 
 class PoseGraphConfig(StrictModel):

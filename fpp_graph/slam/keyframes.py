@@ -51,7 +51,7 @@ from fpp_graph.geometry import adjoint, compose, invert, rotation_angle_rad
 from fpp_graph.slam.frame_store import FrameStore
 from fpp_graph.slam.loop_closure import ProximityAppearanceLoopDetector
 from fpp_graph.slam.verification import InlineVerifier
-from fpp_graph.slam.views import median_depth_m, view_change
+from fpp_graph.slam.views import ViewModel, median_depth_m, view_change
 from fpp_graph.types import (
     Constraint,
     ConstraintKind,
@@ -153,6 +153,8 @@ class KeyframeManager:
         self._incremental: dict[int, IncrementalPoseGraph] = {}
         self.held_out_loops: list[tuple[int, int]] = []
         self.batch_solves = 0
+        # the last keyframe that asked the loop detector for candidates, and its view
+        self._last_query: tuple[int, ViewModel | None] | None = None
 
     # -- per frame -------------------------------------------------------------------------
     def process(self, frame: Frame) -> bool:
@@ -172,7 +174,7 @@ class KeyframeManager:
             log.warning("chain broken at frame %d: new segment starts there (pose unknown relative to the previous segment until a loop joins them)", frame.id)
             self._add_keyframe(frame, T_start, odometry=None, drift_var=0.0)
             self.segment_starts.append(frame.id)
-            self._close_loops(frame)  # appearance may rejoin the new segment to an older one
+            self._close_loops(frame, force_query=True)  # appearance may rejoin the new segment to an older one
             self._keyframe_done(frame.id)
             return True
         kf_id = odometry.target_id
@@ -300,11 +302,39 @@ class KeyframeManager:
             self.T_world_keyframe.update(graph.estimate())
 
     # -- loops -----------------------------------------------------------------------------
-    def _close_loops(self, frame: Frame) -> None:
-        """Propose the keyframe's loop candidates and submit their verification; apply the
-        verifications that are due (those of the keyframe ``keyframes.verify_lag`` back)."""
-        self._submit_loops(frame)
+    def _close_loops(self, frame: Frame, force_query: bool = False) -> None:
+        """Propose the keyframe's loop candidates (when it is due to query, see
+        :meth:`_due_to_query`) and submit their verification; apply the verifications that are
+        due (those of the keyframe ``keyframes.verify_lag`` back)."""
+        if force_query or self._due_to_query(frame):
+            if frame.id not in self._median_depth_m:
+                self._median_depth_m[frame.id] = median_depth_m(frame)
+            self._last_query = (frame.id, ViewModel.of(frame, self._median_depth_m[frame.id]))
+            self._submit_loops(frame)
+        else:
+            self.loop_detector.add(frame)  # still a match for later queries
+            self._pending_loops.append((frame.id, []))
         self._apply_due_loops(keep=self.config.keyframes.verify_lag)
+
+    def _due_to_query(self, frame: Frame) -> bool:
+        """Whether the keyframe asks for loop candidates: once the camera has gone
+        ``loop_closure.query_view_change`` (a quarter) of the way to leaving the last keyframe
+        that asked, in either of the loop window's measures: that fraction of the image side of
+        pixel flow, or of 90 degrees of optical-axis turn (always without a pinhole view). A
+        revisit stays in view over a stretch of keyframes, so a query at every 5 % step of a
+        30 Hz camera proposes the same revisit again and again; sparse captures (FPP corridor
+        steps of a third of the view, turntable steps of 28 degrees) query every time."""
+        threshold = self.config.loop_closure.query_view_change
+        last = self._last_query
+        due = threshold <= 0 or last is None or last[1] is None
+        if not due:
+            last_id, view = last
+            T_last_frame = invert(self.T_world_keyframe[last_id]) @ self.T_world_keyframe[frame.id]
+            # the loop window's two ways of leaving a place (a view side of pixel flow, or the
+            # optical axis turned 90 degrees: an orbit keeps its centre in the image), scaled
+            axis_turn_deg = math.degrees(math.acos(min(1.0, max(-1.0, float(T_last_frame[2, 2])))))
+            due = axis_turn_deg >= 90.0 * threshold or view.change(T_last_frame) >= threshold
+        return due
 
     def _submit_loops(self, frame: Frame) -> None:
         sigma = math.sqrt(self._drift_var_m2[frame.id])

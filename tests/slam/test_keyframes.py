@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from fpp_graph.config import Config, config_from_dict
+from fpp_graph.config import Config, LoopClosureConfig, config_from_dict
 from fpp_graph.geometry import invert, make_pose, pose_error, se3_exp
 from fpp_graph.slam.frame_store import FrameStore, load_frame, save_frame
 from fpp_graph.slam.keyframes import KeyframeManager
@@ -427,3 +427,54 @@ def test_loop_window_lets_go_of_a_keyframe_seen_from_90_degrees_around():
     detector.add(_camera_frame(0, depth_m=0.5))
     assert detector.local_window(1, {0: poses[0], 1: poses[1]}) == {0}  # 28 deg around: still in view
     assert detector.local_window(4, {0: poses[0], 4: poses[4]}) == set()  # 111 deg around: left
+
+
+def test_a_30_hz_camera_queries_for_loops_once_per_quarter_view_an_fpp_capture_every_keyframe(rng):
+    """1 cm steps sideways at 2 m (f 500 px, 480 px high): a keyframe every 10 frames (5 % of the
+    view), a loop query every 5th keyframe (25 %); out 2.5 m (past the whole view) and back, the
+    revisit is still queried and closed. Steps of a third of the view (FPP captures) query at every keyframe."""
+
+    class CountingDetector:
+        def __init__(self):
+            from fpp_graph.slam.loop_closure import ProximityAppearanceLoopDetector
+
+            self.inner = ProximityAppearanceLoopDetector(LoopClosureConfig(min_frame_separation=1, appearance_top_k=0))
+            self.queries, self.added = [], []
+
+        def add(self, frame):
+            self.added.append(frame.id)
+            self.inner.add(frame)
+
+        def candidates(self, frame, poses, position_sigma_m=0.0):
+            self.queries.append(frame.id)
+            return self.inner.candidates(frame, poses, position_sigma_m)
+
+    xs = [0.01 * i for i in range(250)] + [2.5 - 0.01 * i for i in range(1, 251)]
+    poses = [make_pose(np.eye(3), [x, 0, 0]) for x in xs]
+    detector = CountingDetector()
+    manager = KeyframeManager(MockRegistrar(poses, rng), config_from_dict({}), loop_detector=detector)
+    for i in range(len(xs)):
+        manager.process(_camera_frame(i))
+    result = manager.finish()
+    keyframes = result.keyframe_ids
+    assert detector.added == keyframes  # every keyframe can still be matched
+    assert len(keyframes) >= 36
+    # the first keyframe has nothing to match yet; then one query per 0.48 m (a quarter of 480 px at
+    # 2 m, f 500 px), i.e. every 5th keyframe
+    assert detector.queries[:4] == keyframes[1:20:5]
+    assert all(abs(xs[b] - xs[a]) >= 0.47 for a, b in zip(detector.queries, detector.queries[1:], strict=False))
+    assert len(keyframes) / 6 <= len(detector.queries) <= len(keyframes) / 4
+    assert any(r.verified and abs(xs[r.query_id] - xs[r.match_id]) < 0.3 for r in result.loop_records)
+    # steps of 0.64 m at 2 m: a third of the view, every keyframe queries (the FPP corridor's case)
+    wide = [make_pose(np.eye(3), [0.64 * i, 0, 0]) for i in range(6)]
+    detector = CountingDetector()
+    manager = KeyframeManager(MockRegistrar(wide, rng), config_from_dict({}), loop_detector=detector)
+    for i in range(6):
+        manager.process(_camera_frame(i))
+    assert manager.finish().keyframe_ids == list(range(6)) and detector.queries == list(range(1, 6))
+    # 0: every keyframe queries
+    detector = CountingDetector()
+    manager = KeyframeManager(MockRegistrar(poses[:100], rng), config_from_dict({"loop_closure": {"query_view_change": 0}}), loop_detector=detector)
+    for i in range(100):
+        manager.process(_camera_frame(i))
+    assert detector.queries == manager.finish().keyframe_ids[1:]
