@@ -165,7 +165,7 @@ def plot_trajectory_top_view(
         if len(segments):  # an empty collection would still put a sample in the legend
             ax.add_collection(LineCollection(segments, label=f"{name} ({len(segments)})", **style))
     p = view.project(est_xyz)
-    ax.scatter(p[:, 0], p[:, 1], s=8, c="tab:blue", zorder=4, label=f"keyframes ({len(p)})")
+    ax.scatter(p[:, 0], p[:, 1], s=8, c="tab:blue", zorder=4, label=f"poses ({len(p)})")
     ax.scatter(p[:1, 0], p[:1, 1], s=60, marker="*", c="gold", edgecolors="k", zorder=5, label="first")
     ax.set_aspect("equal", adjustable="datalim")
     ax.autoscale_view()
