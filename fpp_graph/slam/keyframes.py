@@ -6,7 +6,8 @@
    (falling back to the keyframe before it; when both fail the chain breaks, and the break is
    recorded and the run goes on as a new segment);
 2. decides whether the frame is a keyframe (motion and overlap thresholds);
-3. for a keyframe, asks the ``LoopDetector`` for revisit candidates (pose proximity with a gate
+3. for a keyframe (once the camera has gone ``loop_closure.query_view_change`` of the way to
+   leaving the last keyframe that asked), asks the ``LoopDetector`` for revisit candidates (pose proximity with a gate
    that widens with the drift accumulated since the last closure, and appearance; never a
    keyframe of its local window), submits each to the ``PairVerifier`` (the ``PairRegistrar`` in
    this process, or on the run's workers), applies the results ``keyframes.verify_lag``
