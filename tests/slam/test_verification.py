@@ -12,7 +12,7 @@ import pytest
 from conftest import shared_data_path
 from test_keyframes import VIEWS, MockRegistrar, make_frames, turntable_poses
 
-from fpp_graph.config import Config, config_from_dict, load_config
+from fpp_graph.config import config_from_dict, load_config
 from fpp_graph.slam.frame_store import FrameStore
 from fpp_graph.slam.keyframes import KeyframeManager
 from fpp_graph.slam.pipeline import Pipeline
