@@ -68,13 +68,10 @@ KINECT_V1_NOISE = SensorNoise(point_sigma_m=0.0075, voxel_m=0.01, information_co
 - ``information_correlation``: ICP's information assumes independent residuals; Kinect depth errors
   are correlated over the image (quantisation steps, structured-light speckle, low-frequency depth
   distortion), so its raw information is ~10^3-10^4 times too confident and the robust back-end
-  rejected every true loop as inconsistent with odometry. The keypoint part of the information is
-  not scaled and stays somewhat overconfident: scripts/rgbd_nees.py on 8 pairs of the 7-Scenes
-  chess frames gave mean NEES / 6 of 3.6 at 1e-3 and 5.7 at 3e-4 before the dense point-to-plane
-  refinement (3bada3e). That refinement's information is scaled by ``dense.information_scale``
-  only, not by this, and the same script now gives 242 (scaling it too gives 1.96, but then the
-  running estimate holds out 41 of 67 true chess loops: the keypoint and photometric parts
-  must be treated alike first; issue 22).
+  rejected every true loop as inconsistent with odometry. The keypoint and dense parts are not
+  scaled by it; ``shared_depth_sigma_per_m2`` bounds the whole pair instead (the depth error a
+  view shares). ``scripts/rgbd_nees.py`` on 8 pairs of the 7-Scenes chess frames now gives mean
+  NEES / 6 of 0.22 (median 0.09: conservative); the TUM fr1_rpy edges are over-confident (issue 22).
 """
 RGBD_FUSION_FLOORS = {
     "voxel_size_m": 0.01,
@@ -83,8 +80,9 @@ RGBD_FUSION_FLOORS = {
 }
 # The Kinect v1 computes disparity over a 9 x 9 pixel correlation window, so neighbouring depth
 # pixels share most of their error: the dense refinement samples every 4th pixel (half the
-# window), where FPP's finer-grained errors want every 2nd. Pixels in between add cost, not
-# information (on 7-Scenes and TUM pairs stride 4 gives the same pair errors as 2).
+# window; its coarse iterations every 8th), where FPP's finer-grained errors want every 2nd.
+# Pixels in between add cost, not information (with the ICP stop: chess ATE 6.8 -> 5.6 mm,
+# TUM fr1_rpy 29.3 -> 29.2 mm).
 RGBD_DENSE_STRIDE_FLOOR_PX = 4
 # Kinect v1 colour camera (the ROS/OpenNI defaults) and its offset from the depth camera: the
 # colour camera sits ~2.5 cm along +x of the depth (IR) camera.
