@@ -215,9 +215,7 @@ class KeyframeManager:
         criteria = []
         if cfg.min_view_change > 0:
             keyframe = self.store.get(odometry.target_id)
-            if keyframe.id not in self._median_depth_m:
-                self._median_depth_m[keyframe.id] = median_depth_m(keyframe)
-            change = view_change(keyframe, T, self._median_depth_m[keyframe.id])
+            change = view_change(keyframe, T, self._keyframe_depth_m(keyframe))
             if change is not None:  # a frame without a camera model is judged by the others
                 criteria.append(change >= cfg.min_view_change)
         if cfg.min_translation_m > 0:
@@ -227,6 +225,12 @@ class KeyframeManager:
         if cfg.max_overlap < 1:
             criteria.append(math.isfinite(overlap) and overlap <= cfg.max_overlap)
         return any(criteria) if criteria else True
+
+    def _keyframe_depth_m(self, keyframe: Frame) -> float:
+        """The keyframe's median depth, computed once (a median over ~2M points of an FPP frame)."""
+        if keyframe.id not in self._median_depth_m:
+            self._median_depth_m[keyframe.id] = median_depth_m(keyframe)
+        return self._median_depth_m[keyframe.id]
 
     def _find(self, k: int) -> int:
         root = k
@@ -308,9 +312,7 @@ class KeyframeManager:
         :meth:`_due_to_query`) and submit their verification; apply the verifications that are
         due (those of the keyframe ``keyframes.verify_lag`` back)."""
         if force_query or self._due_to_query(frame):
-            if frame.id not in self._median_depth_m:
-                self._median_depth_m[frame.id] = median_depth_m(frame)
-            self._last_query = (frame.id, ViewModel.of(frame, self._median_depth_m[frame.id]))
+            self._last_query = (frame.id, ViewModel.of(frame, self._keyframe_depth_m(frame)))
             self._submit_loops(frame)
         else:
             self.loop_detector.add(frame)  # still a match for later queries

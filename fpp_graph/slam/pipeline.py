@@ -40,7 +40,7 @@ from fpp_graph.slam.frame_store import FrameStore, load_frame, save_frame
 from fpp_graph.slam.keyframes import KeyframeManager, SlamResult
 from fpp_graph.slam.sources import FrameSource, check_frame_source
 from fpp_graph.slam.verification import ExecutorVerifier
-from fpp_graph.slam.workers import decode_to_cache, init_worker
+from fpp_graph.slam.workers import decode_to_cache, init_worker, single_threaded_libraries
 from fpp_graph.trajectory import Trajectory, write_tum
 from fpp_graph.types import Frame, FusedMap, MapFuser, PairVerifier
 
@@ -408,16 +408,11 @@ class Pipeline:
         if not self._owns_executor:
             yield
             return
-        import cv2
-        from threadpoolctl import threadpool_limits
-
-        cv_threads = cv2.getNumThreads()
-        with threadpool_limits(limits=1):
-            cv2.setNumThreads(1)
-            try:
-                yield
-            finally:
-                cv2.setNumThreads(cv_threads)
+        restore = single_threaded_libraries()
+        try:
+            yield
+        finally:
+            restore()
 
     def _shutdown_executor(self) -> None:
         """End the worker pool this pipeline started: queued frames are cancelled, frames being

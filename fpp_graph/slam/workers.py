@@ -15,6 +15,7 @@ import signal
 import threading
 import time
 from collections import OrderedDict
+from collections.abc import Callable
 
 import numpy as np
 from numpy.typing import NDArray
@@ -78,22 +79,25 @@ def _exit_with_parent(period_s: float = 0.5) -> None:
     threading.Thread(target=watch, name="exit-with-parent", daemon=True).start()
 
 
-def single_threaded_libraries() -> None:
-    """OpenCV and the BLAS libraries on one thread in this process.
+def single_threaded_libraries() -> Callable[[], None]:
+    """OpenCV and the BLAS libraries on one thread in this process; returns what restores them.
 
     A run's processes (one per core) already fill the cores; a library's own threads on top
     oversubscribe them, and OpenBLAS's threads then spin: a 4800 x 21 least-squares fit took 54
     ms with 2 BLAS threads on a busy 2-core machine against 3 ms with one.
     """
+    import cv2
     from threadpoolctl import threadpool_limits
 
-    threadpool_limits(limits=1)
-    try:
-        import cv2
+    limiter = threadpool_limits(limits=1)
+    cv_threads = cv2.getNumThreads()
+    cv2.setNumThreads(1)
 
-        cv2.setNumThreads(1)
-    except ImportError:  # pragma: no cover - cv2 is a dependency, but the back-end does not need it
-        pass
+    def restore() -> None:
+        limiter.restore_original_limits()
+        cv2.setNumThreads(cv_threads)
+
+    return restore
 
 
 def _adopt(source: FrameSource | None, token: str | None) -> None:
