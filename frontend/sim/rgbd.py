@@ -248,7 +248,7 @@ def write_rgbd_sequence(out: Path, scene: Scene, poses: NDArray, timestamps_s: N
 def simulate_rgbd_corridor(out: Path, frames: int | None = 2000, seed: int = 0, workers: int = 0,
                            progress: Callable[[int, int], None] | None = None) -> Path:
     """The default long RGB-D sequence: :func:`handheld_corridor_trajectory` through
-    :func:`default_rgbd_corridor` (5 passes, 2025 frames at 30 Hz, 67 s), first ``frames`` only."""
+    :func:`default_rgbd_corridor` (5 passes, 2021 frames at 30 Hz, 67 s), first ``frames`` only."""
     cfg = default_rgbd_corridor()
     scene, _, _ = build_corridor(cfg)
     poses, t = handheld_corridor_trajectory(cfg, seed=seed)
