@@ -53,6 +53,10 @@ class KeyframeConfig(StrictModel):
     loop_check_probability: float = Field(0.999, gt=0, lt=1, description="a verified loop whose innovation against the running estimate exceeds this chi-square quantile is held out of it (not dropped: the batch solve decides)")
     batch_every: int = Field(0, ge=0, description="run the robust batch pose-graph solve every this many keyframes as well as at the end, restarting the running (iSAM2) estimate from it (0: only at the end)")
     verify_lag: int = Field(2, ge=0, description="a keyframe's loop candidates are verified while this many later keyframes are tracked, then applied in submission order (0: at once); the same value gives the same run with or without worker processes")
+    track_from_motion: bool | None = Field(
+        None,
+        description="register each new frame to the last keyframe by the dense fit from a constant-velocity prediction first, the full registration only where that fails or for a new keyframe (needs a registrar with track()); null: the source decides (on for video-rate RGB-D, off for FPP's still views)",
+    )
 
 
 class LoopClosureConfig(StrictModel):

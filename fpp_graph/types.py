@@ -214,6 +214,24 @@ class PairRegistrar(Protocol):
 
 
 @runtime_checkable
+class FrameTracker(Protocol):
+    """Optional second capability of a :class:`PairRegistrar`: a cheap pose from a prediction.
+
+    With ``keyframes.track_from_motion`` on, the keyframe manager predicts each new frame's pose
+    relative to the last keyframe (constant velocity) and calls ``track(keyframe, frame,
+    T_predicted)`` first. An accepted result is the frame's pose; a frame that then becomes a
+    keyframe is registered in full (``register``, with the tracked pose as ``T_guess``) so the
+    graph's odometry edges do not depend on tracking. A rejected result (with its reason) makes
+    the manager fall back to ``register`` for the frame.
+    """
+
+    def track(self, target: Frame, source: Frame, T_predicted: NDArray[np.float64]) -> Constraint:
+        """Return an ODOMETRY Constraint ``T_target_source`` near ``T_predicted`` (4x4), or a
+        rejected one saying why (never raises on bad overlap)."""
+        ...
+
+
+@runtime_checkable
 class PairVerifier(Protocol):
     """Registers pairs of stored keyframes off the tracking path (loop verification).
 

@@ -318,6 +318,9 @@ class DenseAlignment:
     converged : bool
     source_points : (m, 3) float64
         Source points with a target correspondence in the last iteration (for degeneracy tests).
+    num_samples : int
+        Pixels sampled in the last iteration (both directions): ``num_residuals / num_samples``
+        is the share of the views that fit each other.
     """
 
     T_target_source: Array
@@ -327,6 +330,7 @@ class DenseAlignment:
     iterations: int
     converged: bool
     source_points: Array = field(repr=False)
+    num_samples: int = 0
 
 
 def cross_rows(a: Array, b: Array, out: Array | None = None) -> Array:
@@ -486,7 +490,8 @@ def align_dense(
             break
     T, iterations = state["T"], state["iterations"]
     info = 0.5 * (info + info.T)
-    return DenseAlignment(T, info, sigma, n_used, iterations, converged, used)
+    sampled = len(source.samples(fine_stride_px)[0]) + (len(target.samples(fine_stride_px)[0]) if symmetric else 0)
+    return DenseAlignment(T, info, sigma, n_used, iterations, converged, used, sampled)
 
 
 __all__ = ["DenseAlignment", "OrganisedSurface", "align_dense", "cross_rows", "fit_pinhole", "point_to_plane_jacobian", "sample_bilinear"]

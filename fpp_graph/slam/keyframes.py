@@ -51,12 +51,14 @@ from fpp_graph.config import Config
 from fpp_graph.geometry import adjoint, compose, invert, rotation_angle_rad
 from fpp_graph.slam.frame_store import FrameStore
 from fpp_graph.slam.loop_closure import ProximityAppearanceLoopDetector
+from fpp_graph.slam.motion import ConstantVelocityPredictor
 from fpp_graph.slam.verification import InlineVerifier
 from fpp_graph.slam.views import ViewModel, median_depth_m, view_change
 from fpp_graph.types import (
     Constraint,
     ConstraintKind,
     Frame,
+    FrameTracker,
     LoopCandidate,
     LoopDetector,
     PairRegistrar,
@@ -106,6 +108,8 @@ class SlamResult:
     rejected_loops: list[tuple[int, int]]
     optimization: dict = field(default_factory=dict)
     held_out_loops: list[tuple[int, int]] = field(default_factory=list)  # (query, match), see LoopRecord.held_out
+    # keyframes.track_from_motion: {"tracked_frames": n, "fallbacks": {reason: count}}
+    tracking: dict = field(default_factory=dict)
 
 
 class KeyframeManager:
@@ -156,6 +160,16 @@ class KeyframeManager:
         self.batch_solves = 0
         # the last keyframe that asked the loop detector for candidates, and its view
         self._last_query: tuple[int, ViewModel | None] | None = None
+        # tracking from motion (keyframes.track_from_motion): frames whose pose came from the
+        # registrar's track(), and the reasons it handed a frame to the full registration
+        self._motion = ConstantVelocityPredictor()
+        self.tracker: FrameTracker | None = (
+            registrar if self.config.keyframes.track_from_motion and isinstance(registrar, FrameTracker) else None
+        )
+        if self.config.keyframes.track_from_motion and self.tracker is None:
+            log.warning("keyframes.track_from_motion is on but %s has no track(): every frame is registered in full", type(registrar).__name__)
+        self.tracked_frames = 0
+        self.tracking_fallbacks: dict[str, int] = {}
 
     # -- per frame -------------------------------------------------------------------------
     def process(self, frame: Frame) -> bool:
@@ -166,9 +180,15 @@ class KeyframeManager:
             self.segment_starts.append(frame.id)
             self.loop_detector.add(frame)
             self._keyframe_done(frame.id)
+            self._motion.observe(frame.id, frame.timestamp, None, np.eye(4))
             return True
-        odometry = self._register_to_recent(frame)
+        T_predicted = self._motion.predict(self.keyframe_ids[-1], frame.timestamp)
+        odometry = self._track(frame, T_predicted)
         if odometry is None:
+            odometry = self._register_to_recent(frame, T_predicted)
+        if odometry is None:
+            self._motion.reset()
+            self._motion.observe(frame.id, frame.timestamp, None, np.eye(4))
             last = self.keyframe_ids[-1]
             T_guess = frame.T_world_sensor_guess
             T_start = np.array(T_guess) if T_guess is not None else self.T_world_keyframe[last].copy()
@@ -179,7 +199,11 @@ class KeyframeManager:
             self._keyframe_done(frame.id)
             return True
         kf_id = odometry.target_id
-        if self._is_keyframe(odometry):
+        is_keyframe = self._is_keyframe(odometry)
+        if is_keyframe and odometry.metadata.get("tracked"):
+            odometry = self._register_new_keyframe(frame, odometry)
+        self._motion.observe(frame.id, frame.timestamp, kf_id, odometry.T_target_source)
+        if is_keyframe:
             T_world = compose(self.T_world_keyframe[kf_id], odometry.T_target_source)
             step_var = _translation_variance_m2(odometry) + (
                 np.linalg.norm(odometry.T_target_source[:3, 3]) ** 2 * _rotation_variance(odometry)
@@ -192,11 +216,38 @@ class KeyframeManager:
         self.T_keyframe_frame[frame.id] = (kf_id, odometry.T_target_source.copy())
         return False
 
-    def _register_to_recent(self, frame: Frame) -> Constraint | None:
+    def _track(self, frame: Frame, T_predicted: NDArray[np.float64] | None) -> Constraint | None:
+        """The frame's pose in the last keyframe by the registrar's track() from the motion
+        prediction; None (the reason counted) when tracking is off or hands the frame on."""
+        if self.tracker is None or T_predicted is None:
+            return None
+        constraint = self.tracker.track(self.store.get(self.keyframe_ids[-1]), frame, T_predicted)
+        if constraint.accepted:
+            self.tracked_frames += 1
+            return constraint
+        # the reason without its figures, so the counts group ("tracking: low overlap (0.05 < 0.1)")
+        reason = (constraint.rejection_reason or "rejected").split(" (")[0]
+        self.tracking_fallbacks[reason] = self.tracking_fallbacks.get(reason, 0) + 1
+        log.debug("frame %d: %s; registered in full", frame.id, constraint.rejection_reason)
+        return None
+
+    def _register_new_keyframe(self, frame: Frame, tracked: Constraint) -> Constraint:
+        """A tracked frame that became a keyframe: its odometry edge from the full registration
+        (the tracked pose as its guess), so the graph's edges do not depend on tracking; the
+        tracked constraint stands if the full registration refuses the pair (logged)."""
+        target = self.store.get(tracked.target_id)
+        full = self.registrar.register(target, frame, tracked.T_target_source, kind=ConstraintKind.ODOMETRY)
+        if full.accepted:
+            return replace(full, kind=ConstraintKind.ODOMETRY)
+        log.info("keyframe %d: full registration to %d refused (%s); its tracked pose is the odometry edge",
+                 frame.id, target.id, full.rejection_reason)
+        return tracked
+
+    def _register_to_recent(self, frame: Frame, T_predicted: NDArray[np.float64] | None = None) -> Constraint | None:
         reasons = []
         for kf_id in self.keyframe_ids[-1:-3:-1]:
             target = self.store.get(kf_id)
-            T_guess = None
+            T_guess = T_predicted if kf_id == self.keyframe_ids[-1] else None
             if frame.T_world_sensor_guess is not None and target.T_world_sensor_guess is not None:
                 T_guess = invert(target.T_world_sensor_guess) @ frame.T_world_sensor_guess
             constraint = self.registrar.register(target, frame, T_guess, kind=ConstraintKind.ODOMETRY)
@@ -552,6 +603,7 @@ class KeyframeManager:
             rejected_loops=rejected,
             optimization=stats,
             held_out_loops=list(self.held_out_loops),
+            tracking={"tracked_frames": self.tracked_frames, "fallbacks": dict(self.tracking_fallbacks)} if self.tracker is not None else {},
         )
 
 

@@ -290,6 +290,7 @@ def slam_summary(report: RunReport) -> dict[str, Any]:
         "chain_breaks": [{"frame": b.frame_id, "after_keyframe": b.last_keyframe_id, "reason": b.reason} for b in slam.chain_breaks],
         "components": [[c[0], c[-1], len(c)] for c in slam.components],
         "optimization": slam.optimization,
+        "tracking": slam.tracking,
         "seconds_by_stage": report.seconds_by_stage,
         "seconds": sum(report.seconds_by_stage.values()),
     }

@@ -34,8 +34,8 @@ from frontend.registration.stages import (
 from frontend.registration.texture import TextureAgreement, texture_agreement
 from frontend.registration.weak_directions import (
     Degeneracy,
-    _max_motion_m,
-    _weak_direction_sigma_m,
+    max_motion_m,
+    weak_direction_sigma_m,
     check_degeneracy,
     without_weak_directions,
 )
@@ -83,7 +83,7 @@ def _held_plane_fit(
     held, _ = refine(target, source, pose.T_target_source, pose.information_keypoints, weak.directions, weak.icp.source_points)
     if held is None or len(check_degeneracy(held.information, held.source_points, config.weak_directions.degeneracy_ratio).unconstrained) < 3:
         return None
-    if not _max_motion_m(held.T_target_source, T_ransac, ransac_inliers_source_m) <= config.lengths.max_icp_shift_m:
+    if not max_motion_m(held.T_target_source, T_ransac, ransac_inliers_source_m) <= config.lengths.max_icp_shift_m:
         return None
     return held
 
@@ -129,7 +129,7 @@ def dense_stage(
         dense_deg = check_degeneracy(dense.information, dense.source_points, cfg.weak_directions.degeneracy_ratio)
         meta["dense_eigenvalue_ratios"] = dense_deg.eigenvalue_ratios
         # (against RANSAC's pose, as ICP's shift is: the keypoints' basin)
-        shift_dense = _max_motion_m(dense.T_target_source, T_ransac, ransac_inliers_source_m)
+        shift_dense = max_motion_m(dense.T_target_source, T_ransac, ransac_inliers_source_m)
         meta.update({"dense_shift_m": shift_dense, "dense_iterations": dense.iterations, "dense_residuals": dense.num_residuals, "dense_sigma_m": dense.sigma_m})
         if len(dense_deg.unconstrained) >= 3:
             # a plane even to every pixel (a wall: ratios <= 0.016 where the doll's are >= 0.2):
@@ -188,7 +188,7 @@ def photometric_stage(
     T = pose.T_target_source
     T_photo, info_photo, why_not = refine(target, source, T, weak.directions, pose.information_geometry, weak.icp.source_points)
     if T_photo is not None:
-        shift_photo = _max_motion_m(T_photo, T, ransac_inliers_source_m)
+        shift_photo = max_motion_m(T_photo, T, ransac_inliers_source_m)
         meta["photometric_shift_m"] = shift_photo
         if shift_photo > config.lengths.ransac_inlier_m:
             why_not = f"moved the keypoint inliers by {1e3 * shift_photo:.2f} mm"
@@ -238,11 +238,11 @@ def check_weak_geometry(
     meta: dict[str, Any] = {"eigenvalue_ratios": deg.eigenvalue_ratios}
     if not deg.degenerate:
         return WeakGeometryCheck(deg, float("nan"), None, meta)
-    weak_sigma_m = _weak_direction_sigma_m(pose.information, deg, support_points_m)
+    weak_sigma_m = weak_direction_sigma_m(pose.information, deg, support_points_m)
     # the same directions from the dense geometry alone (no keypoints), for diagnosis: on a plane,
     # noisy normals make point-to-plane information claim ~0.1 mm in-plane, so it cannot tell
     # relief from a plane and is not used to admit loops
-    meta["weak_direction_geometry_sigma_m"] = _weak_direction_sigma_m(pose.information_geometry, deg, support_points_m)
+    meta["weak_direction_geometry_sigma_m"] = weak_direction_sigma_m(pose.information_geometry, deg, support_points_m)
     meta["geometrically_weak"] = deg.unconstrained
     meta["weak_direction_sigma_m"] = weak_sigma_m
     agreement = None

@@ -37,6 +37,7 @@ from frontend.registration.stages import (
 )
 from frontend.registration.state import PairState
 from frontend.registration.texture import TextureCamera
+from frontend.registration.tracking import track_dense
 from frontend.registration.weak_directions import Degeneracy, weak_direction_pin
 
 
@@ -252,6 +253,12 @@ class FppPairRegistrar:
         s.check = check_weak_geometry(target, source, s.pose, s.weak.icp.source_points, ConstraintKind(kind) is ConstraintKind.LOOP, T_guess, cfg)
         s.meta.update(s.check.metadata)
         return rejection(Checkpoint.FINAL, s, cfg) or self._accept(s)
+
+    def track(self, target: Frame, source: Frame, T_predicted: NDArray[np.float64]) -> Constraint:
+        """``T_target_source`` from a motion prediction by the dense fit alone (implements
+        :class:`~fpp_graph.types.FrameTracker`; gates in :mod:`.tracking`); rejected when only a
+        full :meth:`register` can be trusted."""
+        return track_dense(target, source, T_predicted, self.config, self.dense_surface, self.describe)
 
     def _ransac(self, s: PairState) -> RansacResult:
         """RANSAC on the lifted matches, seeded per pair so results do not depend on pair order."""

@@ -122,7 +122,7 @@ def weak_direction_pin(deg: Degeneracy, source_points: NDArray, strength: float,
     return 0.5 * (out + out.T)
 
 
-def _max_motion_m(T_a: NDArray, T_b: NDArray, points: NDArray) -> float:
+def max_motion_m(T_a: NDArray, T_b: NDArray, points: NDArray) -> float:
     """Largest distance between ``points`` moved by ``T_a`` and by ``T_b`` (0 without points)."""
     if not points.size:
         return 0.0
@@ -187,7 +187,7 @@ def disagreement_along(T_a: NDArray, T_b: NDArray, information_b: NDArray, deg: 
         return 0.0
 
 
-def _weak_direction_sigma_m(information: NDArray, deg: Degeneracy, source_points: NDArray) -> float:
+def weak_direction_sigma_m(information: NDArray, deg: Degeneracy, source_points: NDArray) -> float:
     """Largest standard deviation (m, rotations as arc length at the cloud's RMS radius) along the weak directions."""
     try:
         cov = np.linalg.inv(information)

@@ -342,14 +342,18 @@ class RgbdSource:
     @staticmethod
     def resolve_config(config: Config) -> Config:
         """``config`` with the Kinect's noise model where ``registration.noise`` is left null, the
-        RGB-D floors on fusion voxels and on the dense refinement's pixel stride (idempotent)."""
+        RGB-D floors on fusion voxels and on the dense refinement's pixel stride, and tracking from
+        motion unless the config sets it (idempotent)."""
         reg = config.registration.with_noise(KINECT_V1_NOISE)
         dense = reg.dense
         stride = max(dense.stride_px, RGBD_DENSE_STRIDE_FLOOR_PX)
         reg = reg.model_copy(update={"dense": dense.model_copy(update={"stride_px": stride, "coarse_stride_px": max(dense.coarse_stride_px, 2 * stride)})})
         fus = config.fusion
         fus = fus.model_copy(update={k: max(getattr(fus, k), v) for k, v in RGBD_FUSION_FLOORS.items()})
-        return config.model_copy(update={"registration": reg, "fusion": fus})
+        keyframes = config.keyframes
+        if keyframes.track_from_motion is None:  # 30 Hz video: the previous motion predicts the next
+            keyframes = keyframes.model_copy(update={"track_from_motion": True})
+        return config.model_copy(update={"registration": reg, "fusion": fus, "keyframes": keyframes})
 
     def make_registrar(self):
         from frontend.registration import FppPairRegistrar

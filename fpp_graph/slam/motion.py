@@ -1,0 +1,82 @@
+"""Constant-velocity prediction of the next frame's pose relative to the last keyframe.
+
+The keyframe manager records each processed frame's pose relative to the keyframe it was
+registered to (a keyframe: relative to its odometry target). The prediction needs no world
+poses, so loop corrections of the running estimate never disturb it: the motion between the
+last two frames is found in a frame they share, scaled by the ratio of the time steps (a
+dropped frame doubles the step) and applied to the last frame's pose in the current keyframe.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from fpp_graph.geometry import invert, se3_exp, se3_log
+
+Array = NDArray[np.float64]
+
+MAX_STEP_RATIO = 3.0
+"""Longest gap (in units of the last step) a velocity is extrapolated over: beyond it the
+camera's acceleration dominates, and the last frame's pose (zero velocity) predicts as well."""
+
+
+@dataclass(frozen=True)
+class _Record:
+    frame_id: int
+    timestamp: float
+    reference_id: int | None  # the keyframe the pose is relative to (None: a segment's first keyframe)
+    T_reference_frame: Array
+
+
+class ConstantVelocityPredictor:
+    """Predicts ``T_keyframe_frame`` of the next frame from the last two (see module doc)."""
+
+    def __init__(self) -> None:
+        self._recent: deque[_Record] = deque(maxlen=2)
+
+    def reset(self) -> None:
+        """Forget the motion (a chain break: the next segment's poses are unrelated)."""
+        self._recent.clear()
+
+    def observe(self, frame_id: int, timestamp: float, reference_id: int | None, T_reference_frame: NDArray) -> None:
+        """Record a processed frame's pose relative to keyframe ``reference_id``."""
+        self._recent.append(_Record(frame_id, float(timestamp), reference_id, np.asarray(T_reference_frame, dtype=np.float64)))
+
+    def predict(self, keyframe_id: int, timestamp: float) -> Array | None:
+        """``T_keyframe_frame`` of a frame at ``timestamp``, or None when the last frame's pose
+        relative to ``keyframe_id`` is unknown."""
+        if not self._recent:
+            return None
+        last = self._recent[-1]
+        if last.frame_id == keyframe_id:
+            T_keyframe_last = np.eye(4)
+        elif last.reference_id == keyframe_id:
+            T_keyframe_last = last.T_reference_frame
+        else:
+            return None
+        return T_keyframe_last @ self._step(timestamp)
+
+    def _step(self, timestamp: float) -> Array:
+        """The motion from the last frame to one at ``timestamp`` (identity when unknown)."""
+        if len(self._recent) < 2:
+            return np.eye(4)
+        before, last = self._recent
+        if last.reference_id is not None and last.reference_id == before.reference_id:
+            T_before_last = invert(before.T_reference_frame) @ last.T_reference_frame
+        elif last.reference_id is not None and last.reference_id == before.frame_id:
+            T_before_last = last.T_reference_frame
+        else:
+            return np.eye(4)
+        dt_last, dt_next = last.timestamp - before.timestamp, float(timestamp) - last.timestamp
+        ratio = dt_next / dt_last if dt_last > 0 and math.isfinite(dt_next) else 1.0
+        if not 0.0 <= ratio <= MAX_STEP_RATIO:
+            return np.eye(4)
+        return se3_exp(ratio * se3_log(T_before_last))
+
+
+__all__ = ["MAX_STEP_RATIO", "ConstantVelocityPredictor"]

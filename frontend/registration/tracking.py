@@ -1,0 +1,186 @@
+"""Frame-to-keyframe tracking from a motion prediction: the dense fit alone.
+
+A 30 Hz camera moves a few millimetres and a fraction of a degree between frames, so a
+constant-velocity prediction already lies inside the basin of the dense point-to-plane fit
+(:func:`frontend.dense_alignment.align_dense`, projective association on the organised maps).
+Keypoints, RANSAC and ICP are there to find a pose without a guess; with a good guess they are
+the expensive part of a pair (about 80 % of it on 640x480 RGB-D frames). :func:`track_dense`
+refines the prediction densely and accepts the result only where the dense fit alone can be
+trusted; any other outcome is a rejected constraint with its reason, and the keyframe manager
+then registers the frame the full way (the prediction joins RANSAC as one more hypothesis).
+
+Gates (each a measured property of the fit, thresholds from the sensor's noise model):
+
+* the dense fit raised or returned a non-finite pose;
+* directions the geometry leaves nearly free (a wall's in-plane shifts and spin, a corridor's
+  axis: :func:`~frontend.registration.weak_directions.check_degeneracy` with
+  ``weak_directions.degeneracy_ratio``) are taken from the keypoints as a full registration
+  takes them (the dense fit alone keeps the prediction's error there: a corridor's 12 mm
+  velocity error stayed 12 mm); rejected when too few keypoints agree with the dense pose or
+  they leave a direction above ``lengths.max_weak_sigma_m`` (the full registration's gate);
+* the correction moved the source points (RMS) further than the correspondence gate
+  (``lengths.icp_max_correspondence_m``): the prediction was outside the basin the initial
+  association assumes (RMS, not the largest motion: a 1 degree turn misjudged moves a point 3 m
+  away by 5 cm while the view as a whole stays inside the gate);
+* the residuals' robust sigma above ``lengths.max_inlier_rmse_m`` (the surfaces do not fit);
+* fewer correspondences than ``gates.min_overlap`` of the pixels sampled from both views.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+
+import numpy as np
+from numpy.typing import NDArray
+
+from fpp_graph.errors import FppError
+from fpp_graph.geometry import se3_exp, transform_points
+from fpp_graph.types import Constraint, ConstraintKind, Frame
+from frontend.config import RegistrationConfig
+from frontend.dense_alignment import OrganisedSurface, align_dense
+from frontend.registration.icp import with_shared_error_floor
+from frontend.registration.keypoints import information_from_keypoints, keypoint_inliers
+from frontend.registration.stages import lift_matches, match_keypoints
+from frontend.registration.state import StageTimer
+from frontend.registration.weak_directions import (
+    Degeneracy,
+    check_degeneracy,
+    joint_keypoint_step,
+    weak_direction_sigma_m,
+    without_weak_directions,
+)
+
+log = logging.getLogger(__name__)
+
+Array = NDArray[np.float64]
+
+
+def track_dense(
+    target: Frame,
+    source: Frame,
+    T_predicted: NDArray[np.float64],
+    config: RegistrationConfig,
+    surface: Callable[[Frame], OrganisedSurface],
+    describe: Callable[[Frame], Frame],
+) -> Constraint:
+    """``T_target_source`` refined densely from ``T_predicted``, or a rejected constraint saying why.
+
+    Parameters
+    ----------
+    target, source : Frame
+        Need ``xyz_map`` (and texture keypoints where the geometry is weak).
+    T_predicted : (4, 4)
+        Predicted ``T_target_source`` (e.g. constant velocity).
+    config : RegistrationConfig
+        ``dense`` strides and iterations, ``lengths``, ``gates``, ``keypoints`` and
+        ``weak_directions.degeneracy_ratio``.
+    surface, describe : callable
+        The frame's cached :class:`OrganisedSurface` and keypoints (:meth:`FppPairRegistrar.dense_surface`,
+        :meth:`FppPairRegistrar.describe`).
+
+    Returns
+    -------
+    Constraint
+        ODOMETRY, ``metadata["tracked"] = True``; information: the dense fit's (scaled by
+        ``dense.information_scale``) plus the keypoints' where they set weak directions, with the
+        views' shared depth error added, as a full registration's.
+    """
+    T0 = _nearest_rigid(T_predicted)
+
+    def rejected(reason: str) -> Constraint:
+        log.debug("frame %d: tracking against %d rejected: %s", source.id, target.id, reason)
+        return Constraint.rejected(source.id, target.id, f"tracking: {reason}", kind=ConstraintKind.ODOMETRY, metadata={"tracked": True})
+
+    if target.xyz_map is None or source.xyz_map is None:
+        return rejected("a frame has no xyz_map")
+    lengths, dense_cfg = config.lengths, config.dense
+    try:
+        dense = align_dense(
+            surface(target), surface(source), T0, coarse_stride_px=dense_cfg.coarse_stride_px, fine_stride_px=dense_cfg.stride_px,
+            max_iterations=dense_cfg.coarse_iterations, fine_iterations=dense_cfg.fine_iterations, max_points=dense_cfg.max_points,
+            max_distance_m=lengths.icp_max_correspondence_m,
+        )
+    except FppError as exc:
+        return rejected(f"dense fit failed ({exc})")
+    if not np.all(np.isfinite(dense.T_target_source)):
+        return rejected("non-finite pose")
+    correction_m = rms_motion_m(dense.T_target_source, T0, dense.source_points)
+    if correction_m > lengths.icp_max_correspondence_m:
+        return rejected(f"far from the prediction (moved the points by {1e3 * correction_m:.1f} mm RMS > {1e3 * lengths.icp_max_correspondence_m:.1f} mm correspondence gate)")
+    if not dense.sigma_m <= lengths.max_inlier_rmse_m:
+        return rejected(f"surfaces do not fit (residual sigma {1e3 * dense.sigma_m:.2f} mm > {1e3 * lengths.max_inlier_rmse_m:.2f} mm)")
+    overlap = dense.num_residuals / max(dense.num_samples, 1)
+    if overlap < config.gates.min_overlap:
+        return rejected(f"low overlap ({overlap:.3f} < {config.gates.min_overlap})")
+    T, information, meta = dense.T_target_source, dense_cfg.information_scale * dense.information, {}
+    degeneracy = check_degeneracy(dense.information, dense.source_points, config.weak_directions.degeneracy_ratio)
+    if degeneracy.degenerate:
+        step = _keypoint_step(target, source, T, information, degeneracy, dense.source_points, config, describe)
+        if isinstance(step, str):
+            return rejected(f"degenerate geometry (unconstrained {'; '.join(degeneracy.unconstrained)}) and {step}")
+        T, information, meta = step
+        weak_sigma_m = weak_direction_sigma_m(information, degeneracy, dense.source_points)
+        if not weak_sigma_m <= lengths.max_weak_sigma_m:
+            return rejected(f"degenerate geometry (unconstrained {'; '.join(degeneracy.unconstrained)}; sigma {1e3 * weak_sigma_m:.1f} mm > "
+                            f"{1e3 * lengths.max_weak_sigma_m:.1f} mm even with keypoints)")
+    information = with_shared_error_floor(information, dense.source_points, config.sensor_noise().shared_depth_sigma_per_m2)
+    return Constraint(
+        source_id=source.id, target_id=target.id, T_target_source=T, information=information, kind=ConstraintKind.ODOMETRY,
+        fitness=overlap, inlier_rmse_m=dense.sigma_m, inlier_count=dense.num_residuals, overlap=overlap,
+        metadata={"tracked": True, "dense_iterations": dense.iterations, "dense_sigma_m": dense.sigma_m, "tracking_correction_m": correction_m,
+                  "unconstrained_directions": list(degeneracy.unconstrained), **meta},
+    )
+
+
+def _nearest_rigid(T: NDArray) -> Array:
+    """``T`` with its rotation block replaced by the nearest rotation: a prediction composed from
+    text-file poses (7-Scenes' 4x4s) can be off orthonormal by more than a Constraint admits,
+    and the fit keeps what it is given."""
+    out = np.array(T, dtype=np.float64)
+    U, _, Vt = np.linalg.svd(out[:3, :3])
+    out[:3, :3] = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+    return out
+
+
+def _keypoint_step(
+    target: Frame, source: Frame, T: Array, information_dense: Array, degeneracy: Degeneracy, dense_points: Array,
+    config: RegistrationConfig, describe: Callable[[Frame], Frame],
+) -> tuple[Array, Array, dict] | str:
+    """The weak directions from the keypoints, as a full registration sets them (step 5 of
+    :mod:`frontend.registration`): matches the dense pose explains within the correspondence
+    gate (it may be off along a weak direction by the prediction's error), then the keypoints'
+    optimum given the dense fit's other directions (:func:`joint_keypoint_step` on the dense
+    information without the weak directions: with them, the fit's slight curvature there held
+    a corridor's axis at the prediction's error).
+    Returns the pose, the joint information (keypoints scaled by ``keypoints.information_scale``)
+    and metadata, or why the keypoints cannot do it."""
+    min_inliers = config.gates.min_inliers
+    matches = match_keypoints(target, source, describe, config, StageTimer())
+    if matches.error is not None or matches.count < min_inliers:
+        return f"too few keypoint matches ({matches.count} < {min_inliers})"
+    lifted = lift_matches(target, source, matches, config)
+    P, Q = lifted.points_source_m, lifted.points_target_m
+    near = np.linalg.norm(transform_points(T, P) - Q, axis=1) < config.lengths.icp_max_correspondence_m
+    if int(near.sum()) < min_inliers:
+        return f"too few keypoints agree with the dense pose ({int(near.sum())} < {min_inliers})"
+    information_rest = without_weak_directions(information_dense, degeneracy, dense_points)
+    T = T @ se3_exp(joint_keypoint_step(T, information_rest, P[near], Q[near], iterations=5))
+    residuals_m = np.linalg.norm(transform_points(T, P[near]) - Q[near], axis=1)
+    keep = keypoint_inliers(residuals_m, config.lengths.ransac_inlier_m)
+    if int(keep.sum()) < min_inliers:
+        return f"too few keypoint inliers ({int(keep.sum())} < {min_inliers})"
+    information_keypoints = information_from_keypoints(T, P[near][keep], residuals_m[keep])
+    information = information_dense + config.keypoints.information_scale * information_keypoints
+    return T, information, {"tracking_keypoint_inliers": int(keep.sum())}
+
+
+def rms_motion_m(T_a: NDArray, T_b: NDArray, points: NDArray) -> float:
+    """RMS distance between ``points`` moved by ``T_a`` and by ``T_b`` (0 without points)."""
+    if not len(points):
+        return 0.0
+    d = transform_points(T_a, points) - transform_points(T_b, points)
+    return float(np.sqrt(np.mean(np.einsum("ij,ij->i", d, d))))
+
+
+__all__ = ["rms_motion_m", "track_dense"]
