@@ -98,6 +98,10 @@ class FusionConfig(StrictModel):
     tsdf_voxel_m: float = Field(0.002, gt=0)
     tsdf_truncation_m: float = Field(0.008, gt=0)
     mesh: bool = True
+    max_depth_m: float | None = Field(
+        None, gt=0,
+        description="points farther along the optical axis stay out of the map and the mesh (counted in the log); null: the source decides (RGB-D: where its depth noise reaches the TSDF truncation; FPP: no limit)",
+    )
 
 
 class RunConfig(StrictModel):

@@ -27,6 +27,7 @@ Open3D, MeshLab and CloudCompare read them.
 from __future__ import annotations
 
 import logging
+import math
 import os
 from collections.abc import Mapping, Sequence
 
@@ -98,6 +99,10 @@ class VoxelMapFuser:
         Mesh only voxels observed with at least this TSDF weight (frames).
     tsdf_block_count : int
         Initial capacity of the TSDF block hash map (it grows on demand).
+    max_depth_m : float
+        Points farther along the optical axis (sensor ``z``) stay out of the point map and the
+        TSDF (``points_beyond_max_depth`` counts them): a depth camera's error grows with range
+        (Kinect: ``1.4e-3 z^2``), and beyond the TSDF truncation band its points smear surfaces.
     surface_smoothing : bool
         After averaging, move each voxel's point onto the weighted plane fitted to its 3x3x3
         voxel neighbourhood (:func:`project_to_local_planes`). The voxel grid sorts noisy points
@@ -123,6 +128,7 @@ class VoxelMapFuser:
         tsdf_block_count: int = 1000,
         grazing_weight: bool = True,
         surface_smoothing: bool = True,
+        max_depth_m: float = math.inf,
     ) -> None:
         for name, value in (("voxel_size_m", voxel_size_m), ("tsdf_voxel_m", tsdf_voxel_m), ("tsdf_truncation_m", tsdf_truncation_m)):
             if not (np.isfinite(value) and value > 0):
@@ -136,6 +142,9 @@ class VoxelMapFuser:
         self.tsdf_block_count = int(tsdf_block_count)
         self.grazing_weight = bool(grazing_weight)
         self.surface_smoothing = bool(surface_smoothing)
+        if not max_depth_m > 0:
+            raise InputDataError(f"map fusion: max_depth_m must be a positive number of metres, got {max_depth_m!r}")
+        self.max_depth_m = float(max_depth_m)
         self.reset()
 
     def reset(self) -> None:
@@ -148,6 +157,7 @@ class VoxelMapFuser:
         self._volume = None
         self.frames_integrated = 0
         self.frames_meshed = 0
+        self.points_beyond_max_depth = 0
 
     # -- streaming -----------------------------------------------------------------------------
     def integrate(
@@ -185,6 +195,10 @@ class VoxelMapFuser:
             if np.count_nonzero(valid) == len(points):
                 weights = weights * grazing_weights(frame.xyz_map)[valid]
         keep = np.all(np.isfinite(points), axis=1) & (weights > 0)
+        if math.isfinite(self.max_depth_m):
+            far = keep & (points[:, 2] > self.max_depth_m)
+            self.points_beyond_max_depth += int(np.count_nonzero(far))
+            keep &= ~far
         points_world = transform_points(T, points[keep])
         w = weights[keep]
         if len(points_world):
@@ -240,11 +254,12 @@ class VoxelMapFuser:
         intrinsic = o3d.core.Tensor(K, dtype=o3d.core.float64)
         # Open3D wants the extrinsic world -> camera, the inverse of our T_world_sensor
         extrinsic = o3d.core.Tensor(invert(T_world_sensor), dtype=o3d.core.float64)
+        depth_max_m = min(self.tsdf_depth_max_m, self.max_depth_m)
         blocks = self._volume.compute_unique_block_coordinates(
-            depth, intrinsic, extrinsic, 1.0, self.tsdf_depth_max_m, self.tsdf_truncation_m / self.tsdf_voxel_m
+            depth, intrinsic, extrinsic, 1.0, depth_max_m, self.tsdf_truncation_m / self.tsdf_voxel_m
         )
         self._volume.integrate(
-            blocks, depth, color, intrinsic, extrinsic, 1.0, self.tsdf_depth_max_m, self.tsdf_truncation_m / self.tsdf_voxel_m
+            blocks, depth, color, intrinsic, extrinsic, 1.0, depth_max_m, self.tsdf_truncation_m / self.tsdf_voxel_m
         )
         self.frames_meshed += 1
 

@@ -20,6 +20,7 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
+import math
 import multiprocessing
 import os
 import shutil
@@ -238,6 +239,7 @@ def fuse_map(
             tsdf_voxel_m=config.fusion.tsdf_voxel_m,
             tsdf_truncation_m=config.fusion.tsdf_truncation_m,
             mesh=config.fusion.mesh,
+            max_depth_m=config.fusion.max_depth_m or math.inf,
         )
     per_keyframe = -(-MAP_PLOT_POINTS // max(len(result.keyframe_ids), 1))
     for i, kf in enumerate(result.keyframe_ids):
@@ -249,6 +251,9 @@ def fuse_map(
         if progress:
             progress("fuse", i + 1, len(result.keyframe_ids))
     fused = fuser.result()
+    beyond = getattr(fuser, "points_beyond_max_depth", 0)
+    if beyond:
+        log.info("fusion: %d points beyond fusion.max_depth_m = %.2f m left out of the map and mesh", beyond, config.fusion.max_depth_m)
     write_point_cloud_ply(out / "map.ply", fused.points_world_m, fused.colors)
     if fused.mesh_vertices is not None and fused.mesh_triangles is not None and len(fused.mesh_triangles):
         write_mesh_ply(out / "mesh.ply", fused.mesh_vertices, fused.mesh_triangles, fused.mesh_vertex_colors)

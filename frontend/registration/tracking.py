@@ -38,7 +38,7 @@ from fpp_graph.errors import FppError
 from fpp_graph.geometry import se3_exp, transform_points
 from fpp_graph.types import Constraint, ConstraintKind, Frame
 from frontend.config import RegistrationConfig
-from frontend.dense_alignment import OrganisedSurface, align_dense
+from frontend.dense_alignment import DenseAlignment, OrganisedSurface, align_dense
 from frontend.registration.icp import with_shared_error_floor
 from frontend.registration.keypoints import information_from_keypoints, keypoint_inliers
 from frontend.registration.stages import lift_matches, match_keypoints
@@ -95,12 +95,16 @@ def track_dense(
     if target.xyz_map is None or source.xyz_map is None:
         return rejected("a frame has no xyz_map")
     lengths, dense_cfg = config.lengths, config.dense
-    try:
-        dense = align_dense(
-            surface(target), surface(source), T0, coarse_stride_px=dense_cfg.coarse_stride_px, fine_stride_px=dense_cfg.stride_px,
-            max_iterations=dense_cfg.coarse_iterations, fine_iterations=dense_cfg.fine_iterations, max_points=dense_cfg.max_points,
-            max_distance_m=lengths.icp_max_correspondence_m,
+
+    def fit(T_start: Array, prior: Array | None = None) -> DenseAlignment:
+        return align_dense(
+            surface(target), surface(source), T_start, prior_information=prior, coarse_stride_px=dense_cfg.coarse_stride_px,
+            fine_stride_px=dense_cfg.stride_px, max_iterations=dense_cfg.coarse_iterations, fine_iterations=dense_cfg.fine_iterations,
+            max_points=dense_cfg.max_points, max_distance_m=lengths.icp_max_correspondence_m,
         )
+
+    try:
+        dense = fit(T0)
     except FppError as exc:
         return rejected(f"dense fit failed ({exc})")
     if not np.all(np.isfinite(dense.T_target_source)):
@@ -119,7 +123,16 @@ def track_dense(
         step = _keypoint_step(target, source, T, information, degeneracy, dense.source_points, config, describe)
         if isinstance(step, str):
             return rejected(f"degenerate geometry (unconstrained {'; '.join(degeneracy.unconstrained)}) and {step}")
-        T, information, meta = step
+        T_keypoints, information_keypoints, meta = step
+        # then every pixel again with the keypoints as the prior, as a full registration's dense
+        # stage: the relief outweighs them where it has any (a table's objects), they hold the
+        # directions it leaves free (a corridor's axis)
+        prior = config.keypoints.information_scale * information_keypoints
+        try:
+            dense = fit(T_keypoints, prior)
+        except FppError as exc:
+            return rejected(f"dense fit from the keypoints' pose failed ({exc})")
+        T, information = dense.T_target_source, dense_cfg.information_scale * dense.information + prior
         weak_sigma_m = weak_direction_sigma_m(information, degeneracy, dense.source_points)
         if not weak_sigma_m <= lengths.max_weak_sigma_m:
             return rejected(f"degenerate geometry (unconstrained {'; '.join(degeneracy.unconstrained)}; sigma {1e3 * weak_sigma_m:.1f} mm > "
@@ -153,8 +166,8 @@ def _keypoint_step(
     optimum given the dense fit's other directions (:func:`joint_keypoint_step` on the dense
     information without the weak directions: with them, the fit's slight curvature there held
     a corridor's axis at the prediction's error).
-    Returns the pose, the joint information (keypoints scaled by ``keypoints.information_scale``)
-    and metadata, or why the keypoints cannot do it."""
+    Returns the pose, the keypoints' information (unscaled) and metadata, or why the keypoints
+    cannot do it."""
     min_inliers = config.gates.min_inliers
     matches = match_keypoints(target, source, describe, config, StageTimer())
     if matches.error is not None or matches.count < min_inliers:
@@ -171,8 +184,7 @@ def _keypoint_step(
     if int(keep.sum()) < min_inliers:
         return f"too few keypoint inliers ({int(keep.sum())} < {min_inliers})"
     information_keypoints = information_from_keypoints(T, P[near][keep], residuals_m[keep])
-    information = information_dense + config.keypoints.information_scale * information_keypoints
-    return T, information, {"tracking_keypoint_inliers": int(keep.sum())}
+    return T, information_keypoints, {"tracking_keypoint_inliers": int(keep.sum())}
 
 
 def rms_motion_m(T_a: NDArray, T_b: NDArray, points: NDArray) -> float:

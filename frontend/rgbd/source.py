@@ -41,6 +41,7 @@ depth's correlation window). The pipeline runs on the resolved config and writes
 from __future__ import annotations
 
 import logging
+import math
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -73,6 +74,11 @@ KINECT_V1_NOISE = SensorNoise(point_sigma_m=0.0075, voxel_m=0.01, information_co
   view shares). ``scripts/rgbd_nees.py`` on 8 pairs of the 7-Scenes chess frames now gives mean
   NEES / 6 of 0.22 (median 0.09: conservative); the TUM fr1_rpy edges are over-confident (issue 22).
 """
+KINECT_DEPTH_SIGMA_PER_M2 = 1.425e-3
+"""A Kinect v1 depth's random error over the square of its range (1/m): ``sigma = 1.425e-3 z^2``
+(Khoshelham and Elberink, Sensors 2012; the simulator's :class:`~frontend.sim.rgbd.KinectModel`
+reproduces it). Sets how far its depth is fused (:meth:`RgbdSource.resolve_config`)."""
+
 RGBD_FUSION_FLOORS = {
     "voxel_size_m": 0.01,
     "tsdf_voxel_m": 0.01,
@@ -342,14 +348,18 @@ class RgbdSource:
     @staticmethod
     def resolve_config(config: Config) -> Config:
         """``config`` with the Kinect's noise model where ``registration.noise`` is left null, the
-        RGB-D floors on fusion voxels and on the dense refinement's pixel stride, and tracking from
-        motion unless the config sets it (idempotent)."""
+        RGB-D floors on fusion voxels and on the dense refinement's pixel stride, and the fusion's
+        depth range and tracking from motion unless the config sets them (idempotent)."""
         reg = config.registration.with_noise(KINECT_V1_NOISE)
         dense = reg.dense
         stride = max(dense.stride_px, RGBD_DENSE_STRIDE_FLOOR_PX)
         reg = reg.model_copy(update={"dense": dense.model_copy(update={"stride_px": stride, "coarse_stride_px": max(dense.coarse_stride_px, 2 * stride)})})
         fus = config.fusion
         fus = fus.model_copy(update={k: max(getattr(fus, k), v) for k, v in RGBD_FUSION_FLOORS.items()})
+        if fus.max_depth_m is None:
+            # beyond the range where the depth error reaches the TSDF's truncation band a
+            # surface's points scatter over more than the band (5.3 m with the 4 cm floor)
+            fus = fus.model_copy(update={"max_depth_m": math.sqrt(fus.tsdf_truncation_m / KINECT_DEPTH_SIGMA_PER_M2)})
         keyframes = config.keyframes
         if keyframes.track_from_motion is None:  # 30 Hz video: the previous motion predicts the next
             keyframes = keyframes.model_copy(update={"track_from_motion": True})
