@@ -4,7 +4,12 @@
 
 1. registers the frame against the last keyframe through the front-end's ``PairRegistrar``
    (falling back to the keyframe before it; when both fail the chain breaks, and the break is
-   recorded and the run goes on as a new segment);
+   recorded and the run goes on as a new segment). With ``keyframes.track_from_motion`` and a
+   registrar that is also a :class:`~fpp_graph.types.FrameTracker`, the registrar's ``track``
+   comes first, from a constant-velocity prediction (:mod:`fpp_graph.slam.motion`): a frame it
+   accepts and that stays a non-keyframe costs one dense fit instead of a full registration; a
+   tracked frame that becomes a keyframe is registered in full (the tracked pose as the guess);
+   every frame ``track`` hands on is registered in full, its reason counted;
 2. decides whether the frame is a keyframe (motion and overlap thresholds);
 3. for a keyframe (once the camera has gone ``loop_closure.query_view_change`` of the way to
    leaving the last keyframe that asked), asks the ``LoopDetector`` for revisit candidates (pose proximity with a gate

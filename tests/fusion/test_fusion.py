@@ -364,3 +364,35 @@ def test_render_depth_keeps_the_nearest_point_where_two_land_on_one_pixel():
     depth, rgb = render_depth(frame, K2)
     np.testing.assert_allclose(depth, [[1.0, 0.0], [0.0, 1.0]])
     assert rgb[0, 0, 0] == 20 and rgb[1, 1, 0] == 40 and rgb[0, 1, 0] == 0
+
+
+def test_points_beyond_max_depth_stay_out_of_map_and_mesh_and_are_counted(rng):
+    # the sphere's near cap is at z = 0.8 m: a 0.9 m limit keeps only the cap (each map sees the
+    # frame twice: the mesh needs a TSDF weight above 1)
+    frame = sphere_frame(0, np.eye(4), 0.0, rng)
+    z = frame.points[:, 2]
+    full = VoxelMapFuser(0.004, 0.004, 0.016, mesh=True)
+    near = VoxelMapFuser(0.004, 0.004, 0.016, mesh=True, max_depth_m=0.9)
+    for fuser in (full, near, full, near):
+        fuser.integrate(frame, np.eye(4))
+    assert near.points_beyond_max_depth == 2 * int(np.count_nonzero(z > 0.9)) > 0
+    assert full.points_beyond_max_depth == 0
+    kept, every = near.result(), full.result()
+    assert kept.points_world_m[:, 2].max() <= 0.9 + 0.004
+    assert 0 < len(kept.points_world_m) < len(every.points_world_m)
+    assert every.mesh_vertices[:, 2].max() > 0.92
+    assert kept.mesh_vertices[:, 2].max() <= 0.9 + 0.016 + 0.004  # TSDF: its truncation band past the limit at most
+    with pytest.raises(InputDataError, match="max_depth_m"):
+        VoxelMapFuser(0.004, 0.004, 0.016, mesh=False, max_depth_m=0.0)
+
+
+def test_rgbd_fusion_range_is_where_kinect_noise_reaches_the_truncation():
+    from fpp_graph.config import Config, config_from_dict
+    from frontend.rgbd.source import KINECT_DEPTH_SIGMA_PER_M2, RgbdSource
+
+    resolved = RgbdSource.resolve_config(Config())
+    depth_m = resolved.fusion.max_depth_m
+    assert KINECT_DEPTH_SIGMA_PER_M2 * depth_m**2 == pytest.approx(resolved.fusion.tsdf_truncation_m)
+    assert 5.0 < depth_m < 5.5
+    assert RgbdSource.resolve_config(config_from_dict({"fusion": {"max_depth_m": 3.0}})).fusion.max_depth_m == 3.0
+    assert Config().fusion.max_depth_m is None  # FPP: no limit
