@@ -219,10 +219,10 @@ class FrameTracker(Protocol):
 
     With ``keyframes.track_from_motion`` on, the keyframe manager predicts each new frame's pose
     relative to the last keyframe (constant velocity) and calls ``track(keyframe, frame,
-    T_predicted)`` first. An accepted result is the frame's pose; a frame that then becomes a
-    keyframe is registered in full (``register``, with the tracked pose as ``T_guess``) so the
-    graph's odometry edges do not depend on tracking. A rejected result (with its reason) makes
-    the manager fall back to ``register`` for the frame.
+    T_predicted)`` first. An accepted result is the frame's pose, and the odometry edge if the
+    frame becomes a keyframe, so its information must be as honest as ``register``'s. A rejected
+    result (with its reason) makes the manager fall back to ``register`` for the frame, with the
+    prediction as ``T_guess``.
     """
 
     def track(self, target: Frame, source: Frame, T_predicted: NDArray[np.float64]) -> Constraint:

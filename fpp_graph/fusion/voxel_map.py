@@ -375,16 +375,16 @@ def _project_chunk(
     if n == 0:
         return out
     pairs = list(_neighbour_indices(keys, keys[rows]))
-    I = np.concatenate([i for i, _ in pairs])
-    J = np.concatenate([j for _, j in pairs])
+    rows_of_pair = np.concatenate([i for i, _ in pairs])
+    neighbour_of_pair = np.concatenate([j for _, j in pairs])
     own = points[rows]
-    w = weights[J]
+    w = weights[neighbour_of_pair]
     # neighbours relative to the point (in voxels): the covariance is translation invariant, and
     # map coordinates of metres would cancel digits in E[p p^T] - E[p] E[p]^T
-    d = (points[J] - own[I]) / voxel_size_m
-    count = np.bincount(I, minlength=n)
+    d = (points[neighbour_of_pair] - own[rows_of_pair]) / voxel_size_m
+    count = np.bincount(rows_of_pair, minlength=n)
     upper = [(0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)]
-    sums = _sums(I, w, [np.ones(len(I)), d[:, 0], d[:, 1], d[:, 2]] + [d[:, a] * d[:, b] for a, b in upper], n)
+    sums = _sums(rows_of_pair, w, [np.ones(len(rows_of_pair)), d[:, 0], d[:, 1], d[:, 2]] + [d[:, a] * d[:, b] for a, b in upper], n)
     ok = count >= min_neighbours
     if not np.any(ok):
         return out
@@ -406,13 +406,13 @@ def _project_chunk(
     use = np.zeros(n, dtype=bool)
     use[idx] = True
     # weighted least squares of the quadratic height field around each point, in its frame
-    keep = use[I]
-    I, w, d = I[keep], w[keep], d[keep]
-    local = np.einsum("nab,nb->na", frame[I], d)  # unitless, O(1)
+    keep = use[rows_of_pair]
+    rows_of_pair, w, d = rows_of_pair[keep], w[keep], d[keep]
+    local = np.einsum("nab,nb->na", frame[rows_of_pair], d)  # unitless, O(1)
     u, v, h = local[:, 0], local[:, 1], local[:, 2]
     basis = [np.ones_like(u), u, v, u * u, u * v, v * v]
     pairs6 = [(a, b) for a in range(6) for b in range(a, 6)]
-    sums = _sums(I, w, [basis[a] * basis[b] for a, b in pairs6] + [basis[a] * h for a in range(6)], n)[idx]
+    sums = _sums(rows_of_pair, w, [basis[a] * basis[b] for a, b in pairs6] + [basis[a] * h for a in range(6)], n)[idx]
     ata = np.empty((len(idx), 6, 6))
     for k, (a, b) in enumerate(pairs6):
         ata[:, a, b] = ata[:, b, a] = sums[:, k]

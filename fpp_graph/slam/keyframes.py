@@ -7,9 +7,9 @@
    recorded and the run goes on as a new segment). With ``keyframes.track_from_motion`` and a
    registrar that is also a :class:`~fpp_graph.types.FrameTracker`, the registrar's ``track``
    comes first, from a constant-velocity prediction (:mod:`fpp_graph.slam.motion`): a frame it
-   accepts and that stays a non-keyframe costs one dense fit instead of a full registration; a
-   tracked frame that becomes a keyframe is registered in full (the tracked pose as the guess);
-   every frame ``track`` hands on is registered in full, its reason counted;
+   accepts costs a dense fit or two instead of a full registration (a new keyframe's odometry
+   edge is then the tracked constraint); every frame ``track`` hands on is registered in full,
+   its reason counted;
 2. decides whether the frame is a keyframe (motion and overlap thresholds);
 3. for a keyframe (once the camera has gone ``loop_closure.query_view_change`` of the way to
    leaving the last keyframe that asked), asks the ``LoopDetector`` for revisit candidates (pose proximity with a gate
@@ -205,8 +205,6 @@ class KeyframeManager:
             return True
         kf_id = odometry.target_id
         is_keyframe = self._is_keyframe(odometry)
-        if is_keyframe and odometry.metadata.get("tracked"):
-            odometry = self._register_new_keyframe(frame, odometry)
         self._motion.observe(frame.id, frame.timestamp, kf_id, odometry.T_target_source)
         if is_keyframe:
             T_world = compose(self.T_world_keyframe[kf_id], odometry.T_target_source)
@@ -235,18 +233,6 @@ class KeyframeManager:
         self.tracking_fallbacks[reason] = self.tracking_fallbacks.get(reason, 0) + 1
         log.debug("frame %d: %s; registered in full", frame.id, constraint.rejection_reason)
         return None
-
-    def _register_new_keyframe(self, frame: Frame, tracked: Constraint) -> Constraint:
-        """A tracked frame that became a keyframe: its odometry edge from the full registration
-        (the tracked pose as its guess), so the graph's edges do not depend on tracking; the
-        tracked constraint stands if the full registration refuses the pair (logged)."""
-        target = self.store.get(tracked.target_id)
-        full = self.registrar.register(target, frame, tracked.T_target_source, kind=ConstraintKind.ODOMETRY)
-        if full.accepted:
-            return replace(full, kind=ConstraintKind.ODOMETRY)
-        log.info("keyframe %d: full registration to %d refused (%s); its tracked pose is the odometry edge",
-                 frame.id, target.id, full.rejection_reason)
-        return tracked
 
     def _register_to_recent(self, frame: Frame, T_predicted: NDArray[np.float64] | None = None) -> Constraint | None:
         reasons = []

@@ -34,9 +34,9 @@ from frontend.registration.stages import (
 from frontend.registration.texture import TextureAgreement, texture_agreement
 from frontend.registration.weak_directions import (
     Degeneracy,
+    check_degeneracy,
     max_motion_m,
     weak_direction_sigma_m,
-    check_degeneracy,
     without_weak_directions,
 )
 

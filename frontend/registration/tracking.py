@@ -107,16 +107,8 @@ def track_dense(
         dense = fit(T0)
     except FppError as exc:
         return rejected(f"dense fit failed ({exc})")
-    if not np.all(np.isfinite(dense.T_target_source)):
-        return rejected("non-finite pose")
-    correction_m = rms_motion_m(dense.T_target_source, T0, dense.source_points)
-    if correction_m > lengths.icp_max_correspondence_m:
-        return rejected(f"far from the prediction (moved the points by {1e3 * correction_m:.1f} mm RMS > {1e3 * lengths.icp_max_correspondence_m:.1f} mm correspondence gate)")
-    if not dense.sigma_m <= lengths.max_inlier_rmse_m:
-        return rejected(f"surfaces do not fit (residual sigma {1e3 * dense.sigma_m:.2f} mm > {1e3 * lengths.max_inlier_rmse_m:.2f} mm)")
-    overlap = dense.num_residuals / max(dense.num_samples, 1)
-    if overlap < config.gates.min_overlap:
-        return rejected(f"low overlap ({overlap:.3f} < {config.gates.min_overlap})")
+    if problem := _fit_problem(dense, T0, config):
+        return rejected(problem)
     T, information, meta = dense.T_target_source, dense_cfg.information_scale * dense.information, {}
     degeneracy = check_degeneracy(dense.information, dense.source_points, config.weak_directions.degeneracy_ratio)
     if degeneracy.degenerate:
@@ -132,18 +124,39 @@ def track_dense(
             dense = fit(T_keypoints, prior)
         except FppError as exc:
             return rejected(f"dense fit from the keypoints' pose failed ({exc})")
+        if problem := _fit_problem(dense, T0, config):
+            return rejected(problem)
         T, information = dense.T_target_source, dense_cfg.information_scale * dense.information + prior
         weak_sigma_m = weak_direction_sigma_m(information, degeneracy, dense.source_points)
         if not weak_sigma_m <= lengths.max_weak_sigma_m:
             return rejected(f"degenerate geometry (unconstrained {'; '.join(degeneracy.unconstrained)}; sigma {1e3 * weak_sigma_m:.1f} mm > "
                             f"{1e3 * lengths.max_weak_sigma_m:.1f} mm even with keypoints)")
+    overlap = dense.num_residuals / max(dense.num_samples, 1)
     information = with_shared_error_floor(information, dense.source_points, config.sensor_noise().shared_depth_sigma_per_m2)
     return Constraint(
         source_id=source.id, target_id=target.id, T_target_source=T, information=information, kind=ConstraintKind.ODOMETRY,
         fitness=overlap, inlier_rmse_m=dense.sigma_m, inlier_count=dense.num_residuals, overlap=overlap,
-        metadata={"tracked": True, "dense_iterations": dense.iterations, "dense_sigma_m": dense.sigma_m, "tracking_correction_m": correction_m,
+        metadata={"tracked": True, "dense_iterations": dense.iterations, "dense_sigma_m": dense.sigma_m,
+                  "tracking_correction_m": rms_motion_m(T, T0, dense.source_points),
                   "unconstrained_directions": list(degeneracy.unconstrained), **meta},
     )
+
+
+def _fit_problem(dense: DenseAlignment, T0: Array, config: RegistrationConfig) -> str | None:
+    """Why the dense fit from the prediction ``T0`` cannot be used (None: it can)."""
+    lengths = config.lengths
+    if not np.all(np.isfinite(dense.T_target_source)):
+        return "non-finite pose"
+    correction_m = rms_motion_m(dense.T_target_source, T0, dense.source_points)
+    if correction_m > lengths.icp_max_correspondence_m:
+        return (f"far from the prediction (moved the points by {1e3 * correction_m:.1f} mm RMS > "
+                f"{1e3 * lengths.icp_max_correspondence_m:.1f} mm correspondence gate)")
+    if not dense.sigma_m <= lengths.max_inlier_rmse_m:
+        return f"surfaces do not fit (residual sigma {1e3 * dense.sigma_m:.2f} mm > {1e3 * lengths.max_inlier_rmse_m:.2f} mm)"
+    overlap = dense.num_residuals / max(dense.num_samples, 1)
+    if overlap < config.gates.min_overlap:
+        return f"low overlap ({overlap:.3f} < {config.gates.min_overlap})"
+    return None
 
 
 def _nearest_rigid(T: NDArray) -> Array:

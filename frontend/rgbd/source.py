@@ -35,7 +35,10 @@ The registration's length thresholds are multiples of ``registration.noise``
 null with :data:`KINECT_V1_NOISE` (a user's own noise values win) and raises the fusion voxels to
 :data:`RGBD_FUSION_FLOORS` (a scene-scale matter, not noise: a 1 mm TSDF over a 3 m room is ~10^10
 voxels) and the dense refinement's pixel stride to :data:`RGBD_DENSE_STRIDE_FLOOR_PX` (the
-depth's correlation window). The pipeline runs on the resolved config and writes it to the results folder.
+depth's correlation window). Where the config leaves them null it also sets the fusion's depth range
+(``fusion.max_depth_m``: where :data:`KINECT_DEPTH_SIGMA_PER_M2` reaches the TSDF truncation) and
+turns on tracking from motion (``keyframes.track_from_motion``: 30 Hz frames move a few millimetres
+apart). The pipeline runs on the resolved config and writes it to the results folder.
 """
 
 from __future__ import annotations

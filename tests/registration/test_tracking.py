@@ -12,7 +12,12 @@ from fpp_graph.slam.keyframes import KeyframeManager
 from fpp_graph.types import FrameTracker
 from frontend.registration import FppPairRegistrar
 from frontend.rgbd.source import RgbdSource
-from frontend.sim.rgbd import KinectModel, default_rgbd_corridor, handheld_corridor_trajectory, write_rgbd_sequence
+from frontend.sim.rgbd import (
+    KinectModel,
+    default_rgbd_corridor,
+    handheld_corridor_trajectory,
+    write_rgbd_sequence,
+)
 from frontend.sim.scenes import build_corridor, plane_scene
 
 SMALL = KinectModel(width=320, height=240, fx=262.5, fy=262.5, cx=159.5, cy=119.5)
@@ -74,7 +79,7 @@ def _run(source, frames, track: bool):
     return manager, manager.finish()
 
 
-def test_the_manager_tracks_non_keyframes_and_registers_keyframes_in_full(corridor):
+def test_the_manager_tracks_frames_and_keyframes_from_motion(corridor):
     source, frames, poses = corridor
     manager, result = _run(source, frames, track=True)
     _, reference = _run(source, frames, track=False)
@@ -82,8 +87,9 @@ def test_the_manager_tracks_non_keyframes_and_registers_keyframes_in_full(corrid
     assert non_keyframes > 0
     assert result.tracking["tracked_frames"] >= non_keyframes - sum(result.tracking["fallbacks"].values())
     assert result.tracking["tracked_frames"] > 0
-    # the graph's odometry edges come from full registrations
-    assert not any(c.metadata.get("tracked") for c in result.odometry)
+    # a tracked keyframe's odometry edge is its tracked constraint, with positive information
+    assert all(c.metadata.get("tracked") for c in result.odometry)
+    assert all(np.linalg.eigvalsh(c.information).min() > 0 for c in result.odometry)
     assert result.keyframe_ids == reference.keyframe_ids
     for fid, T in result.poses_world_sensor.items():
         rot_deg, trans_m = pose_error(T, reference.poses_world_sensor[fid])

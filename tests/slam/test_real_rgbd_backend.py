@@ -42,6 +42,11 @@ def test_chess_proposes_no_loops_inside_the_local_window(chess_run):
     # keyframes' view once and comes back at the end (frames 194-197): only those few are proposed
     # (loop_closure.revisit_view_change), where 68 neighbours still in view were before
     assert 10 <= metrics["keyframes"] <= 25, metrics
+    # every frame after the first went through tracking from motion (on for RGB-D); the table's
+    # objects hold the dense fit, so nearly all are tracked (49 of 49 when measured)
+    tracking = metrics["tracking"]
+    assert tracking["tracked_frames"] + sum(tracking["fallbacks"].values()) == metrics["frames"] - 1, tracking
+    assert tracking["tracked_frames"] >= 0.8 * (metrics["frames"] - 1), tracking
     assert metrics["loop_candidates"] <= 5 and metrics["loops_accepted"] <= metrics["loops_verified"], metrics
     assert metrics["chain_breaks"] == [] and len(metrics["components"]) == 1
 
