@@ -187,6 +187,33 @@ def _subsample(points: NDArray, colors: NDArray | None, max_points: int, seed: i
 # Points drawn per map in a before/after top view (each cloud is subsampled to this).
 MAP_PLOT_POINTS = 200_000
 
+# Pixels along the longer side of a map panel's raster: a panel is ~900 px wide at 150 dpi.
+MAP_RASTER_PX = 900
+
+
+def _draw_points_raster(ax, xy: NDArray[np.float64], rgba: NDArray[np.float64], lo: NDArray, hi: NDArray) -> None:
+    """Draw 2D points as one image: each raster pixel shows the last point (in the given order)
+    that falls in it, transparent where none does.
+
+    A scatter of 200 000 markers cost Agg ~1.5 s a panel (a fixed 3-5 s of every run, 17 % of a
+    50-frame RGB-D run); the raster costs a few ms and shows the same map at the panel's
+    resolution. Callers order the points so the one to see is last (the highest, the largest
+    error).
+    """
+    span = np.maximum(hi - lo, 1e-12)
+    scale = (MAP_RASTER_PX - 1) / float(span.max())
+    width, height = (int(np.ceil(span[0] * scale)) + 1, int(np.ceil(span[1] * scale)) + 1)
+    col = np.clip(np.round((xy[:, 0] - lo[0]) * scale).astype(np.int64), 0, width - 1)
+    row = np.clip(np.round((xy[:, 1] - lo[1]) * scale).astype(np.int64), 0, height - 1)
+    flat = row * width + col
+    # the last point of each pixel: first occurrence in the reversed order
+    pixels, first_reversed = np.unique(flat[::-1], return_index=True)
+    image = np.zeros((height * width, 4))
+    image[pixels] = rgba[len(flat) - 1 - first_reversed]
+    half = 0.5 / scale
+    ax.imshow(image.reshape(height, width, 4), origin="lower", interpolation="nearest",
+              extent=(lo[0] - half, lo[0] + (width - 0.5) / scale, lo[1] - half, lo[1] + (height - 0.5) / scale))
+
 
 def plot_map_before_after(
     path: str | os.PathLike[str],
@@ -255,21 +282,36 @@ def plot_map_before_after(
     pad = 0.03 * max(float((hi - lo).max()), 1e-9)
     aspect = float(np.clip((hi[1] - lo[1] + 2 * pad) / (hi[0] - lo[0] + 2 * pad), 0.4, 1.6))
     fig, axes = _new_figure(2, size=(14.0, 1.2 + 6.0 * aspect))
-    marker = max(0.05, min(2.0, 2e4 / max(len(after), len(before), 1)))
+    from matplotlib import colormaps
+    from matplotlib.cm import ScalarMappable
+    from matplotlib.colors import Normalize
+    from matplotlib.lines import Line2D
+
     mappable = None
     for ax, pts, col, title in zip(axes, (before, after), (colors_before, colors), titles, strict=True):
+        layers_xy, layers_rgba = [], []
         if gt is not None:
-            g = view.project(gt)
-            ax.scatter(g[:, 0], g[:, 1], s=marker * 3, c="0.8", linewidths=0, rasterized=True, label="reference")
+            layers_xy.append(view.project(gt))
+            layers_rgba.append(np.tile([0.8, 0.8, 0.8, 1.0], (len(gt), 1)))
+            ax.legend(handles=[Line2D([], [], ls="", marker="s", color="0.8", label="reference")], loc="upper right", fontsize=8)
         q = view.project(pts)
-        if col is not None and col.ndim == 2 and col.shape[1] == 1:  # per-point errors
+        if col is not None and col.ndim == 2 and col.shape[1] == 1:  # per-point errors: the worst on top
             e_mm = col[:, 0] * 1e3
             order = np.argsort(e_mm)
-            mappable = ax.scatter(q[order, 0], q[order, 1], s=marker, c=e_mm[order], cmap="inferno_r", vmin=0.0, vmax=error_max_mm, linewidths=0, rasterized=True)
+            norm, cmap = Normalize(0.0, error_max_mm), colormaps["inferno_r"]
+            q, rgba = q[order], cmap(norm(e_mm[order]))
+            mappable = ScalarMappable(norm, cmap)
         elif col is not None:
-            ax.scatter(q[:, 0], q[:, 1], s=marker, c=np.clip(col, 0, 1), linewidths=0, rasterized=True)
-        else:
-            mappable = ax.scatter(q[:, 0], q[:, 1], s=marker, c=view.height(pts), cmap="viridis", vmin=vmin, vmax=vmax, linewidths=0, rasterized=True)
+            rgba = np.column_stack([np.clip(col, 0, 1), np.ones(len(col))])
+        else:  # an elevation map: each pixel shows its highest point
+            h = view.height(pts)
+            order = np.argsort(h)
+            norm, cmap = Normalize(vmin, vmax), colormaps["viridis"]
+            q, rgba = q[order], cmap(norm(h[order]))
+            mappable = ScalarMappable(norm, cmap)
+        layers_xy.append(q)
+        layers_rgba.append(rgba)
+        _draw_points_raster(ax, np.vstack(layers_xy), np.vstack(layers_rgba), lo - pad, hi + pad)
         ax.set_xlim(lo[0] - pad, hi[0] + pad)
         ax.set_ylim(lo[1] - pad, hi[1] + pad)
         ax.set_aspect("equal")
@@ -277,8 +319,6 @@ def plot_map_before_after(
         ax.set_ylabel(f"{view.labels[1]} ({view.unit})")
         ax.set_title(f"{title}: {len(pts)} points")
         ax.grid(True, lw=0.3)
-        if gt is not None:
-            ax.legend(loc="upper right", fontsize=8, markerscale=5)
     if mappable is not None:
         label = "distance to reference (mm)" if errors[0] is not None or errors[1] is not None else f"{view.up_label} ({view.unit})"
         fig.colorbar(mappable, ax=list(axes), shrink=0.7, label=label)

