@@ -187,7 +187,9 @@ class KeyframeManager:
             self._keyframe_done(frame.id)
             self._motion.observe(frame.id, frame.timestamp, None, np.eye(4))
             return True
-        T_predicted = self._motion.predict(self.keyframe_ids[-1], frame.timestamp)
+        # the motion prior only where the source declared video-rate motion (tracking on): an FPP
+        # capture's next view is placed by hand, not by a velocity
+        T_predicted = self._motion.predict(self.keyframe_ids[-1], frame.timestamp) if self.tracker is not None else None
         odometry = self._track(frame, T_predicted)
         if odometry is None:
             odometry = self._register_to_recent(frame, T_predicted)
