@@ -171,10 +171,15 @@ def test_worker_processes_and_dask_give_the_in_process_run(tmp_path):
     assert len(loops1) >= 3
     for name, (loops2, traj2) in runs.items():
         assert [[r[k] for k in exact] for r in loops1] == [[r[k] for k in exact] for r in loops2], name
-        # figures equal to float round-off (BLAS and iSAM2 sum in a thread-dependent order)
+        # figures equal up to float round-off carried along the run: BLAS and iSAM2 sum in a
+        # thread-dependent order, and with tracking from motion (on for RGB-D) a 1e-10 difference
+        # in one dense fit enters the next frame's prediction and grows through the fits' discrete
+        # choices (correspondence gates, keypoint inliers) to ~1e-5 m (6e-5 m at most over three
+        # in-process runs of 20 chess frames; 1e-9 m with tracking off): far below the Kinect's
+        # millimetres, but the proximity scores (1 - distance / radius) move with the poses
         for r1, r2 in zip(loops1, loops2, strict=True):
-            assert r2["score"] == pytest.approx(r1["score"], rel=1e-6) and r2["fitness"] == pytest.approx(r1["fitness"], rel=1e-9)
-        np.testing.assert_allclose(np.loadtxt(traj1.splitlines()), np.loadtxt(traj2.splitlines()), atol=1e-6, err_msg=name)
+            assert r2["score"] == pytest.approx(r1["score"], abs=1e-3) and r2["fitness"] == pytest.approx(r1["fitness"], abs=1e-3)
+        np.testing.assert_allclose(np.loadtxt(traj1.splitlines()), np.loadtxt(traj2.splitlines()), atol=2e-4, err_msg=name)
 
 
 def test_run_with_an_unreachable_scheduler_is_a_one_line_error(tmp_path, capsys):
