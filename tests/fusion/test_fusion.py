@@ -342,7 +342,7 @@ def test_surface_smoothing_removes_the_voxel_sorting_of_noise():
 
 
 def test_surface_smoothing_leaves_isolated_points_and_edges():
-    from fpp_graph.fusion.voxel_map import project_to_local_planes, voxel_keys
+    from fpp_graph.fusion.voxel_grid import project_to_local_planes, voxel_keys
 
     pts = np.array([[0.0105, 0.0105, 0.0105], [0.0505, 0.0505, 0.0505]])
     keys = voxel_keys(pts, 0.001)
