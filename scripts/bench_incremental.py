@@ -38,7 +38,7 @@ import numpy as np
 from fpp_graph.backend.incremental import IncrementalPoseGraph
 from fpp_graph.backend.pose_graph import PoseGraph
 from fpp_graph.config import PoseGraphConfig
-from fpp_graph.slam.keyframes import transport_covariance
+from fpp_graph.slam.drift import transport_covariance
 from fpp_graph.testing.synthetic_graphs import SyntheticGraph, ate_rmse_m, circuit_laps
 from fpp_graph.types import Constraint, ConstraintKind
 

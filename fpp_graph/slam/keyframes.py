@@ -53,17 +53,21 @@ from numpy.typing import NDArray
 from fpp_graph.backend.incremental import IncrementalPoseGraph
 from fpp_graph.backend.outliers import chi2_6_quantile
 from fpp_graph.config import Config
-from fpp_graph.geometry import adjoint, compose, invert, rotation_angle_rad
+from fpp_graph.geometry import compose, invert, rotation_angle_rad
+from fpp_graph.slam.drift import (
+    constraint_covariance,
+    step_position_variance_m2,
+    transport_covariance,
+)
 from fpp_graph.slam.frame_store import FrameStore
 from fpp_graph.slam.loop_closure import ProximityAppearanceLoopDetector
-from fpp_graph.slam.motion import ConstantVelocityPredictor
+from fpp_graph.slam.motion import MotionTracking
 from fpp_graph.slam.verification import InlineVerifier
 from fpp_graph.slam.views import ViewModel, median_depth_m, view_change
 from fpp_graph.types import (
     Constraint,
     ConstraintKind,
     Frame,
-    FrameTracker,
     LoopCandidate,
     LoopDetector,
     PairRegistrar,
@@ -165,16 +169,8 @@ class KeyframeManager:
         self.batch_solves = 0
         # the last keyframe that asked the loop detector for candidates, and its view
         self._last_query: tuple[int, ViewModel | None] | None = None
-        # tracking from motion (keyframes.track_from_motion): frames whose pose came from the
-        # registrar's track(), and the reasons it handed a frame to the full registration
-        self._motion = ConstantVelocityPredictor()
-        self.tracker: FrameTracker | None = (
-            registrar if self.config.keyframes.track_from_motion and isinstance(registrar, FrameTracker) else None
-        )
-        if self.config.keyframes.track_from_motion and self.tracker is None:
-            log.warning("keyframes.track_from_motion is on but %s has no track(): every frame is registered in full", type(registrar).__name__)
-        self.tracked_frames = 0
-        self.tracking_fallbacks: dict[str, int] = {}
+        # tracking from motion (keyframes.track_from_motion): the prediction, track() and its counts
+        self._tracking = MotionTracking(registrar, bool(self.config.keyframes.track_from_motion))
 
     # -- per frame -------------------------------------------------------------------------
     def process(self, frame: Frame) -> bool:
@@ -185,17 +181,15 @@ class KeyframeManager:
             self.segment_starts.append(frame.id)
             self.loop_detector.add(frame)
             self._keyframe_done(frame.id)
-            self._motion.observe(frame.id, frame.timestamp, None, np.eye(4))
+            self._tracking.predictor.observe(frame.id, frame.timestamp, None, np.eye(4))
             return True
-        # the motion prior only where the source declared video-rate motion (tracking on): an FPP
-        # capture's next view is placed by hand, not by a velocity
-        T_predicted = self._motion.predict(self.keyframe_ids[-1], frame.timestamp) if self.tracker is not None else None
-        odometry = self._track(frame, T_predicted)
+        T_predicted = self._tracking.predict(self.keyframe_ids[-1], frame.timestamp)
+        odometry = self._tracking.track(self.store.get(self.keyframe_ids[-1]), frame, T_predicted)
         if odometry is None:
             odometry = self._register_to_recent(frame, T_predicted)
         if odometry is None:
-            self._motion.reset()
-            self._motion.observe(frame.id, frame.timestamp, None, np.eye(4))
+            self._tracking.predictor.reset()
+            self._tracking.predictor.observe(frame.id, frame.timestamp, None, np.eye(4))
             last = self.keyframe_ids[-1]
             T_guess = frame.T_world_sensor_guess
             T_start = np.array(T_guess) if T_guess is not None else self.T_world_keyframe[last].copy()
@@ -207,34 +201,18 @@ class KeyframeManager:
             return True
         kf_id = odometry.target_id
         is_keyframe = self._is_keyframe(odometry)
-        self._motion.observe(frame.id, frame.timestamp, kf_id, odometry.T_target_source)
+        self._tracking.predictor.observe(frame.id, frame.timestamp, kf_id, odometry.T_target_source)
         if is_keyframe:
             T_world = compose(self.T_world_keyframe[kf_id], odometry.T_target_source)
-            step_var = _translation_variance_m2(odometry) + (
-                np.linalg.norm(odometry.T_target_source[:3, 3]) ** 2 * _rotation_variance(odometry)
-            )
+            step_cov = constraint_covariance(odometry)
+            step_var = step_position_variance_m2(step_cov, odometry.T_target_source)
             self._add_keyframe(frame, T_world, odometry, self._drift_var_m2[kf_id] + step_var,
-                               transport_covariance(self._drift_cov[kf_id], odometry.T_target_source, _covariance(odometry)))
+                               transport_covariance(self._drift_cov[kf_id], odometry.T_target_source, step_cov))
             self._close_loops(frame)
             self._keyframe_done(frame.id)
             return True
         self.T_keyframe_frame[frame.id] = (kf_id, odometry.T_target_source.copy())
         return False
-
-    def _track(self, frame: Frame, T_predicted: NDArray[np.float64] | None) -> Constraint | None:
-        """The frame's pose in the last keyframe by the registrar's track() from the motion
-        prediction; None (the reason counted) when tracking is off or hands the frame on."""
-        if self.tracker is None or T_predicted is None:
-            return None
-        constraint = self.tracker.track(self.store.get(self.keyframe_ids[-1]), frame, T_predicted)
-        if constraint.accepted:
-            self.tracked_frames += 1
-            return constraint
-        # the reason without its figures, so the counts group ("tracking: low overlap (0.05 < 0.1)")
-        reason = (constraint.rejection_reason or "rejected").split(" (")[0]
-        self.tracking_fallbacks[reason] = self.tracking_fallbacks.get(reason, 0) + 1
-        log.debug("frame %d: %s; registered in full", frame.id, constraint.rejection_reason)
-        return None
 
     def _register_to_recent(self, frame: Frame, T_predicted: NDArray[np.float64] | None = None) -> Constraint | None:
         reasons = []
@@ -596,48 +574,5 @@ class KeyframeManager:
             rejected_loops=rejected,
             optimization=stats,
             held_out_loops=list(self.held_out_loops),
-            tracking={"tracked_frames": self.tracked_frames, "fallbacks": dict(self.tracking_fallbacks)} if self.tracker is not None else {},
+            tracking=self._tracking.summary(),
         )
-
-
-def transport_covariance(
-    cov_a: NDArray[np.float64], T_a_b: NDArray[np.float64], step_cov: NDArray[np.float64] | None = None
-) -> NDArray[np.float64]:
-    """A pose covariance carried from frame a to frame b rigidly attached to it (plus ``step_cov``).
-
-    ``cov_a``: 6x6 ``[rot, trans]`` covariance of ``T_world_a`` (right perturbation, a's
-    frame); ``T_a_b``: 4x4 pose of b in a (metres). Returns the covariance of
-    ``T_world_b = T_world_a T_a_b`` in b's frame, ``Ad(T_a_b^-1) cov_a Ad(T_a_b^-1)^T``, plus
-    ``step_cov`` when the step itself is uncertain (odometry). The lever arm turns rotation
-    drift into position drift, which a sum of per-step variances misses.
-    """
-    A = adjoint(invert(T_a_b))
-    out = A @ cov_a @ A.T
-    if step_cov is not None:
-        out = out + step_cov
-    return 0.5 * (out + out.T)
-
-
-def _covariance(c: Constraint) -> NDArray[np.float64]:
-    try:
-        return np.linalg.inv(c.information)
-    except np.linalg.LinAlgError:
-        return np.zeros((6, 6))
-
-
-
-
-def _translation_variance_m2(c: Constraint) -> float:
-    try:
-        cov = np.linalg.inv(c.information)
-    except np.linalg.LinAlgError:
-        return 0.0
-    return float(max(np.trace(cov[3:, 3:]), 0.0))
-
-
-def _rotation_variance(c: Constraint) -> float:
-    try:
-        cov = np.linalg.inv(c.information)
-    except np.linalg.LinAlgError:
-        return 0.0
-    return float(max(np.trace(cov[:3, :3]), 0.0))

@@ -9,6 +9,7 @@ dropped frame doubles the step) and applied to the last frame's pose in the curr
 
 from __future__ import annotations
 
+import logging
 import math
 from collections import deque
 from dataclasses import dataclass
@@ -17,6 +18,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from fpp_graph.geometry import invert, se3_exp, se3_log
+from fpp_graph.types import Constraint, Frame, FrameTracker, PairRegistrar
+
+log = logging.getLogger(__name__)
 
 Array = NDArray[np.float64]
 
@@ -79,4 +83,45 @@ class ConstantVelocityPredictor:
         return se3_exp(ratio * se3_log(T_before_last))
 
 
-__all__ = ["MAX_STEP_RATIO", "ConstantVelocityPredictor"]
+class MotionTracking:
+    """``keyframes.track_from_motion`` for the keyframe manager: the prediction, the registrar's
+    ``track`` (when it is a :class:`~fpp_graph.types.FrameTracker`) and the count of what it did.
+
+    Off (or with a registrar without ``track``), :meth:`predict` gives None and :meth:`track`
+    never runs: the manager registers every frame in full, without a motion prior (an FPP
+    capture's next view is placed by hand, not by a velocity).
+    """
+
+    def __init__(self, registrar: PairRegistrar, enabled: bool) -> None:
+        self.tracker: FrameTracker | None = registrar if enabled and isinstance(registrar, FrameTracker) else None
+        if enabled and self.tracker is None:
+            log.warning("keyframes.track_from_motion is on but %s has no track(): every frame is registered in full", type(registrar).__name__)
+        self.predictor = ConstantVelocityPredictor()
+        self.tracked_frames = 0
+        self.fallbacks: dict[str, int] = {}  # why track() handed frames to the full registration
+
+    def predict(self, keyframe_id: int, timestamp: float) -> Array | None:
+        """``T_keyframe_frame`` of the next frame; None when tracking is off or the motion unknown."""
+        return self.predictor.predict(keyframe_id, timestamp) if self.tracker is not None else None
+
+    def track(self, keyframe: Frame, frame: Frame, T_predicted: Array | None) -> Constraint | None:
+        """The frame's pose in ``keyframe`` by ``track()``; None (the reason counted) when tracking
+        is off, there is no prediction, or ``track()`` hands the frame on."""
+        if self.tracker is None or T_predicted is None:
+            return None
+        constraint = self.tracker.track(keyframe, frame, T_predicted)
+        if constraint.accepted:
+            self.tracked_frames += 1
+            return constraint
+        # the reason without its figures, so the counts group ("tracking: low overlap (0.05 < 0.1)")
+        reason = (constraint.rejection_reason or "rejected").split(" (")[0]
+        self.fallbacks[reason] = self.fallbacks.get(reason, 0) + 1
+        log.debug("frame %d: %s; registered in full", frame.id, constraint.rejection_reason)
+        return None
+
+    def summary(self) -> dict:
+        """``{"tracked_frames": n, "fallbacks": {reason: count}}``, or {} with tracking off."""
+        return {"tracked_frames": self.tracked_frames, "fallbacks": dict(self.fallbacks)} if self.tracker is not None else {}
+
+
+__all__ = ["MAX_STEP_RATIO", "ConstantVelocityPredictor", "MotionTracking"]

@@ -107,7 +107,7 @@ def test_the_manager_tracks_frames_and_keyframes_from_motion(corridor):
     assert np.median(errors["tracked"]) < np.median(errors["full"]) + 0.001
 
 
-def test_tracking_off_or_without_track_registers_every_frame_in_full(corridor):
+def test_tracking_off_or_without_track_registers_every_frame_in_full(corridor, caplog):
     source, frames, _ = corridor
     _, result = _run(source, frames[:4], track=False)
     assert result.tracking == {}
@@ -120,8 +120,9 @@ def test_tracking_off_or_without_track_registers_every_frame_in_full(corridor):
             return self.inner.register(target, source, T_guess, kind=kind)
 
     config = source.resolve_config(config_from_dict({"keyframes": {"track_from_motion": True}, "loop_closure": {"enabled": False}}))
-    manager = KeyframeManager(RegisterOnly(FppPairRegistrar(config.registration)), config)
-    assert manager.tracker is None
+    with caplog.at_level("WARNING"):
+        manager = KeyframeManager(RegisterOnly(FppPairRegistrar(config.registration)), config)
+    assert "RegisterOnly has no track()" in caplog.text
     for frame in frames[:4]:
         manager.process(frame)
     assert manager.finish().tracking == {}
