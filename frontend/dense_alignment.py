@@ -319,8 +319,8 @@ class DenseAlignment:
     source_points : (m, 3) float64
         Source points with a target correspondence in the last iteration (for degeneracy tests).
     num_samples : int
-        Pixels sampled in the last iteration (both directions): ``num_residuals / num_samples``
-        is the share of the views that fit each other.
+        Pixels sampled in the last iteration (both directions); :attr:`overlap` is the share of
+        them with a residual, i.e. of the views that fit each other.
     """
 
     T_target_source: Array
@@ -331,6 +331,11 @@ class DenseAlignment:
     converged: bool
     source_points: Array = field(repr=False)
     num_samples: int = 0
+
+    @property
+    def overlap(self) -> float:
+        """Share of the sampled pixels (both directions) that took part in the last iteration."""
+        return self.num_residuals / max(self.num_samples, 1)
 
 
 def cross_rows(a: Array, b: Array, out: Array | None = None) -> Array:

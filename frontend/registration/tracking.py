@@ -109,37 +109,50 @@ def track_dense(
         return rejected(f"dense fit failed ({exc})")
     if problem := _fit_problem(dense, T0, config):
         return rejected(problem)
-    T, information, meta = dense.T_target_source, dense_cfg.information_scale * dense.information, {}
+    information, meta = dense_cfg.information_scale * dense.information, {}
     degeneracy = check_degeneracy(dense.information, dense.source_points, config.weak_directions.degeneracy_ratio)
     if degeneracy.degenerate:
-        step = _keypoint_step(target, source, T, information, degeneracy, dense.source_points, config, describe)
-        if isinstance(step, str):
-            return rejected(f"degenerate geometry (unconstrained {'; '.join(degeneracy.unconstrained)}) and {step}")
-        T_keypoints, information_keypoints, meta = step
-        # then every pixel again with the keypoints as the prior, as a full registration's dense
-        # stage: the relief outweighs them where it has any (a table's objects), they hold the
-        # directions it leaves free (a corridor's axis)
-        prior = config.keypoints.information_scale * information_keypoints
-        try:
-            dense = fit(T_keypoints, prior)
-        except FppError as exc:
-            return rejected(f"dense fit from the keypoints' pose failed ({exc})")
-        if problem := _fit_problem(dense, T0, config):
-            return rejected(problem)
-        T, information = dense.T_target_source, dense_cfg.information_scale * dense.information + prior
-        weak_sigma_m = weak_direction_sigma_m(information, degeneracy, dense.source_points)
-        if not weak_sigma_m <= lengths.max_weak_sigma_m:
-            return rejected(f"degenerate geometry (unconstrained {'; '.join(degeneracy.unconstrained)}; sigma {1e3 * weak_sigma_m:.1f} mm > "
-                            f"{1e3 * lengths.max_weak_sigma_m:.1f} mm even with keypoints)")
-    overlap = dense.num_residuals / max(dense.num_samples, 1)
+        held = _hold_weak_directions(target, source, dense, information, degeneracy, T0, fit, config, describe)
+        if isinstance(held, str):
+            return rejected(held)
+        dense, information, meta = held
     information = with_shared_error_floor(information, dense.source_points, config.sensor_noise().shared_depth_sigma_per_m2)
+    T = dense.T_target_source
     return Constraint(
         source_id=source.id, target_id=target.id, T_target_source=T, information=information, kind=ConstraintKind.ODOMETRY,
-        fitness=overlap, inlier_rmse_m=dense.sigma_m, inlier_count=dense.num_residuals, overlap=overlap,
+        fitness=dense.overlap, inlier_rmse_m=dense.sigma_m, inlier_count=dense.num_residuals, overlap=dense.overlap,
         metadata={"tracked": True, "dense_iterations": dense.iterations, "dense_sigma_m": dense.sigma_m,
                   "tracking_correction_m": rms_motion_m(T, T0, dense.source_points),
                   "unconstrained_directions": list(degeneracy.unconstrained), **meta},
     )
+
+
+def _hold_weak_directions(
+    target: Frame, source: Frame, dense: DenseAlignment, information_dense: Array, degeneracy: Degeneracy, T0: Array,
+    fit: Callable[[Array, Array | None], DenseAlignment], config: RegistrationConfig, describe: Callable[[Frame], Frame],
+) -> tuple[DenseAlignment, Array, dict] | str:
+    """The dense fit again from the keypoints' pose for the weak directions (:func:`_keypoint_step`)
+    with the keypoints as the prior, as a full registration's dense stage: the relief outweighs
+    them where it has any (a table's objects), they hold the directions it leaves free (a
+    corridor's axis). Returns that fit, its information (with the prior) and metadata, or why not."""
+    weak = "; ".join(degeneracy.unconstrained)
+    step = _keypoint_step(target, source, dense.T_target_source, information_dense, degeneracy, dense.source_points, config, describe)
+    if isinstance(step, str):
+        return f"degenerate geometry (unconstrained {weak}) and {step}"
+    T_keypoints, information_keypoints, meta = step
+    prior = config.keypoints.information_scale * information_keypoints
+    try:
+        held = fit(T_keypoints, prior)
+    except FppError as exc:
+        return f"dense fit from the keypoints' pose failed ({exc})"
+    if problem := _fit_problem(held, T0, config):
+        return problem
+    information = config.dense.information_scale * held.information + prior
+    weak_sigma_m = weak_direction_sigma_m(information, degeneracy, held.source_points)
+    max_sigma_m = config.lengths.max_weak_sigma_m
+    if not weak_sigma_m <= max_sigma_m:
+        return f"degenerate geometry (unconstrained {weak}; sigma {1e3 * weak_sigma_m:.1f} mm > {1e3 * max_sigma_m:.1f} mm even with keypoints)"
+    return held, information, meta
 
 
 def _fit_problem(dense: DenseAlignment, T0: Array, config: RegistrationConfig) -> str | None:
@@ -153,9 +166,8 @@ def _fit_problem(dense: DenseAlignment, T0: Array, config: RegistrationConfig) -
                 f"{1e3 * lengths.icp_max_correspondence_m:.1f} mm correspondence gate)")
     if not dense.sigma_m <= lengths.max_inlier_rmse_m:
         return f"surfaces do not fit (residual sigma {1e3 * dense.sigma_m:.2f} mm > {1e3 * lengths.max_inlier_rmse_m:.2f} mm)"
-    overlap = dense.num_residuals / max(dense.num_samples, 1)
-    if overlap < config.gates.min_overlap:
-        return f"low overlap ({overlap:.3f} < {config.gates.min_overlap})"
+    if dense.overlap < config.gates.min_overlap:
+        return f"low overlap ({dense.overlap:.3f} < {config.gates.min_overlap})"
     return None
 
 
