@@ -215,6 +215,28 @@ def _draw_points_raster(ax, xy: NDArray[np.float64], rgba: NDArray[np.float64], 
               extent=(lo[0] - half, lo[0] + (width - 0.5) / scale, lo[1] - half, lo[1] + (height - 0.5) / scale))
 
 
+def _panel_colours(view: TopView, pts: NDArray, col: NDArray | None, height_range: tuple[float, float], error_max_mm: float):
+    """A map panel's points in the top view, in drawing order, their RGBA colours and the colour
+    scale for the colour bar (None for the points' own colours): per-point errors (the worst
+    drawn last), the points' colours, or their height (an elevation map: the highest last)."""
+    from matplotlib import colormaps
+    from matplotlib.cm import ScalarMappable
+    from matplotlib.colors import Normalize
+
+    q = view.project(pts)
+    if col is not None and col.ndim == 2 and col.shape[1] == 1:  # per-point errors
+        e_mm = col[:, 0] * 1e3
+        order = np.argsort(e_mm)
+        norm, cmap = Normalize(0.0, error_max_mm), colormaps["inferno_r"]
+        return q[order], cmap(norm(e_mm[order])), ScalarMappable(norm, cmap)
+    if col is not None:
+        return q, np.column_stack([np.clip(col, 0, 1), np.ones(len(col))]), None
+    h = view.height(pts)
+    order = np.argsort(h)
+    norm, cmap = Normalize(*height_range), colormaps["viridis"]
+    return q[order], cmap(norm(h[order])), ScalarMappable(norm, cmap)
+
+
 def plot_map_before_after(
     path: str | os.PathLike[str],
     points_before: NDArray[np.float64],
@@ -228,7 +250,7 @@ def plot_map_before_after(
     errors_after_m: NDArray[np.float64] | None = None,
     error_max_mm: float = 1.0,
 ) -> None:
-    # 95 lines: a 17-line docstring; the body is one figure whose limits, marker size and colour scale both panels share
+    # 89 lines: a 17-line docstring; the body is one figure whose limits and colour scale both panels share
     """Two top views of the fused map, before and after loop closure, on the same limits.
 
     Parameters
@@ -282,36 +304,17 @@ def plot_map_before_after(
     pad = 0.03 * max(float((hi - lo).max()), 1e-9)
     aspect = float(np.clip((hi[1] - lo[1] + 2 * pad) / (hi[0] - lo[0] + 2 * pad), 0.4, 1.6))
     fig, axes = _new_figure(2, size=(14.0, 1.2 + 6.0 * aspect))
-    from matplotlib import colormaps
-    from matplotlib.cm import ScalarMappable
-    from matplotlib.colors import Normalize
     from matplotlib.lines import Line2D
 
     mappable = None
     for ax, pts, col, title in zip(axes, (before, after), (colors_before, colors), titles, strict=True):
-        layers_xy, layers_rgba = [], []
-        if gt is not None:
-            layers_xy.append(view.project(gt))
-            layers_rgba.append(np.tile([0.8, 0.8, 0.8, 1.0], (len(gt), 1)))
+        xy, rgba, panel_mappable = _panel_colours(view, pts, col, (vmin, vmax), error_max_mm)
+        mappable = panel_mappable or mappable
+        if gt is not None:  # grey beneath
+            xy = np.vstack([view.project(gt), xy])
+            rgba = np.vstack([np.tile([0.8, 0.8, 0.8, 1.0], (len(gt), 1)), rgba])
             ax.legend(handles=[Line2D([], [], ls="", marker="s", color="0.8", label="reference")], loc="upper right", fontsize=8)
-        q = view.project(pts)
-        if col is not None and col.ndim == 2 and col.shape[1] == 1:  # per-point errors: the worst on top
-            e_mm = col[:, 0] * 1e3
-            order = np.argsort(e_mm)
-            norm, cmap = Normalize(0.0, error_max_mm), colormaps["inferno_r"]
-            q, rgba = q[order], cmap(norm(e_mm[order]))
-            mappable = ScalarMappable(norm, cmap)
-        elif col is not None:
-            rgba = np.column_stack([np.clip(col, 0, 1), np.ones(len(col))])
-        else:  # an elevation map: each pixel shows its highest point
-            h = view.height(pts)
-            order = np.argsort(h)
-            norm, cmap = Normalize(vmin, vmax), colormaps["viridis"]
-            q, rgba = q[order], cmap(norm(h[order]))
-            mappable = ScalarMappable(norm, cmap)
-        layers_xy.append(q)
-        layers_rgba.append(rgba)
-        _draw_points_raster(ax, np.vstack(layers_xy), np.vstack(layers_rgba), lo - pad, hi + pad)
+        _draw_points_raster(ax, xy, rgba, lo - pad, hi + pad)
         ax.set_xlim(lo[0] - pad, hi[0] + pad)
         ax.set_ylim(lo[1] - pad, hi[1] + pad)
         ax.set_aspect("equal")
