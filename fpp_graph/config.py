@@ -55,7 +55,7 @@ class KeyframeConfig(StrictModel):
     verify_lag: int = Field(2, ge=0, description="a keyframe's loop candidates are verified while this many later keyframes are tracked, then applied in submission order (0: at once); the same value gives the same run with or without worker processes")
     track_from_motion: bool | None = Field(
         None,
-        description="register each new frame to the last keyframe by the dense fit from a constant-velocity prediction first, the full registration only where that fails or for a new keyframe (needs a registrar with track()); null: the source decides (on for video-rate RGB-D, off for FPP's still views)",
+        description="register each new frame to the last keyframe by the dense fit from a constant-velocity prediction first (a new keyframe keeps it as its odometry edge), the full registration only where that fails (needs a registrar with track()); null: the source decides (on for video-rate RGB-D, off for FPP's still views)",
     )
 
 
