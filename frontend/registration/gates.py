@@ -31,6 +31,7 @@ class Checkpoint(enum.Enum):
     RANSAC = "ransac"
     ICP = "icp"
     POSE = "pose"  # after the weak-direction rules: ICP's pose, or with directions from the keypoints
+    REVISIT = "revisit"  # an appearance-only revisit about to take the photometric step: the look-alike test first
     FINAL = "final"  # after the dense and photometric refinements
 
 
@@ -102,6 +103,25 @@ def _agreement_fails(s: PairState, c: RegistrationConfig) -> bool:
     return a is not None and not (a.fraction >= c.gates.min_texture_agreement and a.blocks >= c.gates.min_agreement_blocks)
 
 
+def _look_alike_gates(checkpoint: Checkpoint) -> list[Gate]:
+    """The look-alike tests of an appearance-only revisit on weak geometry (``s.check.agreement``
+    set): before the photometric step (:attr:`Checkpoint.REVISIT`) and again on the final pose."""
+    return [
+        Gate("texture_agreement", checkpoint, _agreement_fails,
+             lambda s, c: "look-alike place: degenerate geometry (unconstrained " + _weak_unconstrained(s)
+             + f") and the textures agree on only {100 * s.check.agreement.fraction:.1f} % of {s.check.agreement.blocks} overlap blocks"
+             + f" (< {100 * c.gates.min_texture_agreement:.0f} % of >= {c.gates.min_agreement_blocks}) for an appearance-only candidate",
+             "gates.min_texture_agreement", metadata=_with_weak_directions),
+        # the agreeing overlap may be the repeated object alone (poster twins on opposite walls
+        # registered 0.2 m apart agreed on 100 % of their 0.37-0.63 overlap)
+        Gate("texture_overlap", checkpoint, lambda s, c: s.check.agreement is not None and not s.check.agreement.overlap >= c.gates.min_texture_overlap,
+             lambda s, c: "possible look-alike place: degenerate geometry (unconstrained " + _weak_unconstrained(s)
+             + f") and the agreeing overlap covers only {100 * s.check.agreement.overlap:.0f} % of the view"
+             + f" (< {100 * c.gates.min_texture_overlap:.0f} %) for an appearance-only candidate",
+             "gates.min_texture_overlap", metadata=_with_weak_directions),
+    ]
+
+
 GATES: tuple[Gate, ...] = (
     *_frame_gates("target"),
     *_frame_gates("source"),
@@ -128,18 +148,8 @@ GATES: tuple[Gate, ...] = (
          lambda s, c: f"low overlap ({s.weak.icp.overlap:.3f} < {c.gates.min_overlap})", "gates.min_overlap"),
     Gate("inlier_rmse", Checkpoint.POSE, lambda s, c: not s.weak.icp.inlier_rmse_m <= c.lengths.max_inlier_rmse_m,
          lambda s, c: f"high inlier RMSE ({1e3 * s.weak.icp.inlier_rmse_m:.3f} mm > {1e3 * c.lengths.max_inlier_rmse_m:.3f} mm)", "gates.max_inlier_rmse_sigmas"),
-    Gate("texture_agreement", Checkpoint.FINAL, _agreement_fails,
-         lambda s, c: "look-alike place: degenerate geometry (unconstrained " + _weak_unconstrained(s)
-         + f") and the textures agree on only {100 * s.check.agreement.fraction:.1f} % of {s.check.agreement.blocks} overlap blocks"
-         + f" (< {100 * c.gates.min_texture_agreement:.0f} % of >= {c.gates.min_agreement_blocks}) for an appearance-only candidate",
-         "gates.min_texture_agreement", metadata=_with_weak_directions),
-    # the agreeing overlap may be the repeated object alone (poster twins on opposite walls
-    # registered 0.2 m apart agreed on 100 % of their 0.37-0.63 overlap)
-    Gate("texture_overlap", Checkpoint.FINAL, lambda s, c: s.check.agreement is not None and not s.check.agreement.overlap >= c.gates.min_texture_overlap,
-         lambda s, c: "possible look-alike place: degenerate geometry (unconstrained " + _weak_unconstrained(s)
-         + f") and the agreeing overlap covers only {100 * s.check.agreement.overlap:.0f} % of the view"
-         + f" (< {100 * c.gates.min_texture_overlap:.0f} %) for an appearance-only candidate",
-         "gates.min_texture_overlap", metadata=_with_weak_directions),
+    *_look_alike_gates(Checkpoint.REVISIT),
+    *_look_alike_gates(Checkpoint.FINAL),
     Gate("weak_directions_pinned", Checkpoint.FINAL, lambda s, c: s.check.degeneracy.degenerate and not s.check.weak_sigma_m <= c.lengths.max_weak_sigma_m,
          lambda s, c: "degenerate geometry: unconstrained " + _weak_unconstrained(s)
          + f" (sigma {1e3 * s.check.weak_sigma_m:.3f} mm > {1e3 * c.lengths.max_weak_sigma_m:.3f} mm even with keypoints)",

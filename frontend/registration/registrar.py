@@ -249,8 +249,20 @@ class FppPairRegistrar:
         s.keypoints, s.pose = information.keypoints, information.pose
         s.meta.update(information.metadata)
         s.timer.stop("information", started)
-        self._refine(s)  # dense, then photometric
-        s.check = check_weak_geometry(target, source, s.pose, s.weak.icp.source_points, ConstraintKind(kind) is ConstraintKind.LOOP, T_guess, cfg)
+        is_loop = ConstraintKind(kind) is ConstraintKind.LOOP
+        self._refine_dense(s)
+        if photometric_applies(self.texture_sets_planes, s.weak, s.dense):
+            if is_loop and T_guess is None:
+                # an appearance-only revisit on weak geometry: the look-alike test first, at the
+                # dense pose. The photometric step (2-3 s a pair at 1920x1200) rarely converges on
+                # a look-alike's mismatched textures and never lifted a rejected pair's agreement
+                # over the gate (61 simulated pairs: it moved 11 by at most 0.18, none across)
+                s.check = check_weak_geometry(target, source, s.pose, s.weak.icp.source_points, is_loop, T_guess, cfg)
+                s.meta.update(s.check.metadata)
+                if rejected := rejection(Checkpoint.REVISIT, s, cfg):
+                    return rejected
+            self._refine_photometric(s)
+        s.check = check_weak_geometry(target, source, s.pose, s.weak.icp.source_points, is_loop, T_guess, cfg)
         s.meta.update(s.check.metadata)
         return rejection(Checkpoint.FINAL, s, cfg) or self._accept(s)
 
@@ -267,21 +279,23 @@ class FppPairRegistrar:
         extra = [np.asarray(s.T_guess, dtype=np.float64)] if s.T_guess is not None else None
         return ransac_rigid(lifted.points_target_m, lifted.points_source_m, cfg.lengths.ransac_inlier_m, cfg.ransac.max_iterations, cfg.ransac.confidence, rng, extra)
 
-    def _refine(self, s: PairState) -> None:
-        """The dense stage, then (when the texture sets a plane's directions) the photometric step."""
-        cfg = self.config
+    def _refine_dense(self, s: PairState) -> None:
+        """The dense stage (every pixel; a wall held for the texture)."""
         inliers_source_m = s.lifted.points_source_m[s.ransac.inliers]
         started = s.timer.start()
-        s.dense = dense_stage(s.target, s.source, self.refine_dense, s.pose, s.keypoints, s.icp, s.weak, inliers_source_m, s.ransac.T_target_source, cfg, self.texture_sets_planes)
+        s.dense = dense_stage(s.target, s.source, self.refine_dense, s.pose, s.keypoints, s.icp, s.weak, inliers_source_m, s.ransac.T_target_source, self.config, self.texture_sets_planes)
         s.pose = s.dense.pose
         s.meta.update(s.dense.metadata)
         s.timer.stop("dense", started)
-        if photometric_applies(self.texture_sets_planes, s.weak, s.dense):
-            started = s.timer.start()
-            s.photometric = photometric_stage(s.target, s.source, self.refine_plane_photometric, s.pose, s.keypoints, s.weak, inliers_source_m, cfg)
-            s.pose = s.photometric.pose
-            s.meta.update(s.photometric.metadata)
-            s.timer.stop("photometric", started)
+
+    def _refine_photometric(self, s: PairState) -> None:
+        """The photometric step: the plane's directions from the projector-lit texture."""
+        inliers_source_m = s.lifted.points_source_m[s.ransac.inliers]
+        started = s.timer.start()
+        s.photometric = photometric_stage(s.target, s.source, self.refine_plane_photometric, s.pose, s.keypoints, s.weak, inliers_source_m, self.config)
+        s.pose = s.photometric.pose
+        s.meta.update(s.photometric.metadata)
+        s.timer.stop("photometric", started)
 
     def _accept(self, s: PairState) -> Constraint:
         s.meta["timings_s"] = dict(s.timer.wall_s)

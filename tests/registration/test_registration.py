@@ -293,6 +293,39 @@ def test_true_revisit_on_a_plane_is_accepted_as_appearance_only_loop(poster_wall
     assert pose_error(loop.T_target_source, T_true)[1] < 1e-3
 
 
+def test_look_alike_is_refused_before_the_photometric_step(poster_wall, monkeypatch):
+    # With the rig's camera known, a wall's appearance-only revisit is refined photometrically
+    # (2-3 s a pair at 1920x1200): a look-alike place is refused by its textures first, a true
+    # revisit still takes the step. The step is recorded here, not run (these frames carry no
+    # projector shading to fit).
+    import frontend.registration.registrar as registrar_module
+    from frontend.registration import TextureCamera
+    from frontend.registration.refinement import PhotometricOutcome
+
+    calls = []
+
+    def recorded(target, source, refine, pose, keypoints, weak, inliers, config):
+        calls.append((target.id, source.id))
+        return PhotometricOutcome(pose, np.zeros((6, 6)), {"photometric_not_used": "recorded by the test"})
+
+    monkeypatch.setattr(registrar_module, "photometric_stage", recorded)
+    reg = FppPairRegistrar(RegistrationConfig(), texture_camera=TextureCamera(camera_matrix(W, H), np.zeros(5), np.array([0.1, 0.0, 0.0])))
+    assert reg.texture_sets_planes
+    twin_a = render_frame(poster_wall, wall_pose(-0.5 + 0.02), W, H, frame_id=0)
+    twin_b = render_frame(poster_wall, wall_pose(0.5 + 0.02), W, H, frame_id=1)
+    look_alike = reg.register(twin_a, twin_b, kind="loop")
+    assert not look_alike.accepted and "look-alike" in look_alike.rejection_reason
+    assert look_alike.metadata["texture_agreement"] < 0.8
+    assert calls == [] and "photometric" not in reg.last_timings_s
+    # the same pair with a pose guess is not appearance-only: no texture test, the step runs
+    reg.register(twin_a, twin_b, T_guess=invert(wall_pose(-0.5 + 0.02)) @ wall_pose(0.5 + 0.02), kind="loop")
+    assert calls == [(0, 1)]
+    revisit = render_frame(poster_wall, wall_pose(-0.5 + 0.03, 0.02, yaw_deg=1.0), W, H, frame_id=2)
+    loop = reg.register(twin_a, revisit, kind="loop")
+    assert loop.accepted, loop.rejection_reason
+    assert calls[-1] == (0, 2) and loop.metadata["texture_agreement"] > 0.9
+
+
 def test_fit_pinhole_recovers_the_renderer_camera(pair):
     a, _, _ = pair
     K = camera_matrix(W, H)
