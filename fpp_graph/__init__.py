@@ -30,6 +30,7 @@ _LAZY = {
     "LoopDetector": "fpp_graph.types",
     "LoopCandidate": "fpp_graph.types",
     "MapFuser": "fpp_graph.types",
+    "ParallelMapFuser": "fpp_graph.types",
     "Trajectory": "fpp_graph.trajectory",
     "Config": "fpp_graph.config",
     "load_config": "fpp_graph.config",

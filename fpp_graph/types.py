@@ -9,7 +9,7 @@ Everything here is numpy arrays and frozen dataclasses, so it pickles across pro
 from __future__ import annotations
 
 import enum
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import Future
 from dataclasses import dataclass, field
 from typing import Any, Protocol, runtime_checkable
@@ -330,4 +330,24 @@ class MapFuser(Protocol):
 
     def result(self) -> FusedMap:
         """The map fused so far."""
+        ...
+
+
+@runtime_checkable
+class ParallelMapFuser(MapFuser, Protocol):
+    """A :class:`MapFuser` whose per-frame work can run in the run's worker processes.
+
+    ``preparer()`` returns a picklable callable ``(frame, T_world_sensor) -> prepared`` that
+    depends on the fuser's settings only (not on what it has fused); ``add(prepared)`` folds one
+    result in. The pipeline prepares several keyframes at once on its executor and adds them in
+    keyframe order, so the map is the same as from ``integrate`` one by one
+    (``integrate(f, T)`` must equal ``add(preparer()(f, T))``).
+    """
+
+    def preparer(self) -> Callable[[Frame, NDArray[np.float64]], Any]:
+        """The per-frame work, picklable, independent of this fuser's state."""
+        ...
+
+    def add(self, prepared: Any) -> None:
+        """Fold in one frame's prepared result."""
         ...

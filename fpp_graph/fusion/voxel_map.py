@@ -26,10 +26,12 @@ Open3D, MeshLab and CloudCompare read them.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import os
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
@@ -145,42 +147,29 @@ class VoxelMapFuser:
             Per-point weights (e.g. FPP modulation); default 1 per point, times the grazing-angle
             weight when ``grazing_weight`` is on and the frame has an ``xyz_map``.
         """
-        T = np.asarray(T_world_sensor, dtype=np.float64)
-        if T.shape != (4, 4) or not np.all(np.isfinite(T)):
-            raise InputDataError(f"map fusion: pose of frame {frame.id} must be a finite 4x4, got shape {T.shape}")
-        points = frame.points
-        colors = frame.colors if frame.colors is not None else np.full(points.shape, 0.5)
-        weights = np.ones(len(points)) if point_weights is None else np.asarray(point_weights, dtype=np.float64).reshape(-1)
-        if weights.shape[0] != points.shape[0]:
-            raise InputDataError(
-                f"map fusion: frame {frame.id} has {points.shape[0]} points but {weights.shape[0]} weights"
-            )
-        if self.grazing_weight and frame.xyz_map is not None:
-            valid = np.all(np.isfinite(frame.xyz_map), axis=2)
-            # front-ends build points as xyz_map[valid] in row-major order; use it when it fits
-            if np.count_nonzero(valid) == len(points):
-                weights = weights * grazing_weights(frame.xyz_map)[valid]
-        keep = np.all(np.isfinite(points), axis=1) & (weights > 0)
-        if math.isfinite(self.max_depth_m):
-            far = keep & (points[:, 2] > self.max_depth_m)
-            self.points_beyond_max_depth += int(np.count_nonzero(far))
-            keep &= ~far
-        points_world = transform_points(T, points[keep])
-        w = weights[keep]
-        if len(points_world):
-            columns = np.empty((len(w), 7))
-            columns[:, :3] = points_world * w[:, None]
-            columns[:, 3:6] = colors[keep] * w[:, None]
-            columns[:, 6] = w
-            keys, sums = _reduce(voxel_keys(points_world, self.voxel_size_m), columns)
-            self._pending.append((keys, sums))
-            self._pending_rows += len(keys)
+        self.add(self.preparer()(frame, T_world_sensor, point_weights))
+
+    def preparer(self) -> FramePreparer:
+        """The per-frame half of :meth:`integrate`, apart from this fuser's state: a picklable
+        callable ``(frame, T_world_sensor) -> PreparedFrame`` a worker process can run; fold its
+        results in with :meth:`add` (implements :class:`~fpp_graph.types.ParallelMapFuser`)."""
+        return FramePreparer(self.voxel_size_m, self.mesh, self.grazing_weight, self.max_depth_m)
+
+    def add(self, prepared: PreparedFrame) -> None:
+        """Fold in one frame's :class:`PreparedFrame` (from :meth:`preparer`, in this or another process)."""
+        self.points_beyond_max_depth += prepared.points_beyond_max_depth
+        if len(prepared.keys):
+            self._pending.append((prepared.keys, prepared.sums))
+            self._pending_rows += len(prepared.keys)
             # merge when the pending chunks outgrow the map: amortised O(map log map) per merge
             # and peak memory about twice the map
             if self._pending_rows > max(len(self._keys), 1_000_000):
                 self._merge()
         if self.mesh:
-            self._integrate_tsdf(frame, T)
+            if prepared.depth_m is None:
+                log.warning("frame %d has %s; it is left out of the TSDF mesh", prepared.frame_id, prepared.no_depth_reason)
+            else:
+                self._integrate_tsdf(prepared)
         self.frames_integrated += 1
 
     def _merge(self) -> None:
@@ -192,17 +181,10 @@ class VoxelMapFuser:
         self._pending = []
         self._pending_rows = 0
 
-    def _integrate_tsdf(self, frame: Frame, T_world_sensor: NDArray[np.float64]) -> None:
+    def _integrate_tsdf(self, prepared: PreparedFrame) -> None:
         import open3d as o3d
 
-        if frame.xyz_map is None:
-            log.warning("frame %d has no xyz_map; it is left out of the TSDF mesh", frame.id)
-            return
-        K = intrinsics_of(frame)
-        depth_m, rgb = render_depth(frame, K)
-        if not np.any(depth_m > 0):
-            log.warning("frame %d has no valid depth; it is left out of the TSDF mesh", frame.id)
-            return
+        assert prepared.depth_m is not None and prepared.rgb is not None and prepared.K is not None
         # Open3D's tensor VoxelBlockGrid: the legacy ScalableTSDFVolume of open3d 0.20 returns
         # empty meshes here (checked against UniformTSDFVolume on the same images)
         if self._volume is None:
@@ -215,11 +197,11 @@ class VoxelMapFuser:
                 block_count=self.tsdf_block_count,
                 device=o3d.core.Device("CPU:0"),
             )
-        depth = o3d.t.geometry.Image(o3d.core.Tensor(depth_m.astype(np.float32)))
-        color = o3d.t.geometry.Image(o3d.core.Tensor(rgb.astype(np.float32) / 255.0))
-        intrinsic = o3d.core.Tensor(K, dtype=o3d.core.float64)
+        depth = o3d.t.geometry.Image(o3d.core.Tensor(prepared.depth_m))
+        color = o3d.t.geometry.Image(o3d.core.Tensor(prepared.rgb.astype(np.float32) / 255.0))
+        intrinsic = o3d.core.Tensor(prepared.K, dtype=o3d.core.float64)
         # Open3D wants the extrinsic world -> camera, the inverse of our T_world_sensor
-        extrinsic = o3d.core.Tensor(invert(T_world_sensor), dtype=o3d.core.float64)
+        extrinsic = o3d.core.Tensor(invert(prepared.T_world_sensor), dtype=o3d.core.float64)
         depth_max_m = min(self.tsdf_depth_max_m, self.max_depth_m)
         blocks = self._volume.compute_unique_block_coordinates(
             depth, intrinsic, extrinsic, 1.0, depth_max_m, self.tsdf_truncation_m / self.tsdf_voxel_m
@@ -271,6 +253,81 @@ class VoxelMapFuser:
         raw fringe images are not decoded again.
         """
         return self.fuse(frames, new_poses_world_sensor)
+
+
+@dataclass(frozen=True, eq=False)
+class PreparedFrame:
+    """One frame's share of a :class:`VoxelMapFuser` map, computed without the fuser's state.
+
+    ``keys`` / ``sums``: the frame's occupied voxels and their weighted sums (columns w*x, w*y,
+    w*z, w*r, w*g, w*b, w); ``depth_m`` / ``rgb`` / ``K``: its pinhole depth image (float32,
+    metres), colours and intrinsics for the TSDF, None without a mesh or a depth
+    (``no_depth_reason`` says which).
+    """
+
+    frame_id: int
+    T_world_sensor: NDArray[np.float64]
+    keys: NDArray[np.int64]
+    sums: NDArray[np.float64]
+    points_beyond_max_depth: int
+    depth_m: NDArray[np.float32] | None = None
+    rgb: NDArray[np.uint8] | None = None
+    K: NDArray[np.float64] | None = None
+    no_depth_reason: str | None = None
+
+
+@dataclass(frozen=True)
+class FramePreparer:
+    """The per-frame work of :meth:`VoxelMapFuser.integrate` (grazing weights, voxel sums, the
+    depth rendering): a function of the frame, its pose and these settings alone, so the run's
+    worker processes can do it for several keyframes at once (:meth:`VoxelMapFuser.preparer`)."""
+
+    voxel_size_m: float
+    mesh: bool
+    grazing_weight: bool
+    max_depth_m: float
+
+    def __call__(self, frame: Frame, T_world_sensor: NDArray[np.float64], point_weights: NDArray[np.float64] | None = None) -> PreparedFrame:
+        T = np.asarray(T_world_sensor, dtype=np.float64)
+        if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+            raise InputDataError(f"map fusion: pose of frame {frame.id} must be a finite 4x4, got shape {T.shape}")
+        points = frame.points
+        colors = frame.colors if frame.colors is not None else np.full(points.shape, 0.5)
+        weights = np.ones(len(points)) if point_weights is None else np.asarray(point_weights, dtype=np.float64).reshape(-1)
+        if weights.shape[0] != points.shape[0]:
+            raise InputDataError(
+                f"map fusion: frame {frame.id} has {points.shape[0]} points but {weights.shape[0]} weights"
+            )
+        if self.grazing_weight and frame.xyz_map is not None:
+            valid = np.all(np.isfinite(frame.xyz_map), axis=2)
+            # front-ends build points as xyz_map[valid] in row-major order; use it when it fits
+            if np.count_nonzero(valid) == len(points):
+                weights = weights * grazing_weights(frame.xyz_map)[valid]
+        keep = np.all(np.isfinite(points), axis=1) & (weights > 0)
+        beyond = 0
+        if math.isfinite(self.max_depth_m):
+            far = keep & (points[:, 2] > self.max_depth_m)
+            beyond = int(np.count_nonzero(far))
+            keep &= ~far
+        points_world = transform_points(T, points[keep])
+        w = weights[keep]
+        keys, sums = np.zeros(0, dtype=np.int64), np.zeros((0, 7))
+        if len(points_world):
+            columns = np.empty((len(w), 7))
+            columns[:, :3] = points_world * w[:, None]
+            columns[:, 3:6] = colors[keep] * w[:, None]
+            columns[:, 6] = w
+            keys, sums = _reduce(voxel_keys(points_world, self.voxel_size_m), columns)
+        prepared = PreparedFrame(frame.id, T, keys, sums, beyond)
+        if not self.mesh:
+            return prepared
+        if frame.xyz_map is None:
+            return dataclasses.replace(prepared, no_depth_reason="no xyz_map")
+        K = intrinsics_of(frame)
+        depth_m, rgb = render_depth(frame, K)
+        if not np.any(depth_m > 0):
+            return dataclasses.replace(prepared, no_depth_reason="no valid depth")
+        return dataclasses.replace(prepared, depth_m=depth_m.astype(np.float32), rgb=rgb, K=K)
 
 
 def grazing_weights(xyz_map: NDArray[np.float64], floor: float = 0.05) -> NDArray[np.float64]:

@@ -25,6 +25,7 @@ import multiprocessing
 import os
 import shutil
 import time
+from collections import deque
 from collections.abc import Callable, Iterator
 from concurrent.futures import Executor, Future, ProcessPoolExecutor
 from dataclasses import dataclass, field
@@ -41,9 +42,14 @@ from fpp_graph.slam.frame_store import FrameStore, load_frame, save_frame
 from fpp_graph.slam.keyframes import KeyframeManager, SlamResult
 from fpp_graph.slam.sources import FrameSource, check_frame_source
 from fpp_graph.slam.verification import ExecutorVerifier
-from fpp_graph.slam.workers import decode_to_cache, init_worker, single_threaded_libraries
+from fpp_graph.slam.workers import (
+    decode_to_cache,
+    init_worker,
+    prepare_for_fusion,
+    single_threaded_libraries,
+)
 from fpp_graph.trajectory import Trajectory, write_tum
-from fpp_graph.types import Frame, FusedMap, MapFuser, PairVerifier
+from fpp_graph.types import Frame, FusedMap, MapFuser, PairVerifier, ParallelMapFuser
 
 log = logging.getLogger(__name__)
 
@@ -223,13 +229,15 @@ def write_trajectory_and_graph(out: Path, result: SlamResult, timestamps: dict[i
 # -- step 5: map ----------------------------------------------------------------------------
 def fuse_map(
     out: Path, result: SlamResult, store: FrameStore, config: Config, progress: ProgressCallback | None = None,
-    fuser: MapFuser | None = None, plot_samples: dict[int, np.ndarray] | None = None,
+    fuser: MapFuser | None = None, plot_samples: dict[int, np.ndarray] | None = None, executor: Executor | None = None,
 ) -> FusedMap:
     """Re-fuse keyframes under the optimised poses with ``fuser`` (default: a
     :class:`~fpp_graph.fusion.voxel_map.VoxelMapFuser` from ``config.fusion``); writes ``map.ply`` and,
     when the map has a mesh, ``mesh.ply``. ``plot_samples``, when given, receives a random subset
     of each keyframe's points (sensor frame, :data:`~fpp_graph.evaluation.plots.MAP_PLOT_POINTS` over all keyframes) in the same
-    pass, so the "before loop closure" map is drawn without reading the frames again."""
+    pass, so the "before loop closure" map is drawn without reading the frames again.
+    ``executor``: a :class:`~fpp_graph.types.ParallelMapFuser`'s per-keyframe work runs there,
+    a few keyframes at a time, folded in in keyframe order (the same map)."""
     from fpp_graph.evaluation.plots import MAP_PLOT_POINTS
     from fpp_graph.fusion.voxel_map import VoxelMapFuser, write_mesh_ply, write_point_cloud_ply
 
@@ -242,14 +250,24 @@ def fuse_map(
             max_depth_m=config.fusion.max_depth_m or math.inf,
         )
     per_keyframe = -(-MAP_PLOT_POINTS // max(len(result.keyframe_ids), 1))
-    for i, kf in enumerate(result.keyframe_ids):
-        frame = store.get(kf)
-        fuser.integrate(frame, result.poses_world_sensor[kf])
-        if plot_samples is not None:
-            pick = np.random.default_rng(kf).permutation(len(frame.points))[:per_keyframe]
-            plot_samples[kf] = np.asarray(frame.points, dtype=np.float64)[np.sort(pick)]
-        if progress:
-            progress("fuse", i + 1, len(result.keyframe_ids))
+    keyframes = [(kf, result.poses_world_sensor[kf]) for kf in result.keyframe_ids]
+    if executor is not None and isinstance(fuser, ParallelMapFuser) and store.directory is not None:
+        prepared = _prepared_on(executor, fuser, store, keyframes, per_keyframe)
+        for i, (kf, (share, sample)) in enumerate(zip(result.keyframe_ids, prepared, strict=True)):
+            fuser.add(share)
+            if plot_samples is not None:
+                plot_samples[kf] = sample
+            if progress:
+                progress("fuse", i + 1, len(keyframes))
+    else:
+        for i, (kf, T_world_sensor) in enumerate(keyframes):
+            frame = store.get(kf)
+            fuser.integrate(frame, T_world_sensor)
+            if plot_samples is not None:
+                pick = np.random.default_rng(kf).permutation(len(frame.points))[:per_keyframe]
+                plot_samples[kf] = np.asarray(frame.points, dtype=np.float64)[np.sort(pick)]
+            if progress:
+                progress("fuse", i + 1, len(keyframes))
     fused = fuser.result()
     beyond = getattr(fuser, "points_beyond_max_depth", 0)
     if beyond:
@@ -258,6 +276,26 @@ def fuse_map(
     if fused.mesh_vertices is not None and fused.mesh_triangles is not None and len(fused.mesh_triangles):
         write_mesh_ply(out / "mesh.ply", fused.mesh_vertices, fused.mesh_triangles, fused.mesh_vertex_colors)
     return fused
+
+
+# keyframes prepared ahead on the executor: enough to keep its workers busy while the main
+# process folds results in, few enough that their voxel sums and depth images stay small
+FUSION_PREPARED_AHEAD = 4
+
+
+def _prepared_on(
+    executor: Executor, fuser: ParallelMapFuser, store: FrameStore, keyframes: list[tuple[int, np.ndarray]], sample_points: int,
+) -> Iterator[tuple[Any, np.ndarray]]:
+    """``(prepared share, plot sample)`` of each keyframe in order, prepared on ``executor``
+    (:func:`~fpp_graph.slam.workers.prepare_for_fusion`) at most :data:`FUSION_PREPARED_AHEAD` ahead."""
+    preparer = fuser.preparer()
+    pending: deque[Future] = deque()
+    for kf, T_world_sensor in keyframes:
+        pending.append(executor.submit(prepare_for_fusion, preparer, str(store.path_of(kf)), T_world_sensor, sample_points, kf))
+        if len(pending) >= FUSION_PREPARED_AHEAD:
+            yield pending.popleft().result()
+    while pending:
+        yield pending.popleft().result()
 
 
 def fuse_points_only(result_poses: dict[int, np.ndarray], keyframe_ids: list[int], store: FrameStore, voxel_size_m: float):
@@ -379,18 +417,18 @@ class Pipeline:
                 timestamps[frame.id] = frame.timestamp
                 yield frame
 
+        samples: dict[int, np.ndarray] = {}
         try:
             with self._timed(report, "decode+track"), self._library_threads():
                 report.slam = track(frames_with_timestamps(), self.source, self.config, store, self.progress, verifier)
-        finally:  # done, failed or interrupted: the worker processes end with the tracking
+            report.frames_used = len(timestamps)
+            with self._timed(report, "write_graph"):
+                write_trajectory_and_graph(out, report.slam, timestamps)
+                write_loop_log(out, report.slam)
+            with self._timed(report, "fuse"):  # the keyframes' shares of the map on the workers too
+                fused = fuse_map(out, report.slam, store, self.config, self.progress, self.map_fuser, plot_samples=samples, executor=executor)
+        finally:  # done, failed or interrupted: the worker processes end with the run's last use of them
             self._shutdown_executor()
-        report.frames_used = len(timestamps)
-        with self._timed(report, "write_graph"):
-            write_trajectory_and_graph(out, report.slam, timestamps)
-            write_loop_log(out, report.slam)
-        samples: dict[int, np.ndarray] = {}
-        with self._timed(report, "fuse"):
-            fused = fuse_map(out, report.slam, store, self.config, self.progress, self.map_fuser, plot_samples=samples)
         with self._timed(report, "plots"):
             before_points = points_under_poses(samples, odometry_only_poses(report.slam))
             gt = self.source.ground_truth()

@@ -3,9 +3,9 @@
 A run's :class:`~concurrent.futures.ProcessPoolExecutor` starts each worker with
 :func:`init_worker` (the run's frame source, one thread per library); the main process then
 submits :func:`decode_to_cache` for frames ahead of tracking and :func:`verify_pair` for loop
-candidates (:class:`~fpp_graph.slam.verification.ExecutorVerifier`). Both read and write frames
-through the results folder's ``frames/`` cache, so only file paths and small results cross
-the process boundary.
+candidates (:class:`~fpp_graph.slam.verification.ExecutorVerifier`), and at the end
+:func:`prepare_for_fusion` for the keyframes of the map. They read and write frames through the
+results folder's ``frames/`` cache, so only file paths and results cross the process boundary.
 """
 
 from __future__ import annotations
@@ -16,6 +16,7 @@ import threading
 import time
 from collections import OrderedDict
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -123,6 +124,19 @@ def decode_to_cache(frame_id: int, cache_path: str, source: FrameSource | None =
         return None
     except FppError as exc:
         return str(exc)
+
+
+def prepare_for_fusion(
+    preparer: Callable[[Frame, NDArray[np.float64]], Any], frame_path: str, T_world_sensor: NDArray[np.float64],
+    sample_points: int, sample_seed: int,
+) -> tuple[Any, NDArray[np.float64]]:
+    """One keyframe's share of the map (``preparer``, from
+    :meth:`~fpp_graph.types.ParallelMapFuser.preparer`) and ``sample_points`` of its points
+    (sensor frame, the permutation seeded by ``sample_seed``) for the "before" plot. Needs no
+    source: any executor's worker can run it."""
+    frame = load_frame(frame_path)
+    pick = np.random.default_rng(sample_seed).permutation(len(frame.points))[:sample_points]
+    return preparer(frame, T_world_sensor), np.asarray(frame.points, dtype=np.float64)[np.sort(pick)]
 
 
 def _held_frame(path: str) -> Frame:

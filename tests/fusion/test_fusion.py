@@ -396,3 +396,60 @@ def test_rgbd_fusion_range_is_where_kinect_noise_reaches_the_truncation():
     assert 5.0 < depth_m < 5.5
     assert RgbdSource.resolve_config(config_from_dict({"fusion": {"max_depth_m": 3.0}})).fusion.max_depth_m == 3.0
     assert Config().fusion.max_depth_m is None  # FPP: no limit
+
+
+def test_fusion_on_worker_processes_gives_the_same_map(views, tmp_path):
+    # fuse_map with an executor: each keyframe's share (voxel sums, depth image) is prepared in
+    # a worker process and folded in in keyframe order; the map, the mesh and the "before"
+    # plot samples equal the one-process fusion's
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+    from types import SimpleNamespace
+
+    from fpp_graph.config import load_config
+    from fpp_graph.slam.frame_store import FrameStore
+    from fpp_graph.slam.pipeline import fuse_map
+    from fpp_graph.types import ParallelMapFuser
+
+    frames, poses = views
+    store = FrameStore(tmp_path / "frames")
+    for f in frames:
+        store.put(f)
+    store = FrameStore.open(tmp_path / "frames")  # both fusions read the stored frames
+    result = SimpleNamespace(keyframe_ids=[f.id for f in frames], poses_world_sensor=poses)
+    config = load_config(None)
+    serial_samples, parallel_samples = {}, {}
+    serial_fuser = VoxelMapFuser(0.002, 0.002, 0.008, mesh=True)
+    assert isinstance(serial_fuser, ParallelMapFuser)
+    (tmp_path / "serial").mkdir()
+    (tmp_path / "parallel").mkdir()
+    serial = fuse_map(tmp_path / "serial", result, store, config, fuser=serial_fuser, plot_samples=serial_samples)
+    class CountingExecutor:
+        def __init__(self, pool):
+            self.pool, self.tasks = pool, []
+
+        def submit(self, fn, *args):
+            self.tasks.append(fn.__name__)
+            return self.pool.submit(fn, *args)
+
+    with ProcessPoolExecutor(2, mp_context=multiprocessing.get_context("spawn")) as pool:
+        executor = CountingExecutor(pool)
+        parallel = fuse_map(tmp_path / "parallel", result, store, config, fuser=VoxelMapFuser(0.002, 0.002, 0.008, mesh=True),
+                            plot_samples=parallel_samples, executor=executor)
+    assert executor.tasks == ["prepare_for_fusion"] * len(frames)
+    np.testing.assert_array_equal(parallel.points_world_m, serial.points_world_m)
+    np.testing.assert_array_equal(parallel.weights, serial.weights)
+    # Open3D's TSDF hash map lists blocks in no fixed order: the same mesh, vertices permuted
+    assert len(parallel.mesh_triangles) == len(serial.mesh_triangles) > 10000
+    np.testing.assert_allclose(np.unique(parallel.mesh_vertices, axis=0), np.unique(serial.mesh_vertices, axis=0), atol=1e-9)
+    assert parallel_samples.keys() == serial_samples.keys()
+    for kf in serial_samples:
+        np.testing.assert_array_equal(parallel_samples[kf], serial_samples[kf])
+    assert (tmp_path / "parallel" / "map.ply").read_bytes() == (tmp_path / "serial" / "map.ply").read_bytes()
+
+
+def test_preparer_refuses_a_bad_pose_before_any_work(views):
+    frames, _ = views
+    prepare = VoxelMapFuser(0.002, 0.002, 0.008, mesh=True).preparer()
+    with pytest.raises(InputDataError, match="pose of frame 0 must be a finite 4x4"):
+        prepare(frames[0], np.full((4, 4), np.nan))
