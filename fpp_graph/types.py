@@ -9,7 +9,7 @@ Everything here is numpy arrays and frozen dataclasses, so it pickles across pro
 from __future__ import annotations
 
 import enum
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from concurrent.futures import Future
 from dataclasses import dataclass, field
 from typing import Any, Protocol, runtime_checkable
@@ -341,7 +341,8 @@ class ParallelMapFuser(MapFuser, Protocol):
     depends on the fuser's settings only (not on what it has fused); ``add(prepared)`` folds one
     result in. The pipeline prepares several keyframes at once on its executor and adds them in
     keyframe order, so the map is the same as from ``integrate`` one by one
-    (``integrate(f, T)`` must equal ``add(preparer()(f, T))``).
+    (``integrate(f, T)`` must equal ``add(preparer()(f, T))``). ``result(map_chunks)`` gets
+    the pool's map too.
     """
 
     def preparer(self) -> Callable[[Frame, NDArray[np.float64]], Any]:
@@ -350,4 +351,9 @@ class ParallelMapFuser(MapFuser, Protocol):
 
     def add(self, prepared: Any) -> None:
         """Fold in one frame's prepared result."""
+        ...
+
+    def result(self, map_chunks: Callable[[Callable[[Any], Any], Iterable[Any]], Iterable[Any]] = map) -> FusedMap:
+        """The map fused so far; ``map_chunks`` (builtin ``map`` or the pool's, with the same
+        meaning) may run a final pass over the map in chunks elsewhere, or be ignored."""
         ...

@@ -4,6 +4,8 @@ sums (:func:`_reduce`), and the surface smoothing of a voxel map on its 3x3x3 ne
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterable
+
 import numpy as np
 from numpy.typing import NDArray
 
@@ -67,18 +69,42 @@ def project_to_local_planes(
     min_neighbours: int = 8,
     max_flatness: float = 0.05,
     chunk: int = 50_000,
+    map_chunks: Callable[[Callable[[tuple], NDArray[np.float64]], Iterable[tuple]], Iterable[NDArray[np.float64]]] = map,
 ) -> NDArray[np.float64]:
     """Move each voxel point onto the local surface fitted to its 3x3x3 voxel neighbourhood.
 
     See :func:`_project_chunk`; the map is processed ``chunk`` voxels at a time so the work
     arrays stay bounded (about 27 neighbour pairs x ~20 float64 columns per voxel of a chunk,
-    ~200 MB at 50 000) whatever the map's size.
+    ~200 MB at 50 000) whatever the map's size. Each chunk carries only the keys its neighbours
+    can have (a packed key's neighbours lie within :data:`_NEIGHBOUR_KEY_REACH` of it), so
+    ``map_chunks`` (builtin ``map``, or an executor's windowed map) can run chunks in other
+    processes; the result does not depend on it.
     """
+    keys = np.asarray(keys)
     out = np.asarray(points, dtype=np.float64).copy()
-    for start in range(0, len(keys), chunk):
-        sl = slice(start, start + chunk)
-        out[sl] = _project_chunk(keys, points, weights, voxel_size_m, np.arange(start, min(start + chunk, len(keys))), min_neighbours, max_flatness)
+    tasks = (_chunk_task(keys, points, weights, voxel_size_m, start, min(start + chunk, len(keys)), min_neighbours, max_flatness)
+             for start in range(0, len(keys), chunk))
+    for start, moved in zip(range(0, len(keys), chunk), map_chunks(project_chunk_task, tasks), strict=True):
+        out[start : start + len(moved)] = moved
     return out
+
+
+# the largest difference between a packed key and the key of one of its 3x3x3 neighbours
+_NEIGHBOUR_KEY_REACH = (1 << (2 * _KEY_BITS)) + (1 << _KEY_BITS) + 1
+
+
+def _chunk_task(keys, points, weights, voxel_size_m, start, stop, min_neighbours, max_flatness) -> tuple:
+    """The arguments of :func:`project_chunk_task` for map rows ``start:stop``: the rows and every
+    voxel whose key lies within the neighbours' reach of theirs (keys are sorted)."""
+    lo = int(np.searchsorted(keys, keys[start] - _NEIGHBOUR_KEY_REACH, side="left"))
+    hi = int(np.searchsorted(keys, keys[stop - 1] + _NEIGHBOUR_KEY_REACH, side="right"))
+    return (keys[lo:hi], np.asarray(points[lo:hi], dtype=np.float64), np.asarray(weights[lo:hi], dtype=np.float64), voxel_size_m,
+            np.arange(start - lo, stop - lo), min_neighbours, max_flatness)
+
+
+def project_chunk_task(task: tuple) -> NDArray[np.float64]:
+    """:func:`_project_chunk` of one :func:`_chunk_task` (module level: picklable for worker processes)."""
+    return _project_chunk(*task)
 
 
 def _sums(pair_rows: NDArray[np.int64], weights: NDArray[np.float64], columns: list[NDArray[np.float64]], n: int) -> NDArray[np.float64]:
@@ -168,4 +194,4 @@ def _project_chunk(
     return out
 
 
-__all__ = ["project_to_local_planes", "voxel_keys"]
+__all__ = ["project_chunk_task", "project_to_local_planes", "voxel_keys"]

@@ -26,7 +26,7 @@ import os
 import shutil
 import time
 from collections import deque
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import Executor, Future, ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -45,7 +45,7 @@ from fpp_graph.slam.verification import ExecutorVerifier
 from fpp_graph.slam.workers import (
     decode_to_cache,
     init_worker,
-    prepare_for_fusion,
+    prepare_for_fusion_task,
     single_threaded_libraries,
 )
 from fpp_graph.trajectory import Trajectory, write_tum
@@ -251,7 +251,8 @@ def fuse_map(
         )
     per_keyframe = -(-MAP_PLOT_POINTS // max(len(result.keyframe_ids), 1))
     keyframes = [(kf, result.poses_world_sensor[kf]) for kf in result.keyframe_ids]
-    if executor is not None and isinstance(fuser, ParallelMapFuser) and store.directory is not None:
+    parallel = executor is not None and isinstance(fuser, ParallelMapFuser) and store.directory is not None
+    if parallel:
         prepared = _prepared_on(executor, fuser, store, keyframes, per_keyframe)
         for i, (kf, (share, sample)) in enumerate(zip(result.keyframe_ids, prepared, strict=True)):
             fuser.add(share)
@@ -268,7 +269,7 @@ def fuse_map(
                 plot_samples[kf] = np.asarray(frame.points, dtype=np.float64)[np.sort(pick)]
             if progress:
                 progress("fuse", i + 1, len(keyframes))
-    fused = fuser.result()
+    fused = fuser.result(map_chunks=windowed_map(executor)) if parallel else fuser.result()
     beyond = getattr(fuser, "points_beyond_max_depth", 0)
     if beyond:
         log.info("fusion: %d points beyond fusion.max_depth_m = %.2f m left out of the map and mesh", beyond, config.fusion.max_depth_m)
@@ -289,13 +290,24 @@ def _prepared_on(
     """``(prepared share, plot sample)`` of each keyframe in order, prepared on ``executor``
     (:func:`~fpp_graph.slam.workers.prepare_for_fusion`) at most :data:`FUSION_PREPARED_AHEAD` ahead."""
     preparer = fuser.preparer()
-    pending: deque[Future] = deque()
-    for kf, T_world_sensor in keyframes:
-        pending.append(executor.submit(prepare_for_fusion, preparer, str(store.path_of(kf)), T_world_sensor, sample_points, kf))
-        if len(pending) >= FUSION_PREPARED_AHEAD:
+    tasks = ((preparer, str(store.path_of(kf)), T_world_sensor, sample_points, kf) for kf, T_world_sensor in keyframes)
+    return windowed_map(executor)(prepare_for_fusion_task, tasks)
+
+
+def windowed_map(executor: Executor, ahead: int = FUSION_PREPARED_AHEAD) -> Callable[[Callable[[Any], Any], Iterable[Any]], Iterator[Any]]:
+    """``map`` on ``executor`` that keeps at most ``ahead`` tasks in flight and yields in order
+    (``Executor.map`` submits everything at once: every chunk's arrays would wait in memory)."""
+
+    def mapped(fn: Callable[[Any], Any], items: Iterable[Any]) -> Iterator[Any]:
+        pending: deque[Future] = deque()
+        for item in items:
+            pending.append(executor.submit(fn, item))
+            if len(pending) >= ahead:
+                yield pending.popleft().result()
+        while pending:
             yield pending.popleft().result()
-    while pending:
-        yield pending.popleft().result()
+
+    return mapped
 
 
 def fuse_points_only(result_poses: dict[int, np.ndarray], keyframe_ids: list[int], store: FrameStore, voxel_size_m: float):

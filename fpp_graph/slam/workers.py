@@ -139,6 +139,11 @@ def prepare_for_fusion(
     return preparer(frame, T_world_sensor), np.asarray(frame.points, dtype=np.float64)[np.sort(pick)]
 
 
+def prepare_for_fusion_task(task: tuple) -> tuple[Any, NDArray[np.float64]]:
+    """:func:`prepare_for_fusion` of one argument tuple (for a map over the pool)."""
+    return prepare_for_fusion(*task)
+
+
 def _held_frame(path: str) -> Frame:
     frame = _FRAMES.get(path)
     if frame is None:

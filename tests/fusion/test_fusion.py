@@ -400,8 +400,8 @@ def test_rgbd_fusion_range_is_where_kinect_noise_reaches_the_truncation():
 
 def test_fusion_on_worker_processes_gives_the_same_map(views, tmp_path):
     # fuse_map with an executor: each keyframe's share (voxel sums, depth image) is prepared in
-    # a worker process and folded in in keyframe order; the map, the mesh and the "before"
-    # plot samples equal the one-process fusion's
+    # a worker process and folded in in keyframe order, the smoothing runs there by chunks; the
+    # map, the mesh and the "before" plot samples equal the one-process fusion's
     import multiprocessing
     from concurrent.futures import ProcessPoolExecutor
     from types import SimpleNamespace
@@ -436,7 +436,9 @@ def test_fusion_on_worker_processes_gives_the_same_map(views, tmp_path):
         executor = CountingExecutor(pool)
         parallel = fuse_map(tmp_path / "parallel", result, store, config, fuser=VoxelMapFuser(0.002, 0.002, 0.008, mesh=True),
                             plot_samples=parallel_samples, executor=executor)
-    assert executor.tasks == ["prepare_for_fusion"] * len(frames)
+    # each keyframe prepared there, then the surface smoothing's chunks of 50 000 voxels
+    chunks = -(-serial.num_points // 50_000)
+    assert chunks >= 2 and executor.tasks == ["prepare_for_fusion_task"] * len(frames) + ["project_chunk_task"] * chunks
     np.testing.assert_array_equal(parallel.points_world_m, serial.points_world_m)
     np.testing.assert_array_equal(parallel.weights, serial.weights)
     # Open3D's TSDF hash map lists blocks in no fixed order: the same mesh, vertices permuted
