@@ -33,7 +33,9 @@ to a frozen result (:mod:`.stages`, :mod:`.refinement`), on a running :class:`~.
    held gives the tilts and the distance, and :meth:`FppPairRegistrar.refine_plane_photometric`
    sets the in-plane shifts and spin from the texture
    (:func:`frontend.localization.localize_photometric` with the FPP shading model, the
-   geometry's directions held). Its information joins the constraint, not the gates;
+   geometry's directions held). Its information joins the constraint, not the gates. An
+   appearance-only loop candidate takes step 9's look-alike test first (``Checkpoint.REVISIT``):
+   the step costs 2-3 s a pair at 1920x1200 and a look-alike place is refused anyway;
 9. :func:`~.refinement.check_weak_geometry`: whether the keypoints pin weak joint geometry
    (:func:`check_degeneracy`) and, for appearance-only loop candidates, whether the textures
    agree over the overlap (:func:`texture_agreement`).
