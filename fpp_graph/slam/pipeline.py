@@ -45,6 +45,7 @@ from fpp_graph.slam.verification import ExecutorVerifier
 from fpp_graph.slam.workers import (
     decode_to_cache,
     init_worker,
+    plot_sample,
     prepare_for_fusion_task,
     single_threaded_libraries,
 )
@@ -252,23 +253,24 @@ def fuse_map(
     per_keyframe = -(-MAP_PLOT_POINTS // max(len(result.keyframe_ids), 1))
     keyframes = [(kf, result.poses_world_sensor[kf]) for kf in result.keyframe_ids]
     parallel = executor is not None and isinstance(fuser, ParallelMapFuser) and store.directory is not None
-    if parallel:
-        prepared = _prepared_on(executor, fuser, store, keyframes, per_keyframe)
-        for i, (kf, (share, sample)) in enumerate(zip(result.keyframe_ids, prepared, strict=True)):
-            fuser.add(share)
-            if plot_samples is not None:
-                plot_samples[kf] = sample
-            if progress:
-                progress("fuse", i + 1, len(keyframes))
-    else:
-        for i, (kf, T_world_sensor) in enumerate(keyframes):
-            frame = store.get(kf)
-            fuser.integrate(frame, T_world_sensor)
-            if plot_samples is not None:
-                pick = np.random.default_rng(kf).permutation(len(frame.points))[:per_keyframe]
-                plot_samples[kf] = np.asarray(frame.points, dtype=np.float64)[np.sort(pick)]
-            if progress:
-                progress("fuse", i + 1, len(keyframes))
+
+    def folded() -> Iterator[tuple[int, np.ndarray | None]]:
+        """Each keyframe into the map, in keyframe order; yields it with its plot sample."""
+        if parallel:
+            for (kf, _), (share, sample) in zip(keyframes, _prepared_on(executor, fuser, store, keyframes, per_keyframe), strict=True):
+                fuser.add(share)
+                yield kf, sample
+        else:
+            for kf, T_world_sensor in keyframes:
+                frame = store.get(kf)
+                fuser.integrate(frame, T_world_sensor)
+                yield kf, plot_sample(frame, per_keyframe, kf) if plot_samples is not None else None
+
+    for i, (kf, sample) in enumerate(folded()):
+        if plot_samples is not None:
+            plot_samples[kf] = sample
+        if progress:
+            progress("fuse", i + 1, len(keyframes))
     fused = fuser.result(map_chunks=windowed_map(executor)) if parallel else fuser.result()
     beyond = getattr(fuser, "points_beyond_max_depth", 0)
     if beyond:

@@ -135,8 +135,14 @@ def prepare_for_fusion(
     (sensor frame, the permutation seeded by ``sample_seed``) for the "before" plot. Needs no
     source: any executor's worker can run it."""
     frame = load_frame(frame_path)
-    pick = np.random.default_rng(sample_seed).permutation(len(frame.points))[:sample_points]
-    return preparer(frame, T_world_sensor), np.asarray(frame.points, dtype=np.float64)[np.sort(pick)]
+    return preparer(frame, T_world_sensor), plot_sample(frame, sample_points, sample_seed)
+
+
+def plot_sample(frame: Frame, count: int, seed: int) -> NDArray[np.float64]:
+    """``count`` of the frame's points (sensor frame, in their order), drawn by a permutation
+    seeded by ``seed``: the same sample wherever the frame is read."""
+    pick = np.random.default_rng(seed).permutation(len(frame.points))[:count]
+    return np.asarray(frame.points, dtype=np.float64)[np.sort(pick)]
 
 
 def prepare_for_fusion_task(task: tuple) -> tuple[Any, NDArray[np.float64]]:

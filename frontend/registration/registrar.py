@@ -251,19 +251,20 @@ class FppPairRegistrar:
         s.timer.stop("information", started)
         is_loop = ConstraintKind(kind) is ConstraintKind.LOOP
         self._refine_dense(s)
+        checked_pose = None
         if photometric_applies(self.texture_sets_planes, s.weak, s.dense):
             if is_loop and T_guess is None:
                 # an appearance-only revisit on weak geometry: the look-alike test first, at the
                 # dense pose. The photometric step (2-3 s a pair at 1920x1200) rarely converges on
                 # a look-alike's mismatched textures and never lifted a rejected pair's agreement
                 # over the gate (61 simulated pairs: it moved 11 by at most 0.18, none across)
-                s.check = check_weak_geometry(target, source, s.pose, s.weak.icp.source_points, is_loop, T_guess, cfg)
-                s.meta.update(s.check.metadata)
+                self._check_weak_geometry(s, is_loop)
+                checked_pose = s.pose
                 if rejected := rejection(Checkpoint.REVISIT, s, cfg):
                     return rejected
             self._refine_photometric(s)
-        s.check = check_weak_geometry(target, source, s.pose, s.weak.icp.source_points, is_loop, T_guess, cfg)
-        s.meta.update(s.check.metadata)
+        if s.pose is not checked_pose:  # the photometric step moved it (or nothing checked yet)
+            self._check_weak_geometry(s, is_loop)
         return rejection(Checkpoint.FINAL, s, cfg) or self._accept(s)
 
     def track(self, target: Frame, source: Frame, T_predicted: NDArray[np.float64]) -> Constraint:
@@ -296,6 +297,12 @@ class FppPairRegistrar:
         s.pose = s.photometric.pose
         s.meta.update(s.photometric.metadata)
         s.timer.stop("photometric", started)
+
+    def _check_weak_geometry(self, s: PairState, is_loop: bool) -> None:
+        """Step 9 at the current pose: whether the keypoints pin weak geometry and, for an
+        appearance-only revisit, whether the textures agree."""
+        s.check = check_weak_geometry(s.target, s.source, s.pose, s.weak.icp.source_points, is_loop, s.T_guess, self.config)
+        s.meta.update(s.check.metadata)
 
     def _accept(self, s: PairState) -> Constraint:
         s.meta["timings_s"] = dict(s.timer.wall_s)
