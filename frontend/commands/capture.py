@@ -129,6 +129,7 @@ def calibrate(
     white_threshold: Annotated[float, typer.Option("--white-threshold", help="... and every Gray bit differs from its inverse by at least this.")] = 5.0,
     skip_missing_board: Annotated[bool, typer.Option("--skip-missing-board", help="Skip poses whose board is not found instead of stopping.")] = False,
     release_board: Annotated[bool, typer.Option("--release-board", help="Estimate the board's corner positions too (a board that is not flat); needs many varied poses (15 in the simulator; 5 are too few), see the README.")] = False,
+    corners: Annotated[str, typer.Option("--corners", help="Camera corner refinement: 'model' (cornerSubPix, then a blurred X-junction fit: 0.005 px on simulated boards) or 'subpix' (cornerSubPix alone, as procam-calibration).")] = "model",
 ) -> None:
     """Camera + projector calibration from chessboard captures; prints per-view and overall reprojection RMS."""
     from fpp_graph.cli import RichProgress, setup_logging
@@ -140,8 +141,10 @@ def calibrate(
     from frontend.fpp.rig import save_calibration
 
     setup_logging("WARNING")
-    corners = required_size(board, "--board")
+    inner_corners = required_size(board, "--board")
     size = required_size(projector, "--projector")
+    if corners not in ("model", "subpix"):
+        raise ConfigError(f"--corners must be 'model' or 'subpix', got {corners!r}")
     if not square_mm > 0:
         raise ConfigError(f"--square-mm must be positive, got {square_mm}")
     spec = load_pattern_spec(patterns)
@@ -150,8 +153,8 @@ def calibrate(
     folders = pose_folders(board_captures, poses)
     with RichProgress() as progress:
         report = calibrate_pose_folders(
-            folders, spec, Chessboard(corners, square_mm * 1e-3), size, decode_config, images=images, skip_missing_board=skip_missing_board,
-            progress=progress, release_board=release_board,
+            folders, spec, Chessboard(inner_corners, square_mm * 1e-3), size, decode_config, images=images, skip_missing_board=skip_missing_board,
+            progress=progress, release_board=release_board, corner_model=corners == "model",
         )
     save_calibration(out, report.calibration)
     rms = report.calibration.reprojection_rms_px

