@@ -4,10 +4,10 @@
 
 Renders the first board poses of the default simulated calibration (seed 0, linear projector,
 no board errors), finds the camera corners as the calibration does
-(:func:`frontend.fpp.calibration_board.find_chessboard`: cornerSubPix) and with OpenCV's
-``findChessboardCornersSB``, and reads the projector corners by local homographies both at the
-detected and at the true camera corners. The difference says which device's corners carry the
-calibration's residual.
+(:func:`frontend.fpp.calibration_board.find_chessboard`: cornerSubPix, then the blurred
+X-junction fit), with cornerSubPix alone and with OpenCV's ``findChessboardCornersSB``, and
+reads the projector corners by local homographies both at the detected and at the true camera
+corners. The difference says which device's corners carry the calibration's residual.
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from fpp_graph.errors import CalibrationError
-from frontend.fpp.calibration_board import Chessboard, projector_corners
+from frontend.fpp.calibration_board import Chessboard, find_chessboard, projector_corners
 from frontend.fpp.calibration_captures import iter_graycode_captures, sample_board_poses
 from frontend.fpp.lens import project_to_projector
 from frontend.fpp.rig import RigCalibration
@@ -38,7 +38,8 @@ def rms_px(err: np.ndarray) -> float:
 
 
 def corner_errors(truth: RigCalibration, board: Chessboard, T_camera_board: np.ndarray, capture: tuple, specs: list) -> dict[str, float] | None:
-    """RMS corner errors (px) of one rendered pose: ``camera`` (cornerSubPix), ``camera_sb``
+    """RMS corner errors (px) of one rendered pose: ``camera`` (as the calibration finds them:
+    cornerSubPix then the X-junction fit), ``camera_subpix`` (cornerSubPix alone), ``camera_sb``
     (findChessboardCornersSB, NaN if it fails), ``projector`` (read at the detected camera
     corners) and ``projector_at_true`` (read at the true ones); None if the board is not found."""
     stack, white, _black = capture
@@ -58,7 +59,8 @@ def corner_errors(truth: RigCalibration, board: Chessboard, T_camera_board: np.n
     if found:
         sb = sb.reshape(-1, 2).astype(np.float64)
         sb_rms = rms_px(sb[cKDTree(sb).query(true_camera)[1]] - true_camera)  # SB may order the corners otherwise
-    return {"camera": rms_px(detected - true_camera), "camera_sb": sb_rms,
+    subpix = find_chessboard(white, board, model_fit=False)
+    return {"camera": rms_px(detected - true_camera), "camera_subpix": rms_px(subpix - true_camera), "camera_sb": sb_rms,
             "projector": rms_px(at_detected - true_projector), "projector_at_true": rms_px(at_true - true_projector)}
 
 
@@ -75,13 +77,13 @@ def main(argv: list[str] | None = None) -> int:
                                max_tilt_deg=settings.max_tilt_deg, image_coverage=settings.image_coverage)[: args.poses]
     specs = board_pattern_specs(truth)
     captures = iter_graycode_captures(truth, board, poses, rng, pattern_specs=specs, supersample=settings.supersample, noise_grey=args.noise)
-    print("corner error against the truth, RMS px: camera (cornerSubPix / findChessboardCornersSB); projector at the detected / at the true camera corners")
+    print("corner error against the truth, RMS px: camera (X-junction fit / cornerSubPix alone / findChessboardCornersSB); projector at the detected / at the true camera corners")
     for k, capture in enumerate(captures):
         e = corner_errors(truth, board, poses[k], capture, specs)
         if e is None:
             print(f"  pose {k}: board not found")
             continue
-        print(f"  pose {k}: camera {e['camera']:.4f} / {e['camera_sb']:.4f}; projector {e['projector']:.4f} / {e['projector_at_true']:.4f}")
+        print(f"  pose {k}: camera {e['camera']:.4f} / {e['camera_subpix']:.4f} / {e['camera_sb']:.4f}; projector {e['projector']:.4f} / {e['projector_at_true']:.4f}")
     return 0
 
 

@@ -54,8 +54,10 @@ def estimated(cache_dir):
 def test_estimated_calibration_is_close_but_not_the_truth(estimated):
     truth, est, _ = estimated
     rms = est.report["reprojection_rms_px"]
-    # a real procam rig calibrates to 0.1-0.4 px (the shared sample: 0.295 px)
-    assert 0.03 < rms["stereo"] < 0.4, rms
+    # a real procam rig calibrates to 0.1-0.4 px (the shared sample: 0.257 px, 0.295 with
+    # cornerSubPix alone); the simulated rig's noise and the corner fit leave about 0.016 px
+    # here: not zero, it is an estimate from noisy captures
+    assert 0.005 < rms["stereo"] < 0.4, rms
     err = est.report["errors_vs_truth"]
     # 8 poses of a half-size camera: the projector (100 % lens offset) is the weak part, as on real rigs
     assert abs(err["camera_fx_err_percent"]) < 0.2 and abs(err["camera_cx_err_px"]) < 3
@@ -225,7 +227,8 @@ def test_pair_error_from_the_calibration_alone(estimated):
 def test_board_corner_errors_are_the_camera_detectors():
     """Noise-free board captures: the projector corners read at the true camera corners are
     within a hundredth of a pixel, so the calibration's residual is the camera corner
-    detector's (a few hundredths), carried into the projector corners it reads them at."""
+    detector's, carried into the projector corners it reads them at: a few hundredths of a
+    pixel with cornerSubPix alone, several times less with the X-junction fit."""
     from frontend.fpp.calibration_board import Chessboard
     from frontend.fpp.calibration_captures import iter_graycode_captures, sample_board_poses
     from frontend.sim.calibration import board_pattern_specs
@@ -240,8 +243,11 @@ def test_board_corner_errors_are_the_camera_detectors():
     rows = [corner_errors(truth, board, T, capture, specs) for T, capture in zip(poses, iter_graycode_captures(truth, board, poses, rng, pattern_specs=specs, supersample=2, noise_grey=0.0), strict=True)]
     for e in rows:
         assert e is not None
-        assert e["projector_at_true"] < 0.015 and 0.005 < e["camera"] < 0.15  # measured 0.007-0.009 and 0.027-0.031 at 960x600
-        assert e["projector"] > 2 * e["projector_at_true"]
+        # measured at 960x600: projector at the true corners 0.007-0.009, cornerSubPix 0.027-0.031,
+        # the X-junction fit 0.004-0.005 px
+        assert e["projector_at_true"] < 0.015 and 0.01 < e["camera_subpix"] < 0.15
+        assert e["camera"] < 0.4 * e["camera_subpix"]
+        assert e["projector"] < 2 * e["projector_at_true"]
 
 
 def test_calibration_report_refuses_bad_seeds(capsys):
