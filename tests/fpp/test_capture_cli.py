@@ -181,7 +181,7 @@ def test_decode_slmaster_heterodyne_matches_slmaster(slmaster_calibration, tmp_p
 def test_calibrate_procam_sample_reproduces_the_stereo_rms(tmp_path):
     """With cornerSubPix's corners (``--corners subpix``, procam-calibration's detector) the
     sample's stereo RMS is 0.295 px; the default X-junction fit brings it to 0.257 px (camera
-    0.309 -> 0.299, projector 0.191 -> 0.161: the projector corners are read at the camera's)."""
+    0.309 -> 0.299, projector 0.191 -> 0.160: the projector corners are read at the camera's)."""
     root = shared_data_path("real_fpp", "procam_calibration")
     from frontend.fpp.rig import load_calibration
 

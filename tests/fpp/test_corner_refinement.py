@@ -7,7 +7,12 @@ import numpy as np
 import pytest
 
 from frontend.fpp.calibration_board import Chessboard, find_chessboard
-from frontend.fpp.corner_refinement import MAX_HALF_WINDOW_PX, MIN_HALF_WINDOW_PX, fit_corner_model, half_window_px
+from frontend.fpp.corner_refinement import (
+    MAX_HALF_WINDOW_PX,
+    MIN_HALF_WINDOW_PX,
+    fit_corner_model,
+    half_window_px,
+)
 
 
 def render_board(H: np.ndarray, board: Chessboard, size=(320, 260), samples=8, blur_px=0.8, noise_grey=0.0, seed=0):
