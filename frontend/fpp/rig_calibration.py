@@ -8,7 +8,10 @@ both). Steps, after Moreno & Taubin (3DIMPVT 2012) as kamino410/procam-calibrati
    set with ``axis: both`` (e.g. OpenCV's Gray code with inverses,
    :func:`~frontend.fpp.patterns.opencv_gray_code_spec`), or column and row phase captures.
 2. :func:`~frontend.fpp.calibration_board.find_chessboard`: ``cv2.findChessboardCorners`` +
-   ``cv2.cornerSubPix`` on the fully lit (white) image.
+   ``cv2.cornerSubPix`` on the fully lit (white) image, then (unlike procam-calibration) a
+   blurred X-junction fitted around each corner (:mod:`frontend.fpp.corner_refinement`):
+   cornerSubPix's few hundredths of a pixel were the whole of a simulated rig's calibration
+   error.
 3. :func:`~frontend.fpp.calibration_board.projector_corners`: each corner's projector coordinate
    by a local homography fitted to the decoded pixels in a window around it (robust to a few
    wrong codes), evaluated at the sub-pixel camera corner.
