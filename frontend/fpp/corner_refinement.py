@@ -84,10 +84,12 @@ class _Windows:
         centre = np.rint(corners_px).astype(np.intp)
         self.x = (centre[:, 0:1] + gx[disc][None]).astype(np.float64)
         self.y = (centre[:, 1:2] + gy[disc][None]).astype(np.float64)
-        self.inside = (self.x >= 0) & (self.x < W) & (self.y >= 0) & (self.y < H)
         rows = np.clip(self.y, 0, H - 1).astype(np.intp)
         cols = np.clip(self.x, 0, W - 1).astype(np.intp)
-        self.values = np.where(self.inside, image[rows, cols], 0.0)
+        sampled = image[rows, cols]
+        # pixels off the image or undecoded (NaN in a decoded texture) take no part
+        self.inside = (self.x >= 0) & (self.x < W) & (self.y >= 0) & (self.y < H) & np.isfinite(sampled)
+        self.values = np.where(self.inside, sampled, 0.0)
         self.weight = self.inside.astype(np.float64)
 
 

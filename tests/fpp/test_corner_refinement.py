@@ -88,3 +88,16 @@ def test_window_is_a_quarter_of_the_corner_spacing_within_bounds():
     assert half_window_px(grid * 40.0, board) == 10
     assert half_window_px(grid * 400.0, board) == MAX_HALF_WINDOW_PX
     assert half_window_px(grid * 6.0, board) == MIN_HALF_WINDOW_PX
+
+
+def test_undecoded_pixels_in_a_texture_take_no_part():
+    """A decoded texture (the corners' image when a pattern set has no white image) is NaN where
+    decoding failed: those pixels are left out of the fit, the corner is still refined."""
+    board = Chessboard((6, 5), 0.02)
+    image, truth = render_board(tilted_view(), board)
+    start = truth + np.random.default_rng(2).normal(0.0, 0.05, truth.shape)
+    v, u = np.mgrid[0 : image.shape[0], 0 : image.shape[1]]
+    holed = np.where((u - truth[8, 0] - 6.0) ** 2 + (v - truth[8, 1]) ** 2 < 3.0**2, np.nan, image)
+    refined, fitted = fit_corner_model(holed, start, board.corners)
+    assert fitted.all()
+    assert np.linalg.norm(refined[8] - truth[8]) < 0.03  # 0.015 px: the hole breaks the window's symmetry
