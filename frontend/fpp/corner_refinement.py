@@ -178,8 +178,10 @@ def fit_corner_model(image: ArrayLike, corners_px: ArrayLike, board_corners: tup
     cost, m, d = _cost(win, p)
     damping = np.full(len(start), 1e-3)
     for _ in range(_ITERATIONS):
-        _shape, J = _jacobian(win, p, d)
-        residual = (m[:, None] + d[:, None] * _shape - win.values) * win.weight
+        # the step is taken in all 8 parameters, but only the 6 geometric ones are kept: every
+        # trial re-solves the level m and contrast d linearly (_cost), which converges faster
+        shape, J = _jacobian(win, p, d)
+        residual = (m[:, None] + d[:, None] * shape - win.values) * win.weight
         JTJ = np.einsum("kpi,kpj->kij", J, J)
         JTr = np.einsum("kpi,kp->ki", J, residual)
         A = JTJ + damping[:, None, None] * (np.einsum("kii->ki", JTJ)[:, :, None] * np.eye(8) + 1e-12 * np.eye(8))
