@@ -179,7 +179,8 @@ def fit_corner_model(image: ArrayLike, corners_px: ArrayLike, board_corners: tup
     damping = np.full(len(start), 1e-3)
     for _ in range(_ITERATIONS):
         # the step is taken in all 8 parameters, but only the 6 geometric ones are kept: every
-        # trial re-solves the level m and contrast d linearly (_cost), which converges faster
+        # trial re-solves the level m and contrast d linearly (_cost): they are always the best for
+        # the trial geometry
         shape, J = _jacobian(win, p, d)
         residual = (m[:, None] + d[:, None] * shape - win.values) * win.weight
         JTJ = np.einsum("kpi,kpj->kij", J, J)
