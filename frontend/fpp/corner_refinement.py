@@ -44,6 +44,8 @@ MAX_MOVE_PX = 1.0
 # The model must explain the window: residual RMS over the contrast (a corner under a glare
 # spot, a scratch or the board's edge does not fit).
 MAX_RESIDUAL_OVER_CONTRAST = 0.1
+# A fixed count for the whole batch: on the procam sample and on simulated boards the corners
+# are within 1e-7 px of their 60-iteration positions after 10; 30 leaves room for poorer starts.
 _ITERATIONS = 30
 
 
