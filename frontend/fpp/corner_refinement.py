@@ -28,6 +28,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.special import erf
 
+from fpp_graph.errors import CalibrationError
+
 log = logging.getLogger(__name__)
 
 # The fit's disc must hold only the two edges that cross at the corner: the nearest other edge
@@ -172,6 +174,12 @@ def fit_corner_model(image: ArrayLike, corners_px: ArrayLike, board_corners: tup
     """
     img = np.asarray(image, dtype=np.float64)
     start = np.asarray(corners_px, dtype=np.float64).reshape(-1, 2)
+    nx, ny = board_corners
+    if img.ndim != 2 or len(start) != nx * ny:
+        raise CalibrationError(
+            f"corner fit: needs a grey (H, W) image and the board's {nx}x{ny} = {nx * ny} corners in OpenCV's order, "
+            f"got an image of shape {img.shape} and {len(start)} corners; pass the corners cv2.findChessboardCorners returned for this board"
+        )
     if half_px is None:
         half_px = half_window_px(start, board_corners)
     win = _Windows(img, start, half_px)

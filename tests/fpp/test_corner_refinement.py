@@ -6,6 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
+from fpp_graph.errors import CalibrationError
 from frontend.fpp.calibration_board import Chessboard, find_chessboard
 from frontend.fpp.corner_refinement import (
     MAX_HALF_WINDOW_PX,
@@ -101,3 +102,12 @@ def test_undecoded_pixels_in_a_texture_take_no_part():
     refined, fitted = fit_corner_model(holed, start, board.corners)
     assert fitted.all()
     assert np.linalg.norm(refined[8] - truth[8]) < 0.03  # 0.015 px: the hole breaks the window's symmetry
+
+
+def test_corners_that_are_not_the_boards_grid_are_refused():
+    board = Chessboard((6, 5), 0.02)
+    image, truth = render_board(tilted_view(), board)
+    with pytest.raises(CalibrationError, match=r"6x5 = 30 corners .* got an image of shape \(260, 320\) and 29 corners"):
+        fit_corner_model(image, truth[:-1], board.corners)
+    with pytest.raises(CalibrationError, match="grey"):
+        fit_corner_model(np.dstack([image] * 3), truth, board.corners)
