@@ -232,6 +232,21 @@ class FrameTracker(Protocol):
 
 
 @runtime_checkable
+class FrameDescriber(Protocol):
+    """Optional third capability of a :class:`PairRegistrar`: keypoints and descriptors on demand.
+
+    A source whose frames are tracked from motion may decode them without keypoints (a tracked
+    frame never needs its own: :class:`FrameTracker` follows the keyframe's). The keyframe
+    manager then has each new keyframe described once, before it is indexed for loop detection
+    and stored for loop verification; ``register`` describes what it is given as it needs.
+    """
+
+    def describe(self, frame: Frame) -> Frame:
+        """``frame`` with ``keypoints_uv`` and ``descriptors`` (the same object when it has them)."""
+        ...
+
+
+@runtime_checkable
 class PairVerifier(Protocol):
     """Registers pairs of stored keyframes off the tracking path (loop verification).
 

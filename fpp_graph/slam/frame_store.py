@@ -181,8 +181,10 @@ class FrameStore:
     def ids(self) -> list[int]:
         return list(self._ids)
 
-    def put(self, frame: Frame) -> None:
-        if self.directory is not None and not self.path_of(frame.id).exists():
+    def put(self, frame: Frame, rewrite: bool = False) -> None:
+        """Keep ``frame`` (on disk unless it is there already; ``rewrite``: replace the stored
+        copy, e.g. by the same frame with its keypoints added)."""
+        if self.directory is not None and (rewrite or not self.path_of(frame.id).exists()):
             save_frame(self.path_of(frame.id), frame)
         if frame.id not in self._ids:
             self._ids.append(frame.id)

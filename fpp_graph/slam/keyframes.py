@@ -68,6 +68,7 @@ from fpp_graph.types import (
     Constraint,
     ConstraintKind,
     Frame,
+    FrameDescriber,
     LoopCandidate,
     LoopDetector,
     PairRegistrar,
@@ -176,6 +177,7 @@ class KeyframeManager:
     def process(self, frame: Frame) -> bool:
         """Add one frame; returns whether it became a keyframe."""
         if not self.keyframe_ids:
+            frame = self._described(frame)
             T0 = frame.T_world_sensor_guess if frame.T_world_sensor_guess is not None else np.eye(4)
             self._add_keyframe(frame, np.array(T0), odometry=None, drift_var=0.0)
             self.segment_starts.append(frame.id)
@@ -188,6 +190,7 @@ class KeyframeManager:
         if odometry is None:
             odometry = self._register_to_recent(frame, T_predicted)
         if odometry is None:
+            frame = self._described(frame)
             self._tracking.predictor.reset()
             self._tracking.predictor.observe(frame.id, frame.timestamp, None, np.eye(4))
             last = self.keyframe_ids[-1]
@@ -203,6 +206,7 @@ class KeyframeManager:
         is_keyframe = self._is_keyframe(odometry)
         self._tracking.predictor.observe(frame.id, frame.timestamp, kf_id, odometry.T_target_source)
         if is_keyframe:
+            frame = self._described(frame)
             T_world = compose(self.T_world_keyframe[kf_id], odometry.T_target_source)
             step_cov = constraint_covariance(odometry)
             step_var = step_position_variance_m2(step_cov, odometry.T_target_source)
@@ -213,6 +217,18 @@ class KeyframeManager:
             return True
         self.T_keyframe_frame[frame.id] = (kf_id, odometry.T_target_source.copy())
         return False
+
+    def _described(self, frame: Frame) -> Frame:
+        """A new keyframe with its keypoints and descriptors: a source whose frames are tracked
+        may decode them without (:class:`~fpp_graph.types.FrameDescriber`); the keyframe needs
+        them for the loop detector's index, for loop verification on the workers (which read
+        the stored copy) and for the frames tracked against it."""
+        if frame.descriptors is not None or not isinstance(self.registrar, FrameDescriber):
+            return frame
+        described = self.registrar.describe(frame)
+        if described is not frame:
+            self.store.put(described, rewrite=True)
+        return described
 
     def _register_to_recent(self, frame: Frame, T_predicted: NDArray[np.float64] | None = None) -> Constraint | None:
         reasons = []

@@ -44,7 +44,9 @@ class FrameSource(Protocol):
         ...
 
     def load_frame(self, frame_id: int) -> Frame:
-        """Decode one frame (with keypoints and descriptors); InputDataError when it is unusable."""
+        """Decode one frame; InputDataError when it is unusable. With keypoints and descriptors,
+        unless the registrar is a :class:`~fpp_graph.types.FrameDescriber` (then the keyframe
+        manager has keyframes described, and ``register`` describes what it needs)."""
         ...
 
     def make_registrar(self) -> PairRegistrar:

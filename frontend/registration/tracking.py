@@ -16,8 +16,11 @@ Gates (each a measured property of the fit, thresholds from the sensor's noise m
   axis: :func:`~frontend.registration.weak_directions.check_degeneracy` with
   ``weak_directions.degeneracy_ratio``) are taken from the keypoints as a full registration
   takes them (the dense fit alone keeps the prediction's error there: a corridor's 12 mm
-  velocity error stayed 12 mm); rejected when too few keypoints agree with the dense pose or
-  they leave a direction above ``lengths.max_weak_sigma_m`` (the full registration's gate);
+  velocity error stayed 12 mm). The keyframe's keypoints are followed into the frame by
+  Lucas-Kanade from the dense pose's prediction, so the frame itself is never described
+  (SURF on a 640x480 frame costs about what tracking it does); rejected when too few followed
+  keypoints agree with the dense pose or they leave a direction above
+  ``lengths.max_weak_sigma_m`` (the full registration's gate);
 * the correction moved the source points (RMS) further than the correspondence gate
   (``lengths.icp_max_correspondence_m``): the prediction was outside the basin the initial
   association assumes (RMS, not the largest motion: a 1 degree turn misjudged moves a point 3 m
@@ -31,18 +34,21 @@ from __future__ import annotations
 import logging
 from collections.abc import Callable
 
+import cv2
 import numpy as np
 from numpy.typing import NDArray
 
 from fpp_graph.errors import FppError
-from fpp_graph.geometry import se3_exp, transform_points
+from fpp_graph.geometry import invert, se3_exp, transform_points
 from fpp_graph.types import Constraint, ConstraintKind, Frame
 from frontend.config import RegistrationConfig
 from frontend.dense_alignment import DenseAlignment, OrganisedSurface, align_dense
 from frontend.registration.icp import with_shared_error_floor
-from frontend.registration.keypoints import information_from_keypoints, keypoint_inliers
-from frontend.registration.stages import lift_matches, match_keypoints
-from frontend.registration.state import StageTimer
+from frontend.registration.keypoints import (
+    information_from_keypoints,
+    keypoint_inliers,
+    lift_keypoints,
+)
 from frontend.registration.weak_directions import (
     Degeneracy,
     check_degeneracy,
@@ -112,7 +118,7 @@ def track_dense(
     information, meta = dense_cfg.information_scale * dense.information, {}
     degeneracy = check_degeneracy(dense.information, dense.source_points, config.weak_directions.degeneracy_ratio)
     if degeneracy.degenerate:
-        held = _hold_weak_directions(target, source, dense, information, degeneracy, T0, fit, config, describe)
+        held = _hold_weak_directions(target, source, dense, information, degeneracy, T0, fit, config, describe, surface)
         if isinstance(held, str):
             return rejected(held)
         dense, information, meta = held
@@ -130,13 +136,14 @@ def track_dense(
 def _hold_weak_directions(
     target: Frame, source: Frame, dense: DenseAlignment, information_dense: Array, degeneracy: Degeneracy, T0: Array,
     fit: Callable[[Array, Array | None], DenseAlignment], config: RegistrationConfig, describe: Callable[[Frame], Frame],
+    surface: Callable[[Frame], OrganisedSurface],
 ) -> tuple[DenseAlignment, Array, dict] | str:
     """The dense fit again from the keypoints' pose for the weak directions (:func:`_keypoint_step`)
     with the keypoints as the prior, as a full registration's dense stage: the relief outweighs
     them where it has any (a table's objects), they hold the directions it leaves free (a
     corridor's axis). Returns that fit, its information (with the prior) and metadata, or why not."""
     weak = "; ".join(degeneracy.unconstrained)
-    step = _keypoint_step(target, source, dense.T_target_source, information_dense, degeneracy, dense.source_points, config, describe)
+    step = _keypoint_step(target, source, dense.T_target_source, information_dense, degeneracy, dense.source_points, config, describe, surface)
     if isinstance(step, str):
         return f"degenerate geometry (unconstrained {weak}) and {step}"
     T_keypoints, information_keypoints, meta = step
@@ -183,22 +190,25 @@ def _nearest_rigid(T: NDArray) -> Array:
 
 def _keypoint_step(
     target: Frame, source: Frame, T: Array, information_dense: Array, degeneracy: Degeneracy, dense_points: Array,
-    config: RegistrationConfig, describe: Callable[[Frame], Frame],
+    config: RegistrationConfig, describe: Callable[[Frame], Frame], surface: Callable[[Frame], OrganisedSurface],
 ) -> tuple[Array, Array, dict] | str:
-    """The weak directions from the keypoints, as a full registration sets them (step 5 of
-    :mod:`frontend.registration`): matches the dense pose explains within the correspondence
-    gate (it may be off along a weak direction by the prediction's error), then the keypoints'
-    optimum given the dense fit's other directions (:func:`joint_keypoint_step` on the dense
-    information without the weak directions: with them, the fit's slight curvature there held
-    a corridor's axis at the prediction's error).
+    """The weak directions from the keyframe's keypoints, as a full registration sets them (step 5
+    of :mod:`frontend.registration`): correspondences the dense pose explains within the
+    correspondence gate (it may be off along a weak direction by the prediction's error), then
+    the keypoints' optimum given the dense fit's other directions (:func:`joint_keypoint_step` on
+    the dense information without the weak directions: with them, the fit's slight curvature
+    there held a corridor's axis at the prediction's error).
+
+    The correspondences are the keyframe's keypoints followed into the frame
+    (:func:`_followed_keypoints`), not keypoints detected in the frame and matched by
+    descriptor: the frame needs no detector, and a tracked frame costs no description.
     Returns the pose, the keypoints' information (unscaled) and metadata, or why the keypoints
     cannot do it."""
     min_inliers = config.gates.min_inliers
-    matches = match_keypoints(target, source, describe, config, StageTimer())
-    if matches.error is not None or matches.count < min_inliers:
-        return f"too few keypoint matches ({matches.count} < {min_inliers})"
-    lifted = lift_matches(target, source, matches, config)
-    P, Q = lifted.points_source_m, lifted.points_target_m
+    followed = _followed_keypoints(describe(target), source, T, config, surface)
+    if isinstance(followed, str):
+        return followed
+    P, Q = followed
     near = np.linalg.norm(transform_points(T, P) - Q, axis=1) < config.lengths.icp_max_correspondence_m
     if int(near.sum()) < min_inliers:
         return f"too few keypoints agree with the dense pose ({int(near.sum())} < {min_inliers})"
@@ -209,7 +219,74 @@ def _keypoint_step(
     if int(keep.sum()) < min_inliers:
         return f"too few keypoint inliers ({int(keep.sum())} < {min_inliers})"
     information_keypoints = information_from_keypoints(T, P[near][keep], residuals_m[keep])
-    return T, information_keypoints, {"tracking_keypoint_inliers": int(keep.sum())}
+    return T, information_keypoints, {"tracking_keypoint_inliers": int(keep.sum()), "tracking_keypoints_followed": len(P)}
+
+
+def _followed_keypoints(
+    target: Frame, source: Frame, T_target_source: Array, config: RegistrationConfig, surface: Callable[[Frame], OrganisedSurface],
+) -> tuple[Array, Array] | str:
+    """``(P_source, Q_target)``: the keyframe's keypoints (3D, target frame) and where they are in
+    the frame, found by pyramidal Lucas-Kanade on the two textures from the dense pose's
+    prediction of their pixels, and lifted through the frame's map.
+
+    Lucas-Kanade refines a position to a fraction of a pixel from a start inside its window; the
+    dense pose is off only along the weak directions, by the motion prediction's error (a few
+    pixels). A keypoint the flow loses, or that lands off the frame's surface (no depth, a depth
+    edge), is left out; mismatches that remain are the geometric gates' to cut, as after
+    descriptor matching. OpenCV's default window (21 px) and pyramid (3 levels: +-80 px) are kept."""
+    if target.keypoints_uv is None or len(target.keypoints_uv) == 0:
+        return "the keyframe has no keypoints"
+    if target.texture is None or source.texture is None:
+        return "a frame has no texture to follow keypoints on"
+    edge_m = config.lengths.keypoint_edge_step_m
+    Q, lifted = lift_keypoints(target.xyz_map, target.keypoints_uv, edge_m)
+    uv_target = np.asarray(target.keypoints_uv, dtype=np.float32)[lifted]
+    Q = Q[lifted]
+    u, v = surface(source).project(transform_points(invert(T_target_source), Q))
+    predicted = np.stack([u, v], axis=1).astype(np.float32)
+    H, W = source.texture.shape
+    seen = np.all(np.isfinite(predicted), axis=1) & (u >= 0) & (v >= 0) & (u <= W - 1) & (v <= H - 1)
+    if int(seen.sum()) < config.gates.min_inliers:
+        return f"too few keyframe keypoints in view ({int(seen.sum())} < {config.gates.min_inliers})"
+    uv_source, status, _ = cv2.calcOpticalFlowPyrLK(
+        target.texture, source.texture, uv_target[seen].reshape(-1, 1, 2), predicted[seen].reshape(-1, 1, 2).copy(),
+        winSize=(FOLLOW_WINDOW_PX, FOLLOW_WINDOW_PX), flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+    )
+    uv_source = uv_source.reshape(-1, 2)
+    # Lucas-Kanade reports success wherever it converges, on sensor noise too (a bare wall's
+    # keypoints are noise blobs that the next frame does not repeat); a window whose texture
+    # is the scene's correlates with itself in the other view, noise does not: at zero-mean
+    # normalised correlation 0.5 the shared texture's variance equals the noise's
+    followed = status.ravel().astype(bool)
+    followed[followed] = patch_correlation(target.texture, uv_target[seen][followed], source.texture, uv_source[followed]) >= MIN_PATCH_CORRELATION
+    P, on_surface = lift_keypoints(source.xyz_map, uv_source[followed], edge_m)
+    return P[on_surface], Q[seen][followed][on_surface]
+
+
+# zero-mean normalised correlation of a followed keypoint's window between the two views below
+# which the texture they share is weaker than their independent noise (SNR 1: rho = s / (s + n))
+MIN_PATCH_CORRELATION = 0.5
+FOLLOW_WINDOW_PX = 21  # OpenCV's Lucas-Kanade default window
+
+
+def patch_correlation(image_a: NDArray, uv_a: NDArray, image_b: NDArray, uv_b: NDArray, window_px: int = FOLLOW_WINDOW_PX) -> NDArray[np.float32]:
+    """Zero-mean normalised correlation of the ``window_px`` square windows centred at ``uv_a`` in
+    ``image_a`` and ``uv_b`` in ``image_b`` (bilinear, sub-pixel; 0 for a flat window)."""
+    half = (window_px - 1) / 2.0
+    offsets = np.arange(window_px, dtype=np.float32) - np.float32(half)
+    du, dv = np.meshgrid(offsets, offsets)
+
+    def windows(image: NDArray, uv: NDArray) -> NDArray[np.float32]:
+        uv = np.asarray(uv, dtype=np.float32)
+        map_u = uv[:, 0, None] + du.ravel()[None, :]
+        map_v = uv[:, 1, None] + dv.ravel()[None, :]
+        patch = cv2.remap(image.astype(np.float32), map_u, map_v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        return patch - patch.mean(axis=1, keepdims=True)
+
+    a, b = windows(image_a, uv_a), windows(image_b, uv_b)
+    norm = np.sqrt(np.einsum("ij,ij->i", a, a) * np.einsum("ij,ij->i", b, b))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(norm > 0, np.einsum("ij,ij->i", a, b) / norm, 0.0).astype(np.float32)
 
 
 def rms_motion_m(T_a: NDArray, T_b: NDArray, points: NDArray) -> float:

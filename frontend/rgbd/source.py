@@ -346,6 +346,11 @@ class RgbdSource:
             metadata={"K": self.K.tolist(), "sensor": "rgbd",
                       **({"distortion": self.distortion.tolist()} if self.distortion is not None else {})},
         )
+        if self.config.keyframes.track_from_motion:
+            # tracked frames follow their keyframe's keypoints and need none of their own; the
+            # keyframe manager has keyframes described (FrameDescriber): SURF on a 640x480
+            # frame costs about as much as tracking it
+            return frame
         return detect_and_describe(frame, self.config.registration)
 
     @staticmethod

@@ -3,14 +3,16 @@ by the keyframe manager (``keyframes.track_from_motion``), on simulated Kinect-c
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
 
 from fpp_graph.config import Config, config_from_dict
 from fpp_graph.geometry import invert, pose_error, se3_exp
 from fpp_graph.slam.keyframes import KeyframeManager
-from fpp_graph.types import FrameTracker
+from fpp_graph.types import FrameDescriber, FrameTracker
 from frontend.registration import FppPairRegistrar
+from frontend.registration.tracking import MIN_PATCH_CORRELATION, patch_correlation
 from frontend.rgbd.source import RgbdSource
 from frontend.sim.rgbd import (
     KinectModel,
@@ -126,3 +128,31 @@ def test_tracking_off_or_without_track_registers_every_frame_in_full(corridor, c
     for frame in frames[:4]:
         manager.process(frame)
     assert manager.finish().tracking == {}
+
+
+def test_patch_correlation_separates_shared_texture_from_noise():
+    rng = np.random.default_rng(3)
+    texture = cv2.GaussianBlur(rng.uniform(0, 255, (120, 160)).astype(np.float32), (0, 0), 2.0)
+    shifted = np.roll(texture, (2, 3), axis=(0, 1))  # the scene 3 px right, 2 px down
+    uv = np.array([[40.0, 50.0], [80.0, 60.0], [120.0, 70.0]])
+    same = patch_correlation(texture.astype(np.uint8), uv, shifted.astype(np.uint8), uv + [3.0, 2.0])
+    assert np.all(same > 0.99)
+    # independent noise in each view (a bare wall's "keypoints"): no correlation to speak of
+    noise_a, noise_b = (np.clip(128 + 2 * rng.standard_normal((120, 160)), 0, 255).astype(np.uint8) for _ in range(2))
+    assert np.all(np.abs(patch_correlation(noise_a, uv, noise_b, uv)) < MIN_PATCH_CORRELATION)
+    flat = np.full((120, 160), 90, np.uint8)
+    assert np.all(patch_correlation(flat, uv, flat, uv) == 0.0)
+
+
+def test_tracked_frames_are_not_described_and_keyframes_are(corridor):
+    source, frames, _ = corridor
+    # the source leaves tracked frames without keypoints (FrameDescriber: keyframes get them)
+    assert all(f.descriptors is None for f in frames)
+    manager, result = _run(source, frames, track=True)
+    assert isinstance(manager.registrar, FrameDescriber)
+    for kf in result.keyframe_ids:
+        stored = manager.store.get(kf)
+        assert stored.descriptors is not None and len(stored.descriptors) > 0
+    # the tracked keyframes' weak directions came from the keyframe's keypoints followed into them
+    followed = [c.metadata["tracking_keypoints_followed"] for c in result.odometry if "tracking_keypoints_followed" in c.metadata]
+    assert followed and min(followed) >= 15

@@ -157,3 +157,18 @@ def test_derived_marker_without_its_map_is_a_clear_error(tmp_path):
     )
     with pytest.raises(InputDataError, match="lacks 'xyz_map'.*delete it to recompute"):
         load_frame(tmp_path / "bad.npz")
+
+
+def test_put_keeps_the_first_stored_copy_unless_told_to_rewrite_it(tmp_path):
+    from dataclasses import replace
+
+    from fpp_graph.slam.frame_store import FrameStore
+
+    store = FrameStore(tmp_path, max_in_memory=1)
+    bare = Frame(id=7, timestamp=0.0, points=np.zeros((3, 3)))
+    store.put(bare)
+    described = replace(bare, keypoints_uv=np.ones((2, 2)), descriptors=np.ones((2, 4), np.float32))
+    store.put(described)  # the worker's cache is already there: left as it is
+    assert load_frame(store.path_of(7)).descriptors is None
+    store.put(described, rewrite=True)
+    np.testing.assert_array_equal(load_frame(store.path_of(7)).descriptors, described.descriptors)
