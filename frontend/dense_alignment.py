@@ -155,7 +155,9 @@ class OrganisedSurface:
         np.divide(bx, bz, out=bx)
         np.divide(by, bz, out=by)
         self.rays_binned = cv2.merge([bx, by])
-        self._fill_rays_near_surface(valid_b)
+        # filled at the first projection: a tracked frame's map is often only sampled, never
+        # projected into (10-15 ms of a 640x480 frame's preparation)
+        self._valid_bins: NDArray[np.bool_] | None = valid_b
         window_px = int(normal_window_px) if normal_window_px else max(4, round(10 * W / 1920))
         k = max(3, 2 * (round(window_px / b) // 2) + 1)  # odd, in bins
         count = cv2.boxFilter(valid_b.astype(np.float32), -1, (k, k), normalize=False, borderType=cv2.BORDER_CONSTANT)
@@ -260,6 +262,9 @@ class OrganisedSurface:
         The fitted pinhole's pixel, corrected with the map's own rays (lens distortion included);
         where the map has no ray nearby the pinhole's pixel is returned.
         """
+        if self._valid_bins is not None:
+            self._fill_rays_near_surface(self._valid_bins)
+            self._valid_bins = None
         z = points_m[:, 2]
         with np.errstate(divide="ignore", invalid="ignore"):
             ax = (points_m[:, 0] / z).astype(np.float32)
