@@ -109,6 +109,11 @@ class RunConfig(StrictModel):
 
     workers: int = Field(0, ge=0, description="0 = all cores")
     frames_in_memory: int = Field(8, ge=1, description="decoded keyframes kept in memory; the rest are reloaded from the results folder")
+    keep_frames: Literal["all", "keyframes"] | None = Field(
+        None,
+        description="decoded frames left in the results folder (frames/): 'keyframes' deletes each other frame once it is "
+        "tracked (a resumed run decodes it again); null: the source decides (RGB-D: keyframes, FPP: all)",
+    )
     log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = "INFO"
 
 

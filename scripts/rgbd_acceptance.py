@@ -67,7 +67,10 @@ def run_ours(seq: Path, out: Path, config_path: Path | None = None) -> dict:
     from fpp_graph.slam.sources import open_source
 
     wall0, cpu0 = time.perf_counter(), cpu_seconds()
-    report = run_sequence(seq, load_config(config_path), out, overwrite=True)
+    config = load_config(config_path)
+    # the Open3D peer reads every decoded frame back from our results folder
+    config = config.model_copy(update={"run": config.run.model_copy(update={"keep_frames": "all"})})
+    report = run_sequence(seq, config, out, overwrite=True)
     wall, cpu = time.perf_counter() - wall0, cpu_seconds() - cpu0
     source = open_source(seq, load_config(None))
     evaluation = evaluate_results(out, source)

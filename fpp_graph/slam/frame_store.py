@@ -190,6 +190,16 @@ class FrameStore:
             self._ids.append(frame.id)
         self._remember(frame)
 
+    def discard_unstored(self, frame_id: int) -> bool:
+        """Delete the file of a frame that was written to this folder (a worker's decode cache)
+        but never :meth:`put` (not a keyframe); whether a file went. A stored frame is kept."""
+        if self.directory is None or frame_id in self._ids or frame_id in self._cache:
+            return False
+        path = self.path_of(frame_id)
+        existed = path.exists()
+        path.unlink(missing_ok=True)
+        return existed
+
     def get(self, frame_id: int) -> Frame:
         if frame_id in self._cache:
             self._cache.move_to_end(frame_id)

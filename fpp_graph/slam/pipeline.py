@@ -186,8 +186,13 @@ def track(
     ``verifier`` registers loop candidates (default: in this process, see
     :class:`~fpp_graph.slam.keyframes.KeyframeManager`)."""
     manager = KeyframeManager(source.make_registrar(), config, store=store, verifier=verifier)
+    keyframes_only = config.run.keep_frames == "keyframes"
+    discarded = 0
     for frame in frames:
-        manager.process(frame)
+        if not manager.process(frame) and keyframes_only:
+            discarded += store.discard_unstored(frame.id)
+    if discarded:
+        log.info("run.keep_frames = keyframes: %d decoded non-keyframes deleted from %s once tracked", discarded, store.directory)
     if progress:
         progress("optimise", 0, 1)
     result = manager.finish()

@@ -357,7 +357,8 @@ class RgbdSource:
     def resolve_config(config: Config) -> Config:
         """``config`` with the Kinect's noise model where ``registration.noise`` is left null, the
         RGB-D floors on fusion voxels and on the dense refinement's pixel stride, and the fusion's
-        depth range and tracking from motion unless the config sets them (idempotent)."""
+        depth range, tracking from motion and keyframes-only frame storage (``run.keep_frames``)
+        unless the config sets them (idempotent)."""
         reg = config.registration.with_noise(KINECT_V1_NOISE)
         dense = reg.dense
         stride = max(dense.stride_px, RGBD_DENSE_STRIDE_FLOOR_PX)
@@ -371,7 +372,12 @@ class RgbdSource:
         keyframes = config.keyframes
         if keyframes.track_from_motion is None:  # 30 Hz video: the previous motion predicts the next
             keyframes = keyframes.model_copy(update={"track_from_motion": True})
-        return config.model_copy(update={"registration": reg, "fusion": fus, "keyframes": keyframes})
+        run = config.run
+        if run.keep_frames is None:
+            # a 640x480 frame is 4.4 MB in the results folder and ~30 ms to decode again: 30 Hz
+            # video keeps its keyframes (2000 frames of which 496 keyframes: 8.7 -> 2.2 GB)
+            run = run.model_copy(update={"keep_frames": "keyframes"})
+        return config.model_copy(update={"registration": reg, "fusion": fus, "keyframes": keyframes, "run": run})
 
     def make_registrar(self):
         from frontend.registration import FppPairRegistrar

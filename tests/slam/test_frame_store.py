@@ -172,3 +172,16 @@ def test_put_keeps_the_first_stored_copy_unless_told_to_rewrite_it(tmp_path):
     assert load_frame(store.path_of(7)).descriptors is None
     store.put(described, rewrite=True)
     np.testing.assert_array_equal(load_frame(store.path_of(7)).descriptors, described.descriptors)
+
+
+def test_discard_unstored_deletes_only_a_cached_frame_that_was_never_put(tmp_path):
+    from fpp_graph.slam.frame_store import FrameStore
+
+    store = FrameStore(tmp_path, max_in_memory=1)
+    keyframe, tracked = (Frame(id=i, timestamp=0.0, points=np.zeros((3, 3))) for i in (1, 2))
+    store.put(keyframe)
+    save_frame(store.path_of(2), tracked)  # a worker's decode cache
+    assert store.discard_unstored(2) and not store.path_of(2).exists()
+    assert not store.discard_unstored(2)  # already gone
+    assert not store.discard_unstored(1) and store.path_of(1).exists()
+    assert not FrameStore(None).discard_unstored(1)

@@ -274,7 +274,11 @@ def test_kill_9_mid_run_then_resume(tmp_path):
 
     seq = write_tum_rgbd_sequence(tmp_path / "seq", xs=np.linspace(-0.25, 0.25, 14).tolist())
     out = tmp_path / "out"
-    cfg = str(_rgbd_config(tmp_path))
+    cfg_path = _rgbd_config(tmp_path)
+    # every decoded frame stays, so the count below says how far the run got (by default an
+    # RGB-D run deletes its non-keyframes once tracked: test_rgbd_run_keeps_only_its_keyframes)
+    cfg_path.write_text(cfg_path.read_text().replace("run:\n", "run:\n  keep_frames: all\n"))
+    cfg = str(cfg_path)
     proc = subprocess.Popen(
         [*_FPP_SLAM, "run", str(seq), "--out", str(out), "--config", cfg],
         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
@@ -378,6 +382,29 @@ def _children(pid: int) -> set[int]:
 
 
 @pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="needs Linux /proc to list child processes")
+def test_rgbd_run_keeps_only_its_keyframes(tmp_path):
+    """An RGB-D run's frames/ ends with its keyframes only (the others are cheap to decode again,
+    4.4 MB each at 640x480); ``run.keep_frames: all`` keeps every frame."""
+    from fpp_graph.backend.g2o import read_g2o
+
+    xs = np.linspace(-0.03, 0.03, 10).tolist()  # 7 mm steps at 30 Hz: most frames are not keyframes
+    tum_sequence = write_tum_rgbd_sequence(tmp_path / "seq", xs=xs)
+    kept = {}
+    for keep in ("keyframes", "all"):
+        cfg = tmp_path / f"cfg_{keep}.yaml"
+        cfg.write_text(f"run:\n  workers: 1\n  keep_frames: {keep}\nfusion:\n  mesh: false\n" if keep == "all" else _rgbd_config(tmp_path).read_text())
+        out = tmp_path / keep
+        result = _cli("run", str(tum_sequence), "--out", str(out), "--config", str(cfg))
+        assert result.returncode == 0, result.stderr[-2000:]
+        kept[keep] = sorted(int(p.stem.split("_")[1]) for p in (out / "frames").glob("frame_*.npz"))
+        metrics = json.loads((out / "metrics.json").read_text())
+        keyframes = sorted(read_g2o(out / "graph.g2o").poses())
+        assert metrics["frames"] == len(xs) and len(keyframes) == metrics["keyframes"]
+        if keep == "keyframes":
+            assert kept[keep] == keyframes and len(keyframes) < len(xs), (kept[keep], keyframes)
+    assert kept["all"] == list(range(len(xs)))
+
+
 def test_sigterm_ends_the_workers_and_resume_completes(tmp_path):
     """SIGTERM mid-run: the decode workers end with the run, the exit is non-zero with one line
     that says how to resume, and --resume then completes the run."""
