@@ -1,7 +1,7 @@
 """Every plug-in point works with a foreign implementation written only against its declaration.
 
-Each class below implements one protocol of ``fpp_graph`` (``PairRegistrar``, ``LoopDetector``,
-``MapFuser`` in :mod:`fpp_graph.types`, ``FrameSource`` in :mod:`fpp_graph.slam.sources`) with exactly
+Each class below implements one protocol of ``fpp_graph`` (``PairRegistrar``, ``FrameDescriber``,
+``LoopDetector``, ``MapFuser`` in :mod:`fpp_graph.types`, ``FrameSource`` in :mod:`fpp_graph.slam.sources`) with exactly
 the declared methods and nothing else, inherits from nothing, and is driven through the
 project's own consumers (``KeyframeManager``, ``Pipeline``).
 """
@@ -26,6 +26,7 @@ from fpp_graph.types import (
     Constraint,
     ConstraintKind,
     Frame,
+    FrameDescriber,
     FusedMap,
     LoopCandidate,
     LoopDetector,
@@ -187,3 +188,40 @@ def test_a_source_without_the_declared_members_is_refused_naming_them():
     with pytest.raises(InputDataError, match="Incomplete lacks .*resolve_config.* of the FrameSource protocol"):
         Pipeline(Incomplete(), config_from_dict({}), Path("unused"))
     check_frame_source(TurntableSource())  # a complete one passes
+
+
+class DescribingRegistrar:
+    """PairRegistrar and FrameDescriber: frames come without keypoints, ``describe`` adds them."""
+
+    def __init__(self, truth: list[np.ndarray]) -> None:
+        self.oracle = OracleRegistrar(truth)
+        self.described: list[int] = []
+
+    def register(self, target: Frame, source: Frame, T_guess=None, kind=ConstraintKind.ODOMETRY) -> Constraint:
+        return self.oracle.register(target, source, T_guess, kind=kind)
+
+    def describe(self, frame: Frame) -> Frame:
+        from dataclasses import replace
+
+        self.described.append(frame.id)
+        return replace(frame, keypoints_uv=np.zeros((1, 2)), descriptors=np.ones((1, 4), np.float32))
+
+
+def test_a_describing_registrar_describes_each_keyframe_once_and_nothing_else(tmp_path):
+    from fpp_graph.slam.frame_store import FrameStore, load_frame
+
+    truth = [make_pose(np.eye(3), [0.01 * i, 0.0, 0.0]) for i in range(7)]  # 1 cm steps
+    registrar = DescribingRegistrar(truth)
+    assert isinstance(registrar, FrameDescriber)
+    config = config_from_dict({"keyframes": {"min_view_change": 0, "min_translation_m": 0.025, "min_rotation_deg": 0, "max_overlap": 1},
+                               "loop_closure": {"enabled": False}})
+    store = FrameStore(tmp_path)
+    manager = KeyframeManager(registrar, config, store=store)
+    rng = np.random.default_rng(2)
+    for i, T in enumerate(truth):
+        manager.process(object_frame(i, T, rng))
+    result = manager.finish()
+    assert result.keyframe_ids == [0, 3, 6]
+    assert registrar.described == result.keyframe_ids  # once each, non-keyframes never
+    for kf in result.keyframe_ids:  # the stored copy (what loop verification on workers reads) has them
+        assert load_frame(store.path_of(kf)).descriptors is not None
