@@ -180,7 +180,13 @@ class OrganisedSurface:
         nx -= np.multiply(uz, vy, out=uz)
         ny -= np.multiply(ux, vz, out=ux)
         nz -= np.multiply(uy, vx, out=uy)
-        inv_norm = cv2.magnitude(cv2.magnitude(nx, ny), nz)
+        # the norm in numpy, not cv2.magnitude: OpenCV's SIMD and scalar paths round differently
+        # and which one a pixel takes depends on the buffer's alignment, so the same map gave
+        # normals 1 ulp apart from one allocation to the next and runs were not reproducible
+        inv_norm = np.multiply(nx, nx)
+        inv_norm += ny * ny
+        inv_norm += nz * nz
+        np.sqrt(inv_norm, out=inv_norm)
         np.divide(np.float32(1.0), inv_norm, out=inv_norm)
         # towards the camera (the map's image axes may be mirrored relative to the sensor's)
         facing = np.multiply(nx, sx, out=sx)

@@ -133,3 +133,18 @@ def test_registrar_refines_relief_and_leaves_a_plane_to_the_keypoints(wall):
     fb = render_frame(flat, wall_pose(0.10, 0.02, yaw_deg=4), W, H, frame_id=1)
     c_flat = FppPairRegistrar(RegistrationConfig()).register(fa, fb)
     assert "plane-like" in c_flat.metadata.get("dense_not_used", ""), c_flat.metadata.get("dense_not_used")
+
+
+def test_the_same_map_gives_the_same_surface_in_any_buffer():
+    """Bitwise: a run is reproducible only if its surfaces are (cv2.magnitude's result depended
+    on its buffer's alignment, 1 ulp apart from one allocation to the next)."""
+    rng = np.random.default_rng(4)
+    v, u = np.mgrid[0:240, 0:320].astype(np.float64)
+    z = 1.0 + 0.05 * np.sin(u / 17.0) * np.cos(v / 13.0) + 1e-4 * rng.standard_normal(u.shape)
+    xyz = np.stack([(u - 160) / 262.5 * z, (v - 120) / 262.5 * z, z], axis=-1)
+    reference = OrganisedSurface(xyz).normals_binned
+    for offset in range(1, 9):  # the map copied into buffers at every float32 alignment
+        buffer = np.empty(xyz.size + offset, np.float32)
+        shifted = buffer[offset:].reshape(xyz.shape)
+        shifted[:] = xyz
+        assert np.array_equal(OrganisedSurface(shifted).normals_binned, reference, equal_nan=True), offset
