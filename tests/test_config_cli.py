@@ -40,6 +40,7 @@ def test_partial_override_and_dump_round_trip(tmp_path):
         ("pose_graph:\n  solver: newton\n", "pose_graph.solver"),
         ("registration:\n  gates:\n    min_inliers: 1\n", "registration.gates.min_inliers"),
         ("decode:\n  min_modulation: -1\n", "decode.min_modulation"),
+        ("run:\n  keep_frames: some\n", "run.keep_frames: Input should be 'all' or 'keyframes'"),
         ("- a list\n", "must be a mapping"),
         ("registration: [unclosed\n", "not valid YAML"),
     ],
