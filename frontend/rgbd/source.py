@@ -374,7 +374,7 @@ class RgbdSource:
             keyframes = keyframes.model_copy(update={"track_from_motion": True})
         run = config.run
         if run.keep_frames is None:
-            # a 640x480 frame is 4.4 MB in the results folder and ~30 ms to decode again: 30 Hz
+            # a 640x480 frame is 4.4 MB in the results folder and 30-60 ms to decode again: 30 Hz
             # video keeps its keyframes (2000 frames of which 496 keyframes: 8.7 -> 2.2 GB)
             run = run.model_copy(update={"keep_frames": "keyframes"})
         return config.model_copy(update={"registration": reg, "fusion": fus, "keyframes": keyframes, "run": run})
