@@ -177,9 +177,8 @@ class KeyframeManager:
     def process(self, frame: Frame) -> bool:
         """Add one frame; returns whether it became a keyframe."""
         if not self.keyframe_ids:
-            frame = self._described(frame)
             T0 = frame.T_world_sensor_guess if frame.T_world_sensor_guess is not None else np.eye(4)
-            self._add_keyframe(frame, np.array(T0), odometry=None, drift_var=0.0)
+            frame = self._add_keyframe(frame, np.array(T0), odometry=None, drift_var=0.0)
             self.segment_starts.append(frame.id)
             self.loop_detector.add(frame)
             self._keyframe_done(frame.id)
@@ -190,14 +189,13 @@ class KeyframeManager:
         if odometry is None:
             odometry = self._register_to_recent(frame, T_predicted)
         if odometry is None:
-            frame = self._described(frame)
             self._tracking.predictor.reset()
             self._tracking.predictor.observe(frame.id, frame.timestamp, None, np.eye(4))
             last = self.keyframe_ids[-1]
             T_guess = frame.T_world_sensor_guess
             T_start = np.array(T_guess) if T_guess is not None else self.T_world_keyframe[last].copy()
             log.warning("chain broken at frame %d: new segment starts there (pose unknown relative to the previous segment until a loop joins them)", frame.id)
-            self._add_keyframe(frame, T_start, odometry=None, drift_var=0.0)
+            frame = self._add_keyframe(frame, T_start, odometry=None, drift_var=0.0)
             self.segment_starts.append(frame.id)
             self._close_loops(frame, force_query=True)  # appearance may rejoin the new segment to an older one
             self._keyframe_done(frame.id)
@@ -206,29 +204,16 @@ class KeyframeManager:
         is_keyframe = self._is_keyframe(odometry)
         self._tracking.predictor.observe(frame.id, frame.timestamp, kf_id, odometry.T_target_source)
         if is_keyframe:
-            frame = self._described(frame)
             T_world = compose(self.T_world_keyframe[kf_id], odometry.T_target_source)
             step_cov = constraint_covariance(odometry)
             step_var = step_position_variance_m2(step_cov, odometry.T_target_source)
-            self._add_keyframe(frame, T_world, odometry, self._drift_var_m2[kf_id] + step_var,
+            frame = self._add_keyframe(frame, T_world, odometry, self._drift_var_m2[kf_id] + step_var,
                                transport_covariance(self._drift_cov[kf_id], odometry.T_target_source, step_cov))
             self._close_loops(frame)
             self._keyframe_done(frame.id)
             return True
         self.T_keyframe_frame[frame.id] = (kf_id, odometry.T_target_source.copy())
         return False
-
-    def _described(self, frame: Frame) -> Frame:
-        """A new keyframe with its keypoints and descriptors: a source whose frames are tracked
-        may decode them without (:class:`~fpp_graph.types.FrameDescriber`); the keyframe needs
-        them for the loop detector's index, for loop verification on the workers (which read
-        the stored copy) and for the frames tracked against it."""
-        if frame.descriptors is not None or not isinstance(self.registrar, FrameDescriber):
-            return frame
-        described = self.registrar.describe(frame)
-        if described is not frame:
-            self.store.put(described, rewrite=True)
-        return described
 
     def _register_to_recent(self, frame: Frame, T_predicted: NDArray[np.float64] | None = None) -> Constraint | None:
         reasons = []
@@ -283,11 +268,19 @@ class KeyframeManager:
 
     def _add_keyframe(
         self, frame: Frame, T_world: NDArray, odometry: Constraint | None, drift_var: float, drift_cov: NDArray | None = None
-    ) -> None:
+    ) -> Frame:
+        """Make ``frame`` a keyframe; returns it as stored, with its keypoints and descriptors (a
+        source whose frames are tracked may decode them without: :class:`~fpp_graph.types.FrameDescriber`;
+        the keyframe needs them for the loop detector's index, for loop verification on the
+        workers, which read the stored copy, and for the frames tracked against it)."""
         self._parent.setdefault(frame.id, frame.id)
         if odometry is not None:
             self._join(frame.id, odometry.target_id)
-        self.store.put(frame)
+        described = frame
+        if frame.descriptors is None and isinstance(self.registrar, FrameDescriber):
+            described = self.registrar.describe(frame)
+        self.store.put(described, rewrite=described is not frame)
+        frame = described
         self.keyframe_ids.append(frame.id)
         self.T_world_keyframe[frame.id] = np.asarray(T_world, dtype=np.float64)
         self._drift_var_m2[frame.id] = drift_var
@@ -299,6 +292,7 @@ class KeyframeManager:
             graph = self._incremental[odometry.target_id]
         graph.add_keyframe(frame.id, self.T_world_keyframe[frame.id], odometry)
         self._incremental[frame.id] = graph
+        return frame
 
     def _new_incremental(self) -> IncrementalPoseGraph:
         return IncrementalPoseGraph(self.config.pose_graph)
