@@ -193,7 +193,7 @@ class FrameStore:
     def discard_unstored(self, frame_id: int) -> bool:
         """Delete the file of a frame that was written to this folder (a worker's decode cache)
         but never :meth:`put` (not a keyframe); whether a file went. A stored frame is kept."""
-        if self.directory is None or frame_id in self._ids or frame_id in self._cache:
+        if self.directory is None or frame_id in self._ids:  # every frame in memory was put or read from _ids
             return False
         path = self.path_of(frame_id)
         existed = path.exists()
