@@ -1,6 +1,6 @@
 """A long simulated 30 Hz RGB-D sequence end to end: is the cost per frame constant?
 
-    .venv/bin/python -m scripts.long_rgbd_sequence [--frames 2000] [--sequence DIR] [--out DIR]
+    .venv/bin/python -m scripts.long_rgbd_sequence [--frames 2000] [--sequence DIR] [--out DIR] [--config YAML]
 
 The sequence (made once, then reused) is :func:`frontend.sim.rgbd.simulate_rgbd_corridor`: a
 hand-held walk at 0.35 m/s through the simulator's corridor, five passes with turns at the ends
@@ -46,6 +46,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--sequence", type=Path, default=None, help="sequence folder (made if absent; default results/long_rgbd/corridor_rgbd_<frames>)")
     parser.add_argument("--out", type=Path, default=Path("results/long_rgbd/run"))
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--config", type=Path, default=None, help="fpp-slam config YAML for the run (default: the defaults)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
 
@@ -71,7 +72,7 @@ def main(argv: list[str] | None = None) -> int:
             sampler.progress(stage, done, total)
 
         wall0, cpu0 = time.perf_counter(), cpu_seconds()
-        report = run_sequence(seq, load_config(None), args.out, overwrite=True, progress=progress)
+        report = run_sequence(seq, load_config(args.config), args.out, overwrite=True, progress=progress)
         wall, cpu = time.perf_counter() - wall0, cpu_seconds() - cpu0
     evaluation = evaluate_results(args.out, open_source(seq, load_config(None)))
 

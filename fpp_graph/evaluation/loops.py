@@ -27,6 +27,7 @@ The back-end never imports a front-end: frames come from the results folder's fr
 
 from __future__ import annotations
 
+import itertools
 import json
 import logging
 import math
@@ -78,37 +79,53 @@ def ground_truth_overlaps(
         raise InputDataError(f"loop evaluation: no ground-truth pose for frames {missing[:10]}")
     rng = np.random.default_rng(seed)
     world: dict[int, NDArray[np.float64]] = {}
-    trees: dict[int, cKDTree] = {}
-    boxes: dict[int, tuple[NDArray, NDArray]] = {}
     for fid, pts in points_sensor.items():
         p = np.asarray(pts, dtype=np.float64).reshape(-1, 3)
         p = p[np.all(np.isfinite(p), axis=1)]
         if len(p) > max_points:
             p = p[rng.choice(len(p), max_points, replace=False)]
         T = np.asarray(poses_gt_world_sensor[fid], dtype=np.float64)
-        w = p @ T[:3, :3].T + T[:3, 3]
-        world[fid] = w
-        trees[fid] = cKDTree(w) if len(w) else None
-        boxes[fid] = (w.min(axis=0), w.max(axis=0)) if len(w) else (np.full(3, np.inf), np.full(3, -np.inf))
+        world[fid] = p @ T[:3, :3].T + T[:3, 3]
     ids = sorted(world)
     todo = [_pair(a, b) for a, b in pairs] if pairs is not None else [(a, b) for i, a in enumerate(ids) for b in ids[i + 1:]]
-    out: dict[tuple[int, int], float] = {}
-
-    def shared(a: int, b: int) -> float:
-        if trees[b] is None or len(world[a]) == 0:
-            return 0.0
-        d, _ = trees[b].query(world[a], k=1, distance_upper_bound=tolerance_m)
-        return float(np.count_nonzero(np.isfinite(d))) / len(world[a])
-
     for a, b in todo:
         if a not in world or b not in world:
             raise InputDataError(f"loop evaluation: no points for frame {a if a not in world else b}")
-        (lo_a, hi_a), (lo_b, hi_b) = boxes[a], boxes[b]
-        if np.any(lo_a > hi_b + tolerance_m) or np.any(lo_b > hi_a + tolerance_m):
-            out[(a, b)] = 0.0
+    shared = _shared_fractions(world, ids, tolerance_m)
+    return {(a, b): min(shared[a].get(b, 0.0), shared[b].get(a, 0.0)) for a, b in todo}
+
+
+def _shared_fractions(world: Mapping[int, NDArray[np.float64]], ids: list[int], tolerance_m: float) -> dict[int, dict[int, float]]:
+    """``shared[a][b]``: the fraction of frame ``a``'s points with a point of frame ``b`` within
+    ``tolerance_m`` (absent: 0).
+
+    One KD-tree over every frame's points and one radius query per point, instead of a tree
+    per frame queried once per pair: a pair's cost grew with the number of pairs whose bounding
+    boxes meet, and over 2000 simulated RGB-D frames (496 keyframes, 34 k such pairs) that took
+    47 s of the run.
+    """
+    counts = np.array([len(world[f]) for f in ids], dtype=np.int64)
+    if not counts.sum():
+        return {f: {} for f in ids}
+    everything = np.concatenate([world[f] for f in ids])
+    owner = np.repeat(np.arange(len(ids)), counts)
+    tree = cKDTree(everything)
+    shared: dict[int, dict[int, float]] = {}
+    start = 0
+    for k, fid in enumerate(ids):
+        n = int(counts[k])
+        if not n:
+            shared[fid] = {}
             continue
-        out[(a, b)] = min(shared(a, b), shared(b, a))
-    return out
+        neighbours = tree.query_ball_point(everything[start:start + n], r=tolerance_m, return_sorted=False)
+        sizes = np.fromiter((len(x) for x in neighbours), dtype=np.int64, count=n)
+        flat = np.fromiter(itertools.chain.from_iterable(neighbours), dtype=np.int64, count=int(sizes.sum()))
+        # each (point, other frame) once: a point counts for a frame however many of its points are near
+        point_and_frame = np.unique(np.repeat(np.arange(n), sizes) * len(ids) + owner[flat])
+        frames, hits = np.unique(point_and_frame % len(ids), return_counts=True)
+        shared[fid] = {ids[int(j)]: float(h) / n for j, h in zip(frames, hits, strict=True) if int(j) != k}
+        start += n
+    return shared
 
 
 @dataclass

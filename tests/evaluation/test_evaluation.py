@@ -232,3 +232,40 @@ def test_load_mesh_round_trip(tmp_path):
     V2, F2 = load_mesh(tmp_path / "gt.ply")
     np.testing.assert_array_equal(V2, V)
     np.testing.assert_array_equal(F2, F)
+
+
+def test_ground_truth_overlaps_equal_a_per_pair_brute_force():
+    """One KD-tree over all frames' points gives every pair the overlap that querying each
+    frame's own tree would: patches that overlap, touch, or lie apart, and points a hair inside
+    or outside the tolerance."""
+    from scipy.spatial import cKDTree
+
+    from fpp_graph.evaluation.loops import ground_truth_overlaps
+
+    rng = np.random.default_rng(3)
+    tol = 0.005
+    points, poses = {}, {}
+    for fid in range(14):
+        # small patches scattered over 1.5 m, some touching, some a cell or two apart
+        centre = rng.uniform(-0.75, 0.75, 3) if fid < 10 else points[fid - 10][0]
+        patch = centre + rng.uniform(-0.06, 0.06, (400, 3)) * [1, 1, 0.1]
+        points[fid], poses[fid] = patch, np.eye(4)
+    # a pair whose only contact is two points 0.99 and 1.01 tolerances apart across a cell edge
+    edge = 0.7  # a multiple of common grid sizes
+    points[14] = np.array([[edge - 0.495 * tol, 0.3, 0.3], [5.0, 5.0, 5.0]])
+    points[15] = np.array([[edge + 0.495 * tol, 0.3, 0.3], [-5.0, -5.0, -5.0]])
+    points[16] = np.array([[edge + 0.515 * tol, 0.3 + 0.5 * tol, 0.3 + 0.5 * tol], [9.0, 9.0, 9.0]])
+    poses.update({k: np.eye(4) for k in (14, 15, 16)})
+    got = ground_truth_overlaps(points, poses, tolerance_m=tol)
+
+    def brute(a, b):
+        def shared(p, q):
+            d, _ = cKDTree(q).query(p, k=1, distance_upper_bound=tol)
+            return np.count_nonzero(np.isfinite(d)) / len(p)
+        return min(shared(points[a], points[b]), shared(points[b], points[a]))
+
+    ids = sorted(points)
+    want = {(a, b): brute(a, b) for i, a in enumerate(ids) for b in ids[i + 1:]}
+    assert got == want
+    assert got[(14, 15)] == 0.5 and got[(14, 16)] == 0.0
+    assert sum(v > 0 for v in got.values()) >= 5 and sum(v == 0 for v in got.values()) >= 20
