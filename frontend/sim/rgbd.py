@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import logging
 import math
+import multiprocessing
 import os
 import shutil
 from collections.abc import Callable
@@ -230,7 +231,11 @@ def write_rgbd_sequence(out: Path, scene: Scene, poses: NDArray, timestamps_s: N
     timestamps_s = np.round(np.asarray(timestamps_s, dtype=np.float64), 6)
     names = [f"{t:.6f}.png" for t in timestamps_s]
     workers = workers or os.cpu_count() or 1
-    with ProcessPoolExecutor(workers, initializer=_init_render_worker, initargs=(scene, model)) as pool:
+    # spawned, not forked: a child forked from a process whose OpenCV thread pool has run holds
+    # that pool's state without its threads, and its first cv2.remap waited forever (a test
+    # suite hung there after earlier tests had used OpenCV)
+    with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"), initializer=_init_render_worker,
+                             initargs=(scene, model)) as pool:
         futures = [pool.submit(_render_to_files, i, poses[i], seed, str(tmp / "rgb" / name), str(tmp / "depth" / name)) for i, name in enumerate(names)]
         for done, future in enumerate(futures, 1):
             future.result()
