@@ -40,7 +40,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from fpp_graph.errors import InputDataError
-from fpp_graph.geometry import invert, se3_exp, se3_log
+from fpp_graph.geometry import finite_points, invert, se3_exp, se3_log
 
 log = logging.getLogger(__name__)
 
@@ -77,7 +77,7 @@ def fit_pinhole(xyz_map: NDArray, step_px: int = 8) -> tuple[NDArray[np.float64]
     """
     sub = np.asarray(xyz_map[::step_px, ::step_px], dtype=np.float64)
     v, u = np.mgrid[0 : sub.shape[0], 0 : sub.shape[1]] * float(step_px)
-    ok = np.isfinite(sub[..., 0] + sub[..., 1] + sub[..., 2]) & (sub[..., 2] > 0)
+    ok = finite_points(sub) & (sub[..., 2] > 0)
     if int(ok.sum()) < 20:
         return None
     X, Y, Z = sub[ok, 0], sub[ok, 1], sub[ok, 2]

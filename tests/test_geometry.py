@@ -57,3 +57,12 @@ def test_rotations_from_quats_match_scipy_bitwise_and_normalise():
     R = rotations_from_quats_xyzw(q[0] * 7.0)  # one quaternion, not of unit norm
     np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-14)
     assert rotations_from_quats_xyzw(np.zeros((0, 4))).shape == (0, 3, 3)
+
+
+def test_finite_points_marks_every_point_with_a_non_finite_coordinate():
+    from fpp_graph.geometry import finite_points
+
+    cloud = np.array([[0.1, 0.2, 0.3], [np.nan, 0, 1], [0, np.inf, 1], [0, 0, -np.inf], [np.inf, -np.inf, 0], [-5.0, 4.0, 1e3]])
+    assert finite_points(cloud).tolist() == [True, False, False, False, False, True]
+    organised = cloud.reshape(2, 3, 3)
+    assert np.array_equal(finite_points(organised), np.all(np.isfinite(organised), axis=-1))

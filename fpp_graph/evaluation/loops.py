@@ -42,7 +42,7 @@ from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
 from fpp_graph.errors import InputDataError
-from fpp_graph.geometry import invert, pose_error
+from fpp_graph.geometry import finite_points, invert, pose_error
 
 log = logging.getLogger(__name__)
 
@@ -81,7 +81,7 @@ def ground_truth_overlaps(
     world: dict[int, NDArray[np.float64]] = {}
     for fid, pts in points_sensor.items():
         p = np.asarray(pts, dtype=np.float64).reshape(-1, 3)
-        p = p[np.isfinite(p[:, 0] + p[:, 1] + p[:, 2])]  # one pass: 5x faster than all() over axis 1
+        p = p[finite_points(p)]
         if len(p) > max_points:
             p = p[rng.choice(len(p), max_points, replace=False)]
         T = np.asarray(poses_gt_world_sensor[fid], dtype=np.float64)

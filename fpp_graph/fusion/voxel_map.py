@@ -40,7 +40,7 @@ from numpy.typing import NDArray
 from fpp_graph.atomic import atomic_open
 from fpp_graph.errors import InputDataError, OutputError
 from fpp_graph.fusion.voxel_grid import _reduce, project_to_local_planes, voxel_keys
-from fpp_graph.geometry import invert, transform_points
+from fpp_graph.geometry import finite_points, invert, transform_points
 from fpp_graph.types import (  # FusedMap: the MapFuser protocol's result type, re-exported here
     Frame,
     FusedMap,
@@ -302,14 +302,11 @@ class FramePreparer:
                 f"map fusion: frame {frame.id} has {points.shape[0]} points but {weights.shape[0]} weights"
             )
         if self.grazing_weight and frame.xyz_map is not None:
-            xyz = frame.xyz_map
-            # a NaN or inf in any coordinate makes the sum non-finite: one pass instead of a
-            # reduction over the short last axis (5x slower on a 640x480 map)
-            valid = np.isfinite(xyz[..., 0] + xyz[..., 1] + xyz[..., 2])
+            valid = finite_points(frame.xyz_map)
             # front-ends build points as xyz_map[valid] in row-major order; use it when it fits
             if np.count_nonzero(valid) == len(points):
                 weights = weights * grazing_weights(frame.xyz_map)[valid]
-        keep = np.isfinite(points[:, 0] + points[:, 1] + points[:, 2]) & (weights > 0)
+        keep = finite_points(points) & (weights > 0)
         beyond = 0
         if math.isfinite(self.max_depth_m):
             far = keep & (points[:, 2] > self.max_depth_m)
@@ -375,7 +372,7 @@ def intrinsics_of(frame: Frame) -> NDArray[np.float64]:
     if frame.xyz_map is None:
         raise InputDataError(f"frame {frame.id}: no metadata['K'] and no xyz_map to estimate intrinsics from")
     xyz = frame.xyz_map
-    valid = np.isfinite(xyz[..., 0] + xyz[..., 1] + xyz[..., 2]) & (xyz[..., 2] > 0)  # one pass (see FramePreparer)
+    valid = finite_points(xyz) & (xyz[..., 2] > 0)
     v, u = np.nonzero(valid)
     if len(u) < 10:
         raise InputDataError(f"frame {frame.id}: only {len(u)} valid pixels, too few to estimate intrinsics")
@@ -409,7 +406,7 @@ def render_depth(frame: Frame, K: NDArray[np.float64]) -> tuple[NDArray[np.float
     xyz = frame.xyz_map
     assert xyz is not None
     h, w = xyz.shape[:2]
-    valid = np.isfinite(xyz[..., 0] + xyz[..., 1] + xyz[..., 2]) & (xyz[..., 2] > 0)  # one pass (see FramePreparer)
+    valid = finite_points(xyz) & (xyz[..., 2] > 0)
     pts = xyz[valid]
     if frame.texture is not None:
         grey = frame.texture[valid].astype(np.uint8)

@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from fpp_graph.geometry import invert, transform_points
+from fpp_graph.geometry import finite_points, invert, transform_points
 from frontend.dense_alignment import point_to_plane_jacobian
 
 Array = NDArray[np.float64]
@@ -149,8 +149,7 @@ def organised_subsample(xyz_map: NDArray, voxel_m: float) -> Array:
         footprint = float(np.median(d))
         step_px = max(1, int(0.5 * voxel_m / max(footprint, 1e-9)))
     sub = xyz[::step_px, ::step_px].reshape(-1, 3)
-    # a NaN or inf in any coordinate makes the sum non-finite: one pass instead of three
-    valid = np.isfinite(sub[:, 0] + sub[:, 1] + sub[:, 2])
+    valid = finite_points(sub)
     if valid.all():
         # a strided reshape is already a copy; with step 1 it is a view of the caller's map
         return sub if step_px > 1 else sub.copy()

@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from fpp_graph.geometry import transform_points
+from fpp_graph.geometry import finite_points, transform_points
 from fpp_graph.types import Frame
 from frontend.dense_alignment import fit_pinhole
 
@@ -115,7 +115,7 @@ def texture_agreement(
     if h == 0 or w == 0:
         return TextureAgreement(float("nan"), 0)
     xyz_s, tex_s = xyz_s[:h, :w].reshape(-1, 3), tex_s[:h, :w].reshape(-1)
-    valid_s = np.isfinite(xyz_s[:, 0] + xyz_s[:, 1] + xyz_s[:, 2])
+    valid_s = finite_points(xyz_s)
     H_t, W_t = target.xyz_map.shape[:2]
     idx = np.flatnonzero(valid_s)
     moved = transform_points(T, xyz_s[idx])
