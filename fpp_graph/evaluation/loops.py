@@ -91,7 +91,8 @@ def ground_truth_overlaps(
     for a, b in todo:
         if a not in world or b not in world:
             raise InputDataError(f"loop evaluation: no points for frame {a if a not in world else b}")
-    shared = _shared_fractions(world, ids, tolerance_m)
+    # only the frames the pairs name: a frame in no pair neither asks nor answers
+    shared = _shared_fractions(world, sorted({f for pair in todo for f in pair}), tolerance_m)
     return {(a, b): min(shared[a].get(b, 0.0), shared[b].get(a, 0.0)) for a, b in todo}
 
 

@@ -268,4 +268,7 @@ def test_ground_truth_overlaps_equal_a_per_pair_brute_force():
     want = {(a, b): brute(a, b) for i, a in enumerate(ids) for b in ids[i + 1:]}
     assert got == want
     assert got[(14, 15)] == 0.5 and got[(14, 16)] == 0.0
+    # a few pairs alone (the other frames left out of the search) give the same overlaps
+    few = [(10, 0), (3, 5), (15, 14)]
+    assert ground_truth_overlaps(points, poses, pairs=few, tolerance_m=tol) == {(0, 10): want[(0, 10)], (3, 5): want[(3, 5)], (14, 15): 0.5}
     assert sum(v > 0 for v in got.values()) >= 5 and sum(v == 0 for v in got.values()) >= 20
