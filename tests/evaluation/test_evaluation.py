@@ -272,3 +272,13 @@ def test_ground_truth_overlaps_equal_a_per_pair_brute_force():
     few = [(10, 0), (3, 5), (15, 14)]
     assert ground_truth_overlaps(points, poses, pairs=few, tolerance_m=tol) == {(0, 10): want[(0, 10)], (3, 5): want[(3, 5)], (14, 15): 0.5}
     assert sum(v > 0 for v in got.values()) >= 5 and sum(v == 0 for v in got.values()) >= 20
+
+
+def test_ground_truth_overlaps_names_a_frame_without_pose_or_points():
+    from fpp_graph.evaluation.loops import ground_truth_overlaps
+
+    points = {0: np.zeros((5, 3)), 1: np.ones((5, 3))}
+    with pytest.raises(InputDataError, match=r"no ground-truth pose for frames \[1\]"):
+        ground_truth_overlaps(points, {0: np.eye(4)})
+    with pytest.raises(InputDataError, match="no points for frame 7"):
+        ground_truth_overlaps(points, {0: np.eye(4), 1: np.eye(4)}, pairs=[(0, 7)])
