@@ -235,12 +235,12 @@ def test_load_mesh_round_trip(tmp_path):
 
 
 def test_ground_truth_overlaps_equal_a_per_pair_brute_force():
-    """One KD-tree over all frames' points gives every pair the overlap that querying each
-    frame's own tree would: patches that overlap, touch, or lie apart, and points a hair inside
+    """One KD-tree over all frames' samples gives every pair the overlap that querying each
+    frame's own samples would: patches that overlap, touch, or lie apart, and points a hair inside
     or outside the tolerance."""
     from scipy.spatial import cKDTree
 
-    from fpp_graph.evaluation.loops import ground_truth_overlaps
+    from fpp_graph.evaluation.loops import ground_truth_overlaps, overlap_samples
 
     rng = np.random.default_rng(3)
     tol = 0.005
@@ -248,7 +248,7 @@ def test_ground_truth_overlaps_equal_a_per_pair_brute_force():
     for fid in range(14):
         # small patches scattered over 1.5 m, some touching, some a cell or two apart
         centre = rng.uniform(-0.75, 0.75, 3) if fid < 10 else points[fid - 10][0]
-        patch = centre + rng.uniform(-0.06, 0.06, (400, 3)) * [1, 1, 0.1]
+        patch = centre + rng.uniform(-0.06, 0.06, (2000, 3)) * [1, 1, 0.01]
         points[fid], poses[fid] = patch, np.eye(4)
     # a pair whose only contact is two points 0.99 and 1.01 tolerances apart across a cell edge
     edge = 0.7  # a multiple of common grid sizes
@@ -257,12 +257,15 @@ def test_ground_truth_overlaps_equal_a_per_pair_brute_force():
     points[16] = np.array([[edge + 0.515 * tol, 0.3 + 0.5 * tol, 0.3 + 0.5 * tol], [9.0, 9.0, 9.0]])
     poses.update({k: np.eye(4) for k in (14, 15, 16)})
     got = ground_truth_overlaps(points, poses, tolerance_m=tol)
+    samples = overlap_samples(points, poses, tolerance_m=tol)
+    # these patches are small enough to be sampled at the tolerance itself
+    assert samples.tolerance_m == tol
 
     def brute(a, b):
         def shared(p, q):
             d, _ = cKDTree(q).query(p, k=1, distance_upper_bound=tol)
             return np.count_nonzero(np.isfinite(d)) / len(p)
-        return min(shared(points[a], points[b]), shared(points[b], points[a]))
+        return min(shared(samples.query[a], samples.reference[b]), shared(samples.query[b], samples.reference[a]))
 
     ids = sorted(points)
     want = {(a, b): brute(a, b) for i, a in enumerate(ids) for b in ids[i + 1:]}
@@ -272,6 +275,35 @@ def test_ground_truth_overlaps_equal_a_per_pair_brute_force():
     few = [(10, 0), (3, 5), (15, 14)]
     assert ground_truth_overlaps(points, poses, pairs=few, tolerance_m=tol) == {(0, 10): want[(0, 10)], (3, 5): want[(3, 5)], (14, 15): 0.5}
     assert sum(v > 0 for v in got.values()) >= 5 and sum(v == 0 for v in got.values()) >= 20
+
+
+def test_ground_truth_overlap_does_not_depend_on_how_densely_a_frame_is_sampled():
+    """Two depth views of one 3 m x 2 m wall, one from 1 m (dense) and one from 3 m (nine
+    times sparser), the second shifted by a quarter of the wall: the overlap is the shared area
+    (0.75, at most 5 % low by design), not the chance that two sparse random samples fall within 5 mm (3000 samples of 6 m^2
+    lie ~45 mm apart, which gave 0.01). A parallel wall 0.2 m behind shares nothing."""
+    from fpp_graph.evaluation.loops import evaluate_loops, ground_truth_overlaps, overlap_samples
+
+    def wall(step_m, z_m=2.0, shift_m=0.0):
+        u, v = np.meshgrid(np.arange(-1.5, 1.5, step_m), np.arange(-1.0, 1.0, step_m))
+        return np.column_stack([u.ravel() + shift_m, v.ravel(), np.full(u.size, z_m)])
+
+    noise = np.random.default_rng(5)
+    points = {0: wall(0.002), 1: wall(0.006, shift_m=0.75), 2: wall(0.004, z_m=2.2)}
+    points = {k: p + noise.normal(0, 0.0005, p.shape) for k, p in points.items()}
+    poses = {k: np.eye(4) for k in points}
+    got = ground_truth_overlaps(points, poses, tolerance_m=0.005)
+    assert 0.66 <= got[(0, 1)] <= 0.77
+    assert got[(0, 2)] == 0.0 and got[(1, 2)] == 0.0
+    # the tolerance widened to the reach of 3000 samples over the median frame's 6 m^2: a surface
+    # point finds one within r with probability 1 - exp(-pi r^2 500/m^2) = 0.95 at r = 44 mm
+    samples = overlap_samples(points, poses, tolerance_m=0.005)
+    assert samples.tolerance_m == pytest.approx(np.sqrt(np.log(20) / (np.pi * 500)), rel=0.15)
+    assert all(len(q) <= 1000 for q in samples.query.values())
+    # a finer budget (reach 22 mm) reads the same overlap
+    assert 0.66 <= ground_truth_overlaps(points, poses, tolerance_m=0.005, max_points=12000)[(0, 1)] <= 0.77
+    ev = evaluate_loops([], [0, 1, 2], got, min_separation=1)
+    assert ev.true_loops == 1
 
 
 def test_ground_truth_overlaps_names_a_frame_without_pose_or_points():
