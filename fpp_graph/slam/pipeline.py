@@ -39,6 +39,7 @@ from fpp_graph.config import Config, dump_config
 from fpp_graph.errors import FppError, InputDataError, OutputError
 from fpp_graph.geometry import compose
 from fpp_graph.slam.frame_store import FrameStore, load_frame, save_frame
+from fpp_graph.slam.heap import trim_heap
 from fpp_graph.slam.keyframes import KeyframeManager, SlamResult
 from fpp_graph.slam.sources import FrameSource, check_frame_source
 from fpp_graph.slam.verification import ExecutorVerifier
@@ -191,6 +192,7 @@ def track(
     for frame in frames:
         if not manager.process(frame) and keyframes_only:
             discarded += store.discard_unstored(frame.id)
+        trim_heap()
     if discarded:
         log.info("run.keep_frames = keyframes: %d decoded non-keyframes deleted from %s once tracked", discarded, store.directory)
     if progress:

@@ -23,6 +23,7 @@ from numpy.typing import NDArray
 
 from fpp_graph.errors import FppError
 from fpp_graph.slam.frame_store import load_frame, save_frame
+from fpp_graph.slam.heap import trim_heap
 from fpp_graph.slam.sources import FrameSource
 from fpp_graph.types import Constraint, ConstraintKind, Frame, PairRegistrar
 
@@ -124,6 +125,8 @@ def decode_to_cache(frame_id: int, cache_path: str, source: FrameSource | None =
         return None
     except FppError as exc:
         return str(exc)
+    finally:
+        trim_heap()
 
 
 def prepare_for_fusion(
@@ -135,7 +138,10 @@ def prepare_for_fusion(
     (sensor frame, the permutation seeded by ``sample_seed``) for the "before" plot. Needs no
     source: any executor's worker can run it."""
     frame = load_frame(frame_path)
-    return preparer(frame, T_world_sensor), plot_sample(frame, sample_points, sample_seed)
+    try:
+        return preparer(frame, T_world_sensor), plot_sample(frame, sample_points, sample_seed)
+    finally:
+        trim_heap()
 
 
 def plot_sample(frame: Frame, count: int, seed: int) -> NDArray[np.float64]:
@@ -176,4 +182,7 @@ def verify_pair(
     assert _SOURCE is not None
     if _REGISTRAR is None:
         _REGISTRAR = _SOURCE.make_registrar()
-    return _REGISTRAR.register(_held_frame(target_path), _held_frame(source_path), T_guess, kind=ConstraintKind(kind))
+    try:
+        return _REGISTRAR.register(_held_frame(target_path), _held_frame(source_path), T_guess, kind=ConstraintKind(kind))
+    finally:
+        trim_heap()

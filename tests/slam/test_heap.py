@@ -1,0 +1,49 @@
+"""The heap trim that keeps a long run's resident memory flat (fpp_graph.slam.heap)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from fpp_graph.slam import heap
+
+
+def _rss_anon_mb() -> float:
+    with open("/proc/self/status") as status:
+        for line in status:
+            if line.startswith("RssAnon:"):
+                return int(line.split()[1]) / 1024
+    pytest.skip("no /proc/self/status RssAnon on this system")
+
+
+@pytest.mark.skipif(heap._MALLOC_TRIM is None, reason="malloc_trim is glibc's; this C library has none")
+def test_freed_frame_sized_blocks_go_back_to_the_os():
+    """The pattern of a long run: once a large block was freed, glibc serves frame-sized arrays
+    from the heap, and freeing every other one leaves free space the process keeps resident.
+    The trim returns it."""
+    big = np.ones(16 << 20, np.uint8)
+    del big  # glibc's mmap threshold rises to 16 MB: the 2 MB arrays below come from the heap
+    arrays = [np.ones(2 << 20, np.uint8) for _ in range(100)]
+    kept = arrays[::2]  # holes between live blocks: the heap cannot shrink from its top
+    del arrays
+    before = _rss_anon_mb()
+    assert heap.trim_heap(period_s=0.0)
+    after = _rss_anon_mb()
+    assert before - after > 50, (before, after)  # ~100 MB freed; a few pages of each hole stay
+    assert sum(int(a[0]) for a in kept) == 50  # the live blocks are untouched
+
+
+@pytest.mark.skipif(heap._MALLOC_TRIM is None, reason="malloc_trim is glibc's; this C library has none")
+def test_trims_at_most_once_per_period(monkeypatch):
+    calls = []
+    monkeypatch.setattr(heap, "_MALLOC_TRIM", lambda pad: calls.append(pad) or 1)
+    monkeypatch.setattr(heap, "_LAST_TRIM_S", 0.0)
+    assert heap.trim_heap(period_s=3600.0)
+    assert not heap.trim_heap(period_s=3600.0)
+    assert heap.trim_heap(period_s=0.0)
+    assert calls == [0, 0]
+
+
+def test_without_glibc_nothing_is_done(monkeypatch):
+    monkeypatch.setattr(heap, "_MALLOC_TRIM", None)
+    assert not heap.trim_heap(period_s=0.0)
