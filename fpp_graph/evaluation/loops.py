@@ -358,8 +358,14 @@ def evaluate_results_loops(
     min_overlap: float = 0.1,
     min_separation: int = 5,
     tolerance_m: float = 0.005,
+    max_pose_error_deg: float = 1.0,
 ) -> LoopEvaluation:
-    """:func:`evaluate_loops` on a results folder (``loops.json``, ``graph.g2o``, ``frames/``)."""
+    """:func:`evaluate_loops` on a results folder (``loops.json``, ``graph.g2o``, ``frames/``).
+
+    A verified loop is wrong when its measured pose is off by more than the overlaps' tolerance
+    (``tolerance_m``, or the wider one :func:`overlap_samples` needed): it then puts one surface
+    farther from the other than the distance that makes them the same surface.
+    """
     from fpp_graph.backend.g2o import read_g2o
     from fpp_graph.slam.frame_store import load_frame
 
@@ -381,6 +387,7 @@ def evaluate_results_loops(
     universe = [(a, b) for i, a in enumerate(keyframe_ids) for b in keyframe_ids[i + min_separation:]]
     proposed = {_pair(int(r["query"]), int(r["match"])) for r in rows}
     samples = overlap_samples(points, poses_gt_world_sensor, sorted(set(universe) | proposed), tolerance_m)
-    evaluation = evaluate_loops(rows, keyframe_ids, _overlaps(samples), poses_gt_world_sensor, measured, min_overlap, min_separation)
+    evaluation = evaluate_loops(rows, keyframe_ids, _overlaps(samples), poses_gt_world_sensor, measured, min_overlap, min_separation,
+                                max_pose_error_m=samples.tolerance_m, max_pose_error_deg=max_pose_error_deg)
     evaluation.tolerance_m = samples.tolerance_m
     return evaluation

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import builtins
+import json
 
 import numpy as np
 import open3d as o3d
@@ -314,3 +315,39 @@ def test_ground_truth_overlaps_names_a_frame_without_pose_or_points():
         ground_truth_overlaps(points, {0: np.eye(4)})
     with pytest.raises(InputDataError, match="no points for frame 7"):
         ground_truth_overlaps(points, {0: np.eye(4), 1: np.eye(4)}, pairs=[(0, 7)])
+
+
+def test_results_folder_loop_evaluation_judges_poses_at_the_overlap_tolerance(tmp_path):
+    """From a results folder: large depth-camera views widen the tolerance (here to ~3 cm), and
+    a loop registered 1 cm off is then a true loop, one 10 cm off a wrong one; the tolerance used
+    is reported."""
+    from fpp_graph.backend.g2o import write_g2o
+    from fpp_graph.backend.pose_graph import PoseGraph
+    from fpp_graph.evaluation.loops import evaluate_results_loops
+    from fpp_graph.slam.frame_store import save_frame
+    from fpp_graph.types import Frame
+
+    u, v = np.meshgrid(np.arange(-1.5, 1.5, 0.005), np.arange(-1.0, 1.0, 0.005))
+    wall = np.column_stack([u.ravel(), v.ravel(), np.full(u.size, 2.0)])  # 6 m^2 seen from 2 m
+    poses = {k: make_pose(np.eye(3), [0.05 * (k % 6), 0.0, 0.0]) for k in range(8)}
+    (tmp_path / "frames").mkdir()
+    graph = PoseGraph()
+    for k, T in poses.items():
+        save_frame(tmp_path / "frames" / f"frame_{k:06d}.npz", Frame(id=k, timestamp=float(k), points=wall))
+        graph.add_pose(k, T)
+    info = np.eye(6) * 1e4
+    for k in range(7):
+        graph.add_edge(k + 1, k, np.linalg.inv(poses[k]) @ poses[k + 1], info)
+    # 6 -> 0 and 7 -> 1 revisit (the same place): one measured 1 cm off, one 10 cm off
+    off = {6: make_pose(np.eye(3), [0.01, 0.0, 0.0]), 7: make_pose(np.eye(3), [0.10, 0.0, 0.0])}
+    for q, m in ((6, 0), (7, 1)):
+        graph.add_edge(q, m, np.linalg.inv(poses[m]) @ poses[q] @ off[q], info, kind="loop")
+    write_g2o(tmp_path / "graph.g2o", graph)
+    rows = [{"query": q, "match": m, "stage": "proximity", "verified": True, "rejected_by_backend": False} for q, m in ((6, 0), (7, 1))]
+    (tmp_path / "loops.json").write_text(json.dumps(rows))
+    ev = evaluate_results_loops(tmp_path, poses, min_separation=5)
+    assert 0.02 < ev.tolerance_m < 0.05
+    assert ev.stages["verified"].true_pairs == 1
+    assert [(f["query"], f["match"]) for f in ev.false_accepted] == [(7, 1)]
+    assert ev.false_accepted[0]["pose_error_mm"] == pytest.approx(100.0, abs=0.5)
+    assert ev.as_dict()["tolerance_m"] == ev.tolerance_m
