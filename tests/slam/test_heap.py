@@ -7,6 +7,8 @@ import pytest
 
 from fpp_graph.slam import heap
 
+glibc_only = pytest.mark.skipif(heap._MALLOC_TRIM is None, reason="malloc_trim is glibc's; this C library has none")
+
 
 def _rss_anon_mb() -> float:
     with open("/proc/self/status") as status:
@@ -16,8 +18,8 @@ def _rss_anon_mb() -> float:
     pytest.skip("no /proc/self/status RssAnon on this system")
 
 
-@pytest.mark.skipif(heap._MALLOC_TRIM is None, reason="malloc_trim is glibc's; this C library has none")
-def test_freed_frame_sized_blocks_go_back_to_the_os():
+@glibc_only
+def test_freed_frame_sized_blocks_go_back_to_the_os(monkeypatch):
     """The pattern of a long run: once a large block was freed, glibc serves frame-sized arrays
     from the heap, and freeing every other one leaves free space the process keeps resident.
     The trim returns it."""
@@ -27,21 +29,27 @@ def test_freed_frame_sized_blocks_go_back_to_the_os():
     kept = arrays[::2]  # holes between live blocks: the heap cannot shrink from its top
     del arrays
     before = _rss_anon_mb()
+    monkeypatch.setattr(heap, "_LAST_TRIM_S", 0.0)
     assert heap.trim_heap(period_s=0.0)
     after = _rss_anon_mb()
     assert before - after > 50, (before, after)  # ~100 MB freed; a few pages of each hole stay
     assert sum(int(a[0]) for a in kept) == 50  # the live blocks are untouched
 
 
-@pytest.mark.skipif(heap._MALLOC_TRIM is None, reason="malloc_trim is glibc's; this C library has none")
+@glibc_only
 def test_trims_at_most_once_per_period(monkeypatch):
     calls = []
+    clock = [1000.0]
     monkeypatch.setattr(heap, "_MALLOC_TRIM", lambda pad: calls.append(pad) or 1)
-    monkeypatch.setattr(heap, "_LAST_TRIM_S", 0.0)
-    assert heap.trim_heap(period_s=3600.0)
-    assert not heap.trim_heap(period_s=3600.0)
-    assert heap.trim_heap(period_s=0.0)
-    assert calls == [0, 0]
+    monkeypatch.setattr(heap, "_LAST_TRIM_S", None)
+    monkeypatch.setattr(heap.time, "monotonic", lambda: clock[0])
+    assert not heap.trim_heap(period_s=10.0)  # the first call starts the clock
+    clock[0] += 9.9
+    assert not heap.trim_heap(period_s=10.0)
+    clock[0] += 0.2
+    assert heap.trim_heap(period_s=10.0)
+    assert not heap.trim_heap(period_s=10.0)
+    assert calls == [0]
 
 
 def test_without_glibc_nothing_is_done(monkeypatch):
