@@ -25,7 +25,10 @@ import time
 
 HEAP_TRIM_PERIOD_S = 10.0
 """At most one trim per ten seconds per process: a trim costs about a tenth of a second of page
-faults afterwards (the once-a-second trim's 12 %), so about 1 % of the run."""
+faults afterwards (the once-a-second trim's 12 %), so about 1 % of the run. Measured on the
+2000-frame walk against no trim, run one after the other: peak RSS second half over first 1.07
+(tracking process) and 1.06 (all) instead of 1.15 and 1.13, 414 s instead of 409 s (3.0 M page
+faults instead of 1.9 M); once a second: 1.04 and 1.05, 448 s."""
 
 
 def _load_malloc_trim():
