@@ -103,6 +103,12 @@ def main(argv: list[str] | None = None) -> int:
     print("stages: " + ", ".join(f"{k} {v:.1f} s ({100 * v / wall:.0f} %)" for k, v in stages.items()))
     print(f"ATE {row['ate_rmse_mm']:.1f} mm (max {row['ate_max_mm']:.1f}); loops {row['loop_candidates']} proposed, "
           f"{row['loops_verified']} verified, {row['loops_accepted']} accepted")
+    if (loops := m.get("loop_evaluation")) is not None:  # fpp_graph.evaluation.loops against the simulator's poses
+        row["loop_evaluation"] = loops
+        stages = loops["stages"]
+        print(f"loop evaluation (tolerance {1e3 * loops['tolerance_m']:.1f} mm): {loops['true_loops']} true loops among "
+              f"{loops['universe_pairs']} keyframe pairs; true among proposed {stages['proposed']['true']}, verified "
+              f"{stages['verified']['true']}, kept {stages['accepted']['true']}; {len(loops['false_accepted'])} false loops kept")
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out.parent / f"{args.out.name}_long_rgbd.json").write_text(json.dumps(row, indent=1, default=float))
     return 0
