@@ -132,6 +132,28 @@ def load_frame(path: str | os.PathLike[str]) -> Frame:
         raise InputDataError(f"cached frame {path} lacks {exc.args[0]!r}; delete it to recompute") from None
 
 
+def load_frame_points(path: str | os.PathLike[str], max_points: int, seed: int = 0) -> np.ndarray:
+    """Up to ``max_points`` of a saved frame's points, drawn uniformly without replacement (seeded),
+    in their order, float64 (N, 3): what an evaluation over hundreds of frames needs, without
+    building each :class:`Frame` (its maps and textures) as :func:`load_frame` does."""
+    path = Path(path)
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            if "points" in data.files:
+                points = data["points"]
+            elif "xyz_map" in data.files:
+                xyz = data["xyz_map"]
+                points = _finite_pixels(xyz, np.isfinite(xyz[..., 2]))
+            else:
+                raise InputDataError(f"cached frame {path} has neither points nor an xyz map; delete it to recompute")
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
+        raise InputDataError(f"cannot read cached frame {path}: {exc}; delete it to recompute") from None
+    points = points.reshape(-1, 3)
+    if len(points) > max_points:
+        points = points[np.sort(np.random.default_rng(seed).choice(len(points), max_points, replace=False))]
+    return points.astype(np.float64)
+
+
 class FrameStore:
     """Frames by id: the ``max_in_memory`` most recently used in memory, all of them on disk.
 

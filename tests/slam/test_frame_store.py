@@ -185,3 +185,35 @@ def test_discard_unstored_deletes_only_a_cached_frame_that_was_never_put(tmp_pat
     assert not store.discard_unstored(2)  # already gone
     assert not store.discard_unstored(1) and store.path_of(1).exists()
     assert not FrameStore(None).discard_unstored(1)
+
+
+def test_load_frame_points_samples_the_points_load_frame_gives(tmp_path):
+    """A frame whose points are its map's finite pixels (not stored) and one whose points are
+    stored: the sample is a seeded, ordered subset of exactly the points load_frame returns."""
+    from fpp_graph.slam.frame_store import load_frame_points
+
+    rng = np.random.default_rng(4)
+    derived = sensor_like_frame(rng)
+    stored = Frame(id=8, timestamp=0.5, points=rng.normal(size=(500, 3)).astype(np.float32).astype(np.float64))
+    for frame in (derived, stored):
+        path = tmp_path / f"frame_{frame.id:06d}.npz"
+        save_frame(path, frame)
+        everything = load_frame(path).points
+        assert np.array_equal(load_frame_points(path, 10**6), everything)
+        sample = load_frame_points(path, 200, seed=3)
+        assert sample.shape == (200, 3) and sample.dtype == np.float64
+        rows = {tuple(p) for p in everything}
+        assert all(tuple(p) in rows for p in sample)
+        assert np.array_equal(sample, load_frame_points(path, 200, seed=3))
+        assert not np.array_equal(sample, load_frame_points(path, 200, seed=4))
+        # in the frame's order (a sorted subset), so a sample is reproducible from the file alone
+        index = {tuple(p): i for i, p in enumerate(everything)}
+        assert np.all(np.diff([index[tuple(p)] for p in sample]) > 0)
+    broken = tmp_path / "frame_000009.npz"
+    broken.write_bytes(b"not a zip")
+    with pytest.raises(InputDataError, match="cannot read cached frame .*frame_000009.npz.*delete it"):
+        load_frame_points(broken, 10)
+    empty = tmp_path / "frame_000010.npz"
+    np.savez(empty, id=np.array(10))
+    with pytest.raises(InputDataError, match="neither points nor an xyz map"):
+        load_frame_points(empty, 10)
