@@ -53,12 +53,16 @@ def _pair(a: int, b: int) -> tuple[int, int]:
     return (a, b) if a < b else (b, a)
 
 
+OVERLAP_MAX_POINTS = 3000
+"""Samples of a frame of the median surface area in the overlap test (:func:`overlap_samples`)."""
+
+
 def ground_truth_overlaps(
     points_sensor: Mapping[int, NDArray[np.float64]],
     poses_gt_world_sensor: Mapping[int, NDArray[np.float64]],
     pairs: Iterable[tuple[int, int]] | None = None,
     tolerance_m: float = 0.005,
-    max_points: int = 3000,
+    max_points: int = OVERLAP_MAX_POINTS,
     seed: int = 0,
     query_points: int = 1000,
 ) -> dict[tuple[int, int], float]:
@@ -116,7 +120,7 @@ def overlap_samples(
     poses_gt_world_sensor: Mapping[int, NDArray[np.float64]],
     pairs: Iterable[tuple[int, int]] | None = None,
     tolerance_m: float = 0.005,
-    max_points: int = 3000,
+    max_points: int = OVERLAP_MAX_POINTS,
     seed: int = 0,
     query_points: int = 1000,
 ) -> OverlapSamples:
@@ -355,9 +359,9 @@ def evaluate_loops(
     )
 
 
-RESULTS_POINTS_PER_FRAME = 4 * 3000
+RESULTS_POINTS_PER_FRAME = 4 * OVERLAP_MAX_POINTS
 """Points read from each cached frame by :func:`evaluate_results_loops`: four times the samples of a
-frame of the median area (:func:`overlap_samples`' ``max_points``)."""
+frame of the median area."""
 
 
 def evaluate_results_loops(

@@ -97,14 +97,22 @@ def _json_default(value):
     raise TypeError(f"cannot store {type(value).__name__} in frame metadata")
 
 
+_UNREADABLE = (OSError, ValueError, zipfile.BadZipFile, EOFError)
+"""What ``np.load`` raises on a missing, truncated or foreign cache file."""
+
+
+def _unreadable(path: Path, exc: BaseException) -> InputDataError:
+    return InputDataError(f"cannot read cached frame {path}: {exc}; delete it to recompute")
+
+
 def load_frame(path: str | os.PathLike[str]) -> Frame:
     """Read a frame written by :func:`save_frame`."""
     path = Path(path)
     try:
         with np.load(path, allow_pickle=False) as data:
             get = {k: data[k] for k in data.files}
-    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
-        raise InputDataError(f"cannot read cached frame {path}: {exc}; delete it to recompute") from None
+    except _UNREADABLE as exc:
+        raise _unreadable(path, exc) from None
     try:
         derived = set(get["derived_from_map"].tolist()) if "derived_from_map" in get else set()
         xyz32 = get["xyz_map"] if derived or "xyz_map" in get else None
@@ -146,8 +154,8 @@ def load_frame_points(path: str | os.PathLike[str], max_points: int, seed: int =
                 points = _finite_pixels(xyz, np.isfinite(xyz[..., 2]))
             else:
                 raise InputDataError(f"cached frame {path} has neither points nor an xyz map; delete it to recompute")
-    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
-        raise InputDataError(f"cannot read cached frame {path}: {exc}; delete it to recompute") from None
+    except _UNREADABLE as exc:
+        raise _unreadable(path, exc) from None
     points = points.reshape(-1, 3)
     if len(points) > max_points:
         points = points[np.sort(np.random.default_rng(seed).choice(len(points), max_points, replace=False))]
