@@ -164,6 +164,9 @@ class IcpOutcome:
         Voxel size of the last ICP run (None: none ran).
     coarse_plane_like : bool
         The coarse voxels read as a plane, so ICP was redone on the fine ones.
+    fine_skipped : bool
+        The coarse voxels read as a plane but their ICP had not converged within
+        ``icp.max_iterations`` (sliding along the plane), so it was not redone on the fine ones.
     too_few_voxels : (target voxels, source voxels, voxel_m) or None
         Clouds below ``icp.min_voxels``.
     information_raw : (6, 6) or None
@@ -180,6 +183,7 @@ class IcpOutcome:
     too_few_voxels: tuple[int, int, float] | None = None
     information_raw: Array | None = None
     degeneracy: Degeneracy | None = None
+    fine_skipped: bool = False
 
     @property
     def metadata(self) -> dict[str, Any]:
@@ -188,6 +192,8 @@ class IcpOutcome:
             meta["icp_voxel_m"] = self.voxel_m
         if self.coarse_plane_like:
             meta["coarse_icp_plane_like"] = True
+        if self.fine_skipped:
+            meta["fine_icp_skipped"] = "coarse ICP on a plane did not converge"
         if self.icp is not None:
             icp = self.icp
             meta.update({"T_icp": icp.T_target_source, "icp_iterations": icp.iterations, "icp_converged": icp.converged, "icp_correspondences": icp.num_correspondences})
@@ -209,14 +215,15 @@ def run_icp(
     coarser voxels do that (turntable pairs: same final error, ICP stages 2.4x faster). A plane
     to ICP (three weak directions) skips the dense stage and keeps ICP's pose, so it is redone on
     the fine voxels, unless the texture sets the plane's directions (``texture_sets_planes``):
-    then the dense fit gives the tilts and the texture the rest.
+    then the dense fit gives the tilts and the texture the rest; or unless the coarse ICP had not
+    converged (``fine_skipped``: it was sliding along the plane, and the fine voxels would too).
     """
     cfg, lengths = config, config.lengths
     dense_follows = cfg.dense.enabled and lengths.icp_coarse_voxel_m > lengths.icp_voxel_m
     voxels = [lengths.icp_coarse_voxel_m, lengths.icp_voxel_m] if dense_follows else [lengths.icp_voxel_m]
     timer.zero("icp_prepare", "icp")
     ran_voxel_m: float | None = None
-    coarse_plane_like = False
+    coarse_plane_like = fine_skipped = False
     for voxel in voxels:
         started = timer.start()
         tcloud = icp_cloud(target, voxel)
@@ -237,8 +244,17 @@ def run_icp(
         degeneracy = check_degeneracy(info_raw, icp.source_points, cfg.weak_directions.degeneracy_ratio)
         if voxel == lengths.icp_voxel_m or len(degeneracy.unconstrained) < 3 or texture_sets_planes:
             break
+        if not icp.converged:
+            # A plane whose coarse ICP still moves at its iteration bound is sliding along
+            # itself toward more overlap (a view that barely shares the wall: started at the
+            # true pose, such pairs of the simulated walk slid 9-43 cm in 49 iterations); the
+            # fine voxels slide the same way at 4-5x the cost (0.5-2.5 s a pair on 640x480
+            # RGB-D). The coarse pose goes to the gates, which judge it as they would the fine
+            # one: the plane's in-plane directions are the keypoints' either way.
+            fine_skipped = True
+            break
         coarse_plane_like = True
-    return IcpOutcome(icp, tcloud, scloud, ran_voxel_m, coarse_plane_like, None, info_raw, degeneracy)
+    return IcpOutcome(icp, tcloud, scloud, ran_voxel_m, coarse_plane_like, None, info_raw, degeneracy, fine_skipped)
 
 
 # ---------------------------------------------------------------------------------------------

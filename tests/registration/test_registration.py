@@ -211,6 +211,29 @@ def test_flat_wall_flags_weak_directions_and_rejects_when_keypoints_do_not_pin_t
     assert "degenerate" in c.rejection_reason and "translation" in c.rejection_reason
 
 
+def test_plane_redone_on_fine_voxels_only_after_the_coarse_icp_converged():
+    # Without a rig camera (RGB-D) a plane to the coarse ICP is redone on the fine voxels; a
+    # coarse ICP stopped by its iteration bound (sliding along the plane) is not: the fine
+    # voxels would slide the same way, and the plane's in-plane directions are the keypoints'.
+    scene = bumpy_wall_scene(seed=8, flat=True)
+    a = render_frame(scene, wall_pose(0.0), W, H, frame_id=0)
+    b = render_frame(scene, wall_pose(0.1), W, H, frame_id=1)
+    T_true = np.linalg.inv(a.metadata["T_world_sensor_true"]) @ b.metadata["T_world_sensor_true"]
+    config = RegistrationConfig()
+    lengths = config.lengths
+    converged = FppPairRegistrar(config).register(a, b)
+    assert converged.metadata["coarse_icp_plane_like"] and converged.metadata["icp_voxel_m"] == pytest.approx(lengths.icp_voxel_m)
+    assert "fine_icp_skipped" not in converged.metadata
+    bounded = FppPairRegistrar(config.model_copy(update={"icp": config.icp.model_copy(update={"max_iterations": 1})})).register(a, b)
+    assert not bounded.metadata["icp_converged"]
+    assert bounded.metadata["icp_voxel_m"] == pytest.approx(lengths.icp_coarse_voxel_m)
+    assert "did not converge" in bounded.metadata["fine_icp_skipped"] and "coarse_icp_plane_like" not in bounded.metadata
+    # judged by the same gates: here the keypoints still pin the plane, so the pair stands
+    assert bounded.accepted, bounded.rejection_reason
+    rot_rad, trans_m = pose_error(bounded.T_target_source, T_true)
+    assert trans_m < 1e-4 and rot_rad < 1e-4
+
+
 def test_bad_input_frames(pair):
     a, b, _ = pair
     reg = FppPairRegistrar(RegistrationConfig())
