@@ -93,6 +93,10 @@ def test_results_folder_is_complete(finished_run):
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["frames"] == len(XS) - 1 and metrics["frames_total"] == len(XS)
     assert "corrupt" in metrics["skipped_frames"][str(BROKEN)]
+    # the source has ground truth: the loop evaluation ran, timed as a stage of its own
+    assert "loop_evaluation" in metrics and metrics["seconds_by_stage"]["evaluate_loops"] > 0
+    assert set(metrics["seconds_by_stage"]) == {"decode+track", "write_graph", "fuse", "plots", "evaluate_loops"}
+    assert metrics["seconds"] == pytest.approx(sum(metrics["seconds_by_stage"].values()))
     traj = read_tum(out / "trajectory.tum")
     assert BROKEN not in traj.timestamps_s.astype(int).tolist()
 
