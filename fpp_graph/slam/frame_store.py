@@ -35,10 +35,19 @@ log = logging.getLogger(__name__)
 
 
 def save_frame(path: str | os.PathLike[str], frame: Frame) -> None:
-    """Write ``frame`` to ``path`` (``.npz``) atomically.
+    """Write ``frame`` to ``path`` (``.npz``) atomically: its :func:`stored_arrays`."""
+    arrays = stored_arrays(frame)
+    with atomic_open(path, "wb") as handle:
+        np.savez(handle, **arrays)
 
-    ``points`` / ``colors`` that :func:`load_frame` can rebuild from ``xyz_map`` / ``texture``
-    are left out (see the module docstring); everything else is stored as it is.
+
+def stored_arrays(frame: Frame) -> dict[str, np.ndarray]:
+    """The arrays :func:`save_frame` writes for ``frame`` and :func:`frame_from_stored` reads.
+
+    ``points`` / ``colors`` that can be rebuilt from ``xyz_map`` / ``texture`` are left out (see
+    the module docstring); everything else is kept as it is. A decode worker hands a frame over
+    in this form when it need not be written (``fpp_graph.slam.workers.decode_frame``): a quarter
+    of the bytes, and the tracking process sees the same numbers as from the cache.
     """
     arrays: dict[str, np.ndarray] = {
         "id": np.array(frame.id),
@@ -80,8 +89,7 @@ def save_frame(path: str | os.PathLike[str], frame: Frame) -> None:
     if derived:
         arrays["derived_from_map"] = np.array(derived)
     arrays["metadata_json"] = np.array(json.dumps(dict(frame.metadata), default=_json_default))
-    with atomic_open(path, "wb") as handle:
-        np.savez(handle, **arrays)
+    return arrays
 
 
 def _finite_pixels(xyz_map: np.ndarray, valid: np.ndarray) -> np.ndarray:
@@ -113,6 +121,11 @@ def load_frame(path: str | os.PathLike[str]) -> Frame:
             get = {k: data[k] for k in data.files}
     except _UNREADABLE as exc:
         raise _unreadable(path, exc) from None
+    return frame_from_stored(get, f"cached frame {path}")
+
+
+def frame_from_stored(get: dict[str, np.ndarray], origin: str) -> Frame:
+    """The :class:`Frame` whose :func:`stored_arrays` are ``get`` (``origin`` names them in errors)."""
     try:
         derived = set(get["derived_from_map"].tolist()) if "derived_from_map" in get else set()
         xyz32 = get["xyz_map"] if derived or "xyz_map" in get else None
@@ -137,7 +150,7 @@ def load_frame(path: str | os.PathLike[str]) -> Frame:
             metadata=json.loads(str(get["metadata_json"])),
         )
     except KeyError as exc:
-        raise InputDataError(f"cached frame {path} lacks {exc.args[0]!r}; delete it to recompute") from None
+        raise InputDataError(f"{origin} lacks {exc.args[0]!r}; delete it to recompute") from None
 
 
 def load_frame_points(path: str | os.PathLike[str], max_points: int, seed: int = 0) -> np.ndarray:

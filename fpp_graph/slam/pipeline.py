@@ -38,12 +38,19 @@ from fpp_graph.atomic import atomic_write_text
 from fpp_graph.config import Config, dump_config
 from fpp_graph.errors import FppError, InputDataError, OutputError
 from fpp_graph.geometry import compose
-from fpp_graph.slam.frame_store import FrameStore, load_frame, save_frame
+from fpp_graph.slam.frame_store import (
+    FrameStore,
+    frame_from_stored,
+    load_frame,
+    save_frame,
+    stored_arrays,
+)
 from fpp_graph.slam.heap import trim_heap
 from fpp_graph.slam.keyframes import KeyframeManager, SlamResult
 from fpp_graph.slam.sources import FrameSource, check_frame_source
 from fpp_graph.slam.verification import ExecutorVerifier
 from fpp_graph.slam.workers import (
+    decode_frame,
     decode_to_cache,
     init_worker,
     plot_sample,
@@ -110,6 +117,7 @@ def prepare_frames(
     progress: ProgressCallback | None = None,
     window: int = 4,
     worker_source: tuple[FrameSource, str] | None = None,
+    cache_every_frame: bool = True,
 ) -> Iterator[Frame]:
     """Yield decoded frames in capture order, decoding ahead in ``executor``.
 
@@ -117,26 +125,35 @@ def prepare_frames(
     that :func:`~fpp_graph.slam.workers.init_worker` did not start (a Dask executor).
 
     Frames already in ``cache_dir`` (an interrupted earlier run) are loaded, not decoded. A frame
-    that cannot be decoded is skipped with a warning and recorded in ``skipped``.
+    that cannot be decoded is skipped with a warning and recorded in ``skipped``. Decoded frames
+    are written to ``cache_dir`` first unless ``cache_every_frame`` is false (a run that keeps
+    only keyframes, which its frame store writes): then they come back from the workers directly.
     """
     cache_dir.mkdir(parents=True, exist_ok=True)
     ids = source.frame_ids()
     skipped = skipped if skipped is not None else {}
     pending: dict[int, Future | None] = {}
+    decoded: dict[int, Frame] = {}  # frames handed over without the cache
 
     def cache_path(fid: int) -> Path:
         return cache_dir / f"frame_{fid:06d}.npz"
+
+    def received(fid: int, result: dict[str, np.ndarray] | str | None) -> None:
+        if isinstance(result, dict):  # the frame's stored form: the same numbers as from the cache
+            decoded[fid] = frame_from_stored(result, f"frame {fid} decoded by a worker")
+        elif result:
+            skipped[fid] = result
 
     def submit(fid: int) -> None:
         if cache_path(fid).exists():
             pending[fid] = None
         elif executor is None:
             pending[fid] = None
-            message = _decode_local(source, fid, cache_path(fid))
-            if message:
-                skipped[fid] = message
-        else:
+            received(fid, _decode_local(source, fid, cache_path(fid) if cache_every_frame else None))
+        elif cache_every_frame:
             pending[fid] = executor.submit(decode_to_cache, fid, str(cache_path(fid)), *(worker_source or ()))
+        else:
+            pending[fid] = executor.submit(decode_frame, fid, *(worker_source or ()))
 
     next_submit = 0
     for done, fid in enumerate(ids):
@@ -145,11 +162,11 @@ def prepare_frames(
             next_submit += 1
         future = pending.pop(fid)
         if future is not None:
-            message = future.result()
-            if message:
-                skipped[fid] = message
+            received(fid, future.result())
         if fid in skipped:
             log.warning("skipping frame %d: %s", fid, skipped[fid])
+        elif fid in decoded:
+            yield decoded.pop(fid)
         else:
             try:
                 yield load_frame(cache_path(fid))
@@ -165,9 +182,14 @@ def prepare_frames(
             progress("frames", done + 1, len(ids))
 
 
-def _decode_local(source: FrameSource, fid: int, path: Path) -> str | None:
+def _decode_local(source: FrameSource, fid: int, path: Path | None) -> dict[str, np.ndarray] | str | None:
+    """Decode frame ``fid`` in this process: written to ``path`` (None returned), or its stored
+    form returned when ``path`` is None; an error message instead of raising."""
     try:
-        save_frame(path, source.load_frame(fid))
+        frame = source.load_frame(fid)
+        if path is None:
+            return stored_arrays(frame)
+        save_frame(path, frame)
         return None
     except FppError as exc:
         return str(exc)
@@ -434,7 +456,8 @@ class Pipeline:
         verifier = ExecutorVerifier(executor, store, *(worker_source or ())) if executor is not None else None
 
         def frames_with_timestamps() -> Iterator[Frame]:
-            for frame in prepare_frames(self.source, out / "frames", executor, report.skipped_frames, self.progress, worker_source=worker_source):
+            for frame in prepare_frames(self.source, out / "frames", executor, report.skipped_frames, self.progress, worker_source=worker_source,
+                                        cache_every_frame=self.config.run.keep_frames != "keyframes"):
                 timestamps[frame.id] = frame.timestamp
                 yield frame
 

@@ -409,6 +409,47 @@ def test_rgbd_run_keeps_only_its_keyframes(tmp_path):
     assert kept["all"] == list(range(len(xs)))
 
 
+@pytest.mark.parametrize("cache_every_frame", [False, True])
+def test_frames_decoded_ahead_come_back_through_the_cache_or_directly(tmp_path, tum_sequence, cache_every_frame):
+    """With only keyframes kept on disk, the workers hand decoded frames back directly: nothing is
+    written to frames/ just to be deleted once tracked. Cached frames (a resumed run) are still
+    read, and a broken frame is still skipped with its reason, either way."""
+    import shutil
+    from concurrent.futures import ThreadPoolExecutor
+
+    from fpp_graph.slam.frame_store import frame_from_stored, save_frame, stored_arrays
+    from fpp_graph.slam.pipeline import prepare_frames
+    from fpp_graph.slam.sources import open_source
+
+    seq = tmp_path / "seq"
+    shutil.copytree(tum_sequence, seq)
+    sorted((seq / "depth").iterdir())[4].write_bytes(b"\x89PNG\r\n\x1a\n truncated")
+    source = open_source(seq, config_from_dict({}))
+    cache = tmp_path / "frames"
+    cache.mkdir()
+    resumed = source.load_frame(1)
+    save_frame(cache / "frame_000001.npz", resumed)  # from an interrupted run
+    skipped: dict[int, str] = {}
+    with ThreadPoolExecutor(2) as executor:
+        frames = list(prepare_frames(source, cache, executor, skipped, worker_source=(source, "test-run"), cache_every_frame=cache_every_frame))
+    ids = [f.id for f in frames]
+    assert ids == [i for i in range(len(XS)) if i != 4] and set(skipped) == {4} and "depth" in skipped[4]
+    for frame in frames[:3]:  # the numbers the cache gives (float32 maps), whichever way the frame came
+        expected = frame_from_stored(stored_arrays(source.load_frame(frame.id)), "expected")
+        assert np.array_equal(frame.xyz_map, expected.xyz_map, equal_nan=True) and np.array_equal(frame.texture, expected.texture)
+        assert np.array_equal(frame.points, expected.points) and np.array_equal(frame.colors, expected.colors)
+    written = sorted(p.name for p in cache.glob("frame_*.npz"))
+    if cache_every_frame:
+        assert written == [f"frame_{i:06d}.npz" for i in ids]
+    else:
+        assert written == ["frame_000001.npz"]
+    # without an executor the frames are decoded here, with the same choice
+    shutil.rmtree(cache)
+    local = list(prepare_frames(source, cache, None, {}, cache_every_frame=cache_every_frame))
+    assert [f.id for f in local] == ids
+    assert len(list(cache.glob("frame_*.npz"))) == (len(ids) if cache_every_frame else 0)
+
+
 def test_sigterm_ends_the_workers_and_resume_completes(tmp_path):
     """SIGTERM mid-run: the decode workers end with the run, the exit is non-zero with one line
     that says how to resume, and --resume then completes the run."""
