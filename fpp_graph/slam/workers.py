@@ -2,11 +2,12 @@
 
 A run's :class:`~concurrent.futures.ProcessPoolExecutor` starts each worker with
 :func:`init_worker` (the run's frame source, one thread per library); the main process then
-submits :func:`decode_to_cache` (or :func:`decode_frame`, when only keyframes stay on disk) for
-frames ahead of tracking and :func:`verify_pair` for loop
+submits :func:`decode_to_cache` for frames ahead of tracking, :func:`verify_pair` for loop
 candidates (:class:`~fpp_graph.slam.verification.ExecutorVerifier`), and at the end
 :func:`prepare_for_fusion` for the keyframes of the map. They read and write frames through the
-results folder's ``frames/`` cache, so mostly file paths and results cross the process boundary.
+results folder's ``frames/`` cache, so only file paths and results cross the process boundary;
+the exception is :func:`decode_frame`, which hands a decoded frame back in its stored form when
+only keyframes stay on disk.
 """
 
 from __future__ import annotations
