@@ -46,7 +46,7 @@ def stored_arrays(frame: Frame) -> dict[str, np.ndarray]:
 
     ``points`` / ``colors`` that can be rebuilt from ``xyz_map`` / ``texture`` are left out (see
     the module docstring); everything else is kept as it is. A decode worker hands a frame over
-    in this form when it need not be written (``fpp_graph.slam.workers.decode_frame``): a quarter
+    in this form when it need not be written (``fpp_graph.slam.workers.decode``): a quarter
     of the bytes, and the tracking process sees the same numbers as from the cache.
     """
     arrays: dict[str, np.ndarray] = {

@@ -36,21 +36,19 @@ import numpy as np
 
 from fpp_graph.atomic import atomic_write_text
 from fpp_graph.config import Config, dump_config
-from fpp_graph.errors import FppError, InputDataError, OutputError
+from fpp_graph.errors import InputDataError, OutputError
 from fpp_graph.geometry import compose
 from fpp_graph.slam.frame_store import (
     FrameStore,
     frame_from_stored,
     load_frame,
-    save_frame,
-    stored_arrays,
 )
 from fpp_graph.slam.heap import trim_heap
 from fpp_graph.slam.keyframes import KeyframeManager, SlamResult
 from fpp_graph.slam.sources import FrameSource, check_frame_source
 from fpp_graph.slam.verification import ExecutorVerifier
 from fpp_graph.slam.workers import (
-    decode_frame,
+    decode,
     decode_to_cache,
     init_worker,
     plot_sample,
@@ -140,7 +138,7 @@ def prepare_frames(
 
     def received(fid: int, result: dict[str, np.ndarray] | str | None) -> None:
         if isinstance(result, dict):  # the frame's stored form: the same numbers as from the cache
-            decoded[fid] = frame_from_stored(result, f"frame {fid} decoded by a worker")
+            decoded[fid] = frame_from_stored(result, f"decoded frame {fid}")
         elif result:
             skipped[fid] = result
 
@@ -149,11 +147,10 @@ def prepare_frames(
             pending[fid] = None
         elif executor is None:
             pending[fid] = None
-            received(fid, _decode_local(source, fid, cache_path(fid) if cache_every_frame else None))
-        elif cache_every_frame:
-            pending[fid] = executor.submit(decode_to_cache, fid, str(cache_path(fid)), *(worker_source or ()))
+            received(fid, decode(source, fid, cache_path(fid) if cache_every_frame else None))
         else:
-            pending[fid] = executor.submit(decode_frame, fid, *(worker_source or ()))
+            path = str(cache_path(fid)) if cache_every_frame else None
+            pending[fid] = executor.submit(decode_to_cache, fid, path, *(worker_source or ()))
 
     next_submit = 0
     for done, fid in enumerate(ids):
@@ -172,7 +169,7 @@ def prepare_frames(
                 yield load_frame(cache_path(fid))
             except InputDataError as exc:
                 cache_path(fid).unlink(missing_ok=True)
-                message = _decode_local(source, fid, cache_path(fid))
+                message = decode(source, fid, cache_path(fid))
                 if message:
                     skipped[fid] = message
                     log.warning("skipping frame %d: %s (cache was unreadable: %s)", fid, message, exc)
@@ -180,19 +177,6 @@ def prepare_frames(
                     yield load_frame(cache_path(fid))
         if progress:
             progress("frames", done + 1, len(ids))
-
-
-def _decode_local(source: FrameSource, fid: int, path: Path | None) -> dict[str, np.ndarray] | str | None:
-    """Decode frame ``fid`` in this process: written to ``path`` (None returned), or its stored
-    form returned when ``path`` is None; an error message instead of raising."""
-    try:
-        frame = source.load_frame(fid)
-        if path is None:
-            return stored_arrays(frame)
-        save_frame(path, frame)
-        return None
-    except FppError as exc:
-        return str(exc)
 
 
 # -- step 3: tracking -----------------------------------------------------------------------

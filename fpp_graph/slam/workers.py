@@ -6,8 +6,8 @@ submits :func:`decode_to_cache` for frames ahead of tracking, :func:`verify_pair
 candidates (:class:`~fpp_graph.slam.verification.ExecutorVerifier`), and at the end
 :func:`prepare_for_fusion` for the keyframes of the map. They read and write frames through the
 results folder's ``frames/`` cache, so only file paths and results cross the process boundary;
-the exception is :func:`decode_frame`, which hands a decoded frame back in its stored form when
-only keyframes stay on disk.
+the exception is a frame decoded without a cache path, handed back in its stored form when only
+keyframes stay on disk.
 """
 
 from __future__ import annotations
@@ -113,8 +113,29 @@ def _adopt(source: FrameSource | None, token: str | None) -> None:
         raise RuntimeError("fpp_graph.slam.workers tasks need init_worker, or the source passed along")
 
 
-def decode_to_cache(frame_id: int, cache_path: str, source: FrameSource | None = None, token: str | None = None) -> str | None:
-    """Decode one frame and cache it; returns an error message instead of raising.
+def decode(source: FrameSource, frame_id: int, cache_path: str | os.PathLike[str] | None) -> dict[str, np.ndarray] | str | None:
+    """Decode frame ``frame_id`` of ``source``: cached at ``cache_path`` (None returned), or, with
+    no path, returned in its :func:`~fpp_graph.slam.frame_store.stored_arrays` form (the numbers
+    the cache would give); an error message instead of raising.
+
+    Without a path is for runs that keep only keyframes on disk (``run.keep_frames:
+    keyframes``): the frame store writes those, and writing every frame only to delete it once
+    tracked cost a 640x480 RGB-D frame ~11 ms of writing, ~7 ms of reading in the tracking process
+    and 4.4 MB of disk writes."""
+    try:
+        frame = source.load_frame(frame_id)
+        if cache_path is None:
+            return stored_arrays(frame)
+        save_frame(cache_path, frame)
+        return None
+    except FppError as exc:
+        return str(exc)
+
+
+def decode_to_cache(
+    frame_id: int, cache_path: str | None, source: FrameSource | None = None, token: str | None = None
+) -> dict[str, np.ndarray] | str | None:
+    """:func:`decode` on a worker (``cache_path`` None: the frame comes back in its stored form).
 
     ``source`` (with a ``token`` naming the run) is for workers :func:`init_worker` did not start,
     e.g. Dask's: they adopt it on their first task of the run.
@@ -122,28 +143,7 @@ def decode_to_cache(frame_id: int, cache_path: str, source: FrameSource | None =
     _adopt(source, token)
     assert _SOURCE is not None
     try:
-        frame = _SOURCE.load_frame(frame_id)
-        save_frame(cache_path, frame)
-        return None
-    except FppError as exc:
-        return str(exc)
-    finally:
-        trim_heap()
-
-
-def decode_frame(frame_id: int, source: FrameSource | None = None, token: str | None = None) -> dict[str, np.ndarray] | str:
-    """Decode one frame and return its :func:`~fpp_graph.slam.frame_store.stored_arrays` (an
-    error message instead of raising), for runs that keep only keyframes on disk
-    (``run.keep_frames: keyframes``): the frame store writes those, and writing every frame only
-    to delete it once tracked cost a 640x480 RGB-D frame ~11 ms here, ~7 ms of reading in the
-    tracking process and 4.4 MB of disk writes. ``source`` and ``token``: as for
-    :func:`decode_to_cache`."""
-    _adopt(source, token)
-    assert _SOURCE is not None
-    try:
-        return stored_arrays(_SOURCE.load_frame(frame_id))
-    except FppError as exc:
-        return str(exc)
+        return decode(_SOURCE, frame_id, cache_path)
     finally:
         trim_heap()
 
