@@ -417,6 +417,47 @@ def _normal_equations(
     return JT, np.concatenate(residuals), used_source
 
 
+def _robust_information(JT: Array, r: Array, noise_floor_m: float) -> tuple[Array, Array, float, Array]:
+    """Tukey-weighted normal equations of residuals ``r`` (N,) with Jacobian rows ``JT`` (6, N):
+    ``(J^T W, information, robust sigma, weights W)``, the scale from the residuals' MAD."""
+    sigma = max(1.4826 * float(np.median(np.abs(r))), noise_floor_m)
+    c = 4.685 * sigma
+    w = np.where(np.abs(r) < c, (1.0 - (r / c) ** 2) ** 2, 0.0)
+    JwT = JT * w
+    return JwT, (JwT @ JT.T) / sigma**2, sigma, w
+
+
+def dense_strides(target: OrganisedSurface, source: OrganisedSurface, coarse_stride_px: int, fine_stride_px: int, max_points: int | None) -> tuple[int, int]:
+    """The coarse and fine pixel strides :func:`align_dense` uses: both grow in the same
+    proportion until the finer one samples at most ``max_points`` pixels of the larger map."""
+    if max_points:
+        grow = math.ceil(math.sqrt(max(target.num_valid, source.num_valid) / (fine_stride_px**2 * max(int(max_points), 1))))
+        if grow > 1:
+            return coarse_stride_px * grow, fine_stride_px * grow
+    return coarse_stride_px, fine_stride_px
+
+
+def dense_information(
+    target: OrganisedSurface, source: OrganisedSurface, T: NDArray, stride_px: int, gate_m: float,
+    max_normal_angle_deg: float = 45.0, noise_floor_m: float = 2e-5, symmetric: bool = True,
+) -> tuple[Array, Array]:
+    """What every ``stride_px``-th pixel's geometry constrains at ``T``, without a step: the
+    robust information :func:`align_dense` would form there (6x6 ``[rot, trans]``) and the
+    source points that took part. A fraction of a fit's cost, for asking whether the surfaces
+    have relief before fitting.
+
+    Raises
+    ------
+    InputDataError
+        Fewer than 6 correspondences within ``gate_m``.
+    """
+    JT, r, used = _normal_equations(target, source, np.asarray(T, dtype=np.float64), stride_px, gate_m, math.cos(math.radians(max_normal_angle_deg)), symmetric)
+    if r.size < 6:
+        raise InputDataError(f"dense information: {r.size} correspondences within {1e3 * gate_m:.2f} mm; the views do not overlap at this pose")
+    info = _robust_information(JT, r, noise_floor_m)[1]
+    return 0.5 * (info + info.T), used
+
+
 def align_dense(
     target: OrganisedSurface,
     source: OrganisedSurface,
@@ -477,11 +518,7 @@ def align_dense(
             raise InputDataError(
                 f"dense alignment: {r.size} correspondences within {1e3 * state['gate']:.2f} mm; the pose is too far off or the views do not overlap"
             )
-        sigma = max(1.4826 * float(np.median(np.abs(r))), noise_floor_m)
-        c = 4.685 * sigma
-        w = np.where(np.abs(r) < c, (1.0 - (r / c) ** 2) ** 2, 0.0)
-        JwT = JT * w
-        info = (JwT @ JT.T) / sigma**2
+        JwT, info, sigma, w = _robust_information(JT, r, noise_floor_m)
         g = (JwT @ r) / sigma**2
         H = info
         if Lambda is not None:
@@ -497,10 +534,7 @@ def align_dense(
         small = float(np.linalg.norm(xi[:3])) < step_tolerance and float(np.linalg.norm(xi[3:])) < step_tolerance
         return small, info, sigma, int(np.count_nonzero(w)), used
 
-    if max_points:
-        grow = math.ceil(math.sqrt(max(target.num_valid, source.num_valid) / (fine_stride_px**2 * max(int(max_points), 1))))
-        if grow > 1:
-            coarse_stride_px, fine_stride_px = coarse_stride_px * grow, fine_stride_px * grow
+    coarse_stride_px, fine_stride_px = dense_strides(target, source, coarse_stride_px, fine_stride_px, max_points)
     for _ in range(max_iterations if coarse_stride_px != fine_stride_px else 0):
         if iterate(coarse_stride_px)[0]:
             break
@@ -515,4 +549,4 @@ def align_dense(
     return DenseAlignment(T, info, sigma, n_used, iterations, converged, used, sampled)
 
 
-__all__ = ["DenseAlignment", "OrganisedSurface", "align_dense", "cross_rows", "fit_pinhole", "point_to_plane_jacobian", "sample_bilinear"]
+__all__ = ["DenseAlignment", "OrganisedSurface", "align_dense", "dense_information", "dense_strides", "cross_rows", "fit_pinhole", "point_to_plane_jacobian", "sample_bilinear"]

@@ -11,7 +11,13 @@ from fpp_graph.errors import FppError
 from fpp_graph.geometry import invert
 from fpp_graph.types import Constraint, ConstraintKind, Frame
 from frontend.config import RegistrationConfig
-from frontend.dense_alignment import DenseAlignment, OrganisedSurface, align_dense
+from frontend.dense_alignment import (
+    DenseAlignment,
+    OrganisedSurface,
+    align_dense,
+    dense_information,
+    dense_strides,
+)
 from frontend.features.detect import Detector, detect_and_describe, feature_signature, make_detector
 from frontend.registration.gates import Checkpoint, rejection
 from frontend.registration.icp import (
@@ -38,7 +44,7 @@ from frontend.registration.stages import (
 from frontend.registration.state import PairState
 from frontend.registration.texture import TextureCamera
 from frontend.registration.tracking import track_dense
-from frontend.registration.weak_directions import Degeneracy, weak_direction_pin
+from frontend.registration.weak_directions import Degeneracy, check_degeneracy, weak_direction_pin
 
 
 class FppPairRegistrar:
@@ -137,6 +143,24 @@ class FppPairRegistrar:
         if not np.all(np.isfinite(dense.T_target_source)):
             return None, "non-finite pose"
         return dense, ""
+
+    def dense_sees_relief(self, target: Frame, source: Frame, T_target_source: NDArray) -> bool:
+        """Whether every pixel's geometry at ``T_target_source`` constrains more than a plane does
+        (fewer than three directions below ``weak_directions.degeneracy_ratio``): the question a
+        fit held for the texture answers (:func:`frontend.registration.refinement.dense_stage`),
+        asked of one evaluation at the coarse stride. On the doll turntable's loop candidates the
+        held fit found relief on 118 of 150 and was redone unheld each time, 21.6 of the 36.9 s
+        their dense stage took."""
+        cfg, dense_cfg = self.config, self.config.dense
+        if not dense_cfg.enabled or target.xyz_map is None or source.xyz_map is None:
+            return False
+        target_surface, source_surface = self.dense_surface(target), self.dense_surface(source)
+        coarse_px, _ = dense_strides(target_surface, source_surface, dense_cfg.coarse_stride_px, dense_cfg.stride_px, dense_cfg.max_points)
+        try:
+            info, used = dense_information(target_surface, source_surface, T_target_source, coarse_px, cfg.lengths.icp_max_correspondence_m)
+        except FppError:
+            return False  # the held fit decides (and says why it cannot)
+        return len(check_degeneracy(info, used, cfg.weak_directions.degeneracy_ratio).unconstrained) < 3
 
     def refine_plane_photometric(
         self, target: Frame, source: Frame, T_target_source: NDArray, weak: Degeneracy, information_geometry: NDArray, source_points: NDArray
@@ -284,7 +308,10 @@ class FppPairRegistrar:
         """The dense stage (every pixel; a wall held for the texture)."""
         inliers_source_m = s.lifted.points_source_m[s.ransac.inliers]
         started = s.timer.start()
-        s.dense = dense_stage(s.target, s.source, self.refine_dense, s.pose, s.keypoints, s.icp, s.weak, inliers_source_m, s.ransac.T_target_source, self.config, self.texture_sets_planes)
+        s.dense = dense_stage(
+            s.target, s.source, self.refine_dense, s.pose, s.keypoints, s.icp, s.weak, inliers_source_m, s.ransac.T_target_source, self.config,
+            self.texture_sets_planes, self.dense_sees_relief,
+        )
         s.pose = s.dense.pose
         s.meta.update(s.dense.metadata)
         s.timer.stop("dense", started)

@@ -148,3 +148,31 @@ def test_the_same_map_gives_the_same_surface_in_any_buffer():
         shifted = buffer[offset:].reshape(xyz.shape)
         shifted[:] = xyz
         assert np.array_equal(OrganisedSurface(shifted).normals_binned, reference, equal_nan=True), offset
+
+
+@pytest.mark.parametrize("ratio", [0.01, 0.02])
+def test_relief_check_agrees_with_the_fits_own_verdict(wall, ratio):
+    """``dense_sees_relief`` asks one evaluation at the start pose what the fit's information
+    says at its end: the bumpy wall's third-weakest direction (0.018) is relief at 0.01 and a
+    plane at 0.02; the flat wall is a plane at both."""
+    from frontend.dense_alignment import dense_information
+    from frontend.registration.weak_directions import check_degeneracy
+
+    registrar = FppPairRegistrar(RegistrationConfig(weak_directions={"degeneracy_ratio": ratio}))
+    flat = bumpy_wall_scene(seed=5, flat=True)
+    for scene, has_relief in ((wall, ratio < 0.018), (flat, False)):
+        Ta, Tb = wall_pose(0.0), wall_pose(0.10, 0.02, yaw_deg=4, pitch_deg=-2, roll_deg=3)
+        a = render_frame(scene, Ta, W, H, frame_id=0, depth_noise_m=2e-4)
+        b = render_frame(scene, Tb, W, H, frame_id=1, depth_noise_m=2e-4)
+        T_start = _perturbed(invert(Ta) @ Tb)
+        fit = align_dense(OrganisedSurface(a.xyz_map), OrganisedSurface(b.xyz_map), T_start)
+        fit_sees_relief = len(check_degeneracy(fit.information, fit.source_points, ratio).unconstrained) < 3
+        assert fit_sees_relief == has_relief
+        assert registrar.dense_sees_relief(a, b, T_start) == has_relief
+        info, used = dense_information(OrganisedSurface(a.xyz_map), OrganisedSurface(b.xyz_map), T_start, 8, 0.004)
+        assert info.shape == (6, 6) and np.allclose(info, info.T) and len(used) > 1000
+    far = T_start.copy()
+    far[:3, 3] += [3.0, 0.0, 0.0]  # no overlap: no verdict, the held fit decides
+    assert registrar.dense_sees_relief(a, b, far) is False
+    with pytest.raises(InputDataError, match="correspondences"):
+        dense_information(OrganisedSurface(a.xyz_map), OrganisedSurface(b.xyz_map), far, 8, 0.004)

@@ -70,3 +70,22 @@ def test_photometric_prior_holds_directions(wall_pair):
     assert np.linalg.norm(step[3:]) < 1e-7 and np.linalg.norm(step[:3]) > 1e-5
     with pytest.raises(Exception, match="prior_information"):
         localize_photometric([ref], frames[1].texture, T_start, cam.K, prior_information=np.eye(5))
+
+
+def test_a_wall_seen_with_relief_at_the_start_is_not_held(wall_pair, monkeypatch):
+    """The fit held for the texture runs on a plane; when every pixel already shows relief at the
+    keypoints' pose it is skipped (it would find the relief and be redone unheld)."""
+    rig, _, frames = wall_pair
+    registrar = FppPairRegistrar(RegistrationConfig(), texture_camera=TextureCamera.from_rig(rig))
+    fits = []
+    refine = registrar.refine_dense
+    monkeypatch.setattr(registrar, "refine_dense", lambda *a: fits.append(a[4]) or refine(*a))
+    held = registrar.register(frames[0], frames[1])
+    assert held.accepted and "dense_relief_at_start" not in held.metadata and "dense_pinned" in held.metadata
+    assert len(fits) == 1 and fits[0] is not None  # one fit, with the plane's directions pinned
+    assert registrar.dense_sees_relief(frames[0], frames[1], held.T_target_source) is False
+    fits.clear()
+    monkeypatch.setattr(registrar, "dense_sees_relief", lambda *a: True)
+    unheld = registrar.register(frames[0], frames[1])
+    assert unheld.metadata.get("dense_relief_at_start") and unheld.metadata.get("dense_rechecks_plane_rule")
+    assert all(pinned is None for pinned in fits)  # no held fit
