@@ -312,13 +312,16 @@ class FramePreparer:
             far = keep & (points[:, 2] > self.max_depth_m)
             beyond = int(np.count_nonzero(far))
             keep &= ~far
-        points_world = transform_points(T, points[keep])
-        w = weights[keep]
+        # (every point is kept, as a rule: the masked copies of 2.3 M points, colours and weights
+        # are skipped then)
+        kept = slice(None) if keep.all() else keep
+        points_world = transform_points(T, points[kept])
+        w = weights[kept]
         keys, sums = np.zeros(0, dtype=np.int64), np.zeros((0, 7))
         if len(points_world):
             columns = np.empty((len(w), 7))
-            columns[:, :3] = points_world * w[:, None]
-            columns[:, 3:6] = colors[keep] * w[:, None]
+            np.multiply(points_world, w[:, None], out=columns[:, :3])
+            np.multiply(colors[kept], w[:, None], out=columns[:, 3:6])
             columns[:, 6] = w
             keys, sums = _reduce(voxel_keys(points_world, self.voxel_size_m), columns)
         prepared = PreparedFrame(frame.id, T, keys, sums, beyond)
@@ -429,7 +432,11 @@ def render_depth(frame: Frame, K: NDArray[np.float64]) -> tuple[NDArray[np.float
         rgb[valid] = colors
         return depth_m, rgb
     inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
-    pixel, z, colors = (v * w + u)[inside], z[inside], colors[inside]
+    pixel = v * w + u
+    if not inside.all():
+        # (a pinhole fit of a distorted map keeps nearly every point inside: copying 2.3 M
+        # points, depths and colours through the mask took a quarter of a 1920x1200 frame's time)
+        pixel, z, colors = pixel[inside], z[inside], colors[inside]
     # z-buffer: the nearest point of each pixel wins (a per-pixel minimum instead of sorting
     # 2.3 M depths: 195 -> 112 ms a 1920 x 1200 frame); its colour with it
     nearest = np.full(h * w, np.inf)

@@ -455,3 +455,18 @@ def test_preparer_refuses_a_bad_pose_before_any_work(views):
     prepare = VoxelMapFuser(0.002, 0.002, 0.008, mesh=True).preparer()
     with pytest.raises(InputDataError, match="pose of frame 0 must be a finite 4x4"):
         prepare(frames[0], np.full((4, 4), np.nan))
+
+
+def test_voxel_sums_match_a_plain_unique_and_bincount(rng):
+    """``_reduce``'s stable sort gives np.unique's keys and the same per-key sums, bit for bit,
+    whatever the keys' order (runs as a frame's pixels give them, or shuffled)."""
+    from fpp_graph.fusion.voxel_grid import _reduce
+
+    runs = np.repeat(rng.integers(-50, 50, 3000), rng.integers(1, 6, 3000))
+    for keys in (runs, rng.permutation(runs), np.zeros(0, dtype=np.int64), np.array([7])):
+        columns = rng.normal(size=(len(keys), 7))
+        unique, sums = _reduce(keys, columns)
+        expected_keys, inverse = np.unique(keys, return_inverse=True)
+        assert np.array_equal(unique, expected_keys) and sums.shape == (len(expected_keys), 7)
+        for c in range(7):
+            assert np.array_equal(sums[:, c], np.bincount(inverse, weights=columns[:, c], minlength=len(expected_keys)))
