@@ -25,7 +25,7 @@ from numpy.typing import NDArray
 
 from fpp_graph.errors import FppError
 from fpp_graph.slam.frame_store import load_frame, save_frame, stored_arrays
-from fpp_graph.slam.heap import trim_heap
+from fpp_graph.slam.heap import keep_large_blocks_in_heap, trim_heap
 from fpp_graph.slam.sources import FrameSource
 from fpp_graph.types import Constraint, ConstraintKind, Frame, PairRegistrar
 
@@ -51,6 +51,7 @@ def init_worker(source: FrameSource, token: str | None = None) -> None:
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGINT, signal.SIG_IGN)
         _exit_with_parent()
+        keep_large_blocks_in_heap()
     single_threaded_libraries()
 
 

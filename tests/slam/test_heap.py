@@ -54,4 +54,45 @@ def test_trims_at_most_once_per_period(monkeypatch):
 
 def test_without_glibc_nothing_is_done(monkeypatch):
     monkeypatch.setattr(heap, "_MALLOC_TRIM", None)
+    monkeypatch.setattr(heap, "_MALLOPT", None)
     assert not heap.trim_heap(period_s=0.0)
+    assert not heap.keep_large_blocks_in_heap()
+
+
+_MAPPED_BYTES_OF_A_FRAME = """
+import ctypes, ctypes.util, sys
+import numpy as np
+from fpp_graph.slam import heap
+
+class Mallinfo2(ctypes.Structure):
+    _fields_ = [(name, ctypes.c_size_t) for name in
+                ("arena", "ordblks", "smblks", "hblks", "hblkhd", "usmblks", "fsmblks", "uordblks", "fordblks", "keepcost")]
+
+mallinfo2 = ctypes.CDLL(ctypes.util.find_library("c")).mallinfo2
+mallinfo2.restype = Mallinfo2
+if sys.argv[1] == "heap":
+    assert heap.keep_large_blocks_in_heap()
+frames = [np.ones((1200, 1920, 3)) for _ in range(2)]  # 1920x1200 float64 maps: 55 MB, above the 32 MB mmap ceiling
+print(mallinfo2().hblkhd, mallinfo2().uordblks)
+"""
+
+
+@pytest.mark.skipif(heap._load_glibc("mallinfo2", [], None) is None, reason="mallopt and mallinfo2 are glibc's (2.33+); this C library has none")
+def test_large_blocks_stay_in_the_heap():
+    """Frame-sized arrays are mapped one by one (the kernel zeroes every page of each afresh),
+    unless blocks stay in the heap, where the next frame's arrays reuse freed pages. glibc's
+    ``mallinfo2`` tells the bytes in mapped blocks from those in the heap. In a child process:
+    the setting is process-wide and not undone."""
+    import subprocess
+    import sys
+
+    def mapped_and_heap_bytes(mode: str) -> tuple[int, int]:
+        out = subprocess.run([sys.executable, "-c", _MAPPED_BYTES_OF_A_FRAME, mode], capture_output=True, text=True, check=True)
+        mapped, in_heap = out.stdout.split()[-2:]
+        return int(mapped), int(in_heap)
+
+    frames_bytes = 2 * 1200 * 1920 * 3 * 8
+    mapped, in_heap = mapped_and_heap_bytes("default")
+    assert mapped >= frames_bytes and in_heap < frames_bytes
+    mapped, in_heap = mapped_and_heap_bytes("heap")
+    assert mapped < frames_bytes and in_heap >= frames_bytes
