@@ -63,12 +63,14 @@ def keep_large_blocks_in_heap() -> bool:
     (the top's trim threshold is raised), and :func:`trim_heap` still hands the free pages back
     every :data:`HEAP_TRIM_PERIOD_S`. In the doll turntable's workers: system time 22.0 / 20.4 ->
     16.5 / 12.9 s, the run 5 % faster; the corridor 299.5 -> 280.0 s (system 101.8 -> 68.6 s);
-    the same trajectories and maps. RGB-D frames are far below
-    the ceiling (the 2000-frame walk: peak RSS ratio 1.06 / 1.10, as before). Process-wide and not
-    undone: for the worker processes a run starts."""
+    the same trajectories and maps. RGB-D frames are far below the ceiling (the 2000-frame walk:
+    peak RSS ratio 1.06 / 1.10, as before). Process-wide and not undone: for the worker processes
+    a run starts."""
     if _MALLOPT is None:
         return False
     return bool(_MALLOPT(_M_MMAP_MAX, 0)) and bool(_MALLOPT(_M_TRIM_THRESHOLD, 2**31 - 1))
+
+
 _LAST_TRIM_S: float | None = None
 
 
