@@ -83,7 +83,7 @@ def _held_plane_fit(
     tilts, 0.017 mm with these. If every pixel sees relief after all (a doll on a table) the
     unheld re-check decides instead (None)."""
     held, _ = refine(target, source, pose.T_target_source, pose.information_keypoints, weak.directions, weak.icp.source_points)
-    if held is None or len(check_degeneracy(held.information, held.source_points, config.weak_directions.degeneracy_ratio).unconstrained) < 3:
+    if held is None or not check_degeneracy(held.information, held.source_points, config.weak_directions.degeneracy_ratio).plane_like:
         return None
     if not max_motion_m(held.T_target_source, T_ransac, ransac_inliers_source_m) <= config.lengths.max_icp_shift_m:
         return None
@@ -126,7 +126,7 @@ def dense_stage(
         # relief constrains the plane's directions.
         pinned, T_start = None, icp.icp.T_target_source
         meta["dense_rechecks_plane_rule"] = True
-    if len(icp.degeneracy.unconstrained) >= 3:
+    if icp.degeneracy.plane_like:
         dense, why_not = None, "plane-like geometry (ICP: " + "; ".join(icp.degeneracy.unconstrained) + ")"
     else:
         dense, why_not = refine(target, source, T_start, pose.information_keypoints, pinned, support)
@@ -139,7 +139,7 @@ def dense_stage(
         # (against RANSAC's pose, as ICP's shift is: the keypoints' basin)
         shift_dense = max_motion_m(dense.T_target_source, T_ransac, ransac_inliers_source_m)
         meta.update({"dense_shift_m": shift_dense, "dense_iterations": dense.iterations, "dense_residuals": dense.num_residuals, "dense_sigma_m": dense.sigma_m})
-        if len(dense_deg.unconstrained) >= 3:
+        if dense_deg.plane_like:
             # a plane even to every pixel (a wall: ratios <= 0.016 where the doll's are >= 0.2):
             # its tilts and normal shift came out no better than ICP's (9 simulated corridor
             # pairs: 0.064 -> 0.098 mm median) and the in-plane directions are the keypoints'

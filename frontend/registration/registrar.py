@@ -160,7 +160,7 @@ class FppPairRegistrar:
             info, used = dense_information(target_surface, source_surface, T_target_source, coarse_px, cfg.lengths.icp_max_correspondence_m)
         except FppError:
             return False  # the held fit decides (and says why it cannot)
-        return len(check_degeneracy(info, used, cfg.weak_directions.degeneracy_ratio).unconstrained) < 3
+        return not check_degeneracy(info, used, cfg.weak_directions.degeneracy_ratio).plane_like
 
     def refine_plane_photometric(
         self, target: Frame, source: Frame, T_target_source: NDArray, weak: Degeneracy, information_geometry: NDArray, source_points: NDArray

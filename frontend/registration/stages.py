@@ -242,7 +242,7 @@ def run_icp(
             return IcpOutcome(icp, tcloud, scloud, voxel, coarse_plane_like)  # rejected by the gates
         info_raw = information_from_icp(icp, scale=lengths.icp_information_scale)
         degeneracy = check_degeneracy(info_raw, icp.source_points, cfg.weak_directions.degeneracy_ratio)
-        if voxel == lengths.icp_voxel_m or len(degeneracy.unconstrained) < 3 or texture_sets_planes:
+        if voxel == lengths.icp_voxel_m or not degeneracy.plane_like or texture_sets_planes:
             break
         if not icp.converged:
             # A plane whose coarse ICP still moves at its iteration bound is sliding along

@@ -223,6 +223,11 @@ class Degeneracy:
     unconstrained: list[str]
     directions: Array
 
+    @property
+    def plane_like(self) -> bool:
+        """At least the three directions one plane leaves free (two in-plane shifts and the spin)."""
+        return len(self.unconstrained) >= 3
+
 
 def check_degeneracy(information: NDArray, source_points: NDArray, ratio: float = 1e-4) -> Degeneracy:
     """Find directions the geometry does not constrain (one plane: 2 in-plane shifts + 1 spin).
