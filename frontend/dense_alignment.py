@@ -474,7 +474,7 @@ def align_dense(
     step_tolerance: float = 1e-7,
     symmetric: bool = True,
 ) -> DenseAlignment:
-    # 95 lines: 31 are the docstring; the rest is two stride stages around one robust Gauss-Newton step that shares their state
+    # 89 lines: 31 are the docstring; the rest is two stride stages around one robust Gauss-Newton step that shares their state
     """Refine ``T_target_source`` by dense point-to-plane alignment of two organised maps.
 
     Parameters
