@@ -46,9 +46,13 @@ def run(
         setup_logging(cfg.run.log_level, results / "run.log")
         typer.echo(json.dumps(run_graph_file(sequence, cfg, results), indent=1, default=float))
         return
+    from fpp_graph.slam.heap import keep_large_blocks_in_heap
     from fpp_graph.slam.pipeline import run_sequence
 
     setup_logging(cfg.run.log_level)
+    # the command owns this process, the tracking one: its frames' float64 maps (55 MB at
+    # 1920x1200) reuse heap pages instead of being mapped and zeroed afresh each time
+    keep_large_blocks_in_heap()
     try:
         with ExitStack() as stack, RichProgress() as progress:
             executor = None

@@ -344,8 +344,32 @@ def grazing_weights(xyz_map: NDArray[np.float64], floor: float = 0.05) -> NDArra
     least ``floor`` so no valid point is dropped here (rejecting points is the front-end's job).
     """
     xyz = np.asarray(xyz_map, dtype=np.float64)
-    if xyz.shape[0] < 2 or xyz.shape[1] < 2:
-        return np.ones(xyz.shape[:2])
+    weights = np.ones(xyz.shape[:2])
+    # Only the box around the finite pixels, one pixel wider, is computed: every pixel outside
+    # it has a NaN coordinate (weight 1), and inside it each finite pixel's differences take
+    # the same neighbours as over the whole map (a scanned object fills a third of the doll's
+    # 1920 x 1200 views). np.gradient is one-sided only at the box's sides that are the
+    # image's own.
+    rows, cols = _finite_box(xyz)
+    if rows.stop - rows.start >= 2 and cols.stop - cols.start >= 2:
+        weights[rows, cols] = _grazing_cos(xyz[rows, cols], floor)
+    return weights
+
+
+def _finite_box(xyz: NDArray[np.float64]) -> tuple[slice, slice]:
+    """Rows and columns of the box around the pixels whose three coordinates are finite, widened
+    by one pixel within the image (empty slices when there is none)."""
+    finite = finite_points(xyz)
+    row_any, col_any = finite.any(axis=1), finite.any(axis=0)
+    if not row_any.any():
+        return slice(0, 0), slice(0, 0)
+    r = np.flatnonzero(row_any)
+    c = np.flatnonzero(col_any)
+    h, w = finite.shape
+    return slice(max(r[0] - 1, 0), min(r[-1] + 2, h)), slice(max(c[0] - 1, 0), min(c[-1] + 2, w))
+
+
+def _grazing_cos(xyz: NDArray[np.float64], floor: float) -> NDArray[np.float64]:
     d_col = np.gradient(xyz, axis=1)
     d_row = np.gradient(xyz, axis=0)
     # the cross product, dot product and norms written per component: np.cross and

@@ -129,8 +129,11 @@ def frame_from_stored(get: dict[str, np.ndarray], origin: str) -> Frame:
     try:
         derived = set(get["derived_from_map"].tolist()) if "derived_from_map" in get else set()
         xyz32 = get["xyz_map"] if derived or "xyz_map" in get else None
+        xyz = None if xyz32 is None else xyz32.astype(np.float64)
         valid = np.isfinite(xyz32[..., 2]) if derived else None
-        points = _finite_pixels(xyz32, valid) if "points" in derived else get["points"]
+        # the points picked from the float64 map: the same numbers as picking float32 ones and
+        # widening them, one frame-sized array and pass fewer
+        points = _finite_pixels(xyz, valid) if "points" in derived else get["points"]
         if "colors" in derived:
             grey = get["texture"][valid] / 255.0
             colors = np.repeat(grey[:, None], 3, axis=1)
@@ -140,9 +143,9 @@ def frame_from_stored(get: dict[str, np.ndarray], origin: str) -> Frame:
         return Frame(
             id=int(get["id"]),
             timestamp=float(get["timestamp"]),
-            points=points.astype(np.float64),
+            points=points.astype(np.float64, copy=False),
             colors=colors,
-            xyz_map=None if xyz32 is None else xyz32.astype(np.float64),
+            xyz_map=xyz,
             texture=get.get("texture"),
             keypoints_uv=get.get("keypoints_uv"),
             descriptors=get.get("descriptors"),

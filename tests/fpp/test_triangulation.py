@@ -182,6 +182,32 @@ def test_distortion_model_matches_opencv(n, rng):
     assert np.allclose(np.column_stack([xd, yd]), ref.reshape(-1, 2), atol=1e-12)
 
 
+def _distort_full_formula(x, y, dist):
+    """OpenCV's distortion written out with all 12 terms, zero or not (what distort_normalized skips)."""
+    k1, k2, p1, p2, k3, k4, k5, k6, s1, s2, s3, s4 = np.r_[dist, np.zeros(12 - len(dist))]
+    r2 = x * x + y * y
+    r4, r6 = r2 * r2, r2 * r2 * r2
+    radial = (1.0 + k1 * r2 + k2 * r4 + k3 * r6) / (1.0 + k4 * r2 + k5 * r4 + k6 * r6)
+    xy2 = 2.0 * x * y
+    return (x * radial + p1 * xy2 + p2 * (r2 + 2.0 * x * x) + s1 * r2 + s2 * r4,
+            y * radial + p1 * (r2 + 2.0 * y * y) + p2 * xy2 + s3 * r2 + s4 * r4)
+
+
+@pytest.mark.parametrize("dist", [CAM_DIST, PROJ_DIST, np.array([-0.1, 0.05, 0.0, 0.0]),
+                                  np.array([-0.1, 0.05, 0.001, -0.002, 0.01, 0.02, -0.01, 0.005, 0.001, -0.001, 0.0005, 0.0002]),
+                                  np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.02, 0.0, 0.0, 0.0, 0.003])])
+def test_distort_normalized_is_the_full_formula_bit_for_bit(rng, dist):
+    # the zero terms it skips change no finite value; beyond r^6's overflow both are NaN
+    x, y = rng.uniform(-1.5, 1.5, (2, 2000))
+    x[:3], y[:3] = [np.inf, 1e120, np.nan], [0.0, 0.0, 0.5]
+    with np.errstate(invalid="ignore", over="ignore"):
+        expected = _distort_full_formula(x, y, dist)
+        got = distort_normalized(x, y, dist)
+    for g, e in zip(got, expected, strict=True):
+        assert np.array_equal(g, e, equal_nan=True)
+        assert np.isnan(g[:3]).all()
+
+
 def test_project_to_projector_matches_opencv(rng):
     cal = make_rig()
     pts = rng.uniform([-0.2, -0.2, 0.4], [0.2, 0.2, 0.8], (50, 3))

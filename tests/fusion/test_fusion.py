@@ -470,3 +470,23 @@ def test_voxel_sums_match_a_plain_unique_and_bincount(rng):
         assert np.array_equal(unique, expected_keys) and sums.shape == (len(expected_keys), 7)
         for c in range(7):
             assert np.array_equal(sums[:, c], np.bincount(inverse, weights=columns[:, c], minlength=len(expected_keys)))
+
+
+@pytest.mark.parametrize("box", [(slice(10, 30), slice(20, 45)), (slice(0, 25), slice(40, 60)), (slice(0, 40), slice(0, 60)), (slice(5, 6), slice(5, 50)), (slice(0, 0), slice(0, 0))])
+def test_grazing_weights_of_a_partial_map_are_the_whole_maps_bit_for_bit(rng, box):
+    # the weights are computed over the finite pixels' box only: an object in the middle, one
+    # at the border, the whole image, a single row (too thin: all weight 1) and no points at all
+    from fpp_graph.fusion.voxel_map import _grazing_cos, grazing_weights
+
+    h, w = 40, 60
+    v, u = np.mgrid[0:h, 0:w].astype(float)
+    z = 0.5 + 0.05 * np.sin(u / 7.0) * np.cos(v / 5.0) + rng.normal(0, 1e-4, (h, w))
+    xyz = np.dstack([(u - w / 2) / 200 * z, (v - h / 2) / 200 * z, z])
+    partial = np.full_like(xyz, np.nan)
+    partial[box] = xyz[box]
+    if box[0].stop - box[0].start > 4:
+        partial[box[0].start + 2, box[1].start + 3] = np.nan  # a hole in the object
+    expected = _grazing_cos(partial, 0.05)
+    got = grazing_weights(partial)
+    assert got.shape == (h, w)
+    np.testing.assert_array_equal(got, expected)
