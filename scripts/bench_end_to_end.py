@@ -31,6 +31,8 @@ import time
 from collections import defaultdict
 from pathlib import Path
 
+from fpp_graph.slam.heap import keep_large_blocks_in_heap
+
 
 class ExclusiveTimers:
     """Wall/CPU time per stage, exclusive of nested timed stages."""
@@ -109,6 +111,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--skip-end-to-end", action="store_true")
     parser.add_argument("--out", type=Path, default=Path("results/bench_end_to_end"))
     args = parser.parse_args(argv)
+    keep_large_blocks_in_heap()  # as fpp-slam run does in its own process
     logging.basicConfig(level=logging.ERROR)
 
     from fpp_graph.config import config_from_dict

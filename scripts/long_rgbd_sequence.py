@@ -31,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
+from fpp_graph.slam.heap import keep_large_blocks_in_heap
 from scripts.compare_open3d_multiway import cpu_seconds
 from scripts.keyframes_acceptance import RssSampler
 
@@ -48,6 +49,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--config", type=Path, default=None, help="fpp-slam config YAML for the run (default: the defaults)")
     args = parser.parse_args(argv)
+    keep_large_blocks_in_heap()  # as fpp-slam run does in its own process
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
 
     from fpp_graph.config import load_config

@@ -33,6 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
+from fpp_graph.slam.heap import keep_large_blocks_in_heap
 from scripts.compare_open3d_multiway import cpu_seconds
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data" / "rgbd"
@@ -158,6 +159,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--no-peer", action="store_true", help="skip the Open3D recipe")
     parser.add_argument("--config", type=Path, default=None, help="fpp-slam config YAML for our runs (default: the defaults)")
     args = parser.parse_args(argv)
+    keep_large_blocks_in_heap()  # as fpp-slam run does in its own process
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     rows = {}
     for seq in args.sequences:
