@@ -165,9 +165,12 @@ def prepare_for_fusion(
 
 
 def plot_sample(frame: Frame, count: int, seed: int) -> NDArray[np.float64]:
-    """``count`` of the frame's points (sensor frame, in their order), drawn by a permutation
-    seeded by ``seed``: the same sample wherever the frame is read."""
-    pick = np.random.default_rng(seed).permutation(len(frame.points))[:count]
+    """``count`` of the frame's points (sensor frame, in their order), drawn without replacement
+    by a generator seeded by ``seed``: the same sample wherever the frame is read. (A permutation
+    of all the points cost 60 ms of a corridor keyframe's 0.9 s of fusion work for a sample of a
+    few thousand; ``choice`` draws just the sample.)"""
+    n = len(frame.points)
+    pick = np.random.default_rng(seed).choice(n, size=min(count, n), replace=False, shuffle=False)
     return np.asarray(frame.points, dtype=np.float64)[np.sort(pick)]
 
 
