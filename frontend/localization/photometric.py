@@ -157,6 +157,7 @@ def localize_photometric(
     max_range_smoothing_px: float | None = None,
     min_pixels: int = 2000,
     prior_information: NDArray | None = None,
+    stop_step_sigmas: float | None = None,
 ) -> PhotometricLocalizationResult:
     # 99 lines: 53 are the docstring and 16 the signature; the body already reads as its steps (inputs, map pixels, pyramid, Gauss-Newton per level)
     """Refine a camera pose by direct photometric alignment of FPP map pixels (after the DLT).
@@ -202,6 +203,12 @@ def localize_photometric(
         left perturbation, as ``information``). With a large one along some directions they are
         held where the start put them: a pair's registrar holds what the geometry fixes (a wall's
         tilts and distance) and lets the texture set the rest (its in-plane shifts and spin).
+    stop_step_sigmas : float, optional
+        Converge only as far as the caller can see: a coarse level stops once a step moves the
+        map pixels by under :data:`COARSE_STOP_STEP_PX` of its pixels, the full resolution once
+        a pose step is under this many standard deviations of the step's own ``information``.
+        Default: steps under 1e-7 rad and 1e-7 m at every level (the pose to the last
+        micrometre; the texture's gain, offset and ambient ratio drift on slowly over a wall).
 
     Returns
     -------
@@ -230,7 +237,7 @@ def localize_photometric(
         for _ in range(n_iter):
             if not _gauss_newton_step(fit, view, pixels, c_proj, Lambda, T_init, min_pixels):
                 return _failed_photometric()
-            if fit.step_rad < 1e-7 and fit.step_m < 1e-7:
+            if _level_converged(fit, level, stop_step_sigmas):
                 break
     T = fit.T
     # converged: the last full-resolution step moved the pose by under 0.01 mm / 10 microradians
@@ -240,6 +247,22 @@ def localize_photometric(
               fit.used, fit.sigma, fit.ambient, fit.steps, fit.step_rad, fit.step_m)
     information = fit.information
     return PhotometricLocalizationResult(T, -T[:3, :3].T @ T[:3, 3], fit.used, fit.sigma, fit.ambient, fit.steps, ok, 0.5 * (information + information.T))
+
+
+COARSE_STOP_STEP_PX = 0.05
+"""A coarse level only has to bring the next, twice as fine, into its basin (the Gauss-Newton
+linearisation holds within about a pixel there): once a step moves the map pixels by under a
+twentieth of this level's pixel (a tenth of the next one's), the next level's first step undoes
+what further steps here would still do."""
+
+
+def _level_converged(fit: _PhotometricFit, level: int, stop_step_sigmas: float | None) -> bool:
+    """Whether the Gauss-Newton steps at ``level`` (0: full resolution) can stop after the last one."""
+    if stop_step_sigmas is None:
+        return fit.step_rad < 1e-7 and fit.step_m < 1e-7
+    if level > 0:
+        return fit.step_px < COARSE_STOP_STEP_PX
+    return fit.step_sigmas < stop_step_sigmas
 
 
 def _checked_photometric_inputs(
@@ -364,6 +387,8 @@ class _PhotometricFit:
     used: int = 0
     step_rad: float = float("inf")
     step_m: float = float("inf")
+    step_sigmas: float = float("inf")  # the last pose step's length in standard deviations of its information
+    step_px: float = float("inf")  # RMS motion of the map pixels it caused, pixels of its level
     information: Array = field(default_factory=lambda: np.full((6, 6), np.nan))
 
 
@@ -406,7 +431,10 @@ def _gauss_newton_step(
         delta = -np.linalg.solve(A, b)
     except np.linalg.LinAlgError:
         return False
+    T_before = fit.T
     fit.T = se3_exp(delta[:6]) @ fit.T
+    fit.step_sigmas = float(np.sqrt(max(float(delta[:6] @ fit.information @ delta[:6]), 0.0)))
+    fit.step_px = _pixel_motion_px(lev, T_before, fit.T, pixels.X_world[sel[:: max(1, sel.size // STEP_MOTION_SAMPLES)]])
     fit.gain += float(delta[6])
     fit.offset += float(delta[7])
     if delta.size == 9:
@@ -416,6 +444,24 @@ def _gauss_newton_step(
     fit.used = int(np.count_nonzero(w))
     fit.step_rad, fit.step_m = float(np.linalg.norm(delta[:3])), float(np.linalg.norm(delta[3:6]))
     return True
+
+
+STEP_MOTION_SAMPLES = 2000
+"""Map pixels (evenly spread over the selected ones) whose motion measures a step: an RMS to ~2 %."""
+
+
+def _pixel_motion_px(lev: _PyramidLevel, T_before: Array, T_after: Array, X_world: Array) -> float:
+    """RMS distance (pixels of ``lev``) between the projections of ``X_world`` under the two poses."""
+    if not len(X_world):
+        return 0.0
+
+    def project(T: Array) -> tuple[Array, Array]:
+        P = transform_points(T, X_world)
+        z = P[:, 2]
+        return lev.fx * P[:, 0] / z + lev.skew * P[:, 1] / z + lev.cx, lev.fy * P[:, 1] / z + lev.cy
+
+    (u0, v0), (u1, v1) = project(T_before), project(T_after)
+    return float(np.sqrt(np.mean((u1 - u0) ** 2 + (v1 - v0) ** 2)))
 
 
 def _normal_equations(

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from fpp_graph.errors import InputDataError
-from fpp_graph.geometry import invert, se3_exp
+from fpp_graph.geometry import invert, se3_exp, se3_log
 from frontend.config import RegistrationConfig
 from frontend.localization import (
     DenseReference,
@@ -146,6 +146,25 @@ def test_photometric_localisation_with_the_fpp_shading_model(fringe_triple):
     # camera) is unexplained and pulls the pose off
     flat = localize_photometric(refs, frames[1].texture, T_init, K, dist, None, lit, max_pixels=40_000)
     assert np.linalg.norm(flat.camera_centre_world_m - poses[1][:3, 3]) > 3 * np.linalg.norm(res.camera_centre_world_m - poses[1][:3, 3])
+
+
+def test_photometric_localisation_stops_at_the_precision_asked_for(fringe_triple):
+    # with stop_step_sigmas the coarse levels stop once a step moves the pixels by a twentieth of
+    # theirs and the finest once the pose step is a fraction of its standard deviation: fewer
+    # steps, and a pose within that fraction (in the step's information) of the fully converged one
+    rig, poses, frames, projector_centre = fringe_triple
+    K, dist = rig.camera.K, rig.camera.dist
+    refs = [DenseReference(frames[i].xyz_map, frames[i].texture, poses[i]) for i in (0, 2)]
+    T_init = se3_exp(np.radians([0.1, -0.08, 0.05]).tolist() + [0.001, -0.0008, 0.0005]) @ invert(poses[1])
+    lit = np.isfinite(frames[1].xyz_map[..., 2])
+    full = localize_photometric(refs, frames[1].texture, T_init, K, dist, projector_centre, lit, max_pixels=40_000)
+    for sigmas in (0.5, 2.0):
+        early = localize_photometric(refs, frames[1].texture, T_init, K, dist, projector_centre, lit, max_pixels=40_000, stop_step_sigmas=sigmas)
+        assert early.success and early.iterations < full.iterations
+        d = se3_log(early.T_camera_world @ invert(full.T_camera_world))
+        # what is left of the way is about 3 last steps at the slow ratio (0.75) of the texture's parameters
+        assert np.sqrt(d @ full.information @ d) < 4 * sigmas
+        assert np.linalg.norm(early.camera_centre_world_m - poses[1][:3, 3]) < 1e-4
 
 
 def test_photometric_localisation_bad_input(fringe_triple):
