@@ -7,6 +7,7 @@ Two steps, each a public function:
 - :func:`localize_photometric` (``photometric.py``): direct photometric refinement of that pose
   against map frames (:class:`DenseReference`) with the FPP texture's shading model.
 
+``reference.py`` prepares a reference frame's pixels for the photometric step (once per frame).
 ``surface.py`` holds what the photometric step needs of an organised FPP map: range smoothing
 along the rays, the depth-edge mask, normals and the projector's irradiance.
 """
@@ -18,17 +19,19 @@ from frontend.localization.dlt import (
     localize_dlt,
 )
 from frontend.localization.photometric import (
-    DenseReference,
     PhotometricLocalizationResult,
     localize_photometric,
 )
+from frontend.localization.reference import DenseReference, ReferencePixels, reference_pixels
 
 __all__ = [
     "DenseReference",
     "LocalizationResult",
     "PhotometricLocalizationResult",
+    "ReferencePixels",
     "decompose_projection",
     "dlt_projection_matrix",
     "localize_dlt",
     "localize_photometric",
+    "reference_pixels",
 ]

@@ -9,7 +9,6 @@ normal and distances predict.
 from __future__ import annotations
 
 import logging
-import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
@@ -20,36 +19,18 @@ from numpy.typing import NDArray
 from fpp_graph.errors import InputDataError
 from fpp_graph.geometry import invert, se3_exp, se3_log, transform_points
 from frontend.dense_alignment import cross_rows
-from frontend.localization.surface import (
-    adaptive_smoothing_scale,
-    depth_edge_free_mask,
-    organised_normals_at,
-    projector_irradiance,
-    smoothing_scale,
+from frontend.localization.reference import (
+    DenseReference,
+    ReferencePixels,
+    _photometric_reference_pixels,
+    pixel_settings,
+    smoothing_widths,
 )
+from frontend.localization.surface import projector_irradiance
 
 log = logging.getLogger(__name__)
 
 Array = NDArray[np.float64]
-
-
-@dataclass(frozen=True, eq=False)
-class DenseReference:
-    """One map frame for :func:`localize_photometric`.
-
-    Attributes
-    ----------
-    xyz_map : (H, W, 3) float64
-        Organised points in the frame's own sensor frame, metres, NaN where invalid.
-    texture : (H, W) uint8
-        Its texture image.
-    T_world_reference : (4, 4) float64
-        The frame's pose in the map (identity: the frame is the world).
-    """
-
-    xyz_map: NDArray
-    texture: NDArray
-    T_world_reference: NDArray = field(default_factory=lambda: np.eye(4))
 
 
 @dataclass(frozen=True, eq=False)
@@ -90,56 +71,6 @@ class PhotometricLocalizationResult:
         return self.pixels_used
 
 
-def _photometric_reference_pixels(
-    ref: DenseReference, projector_centre_m: Array | None, max_pixels: int, normal_step_px: int, range_smoothing_px: float,
-    max_range_smoothing_px: float = 0.0,
-) -> tuple[NDArray[np.int64], Array, Array, Array, NDArray[np.bool_]]:
-    """Flat pixel index, world points, world normals and projector irradiance of the usable pixels of one
-    reference: valid, away from depth edges by the smoothing's reach (:func:`depth_edge_free_mask`),
-    not saturated or black, the ``max_pixels`` with the strongest texture gradient.
-
-    The points are smoothed along their rays (:func:`smoothed_along_rays`, up to
-    ``max_range_smoothing_px`` where the data allow: :func:`adaptively_smoothed_along_rays`): an
-    FPP point's range noise (about 0.25 mm per pixel at 1920x1200) moves its projection in the
-    other view by a good fraction of a pixel, and errors in the regressors bias a photometric fit
-    (a corridor frame against its neighbours: 0.23 mm off with raw points, 0.04 mm smoothed,
-    0.005 mm with exact ones)."""
-    xyz = np.asarray(ref.xyz_map, dtype=np.float64)
-    tex = np.asarray(ref.texture)
-    if xyz.ndim != 3 or xyz.shape[2] != 3 or tex.shape != xyz.shape[:2]:
-        raise InputDataError(f"photometric localisation needs an (H, W, 3) xyz map and an H x W texture of one frame, got {xyz.shape} and {tex.shape}")
-    T = np.asarray(ref.T_world_reference, dtype=np.float64)
-    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
-        raise InputDataError("photometric localisation: T_world_reference must be a finite 4x4 pose")
-    intensity = tex.astype(np.float32)
-    # the smoothing's reach: past ~2.5 sigma a Gaussian's weights are below 5 % of its peak
-    smooth = depth_edge_free_mask(xyz[..., 2], max(2, math.ceil(2.5 * range_smoothing_px))) & (intensity > 2) & (intensity < 250)
-    scale = None
-    if range_smoothing_px > 0 and smooth.any():
-        if max_range_smoothing_px > range_smoothing_px:
-            scale = adaptive_smoothing_scale(xyz[..., 2], range_smoothing_px, max_range_smoothing_px)
-        else:
-            scale = smoothing_scale(xyz[..., 2], range_smoothing_px)
-    grad = np.abs(cv2.Sobel(intensity, cv2.CV_32F, 1, 0, ksize=3)) + np.abs(cv2.Sobel(intensity, cv2.CV_32F, 0, 1, ksize=3))
-    idx = np.flatnonzero(smooth.ravel())
-    if idx.size > max_pixels:
-        g = grad.ravel()[idx]
-        idx = idx[np.argpartition(g, idx.size - max_pixels)[idx.size - max_pixels:]]
-    X = xyz.reshape(-1, 3)[idx]
-    if scale is not None:
-        X = X * scale.ravel()[idx, None]
-    if projector_centre_m is None:
-        E = np.ones(idx.size)
-        n_world = np.full((idx.size, 3), np.nan)
-        has_normal = np.zeros(idx.size, bool)
-    else:
-        n = organised_normals_at(xyz, idx, normal_step_px, scale)
-        E, _ = projector_irradiance(n, projector_centre_m - X)
-        has_normal = np.isfinite(E) & (E > 0)
-        n_world = n @ np.ascontiguousarray(T[:3, :3].T)
-    return idx, transform_points(T, X), n_world, E, has_normal
-
-
 # Long only by its docstring (14 parameters); the 45 lines of code call the named steps below.
 def localize_photometric(
     references: Sequence[DenseReference],
@@ -158,6 +89,7 @@ def localize_photometric(
     min_pixels: int = 2000,
     prior_information: NDArray | None = None,
     stop_step_sigmas: float | None = None,
+    reference_pixels: Sequence[ReferencePixels] | None = None,
 ) -> PhotometricLocalizationResult:
     # 99 lines: 53 are the docstring and 16 the signature; the body already reads as its steps (inputs, map pixels, pyramid, Gauss-Newton per level)
     """Refine a camera pose by direct photometric alignment of FPP map pixels (after the DLT).
@@ -209,6 +141,9 @@ def localize_photometric(
         a pose step is under this many standard deviations of the step's own ``information``.
         Default: steps under 1e-7 rad and 1e-7 m at every level (the pose to the last
         micrometre; the texture's gain, offset and ambient ratio drift on slowly over a wall).
+    reference_pixels : sequence of ReferencePixels, optional
+        The references' pixels prepared beforehand (:func:`~frontend.localization.reference.reference_pixels`
+        with the same settings), one per reference, instead of preparing them here.
 
     Returns
     -------
@@ -221,10 +156,8 @@ def localize_photometric(
     """
     q, T_init, Km, Lambda = _checked_photometric_inputs(texture_query, T_query_world_init, K, references, valid_query, levels, iterations, prior_information)
     c_proj = None if projector_centre_m is None else np.asarray(projector_centre_m, dtype=np.float64).reshape(3)
-    W = q.shape[1]
-    smoothing_px = W / 960.0 if range_smoothing_px is None else float(range_smoothing_px)
-    max_smoothing_px = 5.0 * smoothing_px if max_range_smoothing_px is None else float(max_range_smoothing_px)
-    pixels = _map_pixels(references, c_proj, max_pixels, normal_step_px, smoothing_px, max_smoothing_px)
+    smoothing_px, max_smoothing_px = smoothing_widths(q.shape[1], range_smoothing_px, max_range_smoothing_px)
+    pixels = _map_pixels(references, c_proj, max_pixels, normal_step_px, smoothing_px, max_smoothing_px, reference_pixels)
     if pixels.X_world.shape[0] < min_pixels:
         return _failed_photometric()
     Q, V = _query_on_pinhole(q, Km, dist, valid_query)
@@ -313,8 +246,18 @@ class _MapPixels:
 
 def _map_pixels(
     references: Sequence[DenseReference], c_proj: Array | None, max_pixels: int, normal_step_px: int, smoothing_px: float, max_smoothing_px: float,
+    prepared: Sequence[ReferencePixels] | None = None,
 ) -> _MapPixels:
-    parts = [_photometric_reference_pixels(r, c_proj, max_pixels, normal_step_px, smoothing_px, max_smoothing_px) for r in references]
+    if prepared is None:
+        parts = [_photometric_reference_pixels(r, c_proj, max_pixels, normal_step_px, smoothing_px, max_smoothing_px) for r in references]
+    else:
+        settings = pixel_settings(c_proj, max_pixels, normal_step_px, smoothing_px, max_smoothing_px)
+        if len(prepared) != len(references) or any(p.settings != settings for p in prepared):
+            raise InputDataError(
+                f"photometric localisation: reference_pixels must be one per reference ({len(references)}), prepared with the same "
+                f"settings {settings}; got {len(prepared)} with {sorted({p.settings for p in prepared}, key=str)}"
+            )
+        parts = [(p.index, p.X_world, p.n_world, p.E_ref, p.has_normal) for p in prepared]
     return _MapPixels(
         [p[0] for p in parts],
         np.concatenate([p[1] for p in parts]),
