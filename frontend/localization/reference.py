@@ -3,8 +3,8 @@
 :func:`reference_pixels` picks, smooths and lifts the pixels of one map frame that
 :func:`frontend.localization.localize_photometric` aligns; they depend on the frame and the
 settings alone, not on the query, so a caller that aligns several views against one frame (a
-registrar's loop candidates, the next odometry pair) can prepare them once, or ahead, and pass
-them in (``reference_pixels=``).
+registrar's loop candidates against one keyframe) can prepare them once and pass them in
+(``reference_pixels=``).
 """
 
 from __future__ import annotations

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import math
 import weakref
-from concurrent.futures import Future, ThreadPoolExecutor
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -88,8 +87,7 @@ class FppPairRegistrar:
         self._features: weakref.WeakKeyDictionary[Frame, Frame] = weakref.WeakKeyDictionary()
         self._clouds: weakref.WeakKeyDictionary[Frame, dict[float, IcpCloud]] = weakref.WeakKeyDictionary()
         self._surfaces: weakref.WeakKeyDictionary[Frame, OrganisedSurface] = weakref.WeakKeyDictionary()
-        self._references: weakref.WeakKeyDictionary[Frame, ReferencePixels | Future[ReferencePixels]] = weakref.WeakKeyDictionary()
-        self._reference_thread: ThreadPoolExecutor | None = None
+        self._references: weakref.WeakKeyDictionary[Frame, ReferencePixels] = weakref.WeakKeyDictionary()
         self.last_timings_s: dict[str, float] = {}
         self.last_cpu_timings_s: dict[str, float] = {}  # process CPU time per stage (wall in last_timings_s)
 
@@ -130,27 +128,13 @@ class FppPairRegistrar:
         return cached
 
     def photometric_reference(self, frame: Frame) -> ReferencePixels:
-        """The frame's pixels as the photometric step's reference (cached per frame; when
-        :meth:`prefetch_photometric_reference` started them, they are waited for)."""
-        entry = self._references.get(frame)
-        if entry is None:
-            entry = self._reference_pixels(frame.xyz_map, frame.texture)
-            self._references[frame] = entry
-        return entry.result() if isinstance(entry, Future) else entry
-
-    def prefetch_photometric_reference(self, frame: Frame) -> None:
-        """Start preparing the frame's reference pixels on a background thread (once per frame).
-
-        They take 0.3-0.5 s at 1920x1200 (eight Gaussian blurs of the range map), half the
-        photometric step; an odometry pair's source is the next pair's reference, so the tracking
-        process prepares it while it goes on (OpenCV and numpy release the GIL). The pixels are
-        the same wherever they are computed, so the run's results do not depend on the timing."""
-        if frame in self._references or self.texture_camera is None or frame.texture is None or frame.xyz_map is None:
-            return
-        if self._reference_thread is None:
-            self._reference_thread = ThreadPoolExecutor(max_workers=1, thread_name_prefix="photometric-reference")
-        # the arrays, not the frame: the task must not keep its cache key alive
-        self._references[frame] = self._reference_thread.submit(self._reference_pixels, frame.xyz_map, frame.texture)
+        """The frame's pixels as the photometric step's reference (cached per frame: a worker
+        verifying several loop candidates against one keyframe prepares them once)."""
+        cached = self._references.get(frame)
+        if cached is None:
+            cached = self._reference_pixels(frame.xyz_map, frame.texture)
+            self._references[frame] = cached
+        return cached
 
     def _reference_pixels(self, xyz_map: NDArray, texture: NDArray) -> ReferencePixels:
         from frontend.localization import DenseReference, reference_pixels
@@ -338,8 +322,6 @@ class FppPairRegistrar:
                 checked_pose = s.pose
                 if rejected := rejection(Checkpoint.REVISIT, s, cfg):
                     return rejected
-            if ConstraintKind(kind) is ConstraintKind.ODOMETRY:
-                self.prefetch_photometric_reference(source)  # the next odometry pair's reference
             self._refine_photometric(s)
         if s.pose is not checked_pose:  # the photometric step moved it (or nothing checked yet)
             self._check_weak_geometry(s, is_loop)

@@ -167,6 +167,24 @@ def test_photometric_localisation_stops_at_the_precision_asked_for(fringe_triple
         assert np.linalg.norm(early.camera_centre_world_m - poses[1][:3, 3]) < 1e-4
 
 
+def test_prepared_reference_pixels_give_the_same_pose_and_must_match_the_settings(fringe_triple):
+    from frontend.localization import reference_pixels
+
+    rig, poses, frames, projector_centre = fringe_triple
+    K, dist = rig.camera.K, rig.camera.dist
+    refs = [DenseReference(frames[i].xyz_map, frames[i].texture, poses[i]) for i in (0, 2)]
+    T_init = se3_exp(np.radians([0.1, -0.08, 0.05]).tolist() + [0.001, -0.0008, 0.0005]) @ invert(poses[1])
+    lit = np.isfinite(frames[1].xyz_map[..., 2])
+    inline = localize_photometric(refs, frames[1].texture, T_init, K, dist, projector_centre, lit, max_pixels=40_000)
+    prepared = [reference_pixels(r, projector_centre, max_pixels=40_000) for r in refs]
+    again = localize_photometric(refs, frames[1].texture, T_init, K, dist, projector_centre, lit, max_pixels=40_000, reference_pixels=prepared)
+    np.testing.assert_array_equal(again.T_camera_world, inline.T_camera_world)
+    with pytest.raises(InputDataError, match="same settings"):  # prepared for another pixel budget
+        localize_photometric(refs, frames[1].texture, T_init, K, dist, projector_centre, lit, max_pixels=30_000, reference_pixels=prepared)
+    with pytest.raises(InputDataError, match="one per reference"):
+        localize_photometric(refs, frames[1].texture, T_init, K, dist, projector_centre, lit, max_pixels=40_000, reference_pixels=prepared[:1])
+
+
 def test_photometric_localisation_bad_input(fringe_triple):
     rig, poses, frames, projector_centre = fringe_triple
     K = rig.camera.K
