@@ -22,8 +22,8 @@ from frontend.dense_alignment import cross_rows
 from frontend.localization.reference import (
     DenseReference,
     ReferencePixels,
-    _photometric_reference_pixels,
     pixel_settings,
+    reference_pixel_arrays,
     smoothing_widths,
 )
 from frontend.localization.surface import projector_irradiance
@@ -71,7 +71,7 @@ class PhotometricLocalizationResult:
         return self.pixels_used
 
 
-# Long only by its docstring (14 parameters); the 45 lines of code call the named steps below.
+# Long only by its docstring (16 parameters); its code calls the named steps below.
 def localize_photometric(
     references: Sequence[DenseReference],
     texture_query: NDArray,
@@ -91,7 +91,7 @@ def localize_photometric(
     stop_step_sigmas: float | None = None,
     reference_pixels: Sequence[ReferencePixels] | None = None,
 ) -> PhotometricLocalizationResult:
-    # 99 lines: 53 are the docstring and 16 the signature; the body already reads as its steps (inputs, map pixels, pyramid, Gauss-Newton per level)
+    # 108 lines: 62 are the docstring and 18 the signature; the body already reads as its steps (inputs, map pixels, pyramid, Gauss-Newton per level)
     """Refine a camera pose by direct photometric alignment of FPP map pixels (after the DLT).
 
     Every textured pixel of the reference frames carries an FPP point; the query pose is the one
@@ -234,7 +234,7 @@ def _failed_photometric() -> PhotometricLocalizationResult:
 
 @dataclass(frozen=True, eq=False)
 class _MapPixels:
-    """The usable pixels of all reference frames (:func:`_photometric_reference_pixels`), concatenated;
+    """The usable pixels of all reference frames (:func:`reference_pixel_arrays`), concatenated;
     ``index`` keeps each frame's flat pixel indices for reading its texture."""
 
     index: list[NDArray[np.int64]]
@@ -249,7 +249,7 @@ def _map_pixels(
     prepared: Sequence[ReferencePixels] | None = None,
 ) -> _MapPixels:
     if prepared is None:
-        parts = [_photometric_reference_pixels(r, c_proj, max_pixels, normal_step_px, smoothing_px, max_smoothing_px) for r in references]
+        parts = [reference_pixel_arrays(r, c_proj, max_pixels, normal_step_px, smoothing_px, max_smoothing_px) for r in references]
     else:
         settings = pixel_settings(c_proj, max_pixels, normal_step_px, smoothing_px, max_smoothing_px)
         if len(prepared) != len(references) or any(p.settings != settings for p in prepared):

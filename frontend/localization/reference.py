@@ -95,11 +95,11 @@ def reference_pixels(
     (``width_px``: the query's image width, which sets the default smoothing; default the reference's)."""
     width = int(np.shape(ref.texture)[1]) if width_px is None else int(width_px)
     smoothing_px, max_smoothing_px = smoothing_widths(width, range_smoothing_px, max_range_smoothing_px)
-    parts = _photometric_reference_pixels(ref, projector_centre_m, max_pixels, normal_step_px, smoothing_px, max_smoothing_px)
+    parts = reference_pixel_arrays(ref, projector_centre_m, max_pixels, normal_step_px, smoothing_px, max_smoothing_px)
     return ReferencePixels(*parts, settings=pixel_settings(projector_centre_m, max_pixels, normal_step_px, smoothing_px, max_smoothing_px))
 
 
-def _photometric_reference_pixels(
+def reference_pixel_arrays(
     ref: DenseReference, projector_centre_m: Array | None, max_pixels: int, normal_step_px: int, range_smoothing_px: float,
     max_range_smoothing_px: float = 0.0,
 ) -> tuple[NDArray[np.int64], Array, Array, Array, NDArray[np.bool_]]:
