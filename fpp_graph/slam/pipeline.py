@@ -280,6 +280,7 @@ def fuse_map(
                 yield kf, plot_sample(frame, per_keyframe, kf) if plot_samples is not None else None
 
     for i, (kf, sample) in enumerate(folded()):
+        trim_heap()  # the merges' and TSDF's temporaries: as during tracking
         if plot_samples is not None:
             plot_samples[kf] = sample
         if progress:
@@ -450,6 +451,9 @@ class Pipeline:
             with self._timed(report, "decode+track"), self._library_threads():
                 report.slam = track(frames_with_timestamps(), self.source, self.config, store, self.progress, verifier)
             report.frames_used = len(timestamps)
+            # each stage's free heap back before the next one's temporaries: in a process that keeps
+            # large blocks in the heap (fpp-slam run's) they would otherwise stay resident
+            trim_heap(period_s=0.0)
             with self._timed(report, "write_graph"):
                 write_trajectory_and_graph(out, report.slam, timestamps)
                 write_loop_log(out, report.slam)
@@ -457,6 +461,7 @@ class Pipeline:
                 fused = fuse_map(out, report.slam, store, self.config, self.progress, self.map_fuser, plot_samples=samples, executor=executor)
         finally:  # done, failed or interrupted: the worker processes end with the run's last use of them
             self._shutdown_executor()
+        trim_heap(period_s=0.0)
         with self._timed(report, "plots"):
             before_points = points_under_poses(samples, odometry_only_poses(report.slam))
             gt = self.source.ground_truth()
@@ -465,6 +470,7 @@ class Pipeline:
                 gt_poses = {fid: T for fid, T in zip(ids, gt.poses_world_sensor, strict=True)}
             write_plots(out, report.slam, before_points, fused.points_world_m, gt_poses)
         loop_evaluation = None
+        trim_heap(period_s=0.0)
         if gt_poses is not None:  # loop candidates against ground truth (fpp_graph.evaluation.loops)
             from fpp_graph.evaluation.loops import evaluate_results_loops
 
