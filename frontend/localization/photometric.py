@@ -91,7 +91,7 @@ def localize_photometric(
     stop_step_sigmas: float | None = None,
     reference_pixels: Sequence[ReferencePixels] | None = None,
 ) -> PhotometricLocalizationResult:
-    # 108 lines: 62 are the docstring and 18 the signature; the body already reads as its steps (inputs, map pixels, pyramid, Gauss-Newton per level)
+    # 96 lines: 58 are the docstring and 19 the signature; the body reads as its steps (inputs, map pixels, query, coarse-to-fine fit, result)
     """Refine a camera pose by direct photometric alignment of FPP map pixels (after the DLT).
 
     Every textured pixel of the reference frames carries an FPP point; the query pose is the one
@@ -136,14 +136,10 @@ def localize_photometric(
         held where the start put them: a pair's registrar holds what the geometry fixes (a wall's
         tilts and distance) and lets the texture set the rest (its in-plane shifts and spin).
     stop_step_sigmas : float, optional
-        Converge only as far as the caller can see: a coarse level stops once a step moves the
-        map pixels by under :data:`COARSE_STOP_STEP_PX` of its pixels, the full resolution once
-        a pose step is under this many standard deviations of the step's own ``information``.
-        Default: steps under 1e-7 rad and 1e-7 m at every level (the pose to the last
-        micrometre; the texture's gain, offset and ambient ratio drift on slowly over a wall).
+        Stop at a pose step under this many standard deviations of its ``information`` (coarse
+        levels: :data:`COARSE_STOP_STEP_PX`; :func:`_level_converged`); default steps under 1e-7.
     reference_pixels : sequence of ReferencePixels, optional
-        The references' pixels prepared beforehand (:func:`~frontend.localization.reference.reference_pixels`
-        with the same settings), one per reference, instead of preparing them here.
+        One per reference, prepared with the same settings (:func:`~frontend.localization.reference.reference_pixels`).
 
     Returns
     -------
@@ -162,16 +158,8 @@ def localize_photometric(
         return _failed_photometric()
     Q, V = _query_on_pinhole(q, Km, dist, valid_query)
     fit = _PhotometricFit(T_init.copy(), ambient=0.3 if c_proj is not None else 0.0)
-    pyramid = [Q]  # each level once (cv2.buildPyramid is not in the Python bindings)
-    for _ in range(levels - 1):
-        pyramid.append(cv2.pyrDown(pyramid[-1]))
-    for level, n_iter in zip(range(levels - 1, -1, -1), iterations, strict=True):
-        view = _pyramid_level(pyramid[level], V, level, Km, references, pixels)
-        for _ in range(n_iter):
-            if not _gauss_newton_step(fit, view, pixels, c_proj, Lambda, T_init, min_pixels):
-                return _failed_photometric()
-            if _level_converged(fit, level, stop_step_sigmas):
-                break
+    if not _refine_coarse_to_fine(fit, Q, V, Km, references, pixels, c_proj, Lambda, T_init, iterations, min_pixels, stop_step_sigmas):
+        return _failed_photometric()
     T = fit.T
     # converged: the last full-resolution step moved the pose by under 0.01 mm / 10 microradians
     # (a fifth of the precision this reaches; the steps creep at the micrometre level on some frames)
@@ -180,6 +168,25 @@ def localize_photometric(
               fit.used, fit.sigma, fit.ambient, fit.steps, fit.step_rad, fit.step_m)
     information = fit.information
     return PhotometricLocalizationResult(T, -T[:3, :3].T @ T[:3, 3], fit.used, fit.sigma, fit.ambient, fit.steps, ok, 0.5 * (information + information.T))
+
+
+def _refine_coarse_to_fine(
+    fit: _PhotometricFit, Q: NDArray[np.float32], V: NDArray[np.uint8], Km: Array, references: Sequence[DenseReference], pixels: _MapPixels,
+    c_proj: Array | None, Lambda: Array | None, T_init: Array, iterations: Sequence[int], min_pixels: int, stop_step_sigmas: float | None,
+) -> bool:
+    """Gauss-Newton steps on ``fit`` over the query's pyramid, coarsest level first (``iterations``
+    per level, each level until :func:`_level_converged`); False when a step fails."""
+    pyramid = [Q]  # each level once (cv2.buildPyramid is not in the Python bindings)
+    for _ in range(len(iterations) - 1):
+        pyramid.append(cv2.pyrDown(pyramid[-1]))
+    for level, n_iter in zip(range(len(iterations) - 1, -1, -1), iterations, strict=True):
+        view = _pyramid_level(pyramid[level], V, level, Km, references, pixels)
+        for _ in range(n_iter):
+            if not _gauss_newton_step(fit, view, pixels, c_proj, Lambda, T_init, min_pixels):
+                return False
+            if _level_converged(fit, level, stop_step_sigmas):
+                break
+    return True
 
 
 COARSE_STOP_STEP_PX = 0.05
@@ -299,6 +306,12 @@ class _PyramidLevel:
     skew: float
     reference_intensity: Array
 
+    def project(self, P: Array) -> tuple[Array, Array]:
+        """Pixel coordinates ``(u, v)`` at this level of camera-frame points ``P`` (N, 3)."""
+        z = P[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return self.fx * P[:, 0] / z + self.skew * P[:, 1] / z + self.cx, self.fy * P[:, 1] / z + self.cy
+
 
 def _pyramid_level(Ql: NDArray[np.float32], V: NDArray[np.uint8], level: int, Km: Array, references: Sequence[DenseReference], pixels: _MapPixels) -> _PyramidLevel:
     s = 2**level
@@ -356,9 +369,7 @@ def _gauss_newton_step(
     land on usable query pixels or the normal equations are singular."""
     P = transform_points(fit.T, pixels.X_world)
     z = P[:, 2]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        u = lev.fx * P[:, 0] / z + lev.skew * P[:, 1] / z + lev.cx
-        v = lev.fy * P[:, 1] / z + lev.cy
+    u, v = lev.project(P)
     Hl, Wl = lev.image.shape
     sel = np.flatnonzero((z > 0) & (u >= 1) & (v >= 1) & (u < Wl - 2) & (v < Hl - 2))
     sel = sel[lev.usable[np.rint(v[sel]).astype(np.int64), np.rint(u[sel]).astype(np.int64)]]
@@ -397,13 +408,7 @@ def _pixel_motion_px(lev: _PyramidLevel, T_before: Array, T_after: Array, X_worl
     """RMS distance (pixels of ``lev``) between the projections of ``X_world`` under the two poses."""
     if not len(X_world):
         return 0.0
-
-    def project(T: Array) -> tuple[Array, Array]:
-        P = transform_points(T, X_world)
-        z = P[:, 2]
-        return lev.fx * P[:, 0] / z + lev.skew * P[:, 1] / z + lev.cx, lev.fy * P[:, 1] / z + lev.cy
-
-    (u0, v0), (u1, v1) = project(T_before), project(T_after)
+    (u0, v0), (u1, v1) = lev.project(transform_points(T_before, X_world)), lev.project(transform_points(T_after, X_world))
     return float(np.sqrt(np.mean((u1 - u0) ** 2 + (v1 - v0) ** 2)))
 
 

@@ -132,19 +132,33 @@ def fringe_triple():
     return rig, poses, frames, -Tpc[:3, :3].T @ Tpc[:3, 3]
 
 
-def test_photometric_localisation_with_the_fpp_shading_model(fringe_triple):
+def _middle_references(fringe_triple) -> list[DenseReference]:
+    """The outer two frames of the triple, the middle one's references."""
+    _, poses, frames, _ = fringe_triple
+    return [DenseReference(frames[i].xyz_map, frames[i].texture, poses[i]) for i in (0, 2)]
+
+
+def _locate_middle(fringe_triple, with_projector: bool = True, **kwargs):
+    """The middle frame located against the outer two from a start 1.4 mm, 0.14 deg off its pose
+    (``localize_photometric`` with the projector's shading unless ``with_projector`` is False)."""
     rig, poses, frames, projector_centre = fringe_triple
-    K, dist = rig.camera.K, rig.camera.dist
-    refs = [DenseReference(frames[i].xyz_map, frames[i].texture, poses[i]) for i in (0, 2)]
-    T_init = se3_exp(np.radians([0.1, -0.08, 0.05]).tolist() + [0.001, -0.0008, 0.0005]) @ invert(poses[1])  # 1.4 mm, 0.14 deg off
+    T_init = se3_exp(np.radians([0.1, -0.08, 0.05]).tolist() + [0.001, -0.0008, 0.0005]) @ invert(poses[1])
     lit = np.isfinite(frames[1].xyz_map[..., 2])
-    res = localize_photometric(refs, frames[1].texture, T_init, K, dist, projector_centre, lit, max_pixels=40_000)
+    return localize_photometric(
+        _middle_references(fringe_triple), frames[1].texture, T_init, rig.camera.K, rig.camera.dist,
+        projector_centre if with_projector else None, lit, max_pixels=40_000, **kwargs,
+    )
+
+
+def test_photometric_localisation_with_the_fpp_shading_model(fringe_triple):
+    poses = fringe_triple[1]
+    res = _locate_middle(fringe_triple)
     assert res.success and res.pixels_used > 20_000
     assert np.linalg.norm(res.camera_centre_world_m - poses[1][:3, 3]) < 1e-4  # 0.1 mm at 640x400 (DLT on keypoints: ~1 mm)
     assert res.photometric_sigma_grey < 2.0  # the model explains the images to about the camera noise
     # without the projector the irradiance change between views (the projector moves with the
     # camera) is unexplained and pulls the pose off
-    flat = localize_photometric(refs, frames[1].texture, T_init, K, dist, None, lit, max_pixels=40_000)
+    flat = _locate_middle(fringe_triple, with_projector=False)
     assert np.linalg.norm(flat.camera_centre_world_m - poses[1][:3, 3]) > 3 * np.linalg.norm(res.camera_centre_world_m - poses[1][:3, 3])
 
 
@@ -152,14 +166,10 @@ def test_photometric_localisation_stops_at_the_precision_asked_for(fringe_triple
     # with stop_step_sigmas the coarse levels stop once a step moves the pixels by a twentieth of
     # theirs and the finest once the pose step is a fraction of its standard deviation: fewer
     # steps, and a pose within that fraction (in the step's information) of the fully converged one
-    rig, poses, frames, projector_centre = fringe_triple
-    K, dist = rig.camera.K, rig.camera.dist
-    refs = [DenseReference(frames[i].xyz_map, frames[i].texture, poses[i]) for i in (0, 2)]
-    T_init = se3_exp(np.radians([0.1, -0.08, 0.05]).tolist() + [0.001, -0.0008, 0.0005]) @ invert(poses[1])
-    lit = np.isfinite(frames[1].xyz_map[..., 2])
-    full = localize_photometric(refs, frames[1].texture, T_init, K, dist, projector_centre, lit, max_pixels=40_000)
+    poses = fringe_triple[1]
+    full = _locate_middle(fringe_triple)
     for sigmas in (0.5, 2.0):
-        early = localize_photometric(refs, frames[1].texture, T_init, K, dist, projector_centre, lit, max_pixels=40_000, stop_step_sigmas=sigmas)
+        early = _locate_middle(fringe_triple, stop_step_sigmas=sigmas)
         assert early.success and early.iterations < full.iterations
         d = se3_log(early.T_camera_world @ invert(full.T_camera_world))
         # what is left of the way is about 3 last steps at the slow ratio (0.75) of the texture's parameters
@@ -170,19 +180,16 @@ def test_photometric_localisation_stops_at_the_precision_asked_for(fringe_triple
 def test_prepared_reference_pixels_give_the_same_pose_and_must_match_the_settings(fringe_triple):
     from frontend.localization import reference_pixels
 
-    rig, poses, frames, projector_centre = fringe_triple
-    K, dist = rig.camera.K, rig.camera.dist
-    refs = [DenseReference(frames[i].xyz_map, frames[i].texture, poses[i]) for i in (0, 2)]
-    T_init = se3_exp(np.radians([0.1, -0.08, 0.05]).tolist() + [0.001, -0.0008, 0.0005]) @ invert(poses[1])
-    lit = np.isfinite(frames[1].xyz_map[..., 2])
-    inline = localize_photometric(refs, frames[1].texture, T_init, K, dist, projector_centre, lit, max_pixels=40_000)
-    prepared = [reference_pixels(r, projector_centre, max_pixels=40_000) for r in refs]
-    again = localize_photometric(refs, frames[1].texture, T_init, K, dist, projector_centre, lit, max_pixels=40_000, reference_pixels=prepared)
+    projector_centre = fringe_triple[3]
+    inline = _locate_middle(fringe_triple)
+    prepared = [reference_pixels(r, projector_centre, max_pixels=40_000) for r in _middle_references(fringe_triple)]
+    again = _locate_middle(fringe_triple, reference_pixels=prepared)
     np.testing.assert_array_equal(again.T_camera_world, inline.T_camera_world)
+    prepared_smaller = [reference_pixels(r, projector_centre, max_pixels=30_000) for r in _middle_references(fringe_triple)]
     with pytest.raises(InputDataError, match="same settings"):  # prepared for another pixel budget
-        localize_photometric(refs, frames[1].texture, T_init, K, dist, projector_centre, lit, max_pixels=30_000, reference_pixels=prepared)
+        _locate_middle(fringe_triple, reference_pixels=prepared_smaller)
     with pytest.raises(InputDataError, match="one per reference"):
-        localize_photometric(refs, frames[1].texture, T_init, K, dist, projector_centre, lit, max_pixels=40_000, reference_pixels=prepared[:1])
+        _locate_middle(fringe_triple, reference_pixels=prepared[:1])
 
 
 def test_photometric_localisation_bad_input(fringe_triple):
