@@ -31,7 +31,7 @@ class Checkpoint(enum.Enum):
     RANSAC = "ransac"
     ICP = "icp"
     POSE = "pose"  # after the weak-direction rules: ICP's pose, or with directions from the keypoints
-    REVISIT = "revisit"  # an appearance-only revisit about to take the photometric step: the look-alike test first
+    REVISIT = "revisit"  # an appearance-only revisit on weak geometry about to take the dense or the photometric step: the look-alike test first
     FINAL = "final"  # after the dense and photometric refinements
 
 
