@@ -58,6 +58,13 @@ class Frame:
         Descriptors of ``keypoints_uv`` (float32 or uint8 for binary descriptors).
     T_world_sensor_guess : (4, 4) float64 or None
         Prior pose (e.g. from wheel odometry or the simulator), if any.
+    metadata : mapping
+        JSON-serialisable facts about the frame (camera model, decoder counts, ...).
+    prepared : mapping of str to array
+        Arrays the front-end derived from this frame for its own registrar, made once where the
+        frame is made (a decode worker) so that no process that later registers the frame
+        recomputes them. The back-end stores them with the frame and hands them back unchanged;
+        it never reads them. Names are letters, digits, ``_`` and ``.``.
     """
 
     id: int
@@ -70,9 +77,19 @@ class Frame:
     descriptors: NDArray[Any] | None = None
     T_world_sensor_guess: NDArray[np.float64] | None = None
     metadata: Mapping[str, Any] = field(default_factory=dict)
+    prepared: Mapping[str, NDArray[Any]] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         where = f"frame {self.id}"
+        prepared = {}
+        for name, value in dict(self.prepared).items():
+            if not isinstance(name, str) or not name or not all(c.isalnum() or c in "_." for c in name):
+                raise InputDataError(f"{where}: prepared array name {name!r} must be letters, digits, '_' and '.'")
+            array = np.asarray(value)
+            if array.dtype.hasobject:
+                raise InputDataError(f"{where}: prepared array {name!r} holds Python objects; only numeric, bool and string arrays are stored")
+            prepared[name] = _readonly(array)
+        object.__setattr__(self, "prepared", prepared)
         points = np.asarray(self.points, dtype=np.float64)
         if points.ndim != 2 or points.shape[1] != 3:
             raise InputDataError(f"{where}: points must be N x 3, got shape {points.shape}")

@@ -89,7 +89,13 @@ def stored_arrays(frame: Frame) -> dict[str, np.ndarray]:
     if derived:
         arrays["derived_from_map"] = np.array(derived)
     arrays["metadata_json"] = np.array(json.dumps(dict(frame.metadata), default=_json_default))
+    for name, value in frame.prepared.items():
+        arrays[PREPARED_PREFIX + name] = value
     return arrays
+
+
+PREPARED_PREFIX = "prepared."
+"""Stored name of a :attr:`Frame.prepared` array: this prefix and its name."""
 
 
 def _finite_pixels(xyz_map: np.ndarray, valid: np.ndarray) -> np.ndarray:
@@ -151,6 +157,7 @@ def frame_from_stored(get: dict[str, np.ndarray], origin: str) -> Frame:
             descriptors=get.get("descriptors"),
             T_world_sensor_guess=get.get("T_world_sensor_guess"),
             metadata=json.loads(str(get["metadata_json"])),
+            prepared={k[len(PREPARED_PREFIX):]: v for k, v in get.items() if k.startswith(PREPARED_PREFIX)},
         )
     except KeyError as exc:
         raise InputDataError(f"{origin} lacks {exc.args[0]!r}; delete it to recompute") from None

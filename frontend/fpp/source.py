@@ -33,10 +33,12 @@ class FppSequenceSource:
         self.sequence = read_sequence(self.path)
         self._index = {rec.id: i for i, rec in enumerate(self.sequence.frames)}
         self._sensor = None
+        self._preparer = None
 
     def __getstate__(self) -> dict[str, Any]:
         state = dict(self.__dict__)
         state["_sensor"] = None  # decoder tables are rebuilt in each worker process
+        state["_preparer"] = None
         return state
 
     @classmethod
@@ -66,7 +68,11 @@ class FppSequenceSource:
             xyz_map=frame.xyz_map, texture=frame.texture,
             metadata={**frame.metadata, **camera_metadata(self.sequence.calibration)},
         )
-        return detect_and_describe(frame, self.config.registration)
+        # the registrar's per-frame work that every pair of this frame needs, done here once
+        # (on a decode worker) and stored with the frame
+        if self._preparer is None:
+            self._preparer = self.make_registrar()
+        return self._preparer.prepare(detect_and_describe(frame, self.config.registration))
 
     def resolve_config(self, config: Config) -> Config:
         """``config`` with the rig's noise model (:data:`frontend.config.FPP_NOISE`) where

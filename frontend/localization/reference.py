@@ -10,6 +10,7 @@ registrar's loop candidates against one keyframe) can prepare them once and pass
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import cv2
@@ -85,6 +86,43 @@ def pixel_settings(projector_centre_m: Array | None, max_pixels: int, normal_ste
     """The :attr:`ReferencePixels.settings` key of these arguments."""
     centre = None if projector_centre_m is None else tuple(float(c) for c in np.asarray(projector_centre_m, dtype=np.float64).reshape(3))
     return (centre, int(max_pixels), int(normal_step_px), float(smoothing_px), float(max_smoothing_px))
+
+
+_STORED = ("index", "X_world", "n_world", "E_ref", "has_normal")
+
+
+def settings_array(settings: tuple) -> Array:
+    """:attr:`ReferencePixels.settings` as 7 numbers (projector centre NaN when there is none)."""
+    centre, max_pixels, normal_step_px, smoothing_px, max_smoothing_px = settings
+    return np.array([*((math.nan,) * 3 if centre is None else centre), max_pixels, normal_step_px, smoothing_px, max_smoothing_px], dtype=np.float64)
+
+
+def reference_to_arrays(pixels: ReferencePixels, prefix: str) -> dict[str, NDArray]:
+    """``pixels`` as named arrays (``prefix`` + field name, and ``prefix + "settings"``), e.g. for
+    :attr:`fpp_graph.types.Frame.prepared`; :func:`reference_from_arrays` reads them back."""
+    arrays: dict[str, NDArray] = {prefix + name: getattr(pixels, name) for name in _STORED}
+    arrays[prefix + "settings"] = settings_array(pixels.settings)
+    return arrays
+
+
+def reference_from_arrays(arrays: Mapping[str, NDArray], prefix: str, settings: tuple) -> ReferencePixels | None:
+    """The pixels :func:`reference_to_arrays` stored under ``prefix``, if they were prepared with
+    ``settings`` (:func:`pixel_settings`); None when absent or made with other settings."""
+    stored = arrays.get(prefix + "settings")
+    if stored is None or not all(prefix + name in arrays for name in _STORED):
+        return None
+    wanted = settings_array(settings)
+    if stored.shape != wanted.shape or not np.array_equal(stored, wanted, equal_nan=True):
+        return None
+    return ReferencePixels(*(np.asarray(arrays[prefix + name]) for name in _STORED), settings=settings)
+
+
+def reference_settings(
+    width_px: int, projector_centre_m: Array | None = None, max_pixels: int = 150_000, normal_step_px: int = 4,
+    range_smoothing_px: float | None = None, max_range_smoothing_px: float | None = None,
+) -> tuple:
+    """The :attr:`ReferencePixels.settings` of :func:`reference_pixels` with these arguments."""
+    return pixel_settings(projector_centre_m, max_pixels, normal_step_px, *smoothing_widths(width_px, range_smoothing_px, max_range_smoothing_px))
 
 
 def reference_pixels(

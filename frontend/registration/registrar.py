@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import weakref
 from typing import TYPE_CHECKING
@@ -46,7 +47,7 @@ from frontend.registration.stages import (
 from frontend.registration.state import PairState
 from frontend.registration.texture import TextureCamera
 from frontend.registration.tracking import track_dense
-from frontend.registration.weak_directions import Degeneracy, check_degeneracy, weak_direction_pin
+from frontend.registration.weak_directions import Degeneracy, check_degeneracy, surface_is_plane_like, weak_direction_pin
 
 if TYPE_CHECKING:
     from frontend.localization import ReferencePixels
@@ -60,6 +61,11 @@ most about 3x the last step, 0.15 standard deviations: 2 % of the constraint's v
 simulated corridor pairs (with the coarse levels' rule, :data:`~frontend.localization.photometric.COARSE_STOP_STEP_PX`):
 335 -> 126 Gauss-Newton steps, every pose within 0.09 standard deviations (0.75 um) of the one
 converged to 1e-7."""
+
+
+PREPARED_REFERENCE = "photometric_reference."
+"""Name prefix of the photometric reference pixels :meth:`FppPairRegistrar.prepare` stores in
+:attr:`~fpp_graph.types.Frame.prepared`."""
 
 
 class FppPairRegistrar:
@@ -128,13 +134,47 @@ class FppPairRegistrar:
         return cached
 
     def photometric_reference(self, frame: Frame) -> ReferencePixels:
-        """The frame's pixels as the photometric step's reference (cached per frame: a worker
-        verifying several loop candidates against one keyframe prepares them once)."""
+        """The frame's pixels as the photometric step's reference: those :meth:`prepare` stored
+        with it, else computed (cached per frame: a worker verifying several loop candidates
+        against one keyframe prepares them once)."""
         cached = self._references.get(frame)
         if cached is None:
-            cached = self._reference_pixels(frame.xyz_map, frame.texture)
+            from frontend.localization.reference import reference_from_arrays
+
+            cached = reference_from_arrays(frame.prepared, PREPARED_REFERENCE, self._reference_settings(frame.texture))
+            if cached is None:
+                cached = self._reference_pixels(frame.xyz_map, frame.texture)
             self._references[frame] = cached
         return cached
+
+    def prepare(self, frame: Frame) -> Frame:
+        """``frame`` with what every pair it takes part in will need, made once where the frame is
+        made (a decode worker) and stored with it (:attr:`Frame.prepared`).
+
+        That is the photometric step's reference pixels (0.3-0.9 s of a 1920x1200 frame) for a
+        frame whose own surface is plane-like (:func:`surface_is_plane_like`): each of its
+        pairs takes the step, with the frame as the target of the next keyframe's odometry
+        and of loop candidates on several workers, which each computed them again (a simulated
+        corridor run: 173 times for 92 frames). They are computed from the map as the frame
+        store keeps it (float32), so every process reading the frame back gets the same numbers
+        it would have computed. Other frames (relief, or no rig) are returned as they are.
+        """
+        if not self.texture_sets_planes or frame.xyz_map is None or frame.texture is None:
+            return frame
+        cfg = self.config
+        if not surface_is_plane_like(frame.xyz_map, cfg.lengths.icp_voxel_m, cfg.weak_directions.degeneracy_ratio):
+            return frame
+        from frontend.localization.reference import reference_to_arrays
+
+        stored_map = np.asarray(frame.xyz_map, dtype=np.float32).astype(np.float64)
+        pixels = self._reference_pixels(stored_map, frame.texture)
+        return dataclasses.replace(frame, prepared={**frame.prepared, **reference_to_arrays(pixels, PREPARED_REFERENCE)})
+
+    def _reference_settings(self, texture: NDArray) -> tuple:
+        from frontend.localization.reference import reference_settings
+
+        assert self.texture_camera is not None
+        return reference_settings(np.shape(texture)[1], self.texture_camera.projector_centre_m, self.config.photometric.max_pixels)
 
     def _reference_pixels(self, xyz_map: NDArray, texture: NDArray) -> ReferencePixels:
         from frontend.localization import DenseReference, reference_pixels

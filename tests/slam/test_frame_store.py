@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -217,3 +218,20 @@ def test_load_frame_points_samples_the_points_load_frame_gives(tmp_path):
     np.savez(empty, id=np.array(10))
     with pytest.raises(InputDataError, match="neither points nor an xyz map"):
         load_frame_points(empty, 10)
+
+
+def test_prepared_arrays_round_trip_and_bad_ones_are_refused(tmp_path):
+    frame = dataclasses.replace(
+        sensor_like_frame(np.random.default_rng(5)),
+        prepared={"ref.index": np.arange(5, dtype=np.int64), "ref.settings": np.array([np.nan, 1.5]), "ref.flag": np.array([True, False])},
+    )
+    assert not frame.prepared["ref.index"].flags.writeable
+    save_frame(tmp_path / "f.npz", frame)
+    loaded = load_frame(tmp_path / "f.npz")
+    assert sorted(loaded.prepared) == sorted(frame.prepared)
+    for name, value in frame.prepared.items():
+        assert loaded.prepared[name].dtype == value.dtype and np.array_equal(loaded.prepared[name], value, equal_nan=True)
+    with pytest.raises(InputDataError, match="prepared array name"):
+        dataclasses.replace(frame, prepared={"a/b": np.zeros(2)})
+    with pytest.raises(InputDataError, match="Python objects"):
+        dataclasses.replace(frame, prepared={"a": np.array([{}, 1], dtype=object)})

@@ -1,0 +1,81 @@
+"""FppPairRegistrar.prepare: a plane-like frame's photometric reference pixels made once, stored with the frame."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from frontend.config import RegistrationConfig
+from frontend.localization.reference import reference_from_arrays, reference_settings
+from frontend.registration import FppPairRegistrar, TextureCamera
+from frontend.registration.registrar import PREPARED_REFERENCE
+from frontend.registration.weak_directions import surface_is_plane_like
+from frontend.testing.synthetic_frames import bumpy_wall_scene, camera_matrix, render_frame, wall_pose
+from fpp_graph.slam.frame_store import load_frame, save_frame
+from fpp_graph.types import Frame
+
+W, H = 640, 400
+FIELDS = ("index", "X_world", "n_world", "E_ref", "has_normal")
+
+
+def registrar(**photometric) -> FppPairRegistrar:
+    config = RegistrationConfig()
+    if photometric:
+        config = config.model_copy(update={"photometric": config.photometric.model_copy(update=photometric)})
+    return FppPairRegistrar(config, texture_camera=TextureCamera(camera_matrix(W, H), np.zeros(5), np.array([0.1, 0.0, 0.0])))
+
+
+@pytest.fixture(scope="module")
+def flat_frame():
+    return render_frame(bumpy_wall_scene(seed=5, flat=True), wall_pose(0.02), W, H, frame_id=3)
+
+
+@pytest.fixture(scope="module")
+def relief_frame(flat_frame):
+    """A four-sided hollow pyramid 0.5 m away at its apex (faces tilted 31 and 22 degrees): its
+    relief holds every direction."""
+    K = camera_matrix(W, H)
+    v, u = np.mgrid[0:H, 0:W].astype(np.float64)
+    x_n, y_n = (u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1]
+    depth = 0.5 / (1.0 - 0.6 * np.abs(x_n) - 0.4 * np.abs(y_n))  # z = 0.5 + 0.6 |x| + 0.4 |y|
+    xyz = np.stack([x_n * depth, y_n * depth, depth], axis=-1)
+    return Frame(id=4, timestamp=0.0, points=xyz.reshape(-1, 3), xyz_map=xyz, texture=flat_frame.texture)
+
+
+def test_plane_like_test_tells_a_wall_from_relief(flat_frame, relief_frame):
+    config = RegistrationConfig()
+    ratio = config.weak_directions.degeneracy_ratio
+    assert surface_is_plane_like(flat_frame.xyz_map, 0.002, ratio)
+    assert not surface_is_plane_like(relief_frame.xyz_map, 0.002, ratio)
+    assert not surface_is_plane_like(np.full((20, 20, 3), np.nan), 0.002, ratio)  # no surface: nothing to prepare
+
+
+def test_prepared_reference_is_what_a_reader_of_the_stored_frame_would_compute(flat_frame, tmp_path):
+    prepared = registrar().prepare(flat_frame)
+    assert {PREPARED_REFERENCE + name for name in (*FIELDS, "settings")} <= set(prepared.prepared)
+    save_frame(tmp_path / "f.npz", prepared)
+    read = load_frame(tmp_path / "f.npz")
+    used = registrar().photometric_reference(read)
+    computed = registrar().photometric_reference(dataclasses.replace(read, prepared={}))
+    assert used.settings == computed.settings
+    for name in FIELDS:
+        assert np.array_equal(getattr(used, name), getattr(computed, name), equal_nan=True), name
+    # it is the stored arrays that were used, not a second computation
+    assert np.shares_memory(used.X_world, read.prepared[PREPARED_REFERENCE + "X_world"])
+
+
+def test_other_settings_compute_their_own_reference(flat_frame):
+    prepared = registrar().prepare(flat_frame)
+    fewer = registrar(max_pixels=5000)
+    settings = reference_settings(W, np.array([0.1, 0.0, 0.0]), 5000)
+    assert reference_from_arrays(prepared.prepared, PREPARED_REFERENCE, settings) is None
+    reference = fewer.photometric_reference(prepared)
+    assert reference.settings == settings and reference.index.size == 5000
+
+
+def test_frames_that_need_no_reference_are_returned_as_they_are(flat_frame, relief_frame):
+    assert registrar().prepare(relief_frame) is relief_frame  # relief: its pairs are not weak
+    assert FppPairRegistrar(RegistrationConfig()).prepare(flat_frame) is flat_frame  # no rig: no photometric step
+    assert registrar(enabled=False).prepare(flat_frame) is flat_frame
