@@ -47,7 +47,12 @@ from frontend.registration.stages import (
 from frontend.registration.state import PairState
 from frontend.registration.texture import TextureCamera
 from frontend.registration.tracking import track_dense
-from frontend.registration.weak_directions import Degeneracy, check_degeneracy, surface_is_plane_like, weak_direction_pin
+from frontend.registration.weak_directions import (
+    Degeneracy,
+    check_degeneracy,
+    surface_is_plane_like,
+    weak_direction_pin,
+)
 
 if TYPE_CHECKING:
     from frontend.localization import ReferencePixels

@@ -7,14 +7,19 @@ import dataclasses
 import numpy as np
 import pytest
 
+from fpp_graph.slam.frame_store import load_frame, save_frame
+from fpp_graph.types import Frame
 from frontend.config import RegistrationConfig
 from frontend.localization.reference import reference_from_arrays, reference_settings
 from frontend.registration import FppPairRegistrar, TextureCamera
 from frontend.registration.registrar import PREPARED_REFERENCE
 from frontend.registration.weak_directions import surface_is_plane_like
-from frontend.testing.synthetic_frames import bumpy_wall_scene, camera_matrix, render_frame, wall_pose
-from fpp_graph.slam.frame_store import load_frame, save_frame
-from fpp_graph.types import Frame
+from frontend.testing.synthetic_frames import (
+    bumpy_wall_scene,
+    camera_matrix,
+    render_frame,
+    wall_pose,
+)
 
 W, H = 640, 400
 FIELDS = ("index", "X_world", "n_world", "E_ref", "has_normal")
