@@ -434,29 +434,28 @@ def render_depth(frame: Frame, K: NDArray[np.float64]) -> tuple[NDArray[np.float
     assert xyz is not None
     h, w = xyz.shape[:2]
     valid = finite_points(xyz) & (xyz[..., 2] > 0)
-    pts = xyz[valid]
+    pixel_of_point = np.flatnonzero(valid)
+    # (np.compress over the flat map: the same points as xyz[valid], 4x faster)
+    x, y, z = np.compress(valid.reshape(-1), np.asarray(xyz).reshape(-1, 3), axis=0).T
+    # A grey texture is carried as one byte per point and spread to RGB at the end (moving
+    # (N, 3) colour rows through the masks and the scatter took a third of the rendering)
     if frame.texture is not None:
-        grey = frame.texture[valid].astype(np.uint8)
-        colors = np.repeat(grey[:, None], 3, axis=1)
-    elif frame.colors is not None and len(frame.colors) == len(pts):
+        colors = np.asarray(frame.texture).reshape(-1)[pixel_of_point].astype(np.uint8)
+    elif frame.colors is not None and len(frame.colors) == len(z):
         # front-ends build points as xyz_map[valid] (row-major), so colours line up
         colors = (np.clip(frame.colors, 0, 1) * 255).round().astype(np.uint8)
     else:
-        colors = np.full((len(pts), 3), 128, dtype=np.uint8)
-    z = pts[:, 2]
-    u = np.rint(K[0, 0] * pts[:, 0] / z + K[0, 1] * pts[:, 1] / z + K[0, 2]).astype(np.int64)
-    v = np.rint(K[1, 1] * pts[:, 1] / z + K[1, 2]).astype(np.int64)
-    depth_m = np.zeros((h, w))
-    rgb = np.zeros((h, w, 3), dtype=np.uint8)
-    rows, cols = np.nonzero(valid)
-    if np.array_equal(u, cols) and np.array_equal(v, rows):
-        # a pinhole map under its own K (an undistorted depth camera): every point lands on its
-        # own pixel, one per pixel, so there is nothing to z-buffer
-        depth_m[valid] = z
-        rgb[valid] = colors
-        return depth_m, rgb
+        colors = np.full(len(z), 128, dtype=np.uint8)
+    # (without skew its term adds only zeros: the same sums)
+    u_px = K[0, 0] * x / z + K[0, 1] * y / z if K[0, 1] != 0.0 else K[0, 0] * x / z
+    u = np.rint(u_px + K[0, 2]).astype(np.int64)
+    v = np.rint(K[1, 1] * y / z + K[1, 2]).astype(np.int64)
     inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
     pixel = v * w + u
+    if inside.all() and np.array_equal(pixel, pixel_of_point):
+        # a pinhole map under its own K (an undistorted depth camera): every point lands on its
+        # own pixel, one per pixel, so there is nothing to z-buffer
+        return _depth_and_rgb(h, w, pixel_of_point, z, colors)
     if not inside.all():
         # (a pinhole fit of a distorted map keeps nearly every point inside: copying 2.3 M
         # points, depths and colours through the mask took a quarter of a 1920x1200 frame's time)
@@ -466,9 +465,20 @@ def render_depth(frame: Frame, K: NDArray[np.float64]) -> tuple[NDArray[np.float
     nearest = np.full(h * w, np.inf)
     np.minimum.at(nearest, pixel, z)
     wins = z == nearest[pixel]
-    depth_m.reshape(-1)[pixel[wins]] = z[wins]
-    rgb.reshape(-1, 3)[pixel[wins]] = colors[wins]
-    return depth_m, np.ascontiguousarray(rgb)
+    return _depth_and_rgb(h, w, pixel[wins], z[wins], colors[wins])
+
+
+def _depth_and_rgb(h: int, w: int, pixel: NDArray[np.int64], z: NDArray[np.float64], colors: NDArray[np.uint8]) -> tuple[NDArray[np.float64], NDArray[np.uint8]]:
+    """Depth and RGB images with ``z`` and ``colors`` (grey (N,) or RGB (N, 3)) at flat ``pixel``s, 0 elsewhere."""
+    depth_m = np.zeros((h, w))
+    depth_m.reshape(-1)[pixel] = z
+    if colors.ndim == 1:
+        grey = np.zeros((h, w), dtype=np.uint8)
+        grey.reshape(-1)[pixel] = colors
+        return depth_m, np.repeat(grey[..., None], 3, axis=2)
+    rgb = np.zeros((h, w, 3), dtype=np.uint8)
+    rgb.reshape(-1, 3)[pixel] = colors
+    return depth_m, rgb
 
 
 # -- PLY writers -----------------------------------------------------------------------------

@@ -364,6 +364,15 @@ def test_render_depth_keeps_the_nearest_point_where_two_land_on_one_pixel():
     depth, rgb = render_depth(frame, K2)
     np.testing.assert_allclose(depth, [[1.0, 0.0], [0.0, 1.0]])
     assert rgb[0, 0, 0] == 20 and rgb[1, 1, 0] == 40 and rgb[0, 1, 0] == 0
+    assert rgb.flags.c_contiguous and np.all(rgb == rgb[..., :1])  # grey in all three channels
+    # RGB colours per point (no texture) travel with their point through the z-buffer as well
+    colors = np.array([[0.2, 0.4, 0.6], [1.0, 0.0, 0.5], [0.0, 1.0, 0.0]])
+    coloured = Frame(0, 0.0, xyz[np.isfinite(xyz[..., 2])], colors, xyz, None)
+    depth_c, rgb_c = render_depth(coloured, K2)
+    np.testing.assert_array_equal(depth_c, depth)
+    np.testing.assert_array_equal(rgb_c[0, 0], [255, 0, 128])
+    np.testing.assert_array_equal(rgb_c[1, 1], [0, 255, 0])
+    assert not rgb_c[0, 1].any() and not rgb_c[1, 0].any()
 
 
 def test_points_beyond_max_depth_stay_out_of_map_and_mesh_and_are_counted(rng):
