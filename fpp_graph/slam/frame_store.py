@@ -29,7 +29,7 @@ import numpy as np
 
 from fpp_graph.atomic import atomic_open
 from fpp_graph.errors import InputDataError
-from fpp_graph.types import Frame
+from fpp_graph.types import Frame, grey_colors
 
 log = logging.getLogger(__name__)
 
@@ -57,9 +57,7 @@ def stored_arrays(frame: Frame) -> dict[str, np.ndarray]:
         value = getattr(frame, name)
         if value is not None:
             arrays[name] = value
-    colors_u8 = None
-    if frame.colors is not None:
-        colors_u8 = (np.clip(frame.colors, 0, 1) * 255).round().astype(np.uint8)
+    colors_u8 = _colors_u8(frame.colors)
     derived: list[str] = []
     if frame.xyz_map is None:
         arrays["points"] = frame.points
@@ -80,7 +78,7 @@ def stored_arrays(frame: Frame) -> dict[str, np.ndarray]:
             and texture.ndim == 2
             and texture.dtype == np.uint8
             and colors_u8.shape[0] == n_valid
-            and np.array_equal(colors_u8, np.repeat(texture[valid][:, None], 3, axis=1))
+            and _grey_equal(colors_u8, texture[valid])
         ):
             derived.append("colors")
             colors_u8 = None
@@ -92,6 +90,22 @@ def stored_arrays(frame: Frame) -> dict[str, np.ndarray]:
     for name, value in frame.prepared.items():
         arrays[PREPARED_PREFIX + name] = value
     return arrays
+
+
+def _colors_u8(colors: np.ndarray | None) -> np.ndarray | None:
+    """``colors`` in [0, 1] as uint8 (N, 3); a :func:`grey_colors` view converts its one column."""
+    if colors is None:
+        return None
+    if colors.ndim == 2 and colors.shape[1] == 3 and colors.strides[1] == 0:
+        return grey_colors((np.clip(colors[:, 0], 0, 1) * 255).round().astype(np.uint8))
+    return (np.clip(colors, 0, 1) * 255).round().astype(np.uint8)
+
+
+def _grey_equal(colors_u8: np.ndarray, grey: np.ndarray) -> bool:
+    """Whether every row of ``colors_u8`` (N, 3) is ``grey`` (N,) three times."""
+    if colors_u8.strides[1] == 0:
+        return np.array_equal(colors_u8[:, 0], grey)
+    return np.array_equal(colors_u8, np.repeat(grey[:, None], 3, axis=1))
 
 
 PREPARED_PREFIX = "prepared."
@@ -141,8 +155,7 @@ def frame_from_stored(get: dict[str, np.ndarray], origin: str) -> Frame:
         # widening them, one frame-sized array and pass fewer
         points = _finite_pixels(xyz, valid) if "points" in derived else get["points"]
         if "colors" in derived:
-            grey = get["texture"][valid] / 255.0
-            colors = np.repeat(grey[:, None], 3, axis=1)
+            colors = grey_colors(get["texture"][valid] / 255.0)
         else:
             colors = get.get("colors")
             colors = None if colors is None else colors.astype(np.float64) / 255.0

@@ -15,7 +15,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from fpp_graph.errors import InputDataError
-from fpp_graph.types import Frame
+from fpp_graph.types import Frame, grey_colors
 from frontend.config import DecodeConfig
 from frontend.fpp.patterns import PatternSpec
 from frontend.fpp.phase import Decoder, DecodeResult
@@ -128,7 +128,7 @@ class FppSensor:
             id=int(frame_id),
             timestamp=float(timestamp),
             points=points,
-            colors=np.repeat(grey[:, None], 3, axis=1),
+            colors=grey_colors(grey),
             xyz_map=xyz,
             texture=result.texture,
             T_world_sensor_guess=T_world_sensor_guess,

@@ -56,7 +56,7 @@ import numpy as np
 from fpp_graph.config import Config
 from fpp_graph.errors import InputDataError
 from fpp_graph.trajectory import Trajectory, read_tum
-from fpp_graph.types import Frame
+from fpp_graph.types import Frame, grey_colors
 from frontend.config import SensorNoise
 
 log = logging.getLogger(__name__)
@@ -340,7 +340,7 @@ class RgbdSource:
             id=e.frame_id,
             timestamp=e.timestamp,
             points=xyz[valid],
-            colors=np.repeat(color[valid][:, None] / 255.0, 3, axis=1),
+            colors=grey_colors(color[valid] / 255.0),
             xyz_map=xyz,
             texture=color,
             metadata={"K": self.K.tolist(), "sensor": "rgbd",

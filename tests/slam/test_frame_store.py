@@ -10,7 +10,7 @@ import pytest
 
 from fpp_graph.errors import InputDataError
 from fpp_graph.slam.frame_store import load_frame, save_frame
-from fpp_graph.types import Frame
+from fpp_graph.types import Frame, grey_colors
 
 H, W = 120, 160
 
@@ -74,6 +74,13 @@ def test_derivable_points_and_colors_round_trip_exactly_in_a_smaller_file(tmp_pa
     np.testing.assert_array_equal(back.points, frame.points)
     np.testing.assert_array_equal(back.colors, frame.colors)
     assert back.points.dtype == np.float64 and back.colors.dtype == np.float64
+    assert back.colors.strides[1] == 0  # one grey column seen three times, not three copies
+    # a frame whose grey colours are such a view is stored the same way
+    viewed = dataclasses.replace(frame, colors=grey_colors(frame.colors[:, 0].copy()))
+    save_frame(tmp_path / "viewed.npz", viewed)
+    assert_same_frame(load_frame(tmp_path / "viewed.npz"), back)
+    with np.load(tmp_path / "viewed.npz") as data:
+        assert "colors" not in data.files
     # exactly what the old layout gives back, every array
     assert_same_frame(back, load_frame(tmp_path / "old.npz"))
     # points (12 B/pt) + colours (3 B/pt) were half of the old file
@@ -235,3 +242,13 @@ def test_prepared_arrays_round_trip_and_bad_ones_are_refused(tmp_path):
         dataclasses.replace(frame, prepared={"a/b": np.zeros(2)})
     with pytest.raises(InputDataError, match="Python objects"):
         dataclasses.replace(frame, prepared={"a": np.array([{}, 1], dtype=object)})
+
+
+def test_grey_colour_views_that_are_not_the_texture_are_stored(tmp_path, rng):
+    frame = sensor_like_frame(rng)
+    other = dataclasses.replace(frame, colors=grey_colors(1.0 - frame.colors[:, 0]))
+    save_frame(tmp_path / "f.npz", other)
+    with np.load(tmp_path / "f.npz") as data:
+        assert "colors" in data.files and data["colors"].shape == (frame.num_points, 3)
+    back = load_frame(tmp_path / "f.npz")
+    np.testing.assert_allclose(back.colors, other.colors, atol=0.5 / 255)
