@@ -330,3 +330,19 @@ def test_clamped_bilinear_sampling_is_exact_on_affine_images_and_clamps_at_the_b
     # outside the image: the nearest inside position (just short of the last column and row)
     far = sample_bilinear_clamped(image, np.array([-5.0, 500.0]), np.array([-5.0, 500.0]))
     assert np.allclose(far, [7.0, 3.0 * 58.999 - 2.0 * 38.999 + 7.0], atol=1e-2)
+
+
+def test_sampling_several_images_at_once_gives_each_images_own_samples():
+    from frontend.localization.photometric import (
+        sample_bilinear_clamped,
+        sample_bilinear_clamped_many,
+    )
+
+    rng = np.random.default_rng(4)
+    images = [rng.normal(size=(30, 50)).astype(np.float32) for _ in range(3)]
+    x = rng.uniform(-3.0, 53.0, size=(7, 11)).astype(np.float32)
+    y = rng.uniform(-3.0, 33.0, size=(7, 11)).astype(np.float32)
+    for image, sample in zip(images, sample_bilinear_clamped_many(images, x, y), strict=True):
+        np.testing.assert_array_equal(sample, sample_bilinear_clamped(image, x, y))
+    with pytest.raises(ValueError, match="one shape"):
+        sample_bilinear_clamped_many([images[0], images[1][:, :40]], x, y)
