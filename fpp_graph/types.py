@@ -40,6 +40,20 @@ def grey_colors(grey: np.ndarray) -> np.ndarray:
     return np.broadcast_to(grey[:, None], (len(grey), 3))
 
 
+def _checked_prepared(prepared: Mapping[str, Any], where: str) -> dict[str, NDArray[Any]]:
+    """:attr:`Frame.prepared` as read-only arrays, its names and contents checked (the frame store
+    saves each as an ``.npz`` member)."""
+    checked = {}
+    for name, value in dict(prepared).items():
+        if not isinstance(name, str) or not name or not all(c.isalnum() or c in "_." for c in name):
+            raise InputDataError(f"{where}: prepared array name {name!r} must be letters, digits, '_' and '.'")
+        array = np.asarray(value)
+        if array.dtype.hasobject:
+            raise InputDataError(f"{where}: prepared array {name!r} holds Python objects; only numeric, bool and string arrays are stored")
+        checked[name] = _readonly(array)
+    return checked
+
+
 @dataclass(frozen=True, eq=False)
 class Frame:
     """One 3D frame of a sensor.
@@ -87,15 +101,7 @@ class Frame:
 
     def __post_init__(self) -> None:
         where = f"frame {self.id}"
-        prepared = {}
-        for name, value in dict(self.prepared).items():
-            if not isinstance(name, str) or not name or not all(c.isalnum() or c in "_." for c in name):
-                raise InputDataError(f"{where}: prepared array name {name!r} must be letters, digits, '_' and '.'")
-            array = np.asarray(value)
-            if array.dtype.hasobject:
-                raise InputDataError(f"{where}: prepared array {name!r} holds Python objects; only numeric, bool and string arrays are stored")
-            prepared[name] = _readonly(array)
-        object.__setattr__(self, "prepared", prepared)
+        object.__setattr__(self, "prepared", _checked_prepared(self.prepared, where))
         points = np.asarray(self.points, dtype=np.float64)
         if points.ndim != 2 or points.shape[1] != 3:
             raise InputDataError(f"{where}: points must be N x 3, got shape {points.shape}")

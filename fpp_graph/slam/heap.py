@@ -66,11 +66,10 @@ def keep_large_blocks_in_heap() -> bool:
     the same trajectories and maps. RGB-D frames are far below the ceiling (the 2000-frame walk:
     peak RSS ratio 1.06 / 1.10, as before). In the tracking process too (``fpp-slam run`` and the
     benchmark scripts set it in their own process; the pipeline trims the heap between its stages,
-    not while fusing, where it cost the corridor 10 s of page faults): the corridor 249.9 -> 227.9 s (system time 66.4 -> 43.2 s, paired), the same
-    results; the doll gains less (with the faster sensor start-up, 0.7 s in the median of five
-    alternating pairs). Process-wide and not
-    undone, so only for processes the project owns: the library never sets it in a caller's
-    process."""
+    not while fusing, where it cost the corridor 10 s of page faults): the corridor 249.9 -> 227.9
+    s (system time 66.4 -> 43.2 s, paired), the same results; the doll gains less (with the faster
+    sensor start-up, 0.7 s in the median of five alternating pairs). Process-wide and not undone,
+    so only for processes the project owns: the library never sets it in a caller's process."""
     if _MALLOPT is None:
         return False
     return bool(_MALLOPT(_M_MMAP_MAX, 0)) and bool(_MALLOPT(_M_TRIM_THRESHOLD, 2**31 - 1))

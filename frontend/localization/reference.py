@@ -132,9 +132,9 @@ def reference_pixels(
     """The pixels of ``ref`` that :func:`localize_photometric` with the same arguments would align
     (``width_px``: the query's image width, which sets the default smoothing; default the reference's)."""
     width = int(np.shape(ref.texture)[1]) if width_px is None else int(width_px)
-    smoothing_px, max_smoothing_px = smoothing_widths(width, range_smoothing_px, max_range_smoothing_px)
-    parts = reference_pixel_arrays(ref, projector_centre_m, max_pixels, normal_step_px, smoothing_px, max_smoothing_px)
-    return ReferencePixels(*parts, settings=pixel_settings(projector_centre_m, max_pixels, normal_step_px, smoothing_px, max_smoothing_px))
+    settings = reference_settings(width, projector_centre_m, max_pixels, normal_step_px, range_smoothing_px, max_range_smoothing_px)
+    smoothing_px, max_smoothing_px = settings[3], settings[4]
+    return ReferencePixels(*reference_pixel_arrays(ref, projector_centre_m, max_pixels, normal_step_px, smoothing_px, max_smoothing_px), settings=settings)
 
 
 def reference_pixel_arrays(

@@ -16,6 +16,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from fpp_graph.geometry import invert, se3_exp, se3_log, transform_points
+from frontend.dense_alignment import point_to_plane_jacobian
+from frontend.registration.icp import organised_subsample, prepare_icp_cloud
 from frontend.registration.keypoints import information_from_keypoints, keypoint_inliers
 
 Array = NDArray[np.float64]
@@ -276,8 +278,6 @@ def check_degeneracy(information: NDArray, source_points: NDArray, ratio: float 
     return Degeneracy(bool(weak.size), ratios, names, V[:, weak].T.copy())
 
 
-
-
 def surface_is_plane_like(xyz_map: NDArray, voxel_m: float, ratio: float) -> bool:
     """Whether a frame's whole surface leaves the three directions of a plane free
     (:attr:`Degeneracy.plane_like`), by the point-to-plane information of its own ICP cloud.
@@ -287,9 +287,6 @@ def surface_is_plane_like(xyz_map: NDArray, voxel_m: float, ratio: float) -> boo
     ``voxel_m`` and ``ratio`` as the registrar's ICP voxel and ``weak_directions.degeneracy_ratio``.
     Simulated corridor: 86 of 105 frames (not the corners), turntable 0 of 39; 20-40 ms a frame.
     """
-    from frontend.dense_alignment import point_to_plane_jacobian
-    from frontend.registration.icp import organised_subsample, prepare_icp_cloud
-
     role = prepare_icp_cloud(organised_subsample(xyz_map, voxel_m), voxel_m).source
     if len(role.points) < 7:
         return False
