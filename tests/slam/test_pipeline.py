@@ -101,6 +101,36 @@ def test_results_folder_is_complete(finished_run):
     assert BROKEN not in traj.timestamps_s.astype(int).tolist()
 
 
+def test_loop_evaluation_on_a_worker_equals_the_inline_one_and_a_failure_waits_for_the_plots(finished_run, tmp_path):
+    """The loop evaluation runs on the executor while the map is fused: the same figures as in
+    the main process; when it fails (a keyframe's cached frame gone) the failure is held, not
+    raised where it would cost the plots, and raised by result()."""
+    import shutil
+    from concurrent.futures import ThreadPoolExecutor
+
+    from fpp_graph.slam.pipeline import _LoopEvaluation
+
+    source, report = finished_run
+    out = report.results_dir
+    ids = source.frame_ids()
+    gt = {fid: T for fid, T in zip(ids, source.ground_truth().poses_world_sensor, strict=True)}
+    inline = _LoopEvaluation(out, gt, None)
+    with ThreadPoolExecutor(1) as pool:
+        on_worker = _LoopEvaluation(out, gt, pool)
+        on_worker.finish()
+    assert on_worker.result() == inline.result()
+    assert on_worker.result()["true_loops"] >= 1
+
+    broken = tmp_path / "out"
+    shutil.copytree(out, broken)
+    next(iter(sorted((broken / "frames").glob("frame_*.npz")))).unlink()
+    with ThreadPoolExecutor(1) as pool:
+        failing = _LoopEvaluation(broken, gt, pool)
+        failing.finish()  # held
+    with pytest.raises(InputDataError, match="frame cache of the run is needed"):
+        failing.result()
+
+
 def test_trajectory_and_map_are_accurate(finished_run):
     from fpp_graph.evaluation.results import evaluate_results
 
