@@ -29,6 +29,7 @@ import numpy as np
 
 from fpp_graph.atomic import atomic_open
 from fpp_graph.errors import InputDataError
+from fpp_graph.slam.mapped_npz import mapped_npz
 from fpp_graph.types import Frame, grey_colors
 
 log = logging.getLogger(__name__)
@@ -136,9 +137,8 @@ def _unreadable(path: Path, exc: BaseException) -> InputDataError:
 def load_frame(path: str | os.PathLike[str]) -> Frame:
     """Read a frame written by :func:`save_frame`."""
     path = Path(path)
-    try:
-        with np.load(path, allow_pickle=False) as data:
-            get = {k: data[k] for k in data.files}
+    try:  # views of the mapped file: no copy, no checksum pass, pages shared by every process reading it
+        get = mapped_npz(path)
     except _UNREADABLE as exc:
         raise _unreadable(path, exc) from None
     return frame_from_stored(get, f"cached frame {path}")
@@ -182,16 +182,16 @@ def load_frame_points(path: str | os.PathLike[str], max_points: int, seed: int =
     building each :class:`Frame` (its maps and textures) as :func:`load_frame` does."""
     path = Path(path)
     try:
-        with np.load(path, allow_pickle=False) as data:
-            if "points" in data.files:
-                points = data["points"]
-            elif "xyz_map" in data.files:
-                xyz = data["xyz_map"]
-                points = _finite_pixels(xyz, np.isfinite(xyz[..., 2]))
-            else:
-                raise InputDataError(f"cached frame {path} has neither points nor an xyz map; delete it to recompute")
+        data = mapped_npz(path)
     except _UNREADABLE as exc:
         raise _unreadable(path, exc) from None
+    if "points" in data:
+        points = data["points"]
+    elif "xyz_map" in data:
+        xyz = data["xyz_map"]
+        points = _finite_pixels(xyz, np.isfinite(xyz[..., 2]))
+    else:
+        raise InputDataError(f"cached frame {path} has neither points nor an xyz map; delete it to recompute")
     points = points.reshape(-1, 3)
     if len(points) > max_points:
         points = points[np.sort(np.random.default_rng(seed).choice(len(points), max_points, replace=False))]
