@@ -45,6 +45,8 @@ class FppSensor:
         ``>= 90`` turns the filter off.
     edge_noise_floor_m : float
         Depth noise allowance added to the neighbourhood range bound, metres.
+    camera_rays : (H, W, 3) float64, optional
+        The camera's pixel rays, if already known (:class:`~frontend.fpp.triangulation.Triangulator`).
     """
 
     def __init__(
@@ -55,12 +57,13 @@ class FppSensor:
         depth_range_m: tuple[float, float] = (0.05, 10.0),
         edge_max_angle_deg: float | None = 75.0,
         edge_noise_floor_m: float = 0.0005,
+        camera_rays: NDArray[np.float64] | None = None,
     ) -> None:
         self.calibration = calibration
         self.spec = spec
         proj = calibration.projector
         self.decoder = Decoder(spec, proj.width, proj.height, decode_config)
-        self.triangulator = Triangulator(calibration, axis=spec.coded_axis, depth_range_m=depth_range_m)
+        self.triangulator = Triangulator(calibration, axis=spec.coded_axis, depth_range_m=depth_range_m, camera_rays=camera_rays)
         self.edge_max_angle_deg = edge_max_angle_deg
         self.edge_noise_floor_m = float(edge_noise_floor_m)
         K = calibration.camera.K

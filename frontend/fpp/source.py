@@ -48,9 +48,15 @@ class FppSequenceSource:
     @property
     def sensor(self):
         if self._sensor is None:
+            from frontend.fpp.ray_cache import cached_camera_rays
             from frontend.fpp.sensor import FppSensor
+            from frontend.fpp.triangulation import pixel_rays
 
-            self._sensor = FppSensor(self.sequence.calibration, self.sequence.spec, self.config.decode)
+            # the rays are the costly part of the sensor's start (1.3 s a worker at 1920x1200) and
+            # depend on the camera alone: made once per camera model, shared by the run's workers
+            calibration = self.sequence.calibration
+            rays = cached_camera_rays(calibration.camera, pixel_rays)
+            self._sensor = FppSensor(calibration, self.sequence.spec, self.config.decode, camera_rays=rays)
         return self._sensor
 
     def frame_ids(self) -> list[int]:

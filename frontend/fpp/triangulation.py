@@ -70,7 +70,7 @@ log = logging.getLogger(__name__)
 Axis = Literal["columns", "rows"]
 
 
-def _camera_rays(camera: PinholeModel) -> NDArray[np.float64]:
+def pixel_rays(camera: PinholeModel) -> NDArray[np.float64]:
     """Undistorted rays ``(x_n, y_n, 1)`` of every pixel centre, (H, W, 3); NaN where undistortion fails."""
     height, width = camera.height, camera.width
     vv, uu = np.mgrid[0 : height, 0 : width].astype(np.float64)
@@ -153,6 +153,9 @@ class Triangulator:
     band_rows : int
         Rows per band of the per-frame work (cache blocking); 0 = the whole frame at once.
         Results do not depend on it.
+    camera_rays : (H, W, 3) float64, optional
+        :func:`pixel_rays` of the calibration's camera, computed elsewhere (e.g. kept by
+        :func:`frontend.fpp.ray_cache.cached_camera_rays`); computed here when not given.
 
     Attributes
     ----------
@@ -175,6 +178,7 @@ class Triangulator:
         projector_fit_tolerance_px: float = 1e-3,
         projector_refine_iterations: int = 0,
         band_rows: int = 64,
+        camera_rays: NDArray[np.float64] | None = None,
     ) -> None:
         if axis not in ("columns", "rows"):
             raise ValueError(f"axis must be 'columns' or 'rows', got {axis!r}")
@@ -199,7 +203,11 @@ class Triangulator:
         if calibration.projector.has_distortion:
             distort_normalized(np.zeros(1), np.zeros(1), calibration.projector.dist)  # rejects tilt terms early
 
-        self.rays = rays = _camera_rays(calibration.camera)
+        if camera_rays is None:
+            camera_rays = pixel_rays(calibration.camera)
+        elif np.shape(camera_rays) != (self.height, self.width, 3):
+            raise ValueError(f"camera_rays must have shape {(self.height, self.width, 3)}, got {np.shape(camera_rays)}")
+        self.rays = rays = camera_rays
 
         A_p = calibration.A_projector
         a_k, a_3 = A_p[self._row], A_p[2]

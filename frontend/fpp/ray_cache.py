@@ -1,0 +1,126 @@
+"""A camera's undistorted pixel rays, computed once per camera model and kept on disk.
+
+Every decode process needs the ray of every camera pixel (:class:`frontend.fpp.triangulation.Triangulator`).
+With lens distortion that is an iterative undistortion of each pixel: 1.3 s of one core at
+1920x1200, paid by each worker of every run, while a rig's calibration changes rarely. The rays
+depend on the camera model alone (size, K, distortion), so they are kept per model in the user's
+cache (``$FPP_GRAPH_CACHE/rays`` or ``~/.cache/fpp-graph/rays``, 37 MB at 1920x1200, the
+:data:`MAX_ENTRIES` most recently used kept): the first process computes them under a file
+lock while the other workers of its run wait and then read them, later runs read them, and all
+of them map the same file (one copy in memory for the whole run). A cache that cannot be
+written or read only costs the computation; an entry of the wrong shape is recomputed.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import logging
+import os
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from fpp_graph.atomic import atomic_open
+from frontend.fpp.rig import PinholeModel
+
+log = logging.getLogger(__name__)
+
+MAX_ENTRIES = 8
+"""Camera models kept (by last use): a lab's few rigs, with room for simulated ones."""
+CACHE_VERSION = 1
+"""Bumped whenever the rays' computation changes, so old entries are never read."""
+
+
+def default_ray_cache_dir() -> Path:
+    """``$FPP_GRAPH_CACHE/rays`` or ``~/.cache/fpp-graph/rays``."""
+    root = os.environ.get("FPP_GRAPH_CACHE") or Path.home() / ".cache" / "fpp-graph"
+    return Path(root) / "rays"
+
+
+def ray_cache_key(camera: PinholeModel) -> str:
+    """A digest of everything the rays depend on: image size, K and distortion (exact bits)."""
+    digest = hashlib.sha256(f"v{CACHE_VERSION} {camera.width}x{camera.height}".encode())
+    for array in (camera.K, camera.dist):
+        digest.update(np.ascontiguousarray(array, dtype=np.float64).tobytes())
+    return digest.hexdigest()[:24]
+
+
+def cached_camera_rays(
+    camera: PinholeModel, compute: Callable[[PinholeModel], NDArray[np.float64]], cache_dir: str | os.PathLike[str] | None = None
+) -> NDArray[np.float64]:
+    """``compute(camera)`` (the (H, W, 3) rays), from the cache when it has them (read-only, mapped).
+
+    Parameters
+    ----------
+    camera : PinholeModel
+    compute : callable
+        What makes the rays (:func:`frontend.fpp.triangulation.pixel_rays`).
+    cache_dir : path, optional
+        Default :func:`default_ray_cache_dir`.
+    """
+    folder = Path(cache_dir) if cache_dir is not None else default_ray_cache_dir()
+    path = folder / f"{ray_cache_key(camera)}.npy"
+    shape = (camera.height, camera.width, 3)
+    if (rays := _read(path, shape)) is not None:
+        return rays
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        with _locked(folder / f"{path.stem}.lock"):
+            if (rays := _read(path, shape)) is not None:  # another process made them while this one waited
+                return rays
+            rays = compute(camera)
+            with atomic_open(path, "wb") as handle:
+                np.save(handle, rays)
+        _evict(folder, keep=path)
+    except OSError as exc:  # a read-only or full cache only costs the computation
+        log.warning("cannot cache camera rays in %s: %s", folder, exc)
+        return rays if rays is not None else compute(camera)
+    mapped = _read(path, shape)  # this process maps the file too: one copy in memory for all
+    return mapped if mapped is not None else rays
+
+
+def _read(path: Path, shape: tuple[int, int, int]) -> NDArray[np.float64] | None:
+    if not path.is_file():
+        return None
+    try:
+        rays = np.load(path, mmap_mode="r", allow_pickle=False)
+    except (OSError, ValueError) as exc:
+        log.warning("unreadable camera rays %s (%s): computing them again", path, exc)
+        return None
+    if rays.shape != shape or rays.dtype != np.float64:
+        log.warning("camera rays %s have shape %s %s, not %s float64: computing them again", path, rays.shape, rays.dtype, shape)
+        return None
+    with contextlib.suppress(OSError):
+        os.utime(path)  # last use, for the eviction
+    return rays
+
+
+@contextlib.contextmanager
+def _locked(lock_path: Path) -> Iterator[None]:
+    """An exclusive lock on ``lock_path`` (POSIX ``flock``; without it, none: both compute)."""
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover - not POSIX
+        yield
+        return
+    with open(lock_path, "a+b") as handle:
+        fcntl.flock(handle, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(handle, fcntl.LOCK_UN)
+
+
+def _evict(folder: Path, keep: Path) -> None:
+    """Delete all but the :data:`MAX_ENTRIES` most recently used entries (never ``keep``)."""
+    entries = sorted(folder.glob("*.npy"), key=lambda p: p.stat().st_mtime, reverse=True)
+    for old in [p for p in entries if p != keep][MAX_ENTRIES - 1 :]:
+        with contextlib.suppress(OSError):
+            old.unlink()
+            old.with_suffix(".lock").unlink(missing_ok=True)
+
+
+__all__ = ["MAX_ENTRIES", "cached_camera_rays", "default_ray_cache_dir", "ray_cache_key"]
