@@ -499,3 +499,25 @@ def test_grazing_weights_of_a_partial_map_are_the_whole_maps_bit_for_bit(rng, bo
     got = grazing_weights(partial)
     assert got.shape == (h, w)
     np.testing.assert_array_equal(got, expected)
+
+
+@pytest.mark.parametrize("box", [(20, 50, 30, 70), (0, 40, 0, 30), (10, 64, 50, 96), (0, 64, 0, 96)])
+def test_edge_filter_on_the_decoded_box_equals_the_whole_map(box):
+    """The filter computes only the box around the decoded pixels: the same mask as the whole
+    map, for an object inside the frame and for one touching its borders."""
+    from frontend.fpp.sensor import _edge_filter_box, edge_filter_mask
+
+    rng = np.random.default_rng(sum(box))
+    h, w = 64, 96
+    v, u = np.mgrid[0:h, 0:w].astype(float)
+    z = 0.5 + 0.02 * np.sin(u / 7.0) + 0.01 * (v > 35) + 1e-4 * rng.normal(size=(h, w))  # a step: a depth edge
+    xyz = np.dstack([(u - w / 2) * z / 500.0, (v - h / 2) * z / 500.0, z])
+    r0, r1, c0, c1 = box
+    outside = np.ones((h, w), bool)
+    outside[r0:r1, c0:c1] = False
+    xyz[outside] = np.nan
+    xyz[rng.random((h, w)) < 0.02] = np.nan  # holes
+    keep = edge_filter_mask(xyz, 500.0)
+    np.testing.assert_array_equal(keep, _edge_filter_box(xyz, 500.0, 75.0, 0.0005))
+    assert keep.any() and not keep[outside].any()
+    assert not edge_filter_mask(np.full((8, 8, 3), np.nan), 500.0).any()
