@@ -4,7 +4,7 @@ Every decode process needs the ray of every camera pixel (:class:`frontend.fpp.t
 With lens distortion that is an iterative undistortion of each pixel: 1.3 s of one core at
 1920x1200, paid by each worker of every run, while a rig's calibration changes rarely. The rays
 depend on the camera model alone (size, K, distortion), so they are kept per model in the user's
-cache (``$FPP_GRAPH_CACHE/rays`` or ``~/.cache/fpp-graph/rays``, 37 MB at 1920x1200, the
+cache (``$FPP_GRAPH_CACHE/rays`` or ``~/.cache/fpp-graph/rays``, 55 MB at 1920x1200, the
 :data:`MAX_ENTRIES` most recently used kept): the first process computes them under a file
 lock while the other workers of its run wait and then read them, later runs read them, and all
 of them map the same file (one copy in memory for the whole run). A cache that cannot be
