@@ -24,6 +24,7 @@ import math
 import multiprocessing
 import os
 import shutil
+import threading
 import time
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator
@@ -37,6 +38,7 @@ import numpy as np
 from fpp_graph.atomic import atomic_write_text
 from fpp_graph.config import Config, dump_config
 from fpp_graph.errors import InputDataError, OutputError
+from fpp_graph.evaluation.plots import import_plotting
 from fpp_graph.geometry import compose
 from fpp_graph.slam.frame_store import (
     FrameStore,
@@ -460,6 +462,8 @@ class Pipeline:
                 write_loop_log(out, report.slam)
             gt_poses = self._ground_truth_poses(ids)
             loop_evaluation = _LoopEvaluation(out, gt_poses, executor)
+            # matplotlib's import, while fusion waits on its workers, instead of at the plots
+            threading.Thread(target=import_plotting, name="import-plotting", daemon=True).start()
             with self._timed(report, "fuse"):  # the keyframes' shares of the map on the workers too
                 fused = fuse_map(out, report.slam, store, self.config, self.progress, self.map_fuser, plot_samples=samples, executor=executor)
             if gt_poses is not None:

@@ -698,3 +698,14 @@ def test_workers_end_when_their_run_is_killed(tmp_path):
     for pid in alive:
         os.kill(pid, signal.SIGKILL)
     assert not alive, f"workers {alive} outlived their killed run"
+
+
+def test_the_pipeline_imports_matplotlib_only_when_asked():
+    """matplotlib (0.4 s) is imported on a thread while the map is fused (import_plotting), not
+    when the pipeline is imported: a worker process never pays it."""
+    import subprocess
+
+    code = ("import sys, fpp_graph.slam.pipeline, fpp_graph.slam.workers; assert 'matplotlib' not in sys.modules; "
+            "from fpp_graph.evaluation.plots import import_plotting; import_plotting(); "
+            "assert {'matplotlib.figure', 'matplotlib.backends.backend_agg'} <= set(sys.modules)")
+    subprocess.run([sys.executable, "-c", code], check=True, cwd=Path(__file__).resolve().parents[2])
