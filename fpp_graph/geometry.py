@@ -135,6 +135,19 @@ def finite_points(points: NDArray) -> NDArray[np.bool_]:
         return np.isfinite(points[..., 0] + points[..., 1] + points[..., 2])
 
 
+def finite_box(xyz: NDArray[np.float64]) -> tuple[slice, slice]:
+    """Rows and columns of the box around the pixels whose three coordinates are finite, widened
+    by one pixel within the image (empty slices when there is none)."""
+    finite = finite_points(xyz)
+    row_any, col_any = finite.any(axis=1), finite.any(axis=0)
+    if not row_any.any():
+        return slice(0, 0), slice(0, 0)
+    r = np.flatnonzero(row_any)
+    c = np.flatnonzero(col_any)
+    h, w = finite.shape
+    return slice(max(r[0] - 1, 0), min(r[-1] + 2, h)), slice(max(c[0] - 1, 0), min(c[-1] + 2, w))
+
+
 def rotation_angle_rad(R: ArrayLike) -> float:
     """Angle of a rotation matrix in radians, numerically safe near 0 and pi."""
     from scipy.spatial.transform import Rotation  # imported on use: see rotations_from_quats_xyzw

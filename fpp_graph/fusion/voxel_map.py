@@ -40,7 +40,7 @@ from numpy.typing import NDArray
 from fpp_graph.atomic import atomic_open
 from fpp_graph.errors import InputDataError, OutputError
 from fpp_graph.fusion.voxel_grid import _reduce, project_to_local_planes, voxel_keys
-from fpp_graph.geometry import finite_points, invert, transform_points
+from fpp_graph.geometry import finite_box, finite_points, invert, transform_points
 from fpp_graph.types import (  # FusedMap: the MapFuser protocol's result type, re-exported here
     Frame,
     FusedMap,
@@ -350,23 +350,10 @@ def grazing_weights(xyz_map: NDArray[np.float64], floor: float = 0.05) -> NDArra
     # the same neighbours as over the whole map (a scanned object fills a third of the doll's
     # 1920 x 1200 views). np.gradient is one-sided only at the box's sides that are the
     # image's own.
-    rows, cols = _finite_box(xyz)
+    rows, cols = finite_box(xyz)
     if rows.stop - rows.start >= 2 and cols.stop - cols.start >= 2:
         weights[rows, cols] = _grazing_cos(xyz[rows, cols], floor)
     return weights
-
-
-def _finite_box(xyz: NDArray[np.float64]) -> tuple[slice, slice]:
-    """Rows and columns of the box around the pixels whose three coordinates are finite, widened
-    by one pixel within the image (empty slices when there is none)."""
-    finite = finite_points(xyz)
-    row_any, col_any = finite.any(axis=1), finite.any(axis=0)
-    if not row_any.any():
-        return slice(0, 0), slice(0, 0)
-    r = np.flatnonzero(row_any)
-    c = np.flatnonzero(col_any)
-    h, w = finite.shape
-    return slice(max(r[0] - 1, 0), min(r[-1] + 2, h)), slice(max(c[0] - 1, 0), min(c[-1] + 2, w))
 
 
 def _grazing_cos(xyz: NDArray[np.float64], floor: float) -> NDArray[np.float64]:

@@ -15,6 +15,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from fpp_graph.errors import InputDataError
+from fpp_graph.geometry import finite_box
 from fpp_graph.types import Frame, grey_colors
 from frontend.config import DecodeConfig
 from frontend.fpp.patterns import PatternSpec
@@ -174,19 +175,16 @@ def edge_filter_mask(
     (H, W) bool
         True where the pixel is valid and kept.
     """
-    valid_full = np.isfinite(np.asarray(xyz_map)[..., 2])
-    h, w = valid_full.shape
+    xyz = np.asarray(xyz_map)
+    h, w = xyz.shape[:2]
     if h < 3 or w < 3:
-        return np.zeros_like(valid_full)
+        return np.zeros((h, w), dtype=bool)
     # every test is local to a 3x3 neighbourhood: only the box around the decoded pixels (and a
     # ring of one undecoded pixel, or the image border) is computed; an object on a turntable
     # fills a fraction of the frame, and outside the box nothing is kept anyway
-    rows, cols = np.flatnonzero(valid_full.any(axis=1)), np.flatnonzero(valid_full.any(axis=0))
-    if rows.size == 0:
-        return valid_full
-    r0, r1, c0, c1 = max(rows[0] - 1, 0), min(rows[-1] + 2, h), max(cols[0] - 1, 0), min(cols[-1] + 2, w)
-    out = np.zeros_like(valid_full)
-    out[r0:r1, c0:c1] = _edge_filter_box(np.asarray(xyz_map)[r0:r1, c0:c1], focal_px, max_angle_deg, noise_floor_m)
+    rows, cols = finite_box(xyz)
+    out = np.zeros((h, w), dtype=bool)
+    out[rows, cols] = _edge_filter_box(xyz[rows, cols], focal_px, max_angle_deg, noise_floor_m)
     return out
 
 
