@@ -25,6 +25,7 @@ from numpy.typing import NDArray
 
 from fpp_graph.atomic import atomic_open
 from frontend.fpp.rig import PinholeModel
+from frontend.user_cache import user_cache_dir
 
 log = logging.getLogger(__name__)
 
@@ -36,8 +37,7 @@ CACHE_VERSION = 1
 
 def default_ray_cache_dir() -> Path:
     """``$FPP_GRAPH_CACHE/rays`` or ``~/.cache/fpp-graph/rays``."""
-    root = os.environ.get("FPP_GRAPH_CACHE") or Path.home() / ".cache" / "fpp-graph"
-    return Path(root) / "rays"
+    return user_cache_dir("rays")
 
 
 def ray_cache_key(camera: PinholeModel) -> str:

@@ -44,6 +44,7 @@ from frontend.fpp.rig_calibration import (
     transfer_rms_px,
 )
 from frontend.sim.config import StrictModel, validate_section
+from frontend.user_cache import user_cache_dir
 
 log = logging.getLogger(__name__)
 
@@ -102,8 +103,7 @@ class EstimatedCalibration:
 
 def default_cache_dir() -> Path:
     """``$FPP_GRAPH_CACHE/calibration`` or ``~/.cache/fpp-graph/calibration``."""
-    root = os.environ.get("FPP_GRAPH_CACHE") or Path.home() / ".cache" / "fpp-graph"
-    return Path(root) / "calibration"
+    return user_cache_dir("calibration")
 
 
 def cache_key(truth: RigCalibration, settings: BoardCalibrationSettings, seed: int) -> str:
