@@ -3,8 +3,8 @@
 ``np.load`` reads every member of an ``.npz`` through :mod:`zipfile`: the bytes are copied from
 the page cache into a buffer, checksummed (CRC-32) and copied again into fresh arrays whose pages
 the kernel must first clear. A decoded 1920x1200 frame is ~30 MB, and a run reads each keyframe
-again for every loop it verifies (the doll turntable: ~310 reads of 9 GB in total; on its
-workers the CRC alone was 2-3 % of the run's CPU, clearing fresh pages 7 %). ``np.savez``
+again for every loop it verifies (the doll turntable: ~310 reads of 9 GB in total; ``perf``
+put the CRC alone at 2.6 % of the run's cycles, the copies and the fresh pages on top). ``np.savez``
 stores its members uncompressed, so each array lies in the file as an ``.npy`` record: this
 module maps the file once and hands out views of it (pages come straight from the page cache,
 and are shared by every process that reads the same frame).
