@@ -437,21 +437,66 @@ def dense_strides(target: OrganisedSurface, source: OrganisedSurface, coarse_str
     return coarse_stride_px, fine_stride_px
 
 
-def dense_information(
+@dataclass(frozen=True, eq=False)
+class DenseEvaluation:
+    """The normal equations of one pose, kept so that a fit starting there need not form them
+    again (:func:`evaluate_dense`, :func:`align_dense`'s ``start``).
+
+    Attributes
+    ----------
+    T_target_source : (4, 4) float64
+        The pose they were formed at.
+    stride_px, gate_m, min_cos, symmetric
+        The sampling, correspondence gate, normal agreement and directions they were formed with.
+    JT : (6, N), residuals : (N,), used_source : (m, 3)
+        :func:`_normal_equations`' transposed Jacobian, residuals and source points that took part.
+    """
+
+    T_target_source: Array
+    stride_px: int
+    gate_m: float
+    min_cos: float
+    symmetric: bool
+    JT: Array
+    residuals: Array
+    used_source: Array
+
+    def formed_with(self, T: Array, stride_px: int, gate_m: float, min_cos: float, symmetric: bool) -> bool:
+        """Whether these are the normal equations of ``T`` with these settings (exactly: the
+        same numbers as forming them again)."""
+        return (
+            stride_px == self.stride_px and gate_m == self.gate_m and min_cos == self.min_cos and symmetric == self.symmetric
+            and np.array_equal(T, self.T_target_source)
+        )
+
+
+def evaluate_dense(
     target: OrganisedSurface, source: OrganisedSurface, T: NDArray, stride_px: int, gate_m: float,
+    max_normal_angle_deg: float = 45.0, symmetric: bool = True,
+) -> DenseEvaluation:
+    """The normal equations of every ``stride_px``-th pixel at ``T``, without a step."""
+    T = np.array(T, dtype=np.float64)
+    min_cos = math.cos(math.radians(max_normal_angle_deg))
+    JT, r, used = _normal_equations(target, source, T, stride_px, gate_m, min_cos, symmetric)
+    return DenseEvaluation(T, int(stride_px), float(gate_m), min_cos, bool(symmetric), JT, r, used)
+
+
+def dense_information(
+    target: OrganisedSurface, source: OrganisedSurface, T: NDArray | DenseEvaluation, stride_px: int, gate_m: float,
     max_normal_angle_deg: float = 45.0, noise_floor_m: float = 2e-5, symmetric: bool = True,
 ) -> tuple[Array, Array]:
     """What every ``stride_px``-th pixel's geometry constrains at ``T``, without a step: the
     robust information :func:`align_dense` would form there (6x6 ``[rot, trans]``) and the
     source points that took part. A fraction of a fit's cost, for asking whether the surfaces
-    have relief before fitting.
+    have relief before fitting. ``T`` may be an :func:`evaluate_dense` made with these settings.
 
     Raises
     ------
     InputDataError
         Fewer than 6 correspondences within ``gate_m``.
     """
-    JT, r, used = _normal_equations(target, source, np.asarray(T, dtype=np.float64), stride_px, gate_m, math.cos(math.radians(max_normal_angle_deg)), symmetric)
+    evaluation = T if isinstance(T, DenseEvaluation) else evaluate_dense(target, source, T, stride_px, gate_m, max_normal_angle_deg, symmetric)
+    JT, r, used = evaluation.JT, evaluation.residuals, evaluation.used_source
     if r.size < 6:
         raise InputDataError(f"dense information: {r.size} correspondences within {1e3 * gate_m:.2f} mm; the views do not overlap at this pose")
     info = _robust_information(JT, r, noise_floor_m)[1]
@@ -473,8 +518,9 @@ def align_dense(
     noise_floor_m: float = 2e-5,
     step_tolerance: float = 1e-7,
     symmetric: bool = True,
+    start: DenseEvaluation | None = None,
 ) -> DenseAlignment:
-    # 89 lines: 31 are the docstring; the rest is two stride stages around one robust Gauss-Newton step that shares their state
+    # 97 lines: 36 are the docstring and 17 the signature; the rest is two stride stages around one robust Gauss-Newton step that shares their state
     """Refine ``T_target_source`` by dense point-to-plane alignment of two organised maps.
 
     Parameters
@@ -485,17 +531,21 @@ def align_dense(
     prior_information : (6, 6), optional
         ``[rot, trans]`` information of a Gaussian prior centred on ``T_init``.
     coarse_stride_px, fine_stride_px : int
+        Pixel strides of the coarse iterations and of the last ``fine_iterations``.
     max_points : int, optional
         Both strides grow (in the same proportion) until the finer one samples at most this
         many pixels of the larger map: the cost of an iteration is linear in the samples, and a
         wall filling a 1920x1200 view has four times the doll's pixels.
-        Pixel strides of the coarse iterations and of the last ``fine_iterations``.
     max_distance_m : float
         Initial residual gate; it shrinks to six robust sigmas as the fit converges.
     max_normal_angle_deg : float
         Correspondences whose normals differ more are dropped (occlusions, thin structures).
     noise_floor_m : float
         Lower bound of the robust residual scale.
+    start : DenseEvaluation, optional
+        Normal equations already formed (:func:`evaluate_dense`, e.g. to ask whether the
+        surfaces have relief); the first iteration takes them when they were formed at
+        ``T_init`` with its stride and settings, and forms its own otherwise.
 
     Returns
     -------
@@ -513,7 +563,10 @@ def align_dense(
 
     def iterate(stride: int) -> tuple[bool, Array, float, int, Array]:
         T = state["T"]
-        JT, r, used = _normal_equations(target, source, T, stride, state["gate"], min_cos, symmetric)
+        if start is not None and state["iterations"] == 0 and start.formed_with(T, stride, state["gate"], min_cos, symmetric):
+            JT, r, used = start.JT, start.residuals, start.used_source
+        else:
+            JT, r, used = _normal_equations(target, source, T, stride, state["gate"], min_cos, symmetric)
         if r.size < 6:
             raise InputDataError(
                 f"dense alignment: {r.size} correspondences within {1e3 * state['gate']:.2f} mm; the pose is too far off or the views do not overlap"
@@ -549,4 +602,4 @@ def align_dense(
     return DenseAlignment(T, info, sigma, n_used, iterations, converged, used, sampled)
 
 
-__all__ = ["DenseAlignment", "OrganisedSurface", "align_dense", "dense_information", "dense_strides", "cross_rows", "fit_pinhole", "point_to_plane_jacobian", "sample_bilinear"]
+__all__ = ["DenseAlignment", "DenseEvaluation", "OrganisedSurface", "align_dense", "dense_information", "evaluate_dense", "dense_strides", "cross_rows", "fit_pinhole", "point_to_plane_jacobian", "sample_bilinear"]

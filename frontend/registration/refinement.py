@@ -102,13 +102,14 @@ def dense_stage(
     (the doll's spin about the turntable axis, where GICP's error was) is left to the dense fit;
     a plane is not refined (it keeps the earlier pose), except held for the texture (stage 8).
     The dense information replaces ICP's (the same surfaces, measured densely).
-    ``sees_relief``: when every pixel already shows relief at the keypoints' pose, the held fit
-    is not tried (it would find the relief and be redone unheld).
+    ``sees_relief``: when every pixel already shows relief, the held fit is not tried (it would
+    find the relief and be redone unheld). It is asked at ICP's pose, where the unheld fit then
+    starts: the registrar's fit takes that evaluation as its first step's normal equations.
     """
     cfg, support = config, weak.icp.source_points
     meta: dict[str, Any] = {}
     held_plane = texture_sets_planes and weak.rule is WeakRule.PLANE
-    if held_plane and sees_relief is not None and sees_relief(target, source, pose.T_target_source):
+    if held_plane and sees_relief is not None and sees_relief(target, source, icp.icp.T_target_source):
         held_plane, meta["dense_relief_at_start"] = False, True
     if held_plane:
         held = _held_plane_fit(target, source, refine, pose, weak, ransac_inliers_source_m, T_ransac, cfg)

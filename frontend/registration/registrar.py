@@ -16,10 +16,12 @@ from fpp_graph.types import Constraint, ConstraintKind, Frame
 from frontend.config import RegistrationConfig
 from frontend.dense_alignment import (
     DenseAlignment,
+    DenseEvaluation,
     OrganisedSurface,
     align_dense,
     dense_information,
     dense_strides,
+    evaluate_dense,
 )
 from frontend.features.detect import Detector, detect_and_describe, feature_signature, make_detector
 from frontend.registration.gates import Checkpoint, rejection
@@ -99,6 +101,8 @@ class FppPairRegistrar:
         self._clouds: weakref.WeakKeyDictionary[Frame, dict[float, IcpCloud]] = weakref.WeakKeyDictionary()
         self._surfaces: weakref.WeakKeyDictionary[Frame, OrganisedSurface] = weakref.WeakKeyDictionary()
         self._references: weakref.WeakKeyDictionary[Frame, ReferencePixels] = weakref.WeakKeyDictionary()
+        # the last relief check's normal equations, for the fit that may start where it looked
+        self._relief_evaluation: tuple[weakref.ref[Frame], weakref.ref[Frame], DenseEvaluation] | None = None
         self.last_timings_s: dict[str, float] = {}
         self.last_cpu_timings_s: dict[str, float] = {}  # process CPU time per stage (wall in last_timings_s)
 
@@ -204,6 +208,7 @@ class FppPairRegistrar:
         (DenseAlignment or None, why it was not used)
         """
         cfg, dense_cfg = self.config, self.config.dense
+        start = self._evaluation_of(target, source)
         if not dense_cfg.enabled or target.xyz_map is None or source.xyz_map is None:
             return None, "off"
         prior = cfg.keypoints.information_scale * np.asarray(information_keypoints, dtype=np.float64)
@@ -215,7 +220,7 @@ class FppPairRegistrar:
                 self.dense_surface(target), self.dense_surface(source), T_target_source, prior_information=prior,
                 coarse_stride_px=dense_cfg.coarse_stride_px, fine_stride_px=dense_cfg.stride_px,
                 max_iterations=dense_cfg.coarse_iterations, fine_iterations=dense_cfg.fine_iterations, max_points=dense_cfg.max_points,
-                max_distance_m=cfg.lengths.icp_max_correspondence_m,
+                max_distance_m=cfg.lengths.icp_max_correspondence_m, start=start,
             )
         except FppError as exc:
             return None, str(exc)
@@ -229,17 +234,28 @@ class FppPairRegistrar:
         fit held for the texture answers (:func:`frontend.registration.refinement.dense_stage`),
         asked of one evaluation at the coarse stride. On the doll turntable's loop candidates the
         held fit found relief on 118 of 150 and was redone unheld each time, 21.6 of the 36.9 s
-        their dense stage took."""
+        their dense stage took. The evaluation is kept for :meth:`refine_dense` of the same
+        pair: a fit starting at this pose takes it as its first iteration's normal equations."""
+        self._relief_evaluation = None
         cfg, dense_cfg = self.config, self.config.dense
         if not dense_cfg.enabled or target.xyz_map is None or source.xyz_map is None:
             return False
         target_surface, source_surface = self.dense_surface(target), self.dense_surface(source)
         coarse_px, _ = dense_strides(target_surface, source_surface, dense_cfg.coarse_stride_px, dense_cfg.stride_px, dense_cfg.max_points)
         try:
-            info, used = dense_information(target_surface, source_surface, T_target_source, coarse_px, cfg.lengths.icp_max_correspondence_m)
+            evaluation = evaluate_dense(target_surface, source_surface, T_target_source, coarse_px, cfg.lengths.icp_max_correspondence_m)
+            info, used = dense_information(target_surface, source_surface, evaluation, coarse_px, cfg.lengths.icp_max_correspondence_m)
         except FppError:
             return False  # the held fit decides (and says why it cannot)
+        self._relief_evaluation = (weakref.ref(target), weakref.ref(source), evaluation)
         return not check_degeneracy(info, used, cfg.weak_directions.degeneracy_ratio).plane_like
+
+    def _evaluation_of(self, target: Frame, source: Frame) -> DenseEvaluation | None:
+        """The last relief check's evaluation if it was of this pair (once: it is then dropped)."""
+        kept, self._relief_evaluation = self._relief_evaluation, None
+        if kept is None or kept[0]() is not target or kept[1]() is not source:
+            return None
+        return kept[2]
 
     def refine_plane_photometric(
         self, target: Frame, source: Frame, T_target_source: NDArray, weak: Degeneracy, information_geometry: NDArray, source_points: NDArray

@@ -176,3 +176,46 @@ def test_relief_check_agrees_with_the_fits_own_verdict(wall, ratio):
     assert registrar.dense_sees_relief(a, b, far) is False
     with pytest.raises(InputDataError, match="correspondences"):
         dense_information(OrganisedSurface(a.xyz_map), OrganisedSurface(b.xyz_map), far, 8, 0.004)
+
+
+def test_a_fit_takes_the_relief_checks_normal_equations_only_where_they_were_formed(wall, monkeypatch):
+    """The relief check's evaluation at a pose is the first step of a fit starting there: the
+    same fit, bit for bit, with one formation of the normal equations fewer. A fit starting
+    elsewhere, or with another stride, forms its own."""
+    import frontend.dense_alignment as dense_alignment
+    from frontend.dense_alignment import evaluate_dense
+
+    a, b, T_true = _pair(wall, 2e-4)
+    target, source = OrganisedSurface(a.xyz_map), OrganisedSurface(b.xyz_map)
+    T_start = _perturbed(T_true)
+    formed = []
+    normal_equations = dense_alignment._normal_equations
+    monkeypatch.setattr(dense_alignment, "_normal_equations", lambda *args: formed.append(args[3]) or normal_equations(*args))
+    settings = {"coarse_stride_px": 4, "fine_stride_px": 2, "max_iterations": 2, "fine_iterations": 1, "max_distance_m": 0.004}
+    plain = align_dense(target, source, T_start, **settings)
+    assert formed == [4, 4, 2]
+    evaluation = evaluate_dense(target, source, T_start, 4, 0.004)
+    formed.clear()
+    reused = align_dense(target, source, T_start, start=evaluation, **settings)
+    assert formed == [4, 2]
+    assert np.array_equal(reused.T_target_source, plain.T_target_source) and np.array_equal(reused.information, plain.information)
+    elsewhere = evaluate_dense(target, source, T_start @ se3_exp(np.full(6, 1e-9)), 4, 0.004)
+    other_stride = evaluate_dense(target, source, T_start, 8, 0.004)
+    for evaluation in (elsewhere, other_stride):
+        formed.clear()
+        again = align_dense(target, source, T_start, start=evaluation, **settings)
+        assert formed == [4, 4, 2]
+        assert np.array_equal(again.T_target_source, plain.T_target_source)
+
+
+def test_the_registrar_hands_its_relief_check_to_the_fit_of_the_same_pair_only(wall):
+    a, b, T_true = _pair(wall, 2e-4)
+    c = render_frame(wall, wall_pose(0.05), W, H, frame_id=2, depth_noise_m=2e-4)
+    registrar = FppPairRegistrar(RegistrationConfig(weak_directions={"degeneracy_ratio": 0.01}))
+    T_start = _perturbed(T_true)
+    assert registrar.dense_sees_relief(a, b, T_start)
+    assert registrar._evaluation_of(a, c) is None  # another pair: dropped
+    assert registrar._evaluation_of(a, b) is None  # and not kept for later
+    registrar.dense_sees_relief(a, b, T_start)
+    evaluation = registrar._evaluation_of(a, b)
+    assert evaluation is not None and np.array_equal(evaluation.T_target_source, T_start)
