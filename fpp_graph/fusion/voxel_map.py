@@ -49,6 +49,29 @@ from fpp_graph.types import (  # FusedMap: the MapFuser protocol's result type, 
 log = logging.getLogger(__name__)
 
 
+TSDF_INITIAL_VOXELS = 1000 * 16**3
+"""The TSDF hash map's first capacity in voxels: Open3D's customary 1000 blocks of 16^3 (82 MB
+of tsdf, weight and colour), whatever the block size. It doubles when full, and each doubling
+costs 0.4-0.7 s (Open3D 0.20, in 16^3 and 8^3 blocks alike)."""
+
+
+def tsdf_block_voxels(truncation_m: float, voxel_m: float) -> int:
+    """Edge of a TSDF block in voxels: as thick as the truncation band (``2 * truncation``), 8 to
+    16 voxels. Integration updates every voxel of each block the band touches; in a block much
+    thicker than the band most voxels are free space in front of the surface (each view sets
+    them to +1, which the mesh does not use). The defaults' band is 8 voxels (FPP: 2 mm voxels,
+    8 mm truncation; RGB-D: 1 cm, 4 cm). 8^3 blocks against Open3D's 16^3, ms a keyframe
+    (integration alone): 7-Scenes chess 16-18 against 41, TUM fr1_rpy 25 against 49-51 (views of
+    walls metres away: most of a 16 cm block is empty), the simulated RGB-D walk 13.9 against
+    15.2, the doll 11.7 against 15-16, the FPP corridor 72 against 76. The mesh is the same
+    surface: its vertices' distance to the true surface 2.312 against 2.310 mm RMS on the walk,
+    0.172 against 0.173 mm on the corridor (the same vertex counts within 0.01 %); on TUM's far
+    walls, 4-5 m away where the Kinect's depth error reaches the band, 4 % more vertices stay
+    that the wide blocks' free-space updates had carved away. Below 8 the hash map's per-block
+    work grows; 16 is Open3D's default."""
+    return int(min(max(math.ceil(2.0 * truncation_m / voxel_m - 1e-9), 8), 16))
+
+
 class VoxelMapFuser:
     """Streams frames into a voxel-averaged coloured point cloud and, optionally, a TSDF mesh.
 
@@ -66,8 +89,9 @@ class VoxelMapFuser:
         Depths beyond this are ignored by the TSDF.
     tsdf_min_weight : float
         Mesh only voxels observed with at least this TSDF weight (frames).
-    tsdf_block_count : int
-        Initial capacity of the TSDF block hash map (it grows on demand).
+    tsdf_block_count : int, optional
+        Initial capacity of the TSDF block hash map (it grows on demand); default: blocks for
+        :data:`TSDF_INITIAL_VOXELS` voxels.
     max_depth_m : float
         Points farther along the optical axis (sensor ``z``) stay out of the point map and the
         TSDF (``points_beyond_max_depth`` counts them): a depth camera's error grows with range
@@ -94,7 +118,7 @@ class VoxelMapFuser:
         mesh: bool,
         tsdf_depth_max_m: float = 10.0,
         tsdf_min_weight: float = 1.0,
-        tsdf_block_count: int = 1000,
+        tsdf_block_count: int | None = None,
         grazing_weight: bool = True,
         surface_smoothing: bool = True,
         max_depth_m: float = math.inf,
@@ -108,7 +132,8 @@ class VoxelMapFuser:
         self.mesh = bool(mesh)
         self.tsdf_depth_max_m = float(tsdf_depth_max_m)
         self.tsdf_min_weight = float(tsdf_min_weight)
-        self.tsdf_block_count = int(tsdf_block_count)
+        self.tsdf_block_voxels = tsdf_block_voxels(self.tsdf_truncation_m, self.tsdf_voxel_m)
+        self.tsdf_block_count = int(tsdf_block_count) if tsdf_block_count is not None else -(-TSDF_INITIAL_VOXELS // self.tsdf_block_voxels**3)
         self.grazing_weight = bool(grazing_weight)
         self.surface_smoothing = bool(surface_smoothing)
         if not max_depth_m > 0:
@@ -194,7 +219,7 @@ class VoxelMapFuser:
                 attr_dtypes=(o3d.core.float32, o3d.core.float32, o3d.core.float32),
                 attr_channels=((1), (1), (3)),
                 voxel_size=self.tsdf_voxel_m,
-                block_resolution=16,
+                block_resolution=self.tsdf_block_voxels,
                 block_count=self.tsdf_block_count,
                 device=o3d.core.Device("CPU:0"),
             )
