@@ -69,6 +69,8 @@ def tsdf_block_voxels(truncation_m: float, voxel_m: float) -> int:
     walls, 4-5 m away where the Kinect's depth error reaches the band, 4 % more vertices stay
     that the wide blocks' free-space updates had carved away. Below 8 the hash map's per-block
     work grows; 16 is Open3D's default."""
+    if not (math.isfinite(truncation_m) and math.isfinite(voxel_m) and truncation_m > 0 and voxel_m > 0):
+        raise InputDataError(f"map fusion: the TSDF's truncation and voxel must be positive lengths in metres, got {truncation_m!r} and {voxel_m!r}")
     return int(min(max(math.ceil(2.0 * truncation_m / voxel_m - 1e-9), 8), 16))
 
 

@@ -172,6 +172,12 @@ def test_tsdf_blocks_are_as_thick_as_the_band(truncation_m, voxel_m, block):
     assert fuser.tsdf_block_voxels == block and fuser.tsdf_block_count * block**3 >= 1000 * 16**3
 
 
+@pytest.mark.parametrize(("truncation_m", "voxel_m"), [(0.0, 0.002), (0.008, 0.0), (float("nan"), 0.002), (0.008, -1.0)])
+def test_tsdf_blocks_of_a_bad_band_are_refused(truncation_m, voxel_m):
+    with pytest.raises(InputDataError, match="truncation and voxel"):
+        tsdf_block_voxels(truncation_m, voxel_m)
+
+
 def test_band_thick_blocks_mesh_the_same_surface(views, fused):
     """Blocks of 16^3 voxels (Open3D's default) leave the surface where the band-thick 8^3 put it:
     only the free space each view sets in front of it differs."""
