@@ -439,18 +439,9 @@ def dense_strides(target: OrganisedSurface, source: OrganisedSurface, coarse_str
 
 @dataclass(frozen=True, eq=False)
 class DenseEvaluation:
-    """The normal equations of one pose, kept so that a fit starting there need not form them
-    again (:func:`evaluate_dense`, :func:`align_dense`'s ``start``).
-
-    Attributes
-    ----------
-    T_target_source : (4, 4) float64
-        The pose they were formed at.
-    stride_px, gate_m, min_cos, symmetric
-        The sampling, correspondence gate, normal agreement and directions they were formed with.
-    JT : (6, N), residuals : (N,), used_source : (m, 3)
-        :func:`_normal_equations`' transposed Jacobian, residuals and source points that took part.
-    """
+    """The normal equations (:func:`_normal_equations`' ``JT`` (6, N), ``residuals`` (N,),
+    ``used_source`` (m, 3)) formed at ``T_target_source`` with these settings, kept so that a fit
+    starting there need not form them again (:func:`evaluate_dense`, :func:`align_dense`'s ``start``)."""
 
     T_target_source: Array
     stride_px: int
@@ -464,10 +455,8 @@ class DenseEvaluation:
     def formed_with(self, T: Array, stride_px: int, gate_m: float, min_cos: float, symmetric: bool) -> bool:
         """Whether these are the normal equations of ``T`` with these settings (exactly: the
         same numbers as forming them again)."""
-        return (
-            stride_px == self.stride_px and gate_m == self.gate_m and min_cos == self.min_cos and symmetric == self.symmetric
-            and np.array_equal(T, self.T_target_source)
-        )
+        settings = (stride_px, gate_m, min_cos, symmetric) == (self.stride_px, self.gate_m, self.min_cos, self.symmetric)
+        return settings and np.array_equal(T, self.T_target_source)
 
 
 def evaluate_dense(
