@@ -427,6 +427,22 @@ def _robust_information(JT: Array, r: Array, noise_floor_m: float) -> tuple[Arra
     return JwT, (JwT @ JT.T) / sigma**2, sigma, w
 
 
+def _robust_step(JT: Array, r: Array, noise_floor_m: float, prior: Array | None, prior_offset: Array | None) -> tuple[Array, Array, float, Array]:
+    """One Tukey-weighted Gauss-Newton step ``xi`` of residuals ``r`` with Jacobian rows ``JT``,
+    with a Gaussian prior of information ``prior`` whose centre is ``-prior_offset`` away (the
+    fit's pose's log against it); returns ``(xi, information without the prior, sigma, weights)``."""
+    JwT, info, sigma, w = _robust_information(JT, r, noise_floor_m)
+    g = (JwT @ r) / sigma**2
+    H = info
+    if prior is not None:
+        H, g = info + prior, g + prior @ prior_offset
+    try:
+        xi = -np.linalg.solve(H, g)
+    except np.linalg.LinAlgError:
+        xi = -np.linalg.lstsq(H, g, rcond=None)[0]
+    return xi, info, sigma, w
+
+
 def dense_strides(target: OrganisedSurface, source: OrganisedSurface, coarse_stride_px: int, fine_stride_px: int, max_points: int | None) -> tuple[int, int]:
     """The coarse and fine pixel strides :func:`align_dense` uses: both grow in the same
     proportion until the finer one samples at most ``max_points`` pixels of the larger map."""
@@ -493,23 +509,11 @@ def dense_information(
 
 
 def align_dense(
-    target: OrganisedSurface,
-    source: OrganisedSurface,
-    T_init: NDArray,
-    prior_information: NDArray | None = None,
-    coarse_stride_px: int = 4,
-    fine_stride_px: int = 1,
-    max_points: int | None = None,
-    max_iterations: int = 12,
-    fine_iterations: int = 2,
-    max_distance_m: float = 0.004,
-    max_normal_angle_deg: float = 45.0,
-    noise_floor_m: float = 2e-5,
-    step_tolerance: float = 1e-7,
-    symmetric: bool = True,
-    start: DenseEvaluation | None = None,
+    target: OrganisedSurface, source: OrganisedSurface, T_init: NDArray, prior_information: NDArray | None = None,
+    coarse_stride_px: int = 4, fine_stride_px: int = 1, max_points: int | None = None, max_iterations: int = 12, fine_iterations: int = 2,
+    max_distance_m: float = 0.004, max_normal_angle_deg: float = 45.0, noise_floor_m: float = 2e-5, step_tolerance: float = 1e-7,
+    symmetric: bool = True, start: DenseEvaluation | None = None,
 ) -> DenseAlignment:
-    # 97 lines: 36 are the docstring and 17 the signature; the rest is two stride stages around one robust Gauss-Newton step that shares their state
     """Refine ``T_target_source`` by dense point-to-plane alignment of two organised maps.
 
     Parameters
@@ -560,15 +564,7 @@ def align_dense(
             raise InputDataError(
                 f"dense alignment: {r.size} correspondences within {1e3 * state['gate']:.2f} mm; the pose is too far off or the views do not overlap"
             )
-        JwT, info, sigma, w = _robust_information(JT, r, noise_floor_m)
-        g = (JwT @ r) / sigma**2
-        H = info
-        if Lambda is not None:
-            H, g = info + Lambda, g + Lambda @ se3_log(invert(T0) @ T)
-        try:
-            xi = -np.linalg.solve(H, g)
-        except np.linalg.LinAlgError:
-            xi = -np.linalg.lstsq(H, g, rcond=None)[0]
+        xi, info, sigma, w = _robust_step(JT, r, noise_floor_m, Lambda, None if Lambda is None else se3_log(invert(T0) @ T))
         state["T"] = T @ se3_exp(xi)
         state["iterations"] += 1
         # a shrinking gate: occlusion and edge residuals go once the fit has converged

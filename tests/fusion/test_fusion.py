@@ -13,6 +13,7 @@ from fpp_graph.evaluation.metrics import map_accuracy
 from fpp_graph.fusion.voxel_map import (
     FusedMap,
     VoxelMapFuser,
+    canonical_mesh,
     intrinsics_of,
     render_depth,
     tsdf_block_voxels,
@@ -194,6 +195,41 @@ def test_band_thick_blocks_mesh_the_same_surface(views, fused):
     assert abs(len(fused.mesh_vertices) - len(coarse.mesh_vertices)) < 0.01 * len(coarse.mesh_vertices)  # 0.5 % here
     r_fine, r_coarse = radial_error(fused.mesh_vertices), radial_error(coarse.mesh_vertices)
     assert abs(np.sqrt(np.mean(r_fine**2)) - np.sqrt(np.mean(r_coarse**2))) < 2e-5  # 0.453 against 0.458 mm here
+
+
+def test_canonical_mesh_does_not_depend_on_the_order_it_was_listed_in(rng):
+    """Open3D lists the same mesh in another order each run; the canonical order is the mesh's own:
+    any listing of its vertices and triangles gives the same arrays, each triangle keeps its
+    winding, exact duplicate vertices merge and triangles that collapse or repeat go."""
+    sphere = o3d.geometry.TriangleMesh.create_sphere(0.1, 20)
+    V, T = np.asarray(sphere.vertices), np.asarray(sphere.triangles).astype(np.int64)
+    C = rng.uniform(0, 1, V.shape)
+    reference = canonical_mesh(V, T, C)
+    assert np.all(np.diff(np.lexsort(reference[0].T[::-1])) > 0)  # sorted by x, then y, then z
+    for _ in range(3):
+        p = rng.permutation(len(V))
+        rank = np.argsort(p)
+        T_listed = np.roll(rank[T], rng.integers(0, 3), axis=1)[rng.permutation(len(T))]  # a rotation keeps the winding
+        shuffled = canonical_mesh(V[p], T_listed, C[p])
+        assert all(np.array_equal(a, b) for a, b in zip(reference, shuffled, strict=True))
+    # the winding: the normal of each triangle points the same way (outwards) before and after
+    Vc, Tc, _ = reference
+    normals = np.cross(Vc[Tc[:, 1]] - Vc[Tc[:, 0]], Vc[Tc[:, 2]] - Vc[Tc[:, 0]])
+    assert np.all(np.einsum("ij,ij->i", normals, Vc[Tc].mean(axis=1)) > 0)
+    # a duplicate vertex (same place and colour) merges; a triangle on both copies collapses; a repeated one goes
+    V2, C2 = np.vstack([V, V[:1]]), np.vstack([C, C[:1]])
+    T2 = np.vstack([T, [[0, len(V), 1]], T[:1]])
+    merged = canonical_mesh(V2, T2, C2)
+    assert len(merged[0]) == len(V) and len(merged[1]) == len(T)
+    empty = canonical_mesh(np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64), np.zeros((0, 3)))
+    assert all(len(a) == 0 for a in empty)
+
+
+def test_two_fusions_of_the_same_frames_give_the_same_mesh(views, fused):
+    frames, poses = views
+    again = VoxelMapFuser(0.002, 0.002, 0.008, mesh=True).fuse(frames, poses)
+    for a, b in ((fused.mesh_vertices, again.mesh_vertices), (fused.mesh_triangles, again.mesh_triangles), (fused.mesh_vertex_colors, again.mesh_vertex_colors)):
+        assert np.array_equal(a, b)
 
 
 def test_intrinsics_are_estimated_without_metadata(views):
