@@ -10,13 +10,12 @@ import pytest
 
 from fpp_graph.errors import InputDataError
 from fpp_graph.evaluation.metrics import map_accuracy
+from fpp_graph.fusion.tsdf_mesh import canonical_mesh, tsdf_block_voxels
 from fpp_graph.fusion.voxel_map import (
     FusedMap,
     VoxelMapFuser,
-    canonical_mesh,
     intrinsics_of,
     render_depth,
-    tsdf_block_voxels,
     write_mesh_ply,
     write_point_cloud_ply,
 )
