@@ -4,6 +4,7 @@ runner. Heavy imports stay inside the commands."""
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 from typing import Annotated, Optional
 
@@ -71,9 +72,10 @@ def run(
     except KeyboardInterrupt:  # Ctrl-C or SIGTERM: the pipeline has ended its workers
         raise _interrupted(sequence, out) from None
     m = report.metrics
+    cpu = "" if m.get("cpu_utilisation") is None else f" (CPU {100 * m['cpu_utilisation']:.0f} % of {os.cpu_count()} cores)"
     typer.echo(
         f"{m['frames']}/{m['frames_total']} frames, {m['keyframes']} keyframes, loops {m['loops_accepted']} accepted / "
-        f"{m['loops_rejected']} rejected, {len(m['components'])} part(s), {m['seconds']:.1f} s -> {report.results_dir}"
+        f"{m['loops_rejected']} rejected, {len(m['components'])} part(s), {m['seconds']:.1f} s{cpu} -> {report.results_dir}"
     )
 
 

@@ -40,6 +40,7 @@ from fpp_graph.config import Config, dump_config
 from fpp_graph.errors import InputDataError, OutputError
 from fpp_graph.evaluation.plots import import_plotting
 from fpp_graph.geometry import compose
+from fpp_graph.slam.cpu_time import process_tree_cpu_s
 from fpp_graph.slam.frame_store import (
     FrameStore,
     frame_from_stored,
@@ -75,6 +76,8 @@ class RunReport:
     frames_used: int = 0
     skipped_frames: dict[int, str] = field(default_factory=dict)
     seconds_by_stage: dict[str, float] = field(default_factory=dict)
+    wall_seconds: float = 0.0
+    cpu_seconds: float | None = None  # this process and its own workers (None: another's executor, or no getrusage)
     slam: SlamResult | None = None
     metrics: dict[str, Any] = field(default_factory=dict)
 
@@ -365,6 +368,8 @@ def slam_summary(report: RunReport) -> dict[str, Any]:
         "tracking": slam.tracking,
         "seconds_by_stage": report.seconds_by_stage,
         "seconds": sum(report.seconds_by_stage.values()),
+        "cpu_seconds": report.cpu_seconds,
+        "cpu_utilisation": None if report.cpu_seconds is None or report.wall_seconds <= 0 else report.cpu_seconds / (report.wall_seconds * (os.cpu_count() or 1)),
     }
 
 
@@ -426,6 +431,7 @@ class Pipeline:
         self.progress = progress
 
     def run(self) -> RunReport:
+        wall0, cpu0 = time.perf_counter(), process_tree_cpu_s() if self.executor is None else None
         out = prepare_results_dir(self.out, self.resume, self.overwrite)
         report = RunReport(results_dir=out)
         atomic_write_text(out / "config.yaml", dump_config(self.config))
@@ -476,6 +482,8 @@ class Pipeline:
             before_points = points_under_poses(samples, odometry_only_poses(report.slam))
             write_plots(out, report.slam, before_points, fused.points_world_m, gt_poses)
         trim_heap(period_s=0.0)
+        report.wall_seconds, cpu1 = time.perf_counter() - wall0, process_tree_cpu_s()
+        report.cpu_seconds = None if cpu0 is None or cpu1 is None else cpu1 - cpu0  # the pool has joined its workers
         report.metrics = slam_summary(report)
         if gt_poses is not None:  # an evaluation that failed raises here, after the plots are written
             report.metrics["loop_evaluation"] = loop_evaluation.result()

@@ -97,6 +97,8 @@ def test_results_folder_is_complete(finished_run):
     assert "loop_evaluation" in metrics and metrics["seconds_by_stage"]["evaluate_loops"] > 0
     assert set(metrics["seconds_by_stage"]) == {"decode+track", "write_graph", "fuse", "plots", "evaluate_loops"}
     assert metrics["seconds"] == pytest.approx(sum(metrics["seconds_by_stage"].values()))
+    # one process here (run.workers 1; its libraries' threads may use the other cores)
+    assert metrics["cpu_seconds"] > 0 and 0 < metrics["cpu_utilisation"] <= 1.05
     traj = read_tum(out / "trajectory.tum")
     assert BROKEN not in traj.timestamps_s.astype(int).tolist()
 
@@ -709,3 +711,24 @@ def test_the_pipeline_imports_matplotlib_only_when_asked():
             "from fpp_graph.evaluation.plots import import_plotting; import_plotting(); "
             "assert {'matplotlib.figure', 'matplotlib.backends.backend_agg'} <= set(sys.modules)")
     subprocess.run([sys.executable, "-c", code], check=True, cwd=Path(__file__).resolve().parents[2])
+
+
+def test_cpu_utilisation_counts_the_runs_own_workers_and_not_anothers_executor(tmp_path, tum_sequence):
+    """With its own pool the run's CPU includes the workers once they are joined (getrusage of the
+    children): more than this process spent. Another's executor (its CPU is not the run's to
+    count) leaves the figure out."""
+    import resource
+    from concurrent.futures import ThreadPoolExecutor
+
+    from fpp_graph.slam.sources import open_source
+
+    two = config_from_dict({"run": {"workers": 2}, "fusion": {"mesh": False}})
+    own_before = resource.getrusage(resource.RUSAGE_SELF)
+    report = Pipeline(open_source(tum_sequence, two), two, tmp_path / "pool").run()
+    own_after = resource.getrusage(resource.RUSAGE_SELF)
+    own_s = (own_after.ru_utime - own_before.ru_utime) + (own_after.ru_stime - own_before.ru_stime)
+    assert report.metrics["cpu_seconds"] > own_s + 0.5  # two spawned workers import and decode
+    assert 0 < report.metrics["cpu_utilisation"] <= 1.05
+    with ThreadPoolExecutor(2) as pool:
+        report = Pipeline(open_source(tum_sequence, two), two, tmp_path / "foreign", executor=pool).run()
+    assert report.metrics["cpu_seconds"] is None and report.metrics["cpu_utilisation"] is None
