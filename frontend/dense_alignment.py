@@ -474,6 +474,16 @@ class DenseEvaluation:
         settings = (stride_px, gate_m, min_cos, symmetric) == (self.stride_px, self.gate_m, self.min_cos, self.symmetric)
         return settings and np.array_equal(T, self.T_target_source)
 
+    def information(self, noise_floor_m: float = 2e-5) -> tuple[Array, Array]:
+        """The robust information (6x6 ``[rot, trans]``) and the source points that took part:
+        :func:`dense_information`. Raises InputDataError with fewer than 6 correspondences."""
+        if self.residuals.size < 6:
+            raise InputDataError(
+                f"dense information: {self.residuals.size} correspondences within {1e3 * self.gate_m:.2f} mm; the views do not overlap at this pose"
+            )
+        info = _robust_information(self.JT, self.residuals, noise_floor_m)[1]
+        return 0.5 * (info + info.T), self.used_source
+
 
 def evaluate_dense(
     target: OrganisedSurface, source: OrganisedSurface, T: NDArray, stride_px: int, gate_m: float,
@@ -487,25 +497,20 @@ def evaluate_dense(
 
 
 def dense_information(
-    target: OrganisedSurface, source: OrganisedSurface, T: NDArray | DenseEvaluation, stride_px: int, gate_m: float,
+    target: OrganisedSurface, source: OrganisedSurface, T: NDArray, stride_px: int, gate_m: float,
     max_normal_angle_deg: float = 45.0, noise_floor_m: float = 2e-5, symmetric: bool = True,
 ) -> tuple[Array, Array]:
     """What every ``stride_px``-th pixel's geometry constrains at ``T``, without a step: the
     robust information :func:`align_dense` would form there (6x6 ``[rot, trans]``) and the
     source points that took part. A fraction of a fit's cost, for asking whether the surfaces
-    have relief before fitting. ``T`` may be an :func:`evaluate_dense` made with these settings.
+    have relief before fitting (:meth:`DenseEvaluation.information` of :func:`evaluate_dense`).
 
     Raises
     ------
     InputDataError
         Fewer than 6 correspondences within ``gate_m``.
     """
-    evaluation = T if isinstance(T, DenseEvaluation) else evaluate_dense(target, source, T, stride_px, gate_m, max_normal_angle_deg, symmetric)
-    JT, r, used = evaluation.JT, evaluation.residuals, evaluation.used_source
-    if r.size < 6:
-        raise InputDataError(f"dense information: {r.size} correspondences within {1e3 * gate_m:.2f} mm; the views do not overlap at this pose")
-    info = _robust_information(JT, r, noise_floor_m)[1]
-    return 0.5 * (info + info.T), used
+    return evaluate_dense(target, source, T, stride_px, gate_m, max_normal_angle_deg, symmetric).information(noise_floor_m)
 
 
 def align_dense(

@@ -19,7 +19,6 @@ from frontend.dense_alignment import (
     DenseEvaluation,
     OrganisedSurface,
     align_dense,
-    dense_information,
     dense_strides,
     evaluate_dense,
 )
@@ -244,7 +243,7 @@ class FppPairRegistrar:
         coarse_px, _ = dense_strides(target_surface, source_surface, dense_cfg.coarse_stride_px, dense_cfg.stride_px, dense_cfg.max_points)
         try:
             evaluation = evaluate_dense(target_surface, source_surface, T_target_source, coarse_px, cfg.lengths.icp_max_correspondence_m)
-            info, used = dense_information(target_surface, source_surface, evaluation, coarse_px, cfg.lengths.icp_max_correspondence_m)
+            info, used = evaluation.information()
         except FppError:
             return False  # the held fit decides (and says why it cannot)
         self._relief_evaluation = (weakref.ref(target), weakref.ref(source), evaluation)
