@@ -50,12 +50,7 @@ def canonical_mesh(
     if not len(vertices):
         return vertices, triangles, vertex_colors
     keys = np.concatenate([vertices, vertex_colors], axis=1)
-    order = np.lexsort(vertices.T[::-1])  # by x, then y, then z
-    same_place = np.zeros(len(order), dtype=bool)
-    same_place[1:] = np.all(vertices[order[1:]] == vertices[order[:-1]], axis=1)
-    if same_place.any():  # the few vertices sharing a position: by their colour too (all six keys: 0.1 s more a 700k mesh)
-        tied = np.flatnonzero(same_place | np.append(same_place[1:], False))
-        order[tied] = order[tied][np.lexsort(np.concatenate([keys[order[tied]], np.cumsum(~same_place)[tied, None]], axis=1).T[::-1])]
+    order = np.lexsort(keys.T[::-1])  # by x, then y, z and the colour
     keys = keys[order]
     first_of_kind = np.ones(len(keys), dtype=bool)
     first_of_kind[1:] = np.any(keys[1:] != keys[:-1], axis=1)
@@ -64,9 +59,7 @@ def canonical_mesh(
     tri = rank[triangles]
     tri = tri[(tri[:, 0] != tri[:, 1]) & (tri[:, 1] != tri[:, 2]) & (tri[:, 0] != tri[:, 2])]
     tri = np.take_along_axis(tri, (tri.argmin(axis=1)[:, None] + np.arange(3)) % 3, axis=1)
-    n = int(first_of_kind.sum())
-    # one int64 key per triangle while n^3 fits (2 M vertices), else three keys
-    tri = tri[np.argsort((tri[:, 0] * n + tri[:, 1]) * n + tri[:, 2]) if n < 2_000_000 else np.lexsort(tri.T[::-1])]
+    tri = tri[np.lexsort(tri.T[::-1])]
     repeat = np.zeros(len(tri), dtype=bool)
     repeat[1:] = np.all(tri[1:] == tri[:-1], axis=1)
     keys = keys[first_of_kind]
