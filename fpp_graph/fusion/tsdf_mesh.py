@@ -5,12 +5,15 @@ the mesh listed in an order of its own content (:func:`canonical_mesh`)."""
 
 from __future__ import annotations
 
+import logging
 import math
 
 import numpy as np
 from numpy.typing import NDArray
 
 from fpp_graph.errors import InputDataError
+
+log = logging.getLogger(__name__)
 
 TSDF_INITIAL_VOXELS = 1000 * 16**3
 """The TSDF hash map's first capacity in voxels: Open3D's customary 1000 blocks of 16^3 (82 MB
@@ -62,8 +65,10 @@ def canonical_mesh(
     tri = tri[np.lexsort(tri.T[::-1])]
     repeat = np.zeros(len(tri), dtype=bool)
     repeat[1:] = np.all(tri[1:] == tri[:-1], axis=1)
-    keys = keys[first_of_kind]
-    return keys[:, :3], tri[~repeat], keys[:, 3:]
+    keys, tri = keys[first_of_kind], tri[~repeat]
+    if len(keys) < len(vertices) or len(tri) < len(triangles):  # identical copies: no surface is lost
+        log.debug("TSDF mesh: %d duplicate vertices merged, %d collapsed or repeated triangles dropped", len(vertices) - len(keys), len(triangles) - len(tri))
+    return keys[:, :3], tri, keys[:, 3:]
 
 
 __all__ = ["TSDF_INITIAL_VOXELS", "canonical_mesh", "tsdf_block_voxels"]
