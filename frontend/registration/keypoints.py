@@ -194,13 +194,16 @@ def ransac_rigid(
         res -= Pt
         return np.einsum("bni,bni->bn", res, res) < thr2
 
+    log_fail = math.log(max(1.0 - confidence, 1e-300))
     for T in extra_hypotheses or []:
         T = np.asarray(T, dtype=np.float64)
         count = int(score(T[None, :3, :3], T[None, :3, 3]).sum())
         if count > best_count:
             best_count, best_T = count, T.copy()
-    needed = max_iterations
-    log_fail = math.log(max(1.0 - confidence, 1e-300))
+    # A hypothesis's consensus bounds the inlier ratio whichever way it was found: with a guess
+    # that 519 of 521 matches agree with, no sample can beat it, and the bound taken from samples
+    # alone drew all max_iterations (10 000) of them for a loop the first draw settles.
+    needed = _draws_needed(best_count, n, drawn, log_fail, max_iterations) if best_count > 0 else max_iterations
     while drawn < min(needed, max_iterations):
         b = min(batch, max_iterations - drawn)
         # vectorised draw; a sample repeating an index is dropped by the spread test below
@@ -217,13 +220,22 @@ def ransac_rigid(
             best_count = int(counts[k])
             best_T = np.eye(4)
             best_T[:3, :3], best_T[:3, 3] = R[k], t[k]
-            w = best_count / n
-            p_all = w**3
-            # log1p keeps tiny sample-success probabilities from rounding to log(1) = 0
-            needed = drawn if p_all >= 1.0 else int(min(max_iterations, math.ceil(log_fail / math.log1p(-p_all)))) if p_all > 0 else max_iterations
+            needed = _draws_needed(best_count, n, drawn, log_fail, max_iterations)
     if best_count < 3:
         return RansacResult(np.eye(4), np.zeros(n, bool), drawn, float("nan"))
     return _refit_on_inliers(Pt, Ps, best_T, score, drawn)
+
+
+def _draws_needed(best_count: int, n: int, drawn: int, log_fail: float, max_iterations: int) -> int:
+    """3-point samples to draw in all for one of them to be all inliers with probability
+    ``1 - exp(log_fail)`` at the inlier ratio ``best_count / n`` (the standard adaptive bound)."""
+    p_all = (best_count / n) ** 3
+    if p_all >= 1.0:
+        return drawn
+    if p_all <= 0.0:
+        return max_iterations
+    # log1p keeps tiny sample-success probabilities from rounding to log(1) = 0
+    return int(min(max_iterations, math.ceil(log_fail / math.log1p(-p_all))))
 
 
 def information_from_keypoints(T_target_source: NDArray, source_points: NDArray, residuals_m: NDArray, min_sigma_m: float = 2e-5) -> Array:

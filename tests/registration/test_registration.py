@@ -90,6 +90,29 @@ def test_ransac_recovers_pose_with_outliers():
     assert res.iterations < 2000  # adaptive stop
 
 
+def test_ransac_stops_on_a_guess_most_matches_agree_with():
+    """A prior pose's consensus sets the adaptive bound as a sample's would: with 95 % of the
+    matches agreeing with a good guess one batch settles it (before, no sample could beat the
+    guess and all max_iterations were drawn); a wrong guess leaves the bound to the samples."""
+    rng = np.random.default_rng(3)
+    T = _random_pose(rng)
+    Ps = rng.uniform(-0.2, 0.2, size=(400, 3))
+    Pt = Ps @ T[:3, :3].T + T[:3, 3] + rng.normal(0, 2e-5, (400, 3))
+    out = np.arange(400) < 20
+    Pt[out] = rng.uniform(-0.3, 0.3, size=(out.sum(), 3))
+    good = ransac_rigid(Pt, Ps, 0.001, 10_000, 0.9999, np.random.default_rng(0), extra_hypotheses=[T])
+    assert good.iterations <= 64  # (0.95^3 all-inlier samples: 7 draws at 0.9999 confidence)
+    rot, trans = pose_error(good.T_target_source, T)
+    assert rot < 1e-3 and trans < 1e-4 and good.num_inliers >= 378
+    wrong = T.copy()
+    wrong[:3, 3] += 0.05
+    res = ransac_rigid(Pt, Ps, 0.001, 10_000, 0.9999, np.random.default_rng(0), extra_hypotheses=[wrong])
+    rot, trans = pose_error(res.T_target_source, T)
+    assert rot < 1e-3 and trans < 1e-4 and res.num_inliers >= 378
+    # the wrong guess agrees with no match: the samples' own consensus sets the bound
+    assert 0 < res.iterations <= 64
+
+
 def test_lift_keypoints_bilinear_and_invalid():
     v, u = np.mgrid[0:20, 0:30].astype(float)
     xyz = np.stack([u * 1e-3, v * 2e-3, 0.5 + u * 1e-4], axis=-1)
