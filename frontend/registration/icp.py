@@ -191,7 +191,6 @@ class IcpResult:
     residuals_m: Array = field(repr=False)
 
 
-# Long for its numpydoc docstring; alignment and the correspondence figures share one sample, so one body.
 ICP_CYCLE_CHECK_ITERATIONS = 10
 """small_gicp runs this many iterations at a time; between runs the net motion is checked against
 the step bound (see :func:`_align`). Even, so a two-state cycle lands on the same state."""
@@ -203,8 +202,8 @@ def _align(tgt: IcpRole, src: IcpRole, T0: NDArray, method: str, max_corresponde
 
     small_gicp stops once one step moves less than ``convergence_m`` (metres, and radians per
     metre of lever). Near the optimum its correspondences can flip back and forth: the pose then
-    hops among a few states 0.01-0.3 mm apart and never takes a small step (real RGB-D loops: 40
-    of TUM fr1_rpy's 133 verified ran to the iteration bound, over half of their ICP time). So it
+    hops among a few states 0.01-0.3 mm apart and never takes a small step (TUM fr1_rpy: 40 of
+    its 133 verified loops ran to the 50-iteration bound, two thirds of their ICP iterations). So it
     runs :data:`ICP_CYCLE_CHECK_ITERATIONS` at a time and also stops when a whole run of them
     moved the pose by less than that many steps' bound in all: steps that cancel are a cycle, not
     progress. A pose still sliding (a plane toward more overlap) moves far more and goes on; it
@@ -246,6 +245,7 @@ def _align(tgt: IcpRole, src: IcpRole, T0: NDArray, method: str, max_corresponde
             return T, False, iterations
 
 
+# Long for its numpydoc docstring; alignment and the correspondence figures share one sample, so one body.
 def refine_icp(
     target: IcpCloud,
     source: IcpCloud,
