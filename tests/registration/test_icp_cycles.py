@@ -3,6 +3,7 @@ at a time, and a run whose steps cancel ends the alignment."""
 
 from __future__ import annotations
 
+import sys
 import types
 
 import numpy as np
@@ -34,7 +35,7 @@ class _ScriptedGicp:
 
 def _align_with(monkeypatch, step, max_iterations=50, convergence_m=1e-5):
     fake = _ScriptedGicp(step)
-    monkeypatch.setitem(__import__("sys").modules, "small_gicp", fake)
+    monkeypatch.setitem(sys.modules, "small_gicp", fake)  # _align imports it at call time
     role = types.SimpleNamespace(cloud=None, tree=None)
     T, converged, iterations = icp_module._align(role, role, np.eye(4), "gicp", 0.01, max_iterations, convergence_m)
     return T, converged, iterations, fake.calls
