@@ -76,11 +76,16 @@ def test_kabsch_exact_and_weighted():
         kabsch(Pt[:2], Ps[:2])
 
 
+def _noisy_matches(rng: np.random.Generator, n: int):
+    """A random pose ``T`` and ``n`` matches ``(Ps, Pt = T Ps + 20 um noise)`` in a 0.4 m cube."""
+    T = _random_pose(rng)
+    Ps = rng.uniform(-0.2, 0.2, size=(n, 3))
+    return T, Ps, Ps @ T[:3, :3].T + T[:3, 3] + rng.normal(0, 2e-5, (n, 3))
+
+
 def test_ransac_recovers_pose_with_outliers():
     rng = np.random.default_rng(1)
-    T = _random_pose(rng)
-    Ps = rng.uniform(-0.2, 0.2, size=(200, 3))
-    Pt = Ps @ T[:3, :3].T + T[:3, 3] + rng.normal(0, 2e-5, (200, 3))
+    T, Ps, Pt = _noisy_matches(rng, 200)
     out = rng.random(200) < 0.6
     Pt[out] = rng.uniform(-0.3, 0.3, size=(out.sum(), 3))
     res = ransac_rigid(Pt, Ps, 0.001, 2000, 0.9999, rng)
@@ -95,9 +100,7 @@ def test_ransac_stops_on_a_guess_most_matches_agree_with():
     matches agreeing with a good guess one batch settles it (before, no sample could beat the
     guess and all max_iterations were drawn); a wrong guess leaves the bound to the samples."""
     rng = np.random.default_rng(3)
-    T = _random_pose(rng)
-    Ps = rng.uniform(-0.2, 0.2, size=(400, 3))
-    Pt = Ps @ T[:3, :3].T + T[:3, 3] + rng.normal(0, 2e-5, (400, 3))
+    T, Ps, Pt = _noisy_matches(rng, 400)
     out = np.arange(400) < 20
     Pt[out] = rng.uniform(-0.3, 0.3, size=(out.sum(), 3))
     good = ransac_rigid(Pt, Ps, 0.001, 10_000, 0.9999, np.random.default_rng(0), extra_hypotheses=[T])
