@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from fpp_graph.geometry import finite_points, invert, rotation_angle_rad, transform_points
+from fpp_graph.geometry import finite_points, invert, pose_error, transform_points
 from frontend.dense_alignment import point_to_plane_jacobian
 
 Array = NDArray[np.float64]
@@ -238,8 +238,8 @@ def _align(tgt: IcpRole, src: IcpRole, T0: NDArray, method: str, max_corresponde
         if bool(res.converged) or iterations >= max_iterations or run < ICP_CYCLE_CHECK_ITERATIONS:
             return T_next, bool(res.converged), iterations
         bound = run * convergence_m
-        moved = invert(T) @ T_next
-        settled = float(np.linalg.norm(moved[:3, 3])) < bound and rotation_angle_rad(moved[:3, :3]) < bound
+        rotation_rad, translation_m = pose_error(T_next, T)
+        settled = translation_m < bound and rotation_rad < bound
         T = T_next
         if settled:
             return T, False, iterations
