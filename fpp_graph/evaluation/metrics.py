@@ -85,7 +85,6 @@ def ate_rpe(
     delta: int = 1,
     max_time_diff_s: float = 0.01,
 ) -> TrajectoryErrors:
-    # 90 lines: a 19-line docstring; the body is one sequence of evo calls sharing the lazy import of optional evo
     """ATE and RPE of an estimated trajectory against ground truth (both ``T_world_sensor``).
 
     Parameters
@@ -106,7 +105,7 @@ def ate_rpe(
         No common timestamps, too few poses, or a degenerate alignment.
     """
     try:
-        from evo.core import metrics, sync
+        from evo.core import metrics
         from evo.core.metrics import PoseRelation, Unit
     except ImportError:
         raise FppError(
@@ -120,34 +119,11 @@ def ate_rpe(
         raise InputDataError(
             f"ate_rpe: empty trajectory (estimate {len(trajectory_est)} poses, ground truth {len(trajectory_gt)})"
         )
-    from evo import EvoException
-
-    ref = _evo_trajectory(trajectory_gt)
-    est = _evo_trajectory(trajectory_est)
-    try:
-        ref, est = sync.associate_trajectories(ref, est, max_diff=max_time_diff_s)
-    except EvoException as exc:
-        raise InputDataError(
-            f"ate_rpe: the estimate ({trajectory_est.timestamps_s[0]:.6f}..{trajectory_est.timestamps_s[-1]:.6f} s) "
-            f"and the ground truth ({trajectory_gt.timestamps_s[0]:.6f}..{trajectory_gt.timestamps_s[-1]:.6f} s) "
-            f"share no timestamps within {max_time_diff_s} s; check that both use the same clock ({exc})"
-        ) from None
+    ref, est = _associated(trajectory_est, trajectory_gt, max_time_diff_s)
     n = est.num_poses
     T_gt_est = np.eye(4)
     if align == "se3":
-        if n < 3:
-            raise InputDataError(f"ate_rpe: SE(3) alignment needs at least 3 associated poses, found {n}")
-        est = copy.deepcopy(est)
-        try:
-            r_a, t_a, _ = est.align(ref, correct_scale=False)
-            T_gt_est[:3, :3] = r_a
-            T_gt_est[:3, 3] = t_a
-        except EvoException as exc:
-            # Positions on a line (a cart along a corridor) leave the rotation about that line
-            # free: use the orientations too, aligning each pose's origin and axis tips.
-            log.info("ate_rpe: position-only alignment degenerate (%s); aligning full poses", exc)
-            T_gt_est = _align_poses_se3(np.array(est.poses_se3), np.array(ref.poses_se3))
-            est.transform(T_gt_est)
+        est, T_gt_est = _aligned_se3(est, ref)
     ape = metrics.APE(PoseRelation.translation_part)
     ape.process_data((ref, est))
     per_pose = np.asarray(ape.error, dtype=np.float64)
@@ -168,6 +144,43 @@ def ate_rpe(
         ate_per_pose_m=per_pose,
         matched=int(n),
     )
+
+
+def _associated(trajectory_est: Trajectory, trajectory_gt: Trajectory, max_time_diff_s: float):
+    """evo's ``(ground truth, estimate)`` of the poses whose timestamps pair up within ``max_time_diff_s``."""
+    from evo import EvoException
+    from evo.core import sync
+
+    try:
+        return sync.associate_trajectories(_evo_trajectory(trajectory_gt), _evo_trajectory(trajectory_est), max_diff=max_time_diff_s)
+    except EvoException as exc:
+        raise InputDataError(
+            f"ate_rpe: the estimate ({trajectory_est.timestamps_s[0]:.6f}..{trajectory_est.timestamps_s[-1]:.6f} s) "
+            f"and the ground truth ({trajectory_gt.timestamps_s[0]:.6f}..{trajectory_gt.timestamps_s[-1]:.6f} s) "
+            f"share no timestamps within {max_time_diff_s} s; check that both use the same clock ({exc})"
+        ) from None
+
+
+def _aligned_se3(est, ref) -> tuple[object, np.ndarray]:
+    """A copy of evo trajectory ``est`` moved rigidly onto ``ref`` (Umeyama, no scale) and the
+    ``T_gt_estimate`` that did it."""
+    from evo import EvoException
+
+    if est.num_poses < 3:
+        raise InputDataError(f"ate_rpe: SE(3) alignment needs at least 3 associated poses, found {est.num_poses}")
+    est = copy.deepcopy(est)
+    T_gt_est = np.eye(4)
+    try:
+        r_a, t_a, _ = est.align(ref, correct_scale=False)
+        T_gt_est[:3, :3] = r_a
+        T_gt_est[:3, 3] = t_a
+    except EvoException as exc:
+        # Positions on a line (a cart along a corridor) leave the rotation about that line
+        # free: use the orientations too, aligning each pose's origin and axis tips.
+        log.info("ate_rpe: position-only alignment degenerate (%s); aligning full poses", exc)
+        T_gt_est = _align_poses_se3(np.array(est.poses_se3), np.array(ref.poses_se3))
+        est.transform(T_gt_est)
+    return est, T_gt_est
 
 
 def _align_poses_se3(poses_est: np.ndarray, poses_gt: np.ndarray, arm_m: float = 0.1) -> np.ndarray:

@@ -248,6 +248,40 @@ def _panel_colours(view: TopView, pts: NDArray, col: NDArray | None, height_rang
     return q[order], cmap(norm(h[order])), ScalarMappable(norm, cmap)
 
 
+def _checked_errors(path: str | os.PathLike[str], name: str, points: NDArray, errors_m: NDArray | None) -> NDArray | None:
+    """``errors_m`` as a flat float64 array with one value per point (None stays None)."""
+    if errors_m is None:
+        return None
+    errors_m = np.asarray(errors_m, dtype=np.float64).reshape(-1)
+    if errors_m.shape[0] != points.shape[0]:
+        raise InputDataError(f"plot {path}: {name} has {errors_m.shape[0]} values for {points.shape[0]} points")
+    return errors_m
+
+
+def _map_panel(
+    ax, view, points: NDArray, colours: NDArray | None, title: str, gt: NDArray | None,
+    limits: tuple[NDArray, NDArray], height_range: tuple[float, float], error_max_mm: float,
+):
+    """One top view of :func:`plot_map_before_after` (the reference grey beneath); its colour mappable or None."""
+    from matplotlib.lines import Line2D
+
+    xy, rgba, mappable = _panel_colours(view, points, colours, height_range, error_max_mm)
+    if gt is not None:  # grey beneath
+        xy = np.vstack([view.project(gt), xy])
+        rgba = np.vstack([np.tile([0.8, 0.8, 0.8, 1.0], (len(gt), 1)), rgba])
+        ax.legend(handles=[Line2D([], [], ls="", marker="s", color="0.8", label="reference")], loc="upper right", fontsize=8)
+    lo, hi = limits
+    _draw_points_raster(ax, xy, rgba, lo, hi)
+    ax.set_xlim(lo[0], hi[0])
+    ax.set_ylim(lo[1], hi[1])
+    ax.set_aspect("equal")
+    ax.set_xlabel(f"{view.labels[0]} ({view.unit})")
+    ax.set_ylabel(f"{view.labels[1]} ({view.unit})")
+    ax.set_title(f"{title}: {len(points)} points")
+    ax.grid(True, lw=0.3)
+    return mappable
+
+
 def plot_map_before_after(
     path: str | os.PathLike[str],
     points_before: NDArray[np.float64],
@@ -261,7 +295,6 @@ def plot_map_before_after(
     errors_after_m: NDArray[np.float64] | None = None,
     error_max_mm: float = 1.0,
 ) -> None:
-    # 89 lines: a 17-line docstring; the body is one figure whose limits and colour scale both panels share
     """Two top views of the fused map, before and after loop closure, on the same limits.
 
     Parameters
@@ -286,13 +319,8 @@ def plot_map_before_after(
             raise InputDataError(f"plot {path}: colours of {name} have shape {np.shape(col)}, expected {pts.shape}")
     if len(before) == 0 and len(after) == 0:
         raise InputDataError(f"plot {path}: both maps are empty")
-    errors: list[NDArray | None] = []
-    for name, pts, err in (("errors_before_m", before, errors_before_m), ("errors_after_m", after, errors_after_m)):
-        if err is not None:
-            err = np.asarray(err, dtype=np.float64).reshape(-1)
-            if err.shape[0] != pts.shape[0]:
-                raise InputDataError(f"plot {path}: {name} has {err.shape[0]} values for {pts.shape[0]} points")
-        errors.append(err)
+    errors = [_checked_errors(path, name, pts, err) for name, pts, err in (
+        ("errors_before_m", before, errors_before_m), ("errors_after_m", after, errors_after_m))]
     rms_titles = [
         f"{t}, RMS {1e3 * np.sqrt(np.mean(e**2)):.3f} mm" if e is not None and len(e) else t for t, e in zip(titles, errors, strict=True)
     ]
@@ -315,24 +343,10 @@ def plot_map_before_after(
     pad = 0.03 * max(float((hi - lo).max()), 1e-9)
     aspect = float(np.clip((hi[1] - lo[1] + 2 * pad) / (hi[0] - lo[0] + 2 * pad), 0.4, 1.6))
     fig, axes = _new_figure(2, size=(14.0, 1.2 + 6.0 * aspect))
-    from matplotlib.lines import Line2D
-
     mappable = None
     for ax, pts, col, title in zip(axes, (before, after), (colors_before, colors), titles, strict=True):
-        xy, rgba, panel_mappable = _panel_colours(view, pts, col, (vmin, vmax), error_max_mm)
+        panel_mappable = _map_panel(ax, view, pts, col, title, gt, (lo - pad, hi + pad), (vmin, vmax), error_max_mm)
         mappable = panel_mappable or mappable
-        if gt is not None:  # grey beneath
-            xy = np.vstack([view.project(gt), xy])
-            rgba = np.vstack([np.tile([0.8, 0.8, 0.8, 1.0], (len(gt), 1)), rgba])
-            ax.legend(handles=[Line2D([], [], ls="", marker="s", color="0.8", label="reference")], loc="upper right", fontsize=8)
-        _draw_points_raster(ax, xy, rgba, lo - pad, hi + pad)
-        ax.set_xlim(lo[0] - pad, hi[0] + pad)
-        ax.set_ylim(lo[1] - pad, hi[1] + pad)
-        ax.set_aspect("equal")
-        ax.set_xlabel(f"{view.labels[0]} ({view.unit})")
-        ax.set_ylabel(f"{view.labels[1]} ({view.unit})")
-        ax.set_title(f"{title}: {len(pts)} points")
-        ax.grid(True, lw=0.3)
     if mappable is not None:
         label = "distance to reference (mm)" if errors[0] is not None or errors[1] is not None else f"{view.up_label} ({view.unit})"
         fig.colorbar(mappable, ax=list(axes), shrink=0.7, label=label)
