@@ -18,7 +18,7 @@ import logging
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -161,8 +161,8 @@ def _associated(trajectory_est: Trajectory, trajectory_gt: Trajectory, max_time_
         ) from None
 
 
-def _aligned_se3(est, ref) -> tuple[object, np.ndarray]:
-    """A copy of evo trajectory ``est`` moved rigidly onto ``ref`` (Umeyama, no scale) and the
+def _aligned_se3(est: Any, ref: Any) -> tuple[Any, np.ndarray]:
+    """A copy of evo trajectory ``est`` (a ``PoseTrajectory3D``: evo is imported lazily) moved rigidly onto ``ref`` (Umeyama, no scale) and the
     ``T_gt_estimate`` that did it."""
     from evo import EvoException
 

@@ -259,7 +259,7 @@ def _checked_errors(path: str | os.PathLike[str], name: str, points: NDArray, er
 
 
 def _map_panel(
-    ax, view, points: NDArray, colours: NDArray | None, title: str, gt: NDArray | None,
+    ax, view: TopView, points: NDArray, colours: NDArray | None, title: str, gt: NDArray | None,
     limits: tuple[NDArray, NDArray], height_range: tuple[float, float], error_max_mm: float,
 ):
     """One top view of :func:`plot_map_before_after` (the reference grey beneath); its colour mappable or None."""
