@@ -207,8 +207,8 @@ def _align(tgt: IcpRole, src: IcpRole, T0: NDArray, method: str, max_corresponde
     runs :data:`ICP_CYCLE_CHECK_ITERATIONS` at a time and also stops when a whole run of them
     moved the pose by less than that many steps' bound in all: steps that cancel are a cycle, not
     progress. A pose still sliding (a plane toward more overlap) moves far more and goes on; it
-    stays ``converged=False`` either way, as at the bound. Runs that converge within the first
-    ten iterations are the same call as before, bit for bit.
+    stays ``converged=False`` either way, as at the bound. An alignment that converges within
+    the first run takes one small_gicp call, as it would without the check.
     """
     import small_gicp
 

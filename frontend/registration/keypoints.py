@@ -203,7 +203,7 @@ def ransac_rigid(
     # A hypothesis's consensus bounds the inlier ratio whichever way it was found: with a guess
     # that 519 of 521 matches agree with, no sample can beat it, and the bound taken from samples
     # alone drew all max_iterations (10 000) of them for a loop the first draw settles.
-    needed = _draws_needed(best_count, n, drawn, log_fail, max_iterations) if best_count > 0 else max_iterations
+    needed = _draws_needed(best_count, n, drawn, log_fail, max_iterations)
     while drawn < min(needed, max_iterations):
         b = min(batch, max_iterations - drawn)
         # vectorised draw; a sample repeating an index is dropped by the spread test below
@@ -228,7 +228,8 @@ def ransac_rigid(
 
 def _draws_needed(best_count: int, n: int, drawn: int, log_fail: float, max_iterations: int) -> int:
     """3-point samples to draw in all for one of them to be all inliers with probability
-    ``1 - exp(log_fail)`` at the inlier ratio ``best_count / n`` (the standard adaptive bound)."""
+    ``1 - exp(log_fail)`` at the inlier ratio ``best_count / n`` (the standard adaptive bound;
+    ``max_iterations`` while nothing has any consensus, ``best_count`` 0 or the initial -1)."""
     p_all = (best_count / n) ** 3
     if p_all >= 1.0:
         return drawn
