@@ -52,6 +52,7 @@ def evaluate_results(results_dir: Path, gt_source: FrameSource, map_points_limit
         ate_max_mm=err.ate_max_m * 1e3,
         rpe_trans_rmse_mm=err.rpe_trans_rmse_m * 1e3,
         rpe_rot_rmse_deg=err.rpe_rot_rmse_deg,
+        frames_evaluated=err.matched,  # the frames the reference covers (a late or interrupted motion capture covers fewer)
     )
     described = gt_source.describe()
     views = described.get("views_per_turn")

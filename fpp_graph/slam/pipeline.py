@@ -485,6 +485,7 @@ class Pipeline:
         report.wall_seconds, cpu1 = time.perf_counter() - wall0, process_tree_cpu_s()
         report.cpu_seconds = None if cpu0 is None or cpu1 is None else cpu1 - cpu0  # the pool has joined its workers
         report.metrics = slam_summary(report)
+        report.metrics["source"] = self.source.describe()  # what the reader made of the folder (e.g. images it left alone)
         if gt_poses is not None:  # an evaluation that failed raises here, after the plots are written
             report.metrics["loop_evaluation"] = loop_evaluation.result()
         atomic_write_text(out / "metrics.json", json.dumps(report.metrics, indent=1, default=float))
@@ -494,7 +495,11 @@ class Pipeline:
         """``T_world_sensor`` per frame id from the source's ground truth (None without one, or
         when it does not cover every frame)."""
         gt = self.source.ground_truth()
-        if gt is None or len(gt) != len(ids):
+        if gt is None:
+            return None
+        if len(gt) != len(ids):
+            log.warning("the reference poses cover %d of the sequence's %d frames: the loop evaluation, which needs "
+                        "every keyframe's, is left out (fpp-slam eval scores the covered frames)", len(gt), len(ids))
             return None
         return {fid: T for fid, T in zip(ids, gt.poses_world_sensor, strict=True)}
 

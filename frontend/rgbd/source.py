@@ -105,6 +105,9 @@ TUM_CAMERAS = {
     "freiburg2": ((520.9, 521.0, 325.1, 249.7), (0.2312, -0.7849, -0.0033, -0.0001, 0.9172)),
     "freiburg3": ((535.4, 539.2, 320.1, 247.6), (0.0, 0.0, 0.0, 0.0, 0.0)),
 }
+# the TUM RGB-D benchmark's association bound (associate.py --max_difference): colour and depth
+# run at 30 Hz each, so a pair further apart than 20 ms is a dropped image's neighbour
+TUM_MAX_ASSOCIATION_S = 0.02
 ROS_DEFAULT_K = np.array([[525.0, 0.0, 319.5], [0.0, 525.0, 239.5], [0.0, 0.0, 1.0]])
 # 7-Scenes is distributed with PNG colour and, in common re-packagings, JPEG colour
 _SEVEN_SCENES = re.compile(r"frame-(\d+)\.color\.(?:png|jpe?g)$", re.IGNORECASE)
@@ -159,6 +162,35 @@ def register_color_to_depth(color: np.ndarray, xyz_map: np.ndarray, K_color: np.
     return cv2.remap(color, map_u, map_v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
 
 
+def associate_timestamps(first_s: list[float], second_s: list[float], max_difference_s: float) -> list[tuple[int, int]]:
+    """One-to-one pairs ``(i, j)`` of ``first_s[i]`` and ``second_s[j]`` within ``max_difference_s``,
+    in the order of ``first_s``: the closest pairs first, each timestamp used once, as the TUM RGB-D
+    benchmark's ``associate.py`` does (a dropped depth image leaves its colour image alone instead of
+    lending it the neighbour's depth, taken up to a frame period earlier or later)."""
+    a, b = np.asarray(first_s, dtype=np.float64), np.asarray(second_s, dtype=np.float64)
+    if not len(a) or not len(b):
+        return []
+    # candidates: each first timestamp against its neighbours in the sorted second list (the
+    # nearest on either side holds every pair within the bound when max_difference_s is below the
+    # streams' periods; two on each side cover jittered streams)
+    order = np.argsort(b, kind="stable")
+    at = np.searchsorted(b[order], a)
+    candidates = []
+    for i, k in enumerate(at):
+        for m in range(max(k - 2, 0), min(k + 2, len(b))):
+            j = int(order[m])
+            d = abs(a[i] - b[j])
+            if d <= max_difference_s:
+                candidates.append((d, i, j))
+    used_a, used_b, pairs = set(), set(), []
+    for _, i, j in sorted(candidates):
+        if i not in used_a and j not in used_b:
+            used_a.add(i)
+            used_b.add(j)
+            pairs.append((i, j))
+    return sorted(pairs)
+
+
 def interpolate_pose(trajectory: Trajectory, t: float, max_gap_s: float) -> np.ndarray | None:
     """``T_world_sensor`` of ``trajectory`` at time ``t``: slerp in rotation and linear in position
     between the two samples around ``t`` (a motion-capture stream at 100 Hz: the nearest sample
@@ -201,6 +233,8 @@ class RgbdSource:
         self.distortion: np.ndarray | None = None  # lens distortion of the depth grid's camera
         self._rays: np.ndarray | None = None  # pixel_rays of the depth grid, computed on first use
         self.T_color_depth = KINECT_V1_T_COLOR_DEPTH
+        # TUM: colour and depth images the one-to-one association left alone (7-Scenes pairs by name)
+        self.unassociated = {"color": 0, "depth": 0}
         if (self.path / "rgb.txt").exists() and (self.path / "depth.txt").exists():
             self.layout = "tum"
             self.entries, self.K, self.depth_per_m = self._read_tum()
@@ -273,16 +307,21 @@ class RgbdSource:
         rgb, depth = read_list("rgb.txt"), read_list("depth.txt")
         if not depth:
             return [], None, 5000.0
-        depth_t = np.array([t for t, _ in depth])
         K, self.distortion = self._tum_camera()
         gt = read_tum(self.path / "groundtruth.txt") if (self.path / "groundtruth.txt").exists() else None
+        pairs = associate_timestamps([t for t, _ in rgb], [t for t, _ in depth], TUM_MAX_ASSOCIATION_S)
+        self.unassociated = {"color": len(rgb) - len(pairs), "depth": len(depth) - len(pairs)}
+        if self.unassociated["color"]:
+            paired = {i for i, _ in pairs}
+            alone = [f"{rgb[i][0]:.6f}" for i in range(len(rgb)) if i not in paired]
+            log.warning("%s: %d of %d colour images have no depth image within %.0f ms of their own and are left out "
+                        "(timestamps %s%s)", self.path, len(alone), len(rgb), 1e3 * TUM_MAX_ASSOCIATION_S,
+                        ", ".join(alone[:5]), ", ..." if len(alone) > 5 else "")
         entries = []
-        for t, rgb_name in rgb:
-            j = int(np.argmin(np.abs(depth_t - t)))
-            if abs(depth_t[j] - t) > 0.02:
-                continue
+        for i, j in pairs:
+            t = rgb[i][0]
             T = None if gt is None else interpolate_pose(gt, t, max_gap_s=0.05)
-            entries.append(_Entry(len(entries), t, self.path / rgb_name, self.path / depth[j][1], T))
+            entries.append(_Entry(len(entries), t, self.path / rgb[i][1], self.path / depth[j][1], T))
         return entries, K, 5000.0
 
     def _tum_camera(self) -> tuple[np.ndarray, np.ndarray | None]:
@@ -385,13 +424,22 @@ class RgbdSource:
         return FppPairRegistrar(self.config.registration)
 
     def ground_truth(self) -> Trajectory | None:
-        if any(e.T_world_sensor is None for e in self.entries):
+        """The reference poses of the frames that have one (None when none has): a motion capture
+        that starts after the camera or drops out (TUM's ``groundtruth.txt``) leaves the frames it
+        does not cover out of the evaluation, said in a warning, instead of the whole reference."""
+        covered = [e for e in self.entries if e.T_world_sensor is not None]
+        if not covered:
             return None
-        return Trajectory.from_poses([e.timestamp for e in self.entries], [e.T_world_sensor for e in self.entries])
+        if len(covered) < len(self.entries):
+            log.warning("%s: the reference poses cover %d of %d frames; the other %d are left out of the evaluation",
+                        self.path, len(covered), len(self.entries), len(self.entries) - len(covered))
+        return Trajectory.from_poses([e.timestamp for e in covered], [e.T_world_sensor for e in covered])
 
     def ground_truth_mesh(self) -> Path | None:
         return None
 
     def describe(self) -> dict[str, Any]:
         return {"sensor": "rgbd", "layout": self.layout, "frames": len(self.entries), "K": self.K.tolist(),
-                "distortion": None if self.distortion is None else self.distortion.tolist()}
+                "distortion": None if self.distortion is None else self.distortion.tolist(),
+                "unassociated_images": dict(self.unassociated),
+                "frames_with_reference": sum(e.T_world_sensor is not None for e in self.entries)}
