@@ -111,7 +111,25 @@ def open_source(path: str | os.PathLike[str], config: Config, kind: str | None =
         if cls.detect(path):
             log.info("reading %s as a %s sequence", path, name)
             return cls(path, config)
+    inside = _sequences_inside(path, sources)
+    hint = (f"; it holds {len(inside)} sequence folder(s) ({', '.join(inside[:4])}{', ...' if len(inside) > 4 else ''}): "
+            "run one of them, or `fpp-slam batch` on them all") if inside else ""
     raise InputDataError(
         f"{path}: not a recognised sequence layout (registered: {', '.join(sorted(sources)) or 'none'}); "
-        "an FPP sequence holds sequence.yaml, an RGB-D one 7-Scenes frame-*.color.png/depth.png or TUM rgb.txt/depth.txt"
+        f"an FPP sequence holds sequence.yaml, an RGB-D one 7-Scenes frame-*.color.png/depth.png or TUM rgb.txt/depth.txt{hint}"
     )
+
+
+def _sequences_inside(path: Path, sources: dict[str, type]) -> list[str]:
+    """Names of ``path``'s sub-folders a registered source recognises (a 7-Scenes scene holds
+    ``seq-01``, ``seq-02``, ...; a download of TUM sequences holds ``rgbd_dataset_*``)."""
+    if not path.is_dir():
+        return []
+    found = []
+    for sub in sorted(p for p in path.iterdir() if p.is_dir()):
+        try:
+            if any(cls.detect(sub) for cls in sources.values()):
+                found.append(sub.name)
+        except OSError:  # an unreadable sub-folder is not a sequence we can offer
+            continue
+    return found

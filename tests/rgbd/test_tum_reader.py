@@ -111,3 +111,17 @@ def test_a_sequence_without_any_reference_pose_is_refused_by_eval(tmp_path):
     write_tum(out / "trajectory.tum", Trajectory.from_poses(colour, [np.eye(4)] * 4))
     with pytest.raises(InputDataError, match="has no ground truth"):
         evaluate_results(out, source)
+
+
+def test_a_folder_of_sequences_is_refused_naming_the_sequences_inside(tmp_path):
+    from fpp_graph.slam.sources import open_source
+
+    scene = tmp_path / "chess"  # a 7-Scenes scene: one folder per recording
+    for name in ("seq-01", "seq-02"):
+        _tum_folder(scene / name, [1.0, 1.033], [1.0, 1.033], reference_s=None)
+    (scene / "notes").mkdir()
+    with pytest.raises(InputDataError, match=r"it holds 2 sequence folder\(s\) \(seq-01, seq-02\): run one of them"):
+        open_source(scene, Config())
+    with pytest.raises(InputDataError) as refused:
+        open_source(scene / "notes", Config())
+    assert "sequence folder" not in str(refused.value)
