@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import time
 from concurrent.futures import Future, ThreadPoolExecutor
 
@@ -18,6 +19,7 @@ from fpp_graph.slam.keyframes import KeyframeManager
 from fpp_graph.slam.pipeline import Pipeline
 from fpp_graph.slam.sources import open_source
 from fpp_graph.slam.verification import ExecutorVerifier, InlineVerifier
+from fpp_graph.slam.workers import single_threaded_libraries
 from fpp_graph.types import Constraint, ConstraintKind, PairVerifier
 
 
@@ -153,7 +155,15 @@ def test_worker_processes_and_dask_give_the_in_process_run(tmp_path):
     config_file.write_text("loop_closure:\n  query_view_change: 0\n")
     config = load_config(config_file)
     config = config.model_copy(update={"run": config.run.model_copy(update={"workers": 1})})
-    Pipeline(open_source(sequence, config), config, tmp_path / "inline").run()
+    # the tracking process runs its libraries on one thread beside a worker pool; so does this
+    # run, so that the executors, not the libraries' thread counts, are what is compared (BLAS
+    # sums in a thread-dependent order: a 1e-10 difference in one fit turned one keypoint of a
+    # loop to the other side of RANSAC's inlier bound, 28 against 27 inliers, on one machine)
+    restore = single_threaded_libraries()
+    try:
+        Pipeline(open_source(sequence, config), config, tmp_path / "inline").run()
+    finally:
+        restore()
     runs = {"inline": _results(tmp_path / "inline")}
     schedulers = {"pool": []}
     try:
@@ -167,10 +177,21 @@ def test_worker_processes_and_dask_give_the_in_process_run(tmp_path):
         assert result.exit_code == 0, result.output
         runs[name] = _results(tmp_path / name)
     loops1, traj1 = runs.pop("inline")
-    exact = ("query", "match", "stage", "verified", "rejected_by_backend", "reason", "inliers")
+    exact = ("query", "match", "stage", "verified", "rejected_by_backend")
+
+    def verdicts(loops):
+        # a reason's words exactly; its figures carry the round-off described below
+        return [[*(r[k] for k in exact), re.sub(r"-?\d+(\.\d+)?", "#", r["reason"] or "")] for r in loops]
+
     assert len(loops1) >= 3
     for name, (loops2, traj2) in runs.items():
-        assert [[r[k] for k in exact] for r in loops1] == [[r[k] for k in exact] for r in loops2], name
+        assert verdicts(loops1) == verdicts(loops2), name
+        # a keypoint whose residual lies within that round-off of RANSAC's inlier bound counts on
+        # one side in one run and on the other in another (Dask's processes set their libraries'
+        # threads their own way: 28 against 27 inliers for one loop, on one machine and not another)
+        for r1, r2 in zip(loops1, loops2, strict=True):
+            assert (r1["inliers"] is None) == (r2["inliers"] is None), (name, r1, r2)
+            assert r1["inliers"] is None or abs(r1["inliers"] - r2["inliers"]) <= 2, (name, r1, r2)
         # figures equal up to float round-off carried along the run: BLAS and iSAM2 sum in a
         # thread-dependent order, and with tracking from motion (on for RGB-D) a 1e-10 difference
         # in one dense fit enters the next frame's prediction and grows through the fits' discrete
@@ -179,7 +200,9 @@ def test_worker_processes_and_dask_give_the_in_process_run(tmp_path):
         # millimetres, but the proximity scores (1 - distance / radius) move with the poses
         for r1, r2 in zip(loops1, loops2, strict=True):
             assert r2["score"] == pytest.approx(r1["score"], abs=1e-3) and r2["fitness"] == pytest.approx(r1["fitness"], abs=1e-3)
-        np.testing.assert_allclose(np.loadtxt(traj1.splitlines()), np.loadtxt(traj2.splitlines()), atol=2e-4, err_msg=name)
+        # with a loop's inlier set one keypoint apart, the trajectories part by up to 0.7 mm (seen),
+        # a fraction of the Kinect's millimetres at these depths
+        np.testing.assert_allclose(np.loadtxt(traj1.splitlines()), np.loadtxt(traj2.splitlines()), atol=1.5e-3, err_msg=name)
 
 
 def test_run_with_an_unreachable_scheduler_is_a_one_line_error(tmp_path, capsys):
