@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import cv2
@@ -47,6 +48,8 @@ log = logging.getLogger(__name__)
 Array = NDArray[np.float64]
 
 _BIN_PX = 2  # normals and rays live on b x b bins (see OrganisedSurface)
+SURFACE_ARRAYS = ("surface.pinhole", "surface.rays", "surface.normals")
+"""Names of :meth:`OrganisedSurface.to_arrays` (stored in :attr:`fpp_graph.types.Frame.prepared`)."""
 _REMAP_ROW = 1024  # cv2.remap needs maps below 32767 rows: queries are laid out 1024 per row
 
 
@@ -67,6 +70,11 @@ def sample_bilinear(image: NDArray[np.float32], u_px: NDArray, v_px: NDArray) ->
                     borderMode=cv2.BORDER_CONSTANT, borderValue=(float("nan"),) * 4)
     channels = 1 if image.ndim == 2 else image.shape[2]
     return out.reshape(rows * _REMAP_ROW, channels)[:n]
+
+
+def _normal_window_px(width_px: int, asked: int | None) -> int:
+    """The normals' smoothing window: as asked, else 10 px at 1920 wide (scaled with the image)."""
+    return int(asked) if asked else max(4, round(10 * width_px / 1920))
 
 
 def fit_pinhole(xyz_map: NDArray, step_px: int = 8) -> tuple[NDArray[np.float64], float] | None:
@@ -117,30 +125,12 @@ class OrganisedSurface:
     """
 
     def __init__(self, xyz_map: NDArray, normal_window_px: int | None = None):
-        xyz = np.asarray(xyz_map)
-        if xyz.ndim != 3 or xyz.shape[2] != 3:
-            raise InputDataError(f"dense alignment needs an (H, W, 3) xyz map, got shape {xyz.shape}")
-        source_map = xyz
-        xyz = np.ascontiguousarray(xyz, dtype=np.float32)
+        xyz = self._checked_map(xyz_map)
         H, W = xyz.shape[:2]
-        self.height, self.width = H, W
-        # Full-resolution work is kept to the float32 copy and two scans of z: every further
-        # full-size temporary costs ~5-10 ms per 1920x1200 map (page faults included).
-        z = xyz[..., 2]
-        with np.errstate(invalid="ignore"):
-            self.num_valid = int(np.count_nonzero(z > 0))  # NaN compares False
-        if self.num_valid != int(np.count_nonzero(np.isfinite(z))):
-            # points on or behind the camera are not surface samples (never from a decoder)
-            if np.shares_memory(xyz, source_map):
-                xyz = xyz.copy()  # never write into the caller's frame
-            with np.errstate(invalid="ignore"):
-                xyz[~(xyz[..., 2] > 0)] = np.nan
-        # (a point with NaN x or y only is dropped where it is sampled: samples() and lookup())
         cam = fit_pinhole(xyz) if self.num_valid >= 20 else None
         if cam is None:
             raise InputDataError(f"dense alignment: only {self.num_valid} valid pixels in a {W}x{H} map; a surface needs more")
         self.fx, self.fy, self.cx, self.cy = (float(c) for c in cam[0])
-        self.xyz = xyz
         # Normals and rays on a b x b binned map: normals come from a box-smoothed map anyway, and a
         # pixel's ray is smooth across pixels (the lens), so bilinear on 2 px is exact to ~1e-6 px
         # (4 px bins were tried: turntable pairs 10% worse).
@@ -158,7 +148,7 @@ class OrganisedSurface:
         # filled at the first projection: a tracked frame's map is often only sampled, never
         # projected into (10-15 ms of a 640x480 frame's preparation)
         self._valid_bins: NDArray[np.bool_] | None = valid_b
-        window_px = int(normal_window_px) if normal_window_px else max(4, round(10 * W / 1920))
+        window_px = self.normal_window_px = _normal_window_px(W, normal_window_px)
         k = max(3, 2 * (round(window_px / b) // 2) + 1)  # odd, in bins
         count = cv2.boxFilter(valid_b.astype(np.float32), -1, (k, k), normalize=False, borderType=cv2.BORDER_CONSTANT)
         cv2.patchNaNs(binned, 0.0)
@@ -196,6 +186,72 @@ class OrganisedSurface:
         n = cv2.merge([np.multiply(nx, inv_norm, out=nx), np.multiply(ny, inv_norm, out=ny), np.multiply(nz, inv_norm, out=nz)])
         self.normals_binned = n
         self._samples: dict[int, tuple[Array, Array]] = {}
+
+    def _checked_map(self, xyz_map: NDArray) -> NDArray[np.float32]:
+        """The map as this surface keeps it (float32, contiguous, NaN where z <= 0); sets the size
+        and :attr:`num_valid`."""
+        xyz = np.asarray(xyz_map)
+        if xyz.ndim != 3 or xyz.shape[2] != 3:
+            raise InputDataError(f"dense alignment needs an (H, W, 3) xyz map, got shape {xyz.shape}")
+        source_map = xyz
+        xyz = np.ascontiguousarray(xyz, dtype=np.float32)
+        self.height, self.width = xyz.shape[:2]
+        # Full-resolution work is kept to the float32 copy and two scans of z: every further
+        # full-size temporary costs ~5-10 ms per 1920x1200 map (page faults included).
+        z = xyz[..., 2]
+        with np.errstate(invalid="ignore"):
+            self.num_valid = int(np.count_nonzero(z > 0))  # NaN compares False
+        if self.num_valid != int(np.count_nonzero(np.isfinite(z))):
+            # points on or behind the camera are not surface samples (never from a decoder)
+            if np.shares_memory(xyz, source_map):
+                xyz = xyz.copy()  # never write into the caller's frame
+            with np.errstate(invalid="ignore"):
+                xyz[~(xyz[..., 2] > 0)] = np.nan
+        # (a point with NaN x or y only is dropped where it is sampled: samples() and lookup())
+        self.xyz = xyz
+        return xyz
+
+    def to_arrays(self) -> dict[str, NDArray]:
+        """What :meth:`from_arrays` needs besides the map (:data:`SURFACE_ARRAYS`): the pinhole,
+        the binned rays (filled near the surface) and normals, about 5 bytes a pixel. A decode
+        worker stores them with the frame (:meth:`FppPairRegistrar.prepare`), so every process
+        that aligns the frame reads them instead of making them again (a 1920x1200 map: ~50 ms)."""
+        self._fill_pending_rays()
+        return {
+            "surface.pinhole": np.array([self.fx, self.fy, self.cx, self.cy, self.bin_px, self.normal_window_px], dtype=np.float64),
+            "surface.rays": self.rays_binned,
+            "surface.normals": self.normals_binned,
+        }
+
+    @classmethod
+    def from_arrays(cls, xyz_map: NDArray, arrays: Mapping[str, NDArray], normal_window_px: int | None = None) -> OrganisedSurface | None:
+        """The surface of ``xyz_map`` from its :meth:`to_arrays` (the same numbers as making it
+        again); None when ``arrays`` lack them or were made for another map size, bin or normal window."""
+        if not all(name in arrays for name in SURFACE_ARRAYS):
+            return None
+        pinhole = np.asarray(arrays["surface.pinhole"], dtype=np.float64)
+        rays, normals = np.asarray(arrays["surface.rays"]), np.asarray(arrays["surface.normals"])
+        shape = np.shape(xyz_map)
+        if len(shape) != 3 or pinhole.shape != (6,) or int(pinhole[4]) != _BIN_PX:
+            return None
+        if int(pinhole[5]) != _normal_window_px(shape[1], normal_window_px):
+            return None
+        binned = (shape[0] // _BIN_PX, shape[1] // _BIN_PX)
+        if rays.shape != (*binned, 2) or normals.shape != (*binned, 3) or rays.dtype != np.float32 or normals.dtype != np.float32:
+            return None
+        surface = cls.__new__(cls)
+        surface._checked_map(xyz_map)
+        surface.fx, surface.fy, surface.cx, surface.cy = (float(c) for c in pinhole[:4])
+        surface.bin_px, surface.normal_window_px = _BIN_PX, int(pinhole[5])
+        surface.rays_binned, surface.normals_binned = rays, normals
+        surface._valid_bins = None  # stored filled
+        surface._samples = {}
+        return surface
+
+    def _fill_pending_rays(self) -> None:
+        if self._valid_bins is not None:
+            self._fill_rays_near_surface(self._valid_bins)
+            self._valid_bins = None
 
     def _fill_rays_near_surface(self, valid_b: NDArray[np.bool_], degree: int = 5, ring_bins: int = 8) -> None:
         """Rays for invalid bins within ``ring_bins`` of the surface, from a polynomial lens model.
@@ -273,9 +329,7 @@ class OrganisedSurface:
         The fitted pinhole's pixel, corrected with the map's own rays (lens distortion included);
         where the map has no ray nearby the pinhole's pixel is returned.
         """
-        if self._valid_bins is not None:
-            self._fill_rays_near_surface(self._valid_bins)
-            self._valid_bins = None
+        self._fill_pending_rays()
         z = points_m[:, 2]
         with np.errstate(divide="ignore", invalid="ignore"):
             ax = (points_m[:, 0] / z).astype(np.float32)

@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import NDArray
 
-from fpp_graph.errors import FppError
+from fpp_graph.errors import FppError, InputDataError
 from fpp_graph.geometry import invert
 from fpp_graph.types import Constraint, ConstraintKind, Frame
 from frontend.config import RegistrationConfig
@@ -134,10 +134,11 @@ class FppPairRegistrar:
         return cached
 
     def dense_surface(self, frame: Frame) -> OrganisedSurface:
-        """The frame's organised map prepared for :func:`frontend.dense_alignment.align_dense` (cached)."""
+        """The frame's organised map prepared for :func:`frontend.dense_alignment.align_dense`
+        (cached; read from :attr:`Frame.prepared` where :meth:`prepare` stored it)."""
         cached = self._surfaces.get(frame)
         if cached is None:
-            cached = OrganisedSurface(frame.xyz_map)
+            cached = OrganisedSurface.from_arrays(frame.xyz_map, frame.prepared) or OrganisedSurface(frame.xyz_map)
             self._surfaces[frame] = cached
         return cached
 
@@ -157,26 +158,40 @@ class FppPairRegistrar:
 
     def prepare(self, frame: Frame) -> Frame:
         """``frame`` with what every pair it takes part in will need, made once where the frame is
-        made (a decode worker) and stored with it (:attr:`Frame.prepared`).
+        made (a decode worker) and stored with it (:attr:`Frame.prepared`), so that the tracking
+        process and each worker verifying one of its loops read it instead of making it again:
 
-        That is the photometric step's reference pixels (0.3-0.9 s of a 1920x1200 frame) for a
-        frame whose own surface is plane-like (:func:`surface_is_plane_like`): each of its
-        pairs takes the step, with the frame as the target of the next keyframe's odometry
-        and of loop candidates on several workers, which each computed them again (a simulated
-        corridor run: 173 times for 92 frames). They are computed from the map as the frame
-        store keeps it (float32), so every process reading the frame back gets the same numbers
-        it would have computed. Other frames (relief, or no rig) are returned as they are.
+        * its dense surface (:meth:`OrganisedSurface.to_arrays`: normals and rays, ~50 ms of a
+          1920x1200 map, ~8 ms of a 640x480 one, ~5 bytes a pixel on disk). A doll turntable
+          run made 39 frames' surfaces about 220 times: as the target and source of odometry
+          and of loop candidates on two workers, each holding a few frames;
+        * the photometric step's reference pixels (0.3-0.9 s of a 1920x1200 frame) for a frame
+          whose own surface is plane-like (:func:`surface_is_plane_like`): each of its pairs
+          takes the step (a simulated corridor run computed them 173 times for 92 frames).
+
+        Both are made from the map as the frame store keeps it (float32), so every process
+        reading the frame back gets the numbers it would have made itself. A frame without a
+        map is returned as it is.
         """
-        if not self.texture_sets_planes or frame.xyz_map is None or frame.texture is None:
+        if frame.xyz_map is None:
             return frame
+        stored_map = np.asarray(frame.xyz_map, dtype=np.float32)
+        prepared: dict[str, NDArray] = {}
+        if self.config.dense.enabled:
+            try:
+                prepared.update(OrganisedSurface(stored_map).to_arrays())
+            except InputDataError:
+                pass  # too few valid pixels for a surface: each pair that needs one says so
         cfg = self.config
-        if not surface_is_plane_like(frame.xyz_map, cfg.lengths.icp_voxel_m, cfg.weak_directions.degeneracy_ratio):
-            return frame
-        from frontend.localization.reference import reference_to_arrays
+        if (
+            self.texture_sets_planes and frame.texture is not None
+            and surface_is_plane_like(frame.xyz_map, cfg.lengths.icp_voxel_m, cfg.weak_directions.degeneracy_ratio)
+        ):
+            from frontend.localization.reference import reference_to_arrays
 
-        stored_map = np.asarray(frame.xyz_map, dtype=np.float32).astype(np.float64)
-        pixels = self._reference_pixels(stored_map, frame.texture)
-        return dataclasses.replace(frame, prepared={**frame.prepared, **reference_to_arrays(pixels, PREPARED_REFERENCE)})
+            pixels = self._reference_pixels(stored_map.astype(np.float64), frame.texture)
+            prepared.update(reference_to_arrays(pixels, PREPARED_REFERENCE))
+        return dataclasses.replace(frame, prepared={**frame.prepared, **prepared}) if prepared else frame
 
     def _reference_settings(self, texture: NDArray) -> tuple:
         from frontend.localization.reference import reference_settings

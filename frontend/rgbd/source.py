@@ -232,6 +232,7 @@ class RgbdSource:
         self.K_color: np.ndarray | None = None  # None: colour already on the depth grid
         self.distortion: np.ndarray | None = None  # lens distortion of the depth grid's camera
         self._rays: np.ndarray | None = None  # pixel_rays of the depth grid, computed on first use
+        self._preparer = None  # the registrar whose per-frame work load_frame does (made on first use)
         self.T_color_depth = KINECT_V1_T_COLOR_DEPTH
         # TUM: colour and depth images the one-to-one association left alone (7-Scenes pairs by name)
         self.unassociated = {"color": 0, "depth": 0}
@@ -346,6 +347,11 @@ class RgbdSource:
                     "intrinsics 525/525/319.5/239.5 without distortion: add intrinsics.txt for accurate depth", self.path)
         return ROS_DEFAULT_K.copy(), None
 
+    def __getstate__(self) -> dict:
+        state = dict(self.__dict__)
+        state["_preparer"] = None  # its caches stay in the process that made it
+        return state
+
     # -- FrameSource -----------------------------------------------------------------------
     def frame_ids(self) -> list[int]:
         return [e.frame_id for e in self.entries]
@@ -385,6 +391,11 @@ class RgbdSource:
             metadata={"K": self.K.tolist(), "sensor": "rgbd",
                       **({"distortion": self.distortion.tolist()} if self.distortion is not None else {})},
         )
+        # the registrar's per-frame work that every pair of this frame needs (its dense surface),
+        # done here once, on a decode worker, and handed on with the frame
+        if self._preparer is None:
+            self._preparer = self.make_registrar()
+        frame = self._preparer.prepare(frame)
         if self.config.keyframes.track_from_motion:
             # tracked frames follow their keyframe's keypoints and need none of their own; the
             # keyframe manager has keyframes described (FrameDescriber): SURF on a 640x480

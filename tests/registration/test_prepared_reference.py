@@ -1,4 +1,5 @@
-"""FppPairRegistrar.prepare: a plane-like frame's photometric reference pixels made once, stored with the frame."""
+"""FppPairRegistrar.prepare: a frame's dense surface and, for a plane-like frame, its photometric
+reference pixels, made once and stored with the frame."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ import pytest
 from fpp_graph.slam.frame_store import load_frame, save_frame
 from fpp_graph.types import Frame
 from frontend.config import RegistrationConfig
+from frontend.dense_alignment import SURFACE_ARRAYS, OrganisedSurface
 from frontend.localization.reference import reference_from_arrays, reference_settings
 from frontend.registration import FppPairRegistrar, TextureCamera
 from frontend.registration.registrar import PREPARED_REFERENCE
@@ -80,7 +82,45 @@ def test_other_settings_compute_their_own_reference(flat_frame):
     assert reference.settings == settings and reference.index.size == 5000
 
 
-def test_frames_that_need_no_reference_are_returned_as_they_are(flat_frame, relief_frame):
-    assert registrar().prepare(relief_frame) is relief_frame  # relief: its pairs are not weak
-    assert FppPairRegistrar(RegistrationConfig()).prepare(flat_frame) is flat_frame  # no rig: no photometric step
-    assert registrar(enabled=False).prepare(flat_frame) is flat_frame
+def test_frames_that_need_no_reference_get_their_surface_only(flat_frame, relief_frame):
+    def reference_names(frame):
+        return {name for name in frame.prepared if name.startswith(PREPARED_REFERENCE)}
+
+    for frame in (
+        registrar().prepare(relief_frame),  # relief: its pairs are not weak
+        FppPairRegistrar(RegistrationConfig()).prepare(flat_frame),  # no rig: no photometric step
+        registrar(enabled=False).prepare(flat_frame),
+    ):
+        assert not reference_names(frame)
+        assert set(SURFACE_ARRAYS) <= set(frame.prepared)
+    no_dense = RegistrationConfig()
+    no_dense = no_dense.model_copy(update={"dense": no_dense.dense.model_copy(update={"enabled": False})})
+    assert FppPairRegistrar(no_dense).prepare(flat_frame) is flat_frame  # nothing a pair of it needs
+    no_map = dataclasses.replace(flat_frame, xyz_map=None)
+    assert registrar().prepare(no_map) is no_map
+
+
+def test_prepared_surface_is_the_one_a_reader_of_the_stored_frame_would_make(relief_frame, tmp_path):
+    save_frame(tmp_path / "f.npz", registrar().prepare(relief_frame))
+    read = load_frame(tmp_path / "f.npz")
+    used = registrar().dense_surface(read)
+    made = OrganisedSurface(read.xyz_map)
+    # it is the stored arrays that were used, not a second computation
+    assert np.shares_memory(used.normals_binned, read.prepared["surface.normals"])
+    rng = np.random.default_rng(0)
+    points = made.samples(4)[0] + rng.normal(0.0, 0.002, (len(made.samples(4)[0]), 3))
+    for a, b in zip(used.lookup(points), made.lookup(points), strict=True):
+        assert np.array_equal(a, b, equal_nan=True)
+    for a, b in zip(used.samples(2), made.samples(2), strict=True):
+        assert np.array_equal(a, b)
+    assert (used.fx, used.fy, used.cx, used.cy) == (made.fx, made.fy, made.cx, made.cy)
+
+
+def test_stored_surface_of_another_map_or_setting_is_not_used(relief_frame):
+    arrays = OrganisedSurface(relief_frame.xyz_map).to_arrays()
+    assert OrganisedSurface.from_arrays(relief_frame.xyz_map, arrays) is not None
+    assert OrganisedSurface.from_arrays(relief_frame.xyz_map[:-2], arrays) is None  # another size
+    assert OrganisedSurface.from_arrays(relief_frame.xyz_map, arrays, normal_window_px=9) is None  # other normals
+    assert OrganisedSurface.from_arrays(relief_frame.xyz_map, {k: v for k, v in arrays.items() if k != "surface.rays"}) is None
+    old = {**arrays, "surface.pinhole": arrays["surface.pinhole"][:5]}  # another layout
+    assert OrganisedSurface.from_arrays(relief_frame.xyz_map, old) is None
