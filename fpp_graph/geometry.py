@@ -135,10 +135,12 @@ def finite_points(points: NDArray) -> NDArray[np.bool_]:
         return np.isfinite(points[..., 0] + points[..., 1] + points[..., 2])
 
 
-def finite_box(xyz: NDArray[np.float64]) -> tuple[slice, slice]:
+def finite_box(xyz: NDArray[np.float64], finite: NDArray[np.bool_] | None = None) -> tuple[slice, slice]:
     """Rows and columns of the box around the pixels whose three coordinates are finite, widened
-    by one pixel within the image (empty slices when there is none)."""
-    finite = finite_points(xyz)
+    by one pixel within the image (empty slices when there is none). ``finite``: the map's
+    :func:`finite_points` when the caller has it already."""
+    if finite is None:
+        finite = finite_points(xyz)
     row_any, col_any = finite.any(axis=1), finite.any(axis=0)
     if not row_any.any():
         return slice(0, 0), slice(0, 0)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import pickle
 
 import numpy as np
@@ -19,7 +20,7 @@ from fpp_graph.fusion.voxel_map import (
     write_mesh_ply,
     write_point_cloud_ply,
 )
-from fpp_graph.geometry import compose, make_pose
+from fpp_graph.geometry import compose, finite_points, make_pose
 from fpp_graph.types import Frame, MapFuser
 
 CENTRE = np.array([0.0, 0.0, 1.0])
@@ -572,6 +573,27 @@ def test_grazing_weights_of_a_partial_map_are_the_whole_maps_bit_for_bit(rng, bo
     got = grazing_weights(partial)
     assert got.shape == (h, w)
     np.testing.assert_array_equal(got, expected)
+    # the finite pixels handed in (as the fusion preparer does) give the same weights
+    np.testing.assert_array_equal(grazing_weights(partial, finite=finite_points(partial)), got)
+
+
+def test_render_depth_with_the_finite_pixels_handed_in_is_the_same(rng):
+    from fpp_graph.fusion.voxel_map import intrinsics_of, render_depth
+
+    h, w = 30, 40
+    v, u = np.mgrid[0:h, 0:w].astype(float)
+    z = 0.8 + 0.1 * np.sin(u / 6.0) + rng.normal(0, 1e-4, (h, w))
+    xyz = np.dstack([(u - w / 2) / 150 * z, (v - h / 2) / 150 * z, z])
+    xyz[3:6, 4:9] = np.nan
+    xyz[10, 10, 2] = -0.5  # behind the camera: never rendered, with or without the mask
+    finite = finite_points(xyz)
+    frame = Frame(id=0, timestamp=0.0, points=xyz[finite], xyz_map=xyz)
+    K = intrinsics_of(dataclasses.replace(frame, xyz_map=np.where(xyz[..., 2:] > 0, xyz, np.nan)))
+    depth, rgb = render_depth(frame, K)
+    depth_f, rgb_f = render_depth(frame, K, finite=finite)
+    np.testing.assert_array_equal(depth_f, depth)
+    np.testing.assert_array_equal(rgb_f, rgb)
+    assert np.count_nonzero(depth) == np.count_nonzero(finite) - 1
 
 
 @pytest.mark.parametrize("box", [(20, 50, 30, 70), (0, 40, 0, 30), (10, 64, 50, 96), (0, 64, 0, 96)])
