@@ -192,31 +192,44 @@ def _edge_filter_box(xyz_map: NDArray[np.float64], focal_px: float, max_angle_de
     """:func:`edge_filter_mask` of a box of the map whose sides are the image's border or lie on
     undecoded pixels: the same answer inside as on the whole map (a pixel's 3x3 neighbourhood is
     inside the box, and the box's own border pixels are dropped either way)."""
-    xyz = np.asarray(xyz_map, dtype=np.float32)
-    z = xyz[..., 2]
+    # the coordinates as contiguous float32 planes: differences and products on the strided
+    # channels of an (H, W, 3) map ran 15 % slower (the same numbers, in the same order)
+    if min(np.shape(xyz_map)[:2]) < 3:
+        return np.zeros(np.shape(xyz_map)[:2], dtype=bool)
+    x, y, z = cv2.split(np.ascontiguousarray(xyz_map, dtype=np.float32))
     valid = np.isfinite(z)
-    if min(z.shape) < 3:
-        return np.zeros_like(valid)
     z_hi = np.where(valid, z, np.float32(np.inf))
     z_lo = np.where(valid, z, np.float32(-np.inf))
     # an invalid neighbour makes the range infinite: hole and shadow edges go with the jumps
     # (3x3 max/min as OpenCV dilate/erode with replicated borders: ~10x faster than ndimage)
-    z_range = cv2.dilate(z_hi, _KERNEL_3x3, borderType=cv2.BORDER_REPLICATE) - cv2.erode(z_lo, _KERNEL_3x3, borderType=cv2.BORDER_REPLICATE)
+    z_range = cv2.dilate(z_hi, _KERNEL_3x3, borderType=cv2.BORDER_REPLICATE)
+    z_range -= cv2.erode(z_lo, _KERNEL_3x3, borderType=cv2.BORDER_REPLICATE)
     tan_max = np.float32(np.tan(np.radians(max_angle_deg)))
     with np.errstate(invalid="ignore"):
         bound = np.float32(2.0 * np.sqrt(2.0) / focal_px) * tan_max * z + np.float32(noise_floor_m)
         keep = valid & (z_range <= bound)
     keep[0, :] = keep[-1, :] = keep[:, 0] = keep[:, -1] = False
     # normal from central differences (all 8 neighbours are valid where keep holds), per
-    # component: |n . r| >= cos(max) |n| |r| compared squared, without (H, W, 3) temporaries
-    dux, duy, duz = (xyz[1:-1, 2:, k] - xyz[1:-1, :-2, k] for k in range(3))
-    dvx, dvy, dvz = (xyz[2:, 1:-1, k] - xyz[:-2, 1:-1, k] for k in range(3))
+    # component: |n . r| >= cos(max) |n| |r| compared squared, in place where a product's
+    # operands are no longer needed
+    dux, duy, duz = (p[1:-1, 2:] - p[1:-1, :-2] for p in (x, y, z))
+    dvx, dvy, dvz = (p[2:, 1:-1] - p[:-2, 1:-1] for p in (x, y, z))
     nx = duy * dvz - duz * dvy
     ny = duz * dvx - dux * dvz
     nz = dux * dvy - duy * dvx
-    rx, ry, rz = (xyz[1:-1, 1:-1, k] for k in range(3))
-    dot = nx * rx + ny * ry + nz * rz
-    cos2 = np.float32(np.cos(np.radians(max_angle_deg)) ** 2)
+    rx, ry, rz = (p[1:-1, 1:-1] for p in (x, y, z))
     with np.errstate(invalid="ignore", over="ignore"):
-        keep[1:-1, 1:-1] &= dot * dot >= cos2 * (nx * nx + ny * ny + nz * nz) * (rx * rx + ry * ry + rz * rz)
+        dot = nx * rx
+        dot += ny * ry
+        dot += nz * rz
+        dot *= dot
+        n2 = np.multiply(nx, nx, out=nx)
+        n2 += np.multiply(ny, ny, out=ny)
+        n2 += np.multiply(nz, nz, out=nz)
+        r2 = rx * rx
+        r2 += ry * ry
+        r2 += rz * rz
+        n2 *= np.float32(np.cos(np.radians(max_angle_deg)) ** 2)
+        n2 *= r2
+        keep[1:-1, 1:-1] &= dot >= n2
     return keep
