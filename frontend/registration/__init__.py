@@ -58,7 +58,7 @@ the orchestrator and per-frame caches in :mod:`.registrar`.
 """
 
 from fpp_graph.geometry import kabsch
-from frontend.dense_alignment import fit_pinhole
+from frontend.organised_surface import fit_pinhole
 from frontend.registration.icp import (
     ICP_SOURCE_MAX_POINTS,
     ICP_TARGET_MAX_POINTS,

@@ -17,12 +17,12 @@ from frontend.config import RegistrationConfig
 from frontend.dense_alignment import (
     DenseAlignment,
     DenseEvaluation,
-    OrganisedSurface,
     align_dense,
     dense_strides,
     evaluate_dense,
 )
 from frontend.features.detect import Detector, detect_and_describe, feature_signature, make_detector
+from frontend.organised_surface import OrganisedSurface
 from frontend.registration.gates import Checkpoint, rejection
 from frontend.registration.icp import (
     IcpCloud,

@@ -12,7 +12,7 @@ from numpy.typing import NDArray
 
 from fpp_graph.geometry import finite_points, transform_points
 from fpp_graph.types import Frame
-from frontend.dense_alignment import fit_pinhole
+from frontend.organised_surface import fit_pinhole
 
 Array = NDArray[np.float64]
 

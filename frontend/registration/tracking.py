@@ -42,7 +42,8 @@ from fpp_graph.errors import FppError
 from fpp_graph.geometry import invert, se3_exp, transform_points
 from fpp_graph.types import Constraint, ConstraintKind, Frame
 from frontend.config import RegistrationConfig
-from frontend.dense_alignment import DenseAlignment, OrganisedSurface, align_dense
+from frontend.dense_alignment import DenseAlignment, align_dense
+from frontend.organised_surface import OrganisedSurface
 from frontend.registration.icp import with_shared_error_floor
 from frontend.registration.keypoints import (
     information_from_keypoints,

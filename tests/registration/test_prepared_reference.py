@@ -11,8 +11,8 @@ import pytest
 from fpp_graph.slam.frame_store import load_frame, save_frame
 from fpp_graph.types import Frame
 from frontend.config import RegistrationConfig
-from frontend.dense_alignment import SURFACE_ARRAYS, OrganisedSurface
 from frontend.localization.reference import reference_from_arrays, reference_settings
+from frontend.organised_surface import SURFACE_ARRAYS, OrganisedSurface
 from frontend.registration import FppPairRegistrar, TextureCamera
 from frontend.registration.registrar import PREPARED_REFERENCE
 from frontend.registration.weak_directions import surface_is_plane_like
