@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import logging
 import math
 import weakref
 from typing import TYPE_CHECKING
@@ -54,6 +55,8 @@ from frontend.registration.weak_directions import (
     surface_is_plane_like,
     weak_direction_pin,
 )
+
+log = logging.getLogger(__name__)
 
 if TYPE_CHECKING:
     from frontend.localization import ReferencePixels
@@ -180,8 +183,9 @@ class FppPairRegistrar:
         if self.config.dense.enabled:
             try:
                 prepared.update(OrganisedSurface(stored_map).to_arrays())
-            except InputDataError:
-                pass  # too few valid pixels for a surface: each pair that needs one says so
+            except InputDataError as exc:
+                # too few valid pixels for a surface: each pair that needs one says so again
+                log.debug("frame %d: no dense surface stored with it (%s)", frame.id, exc)
         cfg = self.config
         if (
             self.texture_sets_planes and frame.texture is not None

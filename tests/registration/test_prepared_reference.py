@@ -8,6 +8,7 @@ import dataclasses
 import numpy as np
 import pytest
 
+from fpp_graph.errors import InputDataError
 from fpp_graph.slam.frame_store import load_frame, save_frame
 from fpp_graph.types import Frame
 from frontend.config import RegistrationConfig
@@ -124,3 +125,12 @@ def test_stored_surface_of_another_map_or_setting_is_not_used(relief_frame):
     assert OrganisedSurface.from_arrays(relief_frame.xyz_map, {k: v for k, v in arrays.items() if k != "surface.rays"}) is None
     old = {**arrays, "surface.pinhole": arrays["surface.pinhole"][:5]}  # another layout
     assert OrganisedSurface.from_arrays(relief_frame.xyz_map, old) is None
+
+
+def test_a_map_too_sparse_for_a_surface_is_returned_as_it_is(flat_frame):
+    sparse = np.full_like(flat_frame.xyz_map, np.nan)
+    sparse[5, 5:10] = flat_frame.xyz_map[5, 5:10]  # 5 pixels: no pinhole to fit, no surface
+    frame = dataclasses.replace(flat_frame, xyz_map=sparse, points=sparse[5, 5:10])
+    assert registrar().prepare(frame) is frame
+    with pytest.raises(InputDataError, match="valid pixels"):
+        registrar().dense_surface(frame)  # the pair that needs it says so
