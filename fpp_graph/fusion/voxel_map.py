@@ -306,8 +306,9 @@ class FramePreparer:
                 f"map fusion: frame {frame.id} has {points.shape[0]} points but {weights.shape[0]} weights"
             )
         # the map's finite pixels, found once for the grazing weights and the depth rendering
-        # (each pass over a 1920x1200 map costs ~30 ms)
-        finite_map = finite_points(frame.xyz_map) if frame.xyz_map is not None else None
+        # (each pass over a 1920x1200 map costs ~30 ms), and only when one of them is made
+        needs_finite = frame.xyz_map is not None and (self.grazing_weight or self.mesh)
+        finite_map = finite_points(frame.xyz_map) if needs_finite else None
         if self.grazing_weight and finite_map is not None:
             # front-ends build points as xyz_map[valid] in row-major order; use it when it fits
             if np.count_nonzero(finite_map) == len(points):
