@@ -122,8 +122,8 @@ class VoxelMapFuser:
     def reset(self) -> None:
         """Forget everything integrated so far."""
         self._keys = np.zeros(0, dtype=np.int64)
-        # columns: w*x, w*y, w*z, w*r, w*g, w*b, w
-        self._sums = np.zeros((0, 7))
+        # one contiguous plane per sum, a value per voxel: w*x, w*y, w*z, w*r, w*g, w*b, w
+        self._sums = np.zeros((7, 0))
         self._pending: list[tuple[NDArray[np.int64], NDArray[np.float64]]] = []
         self._pending_rows = 0
         self._volume = None
@@ -180,8 +180,8 @@ class VoxelMapFuser:
         if not self._pending:
             return
         keys = np.concatenate([self._keys, *(k for k, _ in self._pending)])
-        sums = np.concatenate([self._sums, *(s for _, s in self._pending)])
-        self._keys, self._sums = _reduce(keys, sums)
+        sums = np.concatenate([self._sums, *(s for _, s in self._pending)], axis=1)
+        self._keys, self._sums = _reduce(keys, sums, sorted_runs=True)
         self._pending = []
         self._pending_rows = 0
 
@@ -220,11 +220,11 @@ class VoxelMapFuser:
         (builtin ``map``, or a worker pool's) runs the surface smoothing's chunks: the corridor's
         6.6 M voxels took 67 s in one process. The result does not depend on it."""
         self._merge()
-        w = self._sums[:, 6]
-        points = self._sums[:, :3] / w[:, None]
+        w = self._sums[6]
+        points = np.ascontiguousarray((self._sums[:3] / w).T)
         if self.surface_smoothing and len(points):
             points = project_to_local_planes(self._keys, points, w, self.voxel_size_m, map_chunks=map_chunks)
-        colors = np.clip(self._sums[:, 3:6] / w[:, None], 0.0, 1.0)
+        colors = np.ascontiguousarray(np.clip(self._sums[3:6] / w, 0.0, 1.0).T)
         vertices = triangles = vertex_colors = None
         if self.mesh:
             vertices, triangles, vertex_colors = np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64), np.zeros((0, 3))
@@ -266,8 +266,8 @@ class VoxelMapFuser:
 class PreparedFrame:
     """One frame's share of a :class:`VoxelMapFuser` map, computed without the fuser's state.
 
-    ``keys`` / ``sums``: the frame's occupied voxels and their weighted sums (columns w*x, w*y,
-    w*z, w*r, w*g, w*b, w); ``depth_m`` / ``rgb`` / ``K``: its pinhole depth image (float32,
+    ``keys`` / ``sums``: the frame's occupied voxels and their weighted sums (7, voxels: planes
+    w*x, w*y, w*z, w*r, w*g, w*b, w); ``depth_m`` / ``rgb`` / ``K``: its pinhole depth image (float32,
     metres), colours and intrinsics for the TSDF, None without a mesh or a depth
     (``no_depth_reason`` says which).
     """
@@ -324,13 +324,13 @@ class FramePreparer:
         kept = slice(None) if keep.all() else keep
         points_world = transform_points(T, points[kept])
         w = weights[kept]
-        keys, sums = np.zeros(0, dtype=np.int64), np.zeros((0, 7))
+        keys, sums = np.zeros(0, dtype=np.int64), np.zeros((7, 0))
         if len(points_world):
-            columns = np.empty((len(w), 7))
-            np.multiply(points_world, w[:, None], out=columns[:, :3])
-            np.multiply(colors[kept], w[:, None], out=columns[:, 3:6])
-            columns[:, 6] = w
-            keys, sums = _reduce(voxel_keys(points_world, self.voxel_size_m), columns)
+            planes = np.empty((7, len(w)))
+            np.multiply(points_world.T, w, out=planes[:3])
+            np.multiply(colors[kept].T, w, out=planes[3:6])
+            planes[6] = w
+            keys, sums = _reduce(voxel_keys(points_world, self.voxel_size_m), planes)
         prepared = PreparedFrame(frame.id, T, keys, sums, beyond)
         if not self.mesh:
             return prepared

@@ -541,18 +541,27 @@ def test_preparer_refuses_a_bad_pose_before_any_work(views):
 
 
 def test_voxel_sums_match_a_plain_unique_and_bincount(rng):
-    """``_reduce``'s stable sort gives np.unique's keys and the same per-key sums, bit for bit,
-    whatever the keys' order (runs as a frame's pixels give them, or shuffled)."""
+    """``_reduce`` gives np.unique's keys and the same per-key sums, bit for bit, whatever the
+    keys' order (runs as a frame's pixels give them, or shuffled) and however its sort orders
+    equal keys (ties in many keys of few values)."""
     from fpp_graph.fusion.voxel_grid import _reduce
 
     runs = np.repeat(rng.integers(-50, 50, 3000), rng.integers(1, 6, 3000))
-    for keys in (runs, rng.permutation(runs), np.zeros(0, dtype=np.int64), np.array([7])):
-        columns = rng.normal(size=(len(keys), 7))
-        unique, sums = _reduce(keys, columns)
+    merged = np.concatenate([np.sort(runs[:5000]), np.sort(runs[5000:])])  # sorted runs end to end, as a merge gives
+    cases = [(runs, False), (rng.permutation(runs), False), (merged, True), (merged, False), (np.zeros(0, dtype=np.int64), False), (np.array([7]), True)]
+    for keys, sorted_runs in cases:
+        planes = rng.normal(size=(7, len(keys)))
+        unique, sums = _reduce(keys, planes, sorted_runs=sorted_runs)
         expected_keys, inverse = np.unique(keys, return_inverse=True)
-        assert np.array_equal(unique, expected_keys) and sums.shape == (len(expected_keys), 7)
+        assert np.array_equal(unique, expected_keys) and sums.shape == (7, len(expected_keys))
         for c in range(7):
-            assert np.array_equal(sums[:, c], np.bincount(inverse, weights=columns[:, c], minlength=len(expected_keys)))
+            assert np.array_equal(sums[c], np.bincount(inverse, weights=planes[c], minlength=len(expected_keys)))
+        # summed in the keys' input order: a plain loop over the values gives the same doubles
+        if 0 < len(keys) < 50_000:
+            looped = {}
+            for key, value in zip(keys.tolist(), planes[0].tolist(), strict=True):
+                looped[key] = looped.get(key, 0.0) + value
+            assert sums[0].tolist() == [looped[key] for key in unique.tolist()]
 
 
 @pytest.mark.parametrize("box", [(slice(10, 30), slice(20, 45)), (slice(0, 25), slice(40, 60)), (slice(0, 40), slice(0, 60)), (slice(5, 6), slice(5, 50)), (slice(0, 0), slice(0, 0))])
