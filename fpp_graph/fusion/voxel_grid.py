@@ -65,17 +65,24 @@ def _reduce(
 
 
 def _neighbour_indices(keys: NDArray[np.int64], query: NDArray[np.int64]):
-    """Yield ``(i, j)``: ``query[i]``'s occupied 3x3x3 voxel neighbour is ``keys[j]`` (sorted ``keys``)."""
+    """Yield ``(i, j)``: ``query[i]``'s occupied 3x3x3 voxel neighbour is ``keys[j]`` (sorted
+    ``keys``), one offset at a time, ``dz`` fastest."""
     n = len(keys)
     for dx in (-1, 0, 1):
         for dy in (-1, 0, 1):
+            # the packed key of a neighbour is the key plus the packed offset (the fields never
+            # overflow for voxels inside the map's range). z is the key's lowest field, so the
+            # column's three keys are consecutive integers: one search finds the first, and each
+            # next one, if occupied, sits right after the previous hit (keys are unique; 9
+            # searches instead of 27)
+            below = query + ((dx << (2 * _KEY_BITS)) + (dy << _KEY_BITS) - 1)
+            pos = np.searchsorted(keys, below)
             for dz in (-1, 0, 1):
-                # the packed key of a neighbour is the key plus the packed offset (the fields
-                # never overflow for voxels inside the map's range)
-                target = query + ((dx << (2 * _KEY_BITS)) + (dy << _KEY_BITS) + dz)
-                pos = np.minimum(np.searchsorted(keys, target), n - 1)
-                i = np.flatnonzero(keys[pos] == target)
-                yield i, pos[i]
+                at = np.minimum(pos, n - 1)
+                hit = keys[at] == below + (dz + 1)
+                i = np.flatnonzero(hit)
+                yield i, at[i]
+                pos += hit
 
 
 def project_to_local_planes(
@@ -124,11 +131,19 @@ def project_chunk_task(task: tuple) -> NDArray[np.float64]:
     return _project_chunk(*task)
 
 
-def _sums(pair_rows: NDArray[np.int64], weights: NDArray[np.float64], columns: list[NDArray[np.float64]], n: int) -> NDArray[np.float64]:
+def _sums(pair_rows: NDArray[np.int64], weights: NDArray[np.float64], columns: list[NDArray[np.float64] | None], n: int) -> NDArray[np.float64]:
     """``(n, len(columns))``: per row ``i``, the weighted sum of each column over its pairs (one
     ``np.bincount`` per column: linear in the pairs, where scattered in-place adds on (n, 3, 3)
-    blocks cost ~10x more)."""
-    return np.stack([np.bincount(pair_rows, weights * c, minlength=n) for c in columns], axis=1)
+    blocks cost ~10x more). A column of None is all ones: the weights' own sum (``w * 1.0`` is
+    ``w``, so the same doubles without the product)."""
+    return np.stack([np.bincount(pair_rows, weights if c is None else weights * c, minlength=n) for c in columns], axis=1)
+
+
+# the quadratic height field's normal equations: basis 0..5 = 1, u, v, u^2, u v, v^2 and 6 = h;
+# the products of basis pairs (a, b), a <= b, then of each basis with h
+_PAIRS6 = [(a, b) for a in range(6) for b in range(a, 6)]
+_HEIGHT_PAIRS = [(a, 6) for a in range(6)]
+_UPPER3 = [(0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)]
 
 
 def _project_chunk(
@@ -164,51 +179,93 @@ def _project_chunk(
     # map coordinates of metres would cancel digits in E[p p^T] - E[p] E[p]^T
     d = (points[neighbour_of_pair] - own[rows_of_pair]) / voxel_size_m
     count = np.bincount(rows_of_pair, minlength=n)
-    upper = [(0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)]
-    sums = _sums(rows_of_pair, w, [np.ones(len(rows_of_pair)), d[:, 0], d[:, 1], d[:, 2]] + [d[:, a] * d[:, b] for a, b in upper], n)
+    sums = _sums(rows_of_pair, w, [None, d[:, 0], d[:, 1], d[:, 2]] + [d[:, a] * d[:, b] for a, b in _UPPER3], n)
     ok = count >= min_neighbours
     if not np.any(ok):
         return out
     s_w = sums[ok, 0]
     mean = sums[ok, 1:4] / s_w[:, None]
     second = np.empty((len(s_w), 3, 3))
-    for k, (a, b) in enumerate(upper):
+    for k, (a, b) in enumerate(_UPPER3):
         second[:, a, b] = second[:, b, a] = sums[ok, 4 + k] / s_w
     cov = second - mean[:, :, None] * mean[:, None, :]
-    eigval, eigvec = np.linalg.eigh(cov)
-    surface = eigval[:, 0] <= max_flatness * np.maximum(eigval[:, 1], 1e-30)
-    idx = np.flatnonzero(ok)[surface]
+    idx, eigvec = _surface_neighbourhoods(cov, max_flatness)
+    idx = np.flatnonzero(ok)[idx]
     if len(idx) == 0:
         return out
     frame = np.zeros((n, 3, 3))  # rows: tangent u, tangent v, normal
-    frame[idx, 0] = eigvec[surface, :, 2]
-    frame[idx, 1] = eigvec[surface, :, 1]
-    frame[idx, 2] = eigvec[surface, :, 0]
+    frame[idx, 0] = eigvec[:, :, 2]
+    frame[idx, 1] = eigvec[:, :, 1]
+    frame[idx, 2] = eigvec[:, :, 0]
     use = np.zeros(n, dtype=bool)
     use[idx] = True
     # weighted least squares of the quadratic height field around each point, in its frame
     keep = use[rows_of_pair]
     rows_of_pair, w, d = rows_of_pair[keep], w[keep], d[keep]
     local = np.einsum("nab,nb->na", frame[rows_of_pair], d)  # unitless, O(1)
+    offset = _height_at_origin(rows_of_pair, w, local, n, idx, sums[idx, 0]) * voxel_size_m
+    good = np.isfinite(offset)
+    out[idx[good]] = own[idx[good]] + offset[good, None] * frame[idx[good], 2]
+    return out
+
+
+def _surface_neighbourhoods(cov: NDArray[np.float64], max_flatness: float) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
+    """Which of the (m, 3, 3) covariances are a surface's (smallest eigenvalue at most
+    ``max_flatness`` times the middle one, by LAPACK's ``eigh``), and their eigenvectors.
+
+    ``eigh`` runs only on those a closed-form screen cannot rule out: the trigonometric
+    eigenvalues of a symmetric 3x3 (Smith 1961) are within ~1e-7 of the largest of LAPACK's,
+    so a neighbourhood whose smallest is above twice the bound plus 1e-6 of the largest is not
+    flat by LAPACK's either. The surfaces and eigenvectors are LAPACK's, as without the screen
+    (on real RGB-D maps, where Kinect noise thickens most 1 cm neighbourhoods, the screen leaves
+    ``eigh`` a fraction of them)."""
+    a00, a11, a22 = cov[:, 0, 0], cov[:, 1, 1], cov[:, 2, 2]
+    a01, a02, a12 = cov[:, 0, 1], cov[:, 0, 2], cov[:, 1, 2]
+    q = (a00 + a11 + a22) / 3.0
+    b00, b11, b22 = a00 - q, a11 - q, a22 - q
+    p = np.sqrt((b00 * b00 + b11 * b11 + b22 * b22 + 2.0 * (a01 * a01 + a02 * a02 + a12 * a12)) / 6.0)
+    det = b00 * (b11 * b22 - a12 * a12) - a01 * (a01 * b22 - a12 * a02) + a02 * (a01 * a12 - b11 * a02)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        phi = np.arccos(np.clip(det / (2.0 * p**3), -1.0, 1.0)) / 3.0
+    largest = q + 2.0 * p * np.cos(phi)
+    smallest = q + 2.0 * p * np.cos(phi + 2.0 * np.pi / 3.0)
+    middle = 3.0 * q - largest - smallest
+    clearly_not_flat = (smallest > 2.0 * max_flatness * middle + 1e-6 * np.abs(largest)) & (p > 0) & (np.abs(largest) > 1e-20)
+    screened = np.flatnonzero(~clearly_not_flat)
+    eigval, eigvec = np.linalg.eigh(cov[screened])
+    surface = eigval[:, 0] <= max_flatness * np.maximum(eigval[:, 1], 1e-30)
+    return screened[surface], eigvec[surface]
+
+
+def _height_at_origin(
+    rows_of_pair: NDArray[np.int64], w: NDArray[np.float64], local: NDArray[np.float64], n: int, idx: NDArray[np.int64],
+    weight_sums: NDArray[np.float64],
+) -> NDArray[np.float64]:
+    """``a`` of the weighted quadratic height field ``h(u, v)`` of each row ``idx`` (NaN where
+    its normal equations are singular); ``local``: each pair's (u, v, h), ``weight_sums``: the
+    rows' sums of ``w`` (the normal equations' (1, 1) entry)."""
     u, v, h = local[:, 0], local[:, 1], local[:, 2]
-    basis = [np.ones_like(u), u, v, u * u, u * v, v * v]
-    pairs6 = [(a, b) for a in range(6) for b in range(a, 6)]
-    sums = _sums(rows_of_pair, w, [basis[a] * basis[b] for a, b in pairs6] + [basis[a] * h for a in range(6)], n)[idx]
+    basis = [None, u, v, u * u, u * v, v * v, h]
+    # each distinct product once: 1 * x is x, and u * u, u * v, v * v are basis 3, 4, 5 already
+    # (the same doubles: the sums equal those of every pair's own product)
+    distinct: dict[tuple[int, int], tuple[int, int]] = {(1, 1): (0, 3), (1, 2): (0, 4), (2, 2): (0, 5)}
+    wanted = [pair for pair in _PAIRS6 + _HEIGHT_PAIRS if pair not in distinct and pair != (0, 0)]
+    columns = [basis[b] if a == 0 else basis[a] * basis[b] for a, b in wanted]
+    computed = dict(zip(wanted, _sums(rows_of_pair, w, columns, n)[idx].T, strict=True))
+    computed[(0, 0)] = weight_sums
+    for pair, same in distinct.items():
+        computed[pair] = computed[same]
     ata = np.empty((len(idx), 6, 6))
-    for k, (a, b) in enumerate(pairs6):
-        ata[:, a, b] = ata[:, b, a] = sums[:, k]
-    atb = sums[:, len(pairs6):]
+    for a, b in _PAIRS6:
+        ata[:, a, b] = ata[:, b, a] = computed[(a, b)]
+    atb = np.stack([computed[pair] for pair in _HEIGHT_PAIRS], axis=1)
     # a tiny ridge keeps sparse neighbourhoods solvable (quadratic terms only)
     scale = np.einsum("nii->n", ata)[:, None] * 1e-9
     ata[:, 3:, 3:] += scale[:, :, None] * np.eye(3)
     try:
-        coef = np.linalg.solve(ata, atb[:, :, None])[:, :, 0]
+        return np.linalg.solve(ata, atb[:, :, None])[:, 0, 0]
     except np.linalg.LinAlgError:
-        return out
-    offset = coef[:, 0] * voxel_size_m
-    good = np.isfinite(offset)
-    out[idx[good]] = own[idx[good]] + offset[good, None] * frame[idx[good], 2]
-    return out
+        return np.full(len(idx), np.nan)
 
 
 __all__ = ["project_chunk_task", "project_to_local_planes", "voxel_keys"]
