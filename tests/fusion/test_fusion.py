@@ -425,6 +425,56 @@ def test_surface_smoothing_leaves_isolated_points_and_edges():
     np.testing.assert_array_equal(moved, pts[order])
 
 
+def test_neighbour_search_finds_what_a_search_per_offset_finds(rng):
+    # 9 searches (one per z column) against 27: the same pairs in the same order, for a dense
+    # block, scattered voxels with gaps in their columns, and queries at both ends of the keys
+    from fpp_graph.fusion.voxel_grid import _KEY_BITS, _neighbour_indices, voxel_keys
+
+    def per_offset(keys, query):
+        for dx in (-1, 0, 1):
+            for dy in (-1, 0, 1):
+                for dz in (-1, 0, 1):
+                    target = query + ((dx << (2 * _KEY_BITS)) + (dy << _KEY_BITS) + dz)
+                    pos = np.minimum(np.searchsorted(keys, target), len(keys) - 1)
+                    i = np.flatnonzero(keys[pos] == target)
+                    yield i, pos[i]
+
+    block = np.stack(np.meshgrid(*[np.arange(4)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    scattered = rng.integers(-6, 6, (400, 3))
+    for voxels in (block, scattered, np.array([[0, 0, 0]])):
+        keys = np.unique(voxel_keys(voxels + 0.5, 1.0))
+        for query in (keys, keys[[0, -1]], keys[::3]):
+            ours, theirs = list(_neighbour_indices(keys, query)), list(per_offset(keys, query))
+            assert len(ours) == 27
+            for (i, j), (k, m) in zip(ours, theirs, strict=True):
+                np.testing.assert_array_equal(i, k)
+                np.testing.assert_array_equal(j, m)
+
+
+def test_surface_screen_keeps_what_eigh_alone_calls_a_surface(rng):
+    # planes, lines, blobs, neighbourhoods at the flatness bound, repeated eigenvalues and a zero
+    # matrix: the screened selection and eigenvectors are those of eigh on all of them
+    from fpp_graph.fusion.voxel_grid import _surface_neighbourhoods
+
+    rotations = np.linalg.qr(rng.normal(size=(3000, 3, 3)))[0]
+    spectra = np.concatenate([
+        rng.uniform(0.01, 1.0, (500, 3)),  # blobs
+        np.column_stack([rng.uniform(0, 1e-3, 500), rng.uniform(0.1, 1, 500), rng.uniform(0.1, 1, 500)]),  # planes
+        np.column_stack([rng.uniform(0, 1e-9, 500), rng.uniform(0, 1e-8, 500), rng.uniform(0.1, 1, 500)]),  # lines
+        np.column_stack([np.full(500, 0.05), np.ones(500), np.ones(500)]) * rng.uniform(0.98, 1.02, (500, 1)) ** [[1, 0, 0]],  # at the bound
+        np.column_stack([np.full(500, 0.3), np.full(500, 0.3), rng.uniform(0.3, 1, 500)]),  # repeated
+        np.column_stack([rng.uniform(0, 0.1, 500), np.full(500, 1.0), np.full(500, 1.0)]),  # repeated largest
+    ])
+    cov = np.einsum("nab,nb,ncb->nac", rotations, spectra, rotations)
+    cov = np.concatenate([cov, np.zeros((1, 3, 3))])
+    idx, vectors = _surface_neighbourhoods(cov, 0.05)
+    values, expected_vectors = np.linalg.eigh(cov)
+    expected = np.flatnonzero(values[:, 0] <= 0.05 * np.maximum(values[:, 1], 1e-30))
+    np.testing.assert_array_equal(idx, expected)
+    np.testing.assert_array_equal(vectors, expected_vectors[expected])
+    assert 900 < len(expected) < 2200  # the cases straddle the bound
+
+
 def test_render_depth_keeps_the_nearest_point_where_two_land_on_one_pixel():
     # a map that is not its camera's own pinhole grid (a distorted lens): pixel (0, 1)'s point
     # projects onto pixel (0, 0) as well, nearer; the z-buffer keeps the nearer one there
@@ -562,6 +612,16 @@ def test_voxel_sums_match_a_plain_unique_and_bincount(rng):
             for key, value in zip(keys.tolist(), planes[0].tolist(), strict=True):
                 looped[key] = looped.get(key, 0.0) + value
             assert sums[0].tolist() == [looped[key] for key in unique.tolist()]
+
+
+def test_doubled_gradient_is_numpys_times_two_bit_for_bit(rng):
+    from fpp_graph.fusion.voxel_map import _twice_gradient
+
+    for shape in ((2, 2), (2, 5), (5, 3), (40, 60)):
+        f = rng.normal(size=shape) * 10.0 ** rng.integers(-3, 3)
+        f[rng.random(shape) < 0.1] = np.nan
+        for ours, numpys in zip(_twice_gradient(f), np.gradient(f), strict=True):
+            np.testing.assert_array_equal(ours, 2.0 * numpys)
 
 
 @pytest.mark.parametrize("box", [(slice(10, 30), slice(20, 45)), (slice(0, 25), slice(40, 60)), (slice(0, 40), slice(0, 60)), (slice(5, 6), slice(5, 50)), (slice(0, 0), slice(0, 0))])
