@@ -197,6 +197,22 @@ def test_band_thick_blocks_mesh_the_same_surface(views, fused):
     assert abs(np.sqrt(np.mean(r_fine**2)) - np.sqrt(np.mean(r_coarse**2))) < 2e-5  # 0.453 against 0.458 mm here
 
 
+def test_tsdf_hash_map_grown_by_copy_meshes_what_an_ample_one_does(views, fused, caplog):
+    # one block to start with: the map grows (by a new grid and a copy of its blocks) several
+    # times while the views are integrated; the mesh is the one of a map that never grew
+    frames, poses = views
+    with caplog.at_level("DEBUG", logger="fpp_graph.fusion.voxel_map"):
+        fuser = VoxelMapFuser(0.002, 0.002, 0.008, mesh=True, tsdf_block_count=1)
+        grown = fuser.fuse(frames, poses)
+    assert sum("TSDF hash map grown" in r.getMessage() for r in caplog.records) >= 3
+    ample = VoxelMapFuser(0.002, 0.002, 0.008, mesh=True, tsdf_block_count=100_000).fuse(frames, poses)
+    assert len(fused.mesh_triangles) > 1000
+    for got, expected in ((grown, fused), (ample, fused)):
+        np.testing.assert_array_equal(got.mesh_vertices, expected.mesh_vertices)
+        np.testing.assert_array_equal(got.mesh_triangles, expected.mesh_triangles)
+        np.testing.assert_array_equal(got.mesh_vertex_colors, expected.mesh_vertex_colors)
+
+
 def test_canonical_mesh_does_not_depend_on_the_order_it_was_listed_in(rng):
     """Open3D lists the same mesh in another order each run; the canonical order is the mesh's own:
     any listing of its vertices and triangles gives the same arrays, each triangle keeps its
