@@ -243,7 +243,7 @@ def _height_at_origin(
 ) -> NDArray[np.float64]:
     """``a`` of the weighted quadratic height field ``h(u, v)`` of each row ``idx`` (NaN where
     its normal equations are singular); ``local``: each pair's (u, v, h), ``weight_sums``: the
-    rows' sums of ``w`` (the normal equations' (1, 1) entry)."""
+    rows' sums of ``w`` (the normal equations' (0, 0) entry)."""
     u, v, h = local[:, 0], local[:, 1], local[:, 2]
     basis = [None, u, v, u * u, u * v, v * v, h]
     # each distinct product once: 1 * x is x, and u * u, u * v, v * v are basis 3, 4, 5 already

@@ -258,7 +258,8 @@ def fuse_map(
     ``executor``: a :class:`~fpp_graph.types.ParallelMapFuser`'s per-keyframe work runs there,
     a few keyframes at a time, folded in in keyframe order (the same map)."""
     from fpp_graph.evaluation.plots import MAP_PLOT_POINTS
-    from fpp_graph.fusion.voxel_map import VoxelMapFuser, write_mesh_ply, write_point_cloud_ply
+    from fpp_graph.fusion.ply import write_mesh_ply, write_point_cloud_ply
+    from fpp_graph.fusion.voxel_map import VoxelMapFuser
 
     if fuser is None:
         fuser = VoxelMapFuser(

@@ -226,7 +226,7 @@ def test_map_accuracy_bad_input(tmp_path):
 
 
 def test_load_mesh_round_trip(tmp_path):
-    from fpp_graph.fusion.voxel_map import write_mesh_ply
+    from fpp_graph.fusion.ply import write_mesh_ply
 
     V, F = _sphere(resolution=30)
     write_mesh_ply(tmp_path / "gt.ply", V, F)

@@ -11,14 +11,13 @@ import pytest
 
 from fpp_graph.errors import InputDataError
 from fpp_graph.evaluation.metrics import map_accuracy
+from fpp_graph.fusion.ply import write_mesh_ply, write_point_cloud_ply
 from fpp_graph.fusion.tsdf_mesh import canonical_mesh, tsdf_block_voxels
 from fpp_graph.fusion.voxel_map import (
     FusedMap,
     VoxelMapFuser,
     intrinsics_of,
     render_depth,
-    write_mesh_ply,
-    write_point_cloud_ply,
 )
 from fpp_graph.geometry import compose, finite_points, make_pose
 from fpp_graph.types import Frame, MapFuser

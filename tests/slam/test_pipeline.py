@@ -74,7 +74,7 @@ def config():
 
 @pytest.fixture(scope="module")
 def finished_run(tmp_path_factory):
-    from fpp_graph.fusion.voxel_map import write_mesh_ply
+    from fpp_graph.fusion.ply import write_mesh_ply
 
     root = tmp_path_factory.mktemp("run")
     source = WallSource()
