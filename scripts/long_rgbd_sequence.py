@@ -11,7 +11,7 @@ with the default worker pool) runs on it while a thread samples the resident mem
 processes. Printed:
 
 * time per frame over the first and the last 10 % of the frames (tracking and decoding, the
-  frames stage), and their ratio (linear time: within 1.5);
+  frames stage), and their ratio (linear time: within 1.5), and the mean of every tenth;
 * RSS of the tracking process and of all processes (sampled every 10 frames), its peak after
   warm-up (10 % of the frames) in the first and in the second half of the run, and their ratio
   (flat: close to 1);
@@ -82,6 +82,8 @@ def main(argv: list[str] | None = None) -> int:
     tenth = max(1, n // 10)
     per_frame = np.diff(np.concatenate([[wall0], done_at]))
     first, last = float(per_frame[:tenth].mean()), float(per_frame[-tenth:].mean())
+    # every tenth's mean: where between the ends a run slows down (revisits' loops, folding)
+    by_tenth = [float(per_frame[i * n // 10 : (i + 1) * n // 10].mean()) for i in range(10)] if n >= 10 else []
     half = n // 2
     peaks = {name: (peak_between(at, tenth, half), peak_between(at, half, n + 1))
              for name, at in (("tracking process", sampler.at_frames_mb), ("all processes", sampler.tree_at_frames_mb))}
@@ -92,12 +94,15 @@ def main(argv: list[str] | None = None) -> int:
         "frames": report.frames_used, "keyframes": m["keyframes"], "wall_s": wall, "fps": report.frames_used / wall,
         "frames_stage_fps": n / frames_stage_s, "cpu_utilisation": cpu / (wall * (os.cpu_count() or 1)),
         "first_tenth_s_per_frame": first, "last_tenth_s_per_frame": last, "last_over_first": last / first,
+        "tenths_s_per_frame": by_tenth,
         "peak_rss_mb": {k: {"first_half": a, "second_half": b, "ratio": b / a} for k, (a, b) in peaks.items()},
         "stages_s": stages, "loop_candidates": m["loop_candidates"], "loops_verified": m["loops_verified"],
         "loops_accepted": m["loops_accepted"], "ate_rmse_mm": evaluation["ate_rmse_mm"], "ate_max_mm": evaluation["ate_max_mm"],
     }
     print(f"== {seq.name}: {row['frames']} frames, {row['keyframes']} keyframes")
     print(f"time per frame: first 10 % {1e3 * first:.0f} ms, last 10 % {1e3 * last:.0f} ms (last/first {row['last_over_first']:.2f}, target <= 1.5)")
+    if by_tenth:
+        print("time per frame by tenth of the frames: " + " / ".join(f"{1e3 * t:.0f}" for t in by_tenth) + " ms")
     for name, (a, b) in peaks.items():
         print(f"peak RSS, {name}: {a:.0f} MB in frames {tenth}-{half}, {b:.0f} MB in frames {half}-{n} (ratio {b / a:.2f})")
     print(f"frames/s: {row['fps']:.2f} whole run ({wall:.0f} s), {row['frames_stage_fps']:.2f} decode+track; "
