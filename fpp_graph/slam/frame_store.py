@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from fpp_graph.atomic import atomic_open
-from fpp_graph.errors import InputDataError
+from fpp_graph.errors import InputDataError, OutputError
 from fpp_graph.slam.mapped_npz import mapped_npz
 from fpp_graph.types import Frame, grey_colors
 
@@ -36,10 +36,24 @@ log = logging.getLogger(__name__)
 
 
 def save_frame(path: str | os.PathLike[str], frame: Frame) -> None:
-    """Write ``frame`` to ``path`` (``.npz``) atomically: its :func:`stored_arrays`."""
+    """Write ``frame`` to ``path`` (``.npz``) atomically: its :func:`stored_arrays`.
+
+    Raises
+    ------
+    OutputError
+        The file cannot be written (a full disk, no permission); the partial file is removed
+        and the frames cached before it stay whole, so the run can be resumed.
+    """
     arrays = stored_arrays(frame)
-    with atomic_open(path, "wb") as handle:
-        np.savez(handle, **arrays)
+    try:
+        with atomic_open(path, "wb") as handle:
+            np.savez(handle, **arrays)
+    except OSError as exc:
+        size_mb = sum(a.nbytes for a in arrays.values()) / 1e6
+        raise OutputError(
+            f"cannot write the frame cache {path}: {exc.strerror or exc}; free space on that disk (a frame like this one "
+            f"takes ~{size_mb:.0f} MB) or keep fewer frames (run.keep_frames: keyframes), then run again with --resume"
+        ) from exc
 
 
 def stored_arrays(frame: Frame) -> dict[str, np.ndarray]:

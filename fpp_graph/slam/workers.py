@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from fpp_graph.errors import FppError
+from fpp_graph.errors import FppError, OutputError
 from fpp_graph.slam.frame_store import load_frame, save_frame, stored_arrays
 from fpp_graph.slam.heap import keep_large_blocks_in_heap, trim_heap
 from fpp_graph.slam.sources import FrameSource
@@ -129,7 +129,9 @@ def decode(source: FrameSource, frame_id: int, cache_path: str | os.PathLike[str
             return stored_arrays(frame)
         save_frame(cache_path, frame)
         return None
-    except FppError as exc:
+    except OutputError:  # the cache cannot be written (a full disk): the run stops, not this frame
+        raise
+    except FppError as exc:  # this frame's input is bad: it is skipped, with the reason
         return str(exc)
 
 

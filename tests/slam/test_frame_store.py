@@ -252,3 +252,24 @@ def test_grey_colour_views_that_are_not_the_texture_are_stored(tmp_path, rng):
         assert "colors" in data.files and data["colors"].shape == (frame.num_points, 3)
     back = load_frame(tmp_path / "f.npz")
     np.testing.assert_allclose(back.colors, other.colors, atol=0.5 / 255)
+
+
+def test_a_full_disk_is_an_output_error_and_leaves_the_cached_frames_whole(tmp_path, rng, monkeypatch):
+    import errno
+
+    from fpp_graph.errors import OutputError
+    from fpp_graph.slam import frame_store
+
+    frame = sensor_like_frame(rng)
+    save_frame(tmp_path / "frame_000006.npz", frame)  # cached before the disk filled up
+
+    def full_disk(handle, **arrays):
+        handle.write(b"PK partial")
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(frame_store.np, "savez", full_disk)
+    with pytest.raises(OutputError, match=r"frame_000007\.npz: No space left on device; free space .* --resume"):
+        save_frame(tmp_path / "frame_000007.npz", frame)
+    monkeypatch.undo()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["frame_000006.npz"]  # no partial file
+    assert_same_frame(load_frame(tmp_path / "frame_000006.npz"), frame)

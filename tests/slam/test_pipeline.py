@@ -441,6 +441,32 @@ def test_rgbd_run_keeps_only_its_keyframes(tmp_path):
     assert kept["all"] == list(range(len(xs)))
 
 
+def test_a_frame_cache_that_cannot_be_written_stops_the_run_instead_of_skipping_frames(tmp_path, tum_sequence, monkeypatch):
+    """A full disk is not a bad frame: the frames stage ends with the OutputError (one line in the
+    CLI) instead of skipping every frame after it as undecodable."""
+    import errno
+    from concurrent.futures import ThreadPoolExecutor
+
+    from fpp_graph.errors import OutputError
+    from fpp_graph.slam import frame_store
+    from fpp_graph.slam.pipeline import prepare_frames
+    from fpp_graph.slam.sources import open_source
+
+    source = open_source(tum_sequence, config_from_dict({}))
+    cache = tmp_path / "frames"
+    cache.mkdir()
+
+    def full_disk(handle, **arrays):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(frame_store.np, "savez", full_disk)
+    skipped: dict[int, str] = {}
+    with ThreadPoolExecutor(2) as executor, pytest.raises(OutputError, match="No space left on device"):
+        # a token of its own: thread workers share the module's adopted source between tests
+        list(prepare_frames(source, cache, executor, skipped, worker_source=(source, "full-disk-run"), cache_every_frame=True))
+    assert skipped == {} and list(cache.iterdir()) == []
+
+
 @pytest.mark.parametrize("cache_every_frame", [False, True])
 def test_frames_decoded_ahead_come_back_through_the_cache_or_directly(tmp_path, tum_sequence, cache_every_frame):
     """With only keyframes kept on disk, the workers hand decoded frames back directly: nothing is
