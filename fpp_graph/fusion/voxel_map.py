@@ -404,7 +404,9 @@ def _grazing_cos(xyz: NDArray[np.float64], floor: float) -> NDArray[np.float64]:
     # one-sided border steps differ from these by exactly 2, a power of two): every product
     # below then carries exact powers of two that the ratio cancels, so the cosines are
     # np.gradient's bit for bit, without its temporaries (140 -> 113 ms a 1920 x 1200 map)
-    x, y, z = (np.ascontiguousarray(xyz[..., k], dtype=np.float64) for k in range(3))
+    # copies, always: the products below overwrite them (a map stored as coordinate planes has
+    # contiguous channels, which ascontiguousarray would hand back as views of the caller's map)
+    x, y, z = (np.array(xyz[..., k], dtype=np.float64, order="C", copy=True) for k in range(3))
     bx, ax = _twice_gradient(x)  # (rows, columns)
     by, ay = _twice_gradient(y)
     bz, az = _twice_gradient(z)

@@ -16,6 +16,7 @@ from fpp_graph.fusion.tsdf_mesh import canonical_mesh, tsdf_block_voxels
 from fpp_graph.fusion.voxel_map import (
     FusedMap,
     VoxelMapFuser,
+    grazing_weights,
     intrinsics_of,
     render_depth,
 )
@@ -627,6 +628,18 @@ def test_voxel_sums_match_a_plain_unique_and_bincount(rng):
             for key, value in zip(keys.tolist(), planes[0].tolist(), strict=True):
                 looped[key] = looped.get(key, 0.0) + value
             assert sums[0].tolist() == [looped[key] for key in unique.tolist()]
+
+
+def test_grazing_weights_leave_a_map_stored_as_coordinate_planes_as_it_was(rng):
+    # channels that are contiguous (an (H, W, 3) view of (3, H, W) planes): the weights are those
+    # of the same map in the usual layout, and the caller's map is not written to
+    planes = rng.normal(0.0, 0.01, (3, 40, 60)) + np.array([0.0, 0.0, 1.0])[:, None, None]
+    planes[:, 5:9, 10:20] = np.nan
+    view = np.moveaxis(planes, 0, -1)
+    kept = view.copy()
+    weights = grazing_weights(view)
+    np.testing.assert_array_equal(view, kept)
+    np.testing.assert_array_equal(weights, grazing_weights(np.ascontiguousarray(kept)))
 
 
 def test_doubled_gradient_is_numpys_times_two_bit_for_bit(rng):
