@@ -50,6 +50,10 @@ from fpp_graph.types import (  # FusedMap: the MapFuser protocol's result type, 
 log = logging.getLogger(__name__)
 
 
+# the TSDF grid's voxel attributes (name, channels), float32 each; growing the grid copies each
+_TSDF_ATTRIBUTES = (("tsdf", 1), ("weight", 1), ("color", 3))
+
+
 class VoxelMapFuser:
     """Streams frames into a voxel-averaged coloured point cloud and, optionally, a TSDF mesh.
 
@@ -191,9 +195,9 @@ class VoxelMapFuser:
         # Open3D's tensor VoxelBlockGrid: the legacy ScalableTSDFVolume of open3d 0.20 returns
         # empty meshes here (checked against UniformTSDFVolume on the same images)
         return o3d.t.geometry.VoxelBlockGrid(
-            attr_names=("tsdf", "weight", "color"),
-            attr_dtypes=(o3d.core.float32, o3d.core.float32, o3d.core.float32),
-            attr_channels=((1), (1), (3)),
+            attr_names=tuple(name for name, _ in _TSDF_ATTRIBUTES),
+            attr_dtypes=tuple(o3d.core.float32 for _ in _TSDF_ATTRIBUTES),
+            attr_channels=tuple(channels for _, channels in _TSDF_ATTRIBUTES),
             voxel_size=self.tsdf_voxel_m,
             block_resolution=self.tsdf_block_voxels,
             block_count=block_count,
@@ -239,14 +243,15 @@ class VoxelMapFuser:
         import open3d as o3d
 
         grown = self._new_volume(max(2 * capacity, size + incoming_blocks))
+        grown_map = grown.hashmap()
         slots = hashmap.active_buf_indices().numpy()
-        new_slots, activated = grown.hashmap().activate(o3d.core.Tensor(hashmap.key_tensor().numpy()[slots]))
+        new_slots, activated = grown_map.activate(o3d.core.Tensor(hashmap.key_tensor().numpy()[slots]))
         if not bool(activated.numpy().all()):
             raise RuntimeError("map fusion: the TSDF's blocks did not all move to its grown hash map")
         new_slots = new_slots.numpy()
-        for attribute in range(3):  # one attribute at a time: a copy of one, not of all, at any moment
-            grown.hashmap().value_tensor(attribute).numpy()[new_slots] = hashmap.value_tensor(attribute).numpy()[slots]
-        log.debug("TSDF hash map grown from %d to %d blocks (%d in use)", capacity, grown.hashmap().capacity(), size)
+        for attribute in range(len(_TSDF_ATTRIBUTES)):  # one at a time: a copy of one, not of all, at any moment
+            grown_map.value_tensor(attribute).numpy()[new_slots] = hashmap.value_tensor(attribute).numpy()[slots]
+        log.debug("TSDF hash map grown from %d to %d blocks (%d in use)", capacity, grown_map.capacity(), size)
         self._volume = grown
 
     def result(self, map_chunks: Callable[[Callable[[tuple], Any], Iterable[tuple]], Iterable[Any]] = map) -> FusedMap:
