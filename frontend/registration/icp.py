@@ -191,13 +191,48 @@ class IcpResult:
     residuals_m: Array = field(repr=False)
 
 
+@dataclass(frozen=True, eq=False)
+class IcpBasin:
+    """Where ICP's start is trusted: ``points`` (source frame; RANSAC's inliers) may move at most
+    ``radius_m`` (``lengths.max_icp_shift_m``) from where the initial pose put them.
+
+    Beyond it the registration either rejects the pair ("ICP left the RANSAC basin") or, where
+    the overlap leaves directions free, takes those directions from the keypoints or from RANSAC
+    (:func:`~frontend.registration.stages.handle_weak_directions`). ICP that left it and is not
+    slowing down is sliding along such directions (a wall, a corridor's axis) and finds nothing
+    there to converge to: on the simulated 2000-frame RGB-D walk a third of the loop
+    candidates' ICP runs slid 6-30 cm that way to the 50-iteration bound, two thirds of the
+    verification's ICP time. ICP that left it while converging (TUM fr1_rpy's office: 10-36
+    iterations, keypoints moved 45-60 mm along a wall's free directions) goes on, since its other
+    directions are still settling.
+    """
+
+    points: Array
+    radius_m: float
+
+    def moved_m(self, T_a: NDArray, T_b: NDArray) -> float:
+        """The largest distance between where ``T_a`` and ``T_b`` put a point (0 without points)."""
+        if not len(self.points):
+            return 0.0
+        moved = transform_points(T_b, self.points) - transform_points(T_a, self.points)
+        return float(np.sqrt(np.max(np.einsum("ij,ij->i", moved, moved))))
+
+    def sliding(self, T0: NDArray, T_before: NDArray, T_after: NDArray, last_run_m: float | None) -> bool:
+        """Whether ICP at ``T_after`` has left the basin of ``T0`` and its run from ``T_before``
+        moved the points at least half as far as the run before it (``last_run_m``; None: no run
+        before it): no longer slowing down as a converging fit does."""
+        if last_run_m is None or self.moved_m(T0, T_after) <= self.radius_m:
+            return False
+        return self.moved_m(T_before, T_after) >= 0.5 * last_run_m
+
+
 ICP_CYCLE_CHECK_ITERATIONS = 10
 """small_gicp runs this many iterations at a time; between runs the net motion is checked against
 the step bound (see :func:`_align`). Even, so a two-state cycle lands on the same state."""
 
 
 def _align(tgt: IcpRole, src: IcpRole, T0: NDArray, method: str, max_correspondence_m: float, max_iterations: int,
-           convergence_m: float) -> tuple[NDArray, bool, int]:
+           convergence_m: float, basin: IcpBasin | None = None) -> tuple[NDArray, bool, int]:
     """small_gicp's alignment of ``src`` to ``tgt`` from ``T0``: ``(T_target_source, converged, iterations)``.
 
     small_gicp stops once one step moves less than ``convergence_m`` (metres, and radians per
@@ -206,9 +241,10 @@ def _align(tgt: IcpRole, src: IcpRole, T0: NDArray, method: str, max_corresponde
     its 133 verified loops ran to the 50-iteration bound, two thirds of their ICP iterations). So it
     runs :data:`ICP_CYCLE_CHECK_ITERATIONS` at a time and also stops when a whole run of them
     moved the pose by less than that many steps' bound in all: steps that cancel are a cycle, not
-    progress. A pose still sliding (a plane toward more overlap) moves far more and goes on; it
-    stays ``converged=False`` either way, as at the bound. An alignment that converges within
-    the first run takes one small_gicp call, as it would without the check.
+    progress. A pose still sliding (a plane toward more overlap) moves far more and goes on
+    until it has left ``basin`` without slowing down (:meth:`IcpBasin.sliding`). It stays ``converged=False`` either way,
+    as at the bound. An alignment that converges within the first run takes one small_gicp
+    call, as it would without the checks.
     """
     import small_gicp
 
@@ -216,6 +252,7 @@ def _align(tgt: IcpRole, src: IcpRole, T0: NDArray, method: str, max_corresponde
         return T0.copy(), True, 0
     reg_type = {"gicp": "GICP", "point_to_plane": "PLANE_ICP"}[method]
     T, iterations = np.asarray(T0, dtype=np.float64), 0
+    last_run_m: float | None = None  # how far the previous run moved the basin's points
     while True:
         run = min(ICP_CYCLE_CHECK_ITERATIONS, max_iterations - iterations)
         res = small_gicp.align(
@@ -240,8 +277,11 @@ def _align(tgt: IcpRole, src: IcpRole, T0: NDArray, method: str, max_corresponde
         bound = run * convergence_m
         rotation_rad, translation_m = pose_error(T_next, T)
         settled = translation_m < bound and rotation_rad < bound
+        sliding = basin is not None and basin.sliding(T0, T, T_next, last_run_m)
+        if basin is not None:
+            last_run_m = basin.moved_m(T, T_next)
         T = T_next
-        if settled:
+        if settled or sliding:
             return T, False, iterations
 
 
@@ -255,6 +295,7 @@ def refine_icp(
     max_iterations: int = 50,
     analysis_points: int = 6000,
     convergence_m: float = 1e-6,
+    basin: IcpBasin | None = None,
 ) -> IcpResult:
     """Refine ``T_target_source`` by GICP or point-to-plane ICP (small_gicp, one thread).
 
@@ -271,6 +312,9 @@ def refine_icp(
         many evenly strided source (and target) voxels.
     convergence_m : float
         ICP stops when its last step moves less than this (metres; radians for the rotation).
+    basin : IcpBasin, optional
+        ICP also stops, checked every :data:`ICP_CYCLE_CHECK_ITERATIONS` iterations, once it
+        has left it and is not slowing down (unconverged).
 
     Returns
     -------
@@ -278,7 +322,7 @@ def refine_icp(
     """
     T0 = np.asarray(T_init, dtype=np.float64)
     tgt, src = target.target, source.source
-    T, converged, iterations = _align(tgt, src, T0, method, max_correspondence_m, max_iterations, convergence_m)
+    T, converged, iterations = _align(tgt, src, T0, method, max_correspondence_m, max_iterations, convergence_m, basin)
     # the quality figures and the information need only a fixed-size, evenly spread sample of
     # the source voxels (the information is scaled to the count ICP aligned)
     stride = max(1, src.size // analysis_points)

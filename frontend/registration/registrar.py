@@ -375,7 +375,8 @@ class FppPairRegistrar:
         s.meta.update(ransac_metadata(s.matches, s.lifted, s.ransac, cfg.features.type))
         if rejected := rejection(Checkpoint.RANSAC, s, cfg):
             return rejected
-        s.icp = run_icp(target, source, s.ransac.T_target_source, cfg, self.icp_cloud, self.texture_sets_planes, s.timer)
+        s.icp = run_icp(target, source, s.ransac.T_target_source, cfg, self.icp_cloud, self.texture_sets_planes, s.timer,
+                        s.lifted.points_source_m[s.ransac.inliers])
         s.meta.update(s.icp.metadata)
         if rejected := rejection(Checkpoint.ICP, s, cfg):
             return rejected

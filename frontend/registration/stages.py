@@ -27,7 +27,13 @@ from fpp_graph.geometry import se3_exp
 from fpp_graph.types import Frame
 from frontend.config import RegistrationConfig, chi2_quantile
 from frontend.features.detect import match_descriptors
-from frontend.registration.icp import IcpCloud, IcpResult, information_from_icp, refine_icp
+from frontend.registration.icp import (
+    IcpBasin,
+    IcpCloud,
+    IcpResult,
+    information_from_icp,
+    refine_icp,
+)
 from frontend.registration.keypoints import (
     RansacResult,
     drop_sensor_fixed_matches,
@@ -208,6 +214,7 @@ def run_icp(
     icp_cloud: Callable[[Frame, float], IcpCloud],
     texture_sets_planes: bool,
     timer: StageTimer,
+    inliers_source_m: Array | None = None,
 ) -> IcpOutcome:
     """ICP from ``T_ransac``, on ``icp.coarse_voxels`` voxels when the dense refinement follows.
 
@@ -217,6 +224,8 @@ def run_icp(
     the fine voxels, unless the texture sets the plane's directions (``texture_sets_planes``):
     then the dense fit gives the tilts and the texture the rest; or unless the coarse ICP had not
     converged (``fine_skipped``: it was sliding along the plane, and the fine voxels would too).
+    ``inliers_source_m``: RANSAC's inliers (source frame); ICP stops once it has moved one of them
+    further than ``lengths.max_icp_shift_m`` (:class:`~frontend.registration.icp.IcpBasin`).
     """
     cfg, lengths = config, config.lengths
     dense_follows = cfg.dense.enabled and lengths.icp_coarse_voxel_m > lengths.icp_voxel_m
@@ -224,6 +233,7 @@ def run_icp(
     timer.zero("icp_prepare", "icp")
     ran_voxel_m: float | None = None
     coarse_plane_like = fine_skipped = False
+    basin = IcpBasin(np.asarray(inliers_source_m, dtype=np.float64).reshape(-1, 3), lengths.max_icp_shift_m) if inliers_source_m is not None else None
     for voxel in voxels:
         started = timer.start()
         tcloud = icp_cloud(target, voxel)
@@ -235,7 +245,7 @@ def run_icp(
             return IcpOutcome(None, tcloud, scloud, ran_voxel_m, coarse_plane_like, (tcloud.size, scloud.size, voxel))
         started = timer.start()
         icp = refine_icp(tcloud, scloud, T_ransac, cfg.icp.method, lengths.icp_max_correspondence_m, cfg.icp.max_iterations,
-                         convergence_m=lengths.icp_convergence_m)
+                         convergence_m=lengths.icp_convergence_m, basin=basin)
         timer.stop("icp", started, accumulate=True)
         ran_voxel_m = voxel
         if not np.all(np.isfinite(icp.T_target_source)):

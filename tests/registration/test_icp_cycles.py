@@ -1,5 +1,6 @@
-"""ICP's stop on a cycle (``frontend.registration.icp._align``): small_gicp runs a few iterations
-at a time, and a run whose steps cancel ends the alignment."""
+"""ICP's stops (``frontend.registration.icp._align``): small_gicp runs a few iterations at a
+time; a run whose steps cancel ends the alignment, and so does a pose that has left the basin of
+its start (:class:`~frontend.registration.icp.IcpBasin`)."""
 
 from __future__ import annotations
 
@@ -11,7 +12,12 @@ import pytest
 
 from fpp_graph.geometry import se3_exp
 from frontend.registration import icp as icp_module
-from frontend.registration.icp import ICP_CYCLE_CHECK_ITERATIONS, prepare_icp_cloud, refine_icp
+from frontend.registration.icp import (
+    ICP_CYCLE_CHECK_ITERATIONS,
+    IcpBasin,
+    prepare_icp_cloud,
+    refine_icp,
+)
 
 
 class _ScriptedGicp:
@@ -33,11 +39,11 @@ class _ScriptedGicp:
         return types.SimpleNamespace(T_target_source=T, converged=False, iterations=max_iterations)
 
 
-def _align_with(monkeypatch, step, max_iterations=50, convergence_m=1e-5):
+def _align_with(monkeypatch, step, max_iterations=50, convergence_m=1e-5, basin=None):
     fake = _ScriptedGicp(step)
     monkeypatch.setitem(sys.modules, "small_gicp", fake)  # _align imports it at call time
     role = types.SimpleNamespace(cloud=None, tree=None)
-    T, converged, iterations = icp_module._align(role, role, np.eye(4), "gicp", 0.01, max_iterations, convergence_m)
+    T, converged, iterations = icp_module._align(role, role, np.eye(4), "gicp", 0.01, max_iterations, convergence_m, basin)
     return T, converged, iterations, fake.calls
 
 
@@ -94,3 +100,74 @@ def test_real_gicp_pair_converges_to_the_true_pose():
     result = refine_icp(target_cloud, source_cloud, np.eye(4), "gicp", 0.03, 50, convergence_m=1e-7)
     assert np.abs(result.T_target_source[:3, 3] - T_true[:3, 3]).max() < 2e-4
     assert result.iterations <= 50
+
+
+# RANSAC's inliers 2 m ahead of the sensor, spread over a metre: a turn moves them by its lever
+_INLIERS = np.array([[0.5, 0.0, 2.0], [-0.5, 0.2, 2.0], [0.0, -0.4, 2.5]])
+
+
+def test_a_pose_sliding_out_of_the_basin_stops_at_the_next_check(monkeypatch):
+    # 1 mm an iteration along a corridor's axis; the keypoints' gate is 25 mm: past it after 30
+    # iterations, stopped at that check instead of at the bound
+    basin = IcpBasin(_INLIERS, 0.025)
+    slide = lambda k: np.array([0, 0, 0, 0, 1e-3, 0])  # noqa: E731
+    T, converged, iterations, calls = _align_with(monkeypatch, slide, basin=basin)
+    assert iterations == 3 * ICP_CYCLE_CHECK_ITERATIONS and calls == [10, 10, 10] and not converged
+    assert T[1, 3] == pytest.approx(0.030)
+    # the same slide inside a wider basin runs to the bound, as without one
+    _, converged, iterations, _ = _align_with(monkeypatch, slide, basin=IcpBasin(_INLIERS, 0.1))
+    assert iterations == 50 and not converged
+
+
+def test_the_basin_measures_the_points_not_the_pose(monkeypatch):
+    # a turn of 1 mrad an iteration about the sensor moves the farthest inlier 2.5 mm: 25 mm a
+    # run. Outside a 20 mm gate after the first run, which has no run before it to compare
+    # with; stopped after the second, which moved them as far; a 60 mm gate holds one run more
+    turn = lambda k: np.array([1e-3, 0, 0, 0, 0, 0])  # noqa: E731
+    _, _, iterations, _ = _align_with(monkeypatch, turn, basin=IcpBasin(_INLIERS, 0.020))
+    assert iterations == 2 * ICP_CYCLE_CHECK_ITERATIONS
+    _, _, iterations, _ = _align_with(monkeypatch, turn, basin=IcpBasin(_INLIERS, 0.060))
+    assert iterations == 3 * ICP_CYCLE_CHECK_ITERATIONS
+    assert IcpBasin(np.zeros((0, 3)), 0.0).moved_m(np.eye(4), se3_exp(np.ones(6))) == 0.0  # no points: no basin
+
+
+def test_a_fit_that_left_the_basin_while_slowing_down_goes_on_to_converge(monkeypatch):
+    # 40 mm in the first run, 15 mm in the second (under half: slowing down), then halving steps:
+    # outside a 25 mm gate from the first check on, yet it converges as without the basin
+    def step(k: int) -> np.ndarray:
+        size = 4e-3 if k < 10 else 1.5e-3 if k < 20 else 1e-3 / 2 ** (k - 19)
+        return np.array([0, 0, 0, size, 0, 0])
+
+    T, converged, iterations, _ = _align_with(monkeypatch, step, basin=IcpBasin(_INLIERS, 0.025))
+    T_free, converged_free, iterations_free, _ = _align_with(monkeypatch, step)
+    assert converged and converged_free and iterations == iterations_free > 2 * ICP_CYCLE_CHECK_ITERATIONS
+    assert np.array_equal(T, T_free)
+
+
+def test_converging_inside_the_basin_is_untouched(monkeypatch):
+    steps = [np.array([0, 0, 0, 1e-3 / 2**k, 0, 0]) for k in range(40)]
+    T, converged, iterations, _ = _align_with(monkeypatch, lambda k: steps[k], convergence_m=1e-4, basin=IcpBasin(_INLIERS, 0.025))
+    assert converged and iterations == 5
+
+
+def test_real_gicp_sliding_along_a_corridor_stops_past_the_gate():
+    """Two parallel walls (a corridor without features along its axis) offset along the axis: GICP
+    slides toward more overlap without settling. Without a basin it runs to the bound; with one it
+    stops once RANSAC's inliers moved beyond the gate, and the walls' own directions are as good."""
+    rng = np.random.default_rng(3)
+    along, up = rng.uniform(-1.0, 1.0, (2, 8000))
+    walls = np.concatenate([
+        np.stack([np.full(4000, -0.6), along[:4000], up[:4000]], 1),
+        np.stack([np.full(4000, 0.6), along[4000:], up[4000:]], 1),
+    ]) + rng.normal(0, 5e-4, (8000, 3)) + [0, 0, 2.0]
+    T_true = se3_exp(np.array([0.0, 0.0, 0.0, 0.003, 0.0, 0.0]))  # 3 mm across: the constrained direction
+    source = (walls[(walls[:, 1] > -0.5)] - T_true[:3, 3]) @ T_true[:3, :3] + [0, 0.3, 0]  # overlap shifted 30 cm along the axis
+    target_cloud, source_cloud = prepare_icp_cloud(walls[walls[:, 1] < 0.5], 0.01), prepare_icp_cloud(source, 0.01)
+    T0 = np.eye(4)
+    free = refine_icp(target_cloud, source_cloud, T0, "gicp", 0.04, 50, convergence_m=1.5e-5)
+    held = refine_icp(target_cloud, source_cloud, T0, "gicp", 0.04, 50, convergence_m=1.5e-5, basin=IcpBasin(_INLIERS, 0.03))
+    assert free.iterations >= 45 and not free.converged  # (small_gicp counts 9 in some runs of 10)
+    assert held.iterations < 50 and not held.converged
+    shift_m = np.abs(held.T_target_source[:3, 3] - T0[:3, 3])
+    assert shift_m[1] > 0.03  # left the basin along the axis ...
+    assert abs(held.T_target_source[0, 3] - free.T_target_source[0, 3]) < 5e-4  # ... the walls' distance as without the stop
