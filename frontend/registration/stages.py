@@ -225,7 +225,8 @@ def run_icp(
     then the dense fit gives the tilts and the texture the rest; or unless the coarse ICP had not
     converged (``fine_skipped``: it was sliding along the plane, and the fine voxels would too).
     ``inliers_source_m``: RANSAC's inliers (source frame); ICP stops once it has moved one of them
-    further than ``lengths.max_icp_shift_m`` (:class:`~frontend.registration.icp.IcpBasin`).
+    further than ``lengths.max_icp_shift_m`` and is not slowing down
+    (:class:`~frontend.registration.icp.IcpBasin`).
     """
     cfg, lengths = config, config.lengths
     dense_follows = cfg.dense.enabled and lengths.icp_coarse_voxel_m > lengths.icp_voxel_m
