@@ -167,7 +167,7 @@ def test_real_gicp_sliding_along_a_corridor_stops_past_the_gate():
     free = refine_icp(target_cloud, source_cloud, T0, "gicp", 0.04, 50, convergence_m=1.5e-5)
     held = refine_icp(target_cloud, source_cloud, T0, "gicp", 0.04, 50, convergence_m=1.5e-5, basin=IcpBasin(_INLIERS, 0.03))
     assert free.iterations >= 45 and not free.converged  # (small_gicp counts 9 in some runs of 10)
-    assert held.iterations < 50 and not held.converged
+    assert held.iterations <= 40 and not held.converged  # stopped runs before the bound
     shift_m = np.abs(held.T_target_source[:3, 3] - T0[:3, 3])
     assert shift_m[1] > 0.03  # left the basin along the axis ...
     assert abs(held.T_target_source[0, 3] - free.T_target_source[0, 3]) < 5e-4  # ... the walls' distance as without the stop
