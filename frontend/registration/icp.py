@@ -202,9 +202,9 @@ class IcpBasin:
     slowing down is sliding along such directions (a wall, a corridor's axis) and finds nothing
     there to converge to: on the simulated 2000-frame RGB-D walk a third of the loop
     candidates' ICP runs slid 6-30 cm that way to the 50-iteration bound, two thirds of the
-    verification's ICP time. ICP that left it while converging (TUM fr1_rpy's office: 10-36
-    iterations, keypoints moved 45-60 mm along a wall's free directions) goes on, since its other
-    directions are still settling.
+    verification's ICP time. ICP that left it while converging goes on, since its other
+    directions are still settling (TUM fr1_rpy's office: fits of 10-36 iterations moved the
+    keypoints past the 45 mm gate along a wall's free directions within the first 10).
     """
 
     points: Array
