@@ -153,7 +153,8 @@ def test_converging_inside_the_basin_is_untouched(monkeypatch):
 def test_real_gicp_sliding_along_a_corridor_stops_past_the_gate():
     """Two parallel walls (a corridor without features along its axis) offset along the axis: GICP
     slides toward more overlap without settling. Without a basin it runs to the bound; with one it
-    stops once RANSAC's inliers moved beyond the gate, and the walls' own directions are as good."""
+    stops once RANSAC's inliers have moved beyond the gate without slowing down, and the walls'
+    own direction (across the corridor) is as good."""
     rng = np.random.default_rng(3)
     along, up = rng.uniform(-1.0, 1.0, (2, 8000))
     walls = np.concatenate([
