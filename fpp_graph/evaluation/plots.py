@@ -7,7 +7,8 @@ smaller than 5 m and in metres beyond.
 The top view drops the world axis the data varies least along (the "up" of the scene: ``y`` for
 a camera-style y-down world, ``z`` for a z-up one), so axes keep their names; when the data's
 flattest direction is oblique to every world axis (a tilted turntable), the view looks down that
-direction instead (PCA) and the axes are labelled as principal axes.
+direction instead (PCA) and the axes are labelled as principal axes. Data without a plane (points
+along one line, or a blob) drops the world axis of least extent.
 """
 
 from __future__ import annotations
@@ -61,15 +62,17 @@ def top_view(points_m: NDArray[np.float64]) -> TopView:
     extent = float(np.ptp(P, axis=0).max()) if len(P) else 0.0
     scale, unit = (1000.0, "mm") if extent < 5.0 else (1.0, "m")
     eye = np.eye(3)
+    k = int(np.argmin(np.ptp(P, axis=0))) if len(P) else 1  # the world axis of least extent
     if len(P) >= 3:
         _, s, Vt = np.linalg.svd(P - P.mean(axis=0), full_matrices=False)
-        normal = Vt[2]
-        k = int(np.argmax(np.abs(normal)))
-        oblique = abs(normal[k]) < _AXIS_SNAP_COS and s[1] > 10 * max(s[2], 1e-15)
-        if oblique:
-            return TopView(Vt[:2].copy(), normal.copy(), ("principal axis 1", "principal axis 2"), "principal axis 3", scale, unit)
-    else:
-        k = int(np.argmin(np.ptp(P, axis=0))) if len(P) else 1
+        # only a plane has a normal to look down: a trajectory walked back and forth along one
+        # line (a corridor's passes) has two equally thin directions, and its flattest one is
+        # then sideways as often as up (the simulated RGB-D walk was drawn seen from the side)
+        if s[1] > 10 * max(s[2], 1e-15):
+            normal = Vt[2]
+            k = int(np.argmax(np.abs(normal)))
+            if abs(normal[k]) < _AXIS_SNAP_COS:
+                return TopView(Vt[:2].copy(), normal.copy(), ("principal axis 1", "principal axis 2"), "principal axis 3", scale, unit)
     i, j = (a for a in range(3) if a != k)
     return TopView(eye[[i, j]], eye[k], (_AXIS_NAMES[i], _AXIS_NAMES[j]), _AXIS_NAMES[k], scale, unit)
 

@@ -49,6 +49,18 @@ def test_top_view_drops_the_up_axis():
     assert big.unit == "m" and big.labels == ("x", "z")
 
 
+def test_top_view_of_passes_along_one_line_drops_the_up_axis():
+    # five passes back and forth along a corridor running diagonally in x-z (camera-style world,
+    # y down), with a hand-held sway of 1 cm sideways and 2 cm up and down: the two thin
+    # directions are alike, and the thinner one is sideways; the view must still drop y
+    rng = np.random.default_rng(2)
+    t = np.abs(((np.linspace(0.0, 5.0, 2000) + 1.0) % 2.0) - 1.0)  # 0 -> 1 -> 0 ...
+    axis, side = np.array([0.76, 0.0, 0.65]), np.array([-0.65, 0.0, 0.76])
+    pts = 3.0 * t[:, None] * axis + rng.normal(0, 0.01, (2000, 1)) * side + rng.normal(0, 0.02, (2000, 1)) * [0, 1.0, 0]
+    view = top_view(pts)
+    assert view.labels == ("x", "z") and view.up_label == "y"
+
+
 def test_top_view_of_a_tilted_circle_looks_down_its_axis():
     a = np.linspace(0, 2 * np.pi, 50, endpoint=False)
     R = Rotation.from_rotvec([0.6, 0.3, 0.0]).as_matrix()
