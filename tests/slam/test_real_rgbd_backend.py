@@ -65,7 +65,7 @@ def tum_run(tmp_path_factory):
 @pytest.mark.slow
 def test_tum_rpy_keeps_most_verified_loops_and_its_trajectory(tum_run):
     """100 frames of TUM fr1_rpy (fast hand-held rotation; a few minutes): the README's row is
-    ATE 26.8 mm and 92 % of the verified loops kept (issue 22 asks <= 15 mm and 90 %; before the
+    ATE 26.2 mm and 92 % of the verified loops kept (issue 22 asks <= 15 mm and 90 %; before the
     loop window and the shared-error floor: 43.6 mm, 79 %; scripts/tum_error_sources.py shows why
     the ATE stays there)."""
     metrics, evaluation = tum_run
