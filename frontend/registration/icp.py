@@ -217,13 +217,13 @@ class IcpBasin:
         moved = transform_points(T_b, self.points) - transform_points(T_a, self.points)
         return float(np.sqrt(np.max(np.einsum("ij,ij->i", moved, moved))))
 
-    def sliding(self, T0: NDArray, T_before: NDArray, T_after: NDArray, last_run_m: float | None) -> bool:
-        """Whether ICP at ``T_after`` has left the basin of ``T0`` and its run from ``T_before``
-        moved the points at least :data:`SLIDING_RUN_RATIO` as far as the run before it
-        (``last_run_m``; None: no run before it): not slowing down as a converging fit does."""
-        if last_run_m is None or self.moved_m(T0, T_after) <= self.radius_m:
+    def sliding(self, T0: NDArray, T_after: NDArray, run_m: float, last_run_m: float | None) -> bool:
+        """Whether ICP at ``T_after`` has left the basin of ``T0`` and its last run moved the points
+        (``run_m``, :meth:`moved_m`) at least :data:`SLIDING_RUN_RATIO` as far as the run before
+        it (``last_run_m``; None: no run before it): not slowing down as a converging fit does."""
+        if last_run_m is None or run_m < SLIDING_RUN_RATIO * last_run_m:
             return False
-        return self.moved_m(T_before, T_after) >= SLIDING_RUN_RATIO * last_run_m
+        return self.moved_m(T0, T_after) > self.radius_m
 
 
 SLIDING_RUN_RATIO = 0.5
@@ -285,9 +285,10 @@ def _align(tgt: IcpRole, src: IcpRole, T0: NDArray, method: str, max_corresponde
         bound = run * convergence_m
         rotation_rad, translation_m = pose_error(T_next, T)
         settled = translation_m < bound and rotation_rad < bound
-        sliding = basin is not None and basin.sliding(T0, T, T_next, last_run_m)
+        sliding = False
         if basin is not None:
-            last_run_m = basin.moved_m(T, T_next)
+            run_m = basin.moved_m(T, T_next)
+            sliding, last_run_m = basin.sliding(T0, T_next, run_m, last_run_m), run_m
         T = T_next
         if settled or sliding:
             return T, False, iterations
