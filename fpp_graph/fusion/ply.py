@@ -24,6 +24,23 @@ def _color_bytes(colors: NDArray | None, n: int, what: str) -> NDArray[np.uint8]
     return (np.clip(np.nan_to_num(c.astype(np.float64)), 0.0, 1.0) * 255.0).round().astype(np.uint8)
 
 
+# a vertex as both files store it: position as double (an exact round trip), colour as uchar
+_VERTEX_RECORD = np.dtype([("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("red", "u1"), ("green", "u1"), ("blue", "u1")])
+_VERTEX_PROPERTIES = (
+    "property double x\nproperty double y\nproperty double z\n"
+    "property uchar red\nproperty uchar green\nproperty uchar blue\n"
+)
+
+
+def _vertex_records(points: NDArray[np.float64], colors: NDArray | None, what: str) -> NDArray:
+    """``points`` (N, 3) and their colours as :data:`_VERTEX_RECORD` rows."""
+    data = np.empty(len(points), dtype=_VERTEX_RECORD)
+    data["x"], data["y"], data["z"] = points[:, 0], points[:, 1], points[:, 2]
+    rgb = _color_bytes(colors, len(points), what)
+    data["red"], data["green"], data["blue"] = rgb[:, 0], rgb[:, 1], rgb[:, 2]
+    return data
+
+
 def write_point_cloud_ply(
     path: str | os.PathLike[str], points: NDArray[np.float64], colors: NDArray | None = None
 ) -> None:
@@ -35,16 +52,10 @@ def write_point_cloud_ply(
     pts = np.asarray(points, dtype=np.float64)
     if pts.ndim != 2 or pts.shape[1] != 3:
         raise InputDataError(f"point cloud for {path}: points must be N x 3, got {pts.shape}")
-    n = len(pts)
-    record = np.dtype([("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("red", "u1"), ("green", "u1"), ("blue", "u1")])
-    data = np.empty(n, dtype=record)
-    data["x"], data["y"], data["z"] = pts[:, 0], pts[:, 1], pts[:, 2]
-    rgb = _color_bytes(colors, n, f"point cloud for {path}")
-    data["red"], data["green"], data["blue"] = rgb[:, 0], rgb[:, 1], rgb[:, 2]
+    data = _vertex_records(pts, colors, f"point cloud for {path}")
     header = (
         "ply\nformat binary_little_endian 1.0\ncomment fpp-graph map, metres, world frame\n"
-        f"element vertex {n}\nproperty double x\nproperty double y\nproperty double z\n"
-        "property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n"
+        f"element vertex {len(pts)}\n{_VERTEX_PROPERTIES}end_header\n"
     )
     _write_ply(path, header, [data.tobytes()])
 
@@ -64,19 +75,14 @@ def write_mesh_ply(
         raise InputDataError(f"mesh for {path}: triangles must be F x 3, got {tris.shape}")
     if tris.size and (tris.min() < 0 or tris.max() >= len(verts)):
         raise InputDataError(f"mesh for {path}: triangle indices out of range 0..{len(verts) - 1}")
-    vrec = np.dtype([("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("red", "u1"), ("green", "u1"), ("blue", "u1")])
-    vdata = np.empty(len(verts), dtype=vrec)
-    vdata["x"], vdata["y"], vdata["z"] = verts[:, 0], verts[:, 1], verts[:, 2]
-    rgb = _color_bytes(colors, len(verts), f"mesh for {path}")
-    vdata["red"], vdata["green"], vdata["blue"] = rgb[:, 0], rgb[:, 1], rgb[:, 2]
+    vdata = _vertex_records(verts, colors, f"mesh for {path}")
     frec = np.dtype([("n", "u1"), ("i", "<i4", (3,))])
     fdata = np.empty(len(tris), dtype=frec)
     fdata["n"] = 3
     fdata["i"] = tris.astype(np.int32)
     header = (
         "ply\nformat binary_little_endian 1.0\ncomment fpp-graph TSDF mesh, metres, world frame\n"
-        f"element vertex {len(verts)}\nproperty double x\nproperty double y\nproperty double z\n"
-        "property uchar red\nproperty uchar green\nproperty uchar blue\n"
+        f"element vertex {len(verts)}\n{_VERTEX_PROPERTIES}"
         f"element face {len(tris)}\nproperty list uchar int vertex_indices\nend_header\n"
     )
     _write_ply(path, header, [vdata.tobytes(), fdata.tobytes()])
