@@ -41,7 +41,7 @@ from fpp_graph.fusion.ply import write_mesh_ply as write_mesh_ply
 from fpp_graph.fusion.ply import write_point_cloud_ply as write_point_cloud_ply
 from fpp_graph.fusion.tsdf_mesh import TSDF_INITIAL_VOXELS, canonical_mesh, tsdf_block_voxels
 from fpp_graph.fusion.voxel_grid import _reduce, project_to_local_planes, voxel_keys
-from fpp_graph.geometry import finite_box, finite_points, invert, transform_points
+from fpp_graph.geometry import finite_box, finite_points, in_row_bands, invert, transform_points
 from fpp_graph.types import (  # FusedMap: the MapFuser protocol's result type, re-exported here
     Frame,
     FusedMap,
@@ -399,8 +399,14 @@ def grazing_weights(xyz_map: NDArray[np.float64], floor: float = 0.05, finite: N
     # image's own.
     rows, cols = finite_box(xyz, finite)
     if rows.stop - rows.start >= 2 and cols.stop - cols.start >= 2:
-        weights[rows, cols] = _grazing_cos(xyz[rows, cols], floor)
+        # in bands of rows (the same cosines): 1920x1200 doll / corridor maps 86 -> 50 ms, 145 -> 85 ms
+        in_row_bands(lambda band: _grazing_cos(band, floor), xyz[rows, cols], weights[rows, cols], GRAZING_BAND_ROWS)
     return weights
+
+
+GRAZING_BAND_ROWS = 16
+"""Rows per band of :func:`grazing_weights`: 16 rows of a 1920-pixel map are 0.25 MB per float64
+plane, so a band's ~10 planes fit a 4 MB L2 cache (8 and 64 rows were 10-20 % slower on the doll)."""
 
 
 def _grazing_cos(xyz: NDArray[np.float64], floor: float) -> NDArray[np.float64]:

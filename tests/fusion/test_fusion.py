@@ -653,10 +653,15 @@ def test_doubled_gradient_is_numpys_times_two_bit_for_bit(rng):
 
 
 @pytest.mark.parametrize("box", [(slice(10, 30), slice(20, 45)), (slice(0, 25), slice(40, 60)), (slice(0, 40), slice(0, 60)), (slice(5, 6), slice(5, 50)), (slice(0, 0), slice(0, 0))])
-def test_grazing_weights_of_a_partial_map_are_the_whole_maps_bit_for_bit(rng, box):
-    # the weights are computed over the finite pixels' box only: an object in the middle, one
-    # at the border, the whole image, a single row (too thin: all weight 1) and no points at all
+@pytest.mark.parametrize("band_rows", [1, 3, 16])
+def test_grazing_weights_of_a_partial_map_are_the_whole_maps_bit_for_bit(rng, box, band_rows, monkeypatch):
+    # the weights are computed over the finite pixels' box only, in bands of rows: an object in
+    # the middle, one at the border, the whole image, a single row (too thin: all weight 1) and
+    # no points at all, with the bands' boundaries anywhere
+    from fpp_graph.fusion import voxel_map
     from fpp_graph.fusion.voxel_map import _grazing_cos, grazing_weights
+
+    monkeypatch.setattr(voxel_map, "GRAZING_BAND_ROWS", band_rows)
 
     h, w = 40, 60
     v, u = np.mgrid[0:h, 0:w].astype(float)
@@ -713,3 +718,23 @@ def test_edge_filter_on_the_decoded_box_equals_the_whole_map(box):
     np.testing.assert_array_equal(keep, _edge_filter_box(xyz, 500.0, 75.0, 0.0005))
     assert keep.any() and not keep[outside].any()
     assert not edge_filter_mask(np.full((8, 8, 3), np.nan), 500.0).any()
+
+
+@pytest.mark.parametrize("band_rows", [1, 2, 5, 31])
+def test_edge_filter_in_bands_of_rows_equals_one_pass(band_rows, monkeypatch):
+    """The filter runs in bands of rows (cache-sized): any band height gives the one-pass mask,
+    with depth edges, holes and the box's border falling on band boundaries."""
+    from frontend.fpp import sensor
+
+    rng = np.random.default_rng(band_rows)
+    h, w = 70, 90
+    v, u = np.mgrid[0:h, 0:w].astype(float)
+    z = 0.5 + 0.02 * np.sin(u / 7.0) + 0.01 * (v > 35) + 0.3 * (u > 60) * (v % 11 < 2) + 1e-4 * rng.normal(size=(h, w))
+    xyz = np.dstack([(u - w / 2) * z / 500.0, (v - h / 2) * z / 500.0, z])
+    xyz[:3] = np.nan
+    xyz[rng.random((h, w)) < 0.03] = np.nan
+    whole = sensor._edge_filter_box(xyz[2:], 500.0, 75.0, 0.0005)  # the decoded box: rows 2.. (one undecoded row above)
+    monkeypatch.setattr(sensor, "EDGE_FILTER_BAND_ROWS", band_rows)
+    keep = sensor.edge_filter_mask(xyz, 500.0)
+    np.testing.assert_array_equal(keep[2:], whole)
+    assert not keep[:2].any() and 0.5 < keep.mean() < 0.95
