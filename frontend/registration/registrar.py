@@ -13,6 +13,7 @@ from numpy.typing import NDArray
 
 from fpp_graph.errors import FppError, InputDataError
 from fpp_graph.geometry import invert
+from fpp_graph.slam.frame_store import stored_xyz_map_float32
 from fpp_graph.types import Constraint, ConstraintKind, Frame
 from frontend.config import RegistrationConfig
 from frontend.dense_alignment import (
@@ -141,7 +142,9 @@ class FppPairRegistrar:
         (cached; read from :attr:`Frame.prepared` where :meth:`prepare` stored it)."""
         cached = self._surfaces.get(frame)
         if cached is None:
-            cached = OrganisedSurface.from_arrays(frame.xyz_map, frame.prepared) or OrganisedSurface(frame.xyz_map)
+            stored = stored_xyz_map_float32(frame)
+            xyz_map = frame.xyz_map if stored is None else stored  # the same numbers, without narrowing them again
+            cached = OrganisedSurface.from_arrays(xyz_map, frame.prepared) or OrganisedSurface(xyz_map)
             self._surfaces[frame] = cached
         return cached
 
