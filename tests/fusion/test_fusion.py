@@ -441,6 +441,26 @@ def test_surface_smoothing_leaves_isolated_points_and_edges():
     np.testing.assert_array_equal(moved, pts[order])
 
 
+@pytest.mark.parametrize("rows_per_pass", [1, 97, 1000])
+def test_surface_smoothing_in_passes_of_rows_is_one_pass_bit_for_bit(rng, rows_per_pass, monkeypatch):
+    # a chunk's voxels are fitted a cache-sized pass at a time: each voxel's sums are its own, so
+    # any pass size moves every voxel exactly as one pass does (a curved, noisy sheet with holes,
+    # and edge voxels that keep their mean)
+    from fpp_graph.fusion import voxel_grid
+
+    u, v = np.meshgrid(np.arange(60), np.arange(50))
+    pts = np.column_stack([u.ravel() * 1e-3, v.ravel() * 1e-3, 0.02 * np.sin(u.ravel() / 15.0) + rng.normal(0, 1e-4, u.size)])
+    pts = pts[rng.random(len(pts)) > 0.05]
+    keys = voxel_grid.voxel_keys(pts, 0.001)
+    order = np.argsort(keys, kind="stable")
+    keys, pts = keys[order], pts[order] + rng.uniform(-3e-4, 3e-4, pts.shape)
+    weights = rng.uniform(0.5, 2.0, len(pts))
+    one_pass = voxel_grid.project_to_local_planes(keys, pts, weights, 0.001)
+    monkeypatch.setattr(voxel_grid, "ROWS_PER_PASS", rows_per_pass)
+    np.testing.assert_array_equal(voxel_grid.project_to_local_planes(keys, pts, weights, 0.001), one_pass)
+    assert np.count_nonzero(np.any(one_pass != pts, axis=1)) > 0.3 * len(pts)  # the fits moved many voxels (1319 of 2837)
+
+
 def test_neighbour_search_finds_what_a_search_per_offset_finds(rng):
     # 9 searches (one per z column) against 27: the same pairs in the same order, for a dense
     # block, scattered voxels with gaps in their columns, and queries at both ends of the keys
