@@ -48,6 +48,8 @@ class FppSensor:
         Depth noise allowance added to the neighbourhood range bound, metres.
     camera_rays : (H, W, 3) float64, optional
         The camera's pixel rays, if already known (:class:`~frontend.fpp.triangulation.Triangulator`).
+    cache_projector_fit : bool
+        Keep the projector's inverse distortion in the user's cache (:class:`~frontend.fpp.triangulation.Triangulator`).
     """
 
     def __init__(
@@ -59,12 +61,14 @@ class FppSensor:
         edge_max_angle_deg: float | None = 75.0,
         edge_noise_floor_m: float = 0.0005,
         camera_rays: NDArray[np.float64] | None = None,
+        cache_projector_fit: bool = False,
     ) -> None:
         self.calibration = calibration
         self.spec = spec
         proj = calibration.projector
         self.decoder = Decoder(spec, proj.width, proj.height, decode_config)
-        self.triangulator = Triangulator(calibration, axis=spec.coded_axis, depth_range_m=depth_range_m, camera_rays=camera_rays)
+        self.triangulator = Triangulator(calibration, axis=spec.coded_axis, depth_range_m=depth_range_m, camera_rays=camera_rays,
+                                        cache_projector_fit=cache_projector_fit)
         self.edge_max_angle_deg = edge_max_angle_deg
         self.edge_noise_floor_m = float(edge_noise_floor_m)
         K = calibration.camera.K

@@ -52,11 +52,13 @@ class FppSequenceSource:
             from frontend.fpp.sensor import FppSensor
             from frontend.fpp.triangulation import pixel_rays
 
-            # the rays are the costly part of the sensor's start (1.3 s a worker at 1920x1200) and
-            # depend on the camera alone: made once per camera model, shared by the run's workers
+            # the rays and the projector's inverse distortion are the costly part of the sensor's
+            # start (1.3 + 1.0 s a worker at 1920x1200, while the tracking process waits for the
+            # first frame) and depend on the calibration alone: made once per camera / rig, shared
+            # by the run's workers and later runs
             calibration = self.sequence.calibration
             rays = cached_camera_rays(calibration.camera, pixel_rays)
-            self._sensor = FppSensor(calibration, self.sequence.spec, self.config.decode, camera_rays=rays)
+            self._sensor = FppSensor(calibration, self.sequence.spec, self.config.decode, camera_rays=rays, cache_projector_fit=True)
         return self._sensor
 
     def frame_ids(self) -> list[int]:

@@ -157,6 +157,11 @@ class Triangulator:
     camera_rays : (H, W, 3) float64, optional
         :func:`pixel_rays` of the calibration's camera, computed elsewhere (e.g. kept by
         :func:`frontend.fpp.ray_cache.cached_camera_rays`); computed here when not given.
+    cache_projector_fit : bool
+        Keep the projector's inverse-distortion fit in the user's cache
+        (:func:`frontend.fpp.ray_cache.cached_projector_fit`) and read it from there when it is
+        already kept: the same fit, ~1 s less per process at 1920x1200. Off by default (no disk
+        writes); the sequence source's sensor turns it on.
 
     Attributes
     ----------
@@ -180,6 +185,7 @@ class Triangulator:
         projector_refine_iterations: int = 0,
         band_rows: int = 64,
         camera_rays: NDArray[np.float64] | None = None,
+        cache_projector_fit: bool = False,
     ) -> None:
         if axis not in ("columns", "rows"):
             raise ValueError(f"axis must be 'columns' or 'rows', got {axis!r}")
@@ -237,7 +243,7 @@ class Triangulator:
         self._fit_center = 0.0
         self._fit_coeffs: list[NDArray] = []
         if calibration.projector.has_distortion:
-            self._fit_projector_inverse(float(projector_fit_tolerance_px))
+            self._fit_projector_inverse(float(projector_fit_tolerance_px), cache_projector_fit)
         elif self.projector_refine_iterations:
             self.projector_refine_iterations = 0  # nothing to refine without projector distortion
 
@@ -452,13 +458,22 @@ class Triangulator:
         with np.errstate(divide="ignore", invalid="ignore"):
             return X[0] / X[2], X[1] / X[2]
 
-    def _fit_projector_inverse(self, tolerance_px: float) -> None:
+    def _fit_projector_inverse(self, tolerance_px: float, cached: bool = False) -> None:
         """Per-pixel polynomials ``w_undistorted = poly(w_measured - center)`` along each ray.
 
-        Fitted by :func:`frontend.fpp.projector_distortion.fit_inverse_distortion`, then checked
-        against the exact model on a subsample of pixels along their rays within the depth range.
+        Fitted by :func:`frontend.fpp.projector_distortion.fit_inverse_distortion` (or read from
+        the user's cache, ``cached``), then checked against the exact model on a subsample of
+        pixels along their rays within the depth range.
         """
-        fit = fit_inverse_distortion(self.calibration, self._row, self.rays, tolerance_px, self.dtype)
+        def fit_now():
+            return fit_inverse_distortion(self.calibration, self._row, self.rays, tolerance_px, self.dtype)
+
+        if cached:
+            from frontend.fpp.ray_cache import cached_projector_fit
+
+            fit = cached_projector_fit(self.calibration, self._row, tolerance_px, self.dtype, fit_now)
+        else:
+            fit = fit_now()
         self._fit_center = fit.center
         if fit.coverage < 0.5:
             log.warning(

@@ -97,3 +97,69 @@ def test_rays_of_the_wrong_shape_are_refused():
 def test_default_folder_follows_the_cache_variable(monkeypatch, tmp_path):
     monkeypatch.setenv("FPP_GRAPH_CACHE", str(tmp_path))
     assert ray_cache.default_ray_cache_dir() == tmp_path / "rays"
+
+
+# --- the projector's inverse distortion, kept per rig ---------------------------------------
+
+
+def _triangulator_counting_fits(monkeypatch, calls: list[int]):
+    from frontend.fpp import triangulation
+
+    real = triangulation.fit_inverse_distortion
+
+    def counting(*args):
+        calls.append(1)
+        return real(*args)
+
+    monkeypatch.setattr(triangulation, "fit_inverse_distortion", counting)
+
+
+def test_a_kept_projector_fit_triangulates_as_a_fresh_one_and_is_made_once(monkeypatch, tmp_path):
+    from test_triangulation import plane_scene
+
+    from frontend.fpp.lens import project_to_projector
+
+    monkeypatch.setenv("FPP_GRAPH_CACHE", str(tmp_path))
+    rig = make_rig()
+    calls: list[int] = []
+    _triangulator_counting_fits(monkeypatch, calls)
+    fresh = Triangulator(rig)
+    first, second = Triangulator(rig, cache_projector_fit=True), Triangulator(rig, cache_projector_fit=True)
+    assert len(calls) == 2  # the fresh one and the first cached one; the second read it
+    assert len(list((tmp_path / "projector_fits").glob("*.npz"))) == 1
+    u_p, _ = project_to_projector(rig, plane_scene(rig))
+    for kept in (first, second):
+        assert kept.projector_fit_degree == fresh.projector_fit_degree
+        assert kept.projector_fit_max_error_px == fresh.projector_fit_max_error_px
+        np.testing.assert_array_equal(kept.triangulate(u_p), fresh.triangulate(u_p))
+    # another tolerance, axis or number type is another entry
+    Triangulator(rig, cache_projector_fit=True, projector_fit_tolerance_px=1e-2)
+    Triangulator(rig, cache_projector_fit=True, dtype=np.float64)
+    assert len(calls) == 4 and len(list((tmp_path / "projector_fits").glob("*.npz"))) == 3
+
+
+def test_a_broken_projector_fit_is_made_again_and_an_unwritable_cache_only_costs_time(monkeypatch, tmp_path, caplog):
+    from test_triangulation import plane_scene
+
+    from frontend.fpp.lens import project_to_projector
+    from frontend.fpp.ray_cache import cached_projector_fit, projector_fit_cache_key
+
+    rig = make_rig()
+    u_p, _ = project_to_projector(rig, plane_scene(rig))
+    expected = Triangulator(rig).triangulate(u_p)
+    monkeypatch.setenv("FPP_GRAPH_CACHE", str(tmp_path))
+    path = tmp_path / "projector_fits" / f"{projector_fit_cache_key(rig, 0, 1e-3, np.dtype(np.float32))}.npz"
+    path.parent.mkdir()
+    path.write_bytes(b"not an archive")
+    np.testing.assert_array_equal(Triangulator(rig, cache_projector_fit=True).triangulate(u_p), expected)
+    assert "unreadable projector fit" in caplog.text
+    fit = cached_projector_fit(rig, 0, 1e-3, np.dtype(np.float32), lambda: None)  # read back: compute is not called
+    arrays = {"center": fit.center, "degree": fit.degree + 1, "table_error_px": 0.0, "coverage": 1.0, "nodes": fit.nodes, "coeffs": np.stack(fit.coeffs)}
+    np.savez(path, **arrays)  # a degree that does not match its coefficients
+    np.testing.assert_array_equal(Triangulator(rig, cache_projector_fit=True).triangulate(u_p), expected)
+    assert "computing it again" in caplog.text
+    blocked = tmp_path / "a_file"
+    blocked.write_text("")
+    monkeypatch.setenv("FPP_GRAPH_CACHE", str(blocked))
+    np.testing.assert_array_equal(Triangulator(rig, cache_projector_fit=True).triangulate(u_p), expected)
+    assert "cannot cache the projector's inverse distortion" in caplog.text
