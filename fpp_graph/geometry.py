@@ -161,9 +161,9 @@ def in_row_bands(local: Callable[[NDArray], NDArray], image: NDArray, out: NDArr
     whole frames makes each float plane a few MB that go out to memory between passes; a band's
     planes stay in the core's cache (the FPP edge filter and the fusion's grazing weights took
     0.55-0.6x the time on 1920x1200 maps). Returns ``out``."""
-    height = image.shape[0]
-    for r0 in range(0, height, max(1, int(band_rows))):
-        r1 = min(r0 + band_rows, height)
+    height, step = image.shape[0], max(1, int(band_rows))
+    for r0 in range(0, height, step):
+        r1 = min(r0 + step, height)
         a, b = max(r0 - 1, 0), min(r1 + 1, height)
         out[r0:r1] = local(image[a:b])[r0 - a : r1 - a]
     return out

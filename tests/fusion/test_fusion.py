@@ -740,9 +740,9 @@ def test_edge_filter_on_the_decoded_box_equals_the_whole_map(box):
     assert not edge_filter_mask(np.full((8, 8, 3), np.nan), 500.0).any()
 
 
-@pytest.mark.parametrize("band_rows", [1, 2, 5, 31])
+@pytest.mark.parametrize("band_rows", [0, 1, 2, 5, 31])
 def test_edge_filter_in_bands_of_rows_equals_one_pass(band_rows, monkeypatch):
-    """The filter runs in bands of rows (cache-sized): any band height gives the one-pass mask,
+    """The filter runs in bands of rows (cache-sized): any band height gives the one-pass mask (0: rows one by one),
     with depth edges, holes and the box's border falling on band boundaries."""
     from frontend.fpp import sensor
 
