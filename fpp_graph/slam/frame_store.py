@@ -202,7 +202,7 @@ def stored_xyz_map_float32(frame: Frame) -> np.ndarray | None:
     frame store (:func:`load_frame`, or a decode worker's hand-over), else None. Widening is exact,
     so it equals ``frame.xyz_map.astype(np.float32)``: code that works on float32 maps (the dense
     alignment's surfaces) takes it instead of narrowing the frame's 55 MB float64 map again (a
-    1920x1200 frame: ~10 ms a time, and a doll turntable run builds ~350 surfaces)."""
+    1920x1200 frame: ~10 ms a time, and a doll turntable run builds ~215 surfaces)."""
     return _STORED_MAPS.get(frame)
 
 
