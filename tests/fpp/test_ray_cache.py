@@ -132,7 +132,7 @@ def test_a_kept_projector_fit_triangulates_as_a_fresh_one_and_is_made_once(monke
         assert kept.projector_fit_degree == fresh.projector_fit_degree
         assert kept.projector_fit_max_error_px == fresh.projector_fit_max_error_px
         np.testing.assert_array_equal(kept.triangulate(u_p), fresh.triangulate(u_p))
-    # another tolerance, axis or number type is another entry
+    # another tolerance or number type is another entry
     Triangulator(rig, cache_projector_fit=True, projector_fit_tolerance_px=1e-2)
     Triangulator(rig, cache_projector_fit=True, dtype=np.float64)
     assert len(calls) == 4 and len(list((tmp_path / "projector_fits").glob("*.npz"))) == 3
