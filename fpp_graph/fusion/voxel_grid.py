@@ -127,8 +127,24 @@ def _chunk_task(keys, points, weights, voxel_size_m, start, stop, min_neighbours
 
 
 def project_chunk_task(task: tuple) -> NDArray[np.float64]:
-    """:func:`_project_chunk` of one :func:`_chunk_task` (module level: picklable for worker processes)."""
-    return _project_chunk(*task)
+    """:func:`_project_chunk` of one :func:`_chunk_task` (module level: picklable for worker
+    processes), its rows :data:`ROWS_PER_PASS` at a time: each row's sums are its own, added in
+    the same order either way, and a pass's ~20 pair columns stay in the core's cache."""
+    keys, points, weights, voxel_size_m, rows, min_neighbours, max_flatness = task
+    if len(rows) <= ROWS_PER_PASS:
+        return _project_chunk(*task)
+    return np.concatenate([
+        _project_chunk(keys, points, weights, voxel_size_m, rows[start : start + ROWS_PER_PASS], min_neighbours, max_flatness)
+        for start in range(0, len(rows), ROWS_PER_PASS)
+    ])
+
+
+ROWS_PER_PASS = 8192
+"""Voxels whose surfaces :func:`project_chunk_task` fits in one pass: ~27 neighbour pairs each, so a
+float64 pair column is ~1.8 MB and a pass's working set stays near a 4 MB L2 cache (a chunk of
+50 000 voxels at once: 0.77 s for 400 000 voxels of the corridor's map on one core; 10 000 a
+pass: 0.54 s, 5 000: 0.53, 2 500: 0.58). A chunk handed to another process stays large: it
+carries every voxel its neighbours can be, 3.5x its rows at 50 000 but 13x at 10 000."""
 
 
 def _sums(pair_rows: NDArray[np.int64], weights: NDArray[np.float64], columns: list[NDArray[np.float64] | None], n: int) -> NDArray[np.float64]:
@@ -165,36 +181,7 @@ def _project_chunk(
     neighbourhood has fewer than ``min_neighbours`` occupied voxels or is not a surface
     (smallest eigenvalue above ``max_flatness`` times the middle one: edges, thin parts, noise)
     keep their voxel mean. Returns the new points of ``rows``.
-
-    The rows are taken :data:`ROWS_PER_PASS` at a time (each row's sums are its own, in the same
-    order either way): a pass's ~20 pair columns then stay in the core's cache.
     """
-    if len(rows) <= ROWS_PER_PASS:
-        return _project_rows(keys, points, weights, voxel_size_m, rows, min_neighbours, max_flatness)
-    return np.concatenate([
-        _project_rows(keys, points, weights, voxel_size_m, rows[start : start + ROWS_PER_PASS], min_neighbours, max_flatness)
-        for start in range(0, len(rows), ROWS_PER_PASS)
-    ])
-
-
-ROWS_PER_PASS = 8192
-"""Voxels whose surfaces :func:`_project_chunk` fits in one pass: ~27 neighbour pairs each, so a
-float64 pair column is ~1.8 MB and a pass's working set stays near a 4 MB L2 cache (a chunk of
-50 000 voxels at once: 0.77 s for 400 000 voxels of the corridor's map on one core; 10 000 a
-pass: 0.54 s, 5 000: 0.53, 2 500: 0.58). A chunk handed to another process stays large: it
-carries every voxel its neighbours can be, 3.5x its rows at 50 000 but 13x at 10 000."""
-
-
-def _project_rows(
-    keys: NDArray[np.int64],
-    points: NDArray[np.float64],
-    weights: NDArray[np.float64],
-    voxel_size_m: float,
-    rows: NDArray[np.int64],
-    min_neighbours: int,
-    max_flatness: float,
-) -> NDArray[np.float64]:
-    """:func:`_project_chunk` of the given ``rows`` in one pass."""
     n = len(rows)
     out = points[rows].copy()
     if n == 0:
