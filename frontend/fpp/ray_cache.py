@@ -28,6 +28,7 @@ import os
 import zipfile
 from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import IO, Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -73,24 +74,33 @@ def cached_camera_rays(
         Default :func:`default_ray_cache_dir`.
     """
     folder = Path(cache_dir) if cache_dir is not None else default_ray_cache_dir()
-    path = folder / f"{ray_cache_key(camera)}.npy"
     shape = (camera.height, camera.width, 3)
-    if (rays := _read(path, shape)) is not None:
-        return rays
+    return _kept(
+        folder / f"{ray_cache_key(camera)}.npy", lambda path: _read(path, shape), lambda: compute(camera), np.save, "camera rays",
+    )
+
+
+def _kept(path: Path, read: Callable[[Path], Any], compute: Callable[[], Any], write: Callable[[IO[bytes], Any], None], what: str) -> Any:
+    """``read(path)`` when the entry is there and sound, else ``compute()`` under the entry's lock,
+    written with ``write`` (atomically) and read back mapped; a cache that cannot be written only
+    costs the computation (``what`` names the entry in the warning)."""
+    folder = path.parent
+    if (value := read(path)) is not None:
+        return value
     try:
         folder.mkdir(parents=True, exist_ok=True)
         with _locked(folder / f"{path.stem}.lock"):
-            if (rays := _read(path, shape)) is not None:  # another process made them while this one waited
-                return rays
-            rays = compute(camera)
+            if (value := read(path)) is not None:  # another process made it while this one waited
+                return value
+            value = compute()
             with atomic_open(path, "wb") as handle:
-                np.save(handle, rays)
+                write(handle, value)
         _evict(folder, keep=path)
     except OSError as exc:  # a read-only or full cache only costs the computation
-        log.warning("cannot cache camera rays in %s: %s", folder, exc)
-        return rays if rays is not None else compute(camera)
-    mapped = _read(path, shape)  # this process maps the file too: one copy in memory for all
-    return mapped if mapped is not None else rays
+        log.warning("cannot cache %s in %s: %s", what, folder, exc)
+        return value if value is not None else compute()
+    mapped = read(path)  # this process maps the file too: one copy in memory for all
+    return mapped if mapped is not None else value
 
 
 def _read(path: Path, shape: tuple[int, int, int]) -> NDArray[np.float64] | None:
@@ -164,27 +174,18 @@ def cached_projector_fit(
     it (its coefficients read-only views of the mapped file), else computed under the folder's
     lock and stored; as :func:`cached_camera_rays`. Default folder :func:`default_projector_fit_cache_dir`."""
     folder = Path(cache_dir) if cache_dir is not None else default_projector_fit_cache_dir()
-    path = folder / f"{projector_fit_cache_key(calibration, row, tolerance_px, dtype)}.npz"
     shape = (calibration.camera.height, calibration.camera.width)
-    if (fit := _read_fit(path, shape, dtype)) is not None:
-        return fit
-    try:
-        folder.mkdir(parents=True, exist_ok=True)
-        with _locked(folder / f"{path.stem}.lock"):
-            if (fit := _read_fit(path, shape, dtype)) is not None:  # another process made it while this one waited
-                return fit
-            fit = compute()
-            with atomic_open(path, "wb") as handle:
-                np.savez(
-                    handle, center=np.float64(fit.center), degree=np.int64(fit.degree), table_error_px=np.float64(fit.table_error_px),
-                    coverage=np.float64(fit.coverage), nodes=np.asarray(fit.nodes, dtype=np.float64), coeffs=np.stack(fit.coeffs),
-                )
-        _evict(folder, keep=path)
-    except OSError as exc:  # a read-only or full cache only costs the computation
-        log.warning("cannot cache the projector's inverse distortion in %s: %s", folder, exc)
-        return fit if fit is not None else compute()
-    mapped = _read_fit(path, shape, dtype)  # this process maps the file too: one copy in memory for all
-    return mapped if mapped is not None else fit
+    return _kept(
+        folder / f"{projector_fit_cache_key(calibration, row, tolerance_px, dtype)}.npz", lambda path: _read_fit(path, shape, dtype),
+        compute, _write_fit, "the projector's inverse distortion",
+    )
+
+
+def _write_fit(handle: IO[bytes], fit: InverseDistortionFit) -> None:
+    np.savez(
+        handle, center=np.float64(fit.center), degree=np.int64(fit.degree), table_error_px=np.float64(fit.table_error_px),
+        coverage=np.float64(fit.coverage), nodes=np.asarray(fit.nodes, dtype=np.float64), coeffs=np.stack(fit.coeffs),
+    )
 
 
 def _read_fit(path: Path, shape: tuple[int, int], dtype: np.dtype) -> InverseDistortionFit | None:
