@@ -21,19 +21,11 @@ Each line says whether ours and the peer agree bit for bit. Minimum over ``--rep
 from __future__ import annotations
 
 import argparse
-import time
 from pathlib import Path
 
 import numpy as np
 
-
-def _best_ms(fn, repeat: int) -> tuple[float, object]:
-    best, out = float("inf"), None
-    for _ in range(repeat):
-        started = time.perf_counter()
-        out = fn()
-        best = min(best, time.perf_counter() - started)
-    return 1e3 * best, out
+from scripts.bench_fusion_prepare import _best_ms, middle_frames
 
 
 def _ours_and_peer(module, constant: str, fn, repeat: int) -> tuple[float, float, bool]:
@@ -69,12 +61,8 @@ def main(argv: list[str] | None = None) -> int:
     from frontend.organised_surface import fit_pinhole
 
     single_threaded_libraries()
-    paths = sorted((args.results / "frames").glob("frame_*.npz"))
-    if not paths:
-        parser.error(f"{args.results / 'frames'} holds no cached frames; run with run.keep_frames: all or keyframes")
-    middle = max(0, len(paths) // 2 - args.frames // 2)
     rows = []
-    for path in paths[middle : middle + args.frames]:
+    for path in middle_frames(parser, args.results, args.frames):
         frame = load_frame(path)
         xyz = np.asarray(frame.xyz_map)
         fitted = fit_pinhole(xyz)  # the camera's focal length, as the sensor has it from its calibration

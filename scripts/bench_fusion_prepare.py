@@ -42,6 +42,15 @@ def _best_ms(fn, repeat: int) -> tuple[float, object]:
     return 1e3 * best, out
 
 
+def middle_frames(parser: argparse.ArgumentParser, results: Path, count: int) -> list[Path]:
+    """The cached frames ``count`` from the middle of the run in ``results`` (a usage error without any)."""
+    paths = sorted((results / "frames").glob("frame_*.npz"))
+    if not paths:
+        parser.error(f"{results / 'frames'} holds no cached frames; run with run.keep_frames: all or keyframes")
+    middle = max(0, len(paths) // 2 - count // 2)
+    return paths[middle : middle + count]
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("results", type=Path)
@@ -59,11 +68,7 @@ def main(argv: list[str] | None = None) -> int:
     from fpp_graph.trajectory import read_tum
 
     single_threaded_libraries()
-    paths = sorted((args.results / "frames").glob("frame_*.npz"))
-    if not paths:
-        parser.error(f"{args.results / 'frames'} holds no cached frames; run with run.keep_frames: all or keyframes")
-    middle = max(0, len(paths) // 2 - args.frames // 2)
-    paths = paths[middle : middle + args.frames]
+    paths = middle_frames(parser, args.results, args.frames)
     trajectory = read_tum(args.results / "trajectory.tum")
     fusion = yaml.safe_load((args.results / "config.yaml").read_text())["fusion"]
     fuser = VoxelMapFuser(
