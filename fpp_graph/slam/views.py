@@ -9,6 +9,7 @@ RGB-D camera and a narrow FPP camera. :class:`ViewModel` keeps what it needs of 
 from __future__ import annotations
 
 import math
+import weakref
 from dataclasses import dataclass
 
 import numpy as np
@@ -19,8 +20,18 @@ from fpp_graph.types import Frame
 
 
 def median_depth_m(frame: Frame) -> float:
-    """Median depth (z, metres) of a frame's points; NaN without points."""
-    return float(np.median(np.asarray(frame.points)[:, 2])) if len(frame.points) else math.nan
+    """Median depth (z, metres) of a frame's points; NaN without points. Computed once per frame
+    object: the keyframe policy and the loop detector's view of a keyframe each ask for it, and
+    it is a median over ~2 M points of an FPP frame (~35 ms; a 105-frame corridor run asked 210 times)."""
+    depth = _MEDIAN_DEPTHS_M.get(frame)
+    if depth is None:
+        depth = float(np.median(np.asarray(frame.points)[:, 2])) if len(frame.points) else math.nan
+        _MEDIAN_DEPTHS_M[frame] = depth
+    return depth
+
+
+_MEDIAN_DEPTHS_M: weakref.WeakKeyDictionary[Frame, float] = weakref.WeakKeyDictionary()
+""":func:`median_depth_m` of each frame while it lives (frames are immutable)."""
 
 
 @dataclass(frozen=True)

@@ -359,6 +359,33 @@ def test_view_change_is_pixel_flow_over_the_smaller_image_side():
     assert view_change(Frame(id=1, timestamp=0.0, points=np.zeros((1, 3))), np.eye(4)) is None
 
 
+def test_median_depth_is_computed_once_per_frame(monkeypatch):
+    import gc
+
+    from fpp_graph.slam import views
+
+    def frame_at(frame_id: int, depths_m: np.ndarray) -> Frame:
+        camera = _camera_frame(frame_id)
+        points = np.column_stack([np.zeros(len(depths_m)), np.zeros(len(depths_m)), depths_m])
+        return Frame(id=frame_id, timestamp=-123.25, points=points, xyz_map=camera.xyz_map, metadata=camera.metadata)
+
+    medians = []
+    real_median = np.median
+    monkeypatch.setattr(views.np, "median", lambda a: medians.append(len(a)) or real_median(a))
+    keyframe = frame_at(0, np.array([3.0, 1.0, 2.5, 2.0, 1.5]))
+    assert views.median_depth_m(keyframe) == 2.0
+    # the keyframe policy and the loop detector's view ask again: the same number, no new median
+    assert views.ViewModel.of(keyframe).depth_m == views.median_depth_m(keyframe) == 2.0
+    assert medians == [5]
+    other = frame_at(1, np.array([4.0, 5.0]))  # another frame gets its own
+    assert views.median_depth_m(other) == 4.5 and medians == [5, 2]
+    assert math.isnan(views.median_depth_m(frame_at(2, np.zeros(0))))
+    del other
+    gc.collect()
+    # kept only while its frame lives
+    assert [f.id for f in views._MEDIAN_DEPTHS_M if f.timestamp == -123.25] == [keyframe.id]
+
+
 def test_slow_camera_makes_a_keyframe_every_few_frames(rng):
     # 1 cm per frame sideways at 2 m (2.5 px of 480): a keyframe each 5 % of the view, 10 frames
     poses = [make_pose(np.eye(3), [0.01 * i, 0, 0]) for i in range(30)]
