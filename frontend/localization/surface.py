@@ -11,6 +11,7 @@ from __future__ import annotations
 import functools
 import logging
 import math
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
@@ -27,8 +28,16 @@ def projector_irradiance(normals: Array, to_projector: Array) -> tuple[Array, Ar
     """The FPP texture's shading model: irradiance ``E = cos(theta) / d^2`` of surface points with
     unit ``normals`` from a projector at ``to_projector`` (point to projector, metres), and
     ``cos(theta)``; over the last axis, any leading shape."""
-    d = np.linalg.norm(to_projector, axis=-1)
-    cos = np.abs(np.sum(normals * to_projector, axis=-1)) / d
+    return projector_irradiance_rows(np.moveaxis(normals, -1, 0), np.moveaxis(to_projector, -1, 0))
+
+
+def projector_irradiance_rows(normals: Array, to_projector: Array) -> tuple[Array, Array]:
+    """:func:`projector_irradiance` over the first axis (3, ...): for callers that hold coordinates
+    as rows, which are picked and summed faster than (N, 3) records (the sums are those of
+    ``np.linalg.norm`` and ``np.sum`` over the last axis, in their order)."""
+    a0, a1, a2 = to_projector[0], to_projector[1], to_projector[2]
+    d = np.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
+    cos = np.abs(normals[0] * a0 + normals[1] * a1 + normals[2] * a2) / d
     return cos / d**2, cos
 
 
@@ -115,30 +124,105 @@ def adaptively_smoothed_along_rays(xyz_map: Array, small_px: float, large_px: fl
 
 
 def adaptive_smoothing_scale(depth_m: Array, small_px: float, large_px: float, kappa: float = 3.0) -> Array:
-    """The per-pixel factor of :func:`adaptively_smoothed_along_rays` (as :func:`smoothing_scale`)."""
+    """The per-pixel factor of :func:`adaptively_smoothed_along_rays` (as :func:`smoothing_scale`).
+
+    Its eight Gaussian blurs run over the whole frame; the arithmetic between them runs in bands of
+    :data:`SMOOTHING_BAND_ROWS` rows, each pixel's by itself, so the numbers are those of the
+    whole-frame passes (tested) while a band's float64 planes stay in the core's cache."""
     z = depth_m
     ok = np.isfinite(z)
-    inv_z = np.where(ok, 1.0 / np.where(ok, z, 1.0), 0.0)
-    # the wide smoother and the local means below share one normalisation
-    den = np.maximum(cv2.GaussianBlur(ok.astype(np.float32), (0, 0), large_px), np.float32(1e-6))
-    narrow = _twice_smoothed_inverse_depth(inv_z, ok, small_px)
-    wide = _twice_smoothed_inverse_depth(inv_z, ok, large_px, den)
-    gain_residual, gain_difference, gain_averaged = _smoother_noise_gains(float(small_px), float(large_px))
-
     outside = ~ok
-    residual2 = inv_z - narrow
-    residual2 *= residual2
-    sigma_pixel = np.sqrt(_normalised_blur(residual2, outside, large_px, den))
-    sigma_pixel /= gain_residual  # raw inverse-depth noise
-    difference = wide - narrow
-    with np.errstate(invalid="ignore"):
-        use_wide = np.abs(_normalised_blur(difference, outside, large_px, den)) < kappa * gain_averaged * sigma_pixel
-        use_wide &= ok
-        use_wide &= np.abs(difference) < kappa * gain_difference * sigma_pixel
-    smoothed = np.where(use_wide, wide, narrow)
-    log.debug("adaptive range smoothing: %.0f%% of %d pixels at %.1f px, the rest at %.1f px", 100.0 * use_wide.sum() / max(int(ok.sum()), 1), int(ok.sum()), large_px, small_px)
+    inv_z = np.zeros(z.shape, dtype=np.result_type(z, 1.0))
+    np.divide(1.0, z, out=inv_z, where=ok)
+    bands = row_bands(z.shape[0], SMOOTHING_BAND_ROWS)
+    inv_z32 = inv_z.astype(np.float32)  # 0 outside already: the normalised blur's masking is a no-op here
+    ok32 = ok.astype(np.float32)
+    narrow = _BandedTwicing.of(inv_z32, outside, small_px, ok32, bands)
+    wide = _BandedTwicing.of(inv_z32, outside, large_px, ok32, bands)  # its normalisation serves the local means too
+    residual2 = np.empty_like(inv_z32)
+    difference = np.empty_like(inv_z32)
+    for rows in bands:
+        narrow_rows, wide_rows = narrow.rows(rows), wide.rows(rows)
+        r = inv_z[rows] - narrow_rows
+        r *= r
+        _masked_float32(r, outside[rows], residual2[rows])
+        wide_rows -= narrow_rows
+        _masked_float32(wide_rows, outside[rows], difference[rows])
+    local_variance = cv2.GaussianBlur(residual2, (0, 0), large_px)
+    local_difference = cv2.GaussianBlur(difference, (0, 0), large_px)
+    gains = _smoother_noise_gains(float(small_px), float(large_px))
+    scale = np.empty(z.shape, dtype=np.float64)
+    wide_pixels = 0
     with np.errstate(invalid="ignore", divide="ignore"):
-        return 1.0 / (smoothed * np.where(ok, z, np.nan))
+        for rows in bands:
+            narrow_rows, wide_rows = narrow.rows(rows), wide.rows(rows)
+            use_wide = _wide_is_unbiased(narrow_rows, wide_rows, local_variance[rows], local_difference[rows], wide.den[rows], ok[rows], gains, kappa)
+            wide_pixels += int(np.count_nonzero(use_wide))
+            smoothed = np.where(use_wide, wide_rows, narrow_rows)
+            scale[rows] = 1.0 / (smoothed * np.where(ok[rows], z[rows], np.nan))
+    log.debug("adaptive range smoothing: %.0f%% of %d pixels at %.1f px, the rest at %.1f px", 100.0 * wide_pixels / max(int(ok.sum()), 1), int(ok.sum()), large_px, small_px)
+    return scale
+
+
+SMOOTHING_BAND_ROWS = 32
+"""Rows per band of :func:`adaptive_smoothing_scale`'s per-pixel arithmetic: 32 rows of a
+1920-pixel frame are 0.5 MB per float64 plane, and a band's few planes fit a 4 MB L2 cache."""
+
+
+def row_bands(height: int, band_rows: int) -> list[slice]:
+    """Slices of ``band_rows`` consecutive rows (the last one shorter) covering ``height`` rows."""
+    step = max(1, int(band_rows))
+    return [slice(r, min(r + step, height)) for r in range(0, height, step)]
+
+
+def _masked_float32(values: Array, outside: NDArray[np.bool_], out: NDArray[np.float32]) -> None:
+    """``out[:] = values`` as float32, 0 where ``outside``: a normalised blur's input (:func:`_normalised_blur`)."""
+    out[...] = values
+    np.putmask(out, outside, np.float32(0.0))
+
+
+@dataclass(frozen=True, eq=False)
+class _BandedTwicing:
+    """``2 G(f) - G(G(f))`` of one width (:func:`_twice_smoothed_inverse_depth`), kept as its two
+    float32 blurs and their normalisation ``den`` and evaluated a band of rows at a time (:meth:`rows`)."""
+
+    den: NDArray[np.float32]
+    once: NDArray[np.float32]
+    again: NDArray[np.float32]
+
+    @classmethod
+    def of(cls, f32: NDArray[np.float32], outside: NDArray[np.bool_], sigma_px: float, ok32: NDArray[np.float32], bands: list[slice]) -> _BandedTwicing:
+        """Of ``f32`` (0 ``outside`` the valid pixels, whose indicator is ``ok32``)."""
+        den = np.maximum(cv2.GaussianBlur(ok32, (0, 0), sigma_px), np.float32(1e-6))
+        once = cv2.GaussianBlur(f32, (0, 0), sigma_px)
+        normalised = np.empty_like(f32)
+        for rows in bands:
+            _masked_float32(np.divide(once[rows], den[rows], dtype=np.float64), outside[rows], normalised[rows])
+        return cls(den, once, cv2.GaussianBlur(normalised, (0, 0), sigma_px))
+
+    def rows(self, rows: slice) -> Array:
+        """The twice-smoothed values of ``rows``, float64."""
+        out = np.divide(self.once[rows], self.den[rows], dtype=np.float64)
+        out *= 2.0
+        out -= np.divide(self.again[rows], self.den[rows], dtype=np.float64)
+        return out
+
+
+def _wide_is_unbiased(
+    narrow: Array, wide: Array, local_variance: NDArray[np.float32], local_difference: NDArray[np.float32], den: NDArray[np.float32],
+    ok: NDArray[np.bool_], gains: tuple[float, float, float], kappa: float,
+) -> NDArray[np.bool_]:
+    """Pixels where the wide estimate stays within ``kappa`` noise deviations of the narrow one,
+    pixel by pixel and averaged over the wide window (see :func:`adaptively_smoothed_along_rays`);
+    ``local_variance`` / ``local_difference``: the blurred squared residual about the narrow
+    estimate and the blurred difference, ``den`` their normalisation."""
+    gain_residual, gain_difference, gain_averaged = gains
+    sigma_pixel = np.sqrt(np.divide(local_variance, den, dtype=np.float64))
+    sigma_pixel /= gain_residual  # raw inverse-depth noise
+    use_wide = np.abs(np.divide(local_difference, den, dtype=np.float64)) < kappa * gain_averaged * sigma_pixel
+    use_wide &= ok
+    use_wide &= np.abs(wide - narrow) < kappa * gain_difference * sigma_pixel
+    return use_wide
 
 
 def depth_edge_free_mask(depth_m: NDArray, reach_px: int, kappa: float = 8.0, relative_floor: float = 1e-4) -> NDArray[np.bool_]:

@@ -192,6 +192,46 @@ def test_prepared_reference_pixels_give_the_same_pose_and_must_match_the_setting
         _locate_middle(fringe_triple, reference_pixels=prepared[:1])
 
 
+def test_photometric_normal_equations_are_those_of_the_stacked_jacobian():
+    # the rows-first assembly holds the same Jacobian as stacking its columns; only the sums' order differs
+    from frontend.dense_alignment import cross_rows
+    from frontend.localization.photometric import _jacobian_rows, _PyramidLevel
+
+    rng = np.random.default_rng(5)
+    n = 5000
+    P = np.column_stack([rng.uniform(-0.3, 0.3, n), rng.uniform(-0.2, 0.2, n), rng.uniform(0.8, 1.2, n)])
+    Gx, Gy, pred, gain_dk = rng.normal(0, 20, n), rng.normal(0, 20, n), rng.uniform(50, 200, n), rng.normal(0, 5, n)
+    lev = _PyramidLevel(*(np.zeros((2, 2), np.float32),) * 3, np.ones((2, 2), bool), 900.0, 910.0, 320.0, 200.0, 0.5, np.zeros(n))
+    dI_dP = np.column_stack([Gx * 900.0 / P[:, 2], Gx * 0.5 / P[:, 2] + Gy * 910.0 / P[:, 2], -(Gx * (900.0 * P[:, 0] + 0.5 * P[:, 1]) + Gy * 910.0 * P[:, 1]) / P[:, 2] ** 2])
+    stacked = np.column_stack([cross_rows(P, dI_dP).T, dI_dP, -pred, -np.ones(n), -gain_dk])
+    for n_par in (8, 9):
+        J = _jacobian_rows(lev, P, Gx, Gy, pred, gain_dk, n_par)
+        np.testing.assert_array_equal(J, stacked[:, :n_par].T)
+    w, res = rng.uniform(0, 1, n), rng.normal(0, 2, n)
+    J = _jacobian_rows(lev, P, Gx, Gy, pred, gain_dk, 9)
+    np.testing.assert_allclose((J * w) @ J.T, (stacked * w[:, None]).T @ stacked, rtol=1e-12)
+    np.testing.assert_allclose((J * w) @ res, (stacked * w[:, None]).T @ res, rtol=1e-10, atol=1e-9)
+
+
+def test_query_undistortion_maps_are_kept_per_camera():
+    from frontend.localization.photometric import _query_on_pinhole, _undistortion_maps
+
+    rng = np.random.default_rng(2)
+    q = rng.integers(0, 255, (120, 160), dtype=np.uint8)
+    dist = np.array([0.08, -0.05, 0.001, -0.002, 0.01])
+    _undistortion_maps.cache_clear()
+    for _ in range(3):
+        Q, V = _query_on_pinhole(q, K, dist, None)
+    assert _undistortion_maps.cache_info().misses == 1 and _undistortion_maps.cache_info().hits == 2
+    m1, m2 = cv2.initUndistortRectifyMap(K, dist, None, K, (160, 120), cv2.CV_32FC1)
+    expected = cv2.remap(q.astype(np.float32), m1, m2, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    np.testing.assert_array_equal(Q, expected)
+    _query_on_pinhole(q, K, 0.5 * dist, None)  # another lens: its own maps
+    assert _undistortion_maps.cache_info().misses == 2
+    kept = _undistortion_maps(K.tobytes(), dist.tobytes(), 160, 120)
+    assert not kept[0].flags.writeable  # shared by every later call: nobody may change them
+
+
 def test_photometric_localisation_bad_input(fringe_triple):
     rig, poses, frames, projector_centre = fringe_triple
     K = rig.camera.K
@@ -315,6 +355,47 @@ def test_adaptive_smoothing_is_wide_on_planes_and_narrow_on_relief():
     assert abs(np.mean(wide[core])) > 0.5
     assert abs(np.mean(adaptive[core])) < 0.01
     assert np.all(np.isnan(out[5:9, 5:9]))
+
+
+def _adaptive_scale_in_whole_frame_passes(z: np.ndarray, small_px: float, large_px: float, kappa: float = 3.0) -> np.ndarray:
+    """adaptive_smoothing_scale as whole-frame passes: the specification of the banded one."""
+    from frontend.localization.surface import (
+        _normalised_blur,
+        _smoother_noise_gains,
+        _twice_smoothed_inverse_depth,
+    )
+
+    ok = np.isfinite(z)
+    inv_z = np.where(ok, 1.0 / np.where(ok, z, 1.0), 0.0)
+    den = np.maximum(cv2.GaussianBlur(ok.astype(np.float32), (0, 0), large_px), np.float32(1e-6))
+    narrow = _twice_smoothed_inverse_depth(inv_z, ok, small_px)
+    wide = _twice_smoothed_inverse_depth(inv_z, ok, large_px, den)
+    gain_residual, gain_difference, gain_averaged = _smoother_noise_gains(float(small_px), float(large_px))
+    sigma_pixel = np.sqrt(_normalised_blur((inv_z - narrow) ** 2, ~ok, large_px, den)) / gain_residual
+    difference = wide - narrow
+    with np.errstate(invalid="ignore", divide="ignore"):
+        use_wide = (np.abs(_normalised_blur(difference, ~ok, large_px, den)) < kappa * gain_averaged * sigma_pixel) & ok
+        use_wide &= np.abs(difference) < kappa * gain_difference * sigma_pixel
+        return 1.0 / (np.where(use_wide, wide, narrow) * np.where(ok, z, np.nan))
+
+
+@pytest.mark.parametrize("band_rows", [0, 1, 7, 32, 1000])
+def test_adaptive_smoothing_in_bands_is_the_whole_frame_passes(monkeypatch, band_rows):
+    from frontend.localization import surface
+
+    h, w = 150, 200
+    dirs = _rays(h, w, 300.0)
+    rng = np.random.default_rng(3)
+    t = 0.5 / (dirs @ (np.array([0.2, -0.1, 1.0]) / np.linalg.norm([0.2, -0.1, 1.0])))
+    t[40:90, 60:120] -= 0.03  # a box in front of the wall: relief and depth edges
+    z = (dirs * (t * (1 + rng.normal(0, 5e-4, (h, w))))[..., None])[..., 2]
+    z[5:12, 30:41] = np.nan  # holes, one on a band boundary (rows 7, 32, ...)
+    z[31:33, :] = np.nan
+    expected = _adaptive_scale_in_whole_frame_passes(z, 2.0, 6.0)
+    monkeypatch.setattr(surface, "SMOOTHING_BAND_ROWS", band_rows)
+    got = surface.adaptive_smoothing_scale(z, 2.0, 6.0)
+    np.testing.assert_array_equal(got, expected)  # element for element, NaN where invalid
+    assert np.isnan(got[5:12, 30:41]).all() and np.isfinite(got[60:70, 80:100]).all()
 
 
 def test_clamped_bilinear_sampling_is_exact_on_affine_images_and_clamps_at_the_border():
