@@ -8,6 +8,7 @@ normal and distances predict.
 
 from __future__ import annotations
 
+import functools
 import logging
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -26,7 +27,7 @@ from frontend.localization.reference import (
     reference_pixel_arrays,
     smoothing_widths,
 )
-from frontend.localization.surface import projector_irradiance
+from frontend.localization.surface import projector_irradiance_rows
 
 log = logging.getLogger(__name__)
 
@@ -249,6 +250,14 @@ class _MapPixels:
     n_world: Array
     E_ref: Array
     has_normal: NDArray[np.bool_]
+    # the points and normals as three contiguous rows (3, N): each Gauss-Newton step picks the
+    # selected pixels' coordinates, and picking from rows is ~3x faster than from (N, 3) records
+    X_world_rows: Array = field(init=False)
+    n_world_rows: Array = field(init=False)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "X_world_rows", np.ascontiguousarray(self.X_world.T))
+        object.__setattr__(self, "n_world_rows", np.ascontiguousarray(self.n_world.T))
 
 
 def _map_pixels(
@@ -283,11 +292,23 @@ def _query_on_pinhole(q: NDArray[np.uint8], Km: Array, dist: NDArray | None, val
     Q = q.astype(np.float32)
     V = np.ones((H, W), np.uint8) if valid_query is None else np.asarray(valid_query, dtype=bool).astype(np.uint8)
     if dist_arr.size and np.any(dist_arr != 0):
-        m1, m2 = cv2.initUndistortRectifyMap(Km, dist_arr, None, Km, (W, H), cv2.CV_32FC1)
+        m1, m2 = _undistortion_maps(np.asarray(Km, dtype=np.float64).tobytes(), dist_arr.tobytes(), W, H)
         Q = cv2.remap(Q, m1, m2, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
         V = cv2.remap(V, m1, m2, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
     V = cv2.erode(V, np.ones((3, 3), np.uint8))  # bilinear samples and gradients only inside
     return Q, V
+
+
+@functools.lru_cache(maxsize=4)
+def _undistortion_maps(K_bytes: bytes, dist_bytes: bytes, width: int, height: int) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+    """``cv2.initUndistortRectifyMap`` onto the pinhole ``K`` itself, kept per camera (given as the
+    bytes of its float64 K and distortion): a rig's every photometric step resamples its query
+    with the same maps, ~20 ms to make at 1920x1200. Read-only."""
+    K = np.frombuffer(K_bytes, dtype=np.float64).reshape(3, 3)
+    maps = cv2.initUndistortRectifyMap(K, np.frombuffer(dist_bytes, dtype=np.float64), None, K, (width, height), cv2.CV_32FC1)
+    for m in maps:
+        m.setflags(write=False)
+    return maps
 
 
 @dataclass(frozen=True, eq=False)
@@ -354,7 +375,8 @@ def _shading_ratio(T: Array, ambient: float, sel: NDArray[np.int64], pixels: _Ma
     if c_proj is None:
         return np.ones(sel.size), np.zeros(sel.size)
     T_world_query = np.linalg.inv(T)
-    E_q, _ = projector_irradiance(pixels.n_world[sel], (T_world_query[:3, :3] @ c_proj + T_world_query[:3, 3]) - pixels.X_world[sel])
+    projector_world = T_world_query[:3, :3] @ c_proj + T_world_query[:3, 3]
+    E_q, _ = projector_irradiance_rows(pixels.n_world_rows.take(sel, axis=1), projector_world[:, None] - pixels.X_world_rows.take(sel, axis=1))
     ok_n = pixels.has_normal[sel] & np.isfinite(E_q)
     E_r = np.where(ok_n, pixels.E_ref[sel], 1.0)
     E_q = np.where(ok_n, E_q, 1.0)
@@ -426,17 +448,33 @@ def _normal_equations(
     sigma = 1.4826 * float(np.median(np.abs(res - np.median(res)))) + 1e-6
     c = 4.685 * sigma
     w = np.where(np.abs(res) < c, (1.0 - (res / c) ** 2) ** 2, 0.0)
-    zs = Ps[:, 2]
-    fx, fy, skew = lev.fx, lev.fy, lev.skew
-    # d I / d P (camera frame), then a left perturbation T <- exp(xi) T: dP = omega x P + v
-    dI_dP = np.column_stack([Gx * fx / zs, Gx * skew / zs + Gy * fy / zs, -(Gx * (fx * Ps[:, 0] + skew * Ps[:, 1]) + Gy * fy * Ps[:, 1]) / zs**2])
     n_par = 9 if c_proj is not None else 8  # pose, gain, offset (+ ambient ratio with the shading model)
-    J = np.column_stack([cross_rows(Ps, dI_dP).T, dI_dP, -pred, -np.ones(sel.size), -fit.gain * I_ref * drho_dk])[:, :n_par]
-    Jw = J * w[:, None]
-    A = Jw.T @ J
-    b = Jw.T @ res
+    J = _jacobian_rows(lev, Ps, Gx, Gy, pred, fit.gain * I_ref * drho_dk, n_par)
+    Jw = J * w
+    A = Jw @ J.T
+    b = Jw @ res
     A += 1e-9 * np.trace(A) * np.eye(n_par)
     return A, b, sigma, w
+
+
+def _jacobian_rows(lev: _PyramidLevel, Ps: Array, Gx: Array, Gy: Array, pred: Array, gain_dk: Array, n_par: int) -> Array:
+    """The residuals' Jacobian as ``n_par`` contiguous rows (n_par, N): pose (a left perturbation
+    ``T <- exp(xi) T``: ``dP = omega x P + v``), gain, offset and, with the shading model, the ambient
+    ratio (``gain_dk``: ``gain * I_ref * d rho / dk``). Rows, not (N, n_par) columns: writing
+    columns of a tall matrix and the normal equations' products over it cost 2-3x more."""
+    J = np.empty((n_par, Ps.shape[0]))
+    X, Y, zs = Ps[:, 0], Ps[:, 1], Ps[:, 2]
+    fx, fy, skew = lev.fx, lev.fy, lev.skew
+    dI_dP = J[3:6]  # d I / d P (camera frame)
+    np.divide(Gx * fx, zs, out=dI_dP[0])
+    dI_dP[1] = Gx * skew / zs + Gy * fy / zs
+    dI_dP[2] = -(Gx * (fx * X + skew * Y) + Gy * fy * Y) / zs**2
+    cross_rows(Ps, dI_dP.T, out=J[:3])
+    np.negative(pred, out=J[6])
+    J[7] = -1.0
+    if n_par > 8:
+        np.negative(gain_dk, out=J[8])
+    return J
 
 
 def sample_bilinear_clamped(image: NDArray[np.float32], x: NDArray, y: NDArray) -> NDArray[np.float32]:
