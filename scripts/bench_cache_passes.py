@@ -11,6 +11,10 @@
   over the decoded box at once (the code before stop 51), ms and their ratio;
 * fusion's grazing weights (:func:`fpp_graph.fusion.voxel_map.grazing_weights`) the same way
   (:data:`~fpp_graph.fusion.voxel_map.GRAZING_BAND_ROWS`);
+* the photometric reference's adaptive range smoothing
+  (:func:`frontend.localization.surface.adaptive_smoothing_scale`, the widths the photometric step
+  uses for the frame's width), its per-pixel arithmetic in bands of
+  :data:`~frontend.localization.surface.SMOOTHING_BAND_ROWS` rows against one band (stop 52);
 
 and, on the first ``--voxels`` voxels of the run's ``map.ply`` (at the run's fusion voxel size),
 the surface smoothing (:func:`fpp_graph.fusion.voxel_grid.project_to_local_planes`) in passes
@@ -37,7 +41,7 @@ def _ours_and_peer(module, constant: str, fn, repeat: int) -> tuple[float, float
         peer_ms, peer = _best_ms(fn, repeat)
     finally:
         setattr(module, constant, kept)
-    return ours_ms, peer_ms, bool(np.array_equal(ours, peer))
+    return ours_ms, peer_ms, bool(np.array_equal(ours, peer, equal_nan=True))  # NaN where a map is invalid
 
 
 def _line(name: str, ours_ms: float, peer_ms: float, same: bool) -> str:
@@ -58,6 +62,8 @@ def main(argv: list[str] | None = None) -> int:
     from fpp_graph.slam.frame_store import load_frame
     from fpp_graph.slam.workers import single_threaded_libraries
     from frontend.fpp import sensor
+    from frontend.localization import surface
+    from frontend.localization.reference import smoothing_widths
     from frontend.organised_surface import fit_pinhole
 
     single_threaded_libraries()
@@ -69,11 +75,16 @@ def main(argv: list[str] | None = None) -> int:
         focal_px = float(fitted[0][0]) if fitted is not None else 1000.0
         edge = _ours_and_peer(sensor, "EDGE_FILTER_BAND_ROWS", lambda xyz=xyz, f=focal_px: sensor.edge_filter_mask(xyz, f), args.repeat)
         grazing = _ours_and_peer(voxel_map, "GRAZING_BAND_ROWS", lambda xyz=xyz: voxel_map.grazing_weights(xyz), args.repeat)
-        rows.append((*edge[:2], *grazing[:2]))
-        print(f"frame {frame.id} ({xyz.shape[1]}x{xyz.shape[0]}): {_line('edge filter', *edge)}; {_line('grazing weights', *grazing)}")
-    edge_ms, edge_peer_ms, grazing_ms, grazing_peer_ms = np.median(np.array(rows), axis=0)
-    print(f"median of {len(rows)} frames: edge filter {edge_ms:.1f} vs {edge_peer_ms:.1f} ms ({edge_ms / edge_peer_ms:.2f}x); "
-          f"grazing weights {grazing_ms:.1f} vs {grazing_peer_ms:.1f} ms ({grazing_ms / grazing_peer_ms:.2f}x)")
+        widths = smoothing_widths(xyz.shape[1], None, None)
+        adaptive = _ours_and_peer(surface, "SMOOTHING_BAND_ROWS", lambda z=xyz[..., 2], widths=widths: surface.adaptive_smoothing_scale(z, *widths), args.repeat)
+        rows.append((*edge[:2], *grazing[:2], *adaptive[:2]))
+        print(f"frame {frame.id} ({xyz.shape[1]}x{xyz.shape[0]}): {_line('edge filter', *edge)}; {_line('grazing weights', *grazing)}; "
+              f"{_line('adaptive smoothing', *adaptive)}")
+    medians = np.median(np.array(rows), axis=0)
+    print(f"median of {len(rows)} frames: " + "; ".join(
+        f"{name} {ours:.1f} vs {peer:.1f} ms ({ours / peer:.2f}x)"
+        for name, ours, peer in zip(("edge filter", "grazing weights", "adaptive smoothing"), medians[0::2], medians[1::2], strict=True)
+    ))
 
     import open3d as o3d
 
