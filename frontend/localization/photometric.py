@@ -303,7 +303,7 @@ def _query_on_pinhole(q: NDArray[np.uint8], Km: Array, dist: NDArray | None, val
 def _undistortion_maps(K_bytes: bytes, dist_bytes: bytes, width: int, height: int) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
     """``cv2.initUndistortRectifyMap`` onto the pinhole ``K`` itself, kept per camera (given as the
     bytes of its float64 K and distortion): a rig's every photometric step resamples its query
-    with the same maps, ~20 ms to make at 1920x1200. Read-only."""
+    with the same maps, ~25 ms to make at 1920x1200. Read-only."""
     K = np.frombuffer(K_bytes, dtype=np.float64).reshape(3, 3)
     maps = cv2.initUndistortRectifyMap(K, np.frombuffer(dist_bytes, dtype=np.float64), None, K, (width, height), cv2.CV_32FC1)
     for m in maps:
@@ -460,8 +460,8 @@ def _normal_equations(
 def _jacobian_rows(lev: _PyramidLevel, Ps: Array, Gx: Array, Gy: Array, pred: Array, gain_dk: Array, n_par: int) -> Array:
     """The residuals' Jacobian as ``n_par`` contiguous rows (n_par, N): pose (a left perturbation
     ``T <- exp(xi) T``: ``dP = omega x P + v``), gain, offset and, with the shading model, the ambient
-    ratio (``gain_dk``: ``gain * I_ref * d rho / dk``). Rows, not (N, n_par) columns: writing
-    columns of a tall matrix and the normal equations' products over it cost 2-3x more."""
+    ratio (``gain_dk``: ``gain * I_ref * d rho / dk``). Rows, not (N, n_par) columns: writing the
+    columns of a tall matrix, and the normal equations' products over them, took about twice as long."""
     J = np.empty((n_par, Ps.shape[0]))
     X, Y, zs = Ps[:, 0], Ps[:, 1], Ps[:, 2]
     fx, fy, skew = lev.fx, lev.fy, lev.skew

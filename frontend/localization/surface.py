@@ -17,6 +17,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from fpp_graph.geometry import row_bands
 from frontend.dense_alignment import cross_rows
 
 log = logging.getLogger(__name__)
@@ -167,12 +168,6 @@ def adaptive_smoothing_scale(depth_m: Array, small_px: float, large_px: float, k
 SMOOTHING_BAND_ROWS = 32
 """Rows per band of :func:`adaptive_smoothing_scale`'s per-pixel arithmetic: 32 rows of a
 1920-pixel frame are 0.5 MB per float64 plane, and a band's few planes fit a 4 MB L2 cache."""
-
-
-def row_bands(height: int, band_rows: int) -> list[slice]:
-    """Slices of ``band_rows`` consecutive rows (the last one shorter) covering ``height`` rows."""
-    step = max(1, int(band_rows))
-    return [slice(r, min(r + step, height)) for r in range(0, height, step)]
 
 
 def _masked_float32(values: Array, outside: NDArray[np.bool_], out: NDArray[np.float32]) -> None:
