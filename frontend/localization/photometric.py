@@ -247,17 +247,15 @@ class _MapPixels:
 
     index: list[NDArray[np.int64]]
     X_world: Array
-    n_world: Array
+    # the normals as three contiguous rows (3, N), and the points so too beside their (N, 3)
+    # records: each Gauss-Newton step picks the selected pixels' coordinates, ~3x faster from rows
+    n_world_rows: Array
     E_ref: Array
     has_normal: NDArray[np.bool_]
-    # the points and normals as three contiguous rows (3, N): each Gauss-Newton step picks the
-    # selected pixels' coordinates, and picking from rows is ~3x faster than from (N, 3) records
     X_world_rows: Array = field(init=False)
-    n_world_rows: Array = field(init=False)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "X_world_rows", np.ascontiguousarray(self.X_world.T))
-        object.__setattr__(self, "n_world_rows", np.ascontiguousarray(self.n_world.T))
 
 
 def _map_pixels(
@@ -277,7 +275,7 @@ def _map_pixels(
     return _MapPixels(
         [p[0] for p in parts],
         np.concatenate([p[1] for p in parts]),
-        np.concatenate([p[2] for p in parts]),
+        np.concatenate([p[2].T for p in parts], axis=1),
         np.concatenate([p[3] for p in parts]),
         np.concatenate([p[4] for p in parts]),
     )

@@ -42,26 +42,18 @@ def projector_irradiance_rows(normals: Array, to_projector: Array) -> tuple[Arra
     return cos / d**2, cos
 
 
-def _twice_smoothed_inverse_depth(inv_z: NDArray, ok: NDArray[np.bool_], sigma_px: float, den: NDArray | None = None) -> Array:
+def _twice_smoothed_inverse_depth(inv_z: NDArray, ok: NDArray[np.bool_], sigma_px: float) -> Array:
     """``2 G(f) - G(G(f))`` of inverse depth by normalised Gaussian convolution over the ``ok`` pixels
-    (``den``: the normalisation ``max(G(ok), 1e-6)`` when the caller has it already)."""
-    if den is None:
-        den = np.maximum(cv2.GaussianBlur(ok.astype(np.float32), (0, 0), sigma_px), np.float32(1e-6))
+    (:class:`_BandedTwicing`), float64."""
     outside = ~ok
-    once = _normalised_blur(inv_z, outside, sigma_px, den)
-    again = _normalised_blur(once, outside, sigma_px, den)
-    once *= 2.0
-    once -= again
-    return once
-
-
-def _normalised_blur(f: Array, outside: NDArray[np.bool_], sigma_px: float, den: NDArray[np.float32]) -> Array:
-    """``G(f where valid, else 0) / den`` in float64, the Gaussian in float32: the same numbers as
-    ``GaussianBlur(where(ok, f, 0.0).astype(float32)).astype(float64) / den`` with two frame-sized
-    temporaries instead of four (at 1920x1200 the element-wise passes cost more than the blurs)."""
-    f32 = f.astype(np.float32)
-    np.putmask(f32, outside, np.float32(0.0))
-    return np.divide(cv2.GaussianBlur(f32, (0, 0), sigma_px), den, dtype=np.float64)
+    f32 = np.empty(inv_z.shape, dtype=np.float32)
+    _masked_float32(inv_z, outside, f32)
+    bands = row_bands(inv_z.shape[0], SMOOTHING_BAND_ROWS)
+    twicing = _BandedTwicing.of(f32, outside, sigma_px, ok.astype(np.float32), bands)
+    out = np.empty(inv_z.shape, dtype=np.float64)
+    for rows in bands:
+        out[rows] = twicing.rows(rows)
+    return out
 
 
 def smoothed_along_rays(xyz_map: Array, sigma_px: float) -> Array:
@@ -171,14 +163,15 @@ SMOOTHING_BAND_ROWS = 32
 
 
 def _masked_float32(values: Array, outside: NDArray[np.bool_], out: NDArray[np.float32]) -> None:
-    """``out[:] = values`` as float32, 0 where ``outside``: a normalised blur's input (:func:`_normalised_blur`)."""
+    """``out[:] = values`` as float32, 0 where ``outside``: a normalised blur's input."""
     out[...] = values
     np.putmask(out, outside, np.float32(0.0))
 
 
 @dataclass(frozen=True, eq=False)
 class _BandedTwicing:
-    """``2 G(f) - G(G(f))`` of one width (:func:`_twice_smoothed_inverse_depth`), kept as its two
+    """``2 G(f) - G(G(f))`` of one width by normalised convolution (``G(f where valid, else 0) /
+    max(G(valid), 1e-6)``, the Gaussians in float32, the quotients in float64), kept as its two
     float32 blurs and their normalisation ``den`` and evaluated a band of rows at a time (:meth:`rows`)."""
 
     den: NDArray[np.float32]

@@ -358,23 +358,32 @@ def test_adaptive_smoothing_is_wide_on_planes_and_narrow_on_relief():
 
 
 def _adaptive_scale_in_whole_frame_passes(z: np.ndarray, small_px: float, large_px: float, kappa: float = 3.0) -> np.ndarray:
-    """adaptive_smoothing_scale as whole-frame passes: the specification of the banded one."""
-    from frontend.localization.surface import (
-        _normalised_blur,
-        _smoother_noise_gains,
-        _twice_smoothed_inverse_depth,
-    )
+    """adaptive_smoothing_scale as whole-frame passes (stop 51's code): the specification of the banded one."""
+    from frontend.localization.surface import _smoother_noise_gains
 
     ok = np.isfinite(z)
+
+    def support(sigma_px):
+        return np.maximum(cv2.GaussianBlur(ok.astype(np.float32), (0, 0), sigma_px), np.float32(1e-6))
+
+    def normalised_blur(f, sigma_px, den):
+        f32 = f.astype(np.float32)
+        np.putmask(f32, ~ok, np.float32(0.0))
+        return np.divide(cv2.GaussianBlur(f32, (0, 0), sigma_px), den, dtype=np.float64)
+
+    def twice(f, sigma_px, den):
+        once = normalised_blur(f, sigma_px, den)
+        return 2.0 * once - normalised_blur(once, sigma_px, den)
+
     inv_z = np.where(ok, 1.0 / np.where(ok, z, 1.0), 0.0)
-    den = np.maximum(cv2.GaussianBlur(ok.astype(np.float32), (0, 0), large_px), np.float32(1e-6))
-    narrow = _twice_smoothed_inverse_depth(inv_z, ok, small_px)
-    wide = _twice_smoothed_inverse_depth(inv_z, ok, large_px, den)
+    den = support(large_px)
+    narrow = twice(inv_z, small_px, support(small_px))
+    wide = twice(inv_z, large_px, den)
     gain_residual, gain_difference, gain_averaged = _smoother_noise_gains(float(small_px), float(large_px))
-    sigma_pixel = np.sqrt(_normalised_blur((inv_z - narrow) ** 2, ~ok, large_px, den)) / gain_residual
+    sigma_pixel = np.sqrt(normalised_blur((inv_z - narrow) ** 2, large_px, den)) / gain_residual
     difference = wide - narrow
     with np.errstate(invalid="ignore", divide="ignore"):
-        use_wide = (np.abs(_normalised_blur(difference, ~ok, large_px, den)) < kappa * gain_averaged * sigma_pixel) & ok
+        use_wide = (np.abs(normalised_blur(difference, large_px, den)) < kappa * gain_averaged * sigma_pixel) & ok
         use_wide &= np.abs(difference) < kappa * gain_difference * sigma_pixel
         return 1.0 / (np.where(use_wide, wide, narrow) * np.where(ok, z, np.nan))
 
