@@ -25,6 +25,7 @@ from frontend.localization.surface import (
     organised_normals_at,
     projector_irradiance,
     smoothing_scale,
+    with_normal_stencil,
 )
 
 Array = NDArray[np.float64]
@@ -161,17 +162,20 @@ def reference_pixel_arrays(
     intensity = tex.astype(np.float32)
     # the smoothing's reach: past ~2.5 sigma a Gaussian's weights are below 5 % of its peak
     smooth = depth_edge_free_mask(xyz[..., 2], max(2, math.ceil(2.5 * range_smoothing_px))) & (intensity > 2) & (intensity < 250)
-    scale = None
-    if range_smoothing_px > 0 and smooth.any():
-        if max_range_smoothing_px > range_smoothing_px:
-            scale = adaptive_smoothing_scale(xyz[..., 2], range_smoothing_px, max_range_smoothing_px)
-        else:
-            scale = smoothing_scale(xyz[..., 2], range_smoothing_px)
     grad = np.abs(cv2.Sobel(intensity, cv2.CV_32F, 1, 0, ksize=3)) + np.abs(cv2.Sobel(intensity, cv2.CV_32F, 0, 1, ksize=3))
     idx = np.flatnonzero(smooth.ravel())
     if idx.size > max_pixels:
         g = grad.ravel()[idx]
         idx = idx[np.argpartition(g, idx.size - max_pixels)[idx.size - max_pixels:]]
+    scale = None
+    if range_smoothing_px > 0 and smooth.any():
+        if max_range_smoothing_px > range_smoothing_px:
+            # the factor where it is read (the pixels and their normals' stencil), NaN elsewhere
+            read = idx if projector_centre_m is None else with_normal_stencil(idx, xyz.shape[:2], normal_step_px)
+            scale = np.full(xyz.shape[:2], np.nan)
+            scale.flat[read] = adaptive_smoothing_scale(xyz[..., 2], range_smoothing_px, max_range_smoothing_px, at=read)
+        else:
+            scale = smoothing_scale(xyz[..., 2], range_smoothing_px)
     X = xyz.reshape(-1, 3)[idx]
     if scale is not None:
         X = X * scale.ravel()[idx, None]

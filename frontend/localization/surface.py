@@ -116,12 +116,16 @@ def adaptively_smoothed_along_rays(xyz_map: Array, small_px: float, large_px: fl
     return xyz_map * adaptive_smoothing_scale(xyz_map[..., 2], small_px, large_px, kappa)[..., None]
 
 
-def adaptive_smoothing_scale(depth_m: Array, small_px: float, large_px: float, kappa: float = 3.0) -> Array:
-    """The per-pixel factor of :func:`adaptively_smoothed_along_rays` (as :func:`smoothing_scale`).
+def adaptive_smoothing_scale(depth_m: Array, small_px: float, large_px: float, kappa: float = 3.0, at: NDArray[np.intp] | None = None) -> Array:
+    """The per-pixel factor of :func:`adaptively_smoothed_along_rays` (as :func:`smoothing_scale`);
+    with ``at`` (flat pixel indices) only at those pixels, (len(at),).
 
     Its eight Gaussian blurs run over the whole frame; the arithmetic between them runs in bands of
     :data:`SMOOTHING_BAND_ROWS` rows, each pixel's by itself, so the numbers are those of the
-    whole-frame passes (tested) while a band's float64 planes stay in the core's cache."""
+    whole-frame passes (tested) while a band's float64 planes stay in the core's cache. The last
+    step (each pixel's choice between the widths) reads only its own pixel of the blurred planes,
+    so a caller that needs a few pixels (the photometric reference: 100 000 of a 1920x1200 frame
+    and their normals' neighbours) asks for those: the same numbers, without a third of the work."""
     z = depth_m
     ok = np.isfinite(z)
     outside = ~ok
@@ -144,16 +148,27 @@ def adaptive_smoothing_scale(depth_m: Array, small_px: float, large_px: float, k
     local_variance = cv2.GaussianBlur(residual2, (0, 0), large_px)
     local_difference = cv2.GaussianBlur(difference, (0, 0), large_px)
     gains = _smoother_noise_gains(float(small_px), float(large_px))
-    scale = np.empty(z.shape, dtype=np.float64)
-    wide_pixels = 0
+
+    def chosen(pick, narrow: _BandedTwicing, wide: _BandedTwicing, local_variance, local_difference, ok, z) -> tuple[Array, int]:
+        """The factor at the pixels ``pick`` selects (a band's rows, or flat indices into raveled planes)
+        and how many took the wide width."""
+        narrow_at, wide_at = narrow.rows(pick), wide.rows(pick)
+        use_wide = _wide_is_unbiased(narrow_at, wide_at, local_variance[pick], local_difference[pick], wide.den[pick], ok[pick], gains, kappa)
+        return 1.0 / (np.where(use_wide, wide_at, narrow_at) * np.where(ok[pick], z[pick], np.nan)), int(np.count_nonzero(use_wide))
+
+    planes = (narrow, wide, local_variance, local_difference, ok, z)
     with np.errstate(invalid="ignore", divide="ignore"):
-        for rows in bands:
-            narrow_rows, wide_rows = narrow.rows(rows), wide.rows(rows)
-            use_wide = _wide_is_unbiased(narrow_rows, wide_rows, local_variance[rows], local_difference[rows], wide.den[rows], ok[rows], gains, kappa)
-            wide_pixels += int(np.count_nonzero(use_wide))
-            smoothed = np.where(use_wide, wide_rows, narrow_rows)
-            scale[rows] = 1.0 / (smoothed * np.where(ok[rows], z[rows], np.nan))
-    log.debug("adaptive range smoothing: %.0f%% of %d pixels at %.1f px, the rest at %.1f px", 100.0 * wide_pixels / max(int(ok.sum()), 1), int(ok.sum()), large_px, small_px)
+        if at is not None:
+            # flat indices into raveled planes: picking by (row, column) pairs costs several times more
+            flat = np.asarray(at, dtype=np.intp)
+            scale, wide_pixels = chosen(flat, *(p.raveled() if isinstance(p, _BandedTwicing) else p.reshape(-1) for p in planes))
+            counted = int(np.count_nonzero(ok.reshape(-1)[flat]))
+        else:
+            scale, wide_pixels, counted = np.empty(z.shape, dtype=np.float64), 0, int(ok.sum())
+            for rows in bands:
+                scale[rows], band_wide_pixels = chosen(rows, *planes)
+                wide_pixels += band_wide_pixels
+    log.debug("adaptive range smoothing: %.0f%% of %d pixels at %.1f px, the rest at %.1f px", 100.0 * wide_pixels / max(counted, 1), counted, large_px, small_px)
     return scale
 
 
@@ -188,11 +203,16 @@ class _BandedTwicing:
             _masked_float32(np.divide(once[rows], den[rows], dtype=np.float64), outside[rows], normalised[rows])
         return cls(den, once, cv2.GaussianBlur(normalised, (0, 0), sigma_px))
 
-    def rows(self, rows: slice) -> Array:
-        """The twice-smoothed values of ``rows``, float64."""
-        out = np.divide(self.once[rows], self.den[rows], dtype=np.float64)
+    def raveled(self) -> _BandedTwicing:
+        """The same planes raveled, for :meth:`rows` of flat pixel indices."""
+        return _BandedTwicing(self.den.reshape(-1), self.once.reshape(-1), self.again.reshape(-1))
+
+    def rows(self, pick: slice | NDArray[np.intp]) -> Array:
+        """The twice-smoothed values of the pixels ``pick`` selects (a band's rows, or flat indices
+        into :meth:`raveled` planes), float64."""
+        out = np.divide(self.once[pick], self.den[pick], dtype=np.float64)
         out *= 2.0
-        out -= np.divide(self.again[rows], self.den[rows], dtype=np.float64)
+        out -= np.divide(self.again[pick], self.den[pick], dtype=np.float64)
         return out
 
 
@@ -252,25 +272,42 @@ def organised_normals_at(xyz_map: NDArray, flat_index: NDArray, step_px: int, sc
     """Unit normals (N, 3) of an organised map at some pixels (``flat_index`` into the H x W grid), of
     ``xyz_map * scale[..., None]`` when a per-pixel ``scale`` is given: central differences ``step_px``
     pixels apart along u and v, NaN within ``step_px`` of the border or next to an invalid point.
-    Their sign is arbitrary (callers use ``|n . d|``)."""
+    Their sign is arbitrary (callers use ``|n . d|``); ``scale`` is read at :func:`with_normal_stencil`'s pixels only."""
     xyz = np.asarray(xyz_map, dtype=np.float64)
-    H, W = xyz.shape[:2]
-    k = int(step_px)
-    r, c = np.divmod(np.asarray(flat_index, dtype=np.int64), W)
-    inside = (c >= k) & (c < W - k) & (r >= k) & (r < H - k)
-    r, c = np.clip(r, k, max(k, H - k - 1)), np.clip(c, k, max(k, W - k - 1))
+    inside, (right, left, below, above) = _normal_stencil(flat_index, xyz.shape[:2], step_px)
     # flat indices: picking 100 000 pixels of a 1920x1200 map by (row, column) pairs cost 4x more
     xyz_flat = xyz.reshape(-1, 3)
     scale_flat = None if scale is None else np.asarray(scale).reshape(-1)
 
-    def at(rows: NDArray, cols: NDArray) -> Array:
-        i = rows * W + cols
+    def at(i: NDArray[np.intp]) -> Array:
         return xyz_flat[i] if scale_flat is None else xyz_flat[i] * scale_flat[i][:, None]
 
-    du = at(r, np.minimum(c + k, W - 1)) - at(r, c - k)
-    dv = at(np.minimum(r + k, H - 1), c) - at(r - k, c)
+    du = at(right) - at(left)
+    dv = at(below) - at(above)
     n = cross_rows(du, dv).T
     with np.errstate(invalid="ignore", divide="ignore"):
         n /= np.linalg.norm(n, axis=1, keepdims=True)
     n[~inside] = np.nan
     return n
+
+
+def with_normal_stencil(flat_index: NDArray, shape: tuple[int, int], step_px: int) -> NDArray[np.intp]:
+    """The pixels ``flat_index`` and those :func:`organised_normals_at` reads for their normals, as
+    sorted unique flat indices: a caller that scales only some pixels (:func:`adaptive_smoothing_scale`'s
+    ``at``) scales these."""
+    read = np.zeros(int(shape[0]) * int(shape[1]), dtype=bool)
+    read[np.asarray(flat_index, dtype=np.intp)] = True
+    for pixels in _normal_stencil(flat_index, shape, step_px)[1]:
+        read[pixels] = True
+    return np.flatnonzero(read)
+
+
+def _normal_stencil(flat_index: NDArray, shape: tuple[int, int], step_px: int) -> tuple[NDArray[np.bool_], tuple[NDArray[np.intp], ...]]:
+    """Whether each pixel is ``step_px`` inside the border, and the flat indices of its right, left,
+    lower and upper neighbours ``step_px`` away (clamped inside the grid)."""
+    H, W = int(shape[0]), int(shape[1])
+    k = int(step_px)
+    r, c = np.divmod(np.asarray(flat_index, dtype=np.int64), W)
+    inside = (c >= k) & (c < W - k) & (r >= k) & (r < H - k)
+    r, c = np.clip(r, k, max(k, H - k - 1)), np.clip(c, k, max(k, W - k - 1))
+    return inside, (r * W + np.minimum(c + k, W - 1), r * W + (c - k), np.minimum(r + k, H - 1) * W + c, (r - k) * W + c)

@@ -407,6 +407,36 @@ def test_adaptive_smoothing_in_bands_is_the_whole_frame_passes(monkeypatch, band
     assert np.isnan(got[5:12, 30:41]).all() and np.isfinite(got[60:70, 80:100]).all()
 
 
+def test_adaptive_smoothing_at_some_pixels_is_the_whole_frame_there():
+    from frontend.localization import surface
+
+    h, w = 120, 160
+    dirs = _rays(h, w, 250.0)
+    rng = np.random.default_rng(5)
+    t = 0.6 / (dirs @ (np.array([-0.1, 0.2, 1.0]) / np.linalg.norm([-0.1, 0.2, 1.0])))
+    t[30:70, 40:100] -= 0.02  # relief, so both widths are chosen somewhere
+    z = (dirs * (t * (1 + rng.normal(0, 5e-4, (h, w))))[..., None])[..., 2]
+    z[10:15, 20:31] = np.nan
+    whole = surface.adaptive_smoothing_scale(z, 2.0, 6.0)
+    at = rng.choice(h * w, 3000, replace=False)  # unsorted, holes and borders included
+    got = surface.adaptive_smoothing_scale(z, 2.0, 6.0, at=at)
+    assert got.shape == (3000,)
+    np.testing.assert_array_equal(got, whole.ravel()[at])
+    assert np.isnan(got).any() and np.isfinite(got).sum() > 2500
+    # the reference's use: its normals read the factor only where with_normal_stencil says
+    xyz = dirs * z[..., None] / dirs[..., 2:3]
+    idx = rng.choice(h * w, 500, replace=False)
+    read = surface.with_normal_stencil(idx, (h, w), 4)
+    assert np.all(np.diff(read) > 0) and np.isin(idx, read).all()
+    sparse = np.full((h, w), np.nan)
+    sparse.flat[read] = surface.adaptive_smoothing_scale(z, 2.0, 6.0, at=read)
+    np.testing.assert_array_equal(surface.organised_normals_at(xyz, idx, 4, sparse), surface.organised_normals_at(xyz, idx, 4, whole))
+    # the pixels alone, without their stencil, leave every normal NaN: the comparison above can fail
+    short = np.full((h, w), np.nan)
+    short.flat[idx] = whole.flat[idx]
+    assert np.isnan(surface.organised_normals_at(xyz, idx, 4, short)).all()
+
+
 def test_clamped_bilinear_sampling_is_exact_on_affine_images_and_clamps_at_the_border():
     from frontend.localization.photometric import sample_bilinear_clamped
 
