@@ -21,6 +21,7 @@ from frontend.localization.dlt import (
 from frontend.localization.photometric import (
     PhotometricLocalizationResult,
     localize_photometric,
+    pyramid_for_start,
 )
 from frontend.localization.reference import DenseReference, ReferencePixels, reference_pixels
 
@@ -33,5 +34,6 @@ __all__ = [
     "dlt_projection_matrix",
     "localize_dlt",
     "localize_photometric",
+    "pyramid_for_start",
     "reference_pixels",
 ]

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import functools
 import logging
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
@@ -73,6 +74,32 @@ class PhotometricLocalizationResult:
 
 
 # Long only by its docstring (16 parameters); its code calls the named steps below.
+PYRAMID_ITERATIONS = (10, 8, 20)
+"""Gauss-Newton steps per pyramid level, coarsest (1/4 resolution) first: the default of
+:func:`localize_photometric`, whose start (a DLT pose) is good to a few pixels."""
+
+START_SIGMAS = 3.0
+"""A start's error along each of its weak directions is within this many standard deviations with
+99.7 % probability (Gaussian): the reach :func:`pyramid_for_start` covers."""
+
+
+def pyramid_for_start(start_sigma_px: float, iterations: Sequence[int] = PYRAMID_ITERATIONS) -> tuple[int, ...]:
+    """The steps per level (coarsest first, the finest of ``iterations``) for a start known to
+    ``start_sigma_px``: one standard deviation of its least certain direction, as full-resolution pixels.
+
+    A level's Gauss-Newton linearisation holds within about one of its own pixels (the assumption
+    of :data:`COARSE_STOP_STEP_PX`), and level ``l``'s pixel is ``2^l`` full-resolution ones, so a
+    start within :data:`START_SIGMAS` deviations of ``2^l`` pixels needs no level coarser than
+    ``l``. A pair's registration starts the texture's step from the keypoints' pose, within a pixel
+    (simulated corridor walls: 3 sigma 0.05-2.7 px, the step's whole motion 0.01-1.2 px), where the
+    coarse levels only added steps; a NaN or infinite sigma (unknown) keeps every level."""
+    reach_px = START_SIGMAS * float(start_sigma_px)
+    if not math.isfinite(reach_px):
+        return tuple(iterations)
+    coarsest = 0 if reach_px <= 1.0 else math.ceil(math.log2(reach_px))
+    return tuple(iterations[len(iterations) - min(len(iterations), coarsest + 1):])
+
+
 def localize_photometric(
     references: Sequence[DenseReference],
     texture_query: NDArray,
@@ -83,7 +110,7 @@ def localize_photometric(
     valid_query: NDArray | None = None,
     max_pixels: int = 150_000,
     levels: int = 3,
-    iterations: Sequence[int] = (10, 8, 20),
+    iterations: Sequence[int] = PYRAMID_ITERATIONS,
     normal_step_px: int = 4,
     range_smoothing_px: float | None = None,
     max_range_smoothing_px: float | None = None,

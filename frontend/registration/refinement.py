@@ -48,8 +48,9 @@ DenseRefiner = Callable[[Frame, Frame, NDArray, NDArray, "Degeneracy | None", ND
 """``(target, source, T_target_source, information_keypoints, pinned, support_points) -> (fit or None, why not)``."""
 ReliefCheck = Callable[[Frame, Frame, NDArray], bool]
 """``(target, source, T_target_source) -> whether every pixel's geometry there shows more than a plane``."""
-PhotometricRefiner = Callable[[Frame, Frame, NDArray, Degeneracy, NDArray, NDArray], "tuple[NDArray | None, NDArray | None, str]"]
-"""``(target, source, T_target_source, weak, information_geometry, support_points) -> (pose, information, why not)``."""
+PhotometricRefiner = Callable[[Frame, Frame, NDArray, Degeneracy, NDArray, NDArray, NDArray], "tuple[NDArray | None, NDArray | None, str]"]
+"""``(target, source, T_target_source, weak, information_geometry, support_points, information_start) -> (pose,
+information, why not)``; ``information_start``: the start's (geometry and keypoints)."""
 
 
 # ---------------------------------------------------------------------------------------------
@@ -195,7 +196,7 @@ def photometric_stage(
     meta: dict[str, Any] = {}
     information = np.zeros((6, 6))
     T = pose.T_target_source
-    T_photo, info_photo, why_not = refine(target, source, T, weak.directions, pose.information_geometry, weak.icp.source_points)
+    T_photo, info_photo, why_not = refine(target, source, T, weak.directions, pose.information_geometry, weak.icp.source_points, pose.information)
     if T_photo is not None:
         shift_photo = max_motion_m(T_photo, T, ransac_inliers_source_m)
         meta["photometric_shift_m"] = shift_photo

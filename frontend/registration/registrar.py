@@ -55,6 +55,7 @@ from frontend.registration.weak_directions import (
     check_degeneracy,
     surface_is_plane_like,
     weak_direction_pin,
+    weak_direction_sigma_m,
 )
 
 log = logging.getLogger(__name__)
@@ -279,7 +280,8 @@ class FppPairRegistrar:
         return kept[2]
 
     def refine_plane_photometric(
-        self, target: Frame, source: Frame, T_target_source: NDArray, weak: Degeneracy, information_geometry: NDArray, source_points: NDArray
+        self, target: Frame, source: Frame, T_target_source: NDArray, weak: Degeneracy, information_geometry: NDArray, source_points: NDArray,
+        information_start: NDArray | None = None,
     ) -> tuple[NDArray | None, NDArray | None, str]:
         """The ``weak`` directions (a wall's in-plane shifts and spin) by photometric alignment.
 
@@ -289,6 +291,8 @@ class FppPairRegistrar:
         keypoints set the in-plane shifts to ~0.05 mm (blob centres on blurred texture); every
         textured pixel does it to a few micrometres once the tilts are not free: 12 simulated corridor pairs
         with the tilts held at the truth, 0.058 -> 0.004 mm median (unheld, the tilts and the in-plane shifts trade off).
+        ``information_start`` (the start's, keypoints included) sets the coarsest pyramid level the
+        step needs (:func:`~frontend.localization.pyramid_for_start`; without it, all three).
 
         Returns
         -------
@@ -300,16 +304,18 @@ class FppPairRegistrar:
             return None, None, "off" if not cfg.photometric.enabled else "no texture camera"
         if target.texture is None or source.texture is None or target.xyz_map is None or source.xyz_map is None:
             return None, None, "no texture or xyz map"
-        from frontend.localization import DenseReference, localize_photometric
+        from frontend.localization import DenseReference, localize_photometric, pyramid_for_start
 
         # holds: the complement of the weak directions, far above the texture's information
         strength = cfg.weak_directions.hold_ratio * max(float(np.trace(information_geometry)), 1.0)
         prior = weak_direction_pin(weak, source_points, strength, complement=True)
+        iterations = pyramid_for_start(self._start_sigma_px(information_start, weak, source_points))
         try:
             result = localize_photometric(
                 [DenseReference(target.xyz_map, target.texture, np.eye(4))], source.texture, invert(np.asarray(T_target_source, dtype=np.float64)),
                 cam.K, cam.dist, projector_centre_m=cam.projector_centre_m, valid_query=np.isfinite(source.xyz_map[..., 2]),
                 max_pixels=cfg.photometric.max_pixels, prior_information=prior, reference_pixels=[self.photometric_reference(target)],
+                levels=len(iterations), iterations=iterations,
                 # in the raw information's units: the constraint's covariance is 1 / information_scale of it
                 stop_step_sigmas=PHOTOMETRIC_STOP_STEP_SIGMAS / math.sqrt(cfg.photometric.information_scale),
             )
@@ -323,6 +329,15 @@ class FppPairRegistrar:
         # tilt information carries that into the in-plane covariance (the weak directions' part
         # alone put the corridor NEES mean at 55 for 9.6 with the whole matrix, scale 0.01).
         return invert(result.T_camera_world), cfg.photometric.information_scale * result.information, ""
+
+    def _start_sigma_px(self, information_start: NDArray | None, weak: Degeneracy, source_points: NDArray) -> float:
+        """One standard deviation of the start's least certain weak direction as the texture
+        camera's pixels at the points' median depth (NaN when unknown)."""
+        if information_start is None or self.texture_camera is None or not len(source_points):
+            return float("nan")
+        sigma_m = weak_direction_sigma_m(information_start, weak, source_points)
+        depth_m = float(np.median(source_points[:, 2]))
+        return sigma_m * float(self.texture_camera.K[0, 0]) / depth_m if depth_m > 0 else float("nan")
 
     # -- the pair ------------------------------------------------------------------------------
     @property

@@ -177,6 +177,42 @@ def test_photometric_localisation_stops_at_the_precision_asked_for(fringe_triple
         assert np.linalg.norm(early.camera_centre_world_m - poses[1][:3, 3]) < 1e-4
 
 
+def test_pyramid_for_start_keeps_the_levels_a_start_needs():
+    from frontend.localization import pyramid_for_start
+
+    # 3 sigma within a full-resolution pixel: the finest level alone; within 2 px: two levels; beyond: all
+    assert pyramid_for_start(0.1) == (20,)
+    assert pyramid_for_start(1.0 / 3.0) == (20,)
+    assert pyramid_for_start(0.5) == (8, 20)
+    assert pyramid_for_start(0.7) == (10, 8, 20)
+    assert pyramid_for_start(50.0) == (10, 8, 20)  # no coarser level than the pyramid has
+    assert pyramid_for_start(float("nan")) == pyramid_for_start(float("inf")) == (10, 8, 20)
+    assert pyramid_for_start(0.5, (5, 6, 7, 8)) == (7, 8)
+
+
+def test_a_start_near_the_optimum_needs_only_the_finest_level(fringe_triple):
+    # from a pose a fraction of a pixel off (what a pair's keypoints give the texture's step), the
+    # finest level alone reaches the pose all three reach, in fewer steps; from a start ~20 px off
+    # the coarse levels are what bring it into the finest level's basin
+    rig, poses, frames, projector_centre = fringe_triple
+    converged = _locate_middle(fringe_triple).T_camera_world
+    near = se3_exp(np.radians([0.005, -0.004, 0.003]).tolist() + [1e-4, -8e-5, 5e-5]) @ converged  # ~0.2 px
+    lit = np.isfinite(frames[1].xyz_map[..., 2])
+
+    def locate(T_init, iterations):
+        return localize_photometric(_middle_references(fringe_triple), frames[1].texture, T_init, rig.camera.K, rig.camera.dist,
+                                    projector_centre, lit, max_pixels=40_000, levels=len(iterations), iterations=iterations)
+
+    all_levels, finest = locate(near, (10, 8, 20)), locate(near, (20,))
+    assert finest.success and finest.iterations < all_levels.iterations
+    d = se3_log(finest.T_camera_world @ invert(all_levels.T_camera_world))
+    assert np.sqrt(d @ all_levels.information @ d) < 0.5  # the same pose within its noise
+    far = se3_exp(np.radians([0.8, -0.6, 0.4]).tolist() + [0.008, -0.006, 0.004]) @ invert(poses[1])  # ~20 px
+    coarse_to_fine, finest_only = locate(far, (10, 8, 20)), locate(far, (20,))
+    error = {name: np.linalg.norm(r.camera_centre_world_m - poses[1][:3, 3]) for name, r in (("levels", coarse_to_fine), ("finest", finest_only))}
+    assert error["levels"] < 1e-4 and not (finest_only.success and error["finest"] < 1e-4)
+
+
 def test_prepared_reference_pixels_give_the_same_pose_and_must_match_the_settings(fringe_triple):
     from frontend.localization import reference_pixels
 

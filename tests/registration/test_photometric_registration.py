@@ -89,3 +89,23 @@ def test_a_wall_seen_with_relief_at_the_start_is_not_held(wall_pair, monkeypatch
     unheld = registrar.register(frames[0], frames[1])
     assert unheld.metadata.get("dense_relief_at_start") and unheld.metadata.get("dense_rechecks_plane_rule")
     assert all(pinned is None for pinned in fits)  # no held fit
+
+
+def test_the_photometric_step_takes_the_pyramid_levels_its_start_needs(wall_pair, monkeypatch):
+    import frontend.localization as localization
+    from frontend.localization.photometric import PYRAMID_ITERATIONS
+
+    rig, poses, frames = wall_pair
+    asked = []
+    real = localization.localize_photometric
+
+    def recorded(*args, **kwargs):
+        asked.append(kwargs["iterations"])
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(localization, "localize_photometric", recorded)
+    photo = FppPairRegistrar(RegistrationConfig(), texture_camera=TextureCamera.from_rig(rig)).register(frames[0], frames[1])
+    assert photo.accepted and "T_before_photometric" in photo.metadata
+    # the keypoints' pose is within a pixel of the texture's at 640x400: the quarter-resolution level is not needed
+    assert len(asked) == 1 and 1 <= len(asked[0]) < len(PYRAMID_ITERATIONS)
+    assert tuple(asked[0]) == PYRAMID_ITERATIONS[-len(asked[0]):]
