@@ -190,8 +190,11 @@ def localize_photometric(
         return _failed_photometric()
     T = fit.T
     # converged: the last full-resolution step moved the pose by under 0.01 mm / 10 microradians
-    # (a fifth of the precision this reaches; the steps creep at the micrometre level on some frames)
-    ok = bool(np.all(np.isfinite(T)) and fit.used >= min_pixels and fit.step_rad < 1e-5 and fit.step_m < 1e-5)
+    # (a fifth of the precision this reaches; the steps creep at the micrometre level on some frames),
+    # or under the standard deviations the caller stops at (a low-resolution pose's 2 sigma can be more)
+    settled = fit.step_rad < 1e-5 and fit.step_m < 1e-5
+    stopped = stop_step_sigmas is not None and fit.step_sigmas < stop_step_sigmas
+    ok = bool(np.all(np.isfinite(T)) and fit.used >= min_pixels and (settled or stopped))
     log.debug("photometric localisation: %d pixels, sigma %.2f grey, k %.3f, %d steps, last step %.2g rad %.2g m",
               fit.used, fit.sigma, fit.ambient, fit.steps, fit.step_rad, fit.step_m)
     information = fit.information
@@ -370,9 +373,20 @@ def _pyramid_level(Ql: NDArray[np.float32], V: NDArray[np.uint8], level: int, Km
         (cv2.GaussianBlur(np.asarray(r.texture, dtype=np.float32), (0, 0), 0.85 * s) if level else np.asarray(r.texture, dtype=np.float32)).ravel()[idx]
         for r, idx in zip(references, pixels.index, strict=True)
     ]).astype(np.float64)
-    return _PyramidLevel(
-        Ql, gx, gy, Vl, Km[0, 0] / s, Km[1, 1] / s, (Km[0, 2] + 0.5) / s - 0.5, (Km[1, 2] + 0.5) / s - 0.5, Km[0, 1] / s, I_lev,
-    )
+    return _PyramidLevel(Ql, gx, gy, Vl, *pyramid_level_intrinsics(Km, level), I_lev)
+
+
+def pyramid_level_intrinsics(Km: Array, level: int) -> tuple[float, float, float, float, float]:
+    """``(fx, fy, cx, cy, skew)`` of ``Km`` at pyramid ``level`` (``level`` times ``cv2.pyrDown``).
+
+    pyrDown blurs with a kernel centred on each pixel and keeps the even rows and columns, so
+    level pixel ``i`` is full-resolution pixel ``2^level i``: every coordinate, the principal point
+    included, divides by ``2^level``. (The pixel-area convention ``(c + 0.5) / s - 0.5``, used
+    before, put level 1's projections a quarter of its pixel off the image and level 2's three
+    eighths: each coarse level converged half a full-resolution pixel or more from the finest
+    level's pose, and the next level's first steps walked it back.)"""
+    s = float(2**level)
+    return Km[0, 0] / s, Km[1, 1] / s, Km[0, 2] / s, Km[1, 2] / s, Km[0, 1] / s
 
 
 @dataclass(eq=False)

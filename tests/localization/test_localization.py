@@ -190,6 +190,23 @@ def test_pyramid_for_start_keeps_the_levels_a_start_needs():
     assert pyramid_for_start(0.5, (5, 6, 7, 8)) == (7, 8)
 
 
+@pytest.mark.parametrize("level", [1, 2])
+def test_pyramid_level_intrinsics_follow_pyrdown(level):
+    from frontend.localization.photometric import pyramid_level_intrinsics
+
+    # a point's projection at a level lands where cv2.pyrDown puts its image: the centroid of a bright pixel
+    fx_l, fy_l, cx_l, cy_l, _ = pyramid_level_intrinsics(K, level)
+    for u, v in ((101.0, 60.0), (202.0, 133.0), (317.0, 250.0)):
+        image = np.zeros((400, 640), np.float32)
+        image[int(v), int(u)] = 1.0
+        for _ in range(level):
+            image = cv2.pyrDown(image)
+        rows, cols = np.mgrid[0:image.shape[0], 0:image.shape[1]]
+        centroid = np.array([(cols * image).sum(), (rows * image).sum()]) / image.sum()
+        x, y = (u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1]  # the pixel's ray
+        np.testing.assert_allclose([fx_l * x + cx_l, fy_l * y + cy_l], centroid, atol=1e-4)
+
+
 def test_a_start_near_the_optimum_needs_only_the_finest_level(fringe_triple):
     # from a pose a fraction of a pixel off (what a pair's keypoints give the texture's step), the
     # finest level alone reaches the pose all three reach, in fewer steps; from a start ~20 px off
