@@ -73,7 +73,6 @@ class PhotometricLocalizationResult:
         return self.pixels_used
 
 
-# Long only by its docstring (16 parameters); its code calls the named steps below.
 PYRAMID_ITERATIONS = (10, 8, 20)
 """Gauss-Newton steps per pyramid level, coarsest (1/4 resolution) first: the default of
 :func:`localize_photometric`, whose start (a DLT pose) is good to a few pixels."""
@@ -100,6 +99,7 @@ def pyramid_for_start(start_sigma_px: float, iterations: Sequence[int] = PYRAMID
     return tuple(iterations[len(iterations) - min(len(iterations), coarsest + 1):])
 
 
+# Long only by its docstring (16 parameters); its code calls the named steps below.
 def localize_photometric(
     references: Sequence[DenseReference],
     texture_query: NDArray,
