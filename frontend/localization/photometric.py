@@ -189,12 +189,7 @@ def localize_photometric(
     if not _refine_coarse_to_fine(fit, Q, V, Km, references, pixels, c_proj, Lambda, T_init, iterations, min_pixels, stop_step_sigmas):
         return _failed_photometric()
     T = fit.T
-    # converged: the last full-resolution step moved the pose by under 0.01 mm / 10 microradians
-    # (a fifth of the precision this reaches; the steps creep at the micrometre level on some frames),
-    # or under the standard deviations the caller stops at (a low-resolution pose's 2 sigma can be more)
-    settled = fit.step_rad < 1e-5 and fit.step_m < 1e-5
-    stopped = stop_step_sigmas is not None and fit.step_sigmas < stop_step_sigmas
-    ok = bool(np.all(np.isfinite(T)) and fit.used >= min_pixels and (settled or stopped))
+    ok = _converged(fit, min_pixels, stop_step_sigmas)
     log.debug("photometric localisation: %d pixels, sigma %.2f grey, k %.3f, %d steps, last step %.2g rad %.2g m",
               fit.used, fit.sigma, fit.ambient, fit.steps, fit.step_rad, fit.step_m)
     information = fit.information
@@ -218,6 +213,16 @@ def _refine_coarse_to_fine(
             if _level_converged(fit, level, stop_step_sigmas):
                 break
     return True
+
+
+def _converged(fit: _PhotometricFit, min_pixels: int, stop_step_sigmas: float | None) -> bool:
+    """Whether the fit ended converged: a finite pose on ``min_pixels`` and a last full-resolution step
+    under 0.01 mm / 10 microradians (a fifth of the precision this reaches; the steps creep at the
+    micrometre level on some frames), or one the caller's stop rule stopped at (:func:`_level_converged`:
+    a low-resolution pose's 2 sigma can be a larger step)."""
+    settled = fit.step_rad < 1e-5 and fit.step_m < 1e-5
+    stopped = stop_step_sigmas is not None and _level_converged(fit, 0, stop_step_sigmas)
+    return bool(np.all(np.isfinite(fit.T)) and fit.used >= min_pixels and (settled or stopped))
 
 
 COARSE_STOP_STEP_PX = 0.05
