@@ -115,6 +115,11 @@ class RunConfig(StrictModel):
         "tracked (a resumed run decodes it again); null: the source decides (RGB-D: keyframes, FPP: all)",
     )
     log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = "INFO"
+    seed: int = Field(
+        0, ge=0,
+        description="seeds the run's random draws (RANSAC's samples, the appearance vocabulary's k-means): a run is reproducible "
+        "for a seed, and runs over several seeds show how much a result owes to the draws",
+    )
 
 
 # ---------------------------------------------------------------------------------------------

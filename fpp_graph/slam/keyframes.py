@@ -142,7 +142,7 @@ class KeyframeManager:
         # run's workers) and applied keyframes.verify_lag keyframes later, in submission order
         self.verifier: PairVerifier = verifier if verifier is not None else InlineVerifier(registrar, self.store)
         self._pending_loops: deque[tuple[int, list[tuple[LoopCandidate, Future[Constraint]]]]] = deque()
-        self.loop_detector = loop_detector if loop_detector is not None else ProximityAppearanceLoopDetector(self.config.loop_closure)
+        self.loop_detector = loop_detector if loop_detector is not None else ProximityAppearanceLoopDetector(self.config.loop_closure, seed=self.config.run.seed)
         self.on_loop = on_loop
         # After a chain break the new part's poses are unrelated to the older parts' (it starts
         # at the last keyframe's pose), so by default only appearance proposes candidates across

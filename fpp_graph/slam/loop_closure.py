@@ -145,9 +145,9 @@ class ProximityAppearanceLoopDetector:
     outside the query's part of the trajectory, are outside every window.
     """
 
-    def __init__(self, config: LoopClosureConfig | None = None) -> None:
+    def __init__(self, config: LoopClosureConfig | None = None, seed: int = 0) -> None:
         self.config = config or LoopClosureConfig()
-        self.appearance = AppearanceIndex()
+        self.appearance = AppearanceIndex(seed=seed)
         self._order: list[int] = []
         self._index: dict[int, int] = {}  # frame id -> its (last) position in self._order
         # keyframes the camera has not left yet, with their views (oldest first)

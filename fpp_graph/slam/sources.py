@@ -50,7 +50,8 @@ class FrameSource(Protocol):
         ...
 
     def make_registrar(self) -> PairRegistrar:
-        """The pairwise registration this sensor's frames need."""
+        """The pairwise registration this sensor's frames need (its random draws, e.g. RANSAC's,
+        seeded by the run's ``run.seed`` so that a run is reproducible for a seed)."""
         ...
 
     def ground_truth(self) -> Trajectory | None:

@@ -91,7 +91,7 @@ class FppSequenceSource:
         from frontend.registration import FppPairRegistrar, TextureCamera
 
         # the rig's camera and projector: plane-like pairs (walls) get their in-plane directions from the texture
-        return FppPairRegistrar(self.config.registration, texture_camera=TextureCamera.from_rig(self.sequence.calibration))
+        return FppPairRegistrar(self.config.registration, seed=self.config.run.seed, texture_camera=TextureCamera.from_rig(self.sequence.calibration))
 
     def ground_truth(self) -> Trajectory | None:
         return self.sequence.ground_truth

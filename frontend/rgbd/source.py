@@ -432,7 +432,7 @@ class RgbdSource:
     def make_registrar(self):
         from frontend.registration import FppPairRegistrar
 
-        return FppPairRegistrar(self.config.registration)
+        return FppPairRegistrar(self.config.registration, seed=self.config.run.seed)
 
     def ground_truth(self) -> Trajectory | None:
         """The reference poses of the frames that have one (None when none has): a motion capture
