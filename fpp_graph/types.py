@@ -79,7 +79,10 @@ class Frame:
     T_world_sensor_guess : (4, 4) float64 or None
         Prior pose (e.g. from wheel odometry or the simulator), if any.
     metadata : mapping
-        JSON-serialisable facts about the frame (camera model, decoder counts, ...).
+        JSON-serialisable facts about the frame (camera model, decoder counts, ...). The back-end
+        reads ``"K"`` (3x3 pinhole, for view overlap) and ``"readout_s"`` (a rolling shutter's
+        row readout time in seconds: the keyframe manager widens a moving camera's constraints by
+        its motion over it; absent or 0: a global shutter or a still capture).
     prepared : mapping of str to array
         Arrays the front-end derived from this frame for its own registrar, made once where the
         frame is made (a decode worker) so that no process that later registers the frame

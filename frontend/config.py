@@ -59,6 +59,7 @@ class NoiseModel(StrictModel):
     voxel_m: float | None = Field(None, gt=0, description="sampling at which ICP compares the surfaces (coarser than the depth noise, finer than the relief)")
     information_correlation: float | None = Field(None, gt=0, le=1, description="multiplies ICP's independent-residual information: the share of residuals that are independent")
     shared_depth_sigma_per_m2: float | None = Field(None, ge=0, description="standard deviation (m) of the depth error a whole view shares, at 1 m, growing with the square of depth; no pair is known better than this error of both frames allows (0: none)")
+    readout_s: float | None = Field(None, ge=0, description="rolling shutter: seconds over which a view's rows are read out; a moving camera's constraints are widened by its motion over that time (0: a global shutter or a still capture)")
 
 
 @dataclass(frozen=True)
@@ -69,13 +70,15 @@ class SensorNoise:
     voxel_m: float
     information_correlation: float
     shared_depth_sigma_per_m2: float = 0.0
+    readout_s: float = 0.0
 
 
 FPP_NOISE = SensorNoise(point_sigma_m=0.0005, voxel_m=0.002, information_correlation=1.0)
 """The FPP rig: a keypoint lifted through the decoded map is off by ~0.5 mm (sub-pixel keypoint
 localisation over a 0.2-0.5 mm pixel footprint; the phase noise itself is ~0.02 mm); 2 mm voxels
 hold tens of pixels each, so a voxel's normal and covariance are the surface's, not its noise; the
-decoder's residuals are close to independent at the ICP voxel spacing."""
+decoder's residuals are close to independent at the ICP voxel spacing; the rig holds still
+through a capture's images, so no readout motion."""
 
 
 class FeaturesConfig(StrictModel):
@@ -207,6 +210,7 @@ class RegistrationConfig(StrictModel):
             n.voxel_m if n.voxel_m is not None else FPP_NOISE.voxel_m,
             n.information_correlation if n.information_correlation is not None else FPP_NOISE.information_correlation,
             n.shared_depth_sigma_per_m2 if n.shared_depth_sigma_per_m2 is not None else FPP_NOISE.shared_depth_sigma_per_m2,
+            n.readout_s if n.readout_s is not None else FPP_NOISE.readout_s,
         )
 
     def with_noise(self, noise: SensorNoise) -> RegistrationConfig:

@@ -61,7 +61,7 @@ from fpp_graph.slam.drift import (
 )
 from fpp_graph.slam.frame_store import FrameStore
 from fpp_graph.slam.loop_closure import ProximityAppearanceLoopDetector
-from fpp_graph.slam.motion import MotionTracking
+from fpp_graph.slam.motion import MotionTracking, readout_motion, with_readout_motion
 from fpp_graph.slam.verification import InlineVerifier
 from fpp_graph.slam.views import ViewModel, median_depth_m, view_change
 from fpp_graph.types import (
@@ -142,6 +142,8 @@ class KeyframeManager:
         # run's workers) and applied keyframes.verify_lag keyframes later, in submission order
         self.verifier: PairVerifier = verifier if verifier is not None else InlineVerifier(registrar, self.store)
         self._pending_loops: deque[tuple[int, list[tuple[LoopCandidate, Future[Constraint]]]]] = deque()
+        # each keyframe's twist over its rolling-shutter readout (motion.readout_motion; None: still)
+        self._readout_motion: dict[int, NDArray[np.float64] | None] = {}
         self.loop_detector = loop_detector if loop_detector is not None else ProximityAppearanceLoopDetector(self.config.loop_closure, seed=self.config.run.seed)
         self.on_loop = on_loop
         # After a chain break the new part's poses are unrelated to the older parts' (it starts
@@ -204,6 +206,9 @@ class KeyframeManager:
         is_keyframe = self._is_keyframe(odometry)
         self._tracking.predictor.observe(frame.id, frame.timestamp, kf_id, odometry.T_target_source)
         if is_keyframe:
+            # the keyframe's motion while its rows were read out widens every constraint it takes part in
+            self._readout_motion[frame.id] = readout_motion(frame, self._tracking.predictor.twist_per_s())
+            odometry = with_readout_motion(odometry, self._readout_motion[frame.id], self._readout_motion.get(kf_id))
             T_world = compose(self.T_world_keyframe[kf_id], odometry.T_target_source)
             step_cov = constraint_covariance(odometry)
             step_var = step_position_variance_m2(step_cov, odometry.T_target_source)
@@ -422,7 +427,9 @@ class KeyframeManager:
                 query_id, cand.match_id, cand.source, cand.score, constraint.fitness,
                 constraint.inlier_rmse_m * 1e3, constraint.inlier_count,
             )
-            loop = replace(constraint, kind=ConstraintKind.LOOP)
+            loop = with_readout_motion(
+                replace(constraint, kind=ConstraintKind.LOOP), self._readout_motion.get(constraint.source_id), self._readout_motion.get(constraint.target_id)
+            )
             self.loops.append(loop)  # every verified loop reaches the final batch solve
             self._join(query_id, cand.match_id)
             entered = self._add_to_running_estimate(loop)

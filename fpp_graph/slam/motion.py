@@ -12,12 +12,12 @@ from __future__ import annotations
 import logging
 import math
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
 
-from fpp_graph.geometry import invert, se3_exp, se3_log
+from fpp_graph.geometry import adjoint, invert, se3_exp, se3_log
 from fpp_graph.types import Constraint, Frame, FrameTracker, PairRegistrar
 
 log = logging.getLogger(__name__)
@@ -67,20 +67,76 @@ class ConstantVelocityPredictor:
 
     def _step(self, timestamp: float) -> Array:
         """The motion from the last frame to one at ``timestamp`` (identity when unknown)."""
-        if len(self._recent) < 2:
+        last_step = self._last_step()
+        if last_step is None:
             return np.eye(4)
+        T_before_last, dt_last = last_step
+        dt_next = float(timestamp) - self._recent[-1].timestamp
+        ratio = dt_next / dt_last if dt_last > 0 and math.isfinite(dt_next) else 1.0
+        if not 0.0 <= ratio <= MAX_STEP_RATIO:
+            return np.eye(4)
+        return se3_exp(ratio * se3_log(T_before_last))
+
+    def twist_per_s(self) -> Array | None:
+        """The camera's twist ``[omega (rad/s), v (m/s)]`` over the last step (the last frame's
+        body frame), or None when the last two frames' relative pose or time step is unknown."""
+        last_step = self._last_step()
+        if last_step is None or not last_step[1] > 0:
+            return None
+        T_before_last, dt_s = last_step
+        return se3_log(T_before_last) / dt_s
+
+    def _last_step(self) -> tuple[Array, float] | None:
+        """``(T_before_last, dt_s)`` of the last two frames, or None when not known in a shared frame."""
+        if len(self._recent) < 2:
+            return None
         before, last = self._recent
         if last.reference_id is not None and last.reference_id == before.reference_id:
             T_before_last = invert(before.T_reference_frame) @ last.T_reference_frame
         elif last.reference_id is not None and last.reference_id == before.frame_id:
             T_before_last = last.T_reference_frame
         else:
-            return np.eye(4)
-        dt_last, dt_next = last.timestamp - before.timestamp, float(timestamp) - last.timestamp
-        ratio = dt_next / dt_last if dt_last > 0 and math.isfinite(dt_next) else 1.0
-        if not 0.0 <= ratio <= MAX_STEP_RATIO:
-            return np.eye(4)
-        return se3_exp(ratio * se3_log(T_before_last))
+            return None
+        return T_before_last, last.timestamp - before.timestamp
+
+
+def readout_motion(frame: Frame, twist_per_s: Array | None) -> Array | None:
+    """The twist ``[rot, trans]`` the camera moves through while ``frame``'s rows are read out:
+    ``twist_per_s`` times the frame's ``metadata["readout_s"]`` (a rolling shutter's readout time,
+    set by its source; absent or 0: a global shutter or a still capture). None when either is
+    unknown or zero."""
+    readout_s = float(frame.metadata.get("readout_s", 0.0) or 0.0)
+    if twist_per_s is None or not readout_s > 0 or not np.all(np.isfinite(twist_per_s)):
+        return None
+    return readout_s * np.asarray(twist_per_s, dtype=np.float64)
+
+
+def with_readout_motion(constraint: Constraint, motion_source: Array | None, motion_target: Array | None) -> Constraint:
+    """``constraint`` with its frames' motion during their rolling-shutter readout added to its covariance.
+
+    A rolling shutter exposes a view's rows one after another over its readout time ``t_r``; a
+    camera moving with twist ``xi`` meanwhile captures each row from a pose ``xi tau`` off the
+    frame's, ``tau`` across ``[-t_r / 2, t_r / 2]``. A rigid pose fitted to such a view sits at the
+    motion of whichever rows hold the structure that constrains it, which no pair knows in
+    advance: the frame's pose is modelled as off by ``Exp(u s)`` with ``u = xi t_r``
+    (:func:`readout_motion`) and ``s`` uniform over ``[-1/2, 1/2]``, a rank-one covariance
+    ``u u^T / 12``. The source frame's term perturbs ``T_target_source`` on the right, the
+    target's through ``Ad(T^-1)``; each is a rank-one update of the information
+    (``I - I u u^T I c / (1 + c u^T I u)``, ``c = 1/12``, defined for a singular ``I`` too).
+    Frames that do not move (``None``) add nothing; the constraint is returned as it is then.
+    """
+    motions = [m for m in (motion_source, None if motion_target is None else adjoint(invert(constraint.T_target_source)) @ motion_target) if m is not None]
+    if not motions or not constraint.accepted:
+        return constraint
+    information = np.asarray(constraint.information, dtype=np.float64)
+    for u in motions:
+        Iu = information @ u
+        information = information - np.outer(Iu, Iu) * (UNIFORM_VARIANCE / (1.0 + UNIFORM_VARIANCE * float(u @ Iu)))
+    return replace(constraint, information=0.5 * (information + information.T))
+
+
+UNIFORM_VARIANCE = 1.0 / 12.0
+"""Variance of a uniform distribution over an interval of length 1."""
 
 
 class MotionTracking:
@@ -124,4 +180,4 @@ class MotionTracking:
         return {"tracked_frames": self.tracked_frames, "fallbacks": dict(self.fallbacks)} if self.tracker is not None else {}
 
 
-__all__ = ["MAX_STEP_RATIO", "ConstantVelocityPredictor", "MotionTracking"]
+__all__ = ["MAX_STEP_RATIO", "ConstantVelocityPredictor", "MotionTracking", "readout_motion", "with_readout_motion"]

@@ -61,7 +61,7 @@ from frontend.config import SensorNoise
 
 log = logging.getLogger(__name__)
 
-KINECT_V1_NOISE = SensorNoise(point_sigma_m=0.0075, voxel_m=0.01, information_correlation=3e-4, shared_depth_sigma_per_m2=1.4e-3)
+KINECT_V1_NOISE = SensorNoise(point_sigma_m=0.0075, voxel_m=0.01, information_correlation=3e-4, shared_depth_sigma_per_m2=1.4e-3, readout_s=1.0 / 30.0)
 """The Kinect v1 depth camera's noise model (see ``registration.noise``).
 
 - ``point_sigma_m``: its random depth error is ~1.4e-3 z^2 m (Khoshelham and Elberink, Sensors
@@ -76,6 +76,9 @@ KINECT_V1_NOISE = SensorNoise(point_sigma_m=0.0075, voxel_m=0.01, information_co
   scaled by it; ``shared_depth_sigma_per_m2`` bounds the whole pair instead (the depth error a
   view shares). ``scripts/rgbd_nees.py`` on 8 pairs of the 7-Scenes chess frames now gives mean
   NEES / 6 of 0.22 (median 0.09: conservative); the TUM fr1_rpy edges are over-confident (issue 22).
+- ``readout_s``: both its cameras are rolling shutters that read their rows over the frame period
+  (1/30 s); frames record it (``metadata["readout_s"]``) and the keyframe manager widens the
+  constraints of a moving camera by its motion over it (:func:`fpp_graph.slam.motion.with_readout_motion`).
 """
 KINECT_DEPTH_SIGMA_PER_M2 = 1.425e-3
 """A Kinect v1 depth's random error over the square of its range (1/m): ``sigma = 1.425e-3 z^2``
@@ -388,7 +391,7 @@ class RgbdSource:
             colors=grey_colors(color[valid] / 255.0),
             xyz_map=xyz,
             texture=color,
-            metadata={"K": self.K.tolist(), "sensor": "rgbd",
+            metadata={"K": self.K.tolist(), "sensor": "rgbd", "readout_s": self.config.registration.sensor_noise().readout_s,
                       **({"distortion": self.distortion.tolist()} if self.distortion is not None else {})},
         )
         # the registrar's per-frame work that every pair of this frame needs (its dense surface),

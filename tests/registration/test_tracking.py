@@ -156,3 +156,27 @@ def test_tracked_frames_are_not_described_and_keyframes_are(corridor):
     # the tracked keyframes' weak directions came from the keyframe's keypoints followed into them
     followed = [c.metadata["tracking_keypoints_followed"] for c in result.odometry if "tracking_keypoints_followed" in c.metadata]
     assert followed and min(followed) >= 15
+
+
+def test_keyframe_constraints_widen_by_the_cameras_motion_over_its_readout(corridor):
+    """The Kinect's frames carry its rolling shutter's readout (1/30 s); the keyframe manager adds
+    each keyframe's motion over it to the constraints it takes part in. The same frames marked as
+    a global shutter give the constraints as registered."""
+    import dataclasses
+
+    source, frames, _ = corridor
+    assert frames[0].metadata["readout_s"] == pytest.approx(1 / 30)
+    _, moving = _run(source, frames, track=True)
+    global_shutter = [dataclasses.replace(f, metadata={**f.metadata, "readout_s": 0.0}) for f in frames]
+    _, still = _run(source, global_shutter, track=True)
+    assert moving.keyframe_ids == still.keyframe_ids and len(moving.odometry) >= 2
+    for a, b in zip(moving.odometry, still.odometry, strict=True):
+        added = np.linalg.inv(a.information) - np.linalg.inv(b.information)
+        # a rank-one term per moving frame: positive semi-definite, rank at most two
+        eig = np.linalg.eigvalsh(0.5 * (added + added.T))
+        assert eig.min() > -1e-9 * eig.max() and eig.max() > 0
+        assert np.sum(eig > 1e-6 * eig.max()) <= 2
+        assert np.array_equal(a.T_target_source, b.T_target_source)
+    # without loops the chain's poses do not depend on the information
+    for fid, T in moving.poses_world_sensor.items():
+        assert np.allclose(T, still.poses_world_sensor[fid], atol=1e-9)
