@@ -125,7 +125,9 @@ def with_readout_motion(constraint: Constraint, motion_source: Array | None, mot
     (``I - I u u^T I c / (1 + c u^T I u)``, ``c = 1/12``, defined for a singular ``I`` too).
     Frames that do not move (``None``) add nothing; the constraint is returned as it is then.
     """
-    motions = [m for m in (motion_source, None if motion_target is None else adjoint(invert(constraint.T_target_source)) @ motion_target) if m is not None]
+    motions = [] if motion_source is None else [np.asarray(motion_source, dtype=np.float64)]
+    if motion_target is not None:
+        motions.append(adjoint(invert(constraint.T_target_source)) @ np.asarray(motion_target, dtype=np.float64))
     if not motions or not constraint.accepted:
         return constraint
     information = np.asarray(constraint.information, dtype=np.float64)
