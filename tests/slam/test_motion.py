@@ -5,6 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from fpp_graph.config import config_from_dict
+from fpp_graph.errors import ConfigError, InputDataError
 from fpp_graph.geometry import adjoint, invert, kabsch, se3_exp, se3_log, transform_points
 from fpp_graph.slam.motion import (
     MAX_STEP_RATIO,
@@ -92,6 +94,15 @@ def test_readout_motion_is_the_twist_over_the_frames_readout():
     assert readout_motion(_frame(0.0), twist) is None
     assert readout_motion(_frame(0.03), None) is None  # motion unknown
     assert readout_motion(_frame(0.03), np.full(6, np.nan)) is None
+    # a source that writes something else than seconds is told so, naming the frame and the value
+    for bad in ("fast", -0.01, float("inf"), [0.03]):
+        with pytest.raises(InputDataError, match=r"frame 0: metadata\['readout_s'\] must be .* seconds"):
+            readout_motion(_frame(bad), twist)
+
+
+def test_a_negative_readout_in_the_config_is_refused():
+    with pytest.raises(ConfigError, match="readout_s"):
+        config_from_dict({"registration": {"noise": {"readout_s": -0.01}}})
 
 
 def _constraint(information: np.ndarray, T: np.ndarray) -> Constraint:
