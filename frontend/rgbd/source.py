@@ -55,6 +55,7 @@ import numpy as np
 
 from fpp_graph.config import Config
 from fpp_graph.errors import InputDataError
+from fpp_graph.geometry import masked_pixels
 from fpp_graph.trajectory import Trajectory, read_tum
 from fpp_graph.types import Frame, grey_colors
 from frontend.config import SensorNoise
@@ -387,7 +388,7 @@ class RgbdSource:
         frame = Frame(
             id=e.frame_id,
             timestamp=e.timestamp,
-            points=xyz[valid],
+            points=masked_pixels(xyz, valid),
             colors=grey_colors(color[valid] / 255.0),
             xyz_map=xyz,
             texture=color,
