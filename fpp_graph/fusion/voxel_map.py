@@ -41,7 +41,14 @@ from fpp_graph.fusion.ply import write_mesh_ply as write_mesh_ply
 from fpp_graph.fusion.ply import write_point_cloud_ply as write_point_cloud_ply
 from fpp_graph.fusion.tsdf_mesh import TSDF_INITIAL_VOXELS, canonical_mesh, tsdf_block_voxels
 from fpp_graph.fusion.voxel_grid import _reduce, project_to_local_planes, voxel_keys
-from fpp_graph.geometry import finite_box, finite_points, in_row_bands, invert, masked_pixels, transform_points
+from fpp_graph.geometry import (
+    finite_box,
+    finite_points,
+    in_row_bands,
+    invert,
+    masked_pixels,
+    transform_points,
+)
 from fpp_graph.types import (  # FusedMap: the MapFuser protocol's result type, re-exported here
     Frame,
     FusedMap,
