@@ -122,6 +122,28 @@ class RunConfig(StrictModel):
     )
 
 
+class EvaluationConfig(StrictModel):
+    """How a run is compared with a sequence's reference poses."""
+
+    reference_time_offset_s: float = Field(
+        0.0, allow_inf_nan=False,
+        description="a timestamped reference (TUM RGB-D groundtruth.txt) is read at each frame's timestamp plus this many "
+        "seconds (negative: before the image's stamp; 0: the benchmark's convention); a source whose reference poses belong to "
+        "its frames (7-Scenes, FPP sequences) refuses any other value",
+    )
+
+
+def refuse_reference_time_offset(config: Config, where: str) -> None:
+    """For a source whose reference poses belong to its frames (no clock to shift): a
+    ConfigError when ``evaluation.reference_time_offset_s`` is not 0."""
+    offset_s = config.evaluation.reference_time_offset_s
+    if offset_s != 0.0:
+        raise ConfigError(
+            f"evaluation.reference_time_offset_s = {offset_s:g} s, but {where} has one reference pose per frame, not a "
+            "timestamped reference to read at another time; set it to 0 for this sequence"
+        )
+
+
 # ---------------------------------------------------------------------------------------------
 # front-end sections
 # ---------------------------------------------------------------------------------------------
@@ -211,6 +233,7 @@ class Config(StrictModel):
     pose_graph: PoseGraphConfig = PoseGraphConfig()
     fusion: FusionConfig = FusionConfig()
     run: RunConfig = RunConfig()
+    evaluation: EvaluationConfig = EvaluationConfig()
 
     @model_validator(mode="before")
     @classmethod

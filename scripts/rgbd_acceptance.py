@@ -80,7 +80,8 @@ def run_ours(seq: Path, out: Path, config_path: Path | None = None, seed: int | 
     config = config.model_copy(update={"run": config.run.model_copy(update=run)})
     report = run_sequence(seq, config, out, overwrite=True)
     wall, cpu = time.perf_counter() - wall0, cpu_seconds() - cpu0
-    source = open_source(seq, load_config(None))
+    # the run's config: its evaluation section (the reference's time offset) reads the reference
+    source = open_source(seq, config)
     evaluation = evaluate_results(out, source)
     gt_by_id = {e.frame_id: e.T_world_sensor for e in source.entries}
     m = report.metrics
@@ -94,7 +95,7 @@ def run_ours(seq: Path, out: Path, config_path: Path | None = None, seed: int | 
     }
 
 
-def open3d_rgbd(ours_dir: Path, seq: Path, out: Path, keyframe_every: int = 5, keyframe_links: int = 3) -> dict:
+def open3d_rgbd(ours_dir: Path, seq: Path, out: Path, keyframe_every: int = 5, keyframe_links: int = 3, config_path: Path | None = None) -> dict:
     """Open3D's RGB-D odometry + keyframe pose graph + global optimisation on our decoded frames."""
     import open3d as o3d
 
@@ -154,7 +155,7 @@ def open3d_rgbd(ours_dir: Path, seq: Path, out: Path, keyframe_every: int = 5, k
     wall, cpu = time.perf_counter() - wall0, cpu_seconds() - cpu0
     out.mkdir(parents=True, exist_ok=True)
     write_tum(out / "trajectory.tum", Trajectory.from_poses([f.timestamp for f in frames], [np.asarray(n.pose) for n in graph.nodes]))
-    evaluation = evaluate_results(out, open_source(seq, load_config(None)))
+    evaluation = evaluate_results(out, open_source(seq, load_config(config_path)))  # against the same reference as ours
     return {"frames": len(frames), "wall_s": wall, "cpu_s": cpu, "fps": len(frames) / wall, "keyframe_links": links,
             "ate_rmse_mm": evaluation["ate_rmse_mm"], "ate_max_mm": evaluation["ate_max_mm"]}
 
@@ -216,7 +217,7 @@ def main(argv: list[str] | None = None) -> int:
             print("spread : " + "; ".join(f"{k} {v['min']:.2f} / {v['median']:.2f} / {v['max']:.2f}" for k, v in row["spread"].items())
                   + f" (min / median / max over seeds {', '.join(str(r['seed']) for r in runs)})")
         if not args.no_peer:
-            peer = open3d_rgbd(ours_dir, seq, args.out / seq.name / "open3d")
+            peer = open3d_rgbd(ours_dir, seq, args.out / seq.name / "open3d", config_path=args.config)
             row["open3d"] = peer
             print(f"open3d : ATE {peer['ate_rmse_mm']:.1f} mm (max {peer['ate_max_mm']:.1f}); {peer['keyframe_links']} keyframe edges; "
                   f"{peer['fps']:.2f} frames/s ({peer['wall_s']:.1f} s wall, decoded frames given)")

@@ -12,7 +12,7 @@ import logging
 from pathlib import Path
 from typing import Any
 
-from fpp_graph.config import Config
+from fpp_graph.config import Config, refuse_reference_time_offset
 from fpp_graph.trajectory import Trajectory
 from fpp_graph.types import Frame
 from frontend.config import FPP_NOISE
@@ -30,6 +30,7 @@ class FppSequenceSource:
     def __init__(self, path: Path, config: Config) -> None:
         self.path = Path(path)
         self.config = self.resolve_config(config)
+        refuse_reference_time_offset(self.config, f"the FPP sequence {self.path}")
         self.sequence = read_sequence(self.path)
         self._index = {rec.id: i for i, rec in enumerate(self.sequence.frames)}
         self._sensor = None

@@ -53,7 +53,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from fpp_graph.config import Config
+from fpp_graph.config import Config, refuse_reference_time_offset
 from fpp_graph.errors import InputDataError
 from fpp_graph.geometry import masked_pixels
 from fpp_graph.trajectory import Trajectory, read_tum
@@ -278,6 +278,7 @@ class RgbdSource:
                 self.K_color = np.loadtxt(cfile).reshape(3, 3)
             except ValueError as exc:
                 raise InputDataError(f"{cfile}: expected a 3x3 matrix ({exc})") from None
+        refuse_reference_time_offset(self.config, f"the 7-Scenes folder {self.path}")
         entries = []
         for p in sorted(self.path.iterdir()):
             m = _SEVEN_SCENES.search(p.name)
@@ -314,6 +315,7 @@ class RgbdSource:
             return [], None, 5000.0
         K, self.distortion = self._tum_camera()
         gt = read_tum(self.path / "groundtruth.txt") if (self.path / "groundtruth.txt").exists() else None
+        offset_s = self.config.evaluation.reference_time_offset_s
         pairs = associate_timestamps([t for t, _ in rgb], [t for t, _ in depth], TUM_MAX_ASSOCIATION_S)
         self.unassociated = {"color": len(rgb) - len(pairs), "depth": len(depth) - len(pairs)}
         if self.unassociated["color"]:
@@ -325,7 +327,7 @@ class RgbdSource:
         entries = []
         for i, j in pairs:
             t = rgb[i][0]
-            T = None if gt is None else interpolate_pose(gt, t, max_gap_s=0.05)
+            T = None if gt is None else interpolate_pose(gt, t + offset_s, max_gap_s=0.05)
             entries.append(_Entry(len(entries), t, self.path / rgb[i][1], self.path / depth[j][1], T))
         return entries, K, 5000.0
 
@@ -457,4 +459,5 @@ class RgbdSource:
         return {"sensor": "rgbd", "layout": self.layout, "frames": len(self.entries), "K": self.K.tolist(),
                 "distortion": None if self.distortion is None else self.distortion.tolist(),
                 "unassociated_images": dict(self.unassociated),
-                "frames_with_reference": sum(e.T_world_sensor is not None for e in self.entries)}
+                "frames_with_reference": sum(e.T_world_sensor is not None for e in self.entries),
+                "reference_time_offset_s": self.config.evaluation.reference_time_offset_s}

@@ -125,3 +125,51 @@ def test_a_folder_of_sequences_is_refused_naming_the_sequences_inside(tmp_path):
     with pytest.raises(InputDataError) as refused:
         open_source(scene / "notes", Config())
     assert "sequence folder" not in str(refused.value)
+
+
+def test_the_reference_is_read_at_each_frames_time_plus_the_configured_offset(tmp_path):
+    """``evaluation.reference_time_offset_s``: the motion capture's pose of an image is taken
+    that many seconds from the image's stamp (the camera moves along x at 0.1 m/s here, so
+    -0.02 s is 2 mm back); the offset travels with the config to ``fpp-slam eval``."""
+    colour = [10.0 + k / 30.0 for k in range(6)]
+    seq = _tum_folder(tmp_path / "seq", colour, [t + 0.004 for t in colour], reference_s=[9.9 + k / 100 for k in range(40)])
+    plain = RgbdSource(seq, Config())
+    shifted = RgbdSource(seq, Config(evaluation={"reference_time_offset_s": -0.02}))
+    x_plain = [e.T_world_sensor[0, 3] for e in plain.entries]
+    x_shifted = [e.T_world_sensor[0, 3] for e in shifted.entries]
+    np.testing.assert_allclose(x_plain, [0.1 * t for t in colour], atol=1e-9)
+    np.testing.assert_allclose(x_shifted, [0.1 * (t - 0.02) for t in colour], atol=1e-9)
+    # the frames keep their own timestamps (the offset moves the reference, not the images)
+    assert [e.timestamp for e in shifted.entries] == [e.timestamp for e in plain.entries]
+    assert shifted.describe()["reference_time_offset_s"] == -0.02
+    # a shift beyond the reference's end leaves those frames out of it, as a late capture would
+    late = RgbdSource(seq, Config(evaluation={"reference_time_offset_s": 0.2}))
+    assert sum(e.T_world_sensor is not None for e in late.entries) < len(colour)
+
+
+def test_a_reference_time_offset_must_be_a_finite_number_of_seconds():
+    from fpp_graph.errors import ConfigError
+
+    for bad in (float("nan"), float("inf"), "soon"):
+        with pytest.raises((ConfigError, ValueError), match="reference_time_offset_s"):
+            Config(evaluation={"reference_time_offset_s": bad})
+
+
+def test_sources_whose_reference_belongs_to_their_frames_refuse_a_time_offset(tmp_path):
+    """7-Scenes (a pose file per frame) and FPP sequences (a pose per view) have no clock to read
+    their reference at another time: a non-zero offset is a ConfigError naming the key, not an
+    offset silently ignored."""
+    from fpp_graph.errors import ConfigError
+    from frontend.fpp.source import FppSequenceSource
+
+    seven = tmp_path / "chess"
+    seven.mkdir()
+    cv2.imwrite(str(seven / "frame-000000.color.png"), np.zeros((32, 40, 3), np.uint8))
+    cv2.imwrite(str(seven / "frame-000000.depth.png"), np.full((32, 40), 1000, np.uint16))
+    np.savetxt(seven / "frame-000000.pose.txt", np.eye(4))
+    assert len(RgbdSource(seven, Config()).entries) == 1  # the folder reads with the default
+    shifted = Config(evaluation={"reference_time_offset_s": -0.02})
+    with pytest.raises(ConfigError, match="reference_time_offset_s = -0.02 s.*7-Scenes.*set it to 0"):
+        RgbdSource(seven, shifted)
+    with pytest.raises(ConfigError, match="reference_time_offset_s = -0.02 s.*FPP sequence"):
+        FppSequenceSource(tmp_path / "any_fpp_sequence", shifted)
