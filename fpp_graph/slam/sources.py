@@ -55,7 +55,10 @@ class FrameSource(Protocol):
         ...
 
     def ground_truth(self) -> Trajectory | None:
-        """Ground-truth ``T_world_sensor`` trajectory if the sequence has one."""
+        """Ground-truth ``T_world_sensor`` trajectory if the sequence has one, at the frames'
+        timestamps. A timestamped reference (a motion capture) is read there plus the config's
+        ``evaluation.reference_time_offset_s``; a source whose reference poses belong to its frames
+        refuses a non-zero offset (:func:`fpp_graph.config.refuse_reference_time_offset`)."""
         ...
 
     def ground_truth_mesh(self) -> Path | None:
