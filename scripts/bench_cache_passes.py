@@ -24,12 +24,9 @@ Each line says whether ours and the peer agree bit for bit. Minimum over ``--rep
 
 from __future__ import annotations
 
-import argparse
-from pathlib import Path
-
 import numpy as np
 
-from scripts.bench_fusion_prepare import _best_ms, middle_frames
+from scripts.bench_fusion_prepare import _best_ms, cached_frames_parser, middle_frames
 
 
 def _ours_and_peer(module, constant: str, fn, repeat: int) -> tuple[float, float, bool]:
@@ -49,10 +46,7 @@ def _line(name: str, ours_ms: float, peer_ms: float, same: bool) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("results", type=Path)
-    parser.add_argument("--frames", type=int, default=4)
-    parser.add_argument("--repeat", type=int, default=3)
+    parser = cached_frames_parser(__doc__, frames=4, repeat=3)
     parser.add_argument("--voxels", type=int, default=400_000)
     args = parser.parse_args(argv)
 

@@ -13,19 +13,13 @@ last line their medians. Minimum over ``--repeat`` runs.
 
 from __future__ import annotations
 
-import argparse
-from pathlib import Path
-
 import numpy as np
 
-from scripts.bench_fusion_prepare import _best_ms, middle_frames
+from scripts.bench_fusion_prepare import _best_ms, cached_frames_parser, middle_frames
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("results", type=Path)
-    parser.add_argument("--frames", type=int, default=6)
-    parser.add_argument("--repeat", type=int, default=5)
+    parser = cached_frames_parser(__doc__, frames=6, repeat=5)
     args = parser.parse_args(argv)
 
     from fpp_graph.geometry import masked_pixels

@@ -42,6 +42,16 @@ def _best_ms(fn, repeat: int) -> tuple[float, object]:
     return 1e3 * best, out
 
 
+def cached_frames_parser(description: str | None, frames: int, repeat: int) -> argparse.ArgumentParser:
+    """The arguments of a benchmark on a run's cached frames: ``RESULTS``, ``--frames`` (how many,
+    from the middle of the run: :func:`middle_frames`) and ``--repeat`` (the minimum over that many runs)."""
+    parser = argparse.ArgumentParser(description=description, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("results", type=Path)
+    parser.add_argument("--frames", type=int, default=frames)
+    parser.add_argument("--repeat", type=int, default=repeat)
+    return parser
+
+
 def middle_frames(parser: argparse.ArgumentParser, results: Path, count: int) -> list[Path]:
     """The cached frames ``count`` from the middle of the run in ``results`` (a usage error without any)."""
     paths = sorted((results / "frames").glob("frame_*.npz"))
@@ -52,10 +62,7 @@ def middle_frames(parser: argparse.ArgumentParser, results: Path, count: int) ->
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("results", type=Path)
-    parser.add_argument("--frames", type=int, default=6)
-    parser.add_argument("--repeat", type=int, default=3)
+    parser = cached_frames_parser(__doc__, frames=6, repeat=3)
     args = parser.parse_args(argv)
 
     import yaml
