@@ -73,6 +73,9 @@ class DenseAlignment:
     num_samples : int
         Pixels sampled in the last iteration (both directions); :attr:`overlap` is the share of
         them with a residual, i.e. of the views that fit each other.
+    gate_m : float
+        The residual gate the fit ended with: a fit continued from :attr:`T_target_source` with
+        it as ``max_distance_m`` iterates as if it had not stopped.
     """
 
     T_target_source: Array
@@ -83,6 +86,7 @@ class DenseAlignment:
     converged: bool
     source_points: Array = field(repr=False)
     num_samples: int = 0
+    gate_m: float = math.inf
 
     @property
     def overlap(self) -> float:
@@ -325,7 +329,7 @@ def align_dense(
     T, iterations = state["T"], state["iterations"]
     info = 0.5 * (info + info.T)
     sampled = len(source.samples(fine_stride_px)[0]) + (len(target.samples(fine_stride_px)[0]) if symmetric else 0)
-    return DenseAlignment(T, info, sigma, n_used, iterations, converged, used, sampled)
+    return DenseAlignment(T, info, sigma, n_used, iterations, converged, used, sampled, state["gate"])
 
 
 __all__ = ["DenseAlignment", "DenseEvaluation", "OrganisedSurface", "align_dense", "dense_information", "evaluate_dense", "dense_strides", "cross_rows", "fit_pinhole", "point_to_plane_jacobian", "sample_bilinear"]

@@ -31,6 +31,7 @@ Gates (each a measured property of the fit, thresholds from the sensor's noise m
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from collections.abc import Callable
 
@@ -42,7 +43,7 @@ from fpp_graph.errors import FppError
 from fpp_graph.geometry import invert, se3_exp, transform_points
 from fpp_graph.types import Constraint, ConstraintKind, Frame
 from frontend.config import RegistrationConfig
-from frontend.dense_alignment import DenseAlignment, align_dense
+from frontend.dense_alignment import DenseAlignment, align_dense, dense_strides
 from frontend.organised_surface import OrganisedSurface
 from frontend.registration.icp import with_shared_error_floor
 from frontend.registration.keypoints import (
@@ -102,16 +103,35 @@ def track_dense(
     if target.xyz_map is None or source.xyz_map is None:
         return rejected("a frame has no xyz_map")
     lengths, dense_cfg = config.lengths, config.dense
+    coarse_px, fine_px = dense_strides(surface(target), surface(source), dense_cfg.coarse_stride_px, dense_cfg.stride_px, dense_cfg.max_points)
+
+    def iterate(T_start: Array, stride_px: int, iterations: int, gate_m: float, prior: Array | None = None) -> DenseAlignment:
+        # the strides are fixed above: max_points has been applied
+        return align_dense(
+            surface(target), surface(source), T_start, prior_information=prior, coarse_stride_px=stride_px, fine_stride_px=stride_px,
+            max_iterations=0, fine_iterations=iterations, max_distance_m=gate_m,
+        )
 
     def fit(T_start: Array, prior: Array | None = None) -> DenseAlignment:
+        """The whole dense fit: its coarse iterations, then its fine ones."""
+        if coarse_px == fine_px:
+            return iterate(T_start, fine_px, dense_cfg.fine_iterations, lengths.icp_max_correspondence_m, prior)
         return align_dense(
-            surface(target), surface(source), T_start, prior_information=prior, coarse_stride_px=dense_cfg.coarse_stride_px,
-            fine_stride_px=dense_cfg.stride_px, max_iterations=dense_cfg.coarse_iterations, fine_iterations=dense_cfg.fine_iterations,
-            max_points=dense_cfg.max_points, max_distance_m=lengths.icp_max_correspondence_m,
+            surface(target), surface(source), T_start, prior_information=prior, coarse_stride_px=coarse_px,
+            fine_stride_px=fine_px, max_iterations=dense_cfg.coarse_iterations, fine_iterations=dense_cfg.fine_iterations,
+            max_distance_m=lengths.icp_max_correspondence_m,
         )
 
     try:
-        dense = fit(T0)
+        # The coarse iterations first: where they already show weak directions, the fit is redone
+        # from the keypoints' pose with them as its prior (_hold_weak_directions), and the fine
+        # iterations from the prediction would be thrown away (on the simulated 30 Hz walk most
+        # frames see a corridor's free axis; a fine iteration costs twice both coarse ones)
+        dense = iterate(T0, coarse_px, dense_cfg.coarse_iterations, lengths.icp_max_correspondence_m) if coarse_px != fine_px else fit(T0)
+        if coarse_px != fine_px and not check_degeneracy(dense.information, dense.source_points, config.weak_directions.degeneracy_ratio).degenerate:
+            coarse_iterations = dense.iterations
+            dense = iterate(dense.T_target_source, fine_px, dense_cfg.fine_iterations, dense.gate_m)
+            dense = dataclasses.replace(dense, iterations=coarse_iterations + dense.iterations)
     except FppError as exc:
         return rejected(f"dense fit failed ({exc})")
     if problem := _fit_problem(dense, T0, config):
