@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import weakref
 from collections.abc import Callable
 
 import cv2
@@ -260,9 +261,7 @@ def _followed_keypoints(
     if target.texture is None or source.texture is None:
         return "a frame has no texture to follow keypoints on"
     edge_m = config.lengths.keypoint_edge_step_m
-    Q, lifted = lift_keypoints(target.xyz_map, target.keypoints_uv, edge_m)
-    uv_target = np.asarray(target.keypoints_uv, dtype=np.float32)[lifted]
-    Q = Q[lifted]
+    Q, uv_target = _lifted_keyframe_keypoints(target, edge_m)
     u, v = surface(source).project(transform_points(invert(T_target_source), Q))
     predicted = np.stack([u, v], axis=1).astype(np.float32)
     H, W = source.texture.shape
@@ -282,6 +281,21 @@ def _followed_keypoints(
     followed[followed] = patch_correlation(target.texture, uv_target[seen][followed], source.texture, uv_source[followed]) >= MIN_PATCH_CORRELATION
     P, on_surface = lift_keypoints(source.xyz_map, uv_source[followed], edge_m)
     return P[on_surface], Q[seen][followed][on_surface]
+
+
+def _lifted_keyframe_keypoints(keyframe: Frame, edge_m: float) -> tuple[Array, NDArray[np.float32]]:
+    """The keyframe's keypoints on its surface: their 3D points and pixels, lifted once per
+    keyframe and edge step (every frame tracked against it follows the same ones)."""
+    cached = _LIFTED.get(keyframe)
+    if cached is None or cached[0] != edge_m:
+        Q, lifted = lift_keypoints(keyframe.xyz_map, keyframe.keypoints_uv, edge_m)
+        cached = (edge_m, Q[lifted], np.asarray(keyframe.keypoints_uv, dtype=np.float32)[lifted])
+        _LIFTED[keyframe] = cached
+    return cached[1], cached[2]
+
+
+_LIFTED: weakref.WeakKeyDictionary[Frame, tuple[float, Array, NDArray[np.float32]]] = weakref.WeakKeyDictionary()
+"""Each described keyframe's lifted keypoints while it lives (frames are immutable)."""
 
 
 # zero-mean normalised correlation of a followed keypoint's window between the two views below

@@ -11,6 +11,7 @@ from fpp_graph.config import Config, config_from_dict
 from fpp_graph.geometry import invert, pose_error, se3_exp
 from fpp_graph.slam.keyframes import KeyframeManager
 from fpp_graph.types import FrameDescriber, FrameTracker
+from frontend.dense_alignment import align_dense
 from frontend.registration import FppPairRegistrar
 from frontend.registration.tracking import MIN_PATCH_CORRELATION, patch_correlation
 from frontend.rgbd.source import RgbdSource
@@ -180,3 +181,49 @@ def test_keyframe_constraints_widen_by_the_cameras_motion_over_its_readout(corri
     # without loops the chain's poses do not depend on the information
     for fid, T in moving.poses_world_sensor.items():
         assert np.allclose(T, still.poses_world_sensor[fid], atol=1e-9)
+
+
+def _whole_fit(registrar, target, source, T_start):
+    dense, lengths = registrar.config.dense, registrar.config.lengths
+    return align_dense(
+        registrar.dense_surface(target), registrar.dense_surface(source), T_start, coarse_stride_px=dense.coarse_stride_px,
+        fine_stride_px=dense.stride_px, max_points=dense.max_points, max_iterations=dense.coarse_iterations,
+        fine_iterations=dense.fine_iterations, max_distance_m=lengths.icp_max_correspondence_m,
+    )
+
+
+def test_a_fit_without_weak_directions_is_the_whole_dense_fit(corridor):
+    # tracking runs the coarse iterations, looks for weak directions, then the fine ones with the
+    # gate the coarse ones left: with no direction weak (ratio 0) that is one whole fit, bit for bit
+    import frontend.registration.tracking as tracking
+
+    source, frames, poses = corridor
+    config = source.config.registration
+    registrar = FppPairRegistrar(config.model_copy(update={"weak_directions": config.weak_directions.model_copy(update={"degeneracy_ratio": 0.0})}))
+    T_predicted = invert(poses[0]) @ poses[3] @ se3_exp([0.004, 0, 0, 0.005, 0, 0])
+    tracked = registrar.track(frames[0], frames[3], T_predicted)
+    # the start tracking takes: the prediction's rotation made orthonormal
+    whole = _whole_fit(registrar, frames[0], frames[3], tracking._nearest_rigid(T_predicted))
+    assert tracked.accepted and tracked.metadata["unconstrained_directions"] == []
+    assert np.array_equal(tracked.T_target_source, whole.T_target_source)
+    assert tracked.metadata["dense_iterations"] == whole.iterations
+    assert tracked.metadata["dense_sigma_m"] == whole.sigma_m
+
+
+def test_weak_directions_seen_by_the_coarse_iterations_skip_the_fine_ones(corridor, monkeypatch):
+    # a corridor's free axis shows in the coarse iterations: the fit goes to the keypoints' pose
+    # from there, and the fine iterations run once, in the fit redone from it (the count of
+    # fine-stride passes is what the split saves)
+    import frontend.registration.tracking as tracking
+
+    source, frames, poses = corridor
+    registrar = source.make_registrar()
+    strides: list[int] = []
+    real = tracking.align_dense
+    monkeypatch.setattr(tracking, "align_dense", lambda *a, **k: strides.append((k["coarse_stride_px"], k["fine_stride_px"])) or real(*a, **k))
+    tracked = registrar.track(frames[0], frames[3], invert(poses[0]) @ poses[3] @ se3_exp([0.004, 0, 0, 0.005, 0, 0]))
+    assert tracked.accepted and tracked.metadata["unconstrained_directions"]
+    coarse, fine = registrar.config.dense.coarse_stride_px, registrar.config.dense.stride_px
+    assert strides == [(coarse, coarse), (coarse, fine)]
+    rot_deg, trans_m = _error_deg_m(tracked.T_target_source, invert(poses[0]) @ poses[3])
+    assert rot_deg < 0.15 and trans_m < 0.006
