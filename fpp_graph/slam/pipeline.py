@@ -51,6 +51,7 @@ from fpp_graph.slam.keyframes import KeyframeManager, SlamResult
 from fpp_graph.slam.sources import FrameSource, check_frame_source
 from fpp_graph.slam.verification import ExecutorVerifier
 from fpp_graph.slam.workers import (
+    DECODE_AHEAD_FRAMES,
     decode,
     decode_to_cache,
     init_worker,
@@ -118,7 +119,7 @@ def prepare_frames(
     executor: Executor | None = None,
     skipped: dict[int, str] | None = None,
     progress: ProgressCallback | None = None,
-    window: int = 4,
+    window: int = DECODE_AHEAD_FRAMES,
     worker_source: tuple[FrameSource, str] | None = None,
     cache_every_frame: bool = True,
 ) -> Iterator[Frame]:

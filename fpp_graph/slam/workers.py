@@ -29,6 +29,16 @@ from fpp_graph.slam.heap import keep_large_blocks_in_heap, trim_heap
 from fpp_graph.slam.sources import FrameSource
 from fpp_graph.types import Constraint, ConstraintKind, Frame, PairRegistrar
 
+DECODE_AHEAD_FRAMES = 16
+"""Frames a run submits for decoding ahead of the one it tracks. The workers verify loop
+candidates too, in submission order, and a revisit's keyframes bring up to
+``loop_closure.max_candidates_per_frame`` (8) each, 2-3 keyframes in a row: at ~0.1 s a
+640x480 candidate on 2 workers, ~1 s of verification during which a decode waits behind them,
+~12 frames of 30 Hz tracking. 4 ahead left the tracking process waiting on decodes in those
+stretches (the simulated 2000-frame walk: decode + track 173 -> 167 s, the whole run 217 ->
+211 s). A frame handed over in memory is ~6 MB (640x480 RGB-D; FPP frames go through the
+cache on disk), ~100 MB in flight."""
+
 _SOURCE: FrameSource | None = None
 _SOURCE_TOKEN: str | None = None
 _REGISTRAR: PairRegistrar | None = None
