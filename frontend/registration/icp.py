@@ -276,14 +276,20 @@ class SourceCrop:
     correspond took most of ICP's time. Whenever ICP stops, points outside the crop that the
     final pose brings within the correspondence distance are added (:meth:`cover`) and ICP goes
     on with them, so a converged result has every correspondence the whole cloud would give.
+
+    GICP weighs each source point by the covariance of its ``num_neighbors`` nearest points. The
+    cloud holds, besides the points within reach (:attr:`core`), every point that can be one of
+    their neighbours (within the reach plus their farthest neighbour's distance of the target),
+    so each point within reach has the covariance it has in the whole cloud.
     """
 
     def __init__(self, target: IcpRole, source: IcpRole, T_target_source: NDArray, correspondence_m: float, margin_m: float):
         self.target, self.source = target, source
         self.correspondence_m, self.reach_m = float(correspondence_m), float(correspondence_m + margin_m)
-        self.kept = np.zeros(source.size, dtype=bool)
+        self.core = np.zeros(source.size, dtype=bool)  # within reach: their covariances as in the whole cloud
+        self.kept = np.zeros(source.size, dtype=bool)  # in the cloud: the core and its neighbours
         self.cloud: Any = source.cloud
-        self._add(np.flatnonzero(self._near(T_target_source, np.arange(source.size), self.reach_m)))
+        self._add(T_target_source)
 
     @property
     def size(self) -> int:
@@ -293,28 +299,38 @@ class SourceCrop:
         idx, _ = self.target.nearest_within(transform_points(T, self.source.points[which]), radius_m)
         return idx >= 0
 
-    def _add(self, indices: NDArray) -> None:
+    def _add(self, T: NDArray) -> None:
+        """Add the points within reach at ``T`` to the core, and their neighbours to the cloud."""
         import small_gicp
 
-        self.kept[indices] = True
+        outside = np.flatnonzero(~self.core)
+        new_core = outside[self._near(T, outside, self.reach_m)]
+        if not len(new_core):
+            return
+        self.core[new_core] = True
+        # the farthest of their covariance neighbours (small_gicp counts the point itself)
+        _, sq = self.source.tree.batch_knn_search(self.source.points[new_core], self.source.num_neighbors, num_threads=1)
+        sq = np.asarray(sq, dtype=np.float64)
+        neighbourhood_m = float(np.sqrt(np.max(sq[np.isfinite(sq)]))) if np.isfinite(sq).any() else 0.0
+        rest = np.flatnonzero(~self.kept)
+        self.kept[rest[self._near(T, rest, self.reach_m + neighbourhood_m)]] = True
+        self.kept[new_core] = True
         kept = self.size
         if kept == self.source.size or kept < self.source.num_neighbors:
             # all of it, or too few points for their covariances: the whole cloud, as without a crop
             self.cloud = self.source.cloud
             return
         cloud = small_gicp.PointCloud(np.ascontiguousarray(self.source.points[self.kept]))
-        # GICP's source covariances from the crop's own points: a point that corresponds has its
-        # neighbours (~2 voxels away) inside the crop, which reaches the basin's radius further
         small_gicp.estimate_covariances(cloud, small_gicp.KdTree(cloud, num_threads=1), self.source.num_neighbors, 1)
         self.cloud = cloud
 
     def cover(self, T_target_source: NDArray) -> bool:
-        """Add the points outside the crop that ``T_target_source`` brings within the correspondence
-        distance (and those within the reach around them); True when there were any."""
-        outside = np.flatnonzero(~self.kept)
+        """Add the points outside the core that ``T_target_source`` brings within the correspondence
+        distance (and those within reach, with their neighbours); True when there were any."""
+        outside = np.flatnonzero(~self.core)
         if not len(outside) or not self._near(T_target_source, outside, self.correspondence_m).any():
             return False
-        self._add(outside[self._near(T_target_source, outside, self.reach_m)])
+        self._add(T_target_source)
         return True
 
 

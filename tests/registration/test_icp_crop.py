@@ -79,3 +79,18 @@ def test_bounded_search_matches_the_unbounded_one_within_the_radius():
     assert np.all(np.isinf(sq[~inside]))
     empty_idx, empty_sq = role.nearest_within(np.zeros((0, 3)), 0.01)
     assert empty_idx.shape == (0,) and empty_sq.shape == (0,)
+
+
+def test_points_within_reach_keep_the_covariances_of_the_whole_cloud():
+    # GICP weighs a point by the covariance of its nearest neighbours: the crop holds the
+    # neighbours of every point within reach, so those covariances are the whole cloud's
+    target, source, _ = _pair()
+    role = source.source
+    crop = SourceCrop(target.target, role, np.eye(4), 0.003, 0.002)  # a reach shorter than a neighbourhood
+    assert 0 < np.count_nonzero(crop.core) < np.count_nonzero(crop.kept) < role.size
+    whole = np.asarray(role.cloud.covs())
+    cropped = np.asarray(crop.cloud.covs())
+    position_in_crop = np.cumsum(crop.kept) - 1
+    core = np.flatnonzero(crop.core)
+    assert np.allclose(cropped[position_in_crop[core]], whole[core], rtol=1e-9, atol=1e-15)
+    # (a point of the neighbour ring may lack some of its own neighbours: not used unless ICP moves it within reach)
