@@ -758,3 +758,16 @@ def test_cpu_utilisation_counts_the_runs_own_workers_and_not_anothers_executor(t
     with ThreadPoolExecutor(2) as pool:
         report = Pipeline(open_source(tum_sequence, two), two, tmp_path / "foreign", executor=pool).run()
     assert report.metrics["cpu_seconds"] is None and report.metrics["cpu_utilisation"] is None
+
+
+def test_workers_run_below_the_process_that_starts_them():
+    # the tracking process is the run's critical path: its workers yield the core to it
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    from fpp_graph.slam.workers import WORKER_NICENESS, init_worker
+
+    parent = os.nice(0)
+    with ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"), initializer=init_worker, initargs=(None,)) as pool:
+        worker = pool.submit(os.nice, 0).result()
+    assert worker == min(parent + WORKER_NICENESS, 19)
