@@ -74,8 +74,9 @@ while what the workers do can wait a little (frames decoded a few ahead, loop ca
 ``keyframes.verify_lag`` keyframes behind). With a worker per core, three busy processes shared
 two cores and the tracking process got two thirds of one whenever both workers had work: at
 niceness 10 the scheduler weighs it ~9:1 against each worker, so it keeps its core. The
-simulated 2000-frame walk (``scripts/long_rgbd_sequence.py``) ran 221 -> 212 s at 19 (decode +
-track 177 -> 171 s). A user's other programs keep their share against the whole run."""
+simulated 2000-frame walk (``scripts/long_rgbd_sequence.py``) ran 221 -> 217 s (decode + track
+177 -> 173 s; at 19: 212 s). 10, not 19: a user's other programs keep a share of the cores
+against the workers, which a run needs too."""
 
 
 def _below_the_tracking_process() -> None:

@@ -107,7 +107,7 @@ def track_dense(
     coarse_px, fine_px = dense_strides(surface(target), surface(source), dense_cfg.coarse_stride_px, dense_cfg.stride_px, dense_cfg.max_points)
 
     def iterate(T_start: Array, stride_px: int, iterations: int, gate_m: float, prior: Array | None = None) -> DenseAlignment:
-        # the strides are fixed above: max_points has been applied
+        """``iterations`` at one stride (max_points is in the strides already)."""
         return align_dense(
             surface(target), surface(source), T_start, prior_information=prior, coarse_stride_px=stride_px, fine_stride_px=stride_px,
             max_iterations=0, fine_iterations=iterations, max_distance_m=gate_m,
@@ -115,24 +115,32 @@ def track_dense(
 
     def fit(T_start: Array, prior: Array | None = None) -> DenseAlignment:
         """The whole dense fit: its coarse iterations, then its fine ones."""
+        start_gate_m = lengths.icp_max_correspondence_m
         if coarse_px == fine_px:
-            return iterate(T_start, fine_px, dense_cfg.fine_iterations, lengths.icp_max_correspondence_m, prior)
+            return iterate(T_start, fine_px, dense_cfg.fine_iterations, start_gate_m, prior)
         return align_dense(
             surface(target), surface(source), T_start, prior_information=prior, coarse_stride_px=coarse_px,
             fine_stride_px=fine_px, max_iterations=dense_cfg.coarse_iterations, fine_iterations=dense_cfg.fine_iterations,
-            max_distance_m=lengths.icp_max_correspondence_m,
+            max_distance_m=start_gate_m,
         )
 
+    def fit_from_prediction() -> DenseAlignment:
+        """The whole fit from ``T0``, stopped after its coarse iterations where they already show
+        weak directions: the fit is then redone from the keypoints' pose with them as its prior
+        (:func:`_hold_weak_directions`), and the fine iterations from the prediction, twice the
+        cost of both coarse ones, would be thrown away (the simulated 30 Hz walk's corridor: every
+        frame). Otherwise the fine iterations go on with the gate the coarse ones left: the
+        whole fit, bit for bit."""
+        if coarse_px == fine_px:
+            return fit(T0)
+        coarse = iterate(T0, coarse_px, dense_cfg.coarse_iterations, lengths.icp_max_correspondence_m)
+        if check_degeneracy(coarse.information, coarse.source_points, config.weak_directions.degeneracy_ratio).degenerate:
+            return coarse
+        fine = iterate(coarse.T_target_source, fine_px, dense_cfg.fine_iterations, coarse.gate_m)
+        return dataclasses.replace(fine, iterations=coarse.iterations + fine.iterations)
+
     try:
-        # The coarse iterations first: where they already show weak directions, the fit is redone
-        # from the keypoints' pose with them as its prior (_hold_weak_directions), and the fine
-        # iterations from the prediction would be thrown away (on the simulated 30 Hz walk most
-        # frames see a corridor's free axis; a fine iteration costs twice both coarse ones)
-        dense = iterate(T0, coarse_px, dense_cfg.coarse_iterations, lengths.icp_max_correspondence_m) if coarse_px != fine_px else fit(T0)
-        if coarse_px != fine_px and not check_degeneracy(dense.information, dense.source_points, config.weak_directions.degeneracy_ratio).degenerate:
-            coarse_iterations = dense.iterations
-            dense = iterate(dense.T_target_source, fine_px, dense_cfg.fine_iterations, dense.gate_m)
-            dense = dataclasses.replace(dense, iterations=coarse_iterations + dense.iterations)
+        dense = fit_from_prediction()
     except FppError as exc:
         return rejected(f"dense fit failed ({exc})")
     if problem := _fit_problem(dense, T0, config):
