@@ -269,7 +269,8 @@ def _followed_keypoints(
     if target.texture is None or source.texture is None:
         return "a frame has no texture to follow keypoints on"
     edge_m = config.lengths.keypoint_edge_step_m
-    Q, uv_target = _lifted_keyframe_keypoints(target, edge_m)
+    lifted = _lifted_keyframe_keypoints(target, edge_m)
+    Q, uv_target = lifted.points_m, lifted.uv
     u, v = surface(source).project(transform_points(invert(T_target_source), Q))
     predicted = np.stack([u, v], axis=1).astype(np.float32)
     H, W = source.texture.shape
@@ -286,23 +287,33 @@ def _followed_keypoints(
     # is the scene's correlates with itself in the other view, noise does not: at zero-mean
     # normalised correlation 0.5 the shared texture's variance equals the noise's
     followed = status.ravel().astype(bool)
-    followed[followed] = patch_correlation(target.texture, uv_target[seen][followed], source.texture, uv_source[followed]) >= MIN_PATCH_CORRELATION
+    keyframe_windows = tuple(w[seen][followed] for w in lifted.windows)
+    followed[followed] = window_correlation(keyframe_windows, patch_windows(source.texture, uv_source[followed])) >= MIN_PATCH_CORRELATION
     P, on_surface = lift_keypoints(source.xyz_map, uv_source[followed], edge_m)
     return P[on_surface], Q[seen][followed][on_surface]
 
 
-def _lifted_keyframe_keypoints(keyframe: Frame, edge_m: float) -> tuple[Array, NDArray[np.float32]]:
-    """The keyframe's keypoints on its surface: their 3D points and pixels, lifted once per
-    keyframe and edge step (every frame tracked against it follows the same ones)."""
+def _lifted_keyframe_keypoints(keyframe: Frame, edge_m: float) -> _LiftedKeypoints:
+    """The keyframe's keypoints on its surface: their 3D points, pixels and texture windows, made
+    once per keyframe and edge step (every frame tracked against it follows the same ones)."""
     cached = _LIFTED.get(keyframe)
-    if cached is None or cached[0] != edge_m:
+    if cached is None or cached.edge_m != edge_m:
         Q, lifted = lift_keypoints(keyframe.xyz_map, keyframe.keypoints_uv, edge_m)
-        cached = (edge_m, Q[lifted], np.asarray(keyframe.keypoints_uv, dtype=np.float32)[lifted])
+        uv = np.asarray(keyframe.keypoints_uv, dtype=np.float32)[lifted]
+        cached = _LiftedKeypoints(edge_m, Q[lifted], uv, patch_windows(keyframe.texture, uv))
         _LIFTED[keyframe] = cached
-    return cached[1], cached[2]
+    return cached
 
 
-_LIFTED: weakref.WeakKeyDictionary[Frame, tuple[float, Array, NDArray[np.float32]]] = weakref.WeakKeyDictionary()
+@dataclasses.dataclass(frozen=True)
+class _LiftedKeypoints:
+    edge_m: float
+    points_m: Array  # (n, 3), keyframe frame
+    uv: NDArray[np.float32]  # (n, 2) pixels
+    windows: tuple[NDArray[np.float32], NDArray[np.float32]]  # patch_windows of the keyframe's texture at uv
+
+
+_LIFTED: weakref.WeakKeyDictionary[Frame, _LiftedKeypoints] = weakref.WeakKeyDictionary()
 """Each described keyframe's lifted keypoints while it lives (frames are immutable)."""
 
 
@@ -321,21 +332,30 @@ FOLLOW_LEVELS = 2
 def patch_correlation(image_a: NDArray, uv_a: NDArray, image_b: NDArray, uv_b: NDArray, window_px: int = FOLLOW_WINDOW_PX) -> NDArray[np.float32]:
     """Zero-mean normalised correlation of the ``window_px`` square windows centred at ``uv_a`` in
     ``image_a`` and ``uv_b`` in ``image_b`` (bilinear, sub-pixel; 0 for a flat window)."""
+    return window_correlation(patch_windows(image_a, uv_a, window_px), patch_windows(image_b, uv_b, window_px))
+
+
+def patch_windows(image: NDArray, uv: NDArray, window_px: int = FOLLOW_WINDOW_PX) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+    """The zero-mean ``window_px`` square windows of ``image`` centred at ``uv`` (bilinear), one
+    row each, and their squared norms: each row depends on its own point alone, so a keyframe's
+    windows are made once and indexed for every frame that follows its keypoints."""
     half = (window_px - 1) / 2.0
     offsets = np.arange(window_px, dtype=np.float32) - np.float32(half)
     du, dv = np.meshgrid(offsets, offsets)
+    uv = np.asarray(uv, dtype=np.float32)
+    map_u = uv[:, 0, None] + du.ravel()[None, :]
+    map_v = uv[:, 1, None] + dv.ravel()[None, :]
+    patch = cv2.remap(image.astype(np.float32), map_u, map_v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    windows = patch - patch.mean(axis=1, keepdims=True)
+    return windows, np.einsum("ij,ij->i", windows, windows)
 
-    def windows(image: NDArray, uv: NDArray) -> NDArray[np.float32]:
-        uv = np.asarray(uv, dtype=np.float32)
-        map_u = uv[:, 0, None] + du.ravel()[None, :]
-        map_v = uv[:, 1, None] + dv.ravel()[None, :]
-        patch = cv2.remap(image.astype(np.float32), map_u, map_v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        return patch - patch.mean(axis=1, keepdims=True)
 
-    a, b = windows(image_a, uv_a), windows(image_b, uv_b)
-    norm = np.sqrt(np.einsum("ij,ij->i", a, a) * np.einsum("ij,ij->i", b, b))
+def window_correlation(a: tuple[NDArray[np.float32], NDArray[np.float32]], b: tuple[NDArray[np.float32], NDArray[np.float32]]) -> NDArray[np.float32]:
+    """Zero-mean normalised correlation of two sets of :func:`patch_windows`, row by row (0 for a flat window)."""
+    (wa, aa), (wb, bb) = a, b
+    norm = np.sqrt(aa * bb)
     with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(norm > 0, np.einsum("ij,ij->i", a, b) / norm, 0.0).astype(np.float32)
+        return np.where(norm > 0, np.einsum("ij,ij->i", wa, wb) / norm, 0.0).astype(np.float32)
 
 
 def rms_motion_m(T_a: NDArray, T_b: NDArray, points: NDArray) -> float:
