@@ -111,7 +111,8 @@ def map_figures(out: Path, source, slam, voxel_m: float) -> dict:
     from fpp_graph.evaluation.metrics import ate_rpe, load_mesh, point_to_mesh_distances
     from fpp_graph.evaluation.plots import plot_map_before_after
     from fpp_graph.slam.frame_store import FrameStore
-    from fpp_graph.slam.pipeline import fuse_points_only, odometry_only_poses
+    from fpp_graph.slam.map_fusion import fuse_points_only
+    from fpp_graph.slam.pipeline import odometry_only_poses
     from fpp_graph.trajectory import read_tum
 
     estimate = read_tum(out / "trajectory.tum")

@@ -577,7 +577,7 @@ def test_fusion_on_worker_processes_gives_the_same_map(views, tmp_path):
 
     from fpp_graph.config import load_config
     from fpp_graph.slam.frame_store import FrameStore
-    from fpp_graph.slam.pipeline import fuse_map
+    from fpp_graph.slam.map_fusion import fuse_map
     from fpp_graph.types import ParallelMapFuser
 
     frames, poses = views
