@@ -313,8 +313,8 @@ class SourceCrop:
         sq = np.asarray(sq, dtype=np.float64)
         neighbourhood_m = float(np.sqrt(np.max(sq[np.isfinite(sq)]))) if np.isfinite(sq).any() else 0.0
         rest = np.flatnonzero(~self.kept)
+        # (the new core is among them: within the reach)
         self.kept[rest[self._near(T, rest, self.reach_m + neighbourhood_m)]] = True
-        self.kept[new_core] = True
         kept = self.size
         if kept == self.source.size or kept < self.source.num_neighbors:
             # all of it, or too few points for their covariances: the whole cloud, as without a crop

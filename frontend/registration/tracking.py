@@ -103,52 +103,17 @@ def track_dense(
 
     if target.xyz_map is None or source.xyz_map is None:
         return rejected("a frame has no xyz_map")
-    lengths, dense_cfg = config.lengths, config.dense
-    coarse_px, fine_px = dense_strides(surface(target), surface(source), dense_cfg.coarse_stride_px, dense_cfg.stride_px, dense_cfg.max_points)
-
-    def iterate(T_start: Array, stride_px: int, iterations: int, gate_m: float, prior: Array | None = None) -> DenseAlignment:
-        """``iterations`` at one stride (max_points is in the strides already)."""
-        return align_dense(
-            surface(target), surface(source), T_start, prior_information=prior, coarse_stride_px=stride_px, fine_stride_px=stride_px,
-            max_iterations=0, fine_iterations=iterations, max_distance_m=gate_m,
-        )
-
-    def fit(T_start: Array, prior: Array | None = None) -> DenseAlignment:
-        """The whole dense fit: its coarse iterations, then its fine ones."""
-        start_gate_m = lengths.icp_max_correspondence_m
-        if coarse_px == fine_px:
-            return iterate(T_start, fine_px, dense_cfg.fine_iterations, start_gate_m, prior)
-        return align_dense(
-            surface(target), surface(source), T_start, prior_information=prior, coarse_stride_px=coarse_px,
-            fine_stride_px=fine_px, max_iterations=dense_cfg.coarse_iterations, fine_iterations=dense_cfg.fine_iterations,
-            max_distance_m=start_gate_m,
-        )
-
-    def fit_from_prediction() -> DenseAlignment:
-        """The whole fit from ``T0``, stopped after its coarse iterations where they already show
-        weak directions: the fit is then redone from the keypoints' pose with them as its prior
-        (:func:`_hold_weak_directions`), and the fine iterations from the prediction, twice the
-        cost of both coarse ones, would be thrown away (the simulated 30 Hz walk's corridor: every
-        frame). Otherwise the fine iterations go on with the gate the coarse ones left: the
-        whole fit, bit for bit."""
-        if coarse_px == fine_px:
-            return fit(T0)
-        coarse = iterate(T0, coarse_px, dense_cfg.coarse_iterations, lengths.icp_max_correspondence_m)
-        if check_degeneracy(coarse.information, coarse.source_points, config.weak_directions.degeneracy_ratio).degenerate:
-            return coarse
-        fine = iterate(coarse.T_target_source, fine_px, dense_cfg.fine_iterations, coarse.gate_m)
-        return dataclasses.replace(fine, iterations=coarse.iterations + fine.iterations)
-
+    fits = _DenseFits.of(surface(target), surface(source), config)
     try:
-        dense = fit_from_prediction()
+        dense = fits.from_prediction(T0)
     except FppError as exc:
         return rejected(f"dense fit failed ({exc})")
     if problem := _fit_problem(dense, T0, config):
         return rejected(problem)
-    information, meta = dense_cfg.information_scale * dense.information, {}
+    information, meta = config.dense.information_scale * dense.information, {}
     degeneracy = check_degeneracy(dense.information, dense.source_points, config.weak_directions.degeneracy_ratio)
     if degeneracy.degenerate:
-        held = _hold_weak_directions(target, source, dense, information, degeneracy, T0, fit, config, describe, surface)
+        held = _hold_weak_directions(target, source, dense, information, degeneracy, T0, fits.whole, config, describe, surface)
         if isinstance(held, str):
             return rejected(held)
         dense, information, meta = held
@@ -161,6 +126,51 @@ def track_dense(
                   "tracking_correction_m": rms_motion_m(T, T0, dense.source_points),
                   "unconstrained_directions": list(degeneracy.unconstrained), **meta},
     )
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class _DenseFits:
+    """The dense fits of one tracked pair, at the strides ``dense.max_points`` leaves them."""
+
+    target: OrganisedSurface
+    source: OrganisedSurface
+    config: RegistrationConfig
+    coarse_px: int
+    fine_px: int
+
+    @classmethod
+    def of(cls, target: OrganisedSurface, source: OrganisedSurface, config: RegistrationConfig) -> _DenseFits:
+        dense = config.dense
+        return cls(target, source, config, *dense_strides(target, source, dense.coarse_stride_px, dense.stride_px, dense.max_points))
+
+    def _iterate(self, T_start: Array, stride_px: int, iterations: int, gate_m: float) -> DenseAlignment:
+        """``iterations`` at one stride from the residual gate ``gate_m``."""
+        return align_dense(self.target, self.source, T_start, coarse_stride_px=stride_px, fine_stride_px=stride_px, max_iterations=0,
+                           fine_iterations=iterations, max_distance_m=gate_m)
+
+    def whole(self, T_start: Array, prior: Array | None = None) -> DenseAlignment:
+        """The whole dense fit from ``T_start``: its coarse iterations, then its fine ones."""
+        dense = self.config.dense
+        return align_dense(
+            self.target, self.source, T_start, prior_information=prior, coarse_stride_px=self.coarse_px, fine_stride_px=self.fine_px,
+            max_iterations=dense.coarse_iterations, fine_iterations=dense.fine_iterations, max_distance_m=self.config.lengths.icp_max_correspondence_m,
+        )
+
+    def from_prediction(self, T0: Array) -> DenseAlignment:
+        """The whole fit from ``T0``, stopped after its coarse iterations where they already show
+        weak directions: the fit is then redone from the keypoints' pose with them as its prior
+        (:func:`_hold_weak_directions`), and the fine iterations from the prediction, twice the
+        cost of both coarse ones, would be thrown away (the simulated 30 Hz walk's corridor: every
+        frame). Otherwise the fine iterations go on with the gate the coarse ones left: the
+        whole fit, bit for bit."""
+        if self.coarse_px == self.fine_px:
+            return self.whole(T0)
+        dense = self.config.dense
+        coarse = self._iterate(T0, self.coarse_px, dense.coarse_iterations, self.config.lengths.icp_max_correspondence_m)
+        if check_degeneracy(coarse.information, coarse.source_points, self.config.weak_directions.degeneracy_ratio).degenerate:
+            return coarse
+        fine = self._iterate(coarse.T_target_source, self.fine_px, dense.fine_iterations, coarse.gate_m)
+        return dataclasses.replace(fine, iterations=coarse.iterations + fine.iterations)
 
 
 def _hold_weak_directions(
