@@ -26,7 +26,8 @@ from fpp_graph.types import FusedMap, MapFuser, ParallelMapFuser
 
 log = logging.getLogger(__name__)
 
-ProgressCallback = Callable[[str, int, int], None]  # (stage, done, total)
+ProgressCallback = Callable[[str, int, int], None]
+"""``progress(stage, done, total)``: a run's progress report (:mod:`fpp_graph.slam.pipeline` and its steps)."""
 
 
 def fuse_map(

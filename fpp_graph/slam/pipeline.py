@@ -25,7 +25,7 @@ import os
 import shutil
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from concurrent.futures import Executor, Future, ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -46,7 +46,7 @@ from fpp_graph.slam.frame_store import (
 )
 from fpp_graph.slam.heap import trim_heap
 from fpp_graph.slam.keyframes import KeyframeManager, SlamResult
-from fpp_graph.slam.map_fusion import fuse_map, points_under_poses
+from fpp_graph.slam.map_fusion import ProgressCallback, fuse_map, points_under_poses
 from fpp_graph.slam.sources import FrameSource, check_frame_source
 from fpp_graph.slam.verification import ExecutorVerifier
 from fpp_graph.slam.workers import (
@@ -62,7 +62,6 @@ from fpp_graph.types import Frame, MapFuser, PairVerifier
 log = logging.getLogger(__name__)
 
 RESULTS_MARKER = ".fpp-slam-results"
-ProgressCallback = Callable[[str, int, int], None]  # (stage, done, total)
 
 
 @dataclass
