@@ -11,8 +11,8 @@ Per sequence:
   over wall seconds times the cores), and the NEES of the run's own constraints
   (``graph.g2o``: every accepted odometry and loop edge against the reference poses,
   ``e^T I e`` with ``e = Log(T_gt^-1 T_edge)``, 6 on average when the information is right);
-* **Open3D** (the user's obvious alternative): on the same decoded frames (our frame cache, so
-  the peer pays no decoding), ``compute_rgbd_odometry`` (hybrid colour + depth term, the
+* **Open3D** (the user's obvious alternative): on the same decoded frames (our reader's, decoded
+  before its clock starts, so the peer pays no decoding), ``compute_rgbd_odometry`` (hybrid colour + depth term, the
   pinhole ``K`` of the frames) between consecutive frames, initialised by constant velocity; a
   keyframe every 5 frames registered to the 3 keyframes before the last as uncertain edges;
   ``global_optimization`` (Levenberg-Marquardt, ``preference_loop_closure`` 0.1 as in Open3D's
@@ -75,9 +75,8 @@ def run_ours(seq: Path, out: Path, config_path: Path | None = None, seed: int | 
 
     wall0, cpu0 = time.perf_counter(), cpu_seconds()
     config = load_config(config_path)
-    # the Open3D peer reads every decoded frame back from our results folder
-    run = {"keep_frames": "all"} | ({} if seed is None else {"seed": seed})
-    config = config.model_copy(update={"run": config.run.model_copy(update=run)})
+    if seed is not None:
+        config = config.model_copy(update={"run": config.run.model_copy(update={"seed": seed})})
     report = run_sequence(seq, config, out, overwrite=True)
     wall, cpu = time.perf_counter() - wall0, cpu_seconds() - cpu0
     # the run's config: its evaluation section (the reference's time offset) reads the reference
@@ -95,21 +94,22 @@ def run_ours(seq: Path, out: Path, config_path: Path | None = None, seed: int | 
     }
 
 
-def open3d_rgbd(ours_dir: Path, seq: Path, out: Path, keyframe_every: int = 5, keyframe_links: int = 3, config_path: Path | None = None) -> dict:
+def open3d_rgbd(seq: Path, out: Path, keyframe_every: int = 5, keyframe_links: int = 3, config_path: Path | None = None) -> dict:
     """Open3D's RGB-D odometry + keyframe pose graph + global optimisation on our decoded frames."""
     import open3d as o3d
 
     from fpp_graph.config import load_config
     from fpp_graph.evaluation.results import evaluate_results
-    from fpp_graph.slam.frame_store import load_frame
     from fpp_graph.slam.sources import open_source
     from fpp_graph.trajectory import Trajectory, write_tum
 
     o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
     reg = o3d.pipelines.registration
     odo = o3d.pipelines.odometry
+    # every frame decoded by our reader (the numbers our run tracked), before the peer's clock starts
+    source = open_source(seq, load_config(config_path))
+    frames = [source.load_frame(fid) for fid in source.frame_ids()]
     wall0, cpu0 = time.perf_counter(), cpu_seconds()
-    frames = [load_frame(p) for p in sorted((ours_dir / "frames").glob("frame_*.npz"))]
     K = np.asarray(frames[0].metadata["K"], dtype=np.float64)
     h, w = frames[0].xyz_map.shape[:2]
     intrinsic = o3d.camera.PinholeCameraIntrinsic(w, h, K[0, 0], K[1, 1], K[0, 2], K[1, 2])
@@ -209,7 +209,7 @@ def main(argv: list[str] | None = None) -> int:
             if i == 0:
                 print(f"== {seq.name}: {runs[0]['frames']} frames, {runs[0]['keyframes']} keyframes")
             print_ours(runs[-1], multiple=len(args.seeds or []) > 1)
-        ours, ours_dir = runs[0], args.out / seq.name / "ours"
+        ours = runs[0]
         row = {"ours": ours}
         if len(runs) > 1:
             row["seeds"] = runs
@@ -217,7 +217,7 @@ def main(argv: list[str] | None = None) -> int:
             print("spread : " + "; ".join(f"{k} {v['min']:.2f} / {v['median']:.2f} / {v['max']:.2f}" for k, v in row["spread"].items())
                   + f" (min / median / max over seeds {', '.join(str(r['seed']) for r in runs)})")
         if not args.no_peer:
-            peer = open3d_rgbd(ours_dir, seq, args.out / seq.name / "open3d", config_path=args.config)
+            peer = open3d_rgbd(seq, args.out / seq.name / "open3d", config_path=args.config)
             row["open3d"] = peer
             print(f"open3d : ATE {peer['ate_rmse_mm']:.1f} mm (max {peer['ate_max_mm']:.1f}); {peer['keyframe_links']} keyframe edges; "
                   f"{peer['fps']:.2f} frames/s ({peer['wall_s']:.1f} s wall, decoded frames given)")

@@ -508,6 +508,53 @@ def test_frames_decoded_ahead_come_back_through_the_cache_or_directly(tmp_path, 
     assert len(list(cache.glob("frame_*.npz"))) == (len(ids) if cache_every_frame else 0)
 
 
+def test_the_first_frame_is_decoded_while_the_workers_start(tmp_path, tum_sequence):
+    """The first frame is decoded in the calling process after the next ones are queued (a new
+    pool's workers import their libraries first); the others go to the executor, and the frames
+    are the same either way. A first frame that cannot be decoded is skipped with its reason, a
+    cached one is read, not decoded."""
+    import shutil
+    from concurrent.futures import ThreadPoolExecutor
+
+    from fpp_graph.slam.frame_store import save_frame
+    from fpp_graph.slam.pipeline import prepare_frames
+    from fpp_graph.slam.sources import open_source
+
+    class Recording(ThreadPoolExecutor):
+        def __init__(self) -> None:
+            super().__init__(2)
+            self.frame_ids: list[int] = []
+
+        def submit(self, fn, /, *args, **kwargs):
+            self.frame_ids.append(args[0])
+            return super().submit(fn, *args, **kwargs)
+
+    source = open_source(tum_sequence, config_from_dict({}))
+    with Recording() as executor:
+        frames = list(prepare_frames(source, tmp_path / "a", executor, {}, worker_source=(source, "first-frame-run"), cache_every_frame=False))
+    assert executor.frame_ids == list(range(1, len(XS)))
+    local = list(prepare_frames(source, tmp_path / "b", None, {}, cache_every_frame=False))
+    assert [f.id for f in frames] == [f.id for f in local] == list(range(len(XS)))
+    for a, b in zip(frames, local, strict=True):
+        assert np.array_equal(a.xyz_map, b.xyz_map, equal_nan=True) and np.array_equal(a.texture, b.texture)
+
+    seq = tmp_path / "seq"
+    shutil.copytree(tum_sequence, seq)
+    sorted((seq / "depth").iterdir())[0].write_bytes(b"\x89PNG\r\n\x1a\n truncated")
+    broken = open_source(seq, config_from_dict({}))
+    skipped: dict[int, str] = {}
+    with Recording() as executor:
+        ids = [f.id for f in prepare_frames(broken, tmp_path / "c", executor, skipped, worker_source=(broken, "broken-first-run"), cache_every_frame=False)]
+    assert ids == list(range(1, len(XS))) and set(skipped) == {0} and "depth" in skipped[0]
+
+    cache = tmp_path / "d"
+    cache.mkdir()
+    save_frame(cache / "frame_000000.npz", source.load_frame(0))  # an interrupted run's
+    with Recording() as executor:
+        ids = [f.id for f in prepare_frames(broken, cache, executor, {}, worker_source=(broken, "resumed-first-run"), cache_every_frame=False)]
+    assert ids == list(range(len(XS))) and executor.frame_ids == list(range(1, len(XS)))
+
+
 def test_sigterm_ends_the_workers_and_resume_completes(tmp_path):
     """SIGTERM mid-run: the decode workers end with the run, the exit is non-zero with one line
     that says how to resume, and --resume then completes the run."""
