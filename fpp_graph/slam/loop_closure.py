@@ -132,7 +132,11 @@ class ProximityAppearanceLoopDetector:
     Proximity: earlier keyframes whose position, under the current estimate, lies within
     ``proximity_radius_m + proximity_sigma * sigma`` of the query, where ``sigma`` is the position
     standard deviation of the query's marginal covariance (so the gate widens as drift grows) and
-    whose optical axes point within 90 degrees (a sensor facing away sees nothing in common).
+    whose optical axes point within 90 degrees (a sensor facing away sees nothing in common),
+    best first by the share of the query's image their view covers under the estimate
+    (:meth:`~fpp_graph.slam.views.ViewModel.overlap`; the distance breaks ties and ranks
+    keyframes without a pinhole view). Nearest first instead spent a camera turning on the
+    spot's slots on keyframes looking elsewhere: all of them lie within the radius.
     Appearance: the best ``appearance_top_k`` bag-of-words matches.
 
     Neither proposes a keyframe of the query's local window: one closer than
@@ -152,14 +156,17 @@ class ProximityAppearanceLoopDetector:
         self._index: dict[int, int] = {}  # frame id -> its (last) position in self._order
         # keyframes the camera has not left yet, with their views (oldest first)
         self._in_view: dict[int, ViewModel] = {}
+        self._views: dict[int, ViewModel] = {}  # every keyframe's (a few numbers each)
 
     def add(self, frame: Frame) -> None:
         self._index[frame.id] = len(self._order)
         self._order.append(frame.id)
         self.appearance.add(frame.id, frame.descriptors)
-        view = ViewModel.of(frame) if self.config.revisit_view_change > 0 else None
+        view = ViewModel.of(frame)
         if view is not None:
-            self._in_view[frame.id] = view
+            self._views[frame.id] = view
+            if self.config.revisit_view_change > 0:
+                self._in_view[frame.id] = view
 
     def local_window(self, frame_id: int, poses_world_sensor: Mapping[int, NDArray[np.float64]]) -> set[int]:
         """Keyframes the camera has not left by ``frame_id``'s pose (updated with it: once left, never back)."""
@@ -181,6 +188,16 @@ class ProximityAppearanceLoopDetector:
                 del self._in_view[fid]
         return set(self._in_view)
 
+    def _overlap_score(self, fid: int, T_world_kf: NDArray[np.float64], T_world_query: NDArray[np.float64], distance_m: float, radius_m: float) -> float:
+        """How much of keyframe ``fid``'s view the query sees under the estimate, in [0, 1]:
+        1 minus its view change (:meth:`ViewModel.change`: pixel flow of its view as a fraction of
+        the image side; a rotation about the same spot loses as much overlap as a step sideways),
+        or 1 minus the distance over the gate's radius for a keyframe without a pinhole view."""
+        view = self._views.get(fid)
+        if view is None:
+            return 1.0 - distance_m / max(radius_m, 1e-12)
+        return view.overlap(invert(T_world_kf) @ T_world_query)
+
     def candidates(
         self,
         frame: Frame,
@@ -198,6 +215,7 @@ class ProximityAppearanceLoopDetector:
         too_close.add(frame.id)
         too_close |= self.local_window(frame.id, poses_world_sensor)
         found: dict[int, LoopCandidate] = {}
+        distance_of: dict[int, float] = {}
         T_world_query = poses_world_sensor.get(frame.id)
         if T_world_query is not None:
             radius = cfg.proximity_radius_m + cfg.proximity_sigma * max(0.0, position_sigma_m)
@@ -211,10 +229,11 @@ class ProximityAppearanceLoopDetector:
                 Tq = np.asarray(T_world_query, dtype=np.float64)
                 distance = np.linalg.norm(T[:, :3, 3] - Tq[:3, 3], axis=1)
                 facing = T[:, :3, 2] @ Tq[:3, 2]
+                distance_of.update(zip(fids, distance.tolist(), strict=True))
                 for i in np.flatnonzero((distance <= radius) & (facing > 0.0)):
-                    score = 1.0 - float(distance[i]) / max(radius, 1e-12)
+                    score = self._overlap_score(fids[i], T[i], Tq, float(distance[i]), radius)
                     found[fids[i]] = LoopCandidate(frame.id, fids[i], score, "proximity")
-        proximity = sorted(found.values(), key=lambda c: -c.score)
+        proximity = sorted(found.values(), key=lambda c: (-c.score, distance_of[c.match_id]))
         appearance: list[LoopCandidate] = []
         for fid, score in self.appearance.query(frame.descriptors, cfg.appearance_top_k, exclude=too_close):
             if score < cfg.appearance_min_score:
@@ -223,7 +242,7 @@ class ProximityAppearanceLoopDetector:
                 found[fid] = LoopCandidate(frame.id, fid, found[fid].score, "proximity+appearance")
             else:
                 appearance.append(LoopCandidate(frame.id, fid, score, "appearance"))
-        # proximity candidates first (nearest first): they are the likely revisits under a
+        # proximity candidates first (most overlap first): they are the likely revisits under a
         # decent estimate; appearance fills the remaining slots (it finds loops after drift)
         proximity = [found[c.match_id] for c in proximity]
         n_prox = max(0, cfg.max_candidates_per_frame - len(appearance))

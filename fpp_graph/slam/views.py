@@ -69,6 +69,42 @@ class ViewModel:
         return float(np.max(np.linalg.norm(projected - pixels, axis=1)) / min(h, w))
 
 
+    def overlap(self, T_keyframe_frame: NDArray[np.float64]) -> float:
+        """Share of the image of a camera with this model at ``T_keyframe_frame`` that this view
+        covers: the view's rectangle at its median depth (the plane the scene is taken to lie
+        on), cut to the half-space in front of that camera, projected into its image and
+        intersected with it. 1 for the same pose, 0 once the view has left the image; it varies
+        continuously with the pose, so round-off in the poses moves it by round-off."""
+        import cv2
+
+        K, h, w = self.K, self.height_px, self.width_px
+        corners_px = np.array([[0.0, 0.0], [w, 0.0], [w, h], [0.0, h]])
+        rays = np.column_stack([(corners_px - K[:2, 2]) / np.diag(K)[:2], np.ones(4)])
+        T_frame_keyframe = invert(T_keyframe_frame)
+        corners = (self.depth_m * rays) @ T_frame_keyframe[:3, :3].T + T_frame_keyframe[:3, 3]
+        # a point 1/100 of the depth ahead projects 100 focal lengths out: far enough beyond the
+        # image that the cut changes no area inside it
+        polygon = _in_front_of(corners, 0.01 * self.depth_m)
+        if len(polygon) < 3:
+            return 0.0
+        projected = polygon[:, :2] / polygon[:, 2:] * np.diag(K)[:2] + K[:2, 2]
+        image = np.array([[0.0, 0.0], [w, 0.0], [w, h], [0.0, h]], dtype=np.float32)
+        area, _ = cv2.intersectConvexConvex(projected.astype(np.float32), image)
+        return float(min(1.0, max(0.0, area / (w * h))))
+
+
+def _in_front_of(polygon: NDArray[np.float64], z_min: float) -> NDArray[np.float64]:
+    """The part of a convex 3D polygon (its vertices in order) with ``z >= z_min``
+    (Sutherland-Hodgman against one plane)."""
+    kept = []
+    for a, b in zip(polygon, np.roll(polygon, -1, axis=0), strict=True):
+        if a[2] >= z_min:
+            kept.append(a)
+        if (a[2] >= z_min) != (b[2] >= z_min):
+            kept.append(a + (z_min - a[2]) / (b[2] - a[2]) * (b - a))
+    return np.array(kept).reshape(-1, 3)
+
+
 def view_change(keyframe: Frame, T_keyframe_frame: NDArray[np.float64], depth_m: float | None = None) -> float | None:
     """How far the image content moved from ``keyframe`` to a frame at ``T_keyframe_frame``, as
     a fraction of the image's smaller side: the largest pixel displacement of nine points of the

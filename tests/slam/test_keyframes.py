@@ -432,6 +432,65 @@ def test_loop_window_proposes_a_keyframe_only_after_the_camera_left_it():
     assert {c.match_id for c in off.candidates(_camera_frame(1), {0: poses[0], 1: poses[1]})} == {0}
 
 
+def _overlap_by_sampling(view, T_keyframe_frame: np.ndarray, step_px: float = 4.0) -> float:
+    """Share of the frame's pixels (a lattice every ``step_px``) whose ray meets the keyframe's
+    view rectangle on its plane at the median depth: the definition, by brute force."""
+    K, h, w = view.K, view.height_px, view.width_px
+    u, v = np.meshgrid(np.arange(step_px / 2, w, step_px), np.arange(step_px / 2, h, step_px))
+    rays = np.column_stack([(u.ravel() - K[0, 2]) / K[0, 0], (v.ravel() - K[1, 2]) / K[1, 1], np.ones(u.size)])
+    R, t = T_keyframe_frame[:3, :3], T_keyframe_frame[:3, 3]
+    directions = rays @ R.T  # keyframe frame
+    scale = (view.depth_m - t[2]) / directions[:, 2]  # to the plane z = depth_m
+    ahead = scale > 0
+    hit = t + scale[:, None] * directions
+    px = hit[:, :2] / view.depth_m * np.diag(K)[:2] + K[:2, 2]
+    inside = ahead & (px[:, 0] >= 0) & (px[:, 0] <= w) & (px[:, 1] >= 0) & (px[:, 1] <= h)
+    return float(inside.mean())
+
+
+@pytest.mark.parametrize("axis", ["x", "y", "z"])
+def test_view_overlap_is_the_share_of_the_image_that_sees_the_keyframes_view(axis):
+    """ViewModel.overlap against pixel sampling of its definition, for turns and shifts; 1 at
+    the same pose, 0 once turned away, and continuous (a 1e-9 rad turn moves it by ~1e-9)."""
+    from fpp_graph.slam.views import ViewModel
+
+    view = ViewModel.of(_camera_frame(0, depth_m=1.5))
+    assert view.overlap(np.eye(4)) == pytest.approx(1.0)
+    for degrees in (5, 20, 35, 50):
+        T = make_pose(Rotation.from_euler(axis, degrees, degrees=True).as_matrix(), [0, 0, 0])
+        assert view.overlap(T) == pytest.approx(_overlap_by_sampling(view, T), abs=0.01), degrees
+    for shift in ([0.4, 0, 0], [0, -0.3, 0.2], [0.1, 0.1, -0.8]):
+        T = make_pose(Rotation.from_euler(axis, 10, degrees=True).as_matrix(), shift)
+        assert view.overlap(T) == pytest.approx(_overlap_by_sampling(view, T), abs=0.01), shift
+    turned = make_pose(Rotation.from_euler("y", 100, degrees=True).as_matrix(), [0, 0, 0])
+    assert view.overlap(turned) == 0.0  # the view's plane is behind the frame's camera
+    T = make_pose(Rotation.from_euler(axis, 20, degrees=True).as_matrix(), [0.05, 0, 0])
+    nudged = make_pose(Rotation.from_euler(axis, 20 + 1e-7, degrees=True).as_matrix(), [0.05, 0, 0])
+    assert abs(view.overlap(nudged) - view.overlap(T)) < 1e-6
+
+
+def test_proximity_candidates_come_best_overlap_first():
+    """A camera turning on the spot (TUM fr1_rpy-like): every keyframe is within the radius, so
+    the nearest positions say nothing; the keyframes looking where the query looks come first,
+    and with fewer slots than candidates the ones looking away are the ones left out."""
+    from fpp_graph.slam.loop_closure import ProximityAppearanceLoopDetector
+
+    yaw_deg = [0, 15, 30, 45, 60, 75, 20, 5]
+    detector = ProximityAppearanceLoopDetector(LoopClosureConfig(
+        proximity_radius_m=0.3, min_frame_separation=1, appearance_top_k=0, revisit_view_change=0, max_candidates_per_frame=3))
+    # the keyframes looking away are the nearest by position (1 mm of jitter against 5 mm)
+    offset_m = {0: 0.005, 1: 0.005, 2: 0.001, 3: 0.001, 4: 0.001, 5: 0.001, 6: 0.0}
+    poses = {i: make_pose(Rotation.from_euler("y", a, degrees=True).as_matrix(), [offset_m.get(i, 0.0), 0, 0]) for i, a in enumerate(yaw_deg)}
+    for i in range(7):
+        detector.add(_camera_frame(i))
+    query = _camera_frame(7)
+    ranked = [c.match_id for c in detector.candidates(query, poses)]
+    # 5, 10 and 15 degrees off; by position (nearest first) it was keyframes 6, 2 and 3
+    assert ranked == [0, 1, 6]
+    scores = [c.score for c in detector.candidates(query, poses)]
+    assert scores == sorted(scores, reverse=True) and 0 < scores[-1] < scores[0] < 1
+
+
 def test_loop_window_ignores_keyframes_of_another_part():
     """After a chain break the older part is not linked by odometry: outside the window."""
     from fpp_graph.config import LoopClosureConfig

@@ -191,7 +191,7 @@ def test_worker_processes_and_dask_give_the_in_process_run(tmp_path):
         # in one dense fit enters the next frame's prediction and grows through the fits' discrete
         # choices (correspondence gates, keypoint inliers) to ~1e-5 m (6e-5 m at most over three
         # in-process runs of 20 chess frames; 1e-9 m with tracking off): far below the Kinect's
-        # millimetres, but the proximity scores (1 - distance / radius) move with the poses. A
+        # millimetres, but the proximity scores (the views' overlap under the estimate) move with the poses. A
         # keypoint whose residual lies within that round-off of RANSAC's inlier bound counts on one
         # side in one run and on the other in another (Dask's processes set their libraries'
         # threads their own way: 28 against 27 inliers for one loop, on one machine and not another)
