@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from wall_sequences import XS, write_tum_rgbd_sequence
 
 from fpp_graph.config import config_from_dict
 from fpp_graph.errors import InputDataError, OutputError
@@ -17,8 +18,6 @@ from fpp_graph.trajectory import Trajectory, read_tum
 
 synthetic_frames = pytest.importorskip("frontend.testing.synthetic_frames")
 
-# the sensor slides 0.5 m along a textured wall and comes back: a revisit at the end
-XS = [-0.25, -0.15, -0.05, 0.05, 0.15, 0.05, -0.05, -0.15, -0.25]
 BROKEN = 4  # this frame's "PNG" is corrupt: the run skips it and says so
 
 
@@ -164,32 +163,6 @@ def test_foreign_folder_never_overwritten(tmp_path):
 
 
 # -- on-disk sequences through the real readers and the CLI ----------------------------------
-def write_tum_rgbd_sequence(folder: Path, xs=XS, width=320, height=200) -> Path:
-    """A TUM RGB-D layout folder (rgb.txt, depth.txt at 5000 per metre, groundtruth, intrinsics)
-    rendered from the synthetic wall."""
-    import cv2
-
-    from fpp_graph.trajectory import write_tum
-
-    scene = synthetic_frames.bumpy_wall_scene(seed=3, size_m=(1.2, 0.8))
-    poses = [synthetic_frames.wall_pose(x, distance_m=0.45) for x in xs]
-    (folder / "rgb").mkdir(parents=True)
-    (folder / "depth").mkdir()
-    rgb_lines, depth_lines = [], []
-    for i, T in enumerate(poses):
-        frame = synthetic_frames.render_frame(scene, T, width=width, height=height, frame_id=i, supersampling=1)
-        depth = np.nan_to_num(frame.xyz_map[..., 2], nan=0.0) * 5000.0
-        t = 1.0 + i / 30.0
-        cv2.imwrite(str(folder / f"rgb/{t:.6f}.png"), frame.texture)
-        cv2.imwrite(str(folder / f"depth/{t:.6f}.png"), np.round(depth).astype(np.uint16))
-        rgb_lines.append(f"{t:.6f} rgb/{t:.6f}.png")
-        depth_lines.append(f"{t:.6f} depth/{t:.6f}.png")
-    K = frame.metadata["K"]
-    (folder / "rgb.txt").write_text("# timestamp filename\n" + "\n".join(rgb_lines) + "\n")
-    (folder / "depth.txt").write_text("# timestamp filename\n" + "\n".join(depth_lines) + "\n")
-    (folder / "intrinsics.txt").write_text(f"{K[0, 0]} {K[1, 1]} {K[0, 2]} {K[1, 2]}\n")
-    write_tum(folder / "groundtruth.txt", Trajectory.from_poses([1.0 + i / 30.0 for i in range(len(poses))], poses))
-    return folder
 
 
 @pytest.fixture(scope="module")
@@ -340,29 +313,6 @@ def test_kill_9_mid_run_then_resume(tmp_path):
     _assert_outputs_whole(out)
 
 
-def test_colour_is_resampled_onto_the_depth_grid():
-    """A colour dot seen by a camera 2.5 cm to the side with another focal length lands on the
-    depth pixel of the same surface point (7-Scenes colour is not registered to depth)."""
-    from frontend.rgbd.source import (
-        KINECT_V1_COLOR_K,
-        KINECT_V1_T_COLOR_DEPTH,
-        depth_to_xyz_map,
-        register_color_to_depth,
-    )
-
-    K_depth = np.array([[585.0, 0, 320], [0, 585.0, 240], [0, 0, 1]])
-    xyz = depth_to_xyz_map(np.full((480, 640), 2.0), K_depth)
-    p_color = xyz[300, 100] + KINECT_V1_T_COLOR_DEPTH[:3, 3]
-    u = KINECT_V1_COLOR_K[0, 0] * p_color[0] / p_color[2] + KINECT_V1_COLOR_K[0, 2]
-    v = KINECT_V1_COLOR_K[1, 1] * p_color[1] / p_color[2] + KINECT_V1_COLOR_K[1, 2]
-    color = np.zeros((480, 640), np.uint8)
-    color[int(round(v)) - 1 : int(round(v)) + 2, int(round(u)) - 1 : int(round(u)) + 2] = 255
-    registered = register_color_to_depth(color, xyz, KINECT_V1_COLOR_K, KINECT_V1_T_COLOR_DEPTH)
-    peak = np.unravel_index(np.argmax(registered), registered.shape)
-    assert abs(peak[0] - 300) <= 1 and abs(peak[1] - 100) <= 1
-    assert abs(u - 100) > 10  # pasting pixel for pixel would have been 15 px off here
-
-
 def test_resume_removes_the_temp_files_of_interrupted_writes_only(tmp_path):
     from fpp_graph.slam.pipeline import RESULTS_MARKER, prepare_results_dir
 
@@ -373,35 +323,6 @@ def test_resume_removes_the_temp_files_of_interrupted_writes_only(tmp_path):
     (out / "notes.tmp").write_text("a user's file, not an atomic-write temp")
     assert prepare_results_dir(out, resume=True) == out
     assert sorted(p.name for p in out.rglob("*")) == sorted([RESULTS_MARKER, "frames", "frame_000001.npz", "notes.tmp"])
-
-
-def test_7scenes_with_jpeg_colour_reads_as_with_png(tmp_path):
-    import shutil
-
-    import cv2
-    from conftest import shared_data_path
-
-    from fpp_graph.config import Config
-    from frontend.rgbd.source import RgbdSource
-
-    original = shared_data_path("rgbd/7scenes_chess_150_199")
-    jpeg = tmp_path / "chess_jpg"
-    jpeg.mkdir()
-    shutil.copy(original / "camera-intrinsics.txt", jpeg)
-    for index in (150, 151, 152):
-        stem = f"frame-{index:06d}"
-        shutil.copy(original / f"{stem}.depth.png", jpeg)
-        shutil.copy(original / f"{stem}.pose.txt", jpeg)
-        colour = cv2.imread(str(original / f"{stem}.color.png"))
-        cv2.imwrite(str(jpeg / f"{stem}.color.jpg"), colour, [cv2.IMWRITE_JPEG_QUALITY, 95])
-    source = RgbdSource(jpeg, Config())
-    assert source.frame_ids() == [150, 151, 152]
-    frame = source.load_frame(151)
-    reference = RgbdSource(original, Config()).load_frame(151)
-    np.testing.assert_array_equal(frame.points, reference.points)
-    # JPEG at quality 95 moves grey levels by a few units, not the geometry
-    assert np.median(np.abs(frame.texture.astype(float) - reference.texture.astype(float))) <= 3
-    np.testing.assert_array_equal(source.ground_truth().poses_world_sensor, RgbdSource(original, Config()).ground_truth().poses_world_sensor[:3])
 
 
 def _children(pid: int) -> set[int]:
@@ -439,120 +360,6 @@ def test_rgbd_run_keeps_only_its_keyframes(tmp_path):
         if keep == "keyframes":
             assert kept[keep] == keyframes and len(keyframes) < len(xs), (kept[keep], keyframes)
     assert kept["all"] == list(range(len(xs)))
-
-
-def test_a_frame_cache_that_cannot_be_written_stops_the_run_instead_of_skipping_frames(tmp_path, tum_sequence, monkeypatch):
-    """A full disk is not a bad frame: the frames stage ends with the OutputError (one line in the
-    CLI) instead of skipping every frame after it as undecodable."""
-    import errno
-    from concurrent.futures import ThreadPoolExecutor
-
-    from fpp_graph.errors import OutputError
-    from fpp_graph.slam import frame_store
-    from fpp_graph.slam.pipeline import prepare_frames
-    from fpp_graph.slam.sources import open_source
-
-    source = open_source(tum_sequence, config_from_dict({}))
-    cache = tmp_path / "frames"
-    cache.mkdir()
-
-    def full_disk(handle, **arrays):
-        raise OSError(errno.ENOSPC, "No space left on device")
-
-    monkeypatch.setattr(frame_store.np, "savez", full_disk)
-    skipped: dict[int, str] = {}
-    with ThreadPoolExecutor(2) as executor, pytest.raises(OutputError, match="No space left on device"):
-        # a token of its own: thread workers share the module's adopted source between tests
-        list(prepare_frames(source, cache, executor, skipped, worker_source=(source, "full-disk-run"), cache_every_frame=True))
-    assert skipped == {} and list(cache.iterdir()) == []
-
-
-@pytest.mark.parametrize("cache_every_frame", [False, True])
-def test_frames_decoded_ahead_come_back_through_the_cache_or_directly(tmp_path, tum_sequence, cache_every_frame):
-    """With only keyframes kept on disk, the workers hand decoded frames back directly: nothing is
-    written to frames/ just to be deleted once tracked. Cached frames (a resumed run) are still
-    read, and a broken frame is still skipped with its reason, either way."""
-    import shutil
-    from concurrent.futures import ThreadPoolExecutor
-
-    from fpp_graph.slam.frame_store import frame_from_stored, save_frame, stored_arrays
-    from fpp_graph.slam.pipeline import prepare_frames
-    from fpp_graph.slam.sources import open_source
-
-    seq = tmp_path / "seq"
-    shutil.copytree(tum_sequence, seq)
-    sorted((seq / "depth").iterdir())[4].write_bytes(b"\x89PNG\r\n\x1a\n truncated")
-    source = open_source(seq, config_from_dict({}))
-    cache = tmp_path / "frames"
-    cache.mkdir()
-    resumed = source.load_frame(1)
-    save_frame(cache / "frame_000001.npz", resumed)  # from an interrupted run
-    skipped: dict[int, str] = {}
-    with ThreadPoolExecutor(2) as executor:
-        frames = list(prepare_frames(source, cache, executor, skipped, worker_source=(source, "test-run"), cache_every_frame=cache_every_frame))
-    ids = [f.id for f in frames]
-    assert ids == [i for i in range(len(XS)) if i != 4] and set(skipped) == {4} and "depth" in skipped[4]
-    for frame in frames[:3]:  # the numbers the cache gives (float32 maps), whichever way the frame came
-        expected = frame_from_stored(stored_arrays(source.load_frame(frame.id)), "expected")
-        assert np.array_equal(frame.xyz_map, expected.xyz_map, equal_nan=True) and np.array_equal(frame.texture, expected.texture)
-        assert np.array_equal(frame.points, expected.points) and np.array_equal(frame.colors, expected.colors)
-    written = sorted(p.name for p in cache.glob("frame_*.npz"))
-    if cache_every_frame:
-        assert written == [f"frame_{i:06d}.npz" for i in ids]
-    else:
-        assert written == ["frame_000001.npz"]
-    # without an executor the frames are decoded here, with the same choice
-    shutil.rmtree(cache)
-    local = list(prepare_frames(source, cache, None, {}, cache_every_frame=cache_every_frame))
-    assert [f.id for f in local] == ids
-    assert len(list(cache.glob("frame_*.npz"))) == (len(ids) if cache_every_frame else 0)
-
-
-def test_the_first_frame_is_decoded_while_the_workers_start(tmp_path, tum_sequence):
-    """The first frame is decoded in the calling process after the next ones are queued (a new
-    pool's workers import their libraries first); the others go to the executor, and the frames
-    are the same either way. A first frame that cannot be decoded is skipped with its reason, a
-    cached one is read, not decoded."""
-    import shutil
-    from concurrent.futures import ThreadPoolExecutor
-
-    from fpp_graph.slam.frame_store import save_frame
-    from fpp_graph.slam.pipeline import prepare_frames
-    from fpp_graph.slam.sources import open_source
-
-    class Recording(ThreadPoolExecutor):
-        def __init__(self) -> None:
-            super().__init__(2)
-            self.frame_ids: list[int] = []
-
-        def submit(self, fn, /, *args, **kwargs):
-            self.frame_ids.append(args[0])
-            return super().submit(fn, *args, **kwargs)
-
-    source = open_source(tum_sequence, config_from_dict({}))
-    with Recording() as executor:
-        frames = list(prepare_frames(source, tmp_path / "a", executor, {}, worker_source=(source, "first-frame-run"), cache_every_frame=False))
-    assert executor.frame_ids == list(range(1, len(XS)))
-    local = list(prepare_frames(source, tmp_path / "b", None, {}, cache_every_frame=False))
-    assert [f.id for f in frames] == [f.id for f in local] == list(range(len(XS)))
-    for a, b in zip(frames, local, strict=True):
-        assert np.array_equal(a.xyz_map, b.xyz_map, equal_nan=True) and np.array_equal(a.texture, b.texture)
-
-    seq = tmp_path / "seq"
-    shutil.copytree(tum_sequence, seq)
-    sorted((seq / "depth").iterdir())[0].write_bytes(b"\x89PNG\r\n\x1a\n truncated")
-    broken = open_source(seq, config_from_dict({}))
-    skipped: dict[int, str] = {}
-    with Recording() as executor:
-        ids = [f.id for f in prepare_frames(broken, tmp_path / "c", executor, skipped, worker_source=(broken, "broken-first-run"), cache_every_frame=False)]
-    assert ids == list(range(1, len(XS))) and set(skipped) == {0} and "depth" in skipped[0]
-
-    cache = tmp_path / "d"
-    cache.mkdir()
-    save_frame(cache / "frame_000000.npz", source.load_frame(0))  # an interrupted run's
-    with Recording() as executor:
-        ids = [f.id for f in prepare_frames(broken, cache, executor, {}, worker_source=(broken, "resumed-first-run"), cache_every_frame=False)]
-    assert ids == list(range(len(XS))) and executor.frame_ids == list(range(1, len(XS)))
 
 
 def test_sigterm_ends_the_workers_and_resume_completes(tmp_path):
@@ -613,41 +420,6 @@ def test_sigterm_ends_the_workers_and_resume_completes(tmp_path):
     _assert_outputs_whole(out)
 
 
-def test_distorted_pixel_rays_project_back_onto_their_pixels():
-    import cv2
-
-    from frontend.rgbd.source import TUM_CAMERAS, pixel_rays
-
-    (fx, fy, cx, cy), distortion = TUM_CAMERAS["freiburg1"]
-    K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]])
-    rays = pixel_rays(K, (48, 64), np.array(distortion))
-    points = np.concatenate([rays.reshape(-1, 2), np.ones((48 * 64, 1))], axis=1)
-    uv, _ = cv2.projectPoints(points, np.zeros(3), np.zeros(3), K, np.array(distortion))
-    grid = np.stack(np.meshgrid(np.arange(64.0), np.arange(48.0)), axis=-1).reshape(-1, 2)
-    np.testing.assert_allclose(uv.reshape(-1, 2), grid, atol=1e-6)
-    # the lens matters: ~8 px at the corner of a 640x480 image, not a rounding
-    pinhole = pixel_rays(K, (480, 640))
-    corner = pixel_rays(K, (480, 640), np.array(distortion))[0, 0]
-    assert np.linalg.norm((corner - pinhole[0, 0]) * fx) > 3
-
-
-def test_ground_truth_is_interpolated_at_the_frame_time():
-    from scipy.spatial.transform import Rotation
-
-    from frontend.rgbd.source import interpolate_pose
-
-    T0, T1 = np.eye(4), np.eye(4)
-    T1[:3, :3] = Rotation.from_euler("z", 2, degrees=True).as_matrix()
-    T1[:3, 3] = [0.01, 0.0, 0.0]
-    gt = Trajectory.from_poses([10.0, 10.01, 10.5], [T0, T1, T1])
-    T = interpolate_pose(gt, 10.0025, max_gap_s=0.05)
-    np.testing.assert_allclose(T[:3, 3], [0.0025, 0, 0], atol=1e-12)
-    assert Rotation.from_matrix(T[:3, :3]).as_euler("xyz", degrees=True)[2] == pytest.approx(0.5, abs=1e-9)
-    np.testing.assert_array_equal(interpolate_pose(gt, 10.01, max_gap_s=0.05), T1)
-    assert interpolate_pose(gt, 10.2, max_gap_s=0.05) is None  # inside a 0.49 s gap of the stream
-    assert interpolate_pose(gt, 9.0, max_gap_s=0.05) is None
-
-
 def test_tum_camera_comes_from_intrinsics_file_or_the_named_camera(tmp_path, tum_sequence):
     import shutil
 
@@ -665,15 +437,6 @@ def test_tum_camera_comes_from_intrinsics_file_or_the_named_camera(tmp_path, tum
         RgbdSource(seq, Config())
 
 
-def test_tum_subset_uses_the_freiburg1_calibration_and_every_frame_has_ground_truth():
-    from conftest import shared_data_path
-
-    from fpp_graph.config import Config
-    from frontend.rgbd.source import TUM_CAMERAS, RgbdSource
-
-    source = RgbdSource(shared_data_path("rgbd/tum_fr1_rpy_subset"), Config())
-    assert source.K[0, 0] == TUM_CAMERAS["freiburg1"][0][0] and source.distortion is not None
-    assert len(source.frame_ids()) == 100 and len(source.ground_truth()) == 100
 def test_config_dump_for_a_sequence_shows_its_sensors_noise(tum_sequence, capsys):
     import yaml
 
