@@ -189,10 +189,10 @@ class ProximityAppearanceLoopDetector:
         return set(self._in_view)
 
     def _overlap_score(self, fid: int, T_world_kf: NDArray[np.float64], T_world_query: NDArray[np.float64], distance_m: float, radius_m: float) -> float:
-        """How much of keyframe ``fid``'s view the query sees under the estimate, in [0, 1]:
-        1 minus its view change (:meth:`ViewModel.change`: pixel flow of its view as a fraction of
-        the image side; a rotation about the same spot loses as much overlap as a step sideways),
-        or 1 minus the distance over the gate's radius for a keyframe without a pinhole view."""
+        """How much of keyframe ``fid``'s view the query sees under the estimate, in [0, 1]: the
+        share of the query's image the view covers (:meth:`ViewModel.overlap`; a turn on the spot
+        loses overlap as a step sideways does), or 1 minus the distance over the gate's radius
+        for a keyframe without a pinhole view."""
         view = self._views.get(fid)
         if view is None:
             return 1.0 - distance_m / max(radius_m, 1e-12)

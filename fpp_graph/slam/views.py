@@ -2,7 +2,8 @@
 
 :func:`view_change` is the pixel flow of a keyframe's view seen from another pose, as a fraction
 of the image's smaller side, so one threshold means the same loss of overlap for a 60-degree
-RGB-D camera and a narrow FPP camera. :class:`ViewModel` keeps what it needs of a keyframe
+RGB-D camera and a narrow FPP camera; :meth:`ViewModel.overlap` is the share of the other pose's
+image the view still covers (the loop detector's ranking). :class:`ViewModel` keeps what it needs of a keyframe
 (intrinsics, image size, median depth), a few numbers instead of the frame.
 """
 
@@ -67,7 +68,6 @@ class ViewModel:
             return 1.0  # part of the view is now behind the sensor
         projected = seen[:, :2] / seen[:, 2:] * np.diag(K)[:2] + K[:2, 2]
         return float(np.max(np.linalg.norm(projected - pixels, axis=1)) / min(h, w))
-
 
     def overlap(self, T_keyframe_frame: NDArray[np.float64]) -> float:
         """Share of the image of a camera with this model at ``T_keyframe_frame`` that this view
