@@ -253,8 +253,9 @@ class FrameTracker(Protocol):
     relative to the last keyframe (constant velocity) and calls ``track(keyframe, frame,
     T_predicted)`` first. An accepted result is the frame's pose, and the odometry edge if the
     frame becomes a keyframe, so its information must be as honest as ``register``'s. A rejected
-    result (with its reason) makes the manager fall back to ``register`` for the frame, with the
-    prediction as ``T_guess``.
+    result (with its reason) makes the manager make the last frame tracked against that keyframe
+    (when there is one) a keyframe and track the frame against it, and then fall back to
+    ``register`` for the frame, with the prediction as ``T_guess``.
     """
 
     def track(self, target: Frame, source: Frame, T_predicted: NDArray[np.float64]) -> Constraint:

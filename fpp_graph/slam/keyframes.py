@@ -8,8 +8,10 @@
    registrar that is also a :class:`~fpp_graph.types.FrameTracker`, the registrar's ``track``
    comes first, from a constant-velocity prediction (:mod:`fpp_graph.slam.motion`): a frame it
    accepts costs a dense fit or two instead of a full registration (a new keyframe's odometry
-   edge is then the tracked constraint); every frame ``track`` hands on is registered in full,
-   its reason counted;
+   edge is then the tracked constraint); a frame ``track`` hands on is tracked once more against
+   the frame before it, which becomes a keyframe when it was tracked against the same keyframe
+   (it saw more of the new frame's view), and is registered in full when that fails too, its
+   reason counted;
 2. decides whether the frame is a keyframe (motion and overlap thresholds);
 3. for a keyframe (once the camera has gone ``loop_closure.query_view_change`` of the way to
    leaving the last keyframe that asked), asks the ``LoopDetector`` for revisit candidates (pose proximity with a gate
@@ -44,7 +46,7 @@ import math
 from collections import deque
 from collections.abc import Callable
 from concurrent.futures import Future
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 
 import networkx as nx
 import numpy as np
@@ -62,6 +64,7 @@ from fpp_graph.slam.drift import (
 from fpp_graph.slam.frame_store import FrameStore
 from fpp_graph.slam.loop_closure import ProximityAppearanceLoopDetector
 from fpp_graph.slam.motion import MotionTracking, readout_motion, with_readout_motion
+from fpp_graph.slam.slam_result import ChainBreak, LoopRecord, SlamResult
 from fpp_graph.slam.verification import InlineVerifier
 from fpp_graph.slam.views import ViewModel, median_depth_m, view_change
 from fpp_graph.types import (
@@ -76,50 +79,6 @@ from fpp_graph.types import (
 )
 
 log = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class LoopRecord:
-    """What happened to one loop candidate."""
-
-    query_id: int
-    match_id: int
-    stage: str  # proximity | appearance | proximity+appearance
-    score: float
-    verified: bool
-    reason: str | None
-    fitness: float
-    inlier_rmse_m: float
-    inlier_count: int
-    rejected_by_backend: bool = False
-    held_out: bool = False  # verified, but failed the innovation test: kept out of the running estimate
-
-
-@dataclass(frozen=True)
-class ChainBreak:
-    """Registration failed between ``frame_id`` and every keyframe tried."""
-
-    frame_id: int
-    last_keyframe_id: int
-    reason: str
-
-
-@dataclass
-class SlamResult:
-    """Outcome of a run of the keyframe manager."""
-
-    poses_world_sensor: dict[int, NDArray[np.float64]]
-    keyframe_ids: list[int]
-    odometry: list[Constraint]
-    loops: list[Constraint]
-    loop_records: list[LoopRecord]
-    chain_breaks: list[ChainBreak]
-    components: list[list[int]]
-    rejected_loops: list[tuple[int, int]]
-    optimization: dict = field(default_factory=dict)
-    held_out_loops: list[tuple[int, int]] = field(default_factory=list)  # (query, match), see LoopRecord.held_out
-    # keyframes.track_from_motion: {"tracked_frames": n, "fallbacks": {reason: count}}
-    tracking: dict = field(default_factory=dict)
 
 
 class KeyframeManager:
@@ -174,6 +133,8 @@ class KeyframeManager:
         self._last_query: tuple[int, ViewModel | None] | None = None
         # tracking from motion (keyframes.track_from_motion): the prediction, track() and its counts
         self._tracking = MotionTracking(registrar, bool(self.config.keyframes.track_from_motion))
+        # the last frame tracked against the current keyframe, with its odometry (kept until the next keyframe)
+        self._last_tracked: tuple[Frame, Constraint] | None = None
 
     # -- per frame -------------------------------------------------------------------------
     def process(self, frame: Frame) -> bool:
@@ -188,6 +149,9 @@ class KeyframeManager:
             return True
         T_predicted = self._tracking.predict(self.keyframe_ids[-1], frame.timestamp)
         odometry = self._tracking.track(self.store.get(self.keyframe_ids[-1]), frame, T_predicted)
+        if odometry is None and self._promote_last_tracked():
+            T_predicted = self._tracking.predict(self.keyframe_ids[-1], frame.timestamp)
+            odometry = self._tracking.track(self.store.get(self.keyframe_ids[-1]), frame, T_predicted)
         if odometry is None:
             odometry = self._register_to_recent(frame, T_predicted)
         if odometry is None:
@@ -206,19 +170,38 @@ class KeyframeManager:
         is_keyframe = self._is_keyframe(odometry)
         self._tracking.predictor.observe(frame.id, frame.timestamp, kf_id, odometry.T_target_source)
         if is_keyframe:
-            # the keyframe's motion while its rows were read out widens every constraint it takes part in
-            self._readout_motion[frame.id] = readout_motion(frame, self._tracking.predictor.twist_per_s())
-            odometry = with_readout_motion(odometry, self._readout_motion[frame.id], self._readout_motion.get(kf_id))
-            T_world = compose(self.T_world_keyframe[kf_id], odometry.T_target_source)
-            step_cov = constraint_covariance(odometry)
-            step_var = step_position_variance_m2(step_cov, odometry.T_target_source)
-            frame = self._add_keyframe(frame, T_world, odometry, self._drift_var_m2[kf_id] + step_var,
-                               transport_covariance(self._drift_cov[kf_id], odometry.T_target_source, step_cov))
-            self._close_loops(frame)
-            self._keyframe_done(frame.id)
+            self._make_keyframe(frame, odometry)
             return True
         self.T_keyframe_frame[frame.id] = (kf_id, odometry.T_target_source.copy())
+        self._last_tracked = (frame, odometry) if odometry.metadata.get("tracked") else None
         return False
+
+    def _make_keyframe(self, frame: Frame, odometry: Constraint) -> None:
+        """``frame`` a keyframe, linked to its keyframe by ``odometry``; its loop candidates proposed."""
+        kf_id = odometry.target_id
+        self._last_tracked = None
+        # the keyframe's motion while its rows were read out widens every constraint it takes part in
+        self._readout_motion[frame.id] = readout_motion(frame, self._tracking.predictor.twist_per_s())
+        odometry = with_readout_motion(odometry, self._readout_motion[frame.id], self._readout_motion.get(kf_id))
+        T_world = compose(self.T_world_keyframe[kf_id], odometry.T_target_source)
+        step_cov = constraint_covariance(odometry)
+        step_var = step_position_variance_m2(step_cov, odometry.T_target_source)
+        frame = self._add_keyframe(frame, T_world, odometry, self._drift_var_m2[kf_id] + step_var,
+                                   transport_covariance(self._drift_cov[kf_id], odometry.T_target_source, step_cov))
+        self._close_loops(frame)
+        self._keyframe_done(frame.id)
+
+    def _promote_last_tracked(self) -> bool:
+        """Make the last frame tracked against the current keyframe a keyframe (when there is
+        one): a frame the keyframe no longer tracks can still be close to the frame before it,
+        which saw more of it. Whether it did."""
+        last = self._last_tracked
+        if last is None or last[1].target_id != self.keyframe_ids[-1]:
+            return False
+        frame, odometry = last
+        del self.T_keyframe_frame[frame.id]
+        self._make_keyframe(frame, odometry)
+        return True
 
     def _register_to_recent(self, frame: Frame, T_predicted: NDArray[np.float64] | None = None) -> Constraint | None:
         reasons = []

@@ -20,7 +20,7 @@ import numpy as np
 
 from fpp_graph.config import Config
 from fpp_graph.slam.frame_store import FrameStore
-from fpp_graph.slam.keyframes import SlamResult
+from fpp_graph.slam.slam_result import SlamResult
 from fpp_graph.slam.workers import plot_sample, prepare_for_fusion_task
 from fpp_graph.types import FusedMap, MapFuser, ParallelMapFuser
 

@@ -45,8 +45,9 @@ from fpp_graph.slam.frame_store import (
     load_frame,
 )
 from fpp_graph.slam.heap import trim_heap
-from fpp_graph.slam.keyframes import KeyframeManager, SlamResult
+from fpp_graph.slam.keyframes import KeyframeManager
 from fpp_graph.slam.map_fusion import ProgressCallback, fuse_map, points_under_poses
+from fpp_graph.slam.slam_result import SlamResult
 from fpp_graph.slam.sources import FrameSource, check_frame_source
 from fpp_graph.slam.verification import ExecutorVerifier
 from fpp_graph.slam.workers import (

@@ -55,6 +55,48 @@ class MockRegistrar:
         return Constraint(source.id, target.id, T_true @ se3_exp(noise), info, fitness=0.9, inlier_rmse_m=5e-5, inlier_count=200, overlap=0.6)
 
 
+class TrackingMockRegistrar(MockRegistrar):
+    """:class:`MockRegistrar` that also tracks (a FrameTracker): the true pose while the frame has
+    turned at most ``track_max_deg`` from the keyframe, rejected beyond."""
+
+    def __init__(self, poses, rng, track_max_deg: float):
+        super().__init__(poses, rng)
+        self.track_max = math.radians(track_max_deg)
+        self.tracked: list[tuple[int, int]] = []
+
+    def track(self, target: Frame, source: Frame, T_predicted) -> Constraint:
+        T_true = invert(self.poses[target.id]) @ self.poses[source.id]
+        if np.linalg.norm(Rotation.from_matrix(T_true[:3, :3]).as_rotvec()) > self.track_max:
+            return Constraint.rejected(source.id, target.id, "tracking: far from the prediction", kind=ConstraintKind.ODOMETRY, metadata={"tracked": True})
+        self.tracked.append((target.id, source.id))
+        info = np.diag(1.0 / np.array([ROT_SIGMA] * 3 + [TRANS_SIGMA] * 3) ** 2)
+        return Constraint(source.id, target.id, T_true, info, kind=ConstraintKind.ODOMETRY, metadata={"tracked": True})
+
+
+@pytest.mark.parametrize("track_max_deg", [10.0, 3.0])
+def test_a_frame_the_keyframe_no_longer_tracks_is_tracked_against_the_frame_before(rng, track_max_deg):
+    """A camera turning 4 degrees a frame, keyframes only every 30 degrees: once the keyframe no
+    longer tracks a frame (here beyond 10 degrees), the frame before it, which it still tracked,
+    becomes a keyframe and the frame is tracked against it; no full registration is needed. With
+    nothing tracked since the keyframe (3 degrees: every frame fails), the frame is registered in
+    full as before."""
+    poses = [make_pose(Rotation.from_euler("y", 4 * i, degrees=True).as_matrix(), [0, 0, 0]) for i in range(12)]
+    registrar = TrackingMockRegistrar(poses, rng, track_max_deg)
+    cfg = config_from_dict({"keyframes": {"track_from_motion": True, "min_view_change": 0.0, "min_rotation_deg": 30.0},
+                            "loop_closure": {"enabled": False}})
+    manager = KeyframeManager(registrar, cfg)
+    for i in range(12):
+        manager.process(Frame(id=i, timestamp=i / 30.0, points=np.zeros((1, 3)), keypoints_uv=np.zeros((0, 2)), descriptors=np.zeros((0, 32), np.float32)))
+    result = manager.finish()
+    if track_max_deg == 10.0:
+        assert result.keyframe_ids == [0, 2, 4, 6, 8, 10] and registrar.calls == 0
+        assert (2, 3) in registrar.tracked and (0, 3) not in registrar.tracked
+    else:
+        assert registrar.calls == 11 and registrar.tracked == []
+    for i in range(12):
+        assert pose_error(result.poses_world_sensor[i], poses[i])[0] < 1e-3
+
+
 def make_frames(n: int, rng, place_of=lambda i: i % VIEWS) -> list[Frame]:
     place_descriptors = {p: rng.normal(size=(300, 32)).astype(np.float32) for p in range(VIEWS)}
     frames = []
