@@ -135,6 +135,7 @@ class KeyframeManager:
         self._tracking = MotionTracking(registrar, bool(self.config.keyframes.track_from_motion))
         # the last frame tracked against the current keyframe, with its odometry (kept until the next keyframe)
         self._last_tracked: tuple[Frame, Constraint] | None = None
+        self._promoted_keyframes = 0  # such frames made keyframes (_promote)
 
     # -- per frame -------------------------------------------------------------------------
     def process(self, frame: Frame) -> bool:
@@ -148,8 +149,10 @@ class KeyframeManager:
             self._tracking.predictor.observe(frame.id, frame.timestamp, None, np.eye(4))
             return True
         T_predicted = self._tracking.predict(self.keyframe_ids[-1], frame.timestamp)
-        odometry = self._tracking.track(self.store.get(self.keyframe_ids[-1]), frame, T_predicted)
-        if odometry is None and self._promote_last_tracked():
+        promotable = self._promotable()
+        odometry = self._tracking.track(self.store.get(self.keyframe_ids[-1]), frame, T_predicted, last_try=promotable is None)
+        if odometry is None and promotable is not None:
+            self._promote(*promotable)
             T_predicted = self._tracking.predict(self.keyframe_ids[-1], frame.timestamp)
             odometry = self._tracking.track(self.store.get(self.keyframe_ids[-1]), frame, T_predicted)
         if odometry is None:
@@ -191,17 +194,17 @@ class KeyframeManager:
         self._close_loops(frame)
         self._keyframe_done(frame.id)
 
-    def _promote_last_tracked(self) -> bool:
-        """Make the last frame tracked against the current keyframe a keyframe (when there is
-        one): a frame the keyframe no longer tracks can still be close to the frame before it,
-        which saw more of it. Whether it did."""
+    def _promotable(self) -> tuple[Frame, Constraint] | None:
+        """The last frame tracked against the current keyframe, with its odometry, if any: a frame
+        the keyframe no longer tracks can still be close to the frame before it, which saw more of it."""
         last = self._last_tracked
-        if last is None or last[1].target_id != self.keyframe_ids[-1]:
-            return False
-        frame, odometry = last
+        return last if last is not None and last[1].target_id == self.keyframe_ids[-1] else None
+
+    def _promote(self, frame: Frame, odometry: Constraint) -> None:
+        """Make a :meth:`_promotable` frame a keyframe, ``odometry`` (its tracked constraint) its edge."""
         del self.T_keyframe_frame[frame.id]
         self._make_keyframe(frame, odometry)
-        return True
+        self._promoted_keyframes += 1
 
     def _register_to_recent(self, frame: Frame, T_predicted: NDArray[np.float64] | None = None) -> Constraint | None:
         reasons = []
@@ -574,5 +577,5 @@ class KeyframeManager:
             rejected_loops=rejected,
             optimization=stats,
             held_out_loops=list(self.held_out_loops),
-            tracking=self._tracking.summary(),
+            tracking=self._tracking.summary() | ({"promoted_keyframes": self._promoted_keyframes} if self._tracking.tracker is not None else {}),
         )

@@ -177,15 +177,20 @@ class MotionTracking:
         """``T_keyframe_frame`` of the next frame; None when tracking is off or the motion unknown."""
         return self.predictor.predict(keyframe_id, timestamp) if self.tracker is not None else None
 
-    def track(self, keyframe: Frame, frame: Frame, T_predicted: Array | None) -> Constraint | None:
+    def track(self, keyframe: Frame, frame: Frame, T_predicted: Array | None, last_try: bool = True) -> Constraint | None:
         """The frame's pose in ``keyframe`` by ``track()``; None (the reason counted) when tracking
-        is off, there is no prediction, or ``track()`` hands the frame on."""
+        is off, there is no prediction, or ``track()`` hands the frame on. ``last_try`` False: the
+        caller tracks the frame once more if this fails, which counts it then (each frame is
+        counted once, tracked or handed on)."""
         if self.tracker is None or T_predicted is None:
             return None
         constraint = self.tracker.track(keyframe, frame, T_predicted)
         if constraint.accepted:
             self.tracked_frames += 1
             return constraint
+        if not last_try:
+            log.debug("frame %d: %s against keyframe %d; tracked again", frame.id, constraint.rejection_reason, keyframe.id)
+            return None
         # the reason without its figures, so the counts group ("tracking: low overlap (0.05 < 0.1)")
         reason = (constraint.rejection_reason or "rejected").split(" (")[0]
         self.fallbacks[reason] = self.fallbacks.get(reason, 0) + 1

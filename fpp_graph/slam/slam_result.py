@@ -51,5 +51,5 @@ class SlamResult:
     rejected_loops: list[tuple[int, int]]
     optimization: dict = field(default_factory=dict)
     held_out_loops: list[tuple[int, int]] = field(default_factory=list)  # (query, match), see LoopRecord.held_out
-    # keyframes.track_from_motion: {"tracked_frames": n, "fallbacks": {reason: count}}
+    # keyframes.track_from_motion: {"tracked_frames": n, "fallbacks": {reason: count}, "promoted_keyframes": n}
     tracking: dict = field(default_factory=dict)

@@ -89,11 +89,15 @@ def test_a_frame_the_keyframe_no_longer_tracks_is_tracked_against_the_frame_befo
     for i in range(12):
         manager.process(Frame(id=i, timestamp=i / 30.0, points=np.zeros((1, 3)), keypoints_uv=np.zeros((0, 2)), descriptors=np.zeros((0, 32), np.float32)))
     result = manager.finish()
+    # each frame after the first counted once: tracked, or handed to the full registration
+    assert result.tracking["tracked_frames"] + sum(result.tracking["fallbacks"].values()) == 11, result.tracking
     if track_max_deg == 10.0:
         assert result.keyframe_ids == [0, 2, 4, 6, 8, 10] and registrar.calls == 0
         assert (2, 3) in registrar.tracked and (0, 3) not in registrar.tracked
+        assert result.tracking["promoted_keyframes"] == 5 and result.tracking["fallbacks"] == {}
     else:
         assert registrar.calls == 11 and registrar.tracked == []
+        assert result.tracking["promoted_keyframes"] == 0 and result.tracking["fallbacks"] == {"tracking: far from the prediction": 11}
     for i in range(12):
         assert pose_error(result.poses_world_sensor[i], poses[i])[0] < 1e-3
 
