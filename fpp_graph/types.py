@@ -364,6 +364,31 @@ class FusedMap:
         return int(self.points_world_m.shape[0])
 
 
+@dataclass(frozen=True, eq=False)
+class FusedMesh:
+    """A map's surface mesh made apart from its points (:class:`MeshSplittingMapFuser`).
+
+    Attributes
+    ----------
+    vertices : (V, 3) float64
+        Metres, world frame.
+    triangles : (F, 3) int64
+        Vertex indices of each triangle.
+    vertex_colors : (V, 3) float64
+        RGB in [0, 1].
+    frames_meshed : int
+        Frames whose depth went into the mesh.
+    frames_left_out : tuple of (frame id, reason)
+        Frames that could not be meshed (e.g. no ``xyz_map``), with why.
+    """
+
+    vertices: NDArray[np.float64]
+    triangles: NDArray[np.int64]
+    vertex_colors: NDArray[np.float64]
+    frames_meshed: int
+    frames_left_out: tuple[tuple[int, str], ...] = ()
+
+
 @runtime_checkable
 class MapFuser(Protocol):
     """Fuses frames under (optimised) poses into a global map, one frame at a time.
@@ -404,4 +429,21 @@ class ParallelMapFuser(MapFuser, Protocol):
     def result(self, map_chunks: Callable[[Callable[[Any], Any], Iterable[Any]], Iterable[Any]] = map) -> FusedMap:
         """The map fused so far; ``map_chunks`` (builtin ``map`` or the pool's, with the same
         meaning) may run a final pass over the map in chunks elsewhere, or be ignored."""
+        ...
+
+
+@runtime_checkable
+class MeshSplittingMapFuser(ParallelMapFuser, Protocol):
+    """A :class:`ParallelMapFuser` whose surface mesh can be made apart from its points.
+
+    A mesh (a TSDF, say) is one state updated frame after frame, which the per-frame
+    ``preparer`` cannot share out; made in a process of its own while the points are prepared
+    and folded elsewhere, it is off the path of the rest. ``split_mesh()`` returns a picklable
+    callable that meshes ``(frame, T_world_sensor)`` pairs given in keyframe order and returns a
+    :class:`FusedMesh`; from then on the fuser itself makes no mesh (``result()`` has none).
+    It returns None when there is no mesh to split off (the fuser makes none, or has begun).
+    """
+
+    def split_mesh(self) -> Callable[[Iterable[tuple[Frame, NDArray[np.float64]]]], FusedMesh] | None:
+        """Hand the mesh over: the job that makes it, or None."""
         ...

@@ -39,26 +39,22 @@ from fpp_graph.errors import InputDataError
 # the PLY writers, re-exported: they lived here
 from fpp_graph.fusion.ply import write_mesh_ply as write_mesh_ply
 from fpp_graph.fusion.ply import write_point_cloud_ply as write_point_cloud_ply
-from fpp_graph.fusion.tsdf_mesh import TSDF_INITIAL_VOXELS, canonical_mesh, tsdf_block_voxels
+from fpp_graph.fusion.tsdf_mesh import TSDF_INITIAL_VOXELS, TsdfMesher, tsdf_block_voxels
 from fpp_graph.fusion.voxel_grid import _reduce, project_to_local_planes, voxel_keys
 from fpp_graph.geometry import (
     finite_box,
     finite_points,
     in_row_bands,
-    invert,
     masked_pixels,
     transform_points,
 )
 from fpp_graph.types import (  # FusedMap: the MapFuser protocol's result type, re-exported here
     Frame,
     FusedMap,
+    FusedMesh,
 )
 
 log = logging.getLogger(__name__)
-
-
-# the TSDF grid's voxel attributes (name, channels), float32 each; growing the grid copies each
-_TSDF_ATTRIBUTES = (("tsdf", 1), ("weight", 1), ("color", 3))
 
 
 class VoxelMapFuser:
@@ -137,9 +133,8 @@ class VoxelMapFuser:
         self._sums = np.zeros((7, 0))
         self._pending: list[tuple[NDArray[np.int64], NDArray[np.float64]]] = []
         self._pending_rows = 0
-        self._volume = None
+        self._tsdf: TsdfMesher | None = None
         self.frames_integrated = 0
-        self.frames_meshed = 0
         self.points_beyond_max_depth = 0
 
     # -- streaming -----------------------------------------------------------------------------
@@ -184,7 +179,7 @@ class VoxelMapFuser:
             if prepared.depth_m is None:
                 log.warning("frame %d has %s; it is left out of the TSDF mesh", prepared.frame_id, prepared.no_depth_reason)
             else:
-                self._integrate_tsdf(prepared)
+                self._mesher().integrate(prepared.depth_m, prepared.rgb, prepared.K, prepared.T_world_sensor)
         self.frames_integrated += 1
 
     def _merge(self) -> None:
@@ -196,70 +191,30 @@ class VoxelMapFuser:
         self._pending = []
         self._pending_rows = 0
 
-    def _new_volume(self, block_count: int):
-        import open3d as o3d
+    def _mesher(self) -> TsdfMesher:
+        if self._tsdf is None:
+            self._tsdf = TsdfMesher(
+                self.tsdf_voxel_m, self.tsdf_truncation_m, min(self.tsdf_depth_max_m, self.max_depth_m), self.tsdf_min_weight,
+                self.tsdf_block_voxels, self.tsdf_block_count,
+            )
+        return self._tsdf
 
-        # Open3D's tensor VoxelBlockGrid: the legacy ScalableTSDFVolume of open3d 0.20 returns
-        # empty meshes here (checked against UniformTSDFVolume on the same images)
-        return o3d.t.geometry.VoxelBlockGrid(
-            attr_names=tuple(name for name, _ in _TSDF_ATTRIBUTES),
-            attr_dtypes=tuple(o3d.core.float32 for _ in _TSDF_ATTRIBUTES),
-            attr_channels=tuple(channels for _, channels in _TSDF_ATTRIBUTES),
-            voxel_size=self.tsdf_voxel_m,
-            block_resolution=self.tsdf_block_voxels,
-            block_count=block_count,
-            device=o3d.core.Device("CPU:0"),
-        )
+    @property
+    def frames_meshed(self) -> int:
+        """Frames in the TSDF mesh so far."""
+        return 0 if self._tsdf is None else self._tsdf.frames_meshed
 
-    def _integrate_tsdf(self, prepared: PreparedFrame) -> None:
-        import open3d as o3d
-
-        assert prepared.depth_m is not None and prepared.rgb is not None and prepared.K is not None
-        if self._volume is None:
-            self._volume = self._new_volume(self.tsdf_block_count)
-        depth = o3d.t.geometry.Image(o3d.core.Tensor(prepared.depth_m))
-        # one pass from the bytes (the same float32 quotients as astype(float32) / 255: 2.4 against 9.9 ms at 1920x1200)
-        color = o3d.t.geometry.Image(o3d.core.Tensor(np.divide(prepared.rgb, np.float32(255.0), dtype=np.float32)))
-        intrinsic = o3d.core.Tensor(prepared.K, dtype=o3d.core.float64)
-        # Open3D wants the extrinsic world -> camera, the inverse of our T_world_sensor
-        extrinsic = o3d.core.Tensor(invert(prepared.T_world_sensor), dtype=o3d.core.float64)
-        depth_max_m = min(self.tsdf_depth_max_m, self.max_depth_m)
-        blocks = self._volume.compute_unique_block_coordinates(
-            depth, intrinsic, extrinsic, 1.0, depth_max_m, self.tsdf_truncation_m / self.tsdf_voxel_m
-        )
-        self._make_room(len(blocks))
-        self._volume.integrate(
-            blocks, depth, color, intrinsic, extrinsic, 1.0, depth_max_m, self.tsdf_truncation_m / self.tsdf_voxel_m
-        )
-        self.frames_meshed += 1
-
-    def _make_room(self, incoming_blocks: int) -> None:
-        """Grow the TSDF's hash map before ``incoming_blocks`` are activated in it, where Open3D
-        would grow it itself (when its size plus the blocks asked for exceed its capacity).
-
-        Open3D 0.20 grows a filled map (``HashMap.reserve``) at ~0.1-0.2 ms a block: the FPP
-        corridor's growths to 16 000, 32 000 and 64 000 blocks took 0.7, 1.7 and 3.7 s of its
-        10.9 s of TSDF integration. A new grid of twice the capacity, its blocks activated at
-        once and their voxels copied through numpy, holds the same blocks and voxel values (the
-        mesh is the same: :func:`~fpp_graph.fusion.tsdf_mesh.canonical_mesh` lists it by content,
-        not by the hash map's slots)."""
-        hashmap = self._volume.hashmap()
-        size, capacity = hashmap.size(), hashmap.capacity()
-        if size + incoming_blocks <= capacity:
-            return
-        import open3d as o3d
-
-        grown = self._new_volume(max(2 * capacity, size + incoming_blocks))
-        grown_map = grown.hashmap()
-        slots = hashmap.active_buf_indices().numpy()
-        new_slots, activated = grown_map.activate(o3d.core.Tensor(hashmap.key_tensor().numpy()[slots]))
-        if not bool(activated.numpy().all()):
-            raise RuntimeError("map fusion: the TSDF's blocks did not all move to its grown hash map")
-        new_slots = new_slots.numpy()
-        for attribute in range(len(_TSDF_ATTRIBUTES)):  # one at a time: a copy of one, not of all, at any moment
-            grown_map.value_tensor(attribute).numpy()[new_slots] = hashmap.value_tensor(attribute).numpy()[slots]
-        log.debug("TSDF hash map grown from %d to %d blocks (%d in use)", capacity, grown_map.capacity(), size)
-        self._volume = grown
+    def split_mesh(self) -> FrameMesher | None:
+        """The mesh as a job of its own (:class:`FrameMesher`, picklable: one process can mesh
+        the frames while others fuse their points); this fuser then makes no mesh (its
+        :meth:`preparer` renders no depth images, its :meth:`result` has no mesh). None when it
+        makes none anyway, or has meshed frames already (implements
+        :class:`~fpp_graph.types.MeshSplittingMapFuser`)."""
+        if not self.mesh or self.frames_integrated:
+            return None
+        self.mesh = False
+        return FrameMesher(self.tsdf_voxel_m, self.tsdf_truncation_m, min(self.tsdf_depth_max_m, self.max_depth_m), self.tsdf_min_weight,
+                           self.tsdf_block_voxels, self.tsdf_block_count)
 
     def result(self, map_chunks: Callable[[Callable[[tuple], Any], Iterable[tuple]], Iterable[Any]] = map) -> FusedMap:
         """The map fused so far (the fuser can keep integrating afterwards). ``map_chunks``
@@ -273,16 +228,7 @@ class VoxelMapFuser:
         colors = np.ascontiguousarray(np.clip(self._sums[3:6] / w, 0.0, 1.0).T)
         vertices = triangles = vertex_colors = None
         if self.mesh:
-            vertices, triangles, vertex_colors = np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64), np.zeros((0, 3))
-            if self._volume is not None:
-                mesh = self._volume.extract_triangle_mesh(weight_threshold=self.tsdf_min_weight)
-                vertices = mesh.vertex.positions.numpy().astype(np.float64)
-                triangles = mesh.triangle.indices.numpy().astype(np.int64)
-                if "colors" in mesh.vertex:
-                    vertex_colors = np.clip(mesh.vertex.colors.numpy().astype(np.float64), 0.0, 1.0)
-                else:
-                    vertex_colors = np.full(vertices.shape, 0.5)
-                vertices, triangles, vertex_colors = canonical_mesh(vertices, triangles, vertex_colors)
+            vertices, triangles, vertex_colors = self._mesher().mesh()
         return FusedMap(points, colors, w.copy(), vertices, triangles, vertex_colors)
 
     # -- MapFuser protocol -------------------------------------------------------------------
@@ -387,6 +333,40 @@ class FramePreparer:
         if not np.any(depth_m > 0):
             return dataclasses.replace(prepared, no_depth_reason="no valid depth")
         return dataclasses.replace(prepared, depth_m=depth_m.astype(np.float32), rgb=rgb, K=K)
+
+
+@dataclass(frozen=True)
+class FrameMesher:
+    """The TSDF mesh of :class:`VoxelMapFuser` as a job of its own (:meth:`VoxelMapFuser.split_mesh`):
+    its settings alone, picklable, so that one process meshes the frames while others fuse their
+    points. Call it with the frames and their poses in order; each frame's depth image is
+    rendered as :class:`FramePreparer` renders it, so the mesh is the fuser's own."""
+
+    voxel_m: float
+    truncation_m: float
+    depth_max_m: float
+    min_weight: float
+    block_voxels: int
+    block_count: int
+
+    def __call__(self, frames: Iterable[tuple[Frame, NDArray[np.float64]]]) -> FusedMesh:
+        mesher = TsdfMesher(self.voxel_m, self.truncation_m, self.depth_max_m, self.min_weight, self.block_voxels, self.block_count)
+        left_out = []
+        for frame, T_world_sensor in frames:
+            T = np.asarray(T_world_sensor, dtype=np.float64)
+            if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+                raise InputDataError(f"map fusion: pose of frame {frame.id} must be a finite 4x4, got shape {T.shape}")
+            if frame.xyz_map is None:
+                left_out.append((frame.id, "no xyz_map"))
+                continue
+            K = intrinsics_of(frame)
+            depth_m, rgb = render_depth(frame, K)
+            if not np.any(depth_m > 0):
+                left_out.append((frame.id, "no valid depth"))
+                continue
+            mesher.integrate(depth_m.astype(np.float32), rgb, K, T)
+        vertices, triangles, vertex_colors = mesher.mesh()
+        return FusedMesh(vertices, triangles, vertex_colors, mesher.frames_meshed, tuple(left_out))
 
 
 def grazing_weights(xyz_map: NDArray[np.float64], floor: float = 0.05, finite: NDArray[np.bool_] | None = None) -> NDArray[np.float64]:

@@ -8,7 +8,7 @@ function usable on its own:
    on disk (a rerun with ``resume`` reuses them; a corrupt frame is skipped and reported);
 3. :func:`track` - keyframes, odometry, loop detection/verification, robust pose graph;
 4. :func:`write_trajectory_and_graph` - ``trajectory.tum``, ``graph.g2o``;
-5. :func:`~fpp_graph.slam.map_fusion.fuse_map` - re-fuse the global map under the optimised poses (``map.ply``, ``mesh.ply``);
+5. :func:`~fpp_graph.slam.map_fusion.fuse_points` - re-fuse the global map under the optimised poses (``map.ply``), its mesh made on a worker meanwhile (:func:`~fpp_graph.slam.map_fusion.start_mesh_apart`, ``mesh.ply``);
 6. :func:`write_metrics_and_plots` - ``metrics.json`` and PNG plots.
 
 :func:`run_sequence` is the whole of ``fpp-slam run SEQUENCE`` (source discovery, config,
@@ -46,7 +46,13 @@ from fpp_graph.slam.frame_store import (
 )
 from fpp_graph.slam.heap import trim_heap
 from fpp_graph.slam.keyframes import KeyframeManager
-from fpp_graph.slam.map_fusion import ProgressCallback, fuse_map, points_under_poses
+from fpp_graph.slam.map_fusion import (
+    ProgressCallback,
+    fuse_points,
+    make_map_fuser,
+    points_under_poses,
+    start_mesh_apart,
+)
 from fpp_graph.slam.slam_result import SlamResult
 from fpp_graph.slam.sources import FrameSource, check_frame_source
 from fpp_graph.slam.verification import ExecutorVerifier
@@ -358,7 +364,6 @@ class Pipeline:
                 timestamps[frame.id] = frame.timestamp
                 yield frame
 
-        samples: dict[int, np.ndarray] = {}
         try:
             with self._timed(report, "decode+track"), self._library_threads():
                 report.slam = track(frames_with_timestamps(), self.source, self.config, store, self.progress, verifier)
@@ -373,19 +378,9 @@ class Pipeline:
                 write_loop_log(out, report.slam)
             gt_poses = self._ground_truth_poses(ids)
             loop_evaluation = _LoopEvaluation(out, gt_poses, executor)
-            # matplotlib's import, while fusion waits on its workers, instead of at the plots
-            threading.Thread(target=import_plotting, name="import-plotting", daemon=True).start()
-            with self._timed(report, "fuse"):  # the keyframes' shares of the map on the workers too
-                fused = fuse_map(out, report.slam, store, self.config, self.progress, self.map_fuser, plot_samples=samples, executor=executor)
-            if gt_poses is not None:
-                with self._timed(report, "evaluate_loops"):  # a stage of its own (what it adds to the run): only sequences with ground truth pay it
-                    loop_evaluation.finish()
+            self._fuse_and_plot(out, report, store, executor, loop_evaluation, gt_poses)
         finally:  # done, failed or interrupted: the worker processes end with the run's last use of them
             self._shutdown_executor()
-        trim_heap(period_s=0.0)
-        with self._timed(report, "plots"):
-            before_points = points_under_poses(samples, odometry_only_poses(report.slam))
-            write_plots(out, report.slam, before_points, fused.points_world_m, gt_poses)
         trim_heap(period_s=0.0)
         report.wall_seconds, cpu1 = time.perf_counter() - wall0, process_tree_cpu_s()
         report.cpu_seconds = None if cpu0 is None or cpu1 is None else cpu1 - cpu0  # the pool has joined its workers
@@ -395,6 +390,37 @@ class Pipeline:
             report.metrics["loop_evaluation"] = loop_evaluation.result()
         atomic_write_text(out / "metrics.json", json.dumps(report.metrics, indent=1, default=float))
         return report
+
+    def _fuse_and_plot(
+        self, out: Path, report: RunReport, store: FrameStore, executor: Executor | None, loop_evaluation: _LoopEvaluation,
+        gt_poses: dict[int, np.ndarray] | None,
+    ) -> None:
+        """Steps 5 and 6's plots: the map fused, the loops evaluated and the plots drawn while a
+        worker makes the mesh (:func:`~fpp_graph.slam.map_fusion.start_mesh_apart`), which is
+        waited for last."""
+        # matplotlib's import, while fusion waits on its workers, instead of at the plots
+        threading.Thread(target=import_plotting, name="import-plotting", daemon=True).start()
+        fuser = make_map_fuser(self.config) if self.map_fuser is None else self.map_fuser
+        samples: dict[int, np.ndarray] = {}
+        with self._timed(report, "fuse"):
+            mesh = start_mesh_apart(out, report.slam, store, fuser, executor)
+        try:
+            with self._timed(report, "fuse"):  # the keyframes' shares of the map on the workers too
+                fused = fuse_points(out, report.slam, store, fuser, self.progress, plot_samples=samples, executor=executor)
+            if gt_poses is not None:
+                with self._timed(report, "evaluate_loops"):  # a stage of its own (what it adds to the run): only sequences with ground truth pay it
+                    loop_evaluation.finish()
+            trim_heap(period_s=0.0)
+            with self._timed(report, "plots"):
+                before_points = points_under_poses(samples, odometry_only_poses(report.slam))
+                write_plots(out, report.slam, before_points, fused.points_world_m, gt_poses)
+            if mesh is not None:
+                with self._timed(report, "fuse"):
+                    mesh.finish()
+        except BaseException:
+            if mesh is not None:  # a stop or a failure: the mesh's worker ends before its next keyframe
+                mesh.stop()
+            raise
 
     def _ground_truth_poses(self, ids: list[int]) -> dict[int, np.ndarray] | None:
         """``T_world_sensor`` per frame id from the source's ground truth (None without one, or
@@ -428,6 +454,7 @@ class Pipeline:
         if self._owns_executor:
             self.executor.shutdown(wait=True, cancel_futures=True)
             self.executor, self._owns_executor = None, False
+
 
     def _executor(self) -> Executor | None:
         if self.executor is not None:

@@ -4,10 +4,10 @@ A run's :class:`~concurrent.futures.ProcessPoolExecutor` starts each worker with
 :func:`init_worker` (the run's frame source, one thread per library); the main process then
 submits :func:`decode_to_cache` for frames ahead of tracking, :func:`verify_pair` for loop
 candidates (:class:`~fpp_graph.slam.verification.ExecutorVerifier`), and at the end
-:func:`prepare_for_fusion` for the keyframes of the map. They read and write frames through the
-results folder's ``frames/`` cache, so only file paths and results cross the process boundary;
-the exception is a frame decoded without a cache path, handed back in its stored form when only
-keyframes stay on disk.
+:func:`prepare_for_fusion` for the keyframes' shares of the map and :func:`mesh_keyframes` for
+its mesh. They read and write frames through the results folder's ``frames/`` cache, so only
+file paths and results cross the process boundary; the exception is a frame decoded without a
+cache path, handed back in its stored form when only keyframes stay on disk.
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ import signal
 import threading
 import time
 from collections import OrderedDict
-from collections.abc import Callable
+from collections.abc import Callable, Iterable, Iterator
 from typing import Any
 
 import numpy as np
@@ -27,7 +27,7 @@ from fpp_graph.errors import FppError, OutputError
 from fpp_graph.slam.frame_store import load_frame, save_frame, stored_arrays
 from fpp_graph.slam.heap import keep_large_blocks_in_heap, trim_heap
 from fpp_graph.slam.sources import FrameSource
-from fpp_graph.types import Constraint, ConstraintKind, Frame, PairRegistrar
+from fpp_graph.types import Constraint, ConstraintKind, Frame, FusedMesh, PairRegistrar
 
 DECODE_AHEAD_FRAMES = 16
 """Frames a run submits for decoding ahead of the one it tracks. The workers verify loop
@@ -211,6 +211,40 @@ def plot_sample(frame: Frame, count: int, seed: int) -> NDArray[np.float64]:
 def prepare_for_fusion_task(task: tuple) -> tuple[Any, NDArray[np.float64]]:
     """:func:`prepare_for_fusion` of one argument tuple (for a map over the pool)."""
     return prepare_for_fusion(*task)
+
+
+class MeshStopped(Exception):
+    """The run asked :func:`mesh_keyframes` to stop (its stop file appeared)."""
+
+
+def mesh_keyframes(
+    mesher: Callable[[Iterable[tuple[Frame, NDArray[np.float64]]]], FusedMesh], keyframes: list[tuple[str, NDArray[np.float64]]],
+    mesh_path: str, stop_path: str,
+) -> dict[str, Any]:
+    """The map's mesh of the cached keyframes ``(path, T_world_sensor)``, in order, by ``mesher``
+    (:meth:`~fpp_graph.types.MeshSplittingMapFuser.split_mesh`), written to ``mesh_path`` when it
+    has triangles; returns its counts and the frames left out (the mesh itself stays here: the
+    corridor's would be hundreds of MB through the pool's pipe). Before each frame it looks for
+    ``stop_path``: a run that is being stopped creates it, and the task ends then (``stopped``)
+    instead of meshing the rest while the pool waits for it. Needs no source."""
+    from fpp_graph.fusion.ply import write_mesh_ply
+
+    def frames() -> Iterator[tuple[Frame, NDArray[np.float64]]]:
+        for path, T_world_sensor in keyframes:
+            if os.path.exists(stop_path):
+                raise MeshStopped
+            yield load_frame(path), T_world_sensor
+
+    try:
+        mesh = mesher(frames())
+    except MeshStopped:
+        return {"stopped": True}
+    finally:
+        trim_heap()
+    if len(mesh.triangles):
+        write_mesh_ply(mesh_path, mesh.vertices, mesh.triangles, mesh.vertex_colors)
+    return {"stopped": False, "vertices": len(mesh.vertices), "triangles": len(mesh.triangles),
+            "frames_meshed": mesh.frames_meshed, "frames_left_out": list(mesh.frames_left_out)}
 
 
 def _held_frame(path: str) -> Frame:

@@ -201,7 +201,7 @@ def test_tsdf_hash_map_grown_by_copy_meshes_what_an_ample_one_does(views, fused,
     # one block to start with: the map grows (by a new grid and a copy of its blocks) several
     # times while the views are integrated; the mesh is the one of a map that never grew
     frames, poses = views
-    with caplog.at_level("DEBUG", logger="fpp_graph.fusion.voxel_map"):
+    with caplog.at_level("DEBUG", logger="fpp_graph.fusion.tsdf_mesh"):
         fuser = VoxelMapFuser(0.002, 0.002, 0.008, mesh=True, tsdf_block_count=1)
         grown = fuser.fuse(frames, poses)
     assert sum("TSDF hash map grown" in r.getMessage() for r in caplog.records) >= 3
@@ -568,9 +568,9 @@ def test_rgbd_fusion_range_is_where_kinect_noise_reaches_the_truncation():
 
 
 def test_fusion_on_worker_processes_gives_the_same_map(views, tmp_path):
-    # fuse_map with an executor: each keyframe's share (voxel sums, depth image) is prepared in
-    # a worker process and folded in in keyframe order, the smoothing runs there by chunks; the
-    # map, the mesh and the "before" plot samples equal the one-process fusion's
+    # fuse_map with an executor: each keyframe's share (voxel sums) is prepared in a worker
+    # process and folded in in keyframe order, the smoothing runs there by chunks, and a worker
+    # makes the mesh; the map, the mesh and the "before" plot samples equal the one-process fusion's
     import multiprocessing
     from concurrent.futures import ProcessPoolExecutor
     from types import SimpleNamespace
@@ -605,14 +605,16 @@ def test_fusion_on_worker_processes_gives_the_same_map(views, tmp_path):
         executor = CountingExecutor(pool)
         parallel = fuse_map(tmp_path / "parallel", result, store, config, fuser=VoxelMapFuser(0.002, 0.002, 0.008, mesh=True),
                             plot_samples=parallel_samples, executor=executor)
-    # each keyframe prepared there, then the surface smoothing's chunks of 50 000 voxels
+    # the mesh made by one task on a worker, each keyframe prepared there, then the surface
+    # smoothing's chunks of 50 000 voxels
     chunks = -(-serial.num_points // 50_000)
-    assert chunks >= 2 and executor.tasks == ["prepare_for_fusion_task"] * len(frames) + ["project_chunk_task"] * chunks
+    assert chunks >= 2 and executor.tasks == ["mesh_keyframes"] + ["prepare_for_fusion_task"] * len(frames) + ["project_chunk_task"] * chunks
     np.testing.assert_array_equal(parallel.points_world_m, serial.points_world_m)
     np.testing.assert_array_equal(parallel.weights, serial.weights)
-    # Open3D's TSDF hash map lists blocks in no fixed order: the same mesh, vertices permuted
-    assert len(parallel.mesh_triangles) == len(serial.mesh_triangles) > 10000
-    np.testing.assert_allclose(np.unique(parallel.mesh_vertices, axis=0), np.unique(serial.mesh_vertices, axis=0), atol=1e-9)
+    # the worker wrote the mesh (its arrays stay there): the same file, byte for byte
+    assert parallel.mesh_vertices is None and len(serial.mesh_triangles) > 10000
+    assert (tmp_path / "parallel" / "mesh.ply").read_bytes() == (tmp_path / "serial" / "mesh.ply").read_bytes()
+    assert not (tmp_path / "parallel" / ".mesh-stop.tmp").exists()
     assert parallel_samples.keys() == serial_samples.keys()
     for kf in serial_samples:
         np.testing.assert_array_equal(parallel_samples[kf], serial_samples[kf])
