@@ -77,17 +77,6 @@ def top_view(points_m: NDArray[np.float64]) -> TopView:
     return TopView(eye[[i, j]], eye[k], (_AXIS_NAMES[i], _AXIS_NAMES[j]), _AXIS_NAMES[k], scale, unit)
 
 
-def import_plotting() -> None:
-    """Import what the plots draw with (matplotlib's figure, collections, colour maps and its
-    Agg backend with PIL): 0.4 s of a run's end when done there, so a run starts it on a thread
-    while the map is fused (:class:`fpp_graph.slam.pipeline.Pipeline`)."""
-    import matplotlib.backends.backend_agg  # noqa: F401
-    import matplotlib.collections  # noqa: F401
-    import matplotlib.figure  # noqa: F401
-    import matplotlib.lines  # noqa: F401
-    import PIL.PngImagePlugin  # noqa: F401
-
-
 def _new_figure(ncols: int = 1, size: tuple[float, float] = (8.0, 7.0)):
     from matplotlib.figure import Figure
 

@@ -25,7 +25,7 @@ import os
 import shutil
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from concurrent.futures import Executor, Future, ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -36,7 +36,7 @@ import numpy as np
 from fpp_graph.atomic import atomic_write_text
 from fpp_graph.config import Config, dump_config
 from fpp_graph.errors import InputDataError, OutputError
-from fpp_graph.evaluation.plots import import_plotting
+from fpp_graph.evaluation.plots import MAP_PLOT_POINTS
 from fpp_graph.geometry import compose
 from fpp_graph.slam.cpu_time import process_tree_cpu_s
 from fpp_graph.slam.frame_store import (
@@ -53,6 +53,7 @@ from fpp_graph.slam.map_fusion import (
     points_under_poses,
     start_mesh_apart,
 )
+from fpp_graph.slam.plot_samples import PlotSamples
 from fpp_graph.slam.slam_result import SlamResult
 from fpp_graph.slam.sources import FrameSource, check_frame_source
 from fpp_graph.slam.verification import ExecutorVerifier
@@ -201,17 +202,23 @@ def track(
     store: FrameStore,
     progress: ProgressCallback | None = None,
     verifier: PairVerifier | None = None,
+    plot_samples: PlotSamples | None = None,
 ) -> SlamResult:
     """Keyframes, odometry, loop closure and the final robust pose-graph optimisation.
 
     ``verifier`` registers loop candidates (default: in this process, see
-    :class:`~fpp_graph.slam.keyframes.KeyframeManager`)."""
+    :class:`~fpp_graph.slam.keyframes.KeyframeManager`); ``plot_samples`` samples the
+    keyframes' points as they go by, for the before/after map."""
     manager = KeyframeManager(source.make_registrar(), config, store=store, verifier=verifier)
     keyframes_only = config.run.keep_frames == "keyframes"
     discarded = 0
     for frame in frames:
+        if plot_samples is not None:
+            plot_samples.take(frame)
         if not manager.process(frame) and keyframes_only:
             discarded += store.discard_unstored(frame.id)
+        if plot_samples is not None:
+            plot_samples.keep(manager.keyframe_ids, frame.id)
         trim_heap()
     if discarded:
         log.info("run.keep_frames = keyframes: %d decoded non-keyframes deleted from %s once tracked", discarded, store.directory)
@@ -301,7 +308,9 @@ def _finite(x: float) -> float | None:
     return float(x) if np.isfinite(x) else None
 
 
-def write_plots(out: Path, result: SlamResult, before_points: np.ndarray | None, after_points: np.ndarray | None, gt_poses: dict[int, np.ndarray] | None = None) -> None:
+def write_plots(out: Path, result: SlamResult, samples: dict[int, np.ndarray], gt_poses: dict[int, np.ndarray] | None = None) -> None:
+    """``trajectory_top.png`` and ``map_before_after.png``: the keyframes' point ``samples`` under
+    odometry alone and under the optimised poses."""
     from fpp_graph.evaluation.plots import plot_map_before_after, plot_trajectory_top_view
 
     accepted = [(r.query_id, r.match_id) for r in result.loop_records if r.verified and not r.rejected_by_backend]
@@ -310,8 +319,34 @@ def write_plots(out: Path, result: SlamResult, before_points: np.ndarray | None,
         out / "trajectory_top.png", result.poses_world_sensor, [(c.source_id, c.target_id) for c in result.odometry],
         accepted, rejected, gt_poses=gt_poses, title="trajectory (top view)",
     )
-    if before_points is not None and after_points is not None:
-        plot_map_before_after(out / "map_before_after.png", before_points, after_points)
+    if samples:
+        before = points_under_poses(samples, odometry_only_poses(result))
+        plot_map_before_after(out / "map_before_after.png", before, points_under_poses(samples, result.poses_world_sensor))
+
+
+class _Background:
+    """``fn(*args)`` in a thread of this process; :meth:`result` waits and raises what it raised."""
+
+    def __init__(self, fn: Callable[..., Any], *args: Any) -> None:
+        self._outcome: list[Any] = []
+
+        def run() -> None:
+            started = time.perf_counter()
+            try:
+                self._outcome.append(("ok", fn(*args)))
+            except BaseException as exc:  # noqa: BLE001 - raised again by result(), in the caller's thread
+                self._outcome.append(("error", exc))
+            log.debug("%s took %.2f s in the background", getattr(fn, "__name__", fn), time.perf_counter() - started)
+
+        self._thread = threading.Thread(target=run, name=f"background-{getattr(fn, '__name__', 'task')}", daemon=True)
+        self._thread.start()
+
+    def result(self) -> Any:
+        self._thread.join()
+        kind, value = self._outcome[0]
+        if kind == "error":
+            raise value
+        return value
 
 
 class Pipeline:
@@ -364,9 +399,10 @@ class Pipeline:
                 timestamps[frame.id] = frame.timestamp
                 yield frame
 
+        samples = PlotSamples(MAP_PLOT_POINTS)
         try:
             with self._timed(report, "decode+track"), self._library_threads():
-                report.slam = track(frames_with_timestamps(), self.source, self.config, store, self.progress, verifier)
+                report.slam = track(frames_with_timestamps(), self.source, self.config, store, self.progress, verifier, samples)
             report.frames_used = len(timestamps)
             # each stage's free heap back before the next one's temporaries: in a process that keeps
             # large blocks in the heap (fpp-slam run's) they would otherwise stay resident (not while
@@ -378,7 +414,7 @@ class Pipeline:
                 write_loop_log(out, report.slam)
             gt_poses = self._ground_truth_poses(ids)
             loop_evaluation = _LoopEvaluation(out, gt_poses, executor)
-            self._fuse_and_plot(out, report, store, executor, loop_evaluation, gt_poses)
+            self._fuse_and_plot(out, report, store, executor, loop_evaluation, gt_poses, samples.of(report.slam.keyframe_ids))
         finally:  # done, failed or interrupted: the worker processes end with the run's last use of them
             self._shutdown_executor()
         trim_heap(period_s=0.0)
@@ -393,27 +429,24 @@ class Pipeline:
 
     def _fuse_and_plot(
         self, out: Path, report: RunReport, store: FrameStore, executor: Executor | None, loop_evaluation: _LoopEvaluation,
-        gt_poses: dict[int, np.ndarray] | None,
+        gt_poses: dict[int, np.ndarray] | None, samples: dict[int, np.ndarray],
     ) -> None:
-        """Steps 5 and 6's plots: the map fused, the loops evaluated and the plots drawn while a
-        worker makes the mesh (:func:`~fpp_graph.slam.map_fusion.start_mesh_apart`), which is
-        waited for last."""
-        # matplotlib's import, while fusion waits on its workers, instead of at the plots
-        threading.Thread(target=import_plotting, name="import-plotting", daemon=True).start()
+        """Step 5 and the plots: the map fused and the loops evaluated while a thread draws the
+        plots (from the keyframes' samples: the main thread mostly waits for the workers then)
+        and a worker makes the mesh (:func:`~fpp_graph.slam.map_fusion.start_mesh_apart`); the
+        plots and the mesh are waited for last."""
         fuser = make_map_fuser(self.config) if self.map_fuser is None else self.map_fuser
-        samples: dict[int, np.ndarray] = {}
         with self._timed(report, "fuse"):
             mesh = start_mesh_apart(out, report.slam, store, fuser, executor)
+        plots = _Background(write_plots, out, report.slam, samples, gt_poses)
         try:
             with self._timed(report, "fuse"):  # the keyframes' shares of the map on the workers too
-                fused = fuse_points(out, report.slam, store, fuser, self.progress, plot_samples=samples, executor=executor)
+                fuse_points(out, report.slam, store, fuser, self.progress, executor=executor)
             if gt_poses is not None:
                 with self._timed(report, "evaluate_loops"):  # a stage of its own (what it adds to the run): only sequences with ground truth pay it
                     loop_evaluation.finish()
-            trim_heap(period_s=0.0)
-            with self._timed(report, "plots"):
-                before_points = points_under_poses(samples, odometry_only_poses(report.slam))
-                write_plots(out, report.slam, before_points, fused.points_world_m, gt_poses)
+            with self._timed(report, "plots"):  # what is left of them
+                plots.result()
             if mesh is not None:
                 with self._timed(report, "fuse"):
                     mesh.finish()

@@ -538,13 +538,14 @@ def test_workers_end_when_their_run_is_killed(tmp_path):
     assert not alive, f"workers {alive} outlived their killed run"
 
 
-def test_the_pipeline_imports_matplotlib_only_when_asked():
-    """matplotlib (0.4 s) is imported on a thread while the map is fused (import_plotting), not
-    when the pipeline is imported: a worker process never pays it."""
+def test_the_pipeline_imports_matplotlib_only_when_asked(tmp_path):
+    """matplotlib (0.4 s) is imported by the thread that draws the plots while the map is fused,
+    not when the pipeline is imported: a worker process never pays it."""
     import subprocess
 
     code = ("import sys, fpp_graph.slam.pipeline, fpp_graph.slam.workers; assert 'matplotlib' not in sys.modules; "
-            "from fpp_graph.evaluation.plots import import_plotting; import_plotting(); "
+            "from fpp_graph.evaluation.plots import plot_trajectory_top_view; import numpy as np; "
+            f"plot_trajectory_top_view({str(tmp_path / 'top.png')!r}, {{0: np.eye(4)}}); "
             "assert {'matplotlib.figure', 'matplotlib.backends.backend_agg'} <= set(sys.modules)")
     subprocess.run([sys.executable, "-c", code], check=True, cwd=Path(__file__).resolve().parents[2])
 
