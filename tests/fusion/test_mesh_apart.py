@@ -128,3 +128,31 @@ def test_a_stopped_run_ends_the_mesh_before_its_next_keyframe(views, tmp_path):
     stop.unlink()
     summary = mesh_keyframes(mesher, keyframes, str(tmp_path / "mesh.ply"), str(stop))
     assert not summary["stopped"] and summary["frames_meshed"] == len(frames) and (tmp_path / "mesh.ply").exists()
+
+
+def test_a_run_stopped_while_fusing_stops_the_mesh_and_resumes_whole(tmp_path):
+    """Ctrl-C while the points are fused: the mesh's worker is asked to stop, the run ends at once
+    with the pool, and --resume makes the map and the mesh."""
+    from fpp_graph.config import config_from_dict
+    from fpp_graph.slam.pipeline import Pipeline
+    from fpp_graph.slam.sources import open_source
+    from tests.slam.wall_sequences import write_tum_rgbd_sequence
+
+    seq = write_tum_rgbd_sequence(tmp_path / "seq")
+    config = config_from_dict({"run": {"workers": 2}})
+    out = tmp_path / "out"
+    stopped_with = []
+
+    def progress(stage, done, total):
+        if stage == "fuse":
+            stopped_with.append(sorted(p.name for p in out.iterdir()))
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        Pipeline(open_source(seq, config), config, out, progress=progress).run()
+    assert stopped_with and "map.ply" not in stopped_with[0]  # stopped inside the fusion
+    assert (out / MESH_STOP_FILE).exists() and not (out / "metrics.json").exists()
+    report = Pipeline(open_source(seq, config), config, out, resume=True).run()
+    assert report.metrics["keyframes"] >= 2
+    assert (out / "mesh.ply").stat().st_size > 0 and (out / "map.ply").exists() and (out / "map_before_after.png").exists()
+    assert not list(out.rglob("*.tmp"))
