@@ -193,10 +193,7 @@ class VoxelMapFuser:
 
     def _mesher(self) -> TsdfMesher:
         if self._tsdf is None:
-            self._tsdf = TsdfMesher(
-                self.tsdf_voxel_m, self.tsdf_truncation_m, min(self.tsdf_depth_max_m, self.max_depth_m), self.tsdf_min_weight,
-                self.tsdf_block_voxels, self.tsdf_block_count,
-            )
+            self._tsdf = TsdfMesher(*self._tsdf_settings())
         return self._tsdf
 
     @property
@@ -213,8 +210,12 @@ class VoxelMapFuser:
         if not self.mesh or self.frames_integrated:
             return None
         self.mesh = False
-        return FrameMesher(self.tsdf_voxel_m, self.tsdf_truncation_m, min(self.tsdf_depth_max_m, self.max_depth_m), self.tsdf_min_weight,
-                           self.tsdf_block_voxels, self.tsdf_block_count)
+        return FrameMesher(*self._tsdf_settings())
+
+    def _tsdf_settings(self) -> tuple[float, float, float, float, int, int]:
+        """:class:`TsdfMesher`'s arguments (and :class:`FrameMesher`'s fields), in their order."""
+        return (self.tsdf_voxel_m, self.tsdf_truncation_m, min(self.tsdf_depth_max_m, self.max_depth_m), self.tsdf_min_weight,
+                self.tsdf_block_voxels, self.tsdf_block_count)
 
     def result(self, map_chunks: Callable[[Callable[[tuple], Any], Iterable[tuple]], Iterable[Any]] = map) -> FusedMap:
         """The map fused so far (the fuser can keep integrating afterwards). ``map_chunks``
@@ -287,9 +288,7 @@ class FramePreparer:
     max_depth_m: float
 
     def __call__(self, frame: Frame, T_world_sensor: NDArray[np.float64], point_weights: NDArray[np.float64] | None = None) -> PreparedFrame:
-        T = np.asarray(T_world_sensor, dtype=np.float64)
-        if T.shape != (4, 4) or not np.all(np.isfinite(T)):
-            raise InputDataError(f"map fusion: pose of frame {frame.id} must be a finite 4x4, got shape {T.shape}")
+        T = _checked_pose(frame, T_world_sensor)
         points = frame.points
         colors = frame.colors if frame.colors is not None else np.full(points.shape, 0.5)
         weights = np.ones(len(points)) if point_weights is None else np.asarray(point_weights, dtype=np.float64).reshape(-1)
@@ -326,13 +325,11 @@ class FramePreparer:
         prepared = PreparedFrame(frame.id, T, keys, sums, beyond)
         if not self.mesh:
             return prepared
-        if frame.xyz_map is None:
-            return dataclasses.replace(prepared, no_depth_reason="no xyz_map")
-        K = intrinsics_of(frame)
-        depth_m, rgb = render_depth(frame, K, finite=finite_map)
-        if not np.any(depth_m > 0):
-            return dataclasses.replace(prepared, no_depth_reason="no valid depth")
-        return dataclasses.replace(prepared, depth_m=depth_m.astype(np.float32), rgb=rgb, K=K)
+        view = depth_view(frame, finite_map)
+        if isinstance(view, str):
+            return dataclasses.replace(prepared, no_depth_reason=view)
+        depth_m, rgb, K = view
+        return dataclasses.replace(prepared, depth_m=depth_m, rgb=rgb, K=K)
 
 
 @dataclass(frozen=True)
@@ -350,23 +347,36 @@ class FrameMesher:
     block_count: int
 
     def __call__(self, frames: Iterable[tuple[Frame, NDArray[np.float64]]]) -> FusedMesh:
-        mesher = TsdfMesher(self.voxel_m, self.truncation_m, self.depth_max_m, self.min_weight, self.block_voxels, self.block_count)
+        mesher = TsdfMesher(*dataclasses.astuple(self))
         left_out = []
         for frame, T_world_sensor in frames:
-            T = np.asarray(T_world_sensor, dtype=np.float64)
-            if T.shape != (4, 4) or not np.all(np.isfinite(T)):
-                raise InputDataError(f"map fusion: pose of frame {frame.id} must be a finite 4x4, got shape {T.shape}")
-            if frame.xyz_map is None:
-                left_out.append((frame.id, "no xyz_map"))
-                continue
-            K = intrinsics_of(frame)
-            depth_m, rgb = render_depth(frame, K)
-            if not np.any(depth_m > 0):
-                left_out.append((frame.id, "no valid depth"))
-                continue
-            mesher.integrate(depth_m.astype(np.float32), rgb, K, T)
+            T = _checked_pose(frame, T_world_sensor)
+            view = depth_view(frame)
+            if isinstance(view, str):
+                left_out.append((frame.id, view))
+            else:
+                mesher.integrate(*view, T)
         vertices, triangles, vertex_colors = mesher.mesh()
         return FusedMesh(vertices, triangles, vertex_colors, mesher.frames_meshed, tuple(left_out))
+
+
+def _checked_pose(frame: Frame, T_world_sensor: NDArray[np.float64]) -> NDArray[np.float64]:
+    T = np.asarray(T_world_sensor, dtype=np.float64)
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        raise InputDataError(f"map fusion: pose of frame {frame.id} must be a finite 4x4, got shape {T.shape}")
+    return T
+
+
+def depth_view(frame: Frame, finite: NDArray[np.bool_] | None = None) -> tuple[NDArray[np.float32], NDArray[np.uint8], NDArray[np.float64]] | str:
+    """What the TSDF takes of a frame: its pinhole depth image (float32 metres), RGB image and
+    ``K`` (:func:`render_depth`, :func:`intrinsics_of`), or why there is none."""
+    if frame.xyz_map is None:
+        return "no xyz_map"
+    K = intrinsics_of(frame)
+    depth_m, rgb = render_depth(frame, K, finite=finite)
+    if not np.any(depth_m > 0):
+        return "no valid depth"
+    return depth_m.astype(np.float32), rgb, K
 
 
 def grazing_weights(xyz_map: NDArray[np.float64], floor: float = 0.05, finite: NDArray[np.bool_] | None = None) -> NDArray[np.float64]:

@@ -131,7 +131,8 @@ def fuse_points(
     from fpp_graph.evaluation.plots import MAP_PLOT_POINTS
     from fpp_graph.fusion.ply import write_mesh_ply, write_point_cloud_ply
 
-    per_keyframe = -(-MAP_PLOT_POINTS // max(len(result.keyframe_ids), 1))
+    # (no samples drawn when none are asked for: the pipeline takes its own while tracking)
+    per_keyframe = -(-MAP_PLOT_POINTS // max(len(result.keyframe_ids), 1)) if plot_samples is not None else 0
     keyframes = [(kf, result.poses_world_sensor[kf]) for kf in result.keyframe_ids]
     parallel = executor is not None and isinstance(fuser, ParallelMapFuser) and store.directory is not None
 
