@@ -40,83 +40,222 @@ class StrictModel(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
 
-class KeyframeConfig(StrictModel):
-    """Keyframe selection."""
+def unit(symbol: str) -> dict[str, str]:
+    """A Field's ``json_schema_extra`` stating its unit where the key's suffix does not (``_m``,
+    ``_deg``, ``_s``, ``_px``, ``_mm`` do); ``"-"`` for a dimensionless number. The configuration
+    reference (docs/configuration.md) shows it in its Unit column."""
+    return {"unit": symbol}
 
-    min_translation_m: float = Field(0.0, ge=0)
-    min_rotation_deg: float = Field(0.0, ge=0)
-    max_overlap: float = Field(1.0, gt=0, le=1, description="a frame overlapping the last keyframe more than this is skipped")
-    min_view_change: float = Field(
-        0.05, ge=0, le=1,
-        description="a new keyframe once the view moved by this fraction of the image's smaller side since the last keyframe (pixel flow at the scene's median depth, in the sensor's own pixels: ~95 % overlap left); 0: every frame",
+
+class KeyframeConfig(StrictModel):
+    """Keyframe selection: a tracked frame becomes a keyframe when any enabled criterion fires
+    (with none enabled, every frame is one)."""
+
+    min_translation_m: float = Field(
+        0.0, ge=0,
+        description="a frame whose odometry moves it at least this far from the last keyframe becomes a keyframe; 0: criterion "
+        "off, so that min_view_change decides (a distance means a different change of view at 0.5 m than at 3 m)",
     )
-    loop_check_probability: float = Field(0.999, gt=0, lt=1, description="a verified loop whose innovation against the running estimate exceeds this chi-square quantile is held out of it (not dropped: the batch solve decides)")
-    batch_every: int = Field(0, ge=0, description="run the robust batch pose-graph solve every this many keyframes as well as at the end, restarting the running (iSAM2) estimate from it (0: only at the end)")
-    verify_lag: int = Field(2, ge=0, description="a keyframe's loop candidates are verified while this many later keyframes are tracked, then applied in submission order (0: at once); the same value gives the same run with or without worker processes")
+    min_rotation_deg: float = Field(
+        0.0, ge=0,
+        description="a frame whose odometry turns it at least this much from the last keyframe becomes a keyframe; 0: criterion "
+        "off, so that min_view_change (which also counts turns, as pixel flow) decides",
+    )
+    max_overlap: float = Field(
+        1.0, gt=0, le=1, json_schema_extra=unit("-"),
+        description="a frame whose registration overlaps the last keyframe by at most this share (the constraint's overlap, else "
+        "its fitness) becomes a keyframe; 1: criterion off, so that min_view_change decides",
+    )
+    min_view_change: float = Field(
+        0.05, ge=0, le=1, json_schema_extra=unit("image side"),
+        description="a new keyframe once the view moved by this fraction of the image's smaller side since the last keyframe "
+        "(pixel flow at the scene's median depth, in the sensor's own pixels): 0.05 leaves about 95 % overlap, so a 30 Hz camera "
+        "makes a keyframe every few frames and an FPP capture (a deliberate still view, steps of a third of the view or more) is "
+        "one every time; all four criteria off (0 / 0 / 1 / 0): every frame",
+    )
+    loop_check_probability: float = Field(
+        0.999, gt=0, lt=1, json_schema_extra=unit("-"),
+        description="a verified loop whose innovation d2 against the running (iSAM2) estimate exceeds the chi-square (6 dof) "
+        "quantile at this probability is held out of that estimate only, logged and counted (not dropped: the batch solve at the "
+        "end decides); 0.999: one true loop in a thousand is held out of the running estimate for nothing",
+    )
+    batch_every: int = Field(
+        0, ge=0, json_schema_extra=unit("keyframes"),
+        description="run the robust batch pose-graph solve every this many keyframes as well as at the end, restarting the "
+        "running (iSAM2) estimate from it; 0: only at the end. A cost bound: the running estimate costs the same per keyframe, a "
+        "batch solve O(map) (0.9 s at 121 poses on a real run), worth it only when many false loops pass the innovation test and "
+        "corrupt the running estimate",
+    )
+    verify_lag: int = Field(
+        2, ge=0, json_schema_extra=unit("keyframes"),
+        description="a keyframe's loop candidates are registered on the run's workers while this many later keyframes are "
+        "tracked, then applied in the order they were proposed (0: at once), so the result does not depend on timing or worker "
+        "count; 2, not 1: a keyframe has up to loop_closure.max_candidates_per_frame candidates and tracking the next keyframe "
+        "takes one or two registrations, so one keyframe of slack would leave 2 workers idle",
+    )
     track_from_motion: bool | None = Field(
         None,
-        description="register each new frame to the last keyframe by the dense fit from a constant-velocity prediction first (a new keyframe keeps it as its odometry edge), the full registration only where that fails (needs a registrar with track()); null: the source decides (on for video-rate RGB-D, off for FPP's still views)",
+        description="register each new frame to the last keyframe by the dense fit from a constant-velocity prediction first "
+        "(a new keyframe keeps it as its odometry edge), the full registration only where that fails (needs a registrar with "
+        "track()); null: the source decides: on for video-rate RGB-D (30 Hz video moves a few mm between frames, inside the "
+        "dense fit's basin), off for FPP's deliberate still views",
     )
 
 
 class LoopClosureConfig(StrictModel):
     """Loop candidates (proximity and appearance) and their verification."""
 
-    enabled: bool = True
-    proximity_radius_m: float = Field(0.3, ge=0)
-    proximity_sigma: float = Field(3.0, gt=0, description="search radius grows by this many standard deviations of the pose covariance")
-    appearance_top_k: int = Field(3, ge=0)
-    appearance_min_score: float = Field(0.1, ge=-1, le=1, description="minimum VLAD cosine similarity for an appearance candidate")
-    min_frame_separation: int = Field(5, ge=1)
-    revisit_view_change: float = Field(1.0, ge=0, description="a keyframe is a loop candidate only once the camera's view has moved by this fraction of the image side away from it (1: the camera left the place); 0: only min_frame_separation")
-    max_candidates_per_frame: int = Field(8, ge=1)
-    query_view_change: float = Field(0.25, ge=0, description="a keyframe asks for loop candidates once the camera has gone this fraction of the way to leaving the last keyframe that asked (of an image side of pixel flow, or of 90 degrees of axis turn); 0: every keyframe")
+    enabled: bool = Field(True, description="propose loop candidates and verify them by registration; false: odometry alone")
+    proximity_radius_m: float = Field(
+        0.3, ge=0,
+        description="keyframes within this distance of the new keyframe under the current estimate (and facing within 90 "
+        "degrees of it) are proximity candidates: the reach of one view's overlap",
+    )
+    proximity_sigma: float = Field(
+        3.0, gt=0, json_schema_extra=unit("σ"),
+        description="the proximity radius grows by this many standard deviations of the new keyframe's position (largest axis "
+        "of its marginal covariance), so the gate widens as drift grows: 3 searches a revisit inside the pose uncertainty with "
+        "99.7 % probability per axis",
+    )
+    appearance_top_k: int = Field(
+        3, ge=0, json_schema_extra=unit("keyframes"),
+        description="best appearance (VLAD bag-of-words) matches proposed per keyframe; a cost bound: each costs a registration",
+    )
+    appearance_min_score: float = Field(
+        0.1, ge=-1, le=1, json_schema_extra=unit("-"),
+        description="minimum VLAD cosine similarity for an appearance candidate: low on purpose, verification by registration "
+        "rejects the false ones",
+    )
+    min_frame_separation: int = Field(
+        5, ge=1, json_schema_extra=unit("keyframes"),
+        description="keyframes fewer than this many keyframes apart are never loop candidates of each other: odometry already "
+        "links them",
+    )
+    revisit_view_change: float = Field(
+        1.0, ge=0, json_schema_extra=unit("image side"),
+        description="a keyframe is a loop candidate only once the camera's view has moved away from it by this fraction of the "
+        "image side at some keyframe since, or its optical axis turned by 90 degrees (1: the whole view, at its median depth, "
+        "left the image); until then the odometry chain runs through frames that keep seeing it (ORB-SLAM's covisibility "
+        "exclusion); 0: only min_frame_separation",
+    )
+    max_candidates_per_frame: int = Field(
+        8, ge=1, json_schema_extra=unit("candidates"),
+        description="loop candidates per keyframe, appearance's first, proximity's (most predicted overlap first) filling the "
+        "rest; a cost bound: each costs a registration",
+    )
+    query_view_change: float = Field(
+        0.25, ge=0, json_schema_extra=unit("image side"),
+        description="a keyframe asks for loop candidates once the camera has gone this fraction of the way to leaving the last "
+        "keyframe that asked (of an image side of pixel flow, or of 90 degrees of axis turn): a revisit is still queried about "
+        "four times, but a 30 Hz camera (a keyframe per 5 % step) no longer proposes the same revisit at every keyframe; FPP "
+        "captures (corridor steps of a third of the view, turntable steps of 28 degrees) query at every keyframe; 0: every keyframe",
+    )
 
 
 class PoseGraphConfig(StrictModel):
     """Pose-graph optimisation."""
 
-    solver: Literal["lm", "isam2"] = "lm"
-    initialization: Literal["chordal", "given"] = "chordal"
-    noise_model: Literal["file", "isotropic"] = Field("file", description="edge information as given, or SE-Sync's isotropic tau/kappa model")
-    robust: Literal["none", "cauchy", "gnc"] = "gnc"
-    loop_false_alarm: float = Field(
-        0.01, gt=0, lt=1,
-        description="probability that a graph without outliers has any loop flagged (family-wise chi-square bound)",
+    solver: Literal["lm", "isam2"] = Field(
+        "lm",
+        description="solver of the batch solves: lm: Levenberg-Marquardt (gtsam); isam2: gtsam's ISAM2 on the whole graph, "
+        "updated until the cost changes by less than relative_error_tol; LM by default, the standard batch solver (a run's "
+        "running estimate between batch solves is iSAM2 either way)",
     )
-    cauchy_scale: float = Field(1.0, gt=0)
-    max_iterations: int = Field(100, gt=0)
-    relative_error_tol: float = Field(1e-10, gt=0)
-    remove_inconsistent_loops: bool = False
-    certify: bool = Field(False, description="check global optimality (SE-Sync certificate) and escape a local minimum")
+    initialization: Literal["chordal", "given"] = Field(
+        "chordal",
+        description="chordal: gtsam.InitializePose3 from the edges (independent of the drift accumulated along the odometry "
+        "chain; the given poses if it fails); given: the poses handed in (the odometry chain)",
+    )
+    noise_model: Literal["file", "isotropic"] = Field(
+        "file",
+        description="file: each edge's information as the front-end (or g2o file) gives it; isotropic: SE-Sync's isotropic "
+        "tau/kappa model per edge",
+    )
+    robust: Literal["none", "cauchy", "gnc"] = Field(
+        "gnc",
+        description="none: least squares; cauchy: a Cauchy loss on loop edges; gnc: least squares, then truncated least squares "
+        "(graduated non-convexity, odometry as known inliers) only when a loop's residual is evidence of an outlier "
+        "(loop_false_alarm), so a graph without outliers is solved as plain least squares",
+    )
+    loop_false_alarm: float = Field(
+        0.01, gt=0, lt=1, json_schema_extra=unit("-"),
+        description="probability that a graph without outliers has any loop flagged: a family-wise (Bonferroni) chi-square "
+        "bound over the loops, at the information's measured scale",
+    )
+    cauchy_scale: float = Field(
+        1.0, gt=0, json_schema_extra=unit("σ"),
+        description="where the Cauchy loss (robust: cauchy) bends, in standard deviations: residuals are whitened by the edge "
+        "information, so 1 bends at one standard deviation",
+    )
+    max_iterations: int = Field(
+        100, gt=0, json_schema_extra=unit("iterations"),
+        description="iteration limit of each solve (LM or ISAM2 updates); a cost bound: LM from the chordal initialisation "
+        "converges in a few, the limit stops a graph that does not",
+    )
+    relative_error_tol: float = Field(
+        1e-10, gt=0, json_schema_extra=unit("-"),
+        description="a solve stops when the cost changes by less than this fraction of itself: far below the noise, so the "
+        "result does not depend on it",
+    )
+    remove_inconsistent_loops: bool = Field(
+        False,
+        description="after the solve, remove the loops still over the loop_false_alarm bound, worst first, re-solving after each "
+        "(a loop that alone ties part of the graph to its anchor is kept); false: such loops are reported, not removed",
+    )
+    certify: bool = Field(
+        False,
+        description="after solving, check global optimality (SE-Sync certificate) and escape a local minimum; `fpp-slam "
+        "optimize` turns it on (--no-certify to skip)",
+    )
 
 
 class FusionConfig(StrictModel):
-    """Global map re-fusion."""
+    """Global map re-fusion under the optimised poses."""
 
-    voxel_size_m: float = Field(0.001, gt=0)
-    tsdf_voxel_m: float = Field(0.002, gt=0)
-    tsdf_truncation_m: float = Field(0.008, gt=0)
-    mesh: bool = True
+    voxel_size_m: float = Field(
+        0.001, gt=0,
+        description="voxel grid of the fused coloured point cloud (map.ply): a few FPP pixel footprints, so it keeps the "
+        "sensor's detail and bounds the map's size",
+    )
+    tsdf_voxel_m: float = Field(
+        0.002, gt=0,
+        description="TSDF voxel of the mesh: the registration's ICP voxel (noise.voxel_m on FPP), the resolution the poses are "
+        "known at",
+    )
+    tsdf_truncation_m: float = Field(
+        0.008, gt=0,
+        description="TSDF truncation band, 4 TSDF voxels: it covers the voxel discretisation and the depth noise on both sides "
+        "of a surface",
+    )
+    mesh: bool = Field(True, description="also integrate a TSDF and extract mesh.ply; false: the point map alone (faster)")
     max_depth_m: float | None = Field(
         None, gt=0,
-        description="points farther along the optical axis stay out of the map and the mesh (counted in the log); null: the source decides (RGB-D: where its depth noise reaches the TSDF truncation; FPP: no limit)",
+        description="points farther along the optical axis stay out of the map and the mesh (counted in the log); null: the "
+        "source decides (RGB-D: where its depth error 1.425e-3 z^2 reaches tsdf_truncation_m, 5.3 m with its 4 cm truncation "
+        "floor; FPP: no limit)",
     )
 
 
 class RunConfig(StrictModel):
     """Execution of a run."""
 
-    workers: int = Field(0, ge=0, description="0 = all cores")
-    frames_in_memory: int = Field(8, ge=1, description="decoded keyframes kept in memory; the rest are reloaded from the results folder")
+    workers: int = Field(0, ge=0, json_schema_extra=unit("processes"), description="worker processes of the run's executor; 0: all cores (1: all in the main process)")
+    frames_in_memory: int = Field(
+        8, ge=1, json_schema_extra=unit("frames"),
+        description="decoded keyframes kept in memory, the rest reloaded from the results folder; a memory bound: a 1920x1200 "
+        "xyz map is ~55 MB",
+    )
     keep_frames: Literal["all", "keyframes"] | None = Field(
         None,
         description="decoded frames left in the results folder (frames/): 'keyframes' deletes each other frame once it is "
-        "tracked (a resumed run decodes it again); null: the source decides (RGB-D: keyframes, FPP: all)",
+        "tracked (a resumed run decodes it again); null: the source decides (RGB-D: keyframes, a frame is 4.4 MB on disk against "
+        "30-60 ms to decode again; FPP: all, a frame's decoding takes seconds)",
     )
-    log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = "INFO"
+    log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = Field(
+        "INFO", description="logging level of the console and the results folder's run.log",
+    )
     seed: int = Field(
-        0, ge=0,
+        0, ge=0, json_schema_extra=unit("-"),
         description="seeds the run's random draws (RANSAC's samples, the appearance vocabulary's k-means): a run is reproducible "
         "for a seed, and runs over several seeds show how much a result owes to the draws",
     )
@@ -128,8 +267,9 @@ class EvaluationConfig(StrictModel):
     reference_time_offset_s: float = Field(
         0.0, allow_inf_nan=False,
         description="a timestamped reference (TUM RGB-D groundtruth.txt) is read at each frame's timestamp plus this many "
-        "seconds (negative: before the image's stamp; 0: the benchmark's convention); a source whose reference poses belong to "
-        "its frames (7-Scenes, FPP sequences) refuses any other value",
+        "seconds (negative: before the image's stamp); 0: the benchmark's convention (TUM fr1_rpy's images agree best with its "
+        "motion capture read 20 ms before their stamps, -0.02); a source whose reference poses belong to its frames (7-Scenes, "
+        "FPP sequences) refuses any other value",
     )
 
 
