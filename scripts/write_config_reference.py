@@ -8,6 +8,10 @@ allowed values (the Field's constraints), its unit (``json_schema_extra={"unit":
 key's suffix), its default and its description (which says why the default is what it is). A
 section's intro is its model's docstring. Nothing is written by hand here but the page's header,
 so the reference cannot drift from the models (tests/test_config_reference.py compares them).
+
+Part 1, the run configuration, is strict: a key without a description, or a number whose unit
+neither its name nor its Field states, stops the generator (ReferenceError). Part 2, the
+simulator's scene sections, shows what their models state and marks what they do not.
 """
 
 from __future__ import annotations
@@ -18,7 +22,7 @@ import sys
 import types
 import typing
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Literal
 
@@ -30,7 +34,7 @@ ROOT = Path(__file__).resolve().parents[1]
 REFERENCE_PATH = ROOT / "docs" / "configuration.md"
 COMMAND = "python -m scripts.write_config_reference"
 
-SUFFIX_UNITS = {"_m": "m", "_mm": "mm", "_deg": "deg", "_s": "s", "_px": "px"}
+SUFFIX_UNITS = {"_m": "m", "_mm": "mm", "_deg": "deg", "_s": "s", "_px": "px", "_grey": "grey level"}
 """A key ending so states its unit; any other number states it in ``json_schema_extra``."""
 
 HEADER = f"""\
@@ -88,9 +92,12 @@ class Table:
     """One (sub-)section: its dotted name, its model's docstring and its keys."""
 
     name: str
-    level: int  # 2 for a section, 3 for a nested one
+    level: int  # Markdown heading level: deeper for a nested section
     intro: str
     rows: tuple[Row, ...]
+
+
+MISSING = "(not stated in the model)"
 
 
 class ReferenceError(Exception):
@@ -110,6 +117,18 @@ def run_sections() -> list[tuple[str, type[BaseModel]]]:
     return [(name, sections[name] if name in sections else fields[name].annotation) for name in names]
 
 
+def scene_sections() -> list[tuple[str, type[BaseModel]]]:
+    """The simulator's scene sections (``fpp-slam simulate --config SCENE.yaml``), in the order a scene
+    YAML is read."""
+    from frontend.sim.calibration import BoardCalibrationSettings
+    from frontend.sim.render import RenderSettings
+    from frontend.sim.rig import RigParameters
+    from frontend.sim.scenes import CorridorConfig, TurntableConfig
+
+    return [("rig", RigParameters), ("render", RenderSettings), ("calibration", BoardCalibrationSettings),
+            ("turntable", TurntableConfig), ("corridor", CorridorConfig)]
+
+
 def nested_model(field: FieldInfo) -> type[BaseModel] | None:
     """The model a field holds as a sub-section, else None."""
     annotation = field.annotation
@@ -124,28 +143,37 @@ def model_intro(model: type[BaseModel]) -> str:
     return "\n\n".join(" ".join(block.split()) for block in doc.split("\n\n") if block.strip())
 
 
-def tables(name: str, model: type[BaseModel], level: int = 2) -> Iterator[Table]:
-    """The section's table, then one per nested model (depth first)."""
+def tables(name: str, model: type[BaseModel], level: int = 2, strict: bool = True) -> Iterator[Table]:
+    """The section's table, then one per nested model (depth first). ``strict``: a key without a
+    description or a number without a unit raises ReferenceError (else it is shown as missing)."""
     rows, nested = [], []
     for key, field in model.model_fields.items():
         sub = nested_model(field)
         if sub is not None:
             nested.append((f"{name}.{key}", sub))
         else:
-            rows.append(field_row(f"{name}.{key}", key, field))
+            rows.append(field_row(f"{name}.{key}", key, field, strict))
     yield Table(name, level, model_intro(model), tuple(rows))
     for sub_name, sub in nested:
-        yield from tables(sub_name, sub, level + 1)
+        yield from tables(sub_name, sub, level + 1, strict)
 
 
 # ---------------------------------------------------------------------------------------------
 # one row
 # ---------------------------------------------------------------------------------------------
-def field_row(dotted: str, key: str, field: FieldInfo) -> Row:
+def field_row(dotted: str, key: str, field: FieldInfo, strict: bool = True) -> Row:
     description = " ".join((field.description or "").split())
     if not description:
-        raise ReferenceError(f"{dotted}: the model's Field has no description; write what the key does and why its default")
-    return Row(dotted, type_name(field.annotation), allowed(field), field_unit(dotted, key, field), format_value(field.default), description)
+        if strict:
+            raise ReferenceError(f"{dotted}: the model's Field has no description; write what the key does and why its default")
+        description = MISSING
+    try:
+        unit_text = field_unit(dotted, key, field)
+    except ReferenceError:
+        if strict:
+            raise
+        unit_text = "?"
+    return Row(dotted, type_name(field.annotation), allowed(field), unit_text, format_value(field.default), description)
 
 
 def _args_without_none(annotation: Any) -> tuple[list[Any], bool]:
@@ -254,21 +282,47 @@ def render_table(table: Table) -> str:
 
 
 def reference_tables() -> list[Table]:
+    """The run configuration's tables (every key described, every number with a unit)."""
     return [t for name, model in run_sections() for t in tables(name, model)]
+
+
+def scene_tables() -> list[Table]:
+    """The simulator scene's tables, one level below the page's second part (as the models document them)."""
+    return [replace(t, level=t.level + 1) for name, model in scene_sections() for t in tables(name, model, strict=False)]
+
+
+SCENE_HEADER = f"""\
+## Part 2: simulator scenes
+
+`fpp-slam simulate SCENE --config SCENE.yaml` renders a sequence from a scene file (examples:
+`datasets/turntable.yaml`, `datasets/corridor.yaml`, `datasets/turntable_bunny.yaml`). Its top-level
+keys are `scene` (`turntable` or `corridor`: which of the two sections below applies), `description`
+(free text), `patterns` (the pattern set, `frontend.fpp.patterns.PatternSpec`; examples in
+`datasets/patterns/`) and the sections below; each section's keys override its defaults, and unknown
+keys are errors here too. Where a key's model states no description it reads {MISSING}, and a
+number whose unit neither its name nor its model states has `?` for unit.
+"""
 
 
 def reference_text() -> str:
     """The whole page, as the models give it."""
-    parts = [HEADER, "## Sections\n"]
-    all_tables = reference_tables()
-    for table in all_tables:
+    run, scene = reference_tables(), scene_tables()
+    parts = [HEADER, "## Part 1: the run configuration\n"]
+    for table in run:
         if table.level == 2:
-            parts.append(f"- [`{table.name}`](#{table.name}): {table.intro.split(chr(10))[0]}")
+            parts.append(f"- `{table.name}`: {table.intro.split(chr(10))[0]}")
     parts.append("")
-    parts += [render_table(t) for t in all_tables]
-    count = sum(len(t.rows) for t in all_tables)
-    parts.append(f"*{count} keys in {sum(t.level == 2 for t in all_tables)} sections.*\n")
+    parts += [render_table(replace(t, level=t.level + 1)) for t in run]
+    parts.append(f"*{_count(run)}.*\n")
+    parts.append(SCENE_HEADER)
+    parts += [render_table(t) for t in scene]
+    parts.append(f"*{_count(scene)}.*\n")
     return "\n".join(parts)
+
+
+def _count(tables: list[Table]) -> str:
+    top = min(t.level for t in tables)
+    return f"{sum(len(t.rows) for t in tables)} keys in {sum(t.level == top for t in tables)} sections"
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -112,3 +112,14 @@ def test_check_mode_exits_non_zero_on_a_stale_file(tmp_path, capsys):
     assert ref.main(["--output", str(stale)]) == 0
     assert ref.main(["--check", "--output", str(stale)]) == 0
     assert stale.read_text(encoding="utf-8") == ref.reference_text()
+
+
+def test_every_section_key_of_the_example_scenes_is_in_the_scene_part():
+    rows = {row.key for table in ref.scene_tables() for row in table.rows}
+    sections = {name for name, _ in ref.scene_sections()}
+    scenes = sorted((ref.ROOT / "datasets").glob("*.yaml"))
+    assert scenes
+    for path in scenes:
+        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+        for key in _dotted_keys({k: v for k, v in data.items() if k in sections}):
+            assert key in rows, f"{path.name}: {key} is not in the reference's scene part"

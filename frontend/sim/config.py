@@ -1,6 +1,6 @@
 """Config sections of the virtual FPP sensor: the strict pydantic base and validation into ConfigError.
 
-Every section of a scene YAML (``rig``, ``render``, ``turntable``, ``corridor``) is a frozen
+Every section of a scene YAML (``rig``, ``render``, ``calibration``, ``turntable``, ``corridor``) is a frozen
 pydantic model that rejects unknown keys; a validation failure becomes one :class:`ConfigError`
 whose message names each bad key.
 """
