@@ -8,13 +8,13 @@
 
 * the FPP edge filter (:func:`frontend.fpp.sensor.edge_filter_mask`) in bands of
   :data:`~frontend.fpp.sensor.EDGE_FILTER_BAND_ROWS` rows against the peer, the same filter
-  over the decoded box at once (the code before stop 51), ms and their ratio;
+  over the decoded box at once (the code before commit 65a38c8), ms and their ratio;
 * fusion's grazing weights (:func:`fpp_graph.fusion.voxel_map.grazing_weights`) the same way
   (:data:`~fpp_graph.fusion.voxel_map.GRAZING_BAND_ROWS`);
 * the photometric reference's adaptive range smoothing
   (:func:`frontend.localization.surface.adaptive_smoothing_scale`, the widths the photometric step
   uses for the frame's width), its per-pixel arithmetic in bands of
-  :data:`~frontend.localization.surface.SMOOTHING_BAND_ROWS` rows against one band (stop 52);
+  :data:`~frontend.localization.surface.SMOOTHING_BAND_ROWS` rows against one band (the code before commit 4a8d848);
 
 and, on the first ``--voxels`` voxels of the run's ``map.ply`` (at the run's fusion voxel size),
 the surface smoothing (:func:`fpp_graph.fusion.voxel_grid.project_to_local_planes`) in passes

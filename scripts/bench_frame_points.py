@@ -6,7 +6,7 @@
 ``--frames`` frames from the middle of the run, on one core (libraries on one thread, as on a
 decode worker), it times the points every decoded frame is built with: the map's valid pixels in
 row-major order, by :func:`fpp_graph.geometry.masked_pixels` (``np.compress`` over the flat map,
-stop 55) against the peer ``xyz_map[valid]`` (the readers' code before), on the float64 map a
+since commit 60709e2) against the peer ``xyz_map[valid]`` (the readers' code before), on the float64 map a
 reader holds. Each line gives both times, their ratio and whether the two agree bit for bit; the
 last line their medians. Minimum over ``--repeat`` runs.
 """

@@ -5,7 +5,7 @@ Run: .venv/bin/python scripts/bench_frontend.py [--repeat 15]
 Prints, in one run:
 1. our full decode (4-step + 7-bit complementary Gray code = 12 uint8 images: phase,
    modulation, texture, mask, fringe order, u_p) - median ms (target: <= ~25 ms, leaving the
-   rest of the issue's 40 ms for triangulation);
+   rest of the 40 ms frame target of item 2 for triangulation);
 2. the triangulation of the decoded map into a float64 xyz map (hook:
    :func:`time_triangulation`), then decode + triangulation timed together as one frame of a
    sensor loop (target <= 40 ms), checked on both the wall-clock and the CPU-time median; the

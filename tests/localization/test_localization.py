@@ -411,7 +411,7 @@ def test_adaptive_smoothing_is_wide_on_planes_and_narrow_on_relief():
 
 
 def _adaptive_scale_in_whole_frame_passes(z: np.ndarray, small_px: float, large_px: float, kappa: float = 3.0) -> np.ndarray:
-    """adaptive_smoothing_scale as whole-frame passes (stop 51's code): the specification of the banded one."""
+    """adaptive_smoothing_scale as whole-frame passes (the code before commit 4a8d848): the specification of the banded one."""
     from frontend.localization.surface import _smoother_noise_gains
 
     ok = np.isfinite(z)
