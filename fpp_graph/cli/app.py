@@ -6,7 +6,9 @@ that does not import this one (dependencies run one way: app -> commands -> comm
 modules (numpy, gtsam, Open3D, OpenCV) are imported inside the commands so that ``fpp-slam
 --help`` stays instant. User errors (:class:`~fpp_graph.errors.FppError`) print one line on
 stderr and exit 2. Front-ends add commands through the ``fpp_graph.cli`` entry-point group
-(``fpp-slam demo`` is one).
+(``fpp-slam demo`` is one). Every command gives example invocations with
+:func:`~fpp_graph.cli.common.examples`, shown at the end of its ``--help``. ``fpp-slam
+--version`` reads the installed distribution's metadata and attaches no command.
 """
 
 from __future__ import annotations
@@ -14,16 +16,19 @@ from __future__ import annotations
 import signal
 import sys
 import threading
+from typing import Annotated
 
 import typer
 
-from fpp_graph.cli.common import on_stop_signal, stop_signal
+from fpp_graph.cli.common import examples_epilog, on_stop_signal, stop_signal
 from fpp_graph.cli.config_commands import config_defaults, config_dump
 from fpp_graph.cli.optimize import optimize_graph
 from fpp_graph.cli.run import batch, eval_, run
 from fpp_graph.errors import FppError
 
 PLUGIN_GROUP = "fpp_graph.cli"
+DISTRIBUTION = "fpp-graph"
+VERSION_OPTIONS = ("--version", "-V")
 
 app = typer.Typer(
     name="fpp-slam",
@@ -33,12 +38,39 @@ app = typer.Typer(
     pretty_exceptions_enable=False,
 )
 config_app = typer.Typer(help="Inspect the configuration.", no_args_is_help=True)
-config_app.command("dump")(config_dump)
-config_app.command("defaults")(config_defaults)
+config_app.command("dump", epilog=examples_epilog(config_dump))(config_dump)
+config_app.command("defaults", epilog=examples_epilog(config_defaults))(config_defaults)
+
+
+def version_text() -> str:
+    """``fpp-slam <version>``, the installed distribution's version.
+
+    Raises
+    ------
+    FppError
+        The ``fpp-graph`` distribution is not installed (the package imported from a source tree).
+    """
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return f"fpp-slam {version(DISTRIBUTION)}"
+    except PackageNotFoundError:
+        raise FppError(f"the {DISTRIBUTION} distribution is not installed, so it has no version; install it with `pip install -e .` in the repository") from None
+
+
+def _show_version(value: bool) -> None:
+    if value:
+        typer.echo(version_text())
+        raise typer.Exit()
 
 
 @app.callback()
-def _root() -> None:
+def _root(
+    version: Annotated[
+        bool,
+        typer.Option(*VERSION_OPTIONS, callback=_show_version, is_eager=True, help="Print the version and exit."),
+    ] = False,
+) -> None:
     """Millimetre-accurate indoor SLAM on fringe projection profilometry (FPP) sensors."""
 
 
@@ -61,7 +93,7 @@ def add_commands(names: list[str] | None = None) -> None:
         if name == "config":
             app.add_typer(config_app, name="config")
         else:
-            app.command(name)(COMMANDS[name])
+            app.command(name, epilog=examples_epilog(COMMANDS[name]))(COMMANDS[name])
     if names is None:
         add_plugin_commands()
 
@@ -78,15 +110,20 @@ def add_plugin_commands() -> None:
     from importlib.metadata import entry_points
 
     for ep in entry_points(group=PLUGIN_GROUP):
-        app.command(ep.name)(ep.load())
+        command = ep.load()
+        app.command(ep.name, epilog=examples_epilog(command))(command)
 
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``fpp-slam`` (and ``python -m fpp_graph.cli``): runs the app, turning
     FppError into one line + exit 2."""
     args = sys.argv[1:] if argv is None else list(argv)
-    # only the command that runs (see add_commands); everything for --help or a plug-in command
-    add_commands([args[0]] if args and args[0] in {*COMMANDS, "config"} else None)
+    # only the command that runs (see add_commands); none for --version; everything for --help
+    # or a plug-in command
+    if args and args[0] in VERSION_OPTIONS:
+        add_commands([])
+    else:
+        add_commands([args[0]] if args and args[0] in {*COMMANDS, "config"} else None)
     # SIGTERM (a scheduler, `kill`) takes the same path as Ctrl-C: the command's clean-up runs
     # (worker processes end, outputs stay whole) instead of the process vanishing mid-write
     # (only the main thread may set handlers: main() called from a worker thread runs without)

@@ -8,8 +8,9 @@ from __future__ import annotations
 import logging
 import signal
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Annotated, Any, Optional
+from typing import Annotated, Any, Optional, TypeVar
 
 import typer
 
@@ -18,6 +19,66 @@ ConfigOption = Annotated[
     typer.Option("--config", "-c", help="YAML file overriding the packaged defaults."),
 ]
 OutOption = Annotated[Optional[Path], typer.Option("--out", "-o", help="Results folder (default: results/<sequence>-<time>).")]  # noqa: UP045
+
+
+CommandFunction = TypeVar("CommandFunction", bound=Callable[..., Any])
+
+#: The attribute :func:`examples` sets on a command function, read when the command is attached.
+EXAMPLES_ATTRIBUTE = "fpp_slam_examples"
+
+
+def examples(*command_lines: str) -> Callable[[CommandFunction], CommandFunction]:
+    """Decorator: example invocations that ``fpp-slam COMMAND --help`` shows below the options.
+
+    Each line is one whole command line as a user types it (``fpp-slam run DIR --out DIR``); a
+    shell redirection or pipe may follow it. The line must parse against the command's options
+    (``tests/test_cli_conventions.py`` checks every one). Front-end commands (the ``fpp_graph.cli``
+    entry points) use it too.
+    """
+
+    def attach(command: CommandFunction) -> CommandFunction:
+        setattr(command, EXAMPLES_ATTRIBUTE, tuple(command_lines))
+        return command
+
+    return attach
+
+
+#: Examples longer than this are continued on further lines (`` \\`` then 4 spaces), so that they
+#: stay whole, and can be pasted into a shell, in an 80-column terminal (the help's margins take 2).
+EXAMPLE_WIDTH = 76
+
+
+def examples_epilog(command: Callable[..., Any]) -> str | None:
+    """The ``--help`` epilog listing a command's :func:`examples`, or None without any.
+
+    Examples are separated by blank lines (typer's rich help shows each paragraph on lines of its
+    own); a long one is broken between words with shell line continuations.
+    """
+    lines = getattr(command, EXAMPLES_ATTRIBUTE, ())
+    return "\n\n".join(["Examples:", *map(continued_lines, lines)]) if lines else None
+
+
+def continued_lines(command_line: str, width: int = EXAMPLE_WIDTH) -> str:
+    """``command_line`` broken into lines of at most ``width`` characters where it can be, joined
+    by `` \\`` + newline + 4 spaces as a shell reads them. Breaks fall before an option (which
+    keeps its value on its line unless the two do not fit on one), a redirection or a positional
+    argument, never inside a word."""
+    units: list[str] = []
+    for word in command_line.split():
+        starts_unit = word.startswith("-") or word in {">", ">>", "|"} or not units or not units[-1].startswith(("-", ">", "|"))
+        if starts_unit:
+            units.append(word)
+        else:
+            units[-1] += " " + word
+    rows: list[str] = []
+    for unit in units:
+        if rows and len(rows[-1]) + 1 + len(unit) + 2 <= width:
+            rows[-1] += " " + unit
+        elif rows and len(unit) + 6 > width:  # an option with a long value: the value on its own line
+            rows.extend("    " + word for word in unit.split(" "))
+        else:
+            rows.append("    " + unit if rows else unit)
+    return " \\\n".join(rows)
 
 
 class Terminated(KeyboardInterrupt):

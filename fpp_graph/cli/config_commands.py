@@ -7,7 +7,7 @@ from typing import Annotated, Optional
 
 import typer
 
-from fpp_graph.cli.common import ConfigOption
+from fpp_graph.cli.common import ConfigOption, examples
 
 SequenceOption = Annotated[
     Optional[Path],  # noqa: UP045 - typer reads the annotation at runtime
@@ -18,6 +18,10 @@ SequenceOption = Annotated[
 ]
 
 
+@examples(
+    "fpp-slam config dump --config my.yaml",
+    "fpp-slam config dump --sequence ../shared/data/rgbd/tum_fr1_rpy_subset",
+)
 def config_dump(config: ConfigOption = None, sequence: SequenceOption = None) -> None:
     """Print the resolved configuration (defaults overridden by --config) as YAML."""
     from fpp_graph.config import dump_config, load_config
@@ -30,6 +34,7 @@ def config_dump(config: ConfigOption = None, sequence: SequenceOption = None) ->
     typer.echo(dump_config(cfg), nl=False)
 
 
+@examples("fpp-slam config defaults > my.yaml")
 def config_defaults() -> None:
     """Print the documented default configuration file, with its comments."""
     from fpp_graph.config import default_config_text

@@ -9,9 +9,13 @@ from typing import Annotated, Optional
 
 import typer
 
-from fpp_graph.cli.common import ConfigOption, setup_logging
+from fpp_graph.cli.common import ConfigOption, examples, setup_logging
 
 
+@examples(
+    "fpp-slam optimize ../shared/data/posegraphs/sphere2500.g2o --out sphere_opt.g2o",
+    "fpp-slam optimize ../shared/data/posegraphs/parking-garage.g2o --noise-model isotropic --robust none --json",
+)
 def optimize_graph(
     graph_file: Annotated[Path, typer.Argument(help="3D g2o pose graph (VERTEX_SE3:QUAT, EDGE_SE3:QUAT).")],
     out: Annotated[Optional[Path], typer.Option("--out", "-o", help="Write the optimised graph here (g2o, full precision).")] = None,  # noqa: UP045

@@ -15,6 +15,7 @@ from fpp_graph.cli.common import (
     OutOption,
     RichProgress,
     default_out,
+    examples,
     print_metrics_table,
     setup_logging,
     stop_signal,
@@ -22,6 +23,11 @@ from fpp_graph.cli.common import (
 from fpp_graph.errors import InputDataError, Interrupted
 
 
+@examples(
+    "fpp-slam run ../shared/data/rgbd/7scenes_chess_150_199 --out results/chess",
+    "fpp-slam run datasets/generated/turntable --out results/turntable --resume",
+    "fpp-slam run ../shared/data/posegraphs/sphere2500.g2o --out results/sphere2500",
+)
 def run(
     sequence: Annotated[Path, typer.Argument(help="Sequence folder (FPP sequence.yaml, 7-Scenes or TUM RGB-D) or a .g2o pose graph.")],
     config: ConfigOption = None,
@@ -86,6 +92,10 @@ def _interrupted(sequence: Path, out: Path) -> Interrupted:
     )
 
 
+@examples(
+    "fpp-slam eval results/chess --gt ../shared/data/rgbd/7scenes_chess_150_199",
+    "fpp-slam eval results/turntable --gt datasets/generated/turntable --json > metrics.json",
+)
 def eval_(
     results: Annotated[Path, typer.Argument(help="Results folder of a run.")],
     gt: Annotated[Path, typer.Option("--gt", help="The sequence folder with ground truth.")],
@@ -105,6 +115,10 @@ def eval_(
         print_metrics_table(metrics)
 
 
+@examples(
+    "fpp-slam batch ../shared/data/rgbd/7scenes_chess_150_199 ../shared/data/rgbd/tum_fr1_rpy_subset --out results/batch --workers 2",
+    "fpp-slam batch ../shared/data/posegraphs/*.g2o --out results/posegraphs --scheduler local",
+)
 def batch(
     sequences: Annotated[list[Path], typer.Argument(help="Sequence folders or .g2o pose graphs (as for run).")],
     out: Annotated[Path, typer.Option("--out", "-o", help="Parent folder of the results.")] = Path("results/batch"),

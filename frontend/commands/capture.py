@@ -13,6 +13,8 @@ from typing import Annotated, Optional
 
 import typer
 
+from fpp_graph.cli.common import examples
+
 CalibrationOption = Annotated[Path, typer.Option("--calibration", help="Rig calibration: fpp-graph YAML, SLMaster caliInfo.yml, procam-calibration XML or SLStudio-style XML (detected by content).")]
 PatternsOption = Annotated[Path, typer.Option("--patterns", help="Pattern file (YAML; `fpp-slam patterns` prints its schema) or a sequence.yaml.")]
 ProjectorOption = Annotated[Optional[str], typer.Option("--projector", help="Projector WxH in pixels, for calibration files that do not store it (SLMaster: 1920x1080, procam-calibration: 1024x768 by default).")]  # noqa: UP045
@@ -49,6 +51,11 @@ def parse_range(text: str, what: str) -> tuple[float, float]:
     return near, far
 
 
+@examples(
+    "fpp-slam patterns",
+    "fpp-slam patterns datasets/patterns/slmaster_monocular.yaml",
+    "fpp-slam patterns datasets/patterns/single_frequency_8step.yaml --projector 1920x1080 --render-to patterns_1920x1080",
+)
 def patterns(
     spec: Annotated[Optional[Path], typer.Argument(help="A pattern file to check; without it the file's schema is printed.")] = None,  # noqa: UP045
     projector: Annotated[Optional[str], typer.Option("--projector", help="Also render the patterns for a WxH projector ...")] = None,  # noqa: UP045
@@ -77,6 +84,12 @@ def patterns(
         typer.echo(f"rendered {pattern_spec.image_count()} {size[0]}x{size[1]} images into {render_to}")
 
 
+@examples(
+    "fpp-slam decode ../shared/data/real_fpp/slmaster_monocular --calibration ../shared/data/real_fpp/slmaster_monocular/caliInfo.yml"
+    " --patterns datasets/patterns/slmaster_monocular.yaml --out decoded/slmaster",
+    "fpp-slam decode ../shared/data/real_fpp/slmaster_heterodyne --calibration ../shared/data/real_fpp/slmaster_monocular/caliInfo.yml"
+    " --patterns datasets/patterns/slmaster_heterodyne.yaml --no-edge-filter --out decoded/heterodyne",
+)
 def decode(
     capture: Annotated[Path, typer.Argument(help="Folder with one capture's images, in the order the pattern file states (natural name order).")],
     calibration: CalibrationOption,
@@ -116,6 +129,10 @@ def decode(
     typer.echo(f"{r['valid_pixels']} valid points ({100 * r['valid_pixels'] / (r['image_size'][0] * r['image_size'][1]):.1f} % of pixels), {span}, {total_s:.2f} s -> {out}")
 
 
+@examples(
+    "fpp-slam calibrate ../shared/data/real_fpp/procam_calibration --poses 'capture_*'"
+    " --patterns datasets/patterns/procam_graycode_1024x768.yaml --board 9x7 --square-mm 75 --projector 1024x768 --out procam_calibration.yaml",
+)
 def calibrate(
     board_captures: Annotated[Path, typer.Argument(help="Folder with one sub-folder of pattern images per chessboard pose.")],
     patterns: PatternsOption,
@@ -169,6 +186,11 @@ def calibrate(
                f"baseline {1e3 * report.calibration.baseline_m:.1f} mm -> {out}")
 
 
+@examples(
+    "fpp-slam import ../shared/data/real_fpp/procam_calibration --frames 'capture_*'"
+    " --patterns datasets/patterns/procam_graycode_1024x768.yaml"
+    " --calibration ../shared/data/real_fpp/procam_calibration/calibration_result.xml --reference --out datasets/generated/procam_boards",
+)
 def import_captures(
     captures_root: Annotated[Path, typer.Argument(help="Folder with one sub-folder of pattern images per frame.")],
     patterns: PatternsOption,

@@ -13,6 +13,8 @@ from typing import Annotated, Any, Optional
 
 import typer
 
+from fpp_graph.cli.common import examples
+
 
 def camera_model(calibration: Path | None, views: list[Any]) -> tuple[Any, Any, Any]:
     """``(K, dist, projector_centre_m)`` of the map's camera.
@@ -63,6 +65,10 @@ def read_grey_image(path: Path) -> Any:
     return image
 
 
+@examples(
+    "fpp-slam localize results/turntable --image decoded/view/texture.png --calibration datasets/generated/turntable",
+    "fpp-slam localize results/demo/results --image photo.png --no-projector --json",
+)
 def localize(
     results: Annotated[Path, typer.Argument(help="Results folder of 'fpp-slam run' (frames/ and trajectory.tum).")],
     image: Annotated[Path, typer.Option("--image", help="Texture image of the map's camera (no fringes needed).")],

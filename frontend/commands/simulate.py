@@ -13,6 +13,8 @@ from typing import Annotated, Any, Optional
 
 import typer
 
+from fpp_graph.cli.common import examples
+
 SCENES = ("turntable", "corridor")
 
 
@@ -68,6 +70,11 @@ def scene_config(scene: str, config_path: Path | None, mesh: Path | None, seed: 
     return config
 
 
+@examples(
+    "fpp-slam simulate turntable --config datasets/turntable.yaml --out datasets/generated/turntable --resolution 640x400",
+    "fpp-slam simulate turntable --mesh ../shared/data/meshes/stanford-bunny.obj --seed 1 --out datasets/generated/bunny",
+    "fpp-slam simulate corridor --resolution 640x400 --frames 20 --true-calibration --out datasets/generated/corridor",
+)
 def simulate(
     scene: Annotated[str, typer.Argument(help="turntable or corridor.")],
     out: Annotated[Path, typer.Option("--out", "-o", help="Sequence folder to write.")],
