@@ -1,6 +1,6 @@
 """Acceptance figures of the FPP decoder on synthetic captures with known ground truth.
 
-Run: .venv/bin/python scripts/accuracy_frontend.py
+Run: .venv/bin/python scripts/accuracy_frontend.py [--json PATH]
 
 1. Phase accuracy: RMS wrapped-phase error against the least-squares bound sqrt(2/N) sigma / B
    for N = 3, 4, 8, 12 on 1M pixels (16-bit images with B = 20000, sigma = 200, so quantisation
@@ -14,6 +14,10 @@ Run: .venv/bin/python scripts/accuracy_frontend.py
 """
 
 from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
 
 import numpy as np
 
@@ -30,7 +34,9 @@ def wrap_pm_pi(x: np.ndarray) -> np.ndarray:
     return (x + np.pi) % (2 * np.pi) - np.pi
 
 
-def phase_accuracy() -> None:
+def phase_accuracy() -> list[dict]:
+    """Print the phase-accuracy lines; return them as records (images, N, RMS, bound, ratio)."""
+    rows = []
     print("1. wrapped-phase RMS error vs the least-squares bound sqrt(2/N) sigma/B (1M pixels each)")
     h, w = 1000, 1000
     for label, dtype, background, modulation, sigma, level in [
@@ -48,6 +54,8 @@ def phase_accuracy() -> None:
             bound = np.sqrt(2.0 / n) * sigma / modulation
             verdict = "PASS" if rms <= 1.05 * bound else ("(quantisation)" if dtype == np.uint8 else "FAIL")
             print(f"   {label}  N={n:2d}: RMS {rms:.5f} rad  bound {bound:.5f} rad  ratio {rms / bound:.4f}  {verdict}")
+            rows.append({"images": " ".join(label.split()), "steps": n, "rms_rad": rms, "bound_rad": float(bound), "ratio": rms / bound})
+    return rows
 
 
 def order_errors(result, u_true: np.ndarray) -> tuple[int, float]:
@@ -56,7 +64,9 @@ def order_errors(result, u_true: np.ndarray) -> tuple[int, float]:
     return int(np.count_nonzero(wrong)), float(np.sqrt(np.nanmean(np.where(wrong, np.nan, result.u_projector_px - u_true) ** 2)))
 
 
-def unwrapping() -> None:
+def unwrapping() -> list[dict]:
+    """Print the fringe-order lines; return them as records (blur, method, order errors, valid, u_p RMS)."""
+    rows = []
     print(f"2. unwrapping at full size: {CAMERA_W}x{CAMERA_H} camera, {PROJECTOR_W}x{PROJECTOR_H} projector, smooth scene, sigma 2 grey, B 80")
     u, v = smooth_projector_map(CAMERA_W, CAMERA_H, PROJECTOR_W, PROJECTOR_H)
     scale = np.median(np.diff(u, axis=1))
@@ -82,11 +92,20 @@ def unwrapping() -> None:
                 extra = f"  (all within {dist[wrong].max():.2f} camera px of a code edge)"
             print(f"     {label} order errors {n_wrong:7d} of {result.mask.sum():8d} valid ({100 * result.valid_fraction:.2f} %), "
                   f"u_p RMS {rms:.4f} px{extra}")
+            rows.append({"blur_px": blur, "method": label.strip(), "kind": spec.kind, "order_errors": n_wrong,
+                         "valid": int(result.mask.sum()), "u_p_rms_px": rms})
+    return rows
 
 
-def main() -> None:
-    phase_accuracy()
-    unwrapping()
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--json", type=Path, default=None, help="also write the printed figures to this JSON file")
+    args = parser.parse_args(argv)
+    figures = {"phase_accuracy": phase_accuracy(), "unwrapping": unwrapping()}
+    if args.json is not None:
+        from fpp_graph.atomic import atomic_write_text
+
+        atomic_write_text(args.json, json.dumps(figures, indent=1, default=float))
 
 
 if __name__ == "__main__":

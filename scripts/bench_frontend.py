@@ -1,6 +1,6 @@
 """Benchmark: FPP decode of one 1920x1200 frame on one core, against OpenCV's phase map as a peer.
 
-Run: .venv/bin/python scripts/bench_frontend.py [--repeat 15]
+Run: .venv/bin/python scripts/bench_frontend.py [--repeat 15] [--json PATH]
 
 Prints, in one run:
 1. our full decode (4-step + 7-bit complementary Gray code = 12 uint8 images: phase,
@@ -34,9 +34,11 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import argparse  # noqa: E402
+import json  # noqa: E402
 import statistics  # noqa: E402
 import time  # noqa: E402
 from collections.abc import Callable  # noqa: E402
+from pathlib import Path  # noqa: E402
 
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
@@ -151,7 +153,10 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--repeat", type=int, default=15)
     parser.add_argument("--sigma", type=float, default=2.0, help="camera noise, grey levels")
+    parser.add_argument("--json", type=Path, default=None, help="also write the printed figures to this JSON file")
     args = parser.parse_args()
+    figures: dict[str, object] = {"camera": [CAMERA_W, CAMERA_H], "images": None, "repeat": args.repeat, "sigma_grey": args.sigma,
+                                  "cores": os.cpu_count(), "load_average_before": os.getloadavg()[0]}
     cv2.setNumThreads(1)
     rng = np.random.default_rng(7)
 
@@ -166,6 +171,9 @@ def main() -> None:
     truth = 2 * np.pi * 128 * u / PROJECTOR_W
     t_decode, t_decode_min, c_decode = timed(lambda: decoder.decode(images, out=result), args.repeat)
     load = os.getloadavg()[0]
+    figures.update(images=spec.image_count(), decode_ms={"median": t_decode, "min": t_decode_min, "cpu_median": c_decode},
+                   valid_fraction=result.valid_fraction, order_errors=order_errors,
+                   phase_rms_rad=rms_phase_error(result.wrapped_phase, truth), u_p_rms_px=float(np.sqrt(np.nanmean(err**2))))
     print(f"frame: {CAMERA_W}x{CAMERA_H} camera, {spec.image_count()} uint8 images (4-step + 7 Gray bits + complementary bit), "
           f"sigma {args.sigma} grey, B 80, blur 1 px; one thread; median of {args.repeat}; load average {load:.2f} on {os.cpu_count()} cores")
     print("  (wall = perf_counter, includes waiting for a core on a shared machine; CPU = process_time of this one thread)")
@@ -176,11 +184,15 @@ def main() -> None:
     tri = time_triangulation(result.u_projector_px, result.mask, args.repeat)
     if isinstance(tri, str):
         print(f"triangulation                      {tri}")
+        figures["triangulation"] = tri
     else:
         print(f"triangulation (frontend.fpp.triangulation) median {tri[0]:6.1f} ms  (min {tri[1]:5.1f}, CPU {tri[2]:5.1f})   "
               f"valid points {100 * TRIANGULATION_VALID[0]:.2f} % of the frame")
+        figures["triangulation_ms"] = {"median": tri[0], "min": tri[1], "cpu_median": tri[2]}
+        figures["triangulation_valid_fraction"] = TRIANGULATION_VALID[0]
         for label, reuse in (("decode + triangulation, one frame loop", True), ("  same, fresh output arrays per frame", False)):
             w_med, w_min, c_med = timed(frame_loop(decoder, images, result, reuse), args.repeat)
+            figures["frame_ms" if reuse else "frame_fresh_arrays_ms"] = {"median": w_med, "min": w_min, "cpu_median": c_med}
             verdict = f"wall {'PASS' if w_med <= 40 else 'FAIL'}, CPU {'PASS' if c_med <= 40 else 'FAIL'}"
             print(f"{label:38s} median {w_med:6.1f} ms  (min {w_min:5.1f}, CPU {c_med:5.1f})  target <= 40 ms: {verdict}")
         print(f"  load average after: {os.getloadavg()[0]:.2f} (buffers reused = decode(out=previous result), triangulate(out=xyz buffer), "
@@ -202,14 +214,26 @@ def main() -> None:
     print(f"  speed ratio OpenCV / ours (phase map): {t_cv / t_ours3:5.1f}x wall, {c_cv / c_ours3:5.1f}x CPU   (aim >= 4x at equal or lower error: "
           f"{'PASS' if t_cv / t_ours3 >= 4 and err_ours3 <= err_cv * 1.001 else 'FAIL'})")
     print(f"  OpenCV 3-image phase map / our whole 12-image decode: {t_cv / t_decode:5.2f}x")
+    figures["phase_map_3step"] = {
+        "ours_ms": {"median": t_ours3, "min": t_ours3_min, "cpu_median": c_ours3},
+        "opencv_ms": {"median": t_cv, "min": t_cv_min, "cpu_median": c_cv},
+        "ours_rms_rad": err_ours3, "opencv_rms_rad": err_cv, "theory_rad": float(theory),
+        "opencv_over_ours_wall": t_cv / t_ours3, "opencv_over_ours_cpu": c_cv / c_ours3,
+    }
     # OpenCV band-passes each image around one spatial frequency before the 3-step formula
     # (to remove its cross markers); on our curved scene the fringe frequency varies, which
     # costs it accuracy. On a flat scene (one frequency) the filter is harmless:
     u_flat = np.tile(np.linspace(20.0, PROJECTOR_W - 20.0, CAMERA_W), (CAMERA_H, 1))
     flat3 = render_captures(spec3, u_flat, v, PROJECTOR_W, PROJECTOR_H, **{**kw, "rng": np.random.default_rng(9)})[:3]
     truth_flat = 2 * np.pi * 128 * u_flat / PROJECTOR_W
-    print(f"  flat scene (constant fringe frequency): phase RMS ours {rms_phase_error(compute_wrapped_phase(flat3)[0], truth_flat):.4f} rad, "
-          f"OpenCV {rms_phase_error(-opencv_phase_map(flat3)(), truth_flat):.4f} rad")
+    flat_ours, flat_cv = rms_phase_error(compute_wrapped_phase(flat3)[0], truth_flat), rms_phase_error(-opencv_phase_map(flat3)(), truth_flat)
+    print(f"  flat scene (constant fringe frequency): phase RMS ours {flat_ours:.4f} rad, OpenCV {flat_cv:.4f} rad")
+    figures["phase_map_3step"]["flat_scene_rms_rad"] = {"ours": flat_ours, "opencv": flat_cv}
+    figures["load_average_after"] = os.getloadavg()[0]
+    if args.json is not None:
+        from fpp_graph.atomic import atomic_write_text
+
+        atomic_write_text(args.json, json.dumps(figures, indent=1, default=float))
 
 
 if __name__ == "__main__":

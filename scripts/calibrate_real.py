@@ -9,12 +9,13 @@ parameters, and the camera -> projector transfer RMS (board pose from the camera
 into the projector through the rig) of ours (in-sample and leave-one-pose-out) and of the
 reference, on the same decoded corners. Writes ``results/procam_calibration.yaml`` (mm).
 
-Usage: ``.venv/bin/python scripts/calibrate_real.py [--data DIR] [--out FILE]``
+Usage: ``.venv/bin/python scripts/calibrate_real.py [--data DIR] [--out FILE] [--json PATH]``
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 from pathlib import Path
 
@@ -45,6 +46,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", type=Path, default=ROOT.parent / "shared" / "data" / "real_fpp" / "procam_calibration")
     parser.add_argument("--out", type=Path, default=ROOT / "results" / "procam_calibration.yaml")
+    parser.add_argument("--json", type=Path, default=None, help="also write the printed RMS figures to this JSON file")
     args = parser.parse_args()
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
 
@@ -89,8 +91,18 @@ def main() -> None:
     r2 = ours2.reprojection_rms_px
     print("  in the reference's apparent units (projector coordinates x2: 2048x1536, Gray-code step 2):")
     print(f"    ours: camera {r2['camera']:.3f} px, projector {r2['projector']:.3f} px, stereo {r2['stereo']:.3f} px (reference stereo {ref2.reprojection_rms_px['stereo']:.3f} px)")
-    print(f"    transfer RMS: ours {transfer_rms_px(ours2, obs2, board)[0]:.3f} px, reference {transfer_rms_px(ref2, obs2, board)[0]:.3f} px")
+    transfer2 = {"ours": transfer_rms_px(ours2, obs2, board)[0], "reference": transfer_rms_px(ref2, obs2, board)[0]}
+    print(f"    transfer RMS: ours {transfer2['ours']:.3f} px, reference {transfer2['reference']:.3f} px")
     describe("ours, x2 units", ours2)
+    figures = {
+        "poses": len(folders), "camera_corners": report.camera_corners, "projector_corners": report.projector_corners,
+        "rms_px": dict(rms), "reference_stereo_rms_px": ref.reprojection_rms_px["stereo"],
+        "refined_intrinsics_stereo_rms_px": refined.reprojection_rms_px["stereo"], "k3_fixed_rms_px": dict(r3),
+        "transfer_rms_px": {"ours_in_sample": t_ours, "ours_leave_one_pose_out": float(np.sqrt(np.mean(np.square(loo)))),
+                            "reference": t_ref},
+        "x2_units": {"rms_px": dict(r2), "reference_stereo_rms_px": ref2.reprojection_rms_px["stereo"],
+                     "transfer_rms_px": transfer2},
+    }
 
     args.out.parent.mkdir(parents=True, exist_ok=True)
     save_calibration(args.out, ours)
@@ -101,6 +113,10 @@ def main() -> None:
         cal = read_slmaster_calibration(sl)
         describe("SLMaster caliInfo.yml (read, Rlp/Tlp = T_projector_camera)", cal)
         slmaster_direction_check(cal, sl.parent)
+    if args.json is not None:
+        from fpp_graph.atomic import atomic_write_text
+
+        atomic_write_text(args.json, json.dumps(figures, indent=1, default=float))
 
 
 def slmaster_direction_check(cal, folder: Path) -> None:

@@ -1,6 +1,6 @@
 """Decode the real SLMaster captures under ../shared/data/real_fpp with frontend.fpp.phase.
 
-Run: .venv/bin/python scripts/decode_real.py [--data DIR] [--out results/frontend]
+Run: .venv/bin/python scripts/decode_real.py [--data DIR] [--out results/frontend] [--json PATH]
 
 Prints the SLMaster regression values for ``slmaster_heterodyne``, the convention check of
 ``slmaster_monocular`` and saves PNGs of wrapped phase / u_p / mask / modulation / texture.
@@ -44,6 +44,7 @@ bit) is bright on the right half, image 17 (last) has the finest stripes.
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 from pathlib import Path
 
@@ -158,6 +159,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--data", type=Path, default=DEFAULT_DATA)
     parser.add_argument("--out", type=Path, default=Path("results/frontend"))
+    parser.add_argument("--json", type=Path, default=None, help="also write the printed figures to this JSON file")
     args = parser.parse_args()
     logging.basicConfig(level=logging.WARNING)
 
@@ -169,17 +171,29 @@ def main() -> None:
     print(f"  fringe order at (row 480, col 590) = {k}          (SLMaster: 30)  {'OK' if k == 30 else 'MISMATCH'}")
     print(f"  absolute phase at (row 470, col 590) = {phi:.3f} rad (SLMaster: 191.95 +- 0.1)  {'OK' if abs(phi - 191.95) <= 0.1 else 'MISMATCH'}")
     print(f"  unwrapping jump fraction {jump_fraction(het):.5f}")
+    figures: dict[str, dict] = {"heterodyne": {
+        "valid_fraction": het.valid_fraction, "fringe_order_r480_c590": k, "fringe_order_expected": 30,
+        "absolute_phase_r470_c590_rad": phi, "absolute_phase_expected_rad": 191.95, "jump_fraction": jump_fraction(het)}}
     save_figure(het, "slmaster_heterodyne", args.out / "slmaster_heterodyne_decode.png")
 
     print("slmaster_monocular (12-step + 5 Gray bits + complementary bit, 32 periods over 1920 px):")
     print("  convention check (fraction of neighbours with u_p steps > pitch/4; the right one is ~0):")
-    for shift, bits, valid, jumps, slope in monocular_convention_table(args.data / "slmaster_monocular"):
+    conventions = monocular_convention_table(args.data / "slmaster_monocular")
+    for shift, bits, valid, jumps, slope in conventions:
         print(f"    shift {shift:9s} bits {bits:9s}  valid {100 * valid:5.1f} %  jumps {jumps:.4f}  median du_p/dx {slope:+.3f}")
     mono = decode_slmaster_monocular(args.data / "slmaster_monocular")
     u = mono.u_projector_px[mono.mask]
     print(f"  decoded: valid {100 * mono.valid_fraction:.1f} %, invalid {mono.invalid_counts}, u_p in [{u.min():.1f}, {u.max():.1f}] px, jumps {jump_fraction(mono):.5f}")
     save_figure(mono, "slmaster_monocular", args.out / "slmaster_monocular_decode.png")
+    figures["monocular"] = {
+        "valid_fraction": mono.valid_fraction, "u_p_min_px": float(u.min()), "u_p_max_px": float(u.max()), "jump_fraction": jump_fraction(mono),
+        "conventions": [{"shift": a, "bits": b, "valid_fraction": v, "jump_fraction": j, "median_du_p_dx": d} for a, b, v, j, d in conventions],
+    }
     print(f"  figures: {args.out / 'slmaster_heterodyne_decode.png'}, {args.out / 'slmaster_monocular_decode.png'}")
+    if args.json is not None:
+        from fpp_graph.atomic import atomic_write_text
+
+        atomic_write_text(args.json, json.dumps(figures, indent=1, default=float))
 
 
 if __name__ == "__main__":
