@@ -3,7 +3,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.fpp-graph-installed
 
-.PHONY: setup demo test lint bench clean
+.PHONY: setup demo test lint bench report clean
 
 $(STAMP): pyproject.toml scripts/bootstrap.sh
 	bash scripts/bootstrap.sh dev,eval,dask
@@ -22,6 +22,11 @@ lint: $(STAMP)
 
 bench: $(STAMP)
 	$(PY) scripts/bench_cli_startup.py
+
+# every benchmark script run, docs/benchmarks.md and README.md's figures table written from their output
+# (tens of minutes; `make report ARGS="--only demo"` for one section, `--list` for the names)
+report: $(STAMP)
+	$(PY) -m scripts.write_benchmarks $(ARGS)
 
 clean:
 	rm -rf $(VENV) .pytest_cache .ruff_cache .mypy_cache
