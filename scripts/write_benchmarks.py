@@ -32,6 +32,7 @@ import os
 import platform
 import re
 import shlex
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -85,7 +86,9 @@ class Benchmark:
     benchmark's work folder) and ``{data}`` (the shared data folder); ``parse(work, stdouts)``
     reads the figures (``stdouts``: each command's standard output, in order). ``needs`` are
     paths under the data folder without which the benchmark is skipped. ``runner`` replaces the
-    commands for a step that runs in this process (it returns the figures or raises Skipped).
+    commands for a step that runs in this process (it returns the figures or raises Skipped), and
+    ``shown_command`` is then the command the page shows. ``short_what``, ``short_data`` and
+    ``short_command`` are the README line's cells; ``timeout_s`` bounds all its commands together.
     """
 
     name: str
@@ -121,6 +124,10 @@ class Outcome:
     seconds: float
     figures: Figures | None = None
     reason: str = ""
+    load_average: float | None = None
+    """The 1-minute load average when it started (the machine may be shared)."""
+    date: str = ""
+    """When it started, UTC."""
 
 
 # ---------------------------------------------------------------------------------------------
@@ -197,25 +204,37 @@ def parse_end_to_end(metrics: dict, wall_s: float | None = None) -> tuple[list[l
     loop_text = " / ".join(num(v, 4) for v in loop_return) if isinstance(loop_return, list) else num(loop_return, 4)
     rows = [["figure", "value"],
             ["frames / keyframes", f"{num(metrics.get('frames'))} / {num(metrics.get('keyframes'))}"],
-            ["ATE RMSE (SE(3)-aligned)", f"{num(metrics.get('ate_rmse_mm'), 4)} mm (max {num(metrics.get('ate_max_mm'), 4)})"]]
+            ["ATE RMSE (SE(3)-aligned)", f"{num(metrics.get('ate_rmse_mm'), 4)} mm (max {num(metrics.get('ate_max_mm'), 4)} mm)"]]
     if loop_return is not None:
         rows.append(["loop return per turn", f"{loop_text} mm"])
     if "map_rmse_mm" in metrics:
         rows.append(["map RMSE to the true mesh", f"{num(metrics['map_rmse_mm'], 4)} mm (p95 {num(metrics.get('map_p95_mm'), 4)})"])
     rows.append(["loops accepted / rejected", f"{num(metrics.get('loops_accepted'))} / {num(metrics.get('loops_rejected'))}"])
-    rows.append(["run time (`fpp-slam run`'s own clock)", f"{num(metrics.get('run_seconds'), 1)} s"])
+    rows.append(["SLAM run time (the run's own clock: decode, track, loops, optimise, fuse)", f"{num(metrics.get('run_seconds'), 1)} s"])
     if wall_s is not None:
         rows.append(["whole command", f"{num(wall_s, 1)} s"])
     headline = (f"ATE {num(metrics.get('ate_rmse_mm'), 4)} mm, map {num(metrics.get('map_rmse_mm'), 3)} mm, "
-                f"loops {num(metrics.get('loops_accepted'))} / {num(metrics.get('loops_rejected'))} rejected, "
+                f"{num(metrics.get('loops_accepted'))} loops kept, {num(metrics.get('loops_rejected'))} rejected, "
                 f"run {num(metrics.get('run_seconds'), 0)} s")
     return rows, headline
 
 
+def calibration_note(stdout: str) -> str:
+    """Whether the simulation estimated the rig's calibration from rendered board captures (minutes) or found it kept."""
+    if re.search(r"^\s*calibrate\b", stdout, re.MULTILINE):
+        return "this run estimated the simulated rig's calibration from rendered board captures (not kept from an earlier run); its time includes that"
+    return "the simulated rig's calibration estimate was kept from an earlier run or shipped with the package (not recomputed)"
+
+
 def parse_demo(work: Path, stdouts: list[str]) -> Figures:
     rows, headline = parse_end_to_end(last_json_line(stdouts[-1]))
-    return Figures(rows, headline, notes=["the simulated rig's calibration is estimated from simulated board captures once "
-                                          "and kept in the user cache (`~/.cache/fpp-graph`); a first run also pays for it"])
+    for label, pattern in (("simulation (calibration included when computed)", r"simulated in ([\d.]+) s"),
+                           ("whole demo command", r"demo finished in ([\d.]+) s")):
+        if (m := re.search(pattern, stdouts[0])) is not None:
+            rows.append([label, f"{num(float(m.group(1)), 1)} s"])
+    notes = [calibration_note(stdouts[0])]
+    add_run_metrics(work / "results" / "metrics.json", rows, notes)
+    return Figures(rows, headline, notes=notes)
 
 
 def frontend_speed_commands(quick: bool) -> list[list[str]]:
@@ -436,16 +455,27 @@ def fpp_sequence_commands(scene: str, config: str, quick_frames: int) -> Callabl
 def parse_fpp_sequence(work: Path, stdouts: list[str]) -> Figures:
     metrics = last_json_line(stdouts[-1])
     rows, headline = parse_end_to_end(metrics)
-    run_metrics = work / "results" / "metrics.json"
-    notes = []
-    if run_metrics.is_file():
-        m = json.loads(run_metrics.read_text())
-        stages = m.get("seconds_by_stage") or {}
-        if stages:
-            notes.append("time by stage: " + ", ".join(f"{k} {num(v, 1)} s" for k, v in stages.items()))
-        if m.get("frames") and m.get("seconds"):
-            rows.append(["frames/s of the run", num(m["frames"] / m["seconds"], 2)])
+    if (m := re.search(r"wrote .* in ([\d.]+) s", stdouts[0])) is not None:
+        rows.append(["simulation (`fpp-slam simulate`)", f"{num(float(m.group(1)), 1)} s"])
+    notes = [calibration_note(stdouts[0])]
+    add_run_metrics(work / "results" / "metrics.json", rows, notes)
     return Figures(rows, headline, notes=notes)
+
+
+def add_run_metrics(path: Path, rows: list[list[str]], notes: list[str]) -> None:
+    """Rows and notes from a run's ``metrics.json`` (frames/s, CPU, false loops, time by stage), when it is there."""
+    if not path.is_file():
+        return
+    m = json.loads(path.read_text())
+    if m.get("frames") and m.get("seconds"):
+        cpu = f", CPU {num(100 * m['cpu_utilisation'], 0)} % of the cores" if m.get("cpu_utilisation") is not None else ""
+        rows.append(["frames/s of the run", f"{num(m['frames'] / m['seconds'], 2)}{cpu}"])
+    loops = m.get("loop_evaluation")
+    if isinstance(loops, dict) and "false_accepted" in loops:
+        rows.append(["false loops kept (against the simulator's poses)", num(len(loops["false_accepted"]))])
+    stages = m.get("seconds_by_stage") or {}
+    if stages:
+        notes.append("time by stage: " + ", ".join(f"{k} {num(v, 1)} s" for k, v in stages.items()))
 
 
 def long_rgbd_commands(quick: bool) -> list[list[str]]:
@@ -658,12 +688,25 @@ def missing_data(bench: Benchmark, data: Path) -> str | None:
 
 def run_benchmark(bench: Benchmark, ctx: RunContext, log: Callable[[str], None]) -> Outcome:
     """Run one benchmark's commands in its own work folder and read its figures; never raises."""
+    load, date = os.getloadavg()[0], utc_now()
+    outcome = _run_benchmark(bench, ctx, log)
+    outcome.load_average, outcome.date = load, date
+    return outcome
+
+
+def utc_now() -> str:
+    return datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M UTC")
+
+
+def _run_benchmark(bench: Benchmark, ctx: RunContext, log: Callable[[str], None]) -> Outcome:
     started = time.perf_counter()
     reason = missing_data(bench, ctx.data)
     if reason:
         return Outcome(bench.name, "skipped", 0.0, reason=reason)
     work = ctx.work / bench.name
-    work.mkdir(parents=True, exist_ok=True)
+    if work.exists():  # no stale figures from an earlier run under --work
+        shutil.rmtree(work)
+    work.mkdir(parents=True)
     if bench.runner is not None:
         try:
             figures = bench.runner(RunContext(ctx.data, work, ctx.quick, ctx.python, ctx.fpp_slam), bench)
@@ -803,7 +846,8 @@ def render_section(bench: Benchmark, outcome: Outcome, meta: dict[str, Any]) -> 
     else:
         lines += [f"**Failed.** {outcome.reason}", ""]
     quick = " **Quick run** (reduced settings: the figures only test the machinery)." if meta.get("quick") else ""
-    lines += [f"Measured on commit `{meta['commit'][:12]}` ({meta['tree']}), {meta['date']}, in {num(meta['seconds'], 1)} s.{quick}", ""]
+    load = f" (load average {num(meta['load_average'], 1)} at its start)" if meta.get("load_average") is not None else ""
+    lines += [f"Measured on commit `{meta['commit'][:12]}` ({meta['tree']}), {meta['date']}, in {num(meta['seconds'], 1)} s{load}.{quick}", ""]
     return f"<!-- benchmark {bench.name} begin {comment_json(meta)} -->\n" + "\n".join(lines) + f"<!-- benchmark {bench.name} end -->\n"
 
 
@@ -826,8 +870,8 @@ def section_meta(bench: Benchmark, outcome: Outcome, run: dict[str, Any]) -> dic
     else:
         figure = f"{outcome.status}: see the section"
     return {
-        "name": bench.name, "status": outcome.status, "commit": run["commit"], "tree": run["tree"], "date": run["date"],
-        "seconds": outcome.seconds, "quick": run["quick"], "machine": run["machine_line"], "commands": shown_commands(bench, run["quick"]),
+        "name": bench.name, "status": outcome.status, "commit": run["commit"], "tree": run["tree"], "date": outcome.date or run["date"],
+        "seconds": outcome.seconds, "load_average": outcome.load_average, "quick": run["quick"], "machine": run["machine_line"], "commands": shown_commands(bench, run["quick"]),
         "readme": {"what": bench.short_what, "figure": figure, "data": bench.short_data},
     }
 
@@ -962,7 +1006,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--readme", type=Path, default=DEFAULT_README, help="the README whose figures table is replaced")
     parser.add_argument("--no-readme", action="store_true", help="leave the README alone")
     parser.add_argument("--data", type=Path, default=DEFAULT_DATA, help="the shared real data (default ../shared/data)")
-    parser.add_argument("--work", type=Path, default=None, help="keep the benchmarks' outputs in this folder (default: a temporary one)")
+    parser.add_argument("--work", type=Path, default=None, help="keep each benchmark's outputs in DIR/NAME, replaced on every run (default: a temporary folder)")
     args = parser.parse_args(argv)
     try:
         return report(args)
@@ -995,7 +1039,7 @@ def report(args: argparse.Namespace) -> int:
     info = machine()
     started = time.perf_counter()
     load_before = os.getloadavg()[0]
-    date = datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M UTC")
+    date = utc_now()
     outcomes: dict[str, Outcome] = {}
     with tempfile.TemporaryDirectory(prefix="fpp-bench-") as tmp:
         work = args.work or Path(tmp)

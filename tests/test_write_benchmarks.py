@@ -29,10 +29,14 @@ def cells(figures: wb.Figures) -> str:
 
 def test_demo_reads_eval_json_from_the_last_command():
     stdout = "some log line\n" + json.dumps(EVAL_TURNTABLE) + "\n"
-    figures = wb.parse_demo(Path("."), ["demo table ...", stdout])
+    demo = ("simulating the default turntable ...\ncalibrate ━━━━ 15/15 0.05/s 0:05:03\n simulate ━━━ 72/72\n"
+            "simulated in 413.2 s; running SLAM ...\n(table)\ndemo finished in 536.3 s; results in /tmp/x\n")
+    figures = wb.parse_demo(Path("."), [demo, stdout])
     text = cells(figures)
     assert "0.0486 mm" in text and "0.0390 / 0.0380 mm" in text and "137 / 49" in text and "57.2 s" in text
-    assert figures.headline.startswith("ATE 0.0486 mm, map 0.089 mm, loops 137 / 49 rejected")
+    assert "| 413.2 s" in text and "| 536.3 s" in text and "estimated the simulated rig's calibration" in figures.notes[0]
+    assert "not recomputed" in wb.parse_demo(Path("."), [demo.replace("calibrate", "(cached)"), stdout]).notes[0]
+    assert figures.headline == "ATE 0.0486 mm, map 0.089 mm, 137 loops kept, 49 rejected, run 57 s"
 
 
 def test_frontend_speed(tmp_path):
@@ -133,11 +137,14 @@ def test_pose_graph_peer(tmp_path):
 
 def test_fpp_sequence_adds_the_run_metrics(tmp_path):
     (tmp_path / "results").mkdir()
-    write(tmp_path / "results" / "metrics.json", {"frames": 105, "seconds": 94.8, "seconds_by_stage": {"frames": 62.7, "fusion": 31.7}})
+    write(tmp_path / "results" / "metrics.json", {"frames": 105, "seconds": 94.8, "cpu_utilisation": 0.96, "seconds_by_stage": {"frames": 62.7, "fusion": 31.7},
+                                                   "loop_evaluation": {"false_accepted": []}})
     corridor = {k: v for k, v in EVAL_TURNTABLE.items() if k != "loop_return_mm"}
-    figures = wb.parse_fpp_sequence(tmp_path, ["", "", json.dumps(corridor)])
-    assert "loop return" not in cells(figures) and "1.11" in cells(figures)
-    assert figures.notes == ["time by stage: frames 62.7 s, fusion 31.7 s"]
+    simulate = " simulate ━━━ 105/105\nwrote /tmp/x/sequence in 171.6 s (estimated calibration in sequence.yaml)\n"
+    figures = wb.parse_fpp_sequence(tmp_path, [simulate, "", json.dumps(corridor)])
+    assert "loop return" not in cells(figures) and "1.11, CPU 96 % of the cores" in cells(figures) and "| 171.6 s" in cells(figures)
+    assert "false loops kept (against the simulator's poses) | 0" in cells(figures)
+    assert figures.notes[1:] == ["time by stage: frames 62.7 s, fusion 31.7 s"]
 
 
 def test_long_rgbd(tmp_path):
