@@ -38,3 +38,17 @@ def run_in_threads(fn, count: int = 4) -> list:
     for t in threads:
         t.join()
     return results
+
+
+def pytest_terminal_summary(terminalreporter, exitstatus, config) -> None:
+    """The number of documentation blocks this session ran (tests/test_docs.py)."""
+    import sys
+
+    docs = sys.modules.get("tests.test_docs") or sys.modules.get("test_docs")
+    if docs is None or not (docs.BLOCKS_RUN or docs.BLOCKS_SLOW):
+        return
+    ran, slow = sum(docs.BLOCKS_RUN.values()), sum(docs.BLOCKS_SLOW.values())
+    terminalreporter.write_line(
+        f"docs: {ran} code blocks run from {len(docs.BLOCKS_RUN)} files "
+        f"({slow} tagged slow, run by python -m scripts.write_benchmarks)"
+    )
