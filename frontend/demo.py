@@ -8,7 +8,7 @@ imports stay light so ``fpp-slam --help`` remains instant.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
 
@@ -110,3 +110,14 @@ def simulate_once(name: str, folder: Path, full: bool = False, frames: int | Non
         simulate_sequence(scene_definition(name, seed), folder, preview=not full, max_frames=frames, overwrite=True, calibration_mode=calibration)
         stamp.write_text(wanted)
     return folder
+
+
+def demo_calibration_inputs() -> tuple[Any, Any, int]:
+    """What the demo's estimated calibration is made from: the true rig at the camera's full size,
+    the board calibration settings and the seed (``(RigCalibration, BoardCalibrationSettings,
+    seed)``, the arguments of :func:`frontend.sim.calibration.estimate_rig_calibration`, whose
+    cache key names the estimate shipped for the demo)."""
+    from frontend.sim import load_simulation
+
+    setup = load_simulation(DEFAULT_SCENE, preview=True, max_frames=1)
+    return setup.native_calibration, setup.calibration_settings, setup.settings.seed

@@ -9,7 +9,11 @@ project's calibration code (:func:`frontend.fpp.calibration_folders.calibrate_fr
 simulator then renders with the truth and the sequence stores the estimate.
 
 Results are cached per (true rig, board set-up, seed): the same inputs always give the same
-estimate, and the demo does not recalibrate on every run.
+estimate, and the demo does not recalibrate on every run. The demo's own estimate also ships with
+the package (``frontend/sim/data/calibration/<cache key>.yaml`` and ``.json``, written by
+``python -m scripts.regenerate_demo_calibration``), so that a fresh install decodes the demo with
+the same calibration without spending minutes rendering board captures; it is used only for
+exactly the inputs its key was made from.
 """
 
 from __future__ import annotations
@@ -29,7 +33,7 @@ from numpy.typing import NDArray
 from pydantic import Field
 
 from fpp_graph.atomic import atomic_write_text
-from fpp_graph.errors import CalibrationError
+from fpp_graph.errors import CalibrationError, OutputError
 from fpp_graph.geometry import kabsch, rotation_angle_rad
 from frontend.fpp.calibration_board import Chessboard
 from frontend.fpp.calibration_captures import iter_graycode_captures, sample_board_poses
@@ -112,12 +116,60 @@ def cache_key(truth: RigCalibration, settings: BoardCalibrationSettings, seed: i
     return hashlib.sha256(blob.encode()).hexdigest()[:20]
 
 
+def shipped_calibration_dir() -> Path:
+    """The package's folder of shipped estimates (``frontend/sim/data/calibration``)."""
+    return Path(__file__).resolve().parent / "data" / "calibration"
+
+
+def shipped_estimate(truth: RigCalibration, settings: BoardCalibrationSettings, seed: int) -> EstimatedCalibration | None:
+    """The estimate shipped with the package for exactly these inputs, or None.
+
+    Raises
+    ------
+    CalibrationError
+        A shipped file is unreadable or its report names other settings or another seed than
+        its key was made from (a damaged install).
+    """
+    return _read_estimate(shipped_calibration_dir(), cache_key(truth, settings, seed), settings, seed, "shipped")
+
+
+def write_estimate(folder: str | os.PathLike[str], key: str, estimate: EstimatedCalibration) -> tuple[Path, Path]:
+    """Write ``<key>.yaml`` (the calibration, metres) and ``<key>.json`` (its report) atomically
+    into ``folder`` (created); returns both paths."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    cal_path, report_path = folder / f"{key}.yaml", folder / f"{key}.json"
+    save_calibration(cal_path, estimate.calibration, unit="m")
+    atomic_write_text(report_path, json.dumps(estimate.report, indent=1) + "\n")
+    return cal_path, report_path
+
+
+def _read_estimate(folder: Path, key: str, settings: BoardCalibrationSettings, seed: int, what: str) -> EstimatedCalibration | None:
+    cal_path, report_path = folder / f"{key}.yaml", folder / f"{key}.json"
+    if not (cal_path.is_file() and report_path.is_file()):
+        return None
+    try:
+        report = json.loads(report_path.read_text())
+    except (OSError, ValueError) as exc:
+        raise CalibrationError(f"{report_path}: unreadable {what} calibration report ({exc}); delete {cal_path.name} and {report_path.name} to recompute") from None
+    # the key is a digest of the inputs; the report repeats them, so a file copied under the
+    # wrong name is caught instead of decoding with another rig's estimate
+    if report.get("seed") != int(seed) or report.get("settings") != settings.model_dump(mode="json"):
+        raise CalibrationError(
+            f"{report_path}: this {what} estimate was made with other settings or another seed than its name {key} says; "
+            f"delete {cal_path.name} and {report_path.name} to recompute"
+        )
+    log.info("estimated calibration (%s) from %s", what, cal_path)
+    return EstimatedCalibration(load_calibration(cal_path), report)
+
+
 def estimate_rig_calibration(
     truth: RigCalibration,
     settings: BoardCalibrationSettings | None = None,
     seed: int = 0,
     cache_dir: str | os.PathLike[str] | None = None,
     progress: Callable[[int, int], None] | None = None,
+    shipped: bool = True,
 ) -> EstimatedCalibration:
     """Calibrate the simulated rig ``truth`` from rendered chessboard captures (cached).
 
@@ -133,7 +185,11 @@ def estimate_rig_calibration(
         Where estimates are kept (default :func:`default_cache_dir`); a folder that cannot be
         written only costs the recomputation next time.
     progress : callable, optional
-        ``progress(done, total)`` per rendered board pose (not called on a cache hit).
+        ``progress(done, total)`` before the first board pose (``done`` 0) and per rendered pose
+        (not called when an estimate is found).
+    shipped : bool
+        Use the estimate shipped with the package for exactly these inputs
+        (:func:`shipped_estimate`; the demo's) before the cache.
 
     Raises
     ------
@@ -143,16 +199,15 @@ def estimate_rig_calibration(
     settings = settings or BoardCalibrationSettings()
     folder = Path(cache_dir) if cache_dir is not None else default_cache_dir()
     key = cache_key(truth, settings, seed)
-    cal_path, report_path = folder / f"{key}.yaml", folder / f"{key}.json"
-    if cal_path.is_file() and report_path.is_file():
-        log.info("estimated calibration from the cache %s", cal_path)
-        return EstimatedCalibration(load_calibration(cal_path), json.loads(report_path.read_text()))
-    estimate = _calibrate_from_rendered_board(truth, settings, seed, progress)
+    found = shipped_estimate(truth, settings, seed) if shipped else None
+    if found is None:
+        found = _read_estimate(folder, key, settings, seed, "cached")
+    if found is not None:
+        return found
+    estimate = calibrate_from_rendered_board(truth, settings, seed, progress)
     try:
-        folder.mkdir(parents=True, exist_ok=True)
-        save_calibration(cal_path, estimate.calibration, unit="m")
-        atomic_write_text(report_path, json.dumps(estimate.report, indent=1))
-    except OSError as exc:  # a read-only cache only costs time
+        write_estimate(folder, key, estimate)
+    except (OSError, OutputError) as exc:  # a read-only cache only costs time
         log.warning("cannot cache the estimated calibration in %s: %s", folder, exc)
     return estimate
 
@@ -190,7 +245,13 @@ def _phase_observations(truth: RigCalibration, board: Chessboard, captures: Any,
     return observations
 
 
-def _calibrate_from_rendered_board(truth: RigCalibration, settings: BoardCalibrationSettings, seed: int, progress: Callable[[int, int], None] | None) -> EstimatedCalibration:
+def calibrate_from_rendered_board(
+    truth: RigCalibration, settings: BoardCalibrationSettings, seed: int, progress: Callable[[int, int], None] | None = None,
+) -> EstimatedCalibration:
+    """The calibration procedure itself, no cache: render ``settings.poses`` board captures seen
+    by ``truth`` (poses and noise from ``seed``), decode them and calibrate (minutes at 1920x1200).
+    ``progress(done, total)`` per rendered pose. Raises CalibrationError as
+    :func:`estimate_rig_calibration`."""
     board = Chessboard(tuple(settings.board_corners), settings.square_m)
     rng = np.random.default_rng([int(seed), 20241125])
     poses = sample_board_poses(
@@ -203,6 +264,8 @@ def _calibrate_from_rendered_board(truth: RigCalibration, settings: BoardCalibra
     )
 
     def counted():
+        if progress is not None:  # a pose takes seconds to render at 1920x1200
+            progress(0, len(poses))
         for k, capture in enumerate(captures):
             yield capture
             if progress is not None:
