@@ -164,7 +164,7 @@ def simulate_sequence(
     overwrite : bool
         Replace an existing sequence folder.
     progress : callable, optional
-        Called as ``progress(done, total)`` after each frame; with three arguments
+        Called as ``progress(done, total)`` before the first frame (``done`` 0) and after each; with three arguments
         (``progress(stage, done, total)``, stages ``calibrate`` and ``simulate``) when it accepts them.
     resolution : (width, height), optional
         Camera size at the same field of view (overrides ``preview``).
@@ -190,9 +190,10 @@ def simulate_sequence(
         )
         stored = binned_calibration(estimate.calibration, setup.calibration.camera.width, setup.calibration.camera.height)
         source["calibration_report"] = estimate.report
+    n = len(setup.poses_world_sensor)
+    staged("simulate", 0, n)  # the simulator's set-up and first frame take seconds
     sim = FppSimulator(setup.calibration, setup.spec, setup.scene, setup.settings)
     writer = SequenceWriter(out, stored, setup.spec, overwrite=overwrite, source=source)
-    n = len(setup.poses_world_sensor)
     for k, (T, ts) in enumerate(zip(setup.poses_world_sensor, setup.timestamps_s, strict=True)):
         frame = sim.render(T, frame_index=k)
         writer.add_frame(k, float(ts), frame.images)
