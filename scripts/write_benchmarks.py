@@ -221,7 +221,7 @@ def parse_end_to_end(metrics: dict, wall_s: float | None = None) -> tuple[list[l
 
 def calibration_note(stdout: str) -> str:
     """Whether the simulation estimated the rig's calibration from rendered board captures (minutes) or found it kept."""
-    if re.search(r"^\s*calibrate\b", stdout, re.MULTILINE):
+    if re.search(r"^\s*calibrate\b[^\n]*?\b[1-9]\d*/\d+", stdout, re.MULTILINE):  # its progress bar moved: poses rendered
         return "this run estimated the simulated rig's calibration from rendered board captures (not kept from an earlier run); its time includes that"
     return "the simulated rig's calibration estimate was kept from an earlier run or shipped with the package (not recomputed)"
 
@@ -903,7 +903,10 @@ def render_header(run: dict[str, Any], info: dict[str, Any], page_meta: dict[str
         if full:
             lines.append(f"- Last full run: {num(full['seconds'] / 60, 1)} min on commit `{full['commit'][:12]}`, {full['date']}")
     else:
-        lines.append(f"- Total time of the report run: {num(run['seconds'] / 60, 1)} min ({len(names_run)} benchmarks)")
+        left_out = run.get("skipped") or []
+        ran = len(names_run) - len(left_out)
+        lines.append(f"- Total time of the report run: {num(run['seconds'] / 60, 1)} min ({ran} benchmarks"
+                     + (f"; left out with `--skip`: {', '.join(f'`{n}`' for n in left_out)})" if left_out else ")"))
     elsewhere = sorted({meta["machine"] for meta in kept_metas if meta.get("machine") and meta["machine"] != run["machine_line"]})
     for other in elsewhere:
         names = ", ".join(f"`{meta['name']}`" for meta in kept_metas if meta.get("machine") == other)
@@ -999,6 +1002,8 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=argparse.RawDescriptionHelpFormatter,
                                      epilog="benchmarks: " + ", ".join(BY_NAME))
     parser.add_argument("--only", nargs="+", metavar="NAME", help="run these benchmarks and keep the page's other sections")
+    parser.add_argument("--skip", nargs="+", metavar="NAME", default=[], help="leave these out of the run: their sections say so")
+    parser.add_argument("--skip-reason", default="", help="why --skip left them out, written into their sections")
     parser.add_argument("--list", action="store_true", help="list the benchmarks and their commands")
     parser.add_argument("--quick", action="store_true", help="reduced settings, to test the machinery (the page says so)")
     parser.add_argument("--dry-run", action="store_true", help="print the commands and write nothing")
@@ -1020,11 +1025,15 @@ def report(args: argparse.Namespace) -> int:
         print(list_benchmarks(args.quick))
         return 0
     chosen = select(args.only)
+    skip = {b.name for b in select(args.skip)} if args.skip else set()
     if args.quick and not args.dry_run and (args.page.resolve() == DEFAULT_PAGE or (not args.no_readme and args.readme.resolve() == DEFAULT_README)):
         raise OutputError("--quick measures with reduced settings: pass --page PATH and --readme PATH (or --no-readme) "
                           "so that docs/benchmarks.md and README.md keep the real figures")
     if args.dry_run:
         for bench in chosen:
+            if bench.name in skip:
+                print(f"# {bench.name} (left out: --skip)")
+                continue
             reason = missing_data(bench, args.data)
             print(f"# {bench.name}" + (f" ({reason})" if reason else ""))
             print("\n".join(shown_commands(bench, args.quick)))
@@ -1047,7 +1056,12 @@ def report(args: argparse.Namespace) -> int:
         ctx = RunContext(data=args.data.resolve(), work=work.resolve(), quick=args.quick)
         for i, bench in enumerate(chosen, 1):
             log(f"[{i}/{len(chosen)}] {bench.name}: {bench.title}")
-            outcome = run_benchmark(bench, ctx, log)
+            if bench.name in skip:
+                why = f": {args.skip_reason}" if args.skip_reason else ""
+                outcome = Outcome(bench.name, "skipped", 0.0, reason=f"left out of this report run (`--skip {bench.name}`){why}",
+                                  date=utc_now())
+            else:
+                outcome = run_benchmark(bench, ctx, log)
             outcomes[bench.name] = outcome
             detail = outcome.figures.headline if outcome.status == "ok" and outcome.figures else outcome.reason
             log(f"  {outcome.status} in {outcome.seconds:.1f} s: {detail}")
@@ -1057,7 +1071,7 @@ def report(args: argparse.Namespace) -> int:
             "the page names the commit at the start")
     run = {"commit": state["commit"], "tree": tree_text(state), "changed": changed_names(state), "date": date, "quick": args.quick,
            "partial": bool(args.only), "seconds": time.perf_counter() - started, "load_before": load_before,
-           "load_after": os.getloadavg()[0], "machine_line": machine_line(info)}
+           "load_after": os.getloadavg()[0], "machine_line": machine_line(info), "skipped": sorted(skip, key=list(BY_NAME).index)}
     old_text = args.page.read_text() if args.page.exists() else None
     page = render_page(run, info, old_text, outcomes)
     atomic_write_text(args.page, page)

@@ -36,6 +36,7 @@ def test_demo_reads_eval_json_from_the_last_command():
     assert "0.0486 mm" in text and "0.0390 / 0.0380 mm" in text and "137 / 49" in text and "57.2 s" in text
     assert "| 413.2 s" in text and "| 536.3 s" in text and "estimated the simulated rig's calibration" in figures.notes[0]
     assert "not recomputed" in wb.parse_demo(Path("."), [demo.replace("calibrate", "(cached)"), stdout]).notes[0]
+    assert "not recomputed" in wb.parse_demo(Path("."), [demo.replace("15/15", "0/15"), stdout]).notes[0]
     assert figures.headline == "ATE 0.0486 mm, map 0.089 mm, 137 loops kept, 49 rejected, run 57 s"
 
 
@@ -295,3 +296,12 @@ def test_doc_blocks_step_records_pass_and_fail_per_slow_block(tmp_path, monkeypa
     assert figures.headline == "1 of 2 blocks pass"
     assert [row[:2] for row in figures.table[1:]] == [["`docs/guide.md:3`", "pass"],
                                                       ["`docs/guide.md:9`", "fail (exit 4: ValueError: no such file)"]]
+
+
+def test_skip_leaves_a_benchmark_out_and_its_section_says_why(fakes):
+    page, readme = fakes
+    assert run_main(page, readme, "--skip", "beta", "--skip-reason", "it takes an hour") == 0
+    _, sections = wb.parse_page(page.read_text())
+    assert sections["beta"][0]["status"] == "skipped"
+    assert "left out of this report run (`--skip beta`): it takes an hour" in sections["beta"][1]
+    assert "(2 benchmarks; left out with `--skip`: `beta`)" in page.read_text()
