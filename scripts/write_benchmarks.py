@@ -1,8 +1,10 @@
 """Run the benchmark scripts, read their figures, write ``docs/benchmarks.md`` and the README's table.
 
-    .venv/bin/python -m scripts.write_benchmarks                 # everything (``make report``)
+    .venv/bin/python -m scripts.write_benchmarks                 # the default run (``make report``)
     .venv/bin/python -m scripts.write_benchmarks --list          # the benchmarks, their data and commands
     .venv/bin/python -m scripts.write_benchmarks --only demo rgbd_tum   # a subset, merged into the page
+    .venv/bin/python -m scripts.write_benchmarks --all           # also those left out of the default run
+    .venv/bin/python -m scripts.write_benchmarks --skip doc_blocks --skip-reason "..."  # one left out, said why
     .venv/bin/python -m scripts.write_benchmarks --dry-run       # print the commands, run nothing
     .venv/bin/python -m scripts.write_benchmarks --quick --page /tmp/b.md --readme /tmp/README.md
 
@@ -15,7 +17,8 @@ it, the figures, the peer and the ratio where the script runs one, and the time 
 benchmark whose data under ``../shared/data`` is absent is skipped with that reason; one that
 fails records its command, exit code and last line of stderr in its section and the report goes
 on. ``--only`` runs a subset and keeps the page's other sections as they were (each states its own
-commit and date). The README's table, one line per benchmark, replaces what lies between
+commit and date); a benchmark too long for the default run (``default=False``, marked in
+``--list``) runs with ``--all`` or ``--only`` and its section is kept by the runs that leave it out. The README's table, one line per benchmark, replaces what lies between
 ``<!-- figures:begin -->`` and ``<!-- figures:end -->`` and nothing else.
 
 Every figure on the page comes from this script's run: edit the scripts or this file, never the
@@ -104,6 +107,8 @@ class Benchmark:
     runner: Callable[[RunContext, Benchmark], Figures] | None = None
     short_command: str = ""
     shown_command: str | None = None
+    default: bool = True
+    """In the default run; the others run with --all or --only (their sections are kept between runs)."""
 
 
 @dataclass(frozen=True)
@@ -631,7 +636,8 @@ BENCHMARKS: tuple[Benchmark, ...] = (
              "decoded with the estimated calibration; ATE, map error, loops, time.",
         data="simulated with `datasets/corridor.yaml`: 105 frames at 1920x1200",
         short_what="FPP end to end, corridor 105 frames", short_data="simulated, 1920x1200", short_command="`fpp-slam simulate corridor` + `run` + `eval`",
-        commands=fpp_sequence_commands("corridor", "datasets/corridor.yaml", 8), parse=parse_fpp_sequence, timeout_s=3600),
+        commands=fpp_sequence_commands("corridor", "datasets/corridor.yaml", 8), parse=parse_fpp_sequence, timeout_s=3600,
+        default=False),
     Benchmark(
         "rgbd_long", "Simulated RGB-D walk, 2000 frames",
         what="A hand-held 30 Hz walk through the simulated corridor (five passes with turns, Kinect-class depth noise) "
@@ -907,6 +913,9 @@ def render_header(run: dict[str, Any], info: dict[str, Any], page_meta: dict[str
         ran = len(names_run) - len(left_out)
         lines.append(f"- Total time of the report run: {num(run['seconds'] / 60, 1)} min ({ran} benchmarks"
                      + (f"; left out with `--skip`: {', '.join(f'`{n}`' for n in left_out)})" if left_out else ")"))
+    if kept_metas and not run["partial"]:
+        lines.append("- Not run this time, kept from earlier runs with their own commit and date: "
+                     + ", ".join(f"`{meta['name']}`" for meta in kept_metas) + " (`--only NAME` or `--all` runs them)")
     elsewhere = sorted({meta["machine"] for meta in kept_metas if meta.get("machine") and meta["machine"] != run["machine_line"]})
     for other in elsewhere:
         names = ", ".join(f"`{meta['name']}`" for meta in kept_metas if meta.get("machine") == other)
@@ -928,7 +937,7 @@ def render_page(run: dict[str, Any], info: dict[str, Any], old_text: str | None,
         if bench.name in outcomes:
             meta = section_meta(bench, outcomes[bench.name], run)
             sections.append((meta, render_section(bench, outcomes[bench.name], meta)))
-        elif run["partial"] and bench.name in old_sections:
+        elif bench.name in old_sections:  # not run this time (--only, or not in the default run): kept as it was
             sections.append(old_sections[bench.name])
     kept = [meta for meta, _ in sections if meta["name"] not in outcomes]
     header = render_header(run, info, page_meta, list(outcomes), kept)
@@ -980,9 +989,10 @@ def replace_between_markers(text: str, body: str, where: str = "README.md") -> s
 # the command
 
 
-def select(names: Sequence[str] | None) -> list[Benchmark]:
+def select(names: Sequence[str] | None, everything: bool = False) -> list[Benchmark]:
+    """The benchmarks named (in the registry's order), else the default ones (all with ``everything``)."""
     if not names:
-        return list(BENCHMARKS)
+        return [b for b in BENCHMARKS if b.default or everything]
     unknown = [n for n in names if n not in BY_NAME]
     if unknown:
         raise InputDataError(f"unknown benchmark {', '.join(unknown)}; the names are: {', '.join(BY_NAME)}")
@@ -993,7 +1003,8 @@ def list_benchmarks(quick: bool) -> str:
     lines = []
     for bench in BENCHMARKS:
         needs = f" (needs {', '.join(bench.needs)} under the shared data)" if bench.needs else ""
-        lines.append(f"{bench.name:20s} {bench.title}{needs}")
+        extra = "" if bench.default else " [not in the default run: --all or --only]"
+        lines.append(f"{bench.name:20s} {bench.title}{needs}{extra}")
         lines += [f"{'':20s} $ {c}" for c in shown_commands(bench, quick)]
     return "\n".join(lines)
 
@@ -1004,6 +1015,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--only", nargs="+", metavar="NAME", help="run these benchmarks and keep the page's other sections")
     parser.add_argument("--skip", nargs="+", metavar="NAME", default=[], help="leave these out of the run: their sections say so")
     parser.add_argument("--skip-reason", default="", help="why --skip left them out, written into their sections")
+    parser.add_argument("--all", action="store_true", help="also the benchmarks left out of the default run (see --list)")
     parser.add_argument("--list", action="store_true", help="list the benchmarks and their commands")
     parser.add_argument("--quick", action="store_true", help="reduced settings, to test the machinery (the page says so)")
     parser.add_argument("--dry-run", action="store_true", help="print the commands and write nothing")
@@ -1024,7 +1036,7 @@ def report(args: argparse.Namespace) -> int:
     if args.list:
         print(list_benchmarks(args.quick))
         return 0
-    chosen = select(args.only)
+    chosen = select(args.only, args.all)
     skip = {b.name for b in select(args.skip)} if args.skip else set()
     if args.quick and not args.dry_run and (args.page.resolve() == DEFAULT_PAGE or (not args.no_readme and args.readme.resolve() == DEFAULT_README)):
         raise OutputError("--quick measures with reduced settings: pass --page PATH and --readme PATH (or --no-readme) "

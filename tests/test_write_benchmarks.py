@@ -305,3 +305,19 @@ def test_skip_leaves_a_benchmark_out_and_its_section_says_why(fakes):
     assert sections["beta"][0]["status"] == "skipped"
     assert "left out of this report run (`--skip beta`): it takes an hour" in sections["beta"][1]
     assert "(2 benchmarks; left out with `--skip`: `beta`)" in page.read_text()
+
+
+def test_a_benchmark_out_of_the_default_run_runs_with_all_or_only_and_is_kept(fakes, monkeypatch):
+    page, readme = fakes
+    extra = dataclasses.replace(wb.BY_NAME["alpha"], name="delta", title="Delta: long", default=False)
+    monkeypatch.setattr(wb, "BENCHMARKS", (*wb.BENCHMARKS, extra))
+    monkeypatch.setattr(wb, "BY_NAME", {b.name: b for b in wb.BENCHMARKS})
+    run_main(page, readme)
+    assert "delta" not in wb.parse_page(page.read_text())[1]
+    assert run_main(page, readme, "--only", "delta") == 0
+    delta = wb.parse_page(page.read_text())[1]["delta"]
+    run_main(page, readme)  # the default run again: delta's section is kept as it was
+    text = page.read_text()
+    assert wb.parse_page(text)[1]["delta"] == delta
+    assert "Not run this time, kept from earlier runs with their own commit and date: `delta`" in text
+    assert "[not in the default run: --all or --only]" in wb.list_benchmarks(False)
