@@ -28,7 +28,7 @@ between two runs that both stopped mid-descent is chance.
 
 Run from the repository root::
 
-    PYTHONPATH=. .venv/bin/python scripts/bench_pose_graph_peer.py [--runs 5] [--budget 120] [--timeout 900]
+    PYTHONPATH=. .venv/bin/python scripts/bench_pose_graph_peer.py [--runs 5] [--budget 120] [--timeout 900] [--json PATH]
 """
 
 from __future__ import annotations
@@ -116,7 +116,9 @@ def main() -> int:
     parser.add_argument("--runs", type=int, default=5, help="runs of each command per graph")
     parser.add_argument("--budget", type=float, default=120.0, help="seconds per tool and graph after which it stops repeating")
     parser.add_argument("--timeout", type=float, default=900.0, help="a run taking longer is stopped and reported as such")
+    parser.add_argument("--json", type=Path, default=None, help="also write the printed figures to this JSON file")
     args = parser.parse_args()
+    rows: list[dict] = []
 
     header = (f"{'graph':<18}{'poses':>6}{'edges':>6}{'F project':>13}{'F peer':>13}{'4 s.f.':>7}{'rej':>5}{'rem':>5}"
               f"{'runs':>5}{'proj min s':>11}{'proj med s':>11}{'peer min s':>11}{'peer med s':>11}{'ratio':>7}{'ratio med':>10}")
@@ -140,9 +142,11 @@ def main() -> int:
                 print(f"{name:<18}{'':>12}{late} stopped after {args.timeout:.0f} s (--timeout): ratio > "
                       f"{min(times['project']) / min(times['peer']):.1f}", flush=True)
                 ratios.append((math.inf, math.inf, name))
+                rows.append({"name": name, "stopped": late, "timeout_s": args.timeout,
+                             "project_min_s": min(times["project"]), "peer_min_s": min(times["peer"])})
                 continue
             f_proj, f_peer = float(proj["sesync_objective"]), float(peer["sesync_objective"])
-            spread = ""
+            spread, f_soft = "", None
             if int(peer["iterations"]) >= PEER_MAX_ITERATIONS:  # stopped mid-descent: how far that is chance
                 _, softer = run_json(peer_command(path, "--prior-sigma", "1e-4"), args.timeout)
                 f_soft = float(softer["sesync_objective"]) if softer else math.nan
@@ -156,6 +160,15 @@ def main() -> int:
             ratio_med = statistics.median(times["project"]) / statistics.median(times["peer"])
             ratios.append((ratio, ratio_med, name))
             runs = f"{len(times['project'])}/{len(times['peer'])}"
+            rows.append({
+                "name": name, "poses": proj["poses"], "edges": proj["edges"], "objective_project": f_proj, "objective_peer": f_peer,
+                "agree_4sf": agree_4sf(f_proj, f_peer), "rejected_loops": rejected,
+                "removed_loops": len(proj["removed_loops"]) if "removed_loops" in proj else None,
+                "runs_project": len(times["project"]), "runs_peer": len(times["peer"]),
+                "project_min_s": min(times["project"]), "project_median_s": statistics.median(times["project"]),
+                "peer_min_s": min(times["peer"]), "peer_median_s": statistics.median(times["peer"]),
+                "ratio_min": ratio, "ratio_median": ratio_med, "peer_at_iteration_limit": f_soft is not None,
+                "objective_peer_softer_prior": f_soft})
             print(f"{name:<18}{proj['poses']:>6}{proj['edges']:>6}{f_proj:>13.6g}{f_peer:>13.6g}"
                   f"{'yes' if agree_4sf(f_proj, f_peer) else 'NO':>7}{rejected:>5}{removed:>5}{runs:>5}"
                   f"{min(times['project']):>11.2f}{statistics.median(times['project']):>11.2f}"
@@ -164,6 +177,12 @@ def main() -> int:
     worst, _, worst_name = max(ratios)
     print(f"worst ratio project/peer (min times): {worst:.2f} on {worst_name} (median times: {max(r[1] for r in ratios):.2f}); "
           f"target <= 1.2 on every graph: {'PASS' if worst <= 1.2 else 'FAIL'}")
+    if args.json is not None:
+        from fpp_graph.atomic import atomic_write_text
+
+        figures = {"graphs": rows, "worst_ratio_min": worst, "worst_graph": worst_name,
+                   "worst_ratio_median": max(r[1] for r in ratios), "runs": args.runs, "budget_s": args.budget}
+        atomic_write_text(args.json, json.dumps(figures, indent=1, default=float))
     return 0
 
 

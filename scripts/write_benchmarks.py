@@ -499,6 +499,8 @@ def parse_long_rgbd(work: Path, stdouts: list[str]) -> Figures:
             ["time per frame, first / last 10 % of the frames",
              f"{num(1e3 * f['first_tenth_s_per_frame'], 0)} / {num(1e3 * f['last_tenth_s_per_frame'], 0)} ms "
              f"(ratio {num(f['last_over_first'], 2)})"]]
+    if f.get("tenths_s_per_frame"):
+        rows.append(["time per frame by tenth of the frames", " / ".join(num(1e3 * t, 0) for t in f["tenths_s_per_frame"]) + " ms"])
     for name, peaks in rss.items():
         rows.append([f"peak RSS after warm-up, {name}, first / second half",
                      f"{num(peaks['first_half'], 0)} / {num(peaks['second_half'], 0)} MB (ratio {num(peaks['ratio'], 2)})"])
@@ -506,6 +508,8 @@ def parse_long_rgbd(work: Path, stdouts: list[str]) -> Figures:
     loops = f.get("loop_evaluation")
     if loops:
         rows.append(["false loops kept (tolerance)", f"{len(loops['false_accepted'])} ({num(1e3 * loops['tolerance_m'], 1)} mm)"])
+    if (m := re.search(r"rendered in ([\d.]+) s", stdouts[0] if stdouts else "")) is not None:
+        rows.append(["rendering the sequence (before the run)", f"{num(float(m.group(1)), 0)} s"])
     headline = (f"ATE {num(f['ate_rmse_mm'], 1)} mm, {num(f['fps'], 1)} frames/s, time per frame last / first "
                 f"{num(f['last_over_first'], 2)}, {num(f['loops_accepted'])} loops")
     return Figures(rows, headline)

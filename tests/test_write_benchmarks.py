@@ -155,9 +155,9 @@ def test_long_rgbd(tmp_path):
         "peak_rss_mb": {"tracking process": {"first_half": 1228.0, "second_half": 1307.0, "ratio": 1.06}},
         "stages_s": {}, "loop_candidates": 783, "loops_verified": 721, "loops_accepted": 713, "ate_rmse_mm": 1.8, "ate_max_mm": 5.6,
         "loop_evaluation": {"tolerance_m": 0.0295, "false_accepted": [[1, 2]] * 3}})
-    figures = wb.parse_long_rgbd(tmp_path, [""])
+    figures = wb.parse_long_rgbd(tmp_path, ["rendering 2000 frames into x ...\nrendered in 397 s\n== seq: 2000 frames\n"])
     assert figures.headline == "ATE 1.8 mm, 15.6 frames/s, time per frame last / first 1.05, 713 loops"
-    assert "3 (29.5 mm)" in cells(figures)
+    assert "3 (29.5 mm)" in cells(figures) and "rendering the sequence (before the run) | 397 s" in cells(figures)
 
 
 def test_a_missing_json_is_a_clear_error(tmp_path):
