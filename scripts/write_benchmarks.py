@@ -451,8 +451,8 @@ def parse_pose_graph_peer(work: Path, stdouts: list[str]) -> Figures:
 def fpp_sequence_commands(scene: str, config: str, quick_frames: int) -> Callable[[bool], list[list[str]]]:
     def commands(quick: bool) -> list[list[str]]:
         limit = ["--frames", str(quick_frames), "--resolution", "640x400"] if quick else []
-        return [["{fpp_slam}", "simulate", scene, "--config", config, "--out", "{work}/sequence", *limit],
-                ["{fpp_slam}", "run", "{work}/sequence", "--out", "{work}/results"],
+        return [["{fpp_slam}", "simulate", scene, "--config", config, "--out", "{work}/sequence", "--overwrite", *limit],
+                ["{fpp_slam}", "run", "{work}/sequence", "--out", "{work}/results", "--overwrite"],
                 ["{fpp_slam}", "eval", "{work}/results", "--gt", "{work}/sequence", "--json"]]
     return commands
 
