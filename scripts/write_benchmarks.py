@@ -856,8 +856,11 @@ def render_section(bench: Benchmark, outcome: Outcome, meta: dict[str, Any]) -> 
     else:
         lines += [f"**Failed.** {outcome.reason}", ""]
     quick = " **Quick run** (reduced settings: the figures only test the machinery)." if meta.get("quick") else ""
-    load = f" (load average {num(meta['load_average'], 1)} at its start)" if meta.get("load_average") is not None else ""
-    lines += [f"Measured on commit `{meta['commit'][:12]}` ({meta['tree']}), {meta['date']}, in {num(meta['seconds'], 1)} s{load}.{quick}", ""]
+    if outcome.status == "skipped":
+        lines += [f"Not run on commit `{meta['commit'][:12]}` ({meta['tree']}), {meta['date']}.", ""]
+    else:
+        load = f" (load average {num(meta['load_average'], 1)} at its start)" if meta.get("load_average") is not None else ""
+        lines += [f"Measured on commit `{meta['commit'][:12]}` ({meta['tree']}), {meta['date']}, in {num(meta['seconds'], 1)} s{load}.{quick}", ""]
     return f"<!-- benchmark {bench.name} begin {comment_json(meta)} -->\n" + "\n".join(lines) + f"<!-- benchmark {bench.name} end -->\n"
 
 

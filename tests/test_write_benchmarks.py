@@ -219,7 +219,7 @@ def test_a_report_records_figures_failures_and_skips(fakes):
     text = page.read_text()
     assert "| answer | 42 |" in text
     assert "**Failed.** `" in text and "exited with 3: boom: bad input" in text
-    assert "**Skipped.**" in text and "/not_there` is absent" in text
+    assert "**Skipped.**" in text and "/not_there` is absent" in text and "Not run on commit" in text
     assert "Total time of the report run" in text and "Python " in text
     assert f"{sys.executable}" not in text  # commands are shown as run from the repository root
     readme_text = readme.read_text()
