@@ -4,6 +4,9 @@ A block runs when its info string starts with ``bash`` or ``python``; the words 
 language are tags:
 
 - ``slow``: too long for the test suite; ``python -m scripts.write_benchmarks`` runs it.
+- ``fresh-clone``: the set-up commands (``make demo``, ``make test``), which build the checkout's
+  own ``.venv``: run by the benchmark report, in a fresh clone of the repository's committed
+  ``HEAD`` with an empty user cache, as a newcomer runs them. Implies ``slow``.
 - anything else is an error (a misspelt tag would otherwise hide a block from both runners).
 
 Blocks in other languages (``text``, ``yaml``, ``console``) are shown, never run: write output
@@ -30,7 +33,7 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 RUNNABLE_LANGUAGES = ("bash", "python")
-KNOWN_TAGS = frozenset({"slow"})
+KNOWN_TAGS = frozenset({"slow", "fresh-clone"})
 #: the repository entries a block may refer to by a relative path
 LINKED_ENTRIES = ("datasets", "scripts", "docs", "pyproject.toml", "Makefile")
 _FENCE = re.compile(r"^(?P<indent> {0,3})(?P<fence>`{3,}|~{3,})(?P<info>[^`]*)$")
@@ -54,6 +57,11 @@ class DocBlock:
     @property
     def runnable(self) -> bool:
         return self.language in RUNNABLE_LANGUAGES
+
+    @property
+    def slow(self) -> bool:
+        """Too long for the test suite: run by the benchmark report."""
+        return bool(self.tags & {"slow", "fresh-clone"})
 
     @property
     def where(self) -> str:
@@ -122,7 +130,27 @@ def make_workdir(parent: Path) -> Path:
     return work
 
 
-def block_environment() -> dict[str, str]:
+def make_clone(parent: Path) -> Path:
+    """A fresh clone of the repository's committed ``HEAD`` at ``parent/work``, beside a link to
+    the real data, with an empty user cache at ``parent/cache`` (for ``fresh-clone`` blocks)."""
+    parent.mkdir(parents=True, exist_ok=True)
+    shared = REPO.parent / "shared"
+    if shared.exists() and not (parent / "shared").exists():
+        (parent / "shared").symlink_to(shared, target_is_directory=True)
+    clone = parent / "work"
+    if not clone.exists():
+        subprocess.run(["git", "clone", "--quiet", str(REPO), str(clone)], check=True, capture_output=True, text=True)
+    (parent / "cache").mkdir(exist_ok=True)
+    return clone
+
+
+def block_workdir(block: DocBlock, parent: Path) -> Path:
+    """Where ``block`` runs under ``parent``: a fresh clone for ``fresh-clone`` blocks, else a
+    working folder laid out as a checkout (one per Markdown file: pass the same ``parent``)."""
+    return make_clone(parent / "fresh-clone") if "fresh-clone" in block.tags else make_workdir(parent)
+
+
+def block_environment(block: DocBlock | None = None, workdir: Path | None = None) -> dict[str, str]:
     """The caller's environment with this interpreter's ``bin`` first on PATH (so ``fpp-slam``
     and ``python`` are the project's) and the repository importable (``import scripts...``)."""
     env = dict(os.environ)
@@ -130,6 +158,13 @@ def block_environment() -> dict[str, str]:
     env["PATH"] = bin_dir + os.pathsep + env.get("PATH", "")
     env["PYTHONPATH"] = os.pathsep.join(p for p in (str(REPO), env.get("PYTHONPATH", "")) if p)
     env.setdefault("MPLBACKEND", "Agg")
+    if block is not None and "fresh-clone" in block.tags and workdir is not None:
+        # a newcomer's shell: no project venv on PATH, nothing imported from this checkout,
+        # nothing computed before in the user cache
+        env["PATH"] = os.pathsep.join(p for p in env["PATH"].split(os.pathsep)[1:] if ".venv" not in p)
+        env.pop("PYTHONPATH", None)
+        env.pop("VIRTUAL_ENV", None)
+        env["FPP_GRAPH_CACHE"] = str(workdir.parent / "cache")
     return env
 
 
@@ -142,7 +177,7 @@ def run_block(block: DocBlock, workdir: Path, timeout_s: float = 600.0) -> subpr
         argv = [sys.executable, "-c", block.text]
     else:
         raise DocBlockError(f"{block.where}: a {block.language!r} block is not runnable")
-    return subprocess.run(argv, cwd=workdir, env=block_environment(), capture_output=True, text=True, timeout=timeout_s)
+    return subprocess.run(argv, cwd=workdir, env=block_environment(block, workdir), capture_output=True, text=True, timeout=timeout_s)
 
 
 def failure_message(block: DocBlock, result: subprocess.CompletedProcess[str]) -> str:
@@ -162,11 +197,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     ran = 0
     with tempfile.TemporaryDirectory(prefix="fpp-docs-") as tmp:
         for path in args.files or doc_files():
-            work = make_workdir(Path(tmp) / path.stem)
             for block in find_blocks([path]):
-                if ("slow" in block.tags) != args.slow:
+                if block.slow != args.slow:
                     continue
-                result = run_block(block, work, args.timeout)
+                result = run_block(block, block_workdir(block, Path(tmp) / path.stem), args.timeout)
                 ran += 1
                 status = "ok" if result.returncode == 0 else f"FAILED ({result.returncode})"
                 sys.stdout.write(f"{block.where}: {status}\n")

@@ -519,7 +519,8 @@ def run_doc_blocks(ctx: RunContext, bench: Benchmark) -> Figures:
     """The documentation's code blocks tagged ``slow`` (too long for the tests): pass or fail each.
 
     As ``python -m scripts.doc_blocks --slow`` runs them: the blocks of one file in order, in one
-    working folder laid out as a checkout (``scripts.doc_blocks.make_workdir``).
+    working folder laid out as a checkout, the set-up commands in a fresh clone
+    (``scripts.doc_blocks.block_workdir``).
     """
     try:
         from scripts import doc_blocks
@@ -529,11 +530,9 @@ def run_doc_blocks(ctx: RunContext, bench: Benchmark) -> Figures:
     rows = [["block", "result", "seconds"]]
     passed = total = 0
     for path in doc_blocks.doc_files():
-        slow = [b for b in doc_blocks.find_blocks([path]) if "slow" in b.tags]
-        if not slow:
-            continue
-        work = doc_blocks.make_workdir(ctx.work / path.stem)
+        slow = [b for b in doc_blocks.find_blocks([path]) if b.slow]
         for block in slow:
+            work = doc_blocks.block_workdir(block, ctx.work / path.stem)
             total += 1
             started = time.perf_counter()
             try:

@@ -7,6 +7,7 @@ The session's count of blocks run is printed at the end of ``make test`` (tests/
 
 from __future__ import annotations
 
+import subprocess
 from pathlib import Path
 
 import pytest
@@ -16,6 +17,7 @@ from scripts.doc_blocks import (
     REPO,
     DocBlock,
     DocBlockError,
+    block_workdir,
     doc_files,
     failure_message,
     find_blocks,
@@ -37,7 +39,7 @@ def _doc_id(path: Path) -> str:
 @pytest.mark.parametrize("path", doc_files(), ids=_doc_id)
 def test_doc_blocks_run(path: Path, tmp_path: Path) -> None:
     blocks = find_blocks([path])
-    quick = [b for b in blocks if "slow" not in b.tags]
+    quick = [b for b in blocks if not b.slow]
     BLOCKS_SLOW[_doc_id(path)] = len(blocks) - len(quick)
     if not quick:
         pytest.skip(f"{_doc_id(path)} has no block to run in the tests ({len(blocks)} tagged slow)")
@@ -84,6 +86,22 @@ def test_parse_blocks_refuses_unclosed_fence_and_unknown_tag(tmp_path: Path) -> 
         parse_blocks(tmp_path / "x.md", "text\n```bash\nls\n")
     with pytest.raises(DocBlockError, match=r"unknown tag 'slwo'"):
         parse_blocks(tmp_path / "x.md", "```bash slwo\nls\n```\n")
+
+
+def test_fresh_clone_blocks_run_in_a_clone_of_head_with_an_empty_cache(tmp_path: Path) -> None:
+    block = DocBlock(tmp_path / "x.md", 1, "bash", frozenset({"fresh-clone"}), (
+        'test -f pyproject.toml && test -z "$(git status --porcelain)"\n'
+        'git rev-parse HEAD > head.txt\n'
+        'test -z "$(ls -A "$FPP_GRAPH_CACHE")"\n'
+        '! command -v fpp-slam\n'
+    ))
+    assert block.slow
+    work = block_workdir(block, tmp_path)
+    assert work != REPO and (work / ".git").is_dir()
+    result = run_block(block, work, 60)
+    assert result.returncode == 0, result.stdout + result.stderr
+    head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=REPO, capture_output=True, text=True, check=True).stdout
+    assert (work / "head.txt").read_text() == head
 
 
 def test_run_block_fails_on_the_first_failing_command(tmp_path: Path) -> None:

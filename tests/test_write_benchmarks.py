@@ -277,16 +277,16 @@ def test_doc_blocks_step_records_pass_and_fail_per_slow_block(tmp_path, monkeypa
     import types
 
     doc = tmp_path / "guide.md"
-    blocks = [types.SimpleNamespace(tags=frozenset({"slow"}), where=f"docs/guide.md:{line}", text=text)
+    blocks = [types.SimpleNamespace(slow=True, where=f"docs/guide.md:{line}", text=text)
               for line, text in ((3, "true"), (9, "false"))]
-    blocks.append(types.SimpleNamespace(tags=frozenset(), where="docs/guide.md:20", text="quick"))
+    blocks.append(types.SimpleNamespace(slow=False, where="docs/guide.md:20", text="quick"))
 
     def run_block(block, workdir, timeout_s):
         code = 0 if block.text == "true" else 4
         return subprocess.CompletedProcess([], code, stdout="", stderr="" if code == 0 else "trace\nValueError: no such file\n")
 
     fake = types.SimpleNamespace(doc_files=lambda: [doc], find_blocks=lambda paths: blocks, run_block=run_block,
-                                 make_workdir=lambda parent: parent)
+                                 block_workdir=lambda block, parent: parent)
     monkeypatch.setitem(sys.modules, "scripts.doc_blocks", fake)
     import scripts
 
