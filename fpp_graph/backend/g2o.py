@@ -19,7 +19,9 @@ Reading is strict: a truncated line, an unknown tag, a non-number, NaN or infini
 non-unit quaternion (norm off by more than 1e-3), a duplicate vertex, an edge to a missing vertex
 or an information matrix whose rotation or translation block is not positive definite raises
 :class:`~fpp_graph.errors.InputDataError` naming the file, the line and the block. (The file
-holds the upper triangle only, so the matrix is symmetric by construction.)
+holds the upper triangle only, so the matrix is symmetric by construction.) The file is ASCII; a
+leading UTF-8 byte-order mark (what some editors write when saving as UTF-8) is ignored, any other
+non-ASCII byte is refused with its line.
 
 Some standard benchmark files (SE-Sync's cubicle.g2o, among others) hold edges whose full 6x6
 information is indefinite, through large rotation-translation coupling terms, while both 3x3
@@ -198,6 +200,15 @@ class _Records:
     fixed: list[tuple[int, int]]  # (vertex id, line)
 
 
+UTF8_BOM = b"\xef\xbb\xbf"
+
+
+def _without_bom(data: bytes) -> bytes:
+    """``data`` without a leading UTF-8 byte-order mark: Windows editors (Notepad) write one at the
+    start of a file saved as UTF-8, and an ASCII file saved so is still the same graph."""
+    return data[len(UTF8_BOM):] if data.startswith(UTF8_BOM) else data
+
+
 def _read_records(path: Path, data: bytes) -> _Records:
     """Tokenise every line of ``data`` into vertex, edge and FIX records (strict, see the module)."""
     v_ids: list[int] = []
@@ -211,7 +222,10 @@ def _read_records(path: Path, data: bytes) -> _Records:
         try:
             line = raw.decode("ascii")
         except UnicodeDecodeError:
-            raise _fail(path, lineno, "not plain ASCII text; is this a g2o file?") from None
+            column = next(k for k, byte in enumerate(raw, start=1) if byte > 0x7F)
+            raise _fail(
+                path, lineno, f"not plain ASCII text (byte {column} of the line); is this a g2o file? Save it as ASCII"
+            ) from None
         tokens = line.split()
         if not tokens or tokens[0].startswith("#"):
             continue
@@ -327,7 +341,7 @@ def read_g2o(path: str | os.PathLike[str]) -> PoseGraph:
         data = path.read_bytes()
     except OSError as exc:
         raise InputDataError(f"cannot read pose graph {path}: {exc.strerror}") from None
-    records = _read_records(path, data)
+    records = _read_records(path, _without_bom(data))
     vertex_line, v, poses = _parse_vertices(records, path)
     e, rotations, info = _parse_edges(records, vertex_line, path)
     for key, lineno in records.fixed:
