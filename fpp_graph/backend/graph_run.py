@@ -12,7 +12,7 @@ from typing import Any
 
 from fpp_graph.atomic import atomic_write_text
 from fpp_graph.backend.pose_graph import PoseGraph, PoseGraphResult
-from fpp_graph.config import Config, PoseGraphConfig, dump_config
+from fpp_graph.config import Config, PoseGraphConfig
 
 
 @dataclass
@@ -77,11 +77,11 @@ def graph_run_summary(run: GraphRun, certify: bool) -> dict[str, Any]:
 
 def run_graph_file(path: Path, config: Config, out: Path) -> dict[str, Any]:
     """``fpp-slam run GRAPH.g2o``: optimise with the configured back-end; write ``trajectory.tum``,
-    ``graph.g2o``, ``config.yaml`` and ``metrics.json`` (the summary, plus ``frames``) into ``out``."""
+    ``graph.g2o`` and ``metrics.json`` (the summary, plus ``frames``) into ``out`` (a folder that
+    :func:`~fpp_graph.results_folder.results_folder` claimed: it holds ``config.yaml``)."""
     from fpp_graph.backend.g2o import write_g2o
     from fpp_graph.trajectory import Trajectory, write_tum
 
-    atomic_write_text(out / "config.yaml", dump_config(config))
     run = optimize_g2o_file(path, config.pose_graph)
     poses = run.result.poses_world_sensor
     ids = sorted(poses)

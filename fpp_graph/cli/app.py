@@ -5,7 +5,7 @@ Each command is a thin wrapper over a library function, defined in a module of t
 that does not import this one (dependencies run one way: app -> commands -> common). Heavy
 modules (numpy, gtsam, Open3D, OpenCV) are imported inside the commands so that ``fpp-slam
 --help`` stays instant. User errors (:class:`~fpp_graph.errors.FppError`) print one line on
-stderr and exit 2. Front-ends add commands through the ``fpp_graph.cli`` entry-point group
+stderr and exit 2, and so does an OSError on a path (:func:`~fpp_graph.outputs.os_error`). Front-ends add commands through the ``fpp_graph.cli`` entry-point group
 (``fpp-slam demo`` is one). Every command gives example invocations with
 :func:`~fpp_graph.cli.common.examples`, shown at the end of its ``--help``. ``fpp-slam
 --version`` reads the installed distribution's metadata and attaches no command.
@@ -25,6 +25,7 @@ from fpp_graph.cli.config_commands import config_defaults, config_dump
 from fpp_graph.cli.optimize import optimize_graph
 from fpp_graph.cli.run import batch, eval_, run
 from fpp_graph.errors import FppError
+from fpp_graph.outputs import os_error
 
 PLUGIN_GROUP = "fpp_graph.cli"
 DISTRIBUTION = "fpp-graph"
@@ -148,6 +149,13 @@ def _run_app(args: list[str]) -> int:
         return 128 + getattr(exc, "signal_number", signal.SIGINT)
     except typer.Exit as exc:  # raised by --help and typer.Exit(code)
         return int(exc.exit_code or 0)
+    except OSError as exc:  # a path the command did not translate itself: still one line naming it
+        if stop_signal() is not None:
+            typer.echo("fpp-slam: interrupted", err=True)
+            return 128 + stop_signal()
+        error = os_error(exc, reading=None)
+        typer.echo(f"fpp-slam: error: {error}", err=True)
+        return error.exit_code
     except Exception as exc:
         if stop_signal() is not None:  # stopped inside a C extension, which raised its own error
             typer.echo("fpp-slam: interrupted", err=True)

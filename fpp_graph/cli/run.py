@@ -32,8 +32,8 @@ def run(
     sequence: Annotated[Path, typer.Argument(help="Sequence folder (FPP sequence.yaml, 7-Scenes or TUM RGB-D) or a .g2o pose graph.")],
     config: ConfigOption = None,
     out: OutOption = None,
-    resume: Annotated[bool, typer.Option("--resume", help="Continue an interrupted run in --out.")] = False,
-    overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace earlier results in --out.")] = False,
+    resume: Annotated[bool, typer.Option("--resume", help="Continue an interrupted run in --out (same input and config, else refused).")] = False,
+    overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace earlier results in --out (not with --resume).")] = False,
     kind: Annotated[Optional[str], typer.Option("--kind", help="Force the sequence reader (fpp, rgbd).")] = None,  # noqa: UP045
     scheduler: Annotated[Optional[str], typer.Option("--scheduler", help="Decode frames and verify loops on Dask: a scheduler address, or 'local' for a local cluster of run.workers processes (needs the dask extra; --out must be on a file system every worker sees).")] = None,  # noqa: UP045
 ) -> None:
@@ -47,11 +47,13 @@ def run(
     cfg = load_config(config)
     if sequence.suffix.lower() == ".g2o":
         from fpp_graph.backend.graph_run import run_graph_file
-        from fpp_graph.slam.pipeline import prepare_results_dir
+        from fpp_graph.config import dump_config
+        from fpp_graph.results_folder import results_folder, run_log
 
-        results = prepare_results_dir(out, resume, overwrite)
-        setup_logging(cfg.run.log_level, results / "run.log")
-        typer.echo(json.dumps(run_graph_file(sequence, cfg, results), indent=1, default=float))
+        setup_logging(cfg.run.log_level)
+        with results_folder(out, sequence, dump_config(cfg), resume, overwrite) as results, run_log(results, cfg.run.log_level):
+            summary = run_graph_file(sequence, cfg, results)
+        typer.echo(json.dumps(summary, indent=1, default=float))
         return
     from fpp_graph.slam.heap import keep_large_blocks_in_heap
     from fpp_graph.slam.pipeline import run_sequence

@@ -70,11 +70,13 @@ def run_one(sequence: str, out: str, config_path: str | None, resume: bool, over
         config = config_from_dict({**config.model_dump(mode="json"), "run": {**config.run.model_dump(mode="json"), "workers": 1}})
         if Path(sequence).suffix.lower() == ".g2o":
             from fpp_graph.backend.graph_run import run_graph_file
-            from fpp_graph.slam.pipeline import prepare_results_dir
+            from fpp_graph.config import dump_config
+            from fpp_graph.results_folder import results_folder
 
             if not Path(sequence).is_file():
                 raise InputDataError(f"pose graph {sequence} does not exist")
-            metrics = run_graph_file(Path(sequence), config, prepare_results_dir(Path(out), resume, overwrite))
+            with results_folder(Path(out), Path(sequence), dump_config(config), resume, overwrite) as results:
+                metrics = run_graph_file(Path(sequence), config, results)
         else:
             from fpp_graph.slam.pipeline import Pipeline
             from fpp_graph.slam.sources import open_source

@@ -3,7 +3,8 @@
 :meth:`Pipeline.run` reads as the table of contents of the system; each step is a public
 function usable on its own:
 
-1. :func:`prepare_results_dir` - refuse to clobber, or resume an interrupted run;
+1. :func:`~fpp_graph.results_folder.results_folder` - claim the results folder: refuse to clobber
+   or to resume another input's run, or resume an interrupted run;
 2. :func:`prepare_frames` - decode + features per frame in worker processes, cached per frame
    on disk (a rerun with ``resume`` reuses them; a corrupt frame is skipped and reported);
 3. :func:`track` - keyframes, odometry, loop detection/verification, robust pose graph;
@@ -22,7 +23,6 @@ import json
 import logging
 import multiprocessing
 import os
-import shutil
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -35,9 +35,10 @@ import numpy as np
 
 from fpp_graph.atomic import atomic_write_text
 from fpp_graph.config import Config, dump_config
-from fpp_graph.errors import InputDataError, OutputError
+from fpp_graph.errors import InputDataError
 from fpp_graph.evaluation.plots import MAP_PLOT_POINTS
 from fpp_graph.geometry import compose
+from fpp_graph.results_folder import config_differences, described_input, results_folder, run_log
 from fpp_graph.slam.cpu_time import process_tree_cpu_s
 from fpp_graph.slam.frame_store import (
     FrameStore,
@@ -69,9 +70,6 @@ from fpp_graph.types import Frame, MapFuser, PairVerifier
 
 log = logging.getLogger(__name__)
 
-RESULTS_MARKER = ".fpp-slam-results"
-
-
 @dataclass
 class RunReport:
     """What a run did, for the CLI's summary and ``metrics.json``."""
@@ -85,35 +83,6 @@ class RunReport:
     cpu_seconds: float | None = None  # this process and its own workers (None: another's executor, or no getrusage)
     slam: SlamResult | None = None
     metrics: dict[str, Any] = field(default_factory=dict)
-
-
-def prepare_results_dir(out: Path, resume: bool = False, overwrite: bool = False) -> Path:
-    """Create the results folder; an existing one is refused unless resuming or overwriting.
-
-    ``overwrite`` only ever deletes a folder that an earlier run created (it holds
-    :data:`RESULTS_MARKER`), never an unrelated folder of the user's.
-    """
-    out = Path(out)
-    if out.exists() and any(out.iterdir()):
-        ours = (out / RESULTS_MARKER).exists()
-        if resume and ours:
-            # temp files of writes an interrupted run did not finish (fpp_graph.atomic names them
-            # .<target>.<random>.tmp); their targets are absent or whole, so they are only litter
-            stale = [p for p in out.rglob(".*.tmp") if p.is_file()]
-            for p in stale:
-                p.unlink()
-            log.info("resuming in %s (%d unfinished temp file(s) of the interrupted run removed)", out, len(stale))
-            return out
-        if overwrite and ours:
-            log.info("overwriting the earlier results in %s", out)
-            shutil.rmtree(out)
-        elif not ours:
-            raise OutputError(f"{out} exists and is not an fpp-slam results folder; choose another --out")
-        else:
-            raise OutputError(f"{out} already holds results; pass --resume to continue that run or --overwrite to replace it")
-    out.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(out / RESULTS_MARKER, "fpp-slam results folder\n")
-    return out
 
 
 # -- step 2: frames -------------------------------------------------------------------------
@@ -349,6 +318,18 @@ class _Background:
         return value
 
 
+def config_set_by_source(given: Config, resolved: Config, source_name: str) -> dict[str, dict[str, Any]]:
+    """The values a source's ``resolve_config`` set or changed (``{key: {"given", "used"}}``),
+    each logged: a value the user set and the source changed is a warning."""
+    changes = config_differences(dump_config(given), dump_config(resolved))
+    for key, change in changes.items():
+        if change["before"] is None:
+            log.info("the %s source sets %s to %r (left open by the configuration)", source_name, key, change["after"])
+        else:
+            log.warning("the %s source changes %s from %r to %r", source_name, key, change["before"], change["after"])
+    return {key: {"given": c["before"], "used": c["after"]} for key, c in changes.items()}
+
+
 class Pipeline:
     """Batch SLAM over one recorded sequence."""
 
@@ -368,6 +349,7 @@ class Pipeline:
         self.source = source
         check_frame_source(source)
         self.config = source.resolve_config(config)
+        self.config_set_by_source = config_set_by_source(config, self.config, getattr(source, "name", type(source).__name__))
         self.map_fuser = map_fuser
         self.out = Path(out)
         self.resume = resume
@@ -377,10 +359,18 @@ class Pipeline:
         self.progress = progress
 
     def run(self) -> RunReport:
+        """Claim the results folder (:func:`~fpp_graph.results_folder.results_folder`) and run in it,
+        its log records also in ``run.log``."""
+        source_path = getattr(self.source, "path", None)  # a source may live in memory, without one
+        identity = None if source_path is not None else described_input(
+            f"{self.source.name} source", {"description": self.source.describe(), "frames": self.source.frame_ids()})
+        with results_folder(self.out, source_path, dump_config(self.config), self.resume, self.overwrite, identity) as out, \
+                run_log(out, self.config.run.log_level):
+            return self._run_in(out)
+
+    def _run_in(self, out: Path) -> RunReport:
         wall0, cpu0 = time.perf_counter(), process_tree_cpu_s() if self.executor is None else None
-        out = prepare_results_dir(self.out, self.resume, self.overwrite)
         report = RunReport(results_dir=out)
-        atomic_write_text(out / "config.yaml", dump_config(self.config))
         store = FrameStore(out / "frames", max_in_memory=self.config.run.frames_in_memory)
         ids = self.source.frame_ids()
         report.frames_total = len(ids)
@@ -422,6 +412,7 @@ class Pipeline:
         report.cpu_seconds = None if cpu0 is None or cpu1 is None else cpu1 - cpu0  # the pool has joined its workers
         report.metrics = slam_summary(report)
         report.metrics["source"] = self.source.describe()  # what the reader made of the folder (e.g. images it left alone)
+        report.metrics["config_set_by_source"] = self.config_set_by_source
         if gt_poses is not None:  # an evaluation that failed raises here, after the plots are written
             report.metrics["loop_evaluation"] = loop_evaluation.result()
         atomic_write_text(out / "metrics.json", json.dumps(report.metrics, indent=1, default=float))

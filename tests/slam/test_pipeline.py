@@ -314,15 +314,20 @@ def test_kill_9_mid_run_then_resume(tmp_path):
 
 
 def test_resume_removes_the_temp_files_of_interrupted_writes_only(tmp_path):
-    from fpp_graph.slam.pipeline import RESULTS_MARKER, prepare_results_dir
+    from fpp_graph.results_folder import RESULTS_MARKER, results_folder
 
-    out = prepare_results_dir(tmp_path / "out")
-    (out / "frames").mkdir()
-    (out / "frames" / "frame_000001.npz").write_bytes(b"whole")
-    (out / "frames" / ".frame_000002.npz.abc123.tmp").write_bytes(b"half")
-    (out / "notes.tmp").write_text("a user's file, not an atomic-write temp")
-    assert prepare_results_dir(out, resume=True) == out
-    assert sorted(p.name for p in out.rglob("*")) == sorted([RESULTS_MARKER, "frames", "frame_000001.npz", "notes.tmp"])
+    sequence = tmp_path / "sequence"
+    sequence.mkdir()
+    (sequence / "frame.txt").write_text("a frame")
+    with results_folder(tmp_path / "out", sequence, "run: {}\n") as out:
+        (out / "frames").mkdir()
+        (out / "frames" / "frame_000001.npz").write_bytes(b"whole")
+        (out / "frames" / ".frame_000002.npz.abc123.tmp").write_bytes(b"half")
+        (out / "notes.tmp").write_text("a user's file, not an atomic-write temp")
+    with results_folder(out, sequence, "run: {}\n", resume=True) as resumed:
+        assert resumed == out
+    assert sorted(p.name for p in out.rglob("*") if p.name != ".fpp-slam.lock") == sorted(
+        [RESULTS_MARKER, "provenance.json", "config.yaml", "frames", "frame_000001.npz", "notes.tmp"])
 
 
 def _children(pid: int) -> set[int]:
