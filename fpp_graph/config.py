@@ -561,7 +561,7 @@ def read_yaml_file(path: str | os.PathLike[str], error: type[FppError] = ConfigE
 def _unreadable(path: Path, what: str, exc: OSError) -> str:
     """One line for an OSError on reading ``path``: what, where, what to do."""
     if isinstance(exc, IsADirectoryError):
-        return f"cannot read {what} {path}: it is a folder; give the path of the {what} file itself"
+        return f"cannot read {what} {path}: it is a folder; give the path of the file itself"
     if isinstance(exc, FileNotFoundError):
         return f"cannot read {what} {path}: no such file; check the path"
     return f"cannot read {what} {path}: {exc.strerror or exc}; check the file's permissions (or give a readable copy)"

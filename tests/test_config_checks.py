@@ -194,7 +194,7 @@ def test_other_yaml_files_read_by_the_project_refuse_duplicates_too(tmp_path):
 def test_config_that_is_a_folder_or_missing(tmp_path, capsys):
     folder = tmp_path / "cfg.yaml"
     folder.mkdir()
-    with pytest.raises(ConfigError, match=rf"cannot read config {folder}: it is a folder; give the path of the config file itself"):
+    with pytest.raises(ConfigError, match=rf"cannot read config {folder}: it is a folder; give the path of the file itself"):
         load_config(folder)
     code = main(["config", "dump", "--config", str(tmp_path / "absent.yaml")])
     _one_line_refusal(code, capsys.readouterr(), "absent.yaml", "no such file; check the path")
