@@ -32,8 +32,10 @@ captured, in capture order, and the calibration comes from the rig calibration. 
 from __future__ import annotations
 
 import logging
+import math
 import os
 import shutil
+from collections import Counter
 from collections.abc import Sequence as _Seq
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -46,9 +48,9 @@ from numpy.typing import NDArray
 
 from fpp_graph.atomic import atomic_write_bytes, atomic_write_text
 from fpp_graph.config import read_yaml_file
-from fpp_graph.errors import InputDataError, OutputError
+from fpp_graph.errors import CalibrationError, InputDataError, OutputError
 from fpp_graph.trajectory import Trajectory, read_tum, write_tum
-from frontend.fpp.images import load_image_stack
+from frontend.fpp.images import check_images_match_calibration, image_size, load_image_stack
 from frontend.fpp.patterns import PatternSpec
 from frontend.fpp.rig import RigCalibration, load_calibration
 
@@ -113,7 +115,8 @@ class Sequence:
         Raises
         ------
         InputDataError
-            A missing or corrupt PNG (the message names the file): a pipeline may skip the frame.
+            A missing, unreadable, corrupt or truncated image (the message names the file), or
+            images of different sizes: a pipeline skips the frame and records why.
         CalibrationError
             The images' size differs from the calibration's camera.
         """
@@ -121,8 +124,35 @@ class Sequence:
             raise InputDataError(f"{self.path}: frame index {i} out of range (0..{len(self.frames) - 1})")
         rec = self.frames[i]
         stack = load_image_stack(self.image_paths(i))
-        self.calibration.check_image_size(stack.shape[2], stack.shape[1], f"{self.path / rec.folder}")
+        check_images_match_calibration(stack.shape, self.calibration, f"{self.path / rec.folder}")
         return stack
+
+    def check_frames_match_calibration(self) -> None:
+        """Raise CalibrationError when no frame's images are the size of the calibration's camera
+        (the calibration of another camera: every frame would be skipped, or decode to nothing).
+
+        One readable image per frame is looked at, until one has the camera's size: a PNG's size
+        is in its header, so a good sequence costs one small read. A frame that differs alone is
+        left to :meth:`load_frame_images`, which refuses it (a pipeline skips it, saying why).
+        """
+        sizes: Counter[tuple[int, int]] = Counter()
+        camera = (self.calibration.camera.width, self.calibration.camera.height)
+        for i in range(len(self.frames)):
+            try:
+                size = image_size(self.image_paths(i)[0])
+            except InputDataError:  # a missing or broken image is that frame's own reason to be skipped
+                continue
+            if size == camera:
+                return
+            sizes[size] += 1
+        if sizes:
+            (width, height), count = sizes.most_common(1)[0]
+            raise CalibrationError(
+                f"{self.path}: the frames' images are {width}x{height} ({count} of {len(self.frames)} frames, none "
+                f"{camera[0]}x{camera[1]}) but the calibration's camera in {SEQUENCE_FILE} is {camera[0]}x{camera[1]} pixels; the "
+                f"calibration is of another camera (or the images were resized or cropped): put the calibration of the camera "
+                f"that took these images in {SEQUENCE_FILE}"
+            )
 
     def ground_truth_pose(self, i: int) -> NDArray[np.float64] | None:
         if self.ground_truth is None:
@@ -154,8 +184,55 @@ def read_sequence(path: str | os.PathLike[str]) -> Sequence:
     """
     path = Path(path)
     meta_path = path / SEQUENCE_FILE
-    if not meta_path.is_file():
-        raise InputDataError(f"{path} is not an FPP sequence folder: {SEQUENCE_FILE} is missing")
+    meta = _read_meta(meta_path)
+    calibration = RigCalibration.from_dict(meta["calibration"], where=f"{meta_path}: calibration")
+    spec = PatternSpec.from_dict(meta["patterns"], where=f"{meta_path}: patterns")
+    m = spec.image_count()
+    if "image_count" in meta and meta["image_count"] != m:
+        raise InputDataError(f"{meta_path}: image_count {meta['image_count']!r} but the pattern set has {m} images; set it to {m}")
+    frames = _frame_records(meta["frames"], meta_path, m)
+    gt_meta = meta.get("groundtruth") or {}
+    if not isinstance(gt_meta, dict) or not all(isinstance(v, str) for v in gt_meta.values()):
+        raise InputDataError(f"{meta_path}: groundtruth must map trajectory / mesh / calibration to file names, got {gt_meta!r}")
+    ground_truth = None
+    gt_traj = path / gt_meta.get("trajectory", GT_TRAJECTORY_FILE)
+    if _is_file(gt_traj):
+        ground_truth = read_tum(gt_traj)
+        if len(ground_truth) != len(frames):
+            raise InputDataError(f"{gt_traj}: {len(ground_truth)} poses for {len(frames)} frames; one pose per frame is required")
+        if frames and not np.allclose(ground_truth.timestamps_s, [f.timestamp for f in frames], atol=1e-9):
+            raise InputDataError(f"{gt_traj}: timestamps differ from the frame list in {SEQUENCE_FILE}")
+    gt_mesh = path / gt_meta.get("mesh", GT_MESH_FILE)
+    source = meta.get("source") or {}
+    if not isinstance(source, dict):
+        raise InputDataError(f"{meta_path}: source must be a mapping (free-form provenance), got {type(source).__name__}")
+    return Sequence(
+        path=path,
+        calibration=calibration,
+        spec=spec,
+        frames=frames,
+        ground_truth=ground_truth,
+        ground_truth_mesh_path=gt_mesh if _is_file(gt_mesh) else None,
+        source=dict(source),
+    )
+
+
+def _is_file(path: Path) -> bool:
+    """``path.is_file()``, with a folder that cannot be looked into as an InputDataError."""
+    try:
+        return path.is_file()
+    except OSError as exc:
+        raise InputDataError(f"cannot look for {path}: {exc.strerror or exc}; check the permissions of {path.parent}") from None
+
+
+def _read_meta(meta_path: Path) -> dict[str, Any]:
+    """``sequence.yaml``'s top-level mapping, with its format and required keys checked."""
+    try:
+        present = meta_path.exists()
+    except OSError as exc:
+        raise InputDataError(f"cannot look for {meta_path}: {exc.strerror or exc}; check the permissions of {meta_path.parent}") from None
+    if not present:
+        raise InputDataError(f"{meta_path.parent} is not an FPP sequence folder: {SEQUENCE_FILE} is missing")
     meta = read_yaml_file(meta_path, InputDataError, "sequence file")
     if not isinstance(meta, dict):
         raise InputDataError(f"{meta_path}: expected a mapping at the top level")
@@ -164,44 +241,28 @@ def read_sequence(path: str | os.PathLike[str]) -> Sequence:
     for key in ("calibration", "patterns", "frames"):
         if key not in meta:
             raise InputDataError(f"{meta_path}: missing key {key!r}")
-    calibration = RigCalibration.from_dict(meta["calibration"], where=f"{meta_path}: calibration")
-    spec = PatternSpec.from_dict(meta["patterns"], where=f"{meta_path}: patterns")
-    m = spec.image_count()
-    if "image_count" in meta and int(meta["image_count"]) != m:
-        raise InputDataError(f"{meta_path}: image_count {meta['image_count']} but the pattern set has {m} images")
-    if not isinstance(meta["frames"], list):
+    return meta
+
+
+def _frame_records(entries: Any, meta_path: Path, image_count: int) -> list[FrameRecord]:
+    """The ``frames`` list: ids increasing, finite timestamps, ``image_count`` image names each."""
+    if not isinstance(entries, list):
         raise InputDataError(f"{meta_path}: frames must be a list")
     frames: list[FrameRecord] = []
-    for k, fr in enumerate(meta["frames"]):
+    for k, fr in enumerate(entries):
         where = f"{meta_path}: frames[{k}]"
         try:
             rec = FrameRecord(int(fr["id"]), float(fr["timestamp"]), str(fr["folder"]), tuple(str(n) for n in fr["images"]))
         except (KeyError, TypeError, ValueError) as exc:
             raise InputDataError(f"{where}: malformed frame entry ({exc!r}); need id, timestamp, folder, images") from None
-        if len(rec.images) != m:
-            raise InputDataError(f"{where}: {len(rec.images)} images listed but the pattern set has {m}")
+        if not math.isfinite(rec.timestamp):
+            raise InputDataError(f"{where}: timestamp {rec.timestamp} is not a finite number of seconds; give the capture time")
+        if len(rec.images) != image_count:
+            raise InputDataError(f"{where}: {len(rec.images)} images listed but the pattern set has {image_count}")
         if frames and rec.id <= frames[-1].id:
             raise InputDataError(f"{where}: frame ids must increase (id {rec.id} after {frames[-1].id})")
         frames.append(rec)
-    gt_meta = meta.get("groundtruth") or {}
-    ground_truth = None
-    gt_traj = path / gt_meta.get("trajectory", GT_TRAJECTORY_FILE)
-    if gt_traj.is_file():
-        ground_truth = read_tum(gt_traj)
-        if len(ground_truth) != len(frames):
-            raise InputDataError(f"{gt_traj}: {len(ground_truth)} poses for {len(frames)} frames; one pose per frame is required")
-        if frames and not np.allclose(ground_truth.timestamps_s, [f.timestamp for f in frames], atol=1e-9):
-            raise InputDataError(f"{gt_traj}: timestamps differ from the frame list in {SEQUENCE_FILE}")
-    gt_mesh = path / gt_meta.get("mesh", GT_MESH_FILE)
-    return Sequence(
-        path=path,
-        calibration=calibration,
-        spec=spec,
-        frames=frames,
-        ground_truth=ground_truth,
-        ground_truth_mesh_path=gt_mesh if gt_mesh.is_file() else None,
-        source=dict(meta.get("source") or {}),
-    )
+    return frames
 
 
 class SequenceWriter:

@@ -32,6 +32,9 @@ class FppSequenceSource:
         self.config = self.resolve_config(config)
         refuse_reference_time_offset(self.config, f"the FPP sequence {self.path}")
         self.sequence = read_sequence(self.path)
+        # a calibration of another camera fails every frame: refused here, in one line, rather
+        # than every frame skipped one by one
+        self.sequence.check_frames_match_calibration()
         self._index = {rec.id: i for i, rec in enumerate(self.sequence.frames)}
         self._sensor = None
         self._preparer = None
@@ -44,7 +47,12 @@ class FppSequenceSource:
 
     @classmethod
     def detect(cls, path: Path) -> bool:
-        return (Path(path) / SEQUENCE_FILE).is_file()
+        # exists, not is_file: a sequence.yaml that is a folder, or that cannot be looked at, is
+        # still this layout, and reading it says what is wrong with it
+        try:
+            return (Path(path) / SEQUENCE_FILE).exists()
+        except PermissionError:
+            return True
 
     @property
     def sensor(self):
