@@ -318,16 +318,25 @@ class _Background:
         return value
 
 
-def config_set_by_source(given: Config, resolved: Config, source_name: str) -> dict[str, dict[str, Any]]:
-    """The values a source's ``resolve_config`` set or changed (``{key: {"given", "used"}}``),
-    each logged: a value the user set and the source changed is a warning."""
+def config_set_by_source(given: Config, resolved: Config) -> dict[str, dict[str, Any]]:
+    """The values a source's ``resolve_config`` set or changed: ``{key: {"given", "used",
+    "set_by_user"}}`` (set by the user: the given value differs from the packaged default)."""
     changes = config_differences(dump_config(given), dump_config(resolved))
+    chosen = config_differences(dump_config(type(given)()), dump_config(given)).keys()
+    return {key: {"given": c["before"], "used": c["after"], "set_by_user": key in chosen} for key, c in changes.items()}
+
+
+def log_config_set_by_source(changes: dict[str, dict[str, Any]], source_name: str) -> None:
+    """A warning per value the user set and the source changed (a value the sensor cannot
+    honour), one line for the values left to the sensor (each in the debug log)."""
     for key, change in changes.items():
-        if change["before"] is None:
-            log.info("the %s source sets %s to %r (left open by the configuration)", source_name, key, change["after"])
+        if change["set_by_user"]:
+            log.warning("the %s source changes %s from %r (set in the configuration) to %r", source_name, key, change["given"], change["used"])
         else:
-            log.warning("the %s source changes %s from %r to %r", source_name, key, change["before"], change["after"])
-    return {key: {"given": c["before"], "used": c["after"]} for key, c in changes.items()}
+            log.debug("the %s source sets %s to %r (default %r)", source_name, key, change["used"], change["given"])
+    left = sum(not c["set_by_user"] for c in changes.values())
+    if left:
+        log.info("the %s source sets %d value(s) the configuration leaves to the sensor (metrics.json: config_set_by_source)", source_name, left)
 
 
 class Pipeline:
@@ -349,7 +358,7 @@ class Pipeline:
         self.source = source
         check_frame_source(source)
         self.config = source.resolve_config(config)
-        self.config_set_by_source = config_set_by_source(config, self.config, getattr(source, "name", type(source).__name__))
+        self.config_set_by_source = config_set_by_source(config, self.config)
         self.map_fuser = map_fuser
         self.out = Path(out)
         self.resume = resume
@@ -370,6 +379,8 @@ class Pipeline:
 
     def _run_in(self, out: Path) -> RunReport:
         wall0, cpu0 = time.perf_counter(), process_tree_cpu_s() if self.executor is None else None
+        log.info("reading %s as a %s sequence", getattr(self.source, "path", None) or "frames", self.source.name)
+        log_config_set_by_source(self.config_set_by_source, self.source.name)
         report = RunReport(results_dir=out)
         store = FrameStore(out / "frames", max_in_memory=self.config.run.frames_in_memory)
         ids = self.source.frame_ids()

@@ -113,7 +113,7 @@ def open_source(path: str | os.PathLike[str], config: Config, kind: str | None =
         return sources[kind](path, config)
     for name, cls in sources.items():
         if cls.detect(path):
-            log.info("reading %s as a %s sequence", path, name)
+            log.debug("%s detected as a %s sequence", path, name)  # the run logs it once its results folder is claimed
             return cls(path, config)
     inside = _sequences_inside(path, sources)
     hint = (f"; it holds {len(inside)} sequence folder(s) ({', '.join(inside[:4])}{', ...' if len(inside) > 4 else ''}): "
