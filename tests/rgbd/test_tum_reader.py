@@ -167,6 +167,8 @@ def test_sources_whose_reference_belongs_to_their_frames_refuse_a_time_offset(tm
     cv2.imwrite(str(seven / "frame-000000.color.png"), np.zeros((32, 40, 3), np.uint8))
     cv2.imwrite(str(seven / "frame-000000.depth.png"), np.full((32, 40), 1000, np.uint16))
     np.savetxt(seven / "frame-000000.pose.txt", np.eye(4))
+    for camera in ("camera", "color"):  # intrinsics of these 40x32 images (the default is a 640x480 Kinect's)
+        (seven / f"{camera}-intrinsics.txt").write_text("40 0 20\n0 40 16\n0 0 1\n")
     assert len(RgbdSource(seven, Config()).entries) == 1  # the folder reads with the default
     shifted = Config(evaluation={"reference_time_offset_s": -0.02})
     with pytest.raises(ConfigError, match="reference_time_offset_s = -0.02 s.*7-Scenes.*set it to 0"):

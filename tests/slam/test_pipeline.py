@@ -425,19 +425,17 @@ def test_sigterm_ends_the_workers_and_resume_completes(tmp_path):
     _assert_outputs_whole(out)
 
 
-def test_tum_camera_comes_from_intrinsics_file_or_the_named_camera(tmp_path, tum_sequence):
-    import shutil
-
+def test_tum_camera_comes_from_intrinsics_file_or_the_named_camera(tmp_path):
     from fpp_graph.config import Config
     from frontend.rgbd.source import TUM_CAMERAS, RgbdSource
 
-    seq = tmp_path / "rgbd_dataset_freiburg2_xyz"
-    shutil.copytree(tum_sequence, seq)
+    # the named camera's calibration is of 640x480 images
+    seq = write_tum_rgbd_sequence(tmp_path / "rgbd_dataset_freiburg2_xyz", width=640, height=480)
     (seq / "intrinsics.txt").unlink()
     source = RgbdSource(seq, Config())
     assert source.K[0, 0] == TUM_CAMERAS["freiburg2"][0][0]
     np.testing.assert_array_equal(source.distortion, TUM_CAMERAS["freiburg2"][1])
-    (seq / "intrinsics.txt").write_text("500 500 160 100 0.1\n")
+    (seq / "intrinsics.txt").write_text("500 500 320 240 0.1\n")
     with pytest.raises(InputDataError, match=r"intrinsics.txt: expected 'fx fy cx cy \[k1 k2 p1 p2 k3\]', got 5 numbers"):
         RgbdSource(seq, Config())
 

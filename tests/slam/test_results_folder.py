@@ -293,3 +293,20 @@ def test_an_os_error_no_command_translated_is_still_one_line(finished, tmp_path,
     (results / "trajectory.tum").mkdir()  # a folder where a file should be
     line = refused(capsys, "eval", results, "--gt", sequence)
     assert str(results / "trajectory.tum") in line
+
+
+def test_a_full_disk_while_a_plot_is_written_is_one_line_and_leaves_no_partial_file(finished, tmp_path, capsys, monkeypatch):
+    sequence, config, _, _ = finished
+    real_fsync = os.fsync
+
+    def no_space_for_pictures(fd):
+        if ".png." in os.readlink(f"/proc/self/fd/{fd}"):
+            raise OSError(errno.ENOSPC, "No space left on device")
+        real_fsync(fd)
+
+    monkeypatch.setattr(os, "fsync", no_space_for_pictures)
+    out = tmp_path / "out"
+    line = refused(capsys, "run", sequence, "--out", out, "--config", config, after_logs=True)
+    assert ".png: No space left on device; the disk is full" in line
+    assert not [p.name for p in out.rglob("*") if p.name.endswith(".tmp") or p.suffix == ".png"]
+    assert (out / "trajectory.tum").exists()  # what was written before the disk filled is whole
