@@ -16,6 +16,7 @@ from typing import Any, Protocol, runtime_checkable
 
 from fpp_graph.config import Config
 from fpp_graph.errors import InputDataError
+from fpp_graph.outputs import os_error
 from fpp_graph.trajectory import Trajectory
 from fpp_graph.types import Frame, PairRegistrar
 
@@ -106,6 +107,11 @@ def open_source(path: str | os.PathLike[str], config: Config, kind: str | None =
     path = Path(path)
     if not path.exists():
         raise InputDataError(f"sequence {path} does not exist")
+    if path.is_dir():
+        try:  # an unreadable folder would otherwise read as no known layout
+            next(os.scandir(path), None)
+        except OSError as exc:
+            raise os_error(exc, path, reading=True) from exc
     sources = available_sources()
     if kind is not None:
         if kind not in sources:

@@ -310,3 +310,19 @@ def test_a_full_disk_while_a_plot_is_written_is_one_line_and_leaves_no_partial_f
     assert ".png: No space left on device; the disk is full" in line
     assert not [p.name for p in out.rglob("*") if p.name.endswith(".tmp") or p.suffix == ".png"]
     assert (out / "trajectory.tum").exists()  # what was written before the disk filled is whole
+
+
+def test_an_unreadable_sequence_folder_is_named_as_such(tmp_path, monkeypatch, capsys):
+    sequence = tmp_path / "seq"
+    sequence.mkdir()
+    real_scandir = os.scandir
+
+    def not_permitted(path="."):
+        if Path(path) == sequence:
+            raise PermissionError(errno.EACCES, "Permission denied", str(path))
+        return real_scandir(path)
+
+    monkeypatch.setattr(os, "scandir", not_permitted)
+    line = refused(capsys, "run", sequence, "--out", tmp_path / "out")
+    assert f"cannot read {sequence}: Permission denied" in line
+    assert not (tmp_path / "out").exists()
