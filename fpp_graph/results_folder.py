@@ -28,7 +28,13 @@ from typing import Any
 
 from fpp_graph.atomic import atomic_write_text
 from fpp_graph.errors import ConfigError, OutputError
-from fpp_graph.outputs import LOCK_NAME, FolderLock, make_folder, refuse_input_overlap, translated_os_errors
+from fpp_graph.outputs import (
+    LOCK_NAME,
+    FolderLock,
+    make_folder,
+    refuse_input_overlap,
+    translated_os_errors,
+)
 
 log = logging.getLogger(__name__)
 

@@ -64,6 +64,7 @@ from numpy.typing import NDArray
 
 from fpp_graph.errors import CalibrationError
 from fpp_graph.geometry import make_pose
+from fpp_graph.outputs import translated_os_errors
 from frontend.fpp.rig import PinholeModel, RigCalibration, load_calibration
 
 _UNIT_TO_M = {"m": 1.0, "cm": 1e-2, "mm": 1e-3}
@@ -281,7 +282,8 @@ def read_any_calibration(path: str | os.PathLike[str], projector_size: tuple[int
     path = Path(path)
     if not path.is_file():
         raise CalibrationError(f"calibration file {path} does not exist (or is not a file)")
-    head = path.read_text(encoding="utf-8", errors="replace")[:4096]
+    with translated_os_errors(path, reading=True):
+        head = path.read_text(encoding="utf-8", errors="replace")[:4096]
     size_kw = {"projector_size": tuple(projector_size)} if projector_size is not None else {}
     if "fpp-graph rig calibration" in head:
         cal = load_calibration(path)
