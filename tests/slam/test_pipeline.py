@@ -311,6 +311,10 @@ def test_kill_9_mid_run_then_resume(tmp_path):
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["frames"] == 14
     _assert_outputs_whole(out)
+    # the resumed run is the run: the same trajectory, byte for byte, as one never interrupted
+    whole = _cli("run", str(seq), "--out", str(tmp_path / "whole"), "--config", cfg)
+    assert whole.returncode == 0, whole.stderr[-2000:]
+    assert (out / "trajectory.tum").read_bytes() == (tmp_path / "whole" / "trajectory.tum").read_bytes()
 
 
 def test_resume_removes_the_temp_files_of_interrupted_writes_only(tmp_path):
