@@ -24,13 +24,18 @@ def optimize_graph(
     certify: Annotated[bool, typer.Option("--certify/--no-certify", help="Certify global optimality (SE-Sync) and escape a local minimum.")] = True,
     as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object (logs go to stderr).")] = False,
     config: ConfigOption = None,
+    overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace an existing --out file.")] = False,
 ) -> None:
     """Optimise a g2o pose graph: chordal init, LM, robust loops on evidence, certificate."""
     import json
 
     from fpp_graph.backend.graph_run import graph_run_summary, optimize_g2o_file
     from fpp_graph.config import PoseGraphConfig, RunConfig, load_config
+    from fpp_graph.outputs import refuse_existing_file, refuse_input_overlap, translated_os_errors
 
+    if out is not None:  # refused before the optimisation, not after it
+        refuse_input_overlap(out, [graph_file, config])
+        refuse_existing_file(out, overwrite)
     if config is None:
         # the back-end's own sections only: a pose graph needs no sensor, so the front-ends'
         # config sections (found through the frame-source entry points) are not loaded
@@ -47,7 +52,9 @@ def optimize_graph(
     if out is not None:
         from fpp_graph.backend.g2o import write_g2o
 
-        write_g2o(out, run.graph, poses=run.result.poses_world_sensor)
+        refuse_existing_file(out, overwrite)  # made meanwhile (the optimisation may take minutes)
+        with translated_os_errors(out):
+            write_g2o(out, run.graph, poses=run.result.poses_world_sensor)
     summary = {**graph_run_summary(run, certify), "output": None if out is None else str(out)}
     typer.echo(json.dumps(summary) if as_json else _one_line(summary, out))
 
