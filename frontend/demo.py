@@ -7,12 +7,19 @@ imports stay light so ``fpp-slam --help`` remains instant.
 
 from __future__ import annotations
 
+import contextlib
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Annotated, Any
 
 import typer
 
 from fpp_graph.cli.common import examples
+
+#: Written into a demo's --out: the folder is one the demo made, whose ``sequence/`` and
+#: ``results/`` the next demo replaces. A folder without it is the user's and is not written.
+DEMO_MARKER = ".fpp-slam-demo"
+DEMO_PARTS = ("sequence", "results")
 
 DEFAULT_SCENE = {
     # The built-in procedural doll on a turntable, 3 turns. The paper's protocol has 13 views
@@ -31,10 +38,10 @@ DEFAULT_SCENE = {
 
 @examples("fpp-slam demo --out results/demo", "fpp-slam demo --frames 24 --true-calibration --out results/demo-true")
 def demo(
-    out: Annotated[Path, typer.Option("--out", "-o", help="Folder for the simulated sequence and the results.")] = Path("results/demo"),
+    out: Annotated[Path, typer.Option("--out", "-o", help="Folder for the simulated sequence and the results: a new or empty one, or an earlier demo's.")] = Path("results/demo"),
     full: Annotated[bool, typer.Option("--full", help="1920x1200 instead of the 640x400 preview (slow).")] = False,
     frames: Annotated[int, typer.Option("--frames", help="Use only the first N views (0 = all 72).")] = 0,
-    overwrite: Annotated[bool, typer.Option("--overwrite/--keep", help="Replace an earlier demo in --out.")] = True,
+    overwrite: Annotated[bool, typer.Option("--overwrite/--keep", help="Replace an earlier demo's sequence in --out, or keep it (its results are replaced either way).")] = True,
     true_calibration: Annotated[bool, typer.Option("--true-calibration", help="Decode with the simulator's true calibration instead of one estimated from simulated board captures.")] = False,
 ) -> None:
     """Simulate the default doll turntable (3 turns x 24 views, preview), run, evaluate, print a short table.
@@ -49,35 +56,79 @@ def demo(
     start = time.perf_counter()
     setup_logging("WARNING")
     config = load_config(None)
-    sequence_dir = out / "sequence"
-    results_dir = out / "results"
-    if overwrite or not (sequence_dir / "sequence.yaml").exists():
-        # said before the simulator's imports (Open3D, OpenCV: seconds on a cold start)
-        typer.echo(f"simulating the default turntable ({'1920x1200' if full else '640x400 preview'}) into {sequence_dir} ...")
-        from frontend.sim import simulate_sequence
+    with demo_folder(out):
+        sequence_dir = out / "sequence"
+        results_dir = out / "results"
+        if overwrite or not (sequence_dir / "sequence.yaml").exists():
+            # said before the simulator's imports (Open3D, OpenCV: seconds on a cold start)
+            typer.echo(f"simulating the default turntable ({'1920x1200' if full else '640x400 preview'}) into {sequence_dir} ...")
+            from frontend.sim import simulate_sequence
 
+            with RichProgress() as progress:
+                simulate_sequence(
+                    DEFAULT_SCENE, sequence_dir, preview=not full, max_frames=frames or None, overwrite=True, progress=progress,
+                    calibration_mode="true" if true_calibration else "estimated",
+                )
+        typer.echo(f"simulated in {time.perf_counter() - start:.1f} s; running SLAM ...")
+        from fpp_graph.evaluation.results import evaluate_results
+        from fpp_graph.slam.pipeline import run_sequence
+        from fpp_graph.slam.sources import open_source
+
+        source = open_source(sequence_dir, config)
         with RichProgress() as progress:
-            simulate_sequence(
-                DEFAULT_SCENE, sequence_dir, preview=not full, max_frames=frames or None, overwrite=True, progress=progress,
-                calibration_mode="true" if true_calibration else "estimated",
-            )
-    typer.echo(f"simulated in {time.perf_counter() - start:.1f} s; running SLAM ...")
-    from fpp_graph.evaluation.results import evaluate_results
-    from fpp_graph.slam.pipeline import run_sequence
-    from fpp_graph.slam.sources import open_source
-
-    source = open_source(sequence_dir, config)
-    with RichProgress() as progress:
-        shown = _StagesShownEarly(progress, len(source.frame_ids()))
-        report = run_sequence(sequence_dir, config, results_dir, resume=False, overwrite=True, kind="fpp", progress=shown)
-        shown.finished()
-    metrics = evaluate_results(results_dir, source)
+            shown = _StagesShownEarly(progress, len(source.frame_ids()))
+            report = run_sequence(sequence_dir, config, results_dir, resume=False, overwrite=True, kind="fpp", progress=shown)
+            shown.finished()
+        metrics = evaluate_results(results_dir, source)
     keep = (
         "frames", "keyframes", "loops_accepted", "loops_rejected", "ate_rmse_mm", "rpe_trans_rmse_mm",
         "rpe_rot_rmse_deg", "loop_return_mm", "map_rmse_mm", "map_p95_mm", "run_seconds",
     )
     print_metrics_table({k: metrics[k] for k in keep if k in metrics})
     typer.echo(f"demo finished in {time.perf_counter() - start:.1f} s; results in {report.results_dir}")
+
+
+@contextlib.contextmanager
+def demo_folder(out: Path) -> Iterator[Path]:
+    """Hold ``out`` for a demo: refused (OutputError, nothing changed) when it is a file, is being
+    written by another process, or is a folder of the user's: anything but a new or empty folder
+    or one an earlier demo made. Files of the user's next to ``sequence/`` and ``results/`` in a
+    demo's folder are left alone."""
+    from fpp_graph.atomic import atomic_write_text
+    from fpp_graph.outputs import FolderLock, make_folder, translated_os_errors
+
+    _refuse_foreign_demo_folder(out)
+    make_folder(out)
+    with FolderLock(out):
+        _refuse_foreign_demo_folder(out)  # made meanwhile by another process that has ended since
+        atomic_write_text(out / DEMO_MARKER, "made by fpp-slam demo: the next demo replaces its sequence/ and results/\n")
+        with translated_os_errors(out):
+            yield out
+
+
+def _refuse_foreign_demo_folder(out: Path) -> None:
+    from fpp_graph.errors import OutputError
+    from fpp_graph.outputs import LOCK_NAME, translated_os_errors
+
+    with translated_os_errors(out, reading=True):
+        if out.exists() and not out.is_dir():
+            raise OutputError(f"--out {out} is a file, not a folder: choose another --out")
+        if not out.is_dir() or (out / DEMO_MARKER).exists():
+            return
+        entries = sorted(p.name for p in out.iterdir() if p.name != LOCK_NAME)
+        if entries and not _made_by_an_earlier_demo(out, entries):
+            shown = ", ".join(entries[:4]) + (", ..." if len(entries) > 4 else "")
+            raise OutputError(f"--out {out} holds files the demo did not make ({shown}); the demo replaces what it writes, so it "
+                              "writes only into a new or empty folder or an earlier demo's: choose another --out")
+
+
+def _made_by_an_earlier_demo(out: Path, entries: list[str]) -> bool:
+    """A demo folder of a version that did not mark it: ``sequence/`` (simulated) and ``results/`` only."""
+    from frontend.fpp.capture import SIMULATED, recorded_source
+
+    if not set(entries) <= set(DEMO_PARTS) or "sequence" not in entries:
+        return False
+    return not (out / "sequence" / "sequence.yaml").exists() or SIMULATED[0] in recorded_source(out / "sequence")
 
 
 class _StagesShownEarly:
@@ -140,13 +191,16 @@ def simulate_once(name: str, folder: Path, full: bool = False, frames: int | Non
     ``calibration``: what ``sequence.yaml`` stores, ``estimated`` (default) or ``true``."""
     import json
 
+    from fpp_graph.atomic import atomic_write_text
     from frontend.sim import simulate_sequence
 
     stamp = folder / "simulated.json"
     wanted = json.dumps({"scene": name, "full": full, "frames": frames, "seed": seed, "calibration": calibration})
     if not (stamp.exists() and stamp.read_text() == wanted and (folder / "sequence.yaml").exists()):
+        # the stamp is no part of a sequence: gone first, the simulator then replaces only a simulated sequence
+        stamp.unlink(missing_ok=True)
         simulate_sequence(scene_definition(name, seed), folder, preview=not full, max_frames=frames, overwrite=True, calibration_mode=calibration)
-        stamp.write_text(wanted)
+        atomic_write_text(stamp, wanted)
     return folder
 
 

@@ -9,16 +9,89 @@ commands so that ``fpp-slam --help`` stays instant. User errors are FppErrors: o
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import TYPE_CHECKING, Annotated, Any, Optional
 
 import typer
 
 from fpp_graph.cli.common import examples
 
+if TYPE_CHECKING:
+    from frontend.fpp.rig import RigCalibration
+
 CalibrationOption = Annotated[Path, typer.Option("--calibration", help="Rig calibration: fpp-graph YAML, SLMaster caliInfo.yml, procam-calibration XML or SLStudio-style XML (detected by content).")]
 PatternsOption = Annotated[Path, typer.Option("--patterns", help="Pattern file (YAML; `fpp-slam patterns` prints its schema) or a sequence.yaml.")]
 ProjectorOption = Annotated[Optional[str], typer.Option("--projector", help="Projector WxH in pixels, for calibration files that do not store it (SLMaster: 1920x1080, procam-calibration: 1024x768 by default).")]  # noqa: UP045
 ConfigOption = Annotated[Optional[Path], typer.Option("--config", "-c", help="YAML overriding the packaged defaults (the decode section's thresholds).")]  # noqa: UP045
+
+SEQUENCE_FORMAT_LINE = "fpp-graph sequence v1"
+
+
+def read_calibration_option(path: Path, projector_size: tuple[int, int] | None = None, option: str = "--calibration") -> RigCalibration:
+    """The rig of ``--calibration``: a calibration file in any format the project reads, or a
+    sequence (its folder or its ``sequence.yaml``), whose ``calibration`` section is the rig.
+
+    Raises
+    ------
+    CalibrationError
+        As :func:`frontend.fpp.calibration_io.read_any_calibration`; for a sequence, a malformed
+        calibration section, or a ``--projector`` size the sequence contradicts.
+    """
+    from fpp_graph.errors import CalibrationError
+    from frontend.fpp.calibration_io import read_any_calibration
+
+    sequence_yaml = path / "sequence.yaml" if path.is_dir() else path
+    if path.is_dir() and not sequence_yaml.is_file():
+        raise CalibrationError(f"{option} {path} is a folder without a sequence.yaml: give a calibration file, or a sequence folder")
+    if not (sequence_yaml.is_file() and _is_sequence_file(sequence_yaml)):
+        return read_any_calibration(path, projector_size=projector_size)
+    rig = _sequence_calibration(sequence_yaml)
+    if projector_size is not None and tuple(projector_size) != (rig.projector.width, rig.projector.height):
+        raise CalibrationError(
+            f"{option} {path}: its projector is {rig.projector.width}x{rig.projector.height}, not the "
+            f"{projector_size[0]}x{projector_size[1]} given; drop --projector or pass the rig's calibration file"
+        )
+    return rig
+
+
+def _is_sequence_file(path: Path) -> bool:
+    from fpp_graph.outputs import translated_os_errors
+
+    with translated_os_errors(path, reading=True), open(path, encoding="utf-8", errors="replace") as handle:
+        return SEQUENCE_FORMAT_LINE in handle.read(4096)
+
+
+def _sequence_calibration(path: Path) -> RigCalibration:
+    from fpp_graph.config import read_yaml_file
+    from fpp_graph.errors import CalibrationError
+    from frontend.fpp.rig import RigCalibration
+
+    meta = read_yaml_file(path, CalibrationError, "sequence")
+    if not isinstance(meta, dict) or not isinstance(meta.get("calibration"), dict):
+        raise CalibrationError(f"{path}: a sequence file without a calibration section; pass the rig's calibration file to --calibration")
+    return RigCalibration.from_dict(meta["calibration"], where=f"{path}: calibration")
+
+
+def read_paths(*given: Path | None) -> list[Path | None]:
+    """The paths a command reads, with the folder of each sequence among them: a sequence given by
+    its ``sequence.yaml`` is read as a whole, and nothing may be written into it."""
+    paths: list[Path | None] = list(given)
+    for path in given:
+        if path is not None and path.is_file() and path.name == "sequence.yaml" and _is_sequence_file(path):
+            paths.append(path.parent)
+    return paths
+
+
+def refuse_existing_outputs(out: Path, names: Any, overwrite: bool, inputs: list[Any], option: str = "--out") -> None:
+    """Refuse an output folder before the work that fills it (claim_output_folder checks again,
+    under the folder's lock, when the files are written): nothing is created here."""
+    from fpp_graph.errors import OutputError
+    from fpp_graph.outputs import refuse_existing_file, refuse_input_overlap
+
+    refuse_input_overlap(out, inputs, option)
+    if out.exists() and not out.is_dir():
+        raise OutputError(f"{option} {out} is a file, not a folder: choose another {option}")
+    for name in names:
+        refuse_existing_file(out / name, overwrite, option)
 
 
 def parse_size(text: str | None, what: str) -> tuple[int, int] | None:
@@ -60,6 +133,7 @@ def patterns(
     spec: Annotated[Optional[Path], typer.Argument(help="A pattern file to check; without it the file's schema is printed.")] = None,  # noqa: UP045
     projector: Annotated[Optional[str], typer.Option("--projector", help="Also render the patterns for a WxH projector ...")] = None,  # noqa: UP045
     render_to: Annotated[Optional[Path], typer.Option("--render-to", help="... into this folder as 000.png, 001.png, ...")] = None,  # noqa: UP045
+    overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace the images an earlier --render-to wrote there.")] = False,
 ) -> None:
     """Print the pattern-file schema, or check a pattern file and list its images in capture order."""
     from frontend.fpp.pattern_file import SCHEMA, load_pattern_spec
@@ -74,13 +148,16 @@ def patterns(
     size = parse_size(projector, "--projector")
     if render_to is not None:
         from fpp_graph.errors import ConfigError
+        from fpp_graph.outputs import claim_output_folder
         from frontend.fpp.capture import write_png
         from frontend.fpp.patterns import generate_patterns
 
         if size is None:
             raise ConfigError("--render-to needs --projector WxH (the projector's size in pixels)")
-        for i, image in enumerate(generate_patterns(pattern_spec, *size)):
-            write_png(render_to / f"{i:03d}.png", image)
+        names = [f"{i:03d}.png" for i in range(pattern_spec.image_count())]
+        with claim_output_folder(render_to, names, overwrite, inputs=[spec], option="--render-to") as folder:
+            for name, image in zip(names, generate_patterns(pattern_spec, *size), strict=True):
+                write_png(folder / name, image, replace=overwrite)
         typer.echo(f"rendered {pattern_spec.image_count()} {size[0]}x{size[1]} images into {render_to}")
 
 
@@ -100,33 +177,65 @@ def decode(
     edge_filter: Annotated[bool, typer.Option("--edge-filter/--no-edge-filter", help="The pipeline's mixed-pixel / discontinuity filter.")] = True,
     depth_range: Annotated[str, typer.Option("--depth-range", help="Accepted depths NEAR,FAR along the camera axis, metres.")] = "0.05,10",
     config: ConfigOption = None,
+    overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace the outputs an earlier decode wrote into --out (other files there are kept).")] = False,
 ) -> None:
     """One capture -> coloured point cloud (metres), xyz map, texture, 16-bit depth image and a report."""
     from fpp_graph.cli import RichProgress, setup_logging
     from fpp_graph.config import load_config
-    from frontend.fpp.calibration_io import read_any_calibration
-    from frontend.fpp.capture import decode_capture, read_capture, write_capture_outputs
+    from fpp_graph.outputs import claim_output_folder
+    from frontend.fpp.capture import (
+        OUTPUT_FILES,
+        decode_capture,
+        read_capture,
+        write_capture_outputs,
+    )
+    from frontend.fpp.images import check_images_match_calibration
     from frontend.fpp.pattern_file import load_pattern_spec
 
     setup_logging("WARNING")
+    inputs = read_paths(capture, calibration, patterns, config)
+    refuse_existing_outputs(out, OUTPUT_FILES, overwrite, inputs)
     cfg = load_config(config)
     near_far = parse_range(depth_range, "--depth-range")
     spec = load_pattern_spec(patterns)
-    rig = read_any_calibration(calibration, projector_size=parse_size(projector, "--projector"))
+    rig = read_calibration_option(calibration, projector_size=parse_size(projector, "--projector"))
     with RichProgress() as progress:
         stack = read_capture(capture, spec, images)
+        check_images_match_calibration(stack.shape, rig, f"{capture} (calibration {calibration})")
         progress("read", 1, 1)
         result = decode_capture(
             stack, rig, spec, cfg.decode, edge_filter=edge_filter, depth_range_m=near_far,
             where=f"{capture} (calibration {calibration})", progress=progress,
         )
-        write_capture_outputs(out, result)
+        refuse_empty_cloud(result.report, capture, calibration, near_far)
+        with claim_output_folder(out, OUTPUT_FILES, overwrite, inputs) as folder:
+            write_capture_outputs(folder, result, overwrite=overwrite)
         progress("decode", 4, 4)
     r = result.report
     depth = r["depth_m"]
     span = f"depth {1e3 * depth['p01']:.1f}-{1e3 * depth['p99']:.1f} mm (p1-p99)" if depth.get("count") else "no depth"
     total_s = sum(r["seconds"].values())
     typer.echo(f"{r['valid_pixels']} valid points ({100 * r['valid_pixels'] / (r['image_size'][0] * r['image_size'][1]):.1f} % of pixels), {span}, {total_s:.2f} s -> {out}")
+
+
+def refuse_empty_cloud(report: dict[str, Any], capture: Path, calibration: Path, depth_range_m: tuple[float, float]) -> None:
+    """InputDataError when no pixel gave a point: an empty cloud is not a result.
+
+    Pixels that decode but none of which triangulates into the depth range mean a calibration of
+    another rig (its baseline or lenses do not fit the images); none decoding, a pattern file
+    that does not describe the capture.
+    """
+    from fpp_graph.errors import InputDataError
+
+    if report["valid_pixels"] > 0:
+        return
+    decoded = report["decoded_pixels"]
+    if decoded:
+        raise InputDataError(
+            f"{capture}: {decoded} pixels decode but none triangulates to a depth in {depth_range_m[0]:g}-{depth_range_m[1]:g} m with the calibration "
+            f"{calibration}: it is probably another rig's; pass this rig's calibration (or widen --depth-range)"
+        )
+    raise InputDataError(f"{capture}: no pixel decodes; check that --patterns describes these images, in their order, and --images picks them")
 
 
 @examples(
@@ -147,10 +256,12 @@ def calibrate(
     skip_missing_board: Annotated[bool, typer.Option("--skip-missing-board", help="Skip poses whose board is not found instead of stopping.")] = False,
     release_board: Annotated[bool, typer.Option("--release-board", help="Estimate the board's corner positions too (a board that is not flat); needs many varied poses (15 in the simulator; 5 are too few), see the README.")] = False,
     corners: Annotated[str, typer.Option("--corners", help="Camera corner refinement: 'model' (cornerSubPix, then a blurred X-junction fit: 0.005 px on simulated boards) or 'subpix' (cornerSubPix alone, as procam-calibration).")] = "model",
+    overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace an existing --out file.")] = False,
 ) -> None:
     """Camera + projector calibration from chessboard captures; prints per-view and overall reprojection RMS."""
     from fpp_graph.cli import RichProgress, setup_logging
     from fpp_graph.errors import ConfigError
+    from fpp_graph.outputs import refuse_existing_file, refuse_input_overlap
     from frontend.config import DecodeConfig
     from frontend.fpp.calibration_board import Chessboard
     from frontend.fpp.calibration_folders import calibrate_pose_folders, pose_folders
@@ -158,6 +269,8 @@ def calibrate(
     from frontend.fpp.rig import save_calibration
 
     setup_logging("WARNING")
+    refuse_input_overlap(out, [board_captures, patterns])  # before the minutes of calibration
+    refuse_existing_file(out, overwrite)
     inner_corners = required_size(board, "--board")
     size = required_size(projector, "--projector")
     if corners not in ("model", "subpix"):
@@ -173,7 +286,7 @@ def calibrate(
             folders, spec, Chessboard(inner_corners, square_mm * 1e-3), size, decode_config, images=images, skip_missing_board=skip_missing_board,
             progress=progress, release_board=release_board, corner_model=corners == "model",
         )
-    save_calibration(out, report.calibration)
+    save_calibration(out, report.calibration, replace=overwrite)
     rms = report.calibration.reprojection_rms_px
     typer.echo(f"{'pose':<40s} {'camera px':>10s} {'projector px':>13s}")
     for name, errors in report.per_view_rms_px.items():
@@ -201,19 +314,21 @@ def import_captures(
     frames: Annotated[str, typer.Option("--frames", help="Glob picking the frame sub-folders.")] = "*",
     frame_period_s: Annotated[float, typer.Option("--frame-period", help="Seconds between frames (timestamps).")] = 1.0,
     projector: ProjectorOption = None,
-    overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace an earlier sequence in --out.")] = False,
+    overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace a sequence an earlier import wrote into --out.")] = False,
 ) -> None:
     """Per-frame capture folders -> a sequence folder that `fpp-slam run` reads."""
     from fpp_graph.cli import RichProgress, setup_logging
-    from frontend.fpp.calibration_io import read_any_calibration
     from frontend.fpp.capture import import_captures as import_folders
     from frontend.fpp.pattern_file import load_pattern_spec
 
     setup_logging("WARNING")
     spec = load_pattern_spec(patterns)
-    rig = read_any_calibration(calibration, projector_size=parse_size(projector, "--projector"))
+    rig = read_calibration_option(calibration, projector_size=parse_size(projector, "--projector"))
     with RichProgress() as progress:
-        path = import_folders(captures_root, spec, rig, out, images=images, frames=frames, copy=copy, frame_period_s=frame_period_s, overwrite=overwrite, progress=progress)
+        path = import_folders(
+            captures_root, spec, rig, out, images=images, frames=frames, copy=copy, frame_period_s=frame_period_s,
+            overwrite=overwrite, inputs=read_paths(patterns, calibration), progress=progress,
+        )
     from frontend.fpp.sequence import read_sequence
 
     sequence = read_sequence(path)

@@ -19,8 +19,8 @@ from fpp_graph.cli.common import examples
 def camera_model(calibration: Path | None, views: list[Any]) -> tuple[Any, Any, Any]:
     """``(K, dist, projector_centre_m)`` of the map's camera.
 
-    From ``calibration`` (a calibration file in any format the project reads, or a sequence
-    folder: its ``sequence.yaml``), else from what the run kept with each decoded frame.
+    From ``calibration`` (a calibration file in any format the project reads, or a sequence:
+    its folder or its ``sequence.yaml``), else from what the run kept with each decoded frame.
 
     Raises
     ------
@@ -32,14 +32,9 @@ def camera_model(calibration: Path | None, views: list[Any]) -> tuple[Any, Any, 
     from fpp_graph.errors import CalibrationError
 
     if calibration is not None:
-        if calibration.is_dir():
-            from frontend.fpp.sequence import read_sequence
+        from frontend.commands.capture import read_calibration_option
 
-            rig = read_sequence(calibration).calibration
-        else:
-            from frontend.fpp.calibration_io import read_any_calibration
-
-            rig = read_any_calibration(calibration)
+        rig = read_calibration_option(calibration)
         T = rig.T_projector_camera
         return rig.camera.K, rig.camera.dist, -T[:3, :3].T @ T[:3, 3]
     meta = views[0].frame().metadata

@@ -70,6 +70,12 @@ def scene_config(scene: str, config_path: Path | None, mesh: Path | None, seed: 
     return config
 
 
+def scene_mesh(definition: dict[str, Any]) -> str | None:
+    """The mesh file a scene definition reads (None for the built-in doll and the corridor)."""
+    obj = (definition.get("turntable") or {}).get("object")
+    return obj if isinstance(obj, str) and obj != "doll" else None
+
+
 @examples(
     "fpp-slam simulate turntable --config datasets/turntable.yaml --out datasets/generated/turntable --resolution 640x400",
     "fpp-slam simulate turntable --mesh ../shared/data/meshes/stanford-bunny.obj --seed 1 --out datasets/generated/bunny",
@@ -84,7 +90,7 @@ def simulate(
     seed: Annotated[Optional[int], typer.Option("--seed", help="Sensor-noise and calibration seed (default: the YAML's render.seed, 0).")] = None,  # noqa: UP045
     config: Annotated[Optional[Path], typer.Option("--config", "-c", help="Scene YAML (datasets/*.yaml); default: the simulator's defaults.")] = None,  # noqa: UP045
     true_calibration: Annotated[bool, typer.Option("--true-calibration", help="Store the simulator's true calibration instead of one estimated from simulated board captures.")] = False,
-    overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace an existing sequence folder.")] = False,
+    overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace a sequence an earlier simulate wrote into --out (never anything else).")] = False,
 ) -> None:
     """Render a simulated FPP sequence (fringe images, calibration, ground truth) into --out."""
     import time
@@ -99,7 +105,7 @@ def simulate(
     with RichProgress() as progress:
         path = simulate_sequence(
             definition, out, max_frames=frames, overwrite=overwrite, progress=progress, resolution=size,
-            calibration_mode="true" if true_calibration else None,
+            calibration_mode="true" if true_calibration else None, inputs=[config, scene_mesh(definition)],
         )
     from frontend.fpp.sequence import read_sequence
 

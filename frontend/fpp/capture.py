@@ -3,7 +3,7 @@
 :func:`capture_image_paths` picks a capture's images in the order the pattern file states,
 :func:`decode_capture` decodes and triangulates them exactly as the SLAM pipeline does
 (:class:`frontend.fpp.sensor.FppSensor`: decoder, triangulation, mixed-pixel edge filter) and
-:func:`write_capture_outputs` writes the results atomically:
+:func:`write_capture_outputs` writes the results, each whole and all written before any appears:
 
 ``points.ply``
     Binary little-endian PLY, ``x y z`` float64 metres in the camera frame, ``red green blue``
@@ -22,13 +22,15 @@
 
 from __future__ import annotations
 
+import contextlib
 import io
 import json
 import logging
 import os
 import re
+import shutil
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -37,8 +39,9 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from fpp_graph.atomic import atomic_open, atomic_write_bytes, atomic_write_text
+from fpp_graph.atomic import atomic_open, atomic_write_bytes
 from fpp_graph.errors import InputDataError, OutputError
+from fpp_graph.outputs import LOCK_NAME, FolderLock, refuse_input_overlap, translated_os_errors
 from frontend.config import DecodeConfig
 from frontend.fpp.images import load_image_stack
 from frontend.fpp.patterns import PatternSpec
@@ -230,36 +233,64 @@ def read_capture(folder: str | os.PathLike[str], spec: PatternSpec, pattern: str
     return load_image_stack(capture_image_paths(folder, spec, pattern))
 
 
-def write_capture_outputs(out_dir: str | os.PathLike[str], capture: CaptureResult) -> dict[str, Path]:
-    """Write :data:`OUTPUT_FILES` into ``out_dir`` (each atomically); returns their paths."""
+def write_capture_outputs(out_dir: str | os.PathLike[str], capture: CaptureResult, overwrite: bool = False) -> dict[str, Path]:
+    """Write :data:`OUTPUT_FILES` into ``out_dir``; returns their paths.
+
+    Every file is written whole (and synced) under a temporary name before any is renamed into
+    place, so a write that fails (a full disk, no permission) leaves none of them and no
+    temporary file: an OutputError names the file and what to do. Without ``overwrite`` an
+    existing output is never replaced (OutputError; one made meanwhile by another program stops
+    the renaming at that file). Other files in ``out_dir`` are left alone.
+    """
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
-        raise OutputError(f"{out} exists and is not a folder; choose another --out")
-    xyz = capture.xyz_map_m
-    valid = capture.valid
+        raise OutputError(f"--out {out} is a file, not a folder: choose another --out")
+    contents = _encoded_outputs(capture)
     paths = {name: out / name for name in OUTPUT_FILES}
-    _write_ply(paths["points.ply"], xyz[valid], capture.texture[valid])
-    with atomic_open(paths["xyz_map.npy"], "wb") as handle:
-        np.save(handle, xyz.astype(np.float32))
-    write_png(paths["texture.png"], capture.texture)
-    depth_units = np.where(valid, np.rint(np.where(valid, xyz[..., 2], 0.0) / DEPTH_UNIT_M), 0.0)
-    too_far = depth_units > np.iinfo(np.uint16).max
-    depth_units[too_far] = 0
-    write_png(paths["depth.png"], depth_units.astype(np.uint16))
-    report = {**capture.report, "depth_png": {"unit_m": DEPTH_UNIT_M, "invalid": 0, "too_far_written_as_0": int(np.count_nonzero(too_far))}}
-    atomic_write_text(paths["decode.json"], json.dumps(report, indent=1) + "\n")
+    with contextlib.ExitStack() as stack:
+        # entered last, published first: decode.json, the report, appears after the data it describes
+        handles = {name: stack.enter_context(atomic_open(paths[name], "wb", replace=overwrite)) for name in reversed(OUTPUT_FILES)}
+        for name in OUTPUT_FILES:
+            handle = handles[name]
+            handle.write(contents[name])
+            handle.flush()
+            os.fsync(handle.fileno())  # on disk before any file is published: no half set on a full disk
     return paths
 
 
-def write_png(path: str | os.PathLike[str], image: NDArray) -> None:
-    """Write an 8- or 16-bit image as PNG, atomically."""
+def _encoded_outputs(capture: CaptureResult) -> dict[str, bytes]:
+    """The bytes of each of :data:`OUTPUT_FILES`."""
+    xyz = capture.xyz_map_m
+    valid = capture.valid
+    npy = io.BytesIO()
+    np.save(npy, xyz.astype(np.float32))
+    depth_units = np.where(valid, np.rint(np.where(valid, xyz[..., 2], 0.0) / DEPTH_UNIT_M), 0.0)
+    too_far = depth_units > np.iinfo(np.uint16).max
+    depth_units[too_far] = 0
+    report = {**capture.report, "depth_png": {"unit_m": DEPTH_UNIT_M, "invalid": 0, "too_far_written_as_0": int(np.count_nonzero(too_far))}}
+    return {
+        "points.ply": _ply_bytes(xyz[valid], capture.texture[valid]),
+        "xyz_map.npy": npy.getvalue(),
+        "texture.png": png_bytes(capture.texture, "texture.png"),
+        "depth.png": png_bytes(depth_units.astype(np.uint16), "depth.png"),
+        "decode.json": (json.dumps(report, indent=1) + "\n").encode("utf-8"),
+    }
+
+
+def png_bytes(image: NDArray, name: str) -> bytes:
+    """An 8- or 16-bit image encoded as PNG; ``name`` for the error message."""
     ok, buf = cv2.imencode(".png", image)
     if not ok:
-        raise OutputError(f"cannot encode {Path(path).name} as PNG")
-    atomic_write_bytes(path, buf.tobytes())
+        raise OutputError(f"cannot encode {name} as PNG")
+    return buf.tobytes()
 
 
-def _write_ply(path: Path, points_m: NDArray, grey: NDArray) -> None:
+def write_png(path: str | os.PathLike[str], image: NDArray, replace: bool = False) -> None:
+    """Write an 8- or 16-bit image as PNG, atomically; an existing file is replaced only with ``replace``."""
+    atomic_write_bytes(path, png_bytes(image, Path(path).name), replace=replace)
+
+
+def _ply_bytes(points_m: NDArray, grey: NDArray) -> bytes:
     """Binary little-endian PLY of coloured points (float64 metres, uchar grey as RGB)."""
     n = len(points_m)
     header = (
@@ -273,7 +304,7 @@ def _write_ply(path: Path, points_m: NDArray, grey: NDArray) -> None:
     buf = io.BytesIO()
     buf.write(header.encode("ascii"))
     buf.write(rows.tobytes())
-    atomic_write_bytes(path, buf.getvalue())
+    return buf.getvalue()
 
 
 def import_captures(
@@ -287,6 +318,7 @@ def import_captures(
     copy: bool = True,
     frame_period_s: float = 1.0,
     overwrite: bool = False,
+    inputs: Iterable[str | os.PathLike[str] | None] = (),
     progress: Progress | None = None,
 ) -> Path:
     """A folder with one sub-folder of images per frame -> a sequence folder ``fpp-slam run`` reads.
@@ -298,7 +330,8 @@ def import_captures(
     spec, calibration
         The pattern set (image order within a frame) and the rig, written into ``sequence.yaml``.
     out : path
-        The sequence folder (:mod:`frontend.fpp.sequence`).
+        The sequence folder (:mod:`frontend.fpp.sequence`), written as :func:`sequence_output`
+        says: never into an input, never over a folder that is not an imported sequence.
     images : str, optional
         Glob picking each frame's images.
     copy : bool
@@ -306,6 +339,10 @@ def import_captures(
         refers to the capture folders where they are (relative paths: keep both folders together).
     frame_period_s : float
         Timestamps are ``frame index * frame_period_s``.
+    overwrite : bool
+        Replace a sequence an earlier import wrote into ``out``.
+    inputs : paths
+        The other files read (pattern file, calibration): ``out`` must not overlap them.
 
     Raises
     ------
@@ -313,26 +350,179 @@ def import_captures(
         No frame folders, a frame with the wrong image count, unreadable images.
     CalibrationError
         A frame's image size differs from the calibration's camera.
+    OutputError
+        ``out`` cannot be written (see :func:`sequence_output`).
     """
-    from frontend.fpp.sequence import FrameRecord, SequenceWriter
+    from frontend.fpp.sequence import FrameRecord
 
     root = Path(root)
     if not root.is_dir():
         raise InputDataError(f"capture root {root} does not exist (or is not a folder)")
+    all_inputs = [root, *inputs]
+    refuse_sequence_output(out, overwrite, all_inputs, IMPORTED)
     folders = sorted((p for p in root.glob(frames) if p.is_dir()), key=natural_key)
     if not folders:
         raise InputDataError(f"{root} has no frame sub-folders matching {frames!r}; put each frame's images in a sub-folder of its own")
-    writer = SequenceWriter(out, calibration, spec, overwrite=overwrite, source={"imported_from": str(root.resolve()), "copied": copy})
-    out_path = Path(out).resolve()
-    for k, folder in enumerate(folders):
-        paths = capture_image_paths(folder, spec, images)
-        if copy:
-            writer.add_frame(k, k * frame_period_s, load_image_stack(paths))
-        else:
-            first = load_image_stack(paths[:1])  # one image per frame: size and type (all are checked on reading)
-            calibration.check_image_size(first.shape[2], first.shape[1], f"{folder} (calibration camera)")
-            rel = os.path.relpath(folder.resolve(), out_path)
-            writer.frames.append(FrameRecord(k, k * frame_period_s, rel, tuple(p.name for p in paths)))
-        if progress is not None:
-            progress("import", k + 1, len(folders))
-    return writer.close()
+    frame_images = [capture_image_paths(folder, spec, images) for folder in folders]  # every count checked before writing
+    source = {"imported_from": str(root.resolve()), "copied": copy}
+    with sequence_output(out, calibration, spec, overwrite=overwrite, inputs=all_inputs, source=source, made_by=IMPORTED) as writer:
+        out_path = Path(out).resolve()
+        for k, (folder, paths) in enumerate(zip(folders, frame_images, strict=True)):
+            if copy:
+                writer.add_frame(k, k * frame_period_s, load_image_stack(paths))
+            else:
+                first = load_image_stack(paths[:1])  # one image per frame: size and type (all are checked on reading)
+                calibration.check_image_size(first.shape[2], first.shape[1], f"{folder} (calibration camera)")
+                rel = os.path.relpath(folder.resolve(), out_path)
+                writer.frames.append(FrameRecord(k, k * frame_period_s, rel, tuple(p.name for p in paths)))
+            if progress is not None:
+                progress("import", k + 1, len(folders))
+        return writer.close()
+
+
+# ---------------------------------------------------------------------------- sequence folders
+
+#: ``made_by`` of :func:`sequence_output`: the key of ``sequence.yaml``'s ``source`` that the
+#: writer records, and what a sequence without it is not
+IMPORTED = ("imported_from", "imported by fpp-slam import")
+SIMULATED = ("simulator", "simulated by fpp-slam simulate")
+
+
+def _sequence_folder_files() -> tuple[str, ...]:
+    from frontend.fpp.sequence import (
+        GT_CALIBRATION_FILE,
+        GT_MESH_FILE,
+        GT_TRAJECTORY_FILE,
+        SEQUENCE_FILE,
+    )
+
+    return (SEQUENCE_FILE, GT_TRAJECTORY_FILE, GT_MESH_FILE, GT_CALIBRATION_FILE)
+
+
+def _is_sequence_entry(path: Path) -> bool:
+    """A frame folder, a file a sequence writer writes, or the temporary file of one of its writes."""
+    if path.is_dir() and not path.is_symlink():
+        return path.name.startswith("frame_")
+    return path.name in _sequence_folder_files() or (path.name.startswith(".") and ".tmp" in path.name)
+
+
+def recorded_source(folder: str | os.PathLike[str]) -> dict[str, Any]:
+    """The ``source`` section of ``folder/sequence.yaml`` ({} when absent or unreadable)."""
+    from fpp_graph.config import read_yaml_file
+    from fpp_graph.errors import FppError
+    from frontend.fpp.sequence import SEQUENCE_FILE
+
+    try:
+        meta = read_yaml_file(Path(folder) / SEQUENCE_FILE, InputDataError, "sequence")
+    except FppError:
+        return {}
+    source = meta.get("source") if isinstance(meta, dict) else None
+    return source if isinstance(source, dict) else {}
+
+
+def refuse_sequence_output(
+    out: str | os.PathLike[str], overwrite: bool, inputs: Iterable[str | os.PathLike[str] | None] = (),
+    made_by: tuple[str, str] | None = None,
+) -> None:
+    """Raise OutputError, changing nothing, when a sequence may not be written into ``out``.
+
+    Refused: ``out`` overlaps an input, is a file, holds anything a sequence writer does not
+    write, holds a sequence and ``overwrite`` is false, holds one whose ``sequence.yaml`` lacks the
+    ``source`` key ``made_by[0]`` (another command's or a real sensor's recording: never
+    replaced), or frame folders without ``sequence.yaml`` that no fpp-slam writer left.
+    """
+    out = Path(out)
+    refuse_input_overlap(out, inputs)
+    if not out.exists():
+        return
+    if not out.is_dir():
+        raise OutputError(f"--out {out} is a file, not a folder: choose another --out")
+    with translated_os_errors(out, reading=True):
+        entries = [p for p in out.iterdir() if p.name != LOCK_NAME]
+        _refuse_replacing(out, entries, overwrite, made_by, interrupted=(out / LOCK_NAME).exists())
+
+
+def _refuse_replacing(out: Path, entries: list[Path], overwrite: bool, made_by: tuple[str, str] | None, interrupted: bool) -> None:
+    from frontend.fpp.sequence import SEQUENCE_FILE
+
+    if not entries:
+        return
+    foreign = sorted(p.name for p in entries if not _is_sequence_entry(p))
+    if foreign:
+        shown = ", ".join(foreign[:4]) + (", ..." if len(foreign) > 4 else "")
+        raise OutputError(f"--out {out} holds files that are not part of a sequence ({shown}); they are never deleted: choose a new or empty --out")
+    if not overwrite:
+        raise OutputError(f"--out {out} exists and holds a sequence: pass --overwrite to replace it, or choose another --out")
+    if not (out / SEQUENCE_FILE).exists():
+        if not interrupted:  # frame folders no fpp-slam writer left: a recording of the user's
+            raise OutputError(f"--out {out} holds frame folders but no {SEQUENCE_FILE}, and no fpp-slam command wrote them: choose another --out")
+        return
+    if made_by is not None and made_by[0] not in recorded_source(out):
+        raise OutputError(f"--out {out} holds a sequence that was not {made_by[1]}; it is never replaced: choose another --out")
+
+
+@contextlib.contextmanager
+def sequence_output(
+    out: str | os.PathLike[str], calibration: RigCalibration, spec: PatternSpec, *, overwrite: bool = False,
+    inputs: Iterable[str | os.PathLike[str] | None] = (), source: dict[str, Any] | None = None,
+    made_by: tuple[str, str] | None = None,
+) -> Iterator[Any]:
+    """A :class:`~frontend.fpp.sequence.SequenceWriter` on ``out``, the folder locked for the block.
+
+    Refused as :func:`refuse_sequence_output` says (nothing changed), or when another process is
+    writing ``out`` (the message names its PID). An earlier sequence is deleted only after those
+    checks. When the block fails (an unreadable image, a full disk, a stop) what it wrote is
+    removed, and ``out`` too if it was made here; OSErrors become OutputErrors naming the path.
+    """
+    from frontend.fpp.sequence import SequenceWriter
+
+    out = Path(out)
+    inputs = list(inputs)
+    refuse_sequence_output(out, overwrite, inputs, made_by)
+    made_here = not out.exists()
+    if not made_here:
+        _empty_earlier_sequence(out, overwrite, made_by)
+    with translated_os_errors(out):
+        writer = SequenceWriter(out, calibration, spec, source=source)
+    lock = FolderLock(out)
+    lock.acquire()  # a second writer that got here meanwhile: refused, naming the first one's PID
+    try:
+        with translated_os_errors(out):
+            yield writer
+    except BaseException:
+        _remove_written(out, made_here)
+        raise
+    finally:
+        lock.release()
+
+
+def _empty_earlier_sequence(out: Path, overwrite: bool, made_by: tuple[str, str] | None) -> None:
+    """Delete the sequence in ``out`` under its lock (checked again there), leaving ``out`` empty."""
+    interrupted = (out / LOCK_NAME).exists()
+    with FolderLock(out), translated_os_errors(out):
+        entries = [p for p in out.iterdir() if p.name != LOCK_NAME]
+        _refuse_replacing(out, entries, overwrite, made_by, interrupted)
+        if entries:
+            log.info("replacing the sequence in %s", out)
+        for entry in entries:
+            if entry.is_dir() and not entry.is_symlink():
+                shutil.rmtree(entry)
+            else:
+                entry.unlink()
+        # SequenceWriter starts only on an empty folder; the lock is taken again right after it
+        (out / LOCK_NAME).unlink()
+
+
+def _remove_written(out: Path, made_here: bool) -> None:
+    """What a failed sequence write left in ``out`` (all of it is the write's own)."""
+    with contextlib.suppress(OSError):
+        for entry in out.iterdir():
+            if entry.name == LOCK_NAME:
+                continue
+            if entry.is_dir() and not entry.is_symlink():
+                shutil.rmtree(entry, ignore_errors=True)
+            else:
+                entry.unlink()
+        if made_here:
+            (out / LOCK_NAME).unlink()
+            out.rmdir()

@@ -161,10 +161,14 @@ class RigCalibration:
         )
 
 
-def save_calibration(path: str | os.PathLike[str], calibration: RigCalibration, unit: str = "mm") -> None:
-    """Write a calibration YAML atomically, lengths in ``unit``, floats at full precision."""
+def save_calibration(path: str | os.PathLike[str], calibration: RigCalibration, unit: str = "mm", replace: bool = True) -> None:
+    """Write a calibration YAML atomically, lengths in ``unit``, floats at full precision.
+
+    With ``replace=False`` an existing file is never replaced (OutputError instead); a failed
+    write (a full disk, no permission) is an OutputError naming ``path`` and leaves no file.
+    """
     # yaml.safe_dump writes floats with repr, i.e. full precision.
-    atomic_write_text(path, yaml.safe_dump(calibration.to_dict(unit), sort_keys=False))
+    atomic_write_text(path, yaml.safe_dump(calibration.to_dict(unit), sort_keys=False), replace=replace)
 
 
 def load_calibration(path: str | os.PathLike[str]) -> RigCalibration:

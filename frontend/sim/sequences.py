@@ -13,6 +13,7 @@ rig has, and the truth goes to ``groundtruth_calibration.yaml`` for evaluation.
 from __future__ import annotations
 
 import os
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -22,9 +23,9 @@ from numpy.typing import NDArray
 
 from fpp_graph.config import read_yaml_file
 from fpp_graph.errors import ConfigError
+from frontend.fpp.capture import SIMULATED, refuse_sequence_output, sequence_output
 from frontend.fpp.patterns import PatternSpec
 from frontend.fpp.rig import RigCalibration
-from frontend.fpp.sequence import SequenceWriter
 from frontend.sim.calibration import (
     BoardCalibrationSettings,
     estimate_rig_calibration,
@@ -148,6 +149,7 @@ def simulate_sequence(
     resolution: tuple[int, int] | None = None,
     calibration_mode: str | None = None,
     cache_dir: str | os.PathLike[str] | None = None,
+    inputs: Iterable[str | os.PathLike[str] | None] = (),
 ) -> Path:
     """Render a scene definition into a recorded sequence folder (images + ground truth).
 
@@ -162,7 +164,9 @@ def simulate_sequence(
     max_frames : int, optional
         Only the first frames of the trajectory (quick looks).
     overwrite : bool
-        Replace an existing sequence folder.
+        Replace a sequence an earlier simulation wrote into ``out``. Anything else in ``out`` (a
+        recorded or imported sequence, files of the user's) is never replaced: OutputError, before
+        anything is rendered (:func:`frontend.fpp.capture.sequence_output`).
     progress : callable, optional
         Called as ``progress(done, total)`` before the first frame (``done`` 0) and after each; with three arguments
         (``progress(stage, done, total)``, stages ``calibrate`` and ``simulate``) when it accepts them.
@@ -173,7 +177,12 @@ def simulate_sequence(
         estimated from simulated board captures (default) or the true one.
     cache_dir : path, optional
         Cache of estimated calibrations (:func:`frontend.sim.calibration.default_cache_dir`).
+    inputs : paths
+        Files the scene is read from (scene YAML, mesh): ``out`` must not overlap them; a scene
+        YAML given as ``config`` is one already.
     """
+    inputs = [*inputs, None if isinstance(config, dict) else config]
+    refuse_sequence_output(out, overwrite, inputs, SIMULATED)  # before minutes of calibration and rendering
     setup = load_simulation(config, preview=preview and resolution is None, max_frames=max_frames, resolution=resolution)
     mode = calibration_mode or setup.calibration_settings.mode
     if mode not in ("estimated", "true"):
@@ -193,14 +202,14 @@ def simulate_sequence(
     n = len(setup.poses_world_sensor)
     staged("simulate", 0, n)  # the simulator's set-up and first frame take seconds
     sim = FppSimulator(setup.calibration, setup.spec, setup.scene, setup.settings)
-    writer = SequenceWriter(out, stored, setup.spec, overwrite=overwrite, source=source)
-    for k, (T, ts) in enumerate(zip(setup.poses_world_sensor, setup.timestamps_s, strict=True)):
-        frame = sim.render(T, frame_index=k)
-        writer.add_frame(k, float(ts), frame.images)
-        staged("simulate", k + 1, n)
-    writer.write_ground_truth(setup.poses_world_sensor, setup.scene.to_open3d())
-    writer.write_ground_truth_calibration(setup.calibration)
-    return writer.close()
+    with sequence_output(out, stored, setup.spec, overwrite=overwrite, inputs=inputs, source=source, made_by=SIMULATED) as writer:
+        for k, (T, ts) in enumerate(zip(setup.poses_world_sensor, setup.timestamps_s, strict=True)):
+            frame = sim.render(T, frame_index=k)
+            writer.add_frame(k, float(ts), frame.images)
+            staged("simulate", k + 1, n)
+        writer.write_ground_truth(setup.poses_world_sensor, setup.scene.to_open3d())
+        writer.write_ground_truth_calibration(setup.calibration)
+        return writer.close()
 
 
 def _staged_progress(progress: Any) -> Any:
