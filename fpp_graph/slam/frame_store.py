@@ -49,10 +49,13 @@ def save_frame(path: str | os.PathLike[str], frame: Frame) -> None:
     try:
         with atomic_open(path, "wb") as handle:
             np.savez(handle, **arrays)
-    except OSError as exc:
+    except OutputError as exc:  # atomic_open's OSError, said with what a run can do about it
+        if not isinstance(exc.__cause__, OSError):
+            raise
+        cause = exc.__cause__
         size_mb = sum(a.nbytes for a in arrays.values()) / 1e6
         raise OutputError(
-            f"cannot write the frame cache {path}: {exc.strerror or exc}; free space on that disk (a frame like this one "
+            f"cannot write the frame cache {path}: {cause.strerror or cause}; free space on that disk (a frame like this one "
             f"takes ~{size_mb:.0f} MB) or keep fewer frames (run.keep_frames: keyframes), then run again with --resume"
         ) from exc
 

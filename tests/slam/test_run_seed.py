@@ -44,6 +44,7 @@ def test_fpp_and_rgbd_registrars_take_the_runs_seed(tmp_path):
     cv2.imwrite(str(tum / "depth" / "0.000000.png"), np.full((48, 64), 5000, np.uint16))
     (tum / "rgb.txt").write_text("0.000000 rgb/0.000000.png\n")
     (tum / "depth.txt").write_text("0.000000 depth/0.000000.png\n")
+    (tum / "intrinsics.txt").write_text("50 50 32 24\n")  # of these 64x48 images
 
     for folder in (tmp_path / "fpp", tum):
         assert open_source(folder, config_from_dict({})).make_registrar().seed == 0
