@@ -369,7 +369,7 @@ def _fmt(values: ArrayLike) -> str:
     return " ".join(repr(float(x)) for x in np.asarray(values, dtype=np.float64).ravel())
 
 
-def write_g2o(path: str | os.PathLike[str], graph: PoseGraph, poses: Mapping[int, ArrayLike] | None = None) -> None:
+def write_g2o(path: str | os.PathLike[str], graph: PoseGraph, poses: Mapping[int, ArrayLike] | None = None, replace: bool = True) -> None:
     """Write ``graph`` as a 3D g2o file, atomically and at full precision.
 
     Parameters
@@ -382,6 +382,9 @@ def write_g2o(path: str | os.PathLike[str], graph: PoseGraph, poses: Mapping[int
     poses : mapping int -> (4, 4), optional
         Vertex poses to write instead of the graph's current ones (e.g. a result's
         ``poses_world_sensor``); keys absent here keep the graph's pose.
+    replace : bool
+        Replace an existing file at ``path`` (False: OutputError instead, checked and written in
+        one step, so a file made meanwhile by another program is kept).
     """
     from fpp_graph.backend.gtsam_bridge import as_pose
 
@@ -422,5 +425,5 @@ def write_g2o(path: str | os.PathLike[str], graph: PoseGraph, poses: Mapping[int
         lines.append(
             f"{EDGE_TAG} {e.target_id} {e.source_id} {_fmt(e.T_target_source[:3, 3])} {_fmt(q)} {_fmt(info_g2o[_UPPER])}\n"
         )
-    with atomic_open(path, "w", encoding="ascii") as handle:
+    with atomic_open(path, "w", replace=replace, encoding="ascii") as handle:
         handle.writelines(lines)

@@ -54,7 +54,7 @@ def optimize_graph(
 
         refuse_existing_file(out, overwrite)  # made meanwhile (the optimisation may take minutes)
         with translated_os_errors(out):
-            write_g2o(out, run.graph, poses=run.result.poses_world_sensor)
+            write_g2o(out, run.graph, poses=run.result.poses_world_sensor, replace=overwrite)
     summary = {**graph_run_summary(run, certify), "output": None if out is None else str(out)}
     typer.echo(json.dumps(summary) if as_json else _one_line(summary, out))
 

@@ -41,7 +41,13 @@ from numpy.typing import NDArray
 
 from fpp_graph.atomic import atomic_open, atomic_write_bytes
 from fpp_graph.errors import InputDataError, OutputError
-from fpp_graph.outputs import LOCK_NAME, FolderLock, refuse_input_overlap, translated_os_errors
+from fpp_graph.outputs import (
+    LOCK_NAME,
+    FolderLock,
+    make_folder,
+    refuse_input_overlap,
+    translated_os_errors,
+)
 from frontend.config import DecodeConfig
 from frontend.fpp.images import load_image_stack
 from frontend.fpp.patterns import PatternSpec
@@ -477,40 +483,37 @@ def sequence_output(
     from frontend.fpp.sequence import SequenceWriter
 
     out = Path(out)
-    inputs = list(inputs)
-    refuse_sequence_output(out, overwrite, inputs, made_by)
+    refuse_sequence_output(out, overwrite, list(inputs), made_by)
     made_here = not out.exists()
-    if not made_here:
-        _empty_earlier_sequence(out, overwrite, made_by)
-    with translated_os_errors(out):
-        writer = SequenceWriter(out, calibration, spec, source=source)
+    interrupted = (out / LOCK_NAME).exists()  # an fpp-slam writer has been here (its frame folders are no recording of the user's)
+    make_folder(out)
     lock = FolderLock(out)
     lock.acquire()  # a second writer that got here meanwhile: refused, naming the first one's PID
     try:
         with translated_os_errors(out):
-            yield writer
-    except BaseException:
-        _remove_written(out, made_here)
-        raise
+            _empty_earlier_sequence(out, overwrite, made_by, interrupted)
+            writer = SequenceWriter(out, calibration, spec, source=source)
+        try:
+            with translated_os_errors(out):
+                yield writer
+        except BaseException:
+            _remove_written(out, made_here)
+            raise
     finally:
         lock.release()
 
 
-def _empty_earlier_sequence(out: Path, overwrite: bool, made_by: tuple[str, str] | None) -> None:
-    """Delete the sequence in ``out`` under its lock (checked again there), leaving ``out`` empty."""
-    interrupted = (out / LOCK_NAME).exists()
-    with FolderLock(out), translated_os_errors(out):
-        entries = [p for p in out.iterdir() if p.name != LOCK_NAME]
-        _refuse_replacing(out, entries, overwrite, made_by, interrupted)
-        if entries:
-            log.info("replacing the sequence in %s", out)
-        for entry in entries:
-            if entry.is_dir() and not entry.is_symlink():
-                shutil.rmtree(entry)
-            else:
-                entry.unlink()
-        # SequenceWriter starts only on an empty folder; the lock is taken again right after it
-        (out / LOCK_NAME).unlink()
+def _empty_earlier_sequence(out: Path, overwrite: bool, made_by: tuple[str, str] | None, interrupted: bool) -> None:
+    """Delete the sequence in ``out`` (its lock held; checked again under it), leaving ``out`` empty."""
+    entries = [p for p in out.iterdir() if p.name != LOCK_NAME]
+    _refuse_replacing(out, entries, overwrite, made_by, interrupted)
+    if entries:
+        log.info("replacing the sequence in %s", out)
+    for entry in entries:
+        if entry.is_dir() and not entry.is_symlink():
+            shutil.rmtree(entry)
+        else:
+            entry.unlink()
 
 
 def _remove_written(out: Path, made_here: bool) -> None:

@@ -49,6 +49,7 @@ from numpy.typing import NDArray
 from fpp_graph.atomic import atomic_write_bytes, atomic_write_text
 from fpp_graph.config import read_yaml_file
 from fpp_graph.errors import CalibrationError, InputDataError, OutputError
+from fpp_graph.outputs import LOCK_NAME
 from fpp_graph.trajectory import Trajectory, read_tum, write_tum
 from frontend.fpp.images import check_images_match_calibration, image_size, load_image_stack
 from frontend.fpp.patterns import PatternSpec
@@ -285,7 +286,8 @@ class SequenceWriter:
 
     def __init__(self, path: str | os.PathLike[str], calibration: RigCalibration, spec: PatternSpec, overwrite: bool = False, source: dict[str, Any] | None = None):
         self.path = Path(path)
-        if self.path.exists() and (not self.path.is_dir() or any(self.path.iterdir())):
+        # a folder held by fpp_graph.outputs.FolderLock holds its lock file: empty all the same
+        if self.path.exists() and (not self.path.is_dir() or any(p.name != LOCK_NAME for p in self.path.iterdir())):
             if not overwrite:
                 raise OutputError(f"{self.path} exists and is not empty; choose another folder or pass overwrite")
             if (self.path / SEQUENCE_FILE).is_file() or all(p.name.startswith("frame_") or p.name.startswith("groundtruth") for p in self.path.iterdir()):
