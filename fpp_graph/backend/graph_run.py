@@ -77,9 +77,12 @@ def graph_run_summary(run: GraphRun, certify: bool) -> dict[str, Any]:
 
 def run_graph_file(path: Path, config: Config, out: Path) -> dict[str, Any]:
     """``fpp-slam run GRAPH.g2o``: optimise with the configured back-end; write ``trajectory.tum``,
-    ``graph.g2o`` and ``metrics.json`` (the summary, plus ``frames``) into ``out`` (a folder that
-    :func:`~fpp_graph.results_folder.results_folder` claimed: it holds ``config.yaml``)."""
+    ``graph.g2o``, ``metrics.json`` (the summary, plus ``frames``) and, last, ``report.html``
+    (:mod:`fpp_graph.evaluation.report`; its time added to ``metrics.json`` as ``report_seconds``)
+    into ``out`` (a folder that :func:`~fpp_graph.results_folder.results_folder` claimed: it holds
+    ``config.yaml``)."""
     from fpp_graph.backend.g2o import write_g2o
+    from fpp_graph.evaluation.report import write_report
     from fpp_graph.trajectory import Trajectory, write_tum
 
     run = optimize_g2o_file(path, config.pose_graph)
@@ -89,5 +92,7 @@ def run_graph_file(path: Path, config: Config, out: Path) -> dict[str, Any]:
     write_tum(out / "trajectory.tum", Trajectory.from_poses([float(i) for i in ids], [poses[i] for i in ids]))
     write_g2o(out / "graph.g2o", run.graph, poses=poses)
     summary = {"frames": len(ids), **graph_run_summary(run, certify=config.pose_graph.certify)}
+    atomic_write_text(out / "metrics.json", json.dumps(summary, indent=1, default=float))
+    summary["report_seconds"] = write_report(out, replace=True).seconds  # last: a failure to write it costs no other output
     atomic_write_text(out / "metrics.json", json.dumps(summary, indent=1, default=float))
     return summary

@@ -11,6 +11,7 @@ function usable on its own:
 4. :func:`write_trajectory_and_graph` - ``trajectory.tum``, ``graph.g2o``;
 5. :func:`~fpp_graph.slam.map_fusion.fuse_points` - re-fuse the global map under the optimised poses (``map.ply``), its mesh made on a worker meanwhile (:func:`~fpp_graph.slam.map_fusion.start_mesh_apart`, ``mesh.ply``);
 6. :func:`write_metrics_and_plots` - ``metrics.json`` and PNG plots.
+7. :func:`~fpp_graph.evaluation.report.write_report` - ``report.html``, last (a failure there costs no other output).
 
 :func:`run_sequence` is the whole of ``fpp-slam run SEQUENCE`` (source discovery, config,
 pipeline). Every output file is written atomically (temp file + rename).
@@ -37,6 +38,7 @@ from fpp_graph.atomic import atomic_write_text
 from fpp_graph.config import Config, dump_config
 from fpp_graph.errors import InputDataError
 from fpp_graph.evaluation.plots import MAP_PLOT_POINTS
+from fpp_graph.evaluation.report import write_report
 from fpp_graph.geometry import compose
 from fpp_graph.results_folder import config_differences, described_input, results_folder, run_log
 from fpp_graph.slam.cpu_time import process_tree_cpu_s
@@ -426,6 +428,11 @@ class Pipeline:
         report.metrics["config_set_by_source"] = self.config_set_by_source
         if gt_poses is not None:  # an evaluation that failed raises here, after the plots are written
             report.metrics["loop_evaluation"] = loop_evaluation.result()
+        atomic_write_text(out / "metrics.json", json.dumps(report.metrics, indent=1, default=float))
+        with self._timed(report, "report"):  # last: a failure to write it costs no other output
+            write_report(out, reference=self.source.ground_truth(), keyframe_samples=samples.of(report.slam.keyframe_ids),
+                         replace=True, reference_must_fit=False)
+        report.metrics["seconds"] = sum(report.seconds_by_stage.values())  # seconds_by_stage is the metrics' own dict
         atomic_write_text(out / "metrics.json", json.dumps(report.metrics, indent=1, default=float))
         return report
 

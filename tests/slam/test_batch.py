@@ -49,13 +49,16 @@ def config_file(tmp_path_factory):
 
 
 def folder_contents(folder: Path) -> dict[str, object]:
-    """Every file of a results folder; metrics.json without its wall-clock times (``*seconds``)."""
+    """Every file of a results folder; metrics.json without its wall-clock times (``*seconds``),
+    report.html only as there (it shows them)."""
     contents: dict[str, object] = {}
     for path in sorted(p for p in folder.rglob("*") if p.is_file()):
         key = str(path.relative_to(folder))
         if path.name == "metrics.json":
             metrics = json.loads(path.read_text())
             contents[key] = {k: v for k, v in metrics.items() if not k.endswith("seconds")}
+        elif path.name == "report.html":  # it shows the run's wall-clock times too
+            contents[key] = "written"
         else:
             contents[key] = path.read_bytes()
     return contents

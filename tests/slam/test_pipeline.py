@@ -86,7 +86,7 @@ def finished_run(tmp_path_factory):
 def test_results_folder_is_complete(finished_run):
     source, report = finished_run
     out = report.results_dir
-    for name in ("config.yaml", "trajectory.tum", "graph.g2o", "map.ply", "mesh.ply", "metrics.json", "loops.json", "trajectory_top.png", "map_before_after.png"):
+    for name in ("config.yaml", "trajectory.tum", "graph.g2o", "map.ply", "mesh.ply", "metrics.json", "loops.json", "trajectory_top.png", "map_before_after.png", "report.html"):
         assert (out / name).is_file(), name
     assert not [p for p in out.iterdir() if p.name.endswith(".tmp")]
     metrics = json.loads((out / "metrics.json").read_text())
@@ -94,7 +94,7 @@ def test_results_folder_is_complete(finished_run):
     assert "corrupt" in metrics["skipped_frames"][str(BROKEN)]
     # the source has ground truth: the loop evaluation ran, timed as a stage of its own
     assert "loop_evaluation" in metrics and metrics["seconds_by_stage"]["evaluate_loops"] > 0
-    assert set(metrics["seconds_by_stage"]) == {"decode+track", "write_graph", "fuse", "plots", "evaluate_loops"}
+    assert set(metrics["seconds_by_stage"]) == {"decode+track", "write_graph", "fuse", "plots", "evaluate_loops", "report"}
     assert metrics["seconds"] == pytest.approx(sum(metrics["seconds_by_stage"].values()))
     # one process here (run.workers 1; its libraries' threads may use the other cores)
     assert metrics["cpu_seconds"] > 0 and 0 < metrics["cpu_utilisation"] <= 1.05
