@@ -23,6 +23,7 @@ import typer
 from fpp_graph.cli.common import examples_epilog, on_stop_signal, stop_signal
 from fpp_graph.cli.config_commands import config_defaults, config_dump
 from fpp_graph.cli.optimize import optimize_graph
+from fpp_graph.cli.report import report
 from fpp_graph.cli.run import batch, eval_, run
 from fpp_graph.errors import FppError
 from fpp_graph.outputs import os_error
@@ -76,7 +77,7 @@ def _root(
 
 
 #: The built-in commands, in the order ``--help`` lists them.
-COMMANDS = {"optimize": optimize_graph, "run": run, "eval": eval_, "batch": batch}
+COMMANDS = {"optimize": optimize_graph, "run": run, "eval": eval_, "report": report, "batch": batch}
 _added: set[str] = set()
 
 
