@@ -18,6 +18,22 @@ if ! ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; then
   fi
 fi
 
+# The report's browser test (tests/evaluation/test_report.py) opens report.html in Debian's
+# chromium, headless; a test setup (the dev extra) installs it, the demo's (eval alone) does not.
+case ",${extras}," in
+  *,dev,*)
+    if ! command -v chromium >/dev/null; then
+      if [ "$(id -u)" = "0" ] && command -v apt-get >/dev/null; then
+        echo "bootstrap: installing chromium (the report's browser test opens report.html in it) with apt-get"
+        { DEBIAN_FRONTEND=noninteractive apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null; } \
+          || echo "bootstrap: apt-get could not install chromium; the report's browser test will be skipped" >&2
+      else
+        echo "bootstrap: the report's browser test needs Debian's chromium: run 'sudo apt-get install chromium' (the test is skipped without it)" >&2
+      fi
+    fi
+    ;;
+esac
+
 # Probe each interpreter by running it, quietly: a pyenv shim exists for every version pyenv
 # knows of and fails ("pyenv: python3.13: command not found") when that version is not selected.
 python_bin=""

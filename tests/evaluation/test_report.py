@@ -1,0 +1,308 @@
+"""report.html: what a run's report holds (every pose, every loop with its reason, the reference),
+that it loads nothing from the network, the ``fpp-slam report`` command's refusals, and a real
+headless browser drawing it."""
+
+from __future__ import annotations
+
+import base64
+import json
+import re
+import shutil
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from fpp_graph.cli import main
+from fpp_graph.evaluation.report import CORRECTION_POINTS, MAP_POINTS
+from fpp_graph.trajectory import read_tum
+
+_FPP_SLAM = [sys.executable, "-m", "fpp_graph.cli"]
+_DTYPES = {"f8": np.float64, "f4": np.float32, "i1": np.int8, "u1": np.uint8, "i2": np.int16, "u2": np.uint16, "i4": np.int32, "u4": np.uint32}
+
+
+def _cli(*args: str):
+    return subprocess.run([*_FPP_SLAM, *map(str, args)], capture_output=True, text=True, timeout=600)
+
+
+def figures(page: str) -> dict[str, dict]:
+    """Each ``Plotly.newPlot(id, data, layout, config)`` of the page as {id: {"data", "layout"}}."""
+    decoder = json.JSONDecoder()
+    found = {}
+    for call in re.finditer(r"Plotly\.newPlot\(\s*", page):
+        values, at = [], call.end()
+        for _ in range(3):
+            value, at = decoder.raw_decode(page, at)
+            values.append(value)
+            at = re.compile(r"\s*,?\s*").match(page, at).end()
+        found[values[0]] = {"data": values[1], "layout": values[2]}
+    return found
+
+
+def decoded(value) -> np.ndarray:
+    """A trace's array: plotly's base64 typed array (``{"dtype", "bdata", "shape"}``) or a list."""
+    if isinstance(value, dict) and "bdata" in value:
+        array = np.frombuffer(base64.b64decode(value["bdata"]), dtype=_DTYPES[value["dtype"]])
+        return array.reshape([int(n) for n in value["shape"].split(",")]) if "shape" in value else array
+    return np.asarray(value, dtype=np.float64)
+
+
+def trace(figure: dict, name_start: str) -> dict:
+    matches = [t for t in figure["data"] if t.get("name", "").startswith(name_start)]
+    assert matches, f"no trace named {name_start!r}: {[t.get('name') for t in figure['data']]}"
+    return matches[0]
+
+
+def payload(page: str) -> dict:
+    found = re.search(r"<script type='application/json' id='fpp-report-data'>(.*?)</script>", page, re.S)
+    assert found
+    return json.loads(found.group(1))
+
+
+def loop_texts(figure: dict) -> list[str]:
+    return [text for t in figure["data"] if t.get("legendgroup") in ("accepted", "refused") and "text" in t for text in t["text"]]
+
+
+# -- runs -------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def sequence_run(tmp_path_factory):
+    """A small RGB-D run (the synthetic wall, out and back: a revisit) in this process, with
+    ground truth: (results folder, sequence, the pipeline's report)."""
+    wall_sequences = pytest.importorskip("tests.slam.wall_sequences")
+    from fpp_graph.config import config_from_dict
+    from fpp_graph.slam.pipeline import Pipeline
+    from fpp_graph.slam.sources import open_source
+
+    root = tmp_path_factory.mktemp("report")
+    sequence = wall_sequences.write_tum_rgbd_sequence(root / "seq")
+    config = config_from_dict({"run": {"workers": 1}, "fusion": {"mesh": False}})
+    report = Pipeline(open_source(sequence, config), config, root / "out").run()
+    return root / "out", sequence, report
+
+
+@pytest.fixture(scope="module")
+def graph_run(tmp_path_factory):
+    """``fpp-slam run g.g2o --out R`` on a small torus graph."""
+    from fpp_graph.backend.g2o import write_g2o
+    from fpp_graph.testing.synthetic_graphs import torus_graph
+
+    root = tmp_path_factory.mktemp("graph")
+    write_g2o(root / "g.g2o", torus_graph(num_poses=40, rng=np.random.default_rng(0)).graph())
+    result = _cli("run", root / "g.g2o", "--out", root / "R")
+    assert result.returncode == 0, result.stderr[-2000:]
+    return root / "R"
+
+
+# -- what a report holds ----------------------------------------------------------------------
+def test_a_sequence_runs_report_holds_every_pose_the_reference_and_its_time(sequence_run):
+    out, _, report = sequence_run
+    page = (out / "report.html").read_text()
+    view = figures(page)["map-view"]
+    trajectory = read_tum(out / "trajectory.tum")
+    drawn = trace(view, "trajectory")
+    positions = np.column_stack([decoded(drawn[axis]) for axis in "xyz"])
+    np.testing.assert_allclose(positions, trajectory.positions_xyz_m, atol=1e-12)
+    custom = decoded(drawn["customdata"])
+    np.testing.assert_allclose(custom[:, 0], trajectory.timestamps_s)  # each pose's time, and its error (mm)
+    np.testing.assert_array_equal(decoded(drawn["line"]["color"]), custom[:, 1])
+    data = payload(page)
+    covered = np.isfinite(custom[:, 1])  # the sequence's reference leaves its last frame out: no error there
+    assert covered.sum() == data["reference"]["frames_evaluated"] == len(trajectory) - 1
+    assert data["reference"]["ate_rmse_mm"] == pytest.approx(np.sqrt(np.mean(custom[covered, 1] ** 2)))
+    assert trace(view, "reference (SE(3)-aligned)")
+    assert view["layout"]["scene"]["aspectmode"] == "data"
+    assert 0 < data["map_points"] <= MAP_POINTS and 0 < data["correction_points"] <= CORRECTION_POINTS
+    metrics = json.loads((out / "metrics.json").read_text())  # written again with the report's time
+    assert metrics["seconds_by_stage"]["report"] > 0
+    assert metrics["seconds"] == pytest.approx(sum(metrics["seconds_by_stage"].values()))
+    assert report.metrics["seconds_by_stage"] == metrics["seconds_by_stage"]
+
+
+def test_every_loop_candidate_is_drawn_with_its_reason_and_the_refused_start_hidden(sequence_run, tmp_path):
+    """The run's own candidates, and (in a copy of its folder) refused ones of both kinds."""
+    out, _, _ = sequence_run
+    copy = tmp_path / "out"
+    shutil.copytree(out, copy, ignore=shutil.ignore_patterns(".fpp-slam.lock"))
+    rows = json.loads((copy / "loops.json").read_text())
+    keyframes = sorted(int(line.split()[1]) for line in (copy / "graph.g2o").read_text().splitlines() if line.startswith("VERTEX"))
+    taken = {(r["query"], r["match"]) for r in rows}
+    (q1, m1), (q2, m2) = [(q, m) for q in keyframes for m in keyframes if m < q and (q, m) not in taken][:2]
+    rows += [
+        {"query": q1, "match": m1, "stage": "appearance", "score": 0.2, "verified": False, "rejected_by_backend": False,
+         "reason": "too few inliers (3 < 15 RANSAC inliers of 40)", "fitness": None, "inlier_rmse_mm": None, "inliers": 3},
+        {"query": q2, "match": m2, "stage": "proximity", "score": 0.5, "verified": True, "rejected_by_backend": True,
+         "reason": None, "fitness": 0.61, "inlier_rmse_mm": 0.4, "inliers": 812},
+    ]
+    (copy / "loops.json").write_text(json.dumps(rows))
+    assert main(["report", str(copy), "--overwrite"]) == 0
+    view = figures((copy / "report.html").read_text())["map-view"]
+    texts = loop_texts(view)
+    assert len(texts) == len(rows)
+    for row in rows:
+        text = next(t for t in texts if t.startswith(f"loop {row['query']} → {row['match']} "))
+        accepted = row["verified"] and not row["rejected_by_backend"]
+        assert ("accepted" in text) == accepted
+        if row["reason"]:
+            assert row["reason"] in text.replace("<br>", " ")
+    assert "rejected by the robust back-end" in " ".join(texts).replace("<br>", " ")
+    refused = [t for t in view["data"] if t.get("legendgroup") == "refused"]
+    assert refused and all(t["visible"] == "legendonly" for t in refused)
+    assert "fitness 0.610, 812 inliers" in " ".join(texts)
+
+
+def test_a_graph_runs_report_holds_every_pose_and_loop(graph_run):
+    from fpp_graph.backend.g2o import read_g2o
+    from fpp_graph.types import ConstraintKind
+
+    page = (graph_run / "report.html").read_text()
+    view = figures(page)["map-view"]
+    drawn = trace(view, "odometry: 40 poses in id order")
+    positions = np.column_stack([decoded(drawn[axis]) for axis in "xyz"])
+    np.testing.assert_allclose(positions, read_tum(graph_run / "trajectory.tum").positions_xyz_m, atol=1e-12)
+    loops = [e for e in read_g2o(graph_run / "graph.g2o").edges() if e.kind == ConstraintKind.LOOP]
+    texts = loop_texts(view)
+    assert len(texts) == len(loops) > 0
+    assert {(e.source_id, e.target_id) for e in loops} == {tuple(int(n) for n in re.match(r"loop (\d+) → (\d+)", t).groups()) for t in texts}
+    assert "correction-view" in figures(page)  # the poses' correction: a pose graph has no points
+    assert json.loads((graph_run / "metrics.json").read_text())["report_seconds"] > 0
+
+
+def test_the_page_loads_nothing_from_the_network(graph_run):
+    page = (graph_run / "report.html").read_text()
+    tags_with_urls = re.findall(r"<(?:script|link|img|iframe|source|embed|object)\b[^>]*\b(?:src|href|data)\s*=[^>]*>", page, re.I)
+    assert not tags_with_urls
+    # plotly.js carries URLs in its code (map tiles, licences); outside it the page names none
+    scripts = re.findall(r"<script\b[^>]*>.*?</script>", page, re.S)
+    plotly_js = max(scripts, key=len)
+    assert "plotly.js v" in plotly_js[:300]
+    assert not re.search(r"https?://", page.replace(plotly_js, ""))
+
+
+def test_odometry_only_poses_from_the_graph_are_the_pipelines(sequence_run):
+    from fpp_graph.evaluation.report_data import odometry_only_poses_of_graph, read_run
+    from fpp_graph.slam.pipeline import odometry_only_poses
+
+    out, _, report = sequence_run
+    run = read_run(out)
+    from_graph = odometry_only_poses_of_graph(run.keyframe_poses, run.odometry)
+    in_memory = odometry_only_poses(report.slam)
+    assert from_graph.keys() == in_memory.keys()
+    for k in in_memory:
+        np.testing.assert_allclose(from_graph[k], in_memory[k], atol=1e-12)
+
+
+def test_a_correction_of_hundredths_of_a_millimetre_fills_the_colour_scale():
+    from fpp_graph.evaluation.report_data import correction
+    from fpp_graph.evaluation.report_figures import correction_figure
+
+    rng = np.random.default_rng(0)
+    samples = {k: rng.uniform(-0.1, 0.1, (500, 3)) + [0, 0, 0.5] for k in range(5)}
+    after = {k: np.eye(4) for k in range(5)}
+    before = {k: np.eye(4) for k in range(5)}
+    for k in range(5):
+        before[k][:3, 3] = [0.00001 * k, 0, 0]  # up to 0.04 mm
+    fix = correction(samples, before, after, max_points=1000)
+    assert len(fix.motion_mm) == 1000 and fix.points_total == 2500
+    marker = correction_figure(fix, np.array([0.0, -1.0, 0.0]), None).to_plotly_json()["data"][0]["marker"]
+    assert marker["cmin"] == 0 and 0.035 < marker["cmax"] <= 0.04
+
+
+def test_the_map_is_thinned_to_its_budget_and_keeps_its_texture():
+    from fpp_graph.evaluation.report_data import palette_of, voxel_thinned
+
+    rng = np.random.default_rng(1)
+    wall = np.column_stack([rng.uniform(0, 20, 400_000), np.zeros(400_000), rng.uniform(0, 3, 400_000)])
+    grey = np.repeat(rng.integers(0, 256, (400_000, 1), dtype=np.uint8), 3, axis=1)
+    points, colours, voxel_m = voxel_thinned(wall, grey, 20_000)
+    assert 0.85 * 20_000 <= len(points) <= 20_000 and voxel_m > 0
+    index, palette = palette_of(colours)
+    np.testing.assert_array_equal(palette[index], colours)  # grey keeps every level
+    rgb = rng.integers(0, 256, (5000, 3), dtype=np.uint8)
+    index, palette = palette_of(rgb)
+    assert np.abs(palette[index].astype(int) - rgb).mean() < 20
+
+
+# -- the command ------------------------------------------------------------------------------
+def test_report_refuses_to_replace_a_report_without_overwrite(graph_run, capsys):
+    before = (graph_run / "report.html").read_bytes()
+    capsys.readouterr()
+    assert main(["report", str(graph_run)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "exists: pass --overwrite" in err[0]
+    assert (graph_run / "report.html").read_bytes() == before
+    assert main(["report", str(graph_run), "--overwrite"]) == 0
+    assert "wrote" in capsys.readouterr().out
+
+
+def test_report_waits_for_no_run_writing_the_folder(graph_run, tmp_path, capsys):
+    from fpp_graph.outputs import FolderLock
+
+    with FolderLock(graph_run):  # as a run (or a second report) holds it
+        capsys.readouterr()
+        assert main(["report", str(graph_run), "--out", str(tmp_path / "r.html")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "is being written by another fpp-slam process" in err[0]
+    assert not (tmp_path / "r.html").exists()
+
+
+def test_a_missing_or_foreign_folder_is_one_line(tmp_path, capsys):
+    for folder, expected in ((tmp_path / "missing", "does not exist"), (tmp_path, "has no trajectory.tum")):
+        capsys.readouterr()
+        assert main(["report", str(folder)]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and expected in err[0], err
+    assert list(tmp_path.iterdir()) == []  # no lock file left in a folder of the user's
+
+
+def test_report_with_gt_matches_eval_and_refuses_a_sequence_without_one(sequence_run, tmp_path, capsys):
+    from fpp_graph.config import Config
+    from fpp_graph.evaluation.results import evaluate_results
+    from fpp_graph.slam.sources import open_source
+
+    out, sequence, _ = sequence_run
+    target = tmp_path / "with_gt.html"
+    assert main(["report", str(out), "--gt", str(sequence), "--out", str(target)]) == 0
+    page = target.read_text()
+    evaluation = evaluate_results(out, open_source(sequence, Config()))
+    assert payload(page)["reference"]["ate_rmse_mm"] == pytest.approx(evaluation["ate_rmse_mm"], rel=1e-9)
+    assert main(["report", str(out), "--out", str(tmp_path / "without.html")]) == 0
+    without = figures((tmp_path / "without.html").read_text())["map-view"]
+    assert not [t for t in without["data"] if t.get("name", "").startswith("reference")]
+    no_gt = tmp_path / "seq"
+    shutil.copytree(sequence, no_gt)
+    (no_gt / "groundtruth.txt").unlink()
+    capsys.readouterr()
+    assert main(["report", str(out), "--gt", str(no_gt), "--out", str(tmp_path / "x.html")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "has no ground truth" in err[0]
+
+
+# -- a real browser ---------------------------------------------------------------------------
+def _browser():
+    if shutil.which("chromium") is None:
+        pytest.skip("Debian's chromium is not installed (scripts/bootstrap.sh installs it for the tests)")
+    from scripts.report_screenshots import browser_check, colours_in
+
+    return browser_check, colours_in
+
+
+def test_headless_chromium_draws_every_figure_without_a_script_error(sequence_run, tmp_path):
+    browser_check, colours_in = _browser()
+    out, _, _ = sequence_run
+    check = browser_check(out / "report.html", tmp_path / "shot.png")
+    assert check.figures == ["map-view", "correction-view"]
+    assert set(check.rendered) == set(check.figures) and check.errors == []
+    left, top, width, height = check.rendered["map-view"]
+    assert width > 1000 and height > 500
+    assert colours_in(check.screenshot, check.rendered["map-view"]) > 50  # the 3D view is drawn, not one colour
+
+
+def test_the_browser_check_sees_a_broken_page(sequence_run, tmp_path):
+    browser_check, _ = _browser()
+    out, _, _ = sequence_run
+    broken = tmp_path / "broken.html"
+    page = (out / "report.html").read_text()
+    broken.write_text(page.replace("Plotly.newPlot(", "Plotly.newPlotMissing(", 1))
+    check = browser_check(broken)
+    assert "map-view" not in check.rendered and check.errors
