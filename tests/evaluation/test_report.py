@@ -168,6 +168,31 @@ def test_a_graph_runs_report_holds_every_pose_and_loop(graph_run):
     assert json.loads((graph_run / "metrics.json").read_text())["report_seconds"] > 0
 
 
+def test_a_report_that_cannot_be_written_costs_no_other_output(sequence_run, graph_run, tmp_path, monkeypatch, capsys):
+    import fpp_graph.evaluation.report as report_module
+    import fpp_graph.slam.pipeline as pipeline
+    from fpp_graph.config import config_from_dict
+    from fpp_graph.errors import OutputError
+    from fpp_graph.slam.sources import open_source
+
+    def disk_full(out, **kwargs):
+        raise OutputError(f"cannot write {out}/report.html: No space left on device; the disk is full")
+
+    monkeypatch.setattr(report_module, "write_report", disk_full)
+    monkeypatch.setattr(pipeline, "write_report", disk_full)
+    capsys.readouterr()
+    assert main(["run", str(graph_run.parent / "g.g2o"), "--out", str(tmp_path / "graph")]) == 2
+    assert "No space left on device" in capsys.readouterr().err.strip().splitlines()[-1]
+    _, sequence, _ = sequence_run
+    config = config_from_dict({"run": {"workers": 1}, "fusion": {"mesh": False}})
+    with pytest.raises(OutputError, match="No space left"):
+        pipeline.Pipeline(open_source(sequence, config), config, tmp_path / "sequence").run()
+    for out, names in ((tmp_path / "graph", ("trajectory.tum", "graph.g2o", "metrics.json")),
+                       (tmp_path / "sequence", ("trajectory.tum", "graph.g2o", "metrics.json", "loops.json", "map.ply", "map_before_after.png"))):
+        assert all((out / name).is_file() for name in names) and not (out / "report.html").exists()
+        json.loads((out / "metrics.json").read_text())
+
+
 def test_the_page_loads_nothing_from_the_network(graph_run):
     page = (graph_run / "report.html").read_text()
     tags_with_urls = re.findall(r"<(?:script|link|img|iframe|source|embed|object)\b[^>]*\b(?:src|href|data)\s*=[^>]*>", page, re.I)
