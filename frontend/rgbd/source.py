@@ -612,7 +612,7 @@ class RgbdSource:
         header = "\n".join(line for line in _read_text(self.path / "rgb.txt").splitlines()[:5] if line.startswith("#"))
         for name, ((fx, fy, cx, cy), distortion) in TUM_CAMERAS.items():
             if name in header or name in self.path.name or name.replace("freiburg", "fr") in self.path.name:
-                log.info("%s: %s camera, the benchmark's published intrinsics and distortion", self.path, name)
+                log.debug("%s: %s camera, the benchmark's published intrinsics and distortion", self.path, name)
                 self.intrinsics = {"source": f"published calibration of the TUM {name} camera"}
                 return np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]]), np.array(distortion)
         log.warning("%s: camera not named (freiburg1/2/3) and no intrinsics.txt; using the ROS default "
