@@ -78,7 +78,8 @@ def graph_run_summary(run: GraphRun, certify: bool) -> dict[str, Any]:
 def run_graph_file(path: Path, config: Config, out: Path) -> dict[str, Any]:
     """``fpp-slam run GRAPH.g2o``: optimise with the configured back-end; write ``trajectory.tum``,
     ``graph.g2o``, ``metrics.json`` (the summary, plus ``frames``) and, last, ``report.html``
-    (:mod:`fpp_graph.evaluation.report`; its time added to ``metrics.json`` as ``report_seconds``)
+    (:mod:`fpp_graph.evaluation.report`, from the graph and poses in memory; its time added to
+    ``metrics.json`` as ``report_seconds``)
     into ``out`` (a folder that :func:`~fpp_graph.results_folder.results_folder` claimed: it holds
     ``config.yaml``)."""
     from fpp_graph.backend.g2o import write_g2o
@@ -93,6 +94,7 @@ def run_graph_file(path: Path, config: Config, out: Path) -> dict[str, Any]:
     write_g2o(out / "graph.g2o", run.graph, poses=poses)
     summary = {"frames": len(ids), **graph_run_summary(run, certify=config.pose_graph.certify)}
     atomic_write_text(out / "metrics.json", json.dumps(summary, indent=1, default=float))
-    summary["report_seconds"] = write_report(out, replace=True).seconds  # last: a failure to write it costs no other output
+    # last: a failure to write it costs no other output; it draws the graph and poses in memory
+    summary["report_seconds"] = write_report(out, replace=True, graph=run.graph, poses=poses, metrics=summary).seconds
     atomic_write_text(out / "metrics.json", json.dumps(summary, indent=1, default=float))
     return summary

@@ -22,36 +22,44 @@ existing results folder. The page shows:
   figure, the configuration (``config.yaml``: what differs from the defaults, what the frame
   source set, every value) and ``provenance.json``.
 
-Size: plotly.js (4.8 MB, inlined: the page opens without a network) plus the data, which
-plotly writes as base64 typed arrays. A map point costs 17 bytes (float32 position and a
-one-byte palette index), a correction point 21 (a float32 motion instead): the point budgets
-below keep both under 2.5 MB whatever the run. The trajectory and the loop candidates (their
-hover texts hold the reasons) grow with the run: the page stays within :data:`SIZE_BUDGET_MB` =
-10 MB for 1000 frames (``scripts/report_screenshots.py`` checks it on a synthetic 1000-frame run
-with a 2-million-point map and 2500 candidates: 8.8 MB).
-The demo's report is 7.7 MB, the 7-Scenes chess run's 7.9 MB, sphere2500.g2o's 5.5 MB.
+Size: plotly.js (4.8 MB, inlined: the page opens without a network) plus the data, as plotly.js
+typed arrays (base64). A map point costs 17 bytes (float32 position and a one-byte palette
+index), a correction point 21 (a float32 motion instead): the point budgets below keep both
+under 2.5 MB whatever the run. The trajectory and the loop candidates (their hover texts hold the
+reasons) grow with the run: the page stays within :data:`SIZE_BUDGET_MB` = 10 MB for 1000 frames
+(``scripts/report_screenshots.py`` checks it on a synthetic 1000-frame run with a
+2-million-point map and 2500 candidates: 8.3 MB). The demo's report is 7.4 MB, the 7-Scenes
+chess run's 7.3 MB, sphere2500.g2o's 5.4 MB, parking-garage.g2o's 5.5 MB.
 
-Time: reading ``map.ply`` (only the points it keeps are read) and thinning it, the alignment to
-the reference, building and writing the page; plotly's import and plotly.js set a floor of
-about 0.4 s. Measured by ``scripts/report_screenshots.py`` on a 2-core machine under a load of
-3: 0.47 s of the demo's 44 s run (1.1 %), 0.55 s of the chess run's 23 s (2.4 %); 0.61 s after
-sphere2500's 1.7 s of reading and optimising (17 % of the 3.5 s process), that floor.
+Time: the figures are plain dicts (:mod:`~fpp_graph.evaluation.report_figures`) and plotly.js is
+read as a file: the plotly package is never imported (its import and its figures took 0.4 s of
+every report). A ``.g2o`` run hands its graph and poses over (``graph``, ``poses``,
+``metrics``) instead of having ``graph.g2o`` read back; a sequence run's report reads its small
+files again (``trajectory.tum``, ``graph.g2o``, ``loops.json``: 2.5 ms for the chess run) and
+``map.ply``, whose reading, thinning and palette take most of its time (0.2 s for chess). Garbage
+collection waits while the report is written (:func:`write_report`). Measured on a shared
+2-core machine: 0.41 s of the demo's 28 s run (1.5 %), 0.33 s of the chess run's 14 s (2.3 %),
+29-45 ms after sphere2500's 1.0-1.6 s of reading and optimising (median 2.6 %), 29-53 ms after
+parking-garage's 0.75-1.3 s (median 3.5 %; before: 0.57 s, 0.65 s, 0.4 s and 0.5 s). Of a pose
+graph's 30 ms, writing and syncing the 5.5 MB file is 10, its loops' rows, hover texts and
+tables 8, the odometry-only chain and the correction 3, the JSON 4.
 """
 
 from __future__ import annotations
 
+import gc
 import html
 import logging
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from fpp_graph.atomic import atomic_write_text
+from fpp_graph.atomic import atomic_open
 from fpp_graph.errors import FppError, InputDataError
 from fpp_graph.evaluation import report_html as H
 from fpp_graph.evaluation.report_data import (
@@ -60,7 +68,9 @@ from fpp_graph.evaluation.report_data import (
     ReferenceData,
     RunData,
     correction,
-    odometry_only_poses_of_graph,
+    graph_run_data,
+    odometry_only_stack,
+    pose_correction,
     read_map,
     read_run,
     reference_data,
@@ -68,6 +78,9 @@ from fpp_graph.evaluation.report_data import (
     up_direction,
 )
 from fpp_graph.trajectory import Trajectory
+
+if TYPE_CHECKING:
+    from fpp_graph.backend.pose_graph import PoseGraph
 
 log = logging.getLogger(__name__)
 
@@ -102,6 +115,9 @@ def write_report(
     keyframe_samples: Mapping[int, NDArray[np.float64]] | None = None,
     replace: bool = False,
     reference_must_fit: bool = True,
+    graph: PoseGraph | None = None,
+    poses: Mapping[int, NDArray[np.float64]] | None = None,
+    metrics: Mapping[str, Any] | None = None,
 ) -> ReportSummary:
     """Write the report of the results folder ``results_dir`` to ``out`` (default
     ``results_dir/report.html``), atomically.
@@ -118,6 +134,11 @@ def write_report(
     reference_must_fit : bool
         A reference that does not fit the estimate (no shared timestamps) raises; false: it is
         left out with a note and a warning (a run keeps its outputs).
+    graph, poses, metrics : optional
+        A ``.g2o`` run's graph, its optimised poses and its ``metrics.json`` content, as the run
+        holds them: the report draws them instead of reading ``trajectory.tum``, ``graph.g2o``
+        and ``metrics.json`` back (:func:`~fpp_graph.evaluation.report_data.graph_run_data`).
+        All three or none.
 
     Raises
     ------
@@ -127,20 +148,44 @@ def write_report(
         ``out`` exists and ``replace`` is false, or cannot be written.
     """
     started = time.perf_counter()
-    results_dir = Path(results_dir)
+    # no garbage collection meanwhile: the report's thousands of small objects (a loop's row and
+    # hover text each) hold no cycles, reference counting frees them, yet their count would start
+    # a collection of the whole heap, 33 ms of parking-garage.g2o's 84 ms report after the
+    # optimisation (4 % of the run)
+    collecting = gc.isenabled()
+    gc.disable()
+    try:
+        summary = _write_report(Path(results_dir), out, reference, keyframe_samples, replace, reference_must_fit, graph, poses, metrics)
+    finally:
+        if collecting:
+            gc.enable()
+    summary.seconds = time.perf_counter() - started
+    log.info("wrote %s (%.1f MB) in %.2f s", summary.path, summary.size_bytes / 1e6, summary.seconds)
+    return summary
+
+
+def _write_report(
+    results_dir: Path, out: str | Path | None, reference: Trajectory | None, keyframe_samples: Mapping[int, NDArray[np.float64]] | None,
+    replace: bool, reference_must_fit: bool, graph: PoseGraph | None, poses: Mapping[int, NDArray[np.float64]] | None,
+    metrics: Mapping[str, Any] | None,
+) -> ReportSummary:
     out = results_dir / REPORT_NAME if out is None else Path(out)
-    run = read_run(results_dir)
+    if graph is not None and poses is not None and metrics is not None:
+        run = graph_run_data(results_dir, graph, poses, metrics)
+    elif graph is None and poses is None and metrics is None:
+        run = read_run(results_dir)
+    else:
+        raise ValueError("write_report: give graph, poses and metrics together, or none of them")
     notes = list(run.notes)
     up = up_direction(run.trajectory.poses_world_sensor if run.kind == "sequence" else np.empty((0, 4, 4)))
     cloud = _map_of(run, up, notes)
     ref = _reference_of(run, reference, reference_must_fit, notes)
     fix = _correction_of(run, keyframe_samples, notes)
-    text = _page(run, cloud, ref, fix, up, notes)
-    atomic_write_text(out, text, replace=replace)
-    summary = ReportSummary(out, len(text.encode("utf-8")), time.perf_counter() - started,
-                            0 if cloud is None else len(cloud.points_m), 0 if fix is None else len(fix.motion_mm), notes)
-    log.info("wrote %s (%.1f MB) in %.2f s", out, summary.size_bytes / 1e6, summary.seconds)
-    return summary
+    parts = _page(run, cloud, ref, fix, up, notes)
+    with atomic_open(out, "wb", replace=replace) as handle:
+        for part in parts:
+            handle.write(part)
+    return ReportSummary(out, sum(len(part) for part in parts), 0.0, 0 if cloud is None else len(cloud.points_m), 0 if fix is None else len(fix.motion_mm), notes)
 
 
 def _map_of(run: RunData, up: NDArray[np.float64], notes: list[str]) -> MapCloud | None:
@@ -177,21 +222,18 @@ def _correction_of(run: RunData, samples: Mapping[int, NDArray[np.float64]] | No
     (a pose graph, or a run whose frame cache is gone) of the keyframes' own positions."""
     if not run.keyframe_poses:
         return None
-    before = odometry_only_poses_of_graph(run.keyframe_poses, run.odometry)
+    ids, after = run.keyframe_stack
+    before = odometry_only_stack(ids, after, run.odometry)
     if samples is None and run.kind == "sequence":
-        samples = samples_from_frame_cache(run.results_dir, sorted(run.keyframe_poses), CORRECTION_POINTS)
+        samples = samples_from_frame_cache(run.results_dir, ids, CORRECTION_POINTS)
         if not samples:
             notes.append("frames/ holds no keyframe: the loop closure's correction is drawn for the keyframes' positions only")
     if samples:
-        return correction(samples, before, run.keyframe_poses, CORRECTION_POINTS)
-    origins = {k: np.zeros((1, 3)) for k in run.keyframe_poses}
-    fix = correction(origins, before, run.keyframe_poses, CORRECTION_POINTS)
-    if fix is not None:
-        fix.of_poses = True
-    return fix
+        return correction(samples, dict(zip(ids, before, strict=True)), run.keyframe_poses, CORRECTION_POINTS)
+    return pose_correction(before[:, :3, 3], after[:, :3, 3], CORRECTION_POINTS)
 
 
-def _page(run: RunData, cloud: MapCloud | None, ref: ReferenceData | None, fix: Correction | None, up: NDArray[np.float64], notes: list[str]) -> str:
+def _page(run: RunData, cloud: MapCloud | None, ref: ReferenceData | None, fix: Correction | None, up: NDArray[np.float64], notes: list[str]) -> list[bytes]:
     from fpp_graph.evaluation.report_figures import correction_figure, map_figure, sensors_forward
 
     name = "/".join(Path(str((run.provenance or {}).get("input") or run.metrics.get("input") or run.results_dir)).parts[-2:])
@@ -199,7 +241,7 @@ def _page(run: RunData, cloud: MapCloud | None, ref: ReferenceData | None, fix: 
             f"<p class='sub'>the report of {html.escape(str(run.results_dir))}</p>",  # no date: a run made again writes the same bytes
             H.table(H.summary_rows(run)), H.notes_list(notes)]
     body.append(H.section(
-        "Map and trajectory", "<div class='figure'>" + H.figure_html(map_figure(run, cloud, ref, up), "map-view", True) + "</div>",
+        "Map and trajectory", "<div class='figure'>" + H.figure_html(map_figure(run, cloud, ref, up), "map-view") + "</div>",
         caption="Drag to turn, scroll to zoom, click a legend entry to show or hide it (the refused loop candidates start hidden); "
                 "hover a loop's middle for its stage, verdict and figures."))
     if fix is not None:
@@ -207,7 +249,7 @@ def _page(run: RunData, cloud: MapCloud | None, ref: ReferenceData | None, fix: 
         caption = (f"Where loop closure moved each {'pose' if fix.of_poses else 'keyframe point'}: from under the odometry-only poses to "
                    f"under the optimised ones. Median {_length(float(np.median(motion)))}, 99th percentile "
                    f"{_length(float(np.percentile(motion, 99)))}, max {_length(float(motion.max()))}.")
-        figure = H.figure_html(correction_figure(fix, up, sensors_forward(run)), "correction-view", False)
+        figure = H.figure_html(correction_figure(fix, up, sensors_forward(run)), "correction-view")
         body.append(H.section("The loop closure's correction", "<div class='figure'>" + figure + "</div>", caption=caption))
     if ref is not None or any(k.startswith(("ate_", "rpe_")) for k in run.metrics):
         body.append(H.section("Trajectory error", H.reference_table(run, ref)))

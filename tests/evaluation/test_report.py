@@ -41,11 +41,17 @@ def figures(page: str) -> dict[str, dict]:
 
 
 def decoded(value) -> np.ndarray:
-    """A trace's array: plotly's base64 typed array (``{"dtype", "bdata", "shape"}``) or a list."""
+    """A trace's array: a plotly.js typed array (``{"dtype", "bdata", "shape"}``, little-endian) or a list."""
     if isinstance(value, dict) and "bdata" in value:
-        array = np.frombuffer(base64.b64decode(value["bdata"]), dtype=_DTYPES[value["dtype"]])
+        array = np.frombuffer(base64.b64decode(value["bdata"]), dtype=np.dtype(_DTYPES[value["dtype"]]).newbyteorder("<"))
         return array.reshape([int(n) for n in value["shape"].split(",")]) if "shape" in value else array
     return np.asarray(value, dtype=np.float64)
+
+
+def positions_of(trace: dict, dtype: str = "f4") -> np.ndarray:
+    """A trace's x, y, z: typed arrays, float32 (clouds, the graph's lines) or float64 (paths)."""
+    assert all(trace[axis]["dtype"] == dtype for axis in "xyz"), {axis: trace[axis].get("dtype") for axis in "xyz"}
+    return np.column_stack([decoded(trace[axis]) for axis in "xyz"])
 
 
 def trace(figure: dict, name_start: str) -> dict:
@@ -61,7 +67,17 @@ def payload(page: str) -> dict:
 
 
 def loop_texts(figure: dict) -> list[str]:
-    return [text for t in figure["data"] if t.get("legendgroup") in ("accepted", "refused") and "text" in t for text in t["text"]]
+    """Each loop marker's hover text as plotly.js writes it: its keyframes (``customdata``, an
+    integer typed array) into the hover template, then its ``text``."""
+    texts = []
+    for t in figure["data"]:
+        if t.get("legendgroup") in ("accepted", "refused") and "text" in t:
+            assert t["hovertemplate"] == "loop %{customdata[0]:d} → %{customdata[1]:d} %{text}<extra></extra>"
+            assert t["customdata"]["dtype"] in ("i1", "i2", "i4")
+            pairs = decoded(t["customdata"])
+            assert pairs.shape == (len(t["text"]), 2)
+            texts += [f"loop {q} → {m} {text}" for (q, m), text in zip(pairs.tolist(), t["text"], strict=True)]
+    return texts
 
 
 # -- runs -------------------------------------------------------------------------------------
@@ -101,10 +117,10 @@ def test_a_sequence_runs_report_holds_every_pose_the_reference_and_its_time(sequ
     view = figures(page)["map-view"]
     trajectory = read_tum(out / "trajectory.tum")
     drawn = trace(view, "trajectory")
-    positions = np.column_stack([decoded(drawn[axis]) for axis in "xyz"])
-    np.testing.assert_allclose(positions, trajectory.positions_xyz_m, atol=1e-12)
+    np.testing.assert_array_equal(positions_of(drawn, "f8"), trajectory.positions_xyz_m)  # every pose
     custom = decoded(drawn["customdata"])
-    np.testing.assert_allclose(custom[:, 0], trajectory.timestamps_s)  # each pose's time, and its error (mm)
+    assert drawn["customdata"]["dtype"] == "f8"  # times keep their digits
+    np.testing.assert_array_equal(custom[:, 0], trajectory.timestamps_s)  # each pose's time, and its error (mm)
     np.testing.assert_array_equal(decoded(drawn["line"]["color"]), custom[:, 1])
     data = payload(page)
     covered = np.isfinite(custom[:, 1])  # the sequence's reference leaves its last frame out: no error there
@@ -158,14 +174,87 @@ def test_a_graph_runs_report_holds_every_pose_and_loop(graph_run):
     page = (graph_run / "report.html").read_text()
     view = figures(page)["map-view"]
     drawn = trace(view, "odometry: 40 poses in id order")
-    positions = np.column_stack([decoded(drawn[axis]) for axis in "xyz"])
-    np.testing.assert_allclose(positions, read_tum(graph_run / "trajectory.tum").positions_xyz_m, atol=1e-12)
+    np.testing.assert_array_equal(positions_of(drawn, "f8"), read_tum(graph_run / "trajectory.tum").positions_xyz_m)
     loops = [e for e in read_g2o(graph_run / "graph.g2o").edges() if e.kind == ConstraintKind.LOOP]
     texts = loop_texts(view)
     assert len(texts) == len(loops) > 0
     assert {(e.source_id, e.target_id) for e in loops} == {tuple(int(n) for n in re.match(r"loop (\d+) → (\d+)", t).groups()) for t in texts}
+    middles = positions_of(next(t for t in view["data"] if t.get("legendgroup") == "accepted" and "text" in t))
+    assert len(middles) == len(loops) and np.isfinite(middles).all()
     assert "correction-view" in figures(page)  # the poses' correction: a pose graph has no points
     assert json.loads((graph_run / "metrics.json").read_text())["report_seconds"] > 0
+
+
+def test_a_graph_runs_report_from_memory_is_the_one_from_its_folder(graph_run, tmp_path):
+    """The run hands its graph and poses over; ``fpp-slam report`` reads the folder: one page."""
+    assert main(["report", str(graph_run), "--out", str(tmp_path / "again.html")]) == 0
+    in_memory, from_files = (figures(path.read_text()) for path in (graph_run / "report.html", tmp_path / "again.html"))
+    assert in_memory.keys() == from_files.keys() == {"map-view", "correction-view"}
+    for view in in_memory:
+        assert in_memory[view]["layout"] == from_files[view]["layout"]
+        assert len(in_memory[view]["data"]) == len(from_files[view]["data"])
+        for ours, theirs in zip(in_memory[view]["data"], from_files[view]["data"], strict=True):
+            assert ours.keys() == theirs.keys() and ours.get("name") == theirs.get("name") and ours.get("text") == theirs.get("text")
+            dtype = ours["x"]["dtype"]
+            np.testing.assert_allclose(positions_of(ours, dtype), positions_of(theirs, dtype), rtol=1e-6, atol=1e-6)  # graph.g2o's quaternions round
+            if "customdata" in ours:
+                np.testing.assert_array_equal(decoded(ours["customdata"]), decoded(theirs["customdata"]))
+    kept = ("kind", "poses", "keyframes", "loops_accepted", "loops_refused", "correction_points")
+    assert {k: payload((graph_run / "report.html").read_text())[k] for k in kept} == {k: payload((tmp_path / "again.html").read_text())[k] for k in kept}
+
+
+def test_writing_a_report_imports_no_plotly(graph_run, tmp_path):
+    """plotly.js and its template are read as the plotly package's files; its Python code (0.2 s
+    of imports, 0.2 s to build two figures) never runs."""
+    code = ("import sys; from fpp_graph.cli import main; "
+            f"assert main(['report', {str(graph_run)!r}, '--out', {str(tmp_path / 'r.html')!r}]) == 0; "
+            "loaded = sorted(m for m in sys.modules if m.split('.')[0] in ('plotly', '_plotly_utils')); "
+            "assert not loaded, loaded")
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert (tmp_path / "r.html").stat().st_size > 4_000_000  # plotly.js is in it
+
+
+def test_arrays_are_plotly_typed_arrays_and_the_json_cannot_end_its_script():
+    from fpp_graph.evaluation.report_html import script_json, typed_array
+
+    ids = typed_array(np.array([3, 40_000], dtype=np.int64))  # plotly.js has no 64-bit integers
+    assert ids["dtype"] == "i4" and decoded(ids).tolist() == [3, 40_000]
+    assert typed_array(np.array([1, 2], dtype=np.int64))["dtype"] == "i1"
+    pairs = typed_array(np.arange(6, dtype=np.float64).reshape(3, 2))
+    assert pairs["shape"] == "3, 2" and decoded(pairs).tolist() == [[0, 1], [2, 3], [4, 5]]
+    assert typed_array(np.zeros(0, dtype=np.float32)) == []
+    text = script_json({"t": ["a</script><!-- b"], "x": float("nan"), "n": np.float32(1.5), "a": np.array([np.nan], dtype=np.float32)})
+    assert "</" not in text and "<!--" not in text
+    back = json.loads(text)
+    assert back["t"] == ["a</script><!-- b"] and back["x"] is None and back["n"] == 1.5 and np.isnan(decoded(back["a"])).all()
+
+
+@pytest.mark.parametrize("shape", ["chain", "chains", "forest"])
+def test_the_odometry_only_chain_is_a_walk_along_it(shape):
+    from scipy.spatial.transform import Rotation
+
+    from fpp_graph.evaluation.report_data import odometry_only_stack
+
+    rng = np.random.default_rng(3)
+    n = 301  # blocks of 32 and a part block
+    poses = np.tile(np.eye(4), (n, 1, 1))
+    poses[:, :3, :3] = Rotation.random(n, random_state=4).as_matrix()
+    poses[:, :3, 3] = rng.normal(size=(n, 3))
+    steps = poses[rng.permutation(n)]
+    ids = sorted(rng.choice(10 * n, n, replace=False).tolist())
+    if shape == "forest":  # an edge to any earlier keyframe (or none), one backwards
+        edges = {(ids[i], ids[int(rng.integers(0, i))]): steps[i] for i in range(1, n) if rng.random() < 0.9}
+        edges[(ids[0], ids[5])] = steps[0]
+    else:
+        cut = {40, 64, 65, 200} if shape == "chains" else set()
+        edges = {(ids[i], ids[i - 1]): steps[i] for i in range(1, n) if i not in cut}
+    walked = {}
+    by_source = {source: (target, T) for (source, target), T in edges.items()}
+    for i, k in enumerate(ids):  # one product a keyframe, in id order
+        edge = by_source.get(k)
+        walked[k] = poses[i] if edge is None or edge[0] not in walked else walked[edge[0]] @ edge[1]
+    np.testing.assert_allclose(odometry_only_stack(ids, poses, edges), [walked[k] for k in ids], rtol=0, atol=1e-12)
 
 
 def test_a_report_that_cannot_be_written_costs_no_other_output(sequence_run, graph_run, tmp_path, monkeypatch, capsys):
@@ -229,7 +318,7 @@ def test_a_correction_of_hundredths_of_a_millimetre_fills_the_colour_scale():
         before[k][:3, 3] = [0.00001 * k, 0, 0]  # up to 0.04 mm
     fix = correction(samples, before, after, max_points=1000)
     assert len(fix.motion_mm) == 1000 and fix.points_total == 2500
-    marker = correction_figure(fix, np.array([0.0, -1.0, 0.0]), None).to_plotly_json()["data"][0]["marker"]
+    marker = correction_figure(fix, np.array([0.0, -1.0, 0.0]), None)["data"][0]["marker"]
     assert marker["cmin"] == 0 and 0.035 < marker["cmax"] <= 0.04
 
 
