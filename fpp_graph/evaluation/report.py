@@ -38,11 +38,13 @@ every report). A ``.g2o`` run hands its graph and poses over (``graph``, ``poses
 files again (``trajectory.tum``, ``graph.g2o``, ``loops.json``: 2.5 ms for the chess run) and
 ``map.ply``, whose reading, thinning and palette take most of its time (0.2 s for chess). Garbage
 collection waits while the report is written (:func:`write_report`). Measured on a shared
-2-core machine: 0.41 s of the demo's 28 s run (1.5 %), 0.33 s of the chess run's 14 s (2.3 %),
-29-45 ms after sphere2500's 1.0-1.6 s of reading and optimising (median 2.6 %), 29-53 ms after
-parking-garage's 0.75-1.3 s (median 3.5 %; before: 0.57 s, 0.65 s, 0.4 s and 0.5 s). Of a pose
-graph's 30 ms, writing and syncing the 5.5 MB file is 10, its loops' rows, hover texts and
-tables 8, the odometry-only chain and the correction 3, the JSON 4.
+2-core machine: 0.26-0.41 s of the demo's 24-29 s run (1.0-1.7 %), 0.29-0.43 s of the chess
+run's 11-14 s (2.3-3.2 %), 29-45 ms after sphere2500's 1.0-1.7 s of reading and optimising
+(median 2.5 %), 29-62 ms after parking-garage's 0.75-1.3 s (median 3.5 %; over 5 % in a few runs
+where the machine slowed the report's same work from 28 to 48 ms of CPU); before: 0.57 s, 0.65 s,
+0.4 s and 0.5 s. Of a pose graph's 30 ms, writing and syncing the 5.5 MB file is 7-9, the graph's
+edges and loops (rows, hover texts, tables) about 9, the JSON 4, the odometry-only chain and the
+correction 3.
 """
 
 from __future__ import annotations

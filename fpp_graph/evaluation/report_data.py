@@ -401,10 +401,12 @@ def up_direction(poses_world_sensor: NDArray[np.float64], points_m: NDArray | No
         mean_up = -np.asarray(poses_world_sensor)[:, :3, 1].mean(axis=0)
         if np.linalg.norm(mean_up) > 0.5:
             return mean_up / np.linalg.norm(mean_up)
+    cloud = np.asarray(points_m if points_m is not None and len(points_m) >= 3 else np.asarray(poses_world_sensor)[:, :3, 3])
+    if not len(cloud):
+        return np.array([0.0, 0.0, 1.0])
     from fpp_graph.evaluation.plots import top_view
 
-    cloud = np.asarray(points_m if points_m is not None and len(points_m) >= 3 else np.asarray(poses_world_sensor)[:, :3, 3])
-    return np.asarray(top_view(cloud).up, dtype=np.float64) if len(cloud) else np.array([0.0, 0.0, 1.0])
+    return np.asarray(top_view(cloud).up, dtype=np.float64)
 
 
 def read_map(path: Path, max_points: int, up: NDArray[np.float64]) -> MapCloud:
