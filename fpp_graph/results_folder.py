@@ -132,7 +132,8 @@ def results_folder(
     identity = input_identity if input_path is None else input_fingerprint(input_path)
     provenance = {**identity, "fpp_graph_version": package_version(),
                   "config_sha256": hashlib.sha256(config_yaml.encode()).hexdigest()}
-    _refuse_foreign(out)
+    if not (out / LOCK_NAME).exists():  # else a writer may be between its first files: judged under the lock
+        _refuse_foreign(out)
     make_folder(out)
     with FolderLock(out):
         _refuse_foreign(out)  # made meanwhile by another process that has finished since
@@ -145,8 +146,9 @@ def results_folder(
                 _empty(out)
             else:
                 raise OutputError(f"{out} already holds results; pass --resume to continue that run or --overwrite to replace it")
-        atomic_write_text(out / PROVENANCE_NAME, json.dumps(provenance, indent=1) + "\n")
+        # the marker first: a folder holding any file of a run is known as a results folder
         atomic_write_text(out / RESULTS_MARKER, "fpp-slam results folder: see provenance.json\n")
+        atomic_write_text(out / PROVENANCE_NAME, json.dumps(provenance, indent=1) + "\n")
         atomic_write_text(out / CONFIG_NAME, config_yaml)
         with translated_os_errors(out):
             yield out

@@ -326,3 +326,18 @@ def test_an_unreadable_sequence_folder_is_named_as_such(tmp_path, monkeypatch, c
     line = refused(capsys, "run", sequence, "--out", tmp_path / "out")
     assert f"cannot read {sequence}: Permission denied" in line
     assert not (tmp_path / "out").exists()
+
+
+def test_a_folder_held_before_its_first_files_refuses_the_second_writer_by_pid(tmp_path):
+    """A second run that comes while the first holds the lock but has written none (or only some)
+    of its records is told about the first run, not that the folder is a stranger's."""
+    sequence = tmp_path / "seq"
+    sequence.mkdir()
+    (sequence / "frame.txt").write_text("1")
+    out = tmp_path / "out"
+    out.mkdir()
+    with FolderLock(out):
+        (out / "provenance.json").write_text("{}")  # the first run's records, half written
+        with pytest.raises(OutputError, match=f"another fpp-slam process \\(PID {os.getpid()}\\)"), \
+                results_folder(out, sequence, "run: {}\n", overwrite=True):
+            pass
