@@ -26,6 +26,7 @@ import logging
 import math
 import os
 from collections.abc import Callable
+from dataclasses import dataclass
 from importlib import resources
 from importlib.metadata import entry_points
 from pathlib import Path
@@ -464,11 +465,74 @@ def _validation_messages(exc: ValidationError, root: type[BaseModel], prefix: tu
     return messages
 
 
+# ---------------------------------------------------------------------------------------------
+# keys that are no longer settings
+# ---------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class RetiredKey:
+    """A config key that is no longer a setting: its value is now a constant of the code (with
+    the physics or statistics that fix it) or derives from another key.
+
+    An old config file that sets it to ``value`` still loads (with a warning to remove the line);
+    any other value is refused naming ``replacement`` (the key to set instead), or saying the
+    value is fixed and why.
+    """
+
+    value: Any
+    reason: str
+    replacement: str | None = None
+
+
+_RETIRED: dict[str, RetiredKey] = {}
+
+
+def retire_keys(keys: dict[str, RetiredKey]) -> None:
+    """Declare dotted keys (``"registration.icp.max_iterations"``) that are no longer settings
+    (a front-end calls it when its package is imported, like :func:`register_sections`)."""
+    _RETIRED.update(keys)
+
+
+def retired_keys() -> dict[str, RetiredKey]:
+    """Every declared retired key (after importing the registered front-ends)."""
+    plugin_sections()
+    return dict(_RETIRED)
+
+
+def _without_retired_keys(data: dict[str, Any], source: str) -> dict[str, Any]:
+    """``data`` without the retired keys it sets to their fixed value (each one warned about);
+    ConfigError naming every retired key set to anything else."""
+    retired = retired_keys()
+    refused: list[str] = []
+
+    def walk(node: dict[str, Any], prefix: str) -> dict[str, Any]:
+        kept: dict[str, Any] = {}
+        for key, value in node.items():
+            dotted = f"{prefix}{key}"
+            if isinstance(value, dict) and not any(r == dotted for r in retired):
+                kept[key] = walk(value, dotted + ".")
+                continue
+            old = retired.get(dotted)
+            if old is None:
+                kept[key] = value
+            elif value == old.value:
+                log.warning("%s: %s is no longer a setting (%s); remove the line", source, dotted, old.reason)
+            else:
+                instead = f"set {old.replacement} instead" if old.replacement else f"it is fixed at {old.value!r}; remove the line"
+                refused.append(f"{dotted} is no longer a setting ({old.reason}): {instead}")
+        return kept
+
+    out = walk(data, "")
+    if refused:
+        raise ConfigError(f"invalid config {source}: " + "; ".join(refused))
+    return out
+
+
 def config_from_dict(data: dict[str, Any], source: str = "<dict>") -> Config:
     """Validate a (partial) config dict over the packaged defaults."""
     # the back-end's sections over the packaged defaults; a front-end's from its model's defaults
     # (the same values, a test keeps them equal), so that its validator sees the user's keys alone
     sections = plugin_sections()
+    data = _without_retired_keys(data, source)
     defaults = {k: v for k, v in _default_config_dict().items() if k not in sections}
     merged = _resolve_sections(_deep_merge(defaults, data), source)
     try:
