@@ -166,8 +166,8 @@ class PoseGraphConfig(StrictModel):
     solver: Literal["lm", "isam2"] = Field(
         "lm",
         description="solver of the batch solves: lm: Levenberg-Marquardt (gtsam); isam2: gtsam's ISAM2 on the whole graph, "
-        "updated until the cost changes by less than relative_error_tol; LM by default, the standard batch solver (a run's "
-        "running estimate between batch solves is iSAM2 either way)",
+        "updated until the cost settles; LM by default, the standard batch solver (a run's running estimate between batch "
+        "solves is iSAM2 either way)",
     )
     initialization: Literal["chordal", "given"] = Field(
         "chordal",
@@ -190,25 +190,10 @@ class PoseGraphConfig(StrictModel):
         description="probability that a graph without outliers has any loop flagged: a family-wise (Bonferroni) chi-square "
         "bound over the loops, at the information's measured scale",
     )
-    cauchy_scale: float = Field(
-        1.0, gt=0, json_schema_extra=unit("σ"),
-        description="where the Cauchy loss (robust: cauchy) bends, in standard deviations: residuals are whitened by the edge "
-        "information, so 1 bends at one standard deviation",
-    )
     max_iterations: int = Field(
         100, gt=0, json_schema_extra=unit("iterations"),
         description="iteration limit of each solve (LM or ISAM2 updates); a cost bound: LM from the chordal initialisation "
         "converges in a few, the limit stops a graph that does not",
-    )
-    relative_error_tol: float = Field(
-        1e-10, gt=0, json_schema_extra=unit("-"),
-        description="a solve stops when the cost changes by less than this fraction of itself: far below the noise, so the "
-        "result does not depend on it",
-    )
-    remove_inconsistent_loops: bool = Field(
-        False,
-        description="after the solve, remove the loops still over the loop_false_alarm bound, worst first, re-solving after each "
-        "(a loop that alone ties part of the graph to its anchor is kept); false: such loops are reported, not removed",
     )
     certify: bool = Field(
         False,
@@ -490,6 +475,22 @@ def retire_keys(keys: dict[str, RetiredKey]) -> None:
     """Declare dotted keys (``"registration.icp.max_iterations"``) that are no longer settings
     (a front-end calls it when its package is imported, like :func:`register_sections`)."""
     _RETIRED.update(keys)
+
+
+retire_keys({
+    "pose_graph.cauchy_scale": RetiredKey(
+        value=1.0, replacement=None,
+        reason="residuals are whitened by each edge's information, so the Cauchy loss bends at one standard deviation "
+        "of the stated noise for every sensor"),
+    "pose_graph.relative_error_tol": RetiredKey(
+        value=1e-10, replacement=None,
+        reason="a relative cost change of 1e-10 leaves the poses about 1e-5 standard deviations from the minimum, far "
+        "below the noise"),
+    "pose_graph.remove_inconsistent_loops": RetiredKey(
+        value=False, replacement="pose_graph.robust",
+        reason="loops over the family-wise chi-square bound are left out jointly by truncated least squares (robust: "
+        "gnc); under robust none or cauchy they are reported as inconsistent_loops"),
+})
 
 
 def retired_keys() -> dict[str, RetiredKey]:

@@ -40,7 +40,7 @@ from fpp_graph.testing.synthetic_graphs import ate_rmse_m, corridor_trajectory, 
 from fpp_graph.types import Constraint
 
 PUBLISHED_F = {"sphere2500": 1.687e3, "parking-garage": 1.263e0}
-ISOTROPIC_LM = PoseGraphConfig(noise_model="isotropic", robust="none", remove_inconsistent_loops=False)
+ISOTROPIC_LM = PoseGraphConfig(noise_model="isotropic", robust="none")
 
 
 def four_figures(x: float) -> str:
@@ -79,7 +79,7 @@ def sesync_section(data: Path, repeats: int) -> None:
 def torus_section() -> None:
     print("== 2. Chordal initialisation vs odometry chain (synthetic torus, 20 x 20 poses, 0.1 rad odometry noise) ==")
     sim = torus_graph(rings=20, per_ring=20, rot_sigma_rad=0.1, trans_sigma_m=0.05, rng=np.random.default_rng(0))
-    cfg = dict(robust="none", remove_inconsistent_loops=False, max_iterations=300)
+    cfg = dict(robust="none", max_iterations=300)
     rows = []
     for label, initial, init in (("odometry chain", None, "given"), ("chordal", None, "chordal"), ("ground truth (reference)", sim.poses_true, "given")):
         graph = sim.graph(initial=initial)
@@ -114,7 +114,7 @@ def isam2_section() -> None:
     update_ms_arr = np.array(update_ms)
     estimate = incremental.estimate()  # update() re-reads only the poses it re-solved
     loops = sum(e[4] == "loop" for e in sim.edges)
-    batch = incremental.to_pose_graph().optimize(PoseGraphConfig(robust="none", remove_inconsistent_loops=False))
+    batch = incremental.to_pose_graph().optimize(PoseGraphConfig(robust="none"))
     print(f"  {len(update_ms)} updates ({loops} loops): mean {update_ms_arr.mean():.2f} ms, median {np.median(update_ms_arr):.2f} ms, "
           f"p95 {np.percentile(update_ms_arr, 95):.2f} ms, max {update_ms_arr.max():.1f} ms")
     print(f"  final ATE iSAM2 {ate_rmse_m(estimate, sim.poses_true):.5f} m vs batch LM {ate_rmse_m(batch.poses_world_sensor, sim.poses_true):.5f} m; "
@@ -168,7 +168,7 @@ def open3d_section(data: Path, max_poses: int) -> None:
     for label, graph, iso in graphs:
         theirs, o3d_wall, _ = open3d_run(graph, iso)
         ours = graph.subgraph(graph.poses())  # same initial values, untouched by Open3D
-        cfg = PoseGraphConfig(noise_model="isotropic" if iso else "file", robust="none", remove_inconsistent_loops=False)
+        cfg = PoseGraphConfig(noise_model="isotropic" if iso else "file", robust="none")
         result, wall, _ = timed(lambda: ours.optimize(cfg))  # noqa: B023
         F_ours = sesync_objective(graph, result.poses_world_sensor)
         F_theirs = sesync_objective(graph, theirs)

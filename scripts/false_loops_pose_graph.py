@@ -47,7 +47,7 @@ from fpp_graph.types import ConstraintKind
 
 SHARED_POSEGRAPHS = Path(__file__).resolve().parents[2] / "shared" / "data" / "posegraphs"
 CONFIG = PoseGraphConfig(noise_model="isotropic")
-PLAIN = PoseGraphConfig(noise_model="isotropic", robust="none", remove_inconsistent_loops=False)
+PLAIN = PoseGraphConfig(noise_model="isotropic", robust="none")
 OBJECTIVE_TOLERANCE = 1e-3  # 0.1 %
 GRAPHS = ("sphere2500", "parking-garage", "torus")
 CASES = (("random 0.1", "random", 0.1), ("random 0.3", "random", 0.3), ("group 3x5", "group", None))

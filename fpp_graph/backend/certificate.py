@@ -66,7 +66,7 @@ from __future__ import annotations
 import logging
 import math
 import time
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -90,6 +90,7 @@ from fpp_graph.errors import GraphError
 
 if TYPE_CHECKING:
     from fpp_graph.backend.pose_graph import PoseGraph
+    from fpp_graph.backend.records import PoseGraphEdge
 
 log = logging.getLogger(__name__)
 
@@ -164,7 +165,15 @@ class Certificate:
 
 
 def data_from_graph(graph: PoseGraph, poses: Mapping[int, ArrayLike] | None = None) -> tuple[SESyncData, Array, int]:
-    """SE-Sync data of ``graph`` and the stacked poses to start from.
+    """SE-Sync data of ``graph`` and the stacked poses to start from (:func:`data_from_edges`)."""
+    graph_poses = graph.poses()
+    return data_from_edges(sorted(graph_poses), graph.edges(), graph.fixed_poses(), graph_poses if poses is None else poses)
+
+
+def data_from_edges(
+    keys: Sequence[int], edges: Sequence[PoseGraphEdge], fixed: Sequence[int], poses: Mapping[int, ArrayLike]
+) -> tuple[SESyncData, Array, int]:
+    """SE-Sync data of the relative ``edges`` between poses ``keys`` and the stacked poses to start from.
 
     Returns
     -------
@@ -172,20 +181,17 @@ def data_from_graph(graph: PoseGraph, poses: Mapping[int, ArrayLike] | None = No
     T_world_sensor : (n, 4, 4)
         Poses in the order of ``data.keys``.
     anchor : int
-        Variable index of the anchor (first fixed pose, else the smallest key).
+        Variable index of the anchor (first of ``fixed``, else the smallest key).
 
     Raises
     ------
     GraphError
         No edges, a pose missing from ``poses``, poses not connected by edges.
     """
-    edges = graph.edges()
     if not edges:
         raise GraphError("certify: the graph has no edges; there is nothing to certify (add relative-pose edges)")
-    graph_poses = graph.poses()
-    current = graph_poses if poses is None else poses
-    keys = np.array(sorted(graph_poses), dtype=np.int64)
-    missing = [k for k in keys.tolist() if k not in current]
+    keys = np.array(sorted(keys), dtype=np.int64)
+    missing = [k for k in keys.tolist() if k not in poses]
     if missing:
         raise GraphError(f"certify: no pose given for key(s) {missing[:10]}; pass a pose for every pose of the graph")
     ends = np.array([(e.target_id, e.source_id) for e in edges], dtype=np.int64)
@@ -198,10 +204,9 @@ def data_from_graph(graph: PoseGraph, poses: Mapping[int, ArrayLike] | None = No
             f"certify: the edges split the graph into {len(parts)} parts ({sizes}); the certificate needs "
             "one connected graph: certify each part as its own subgraph"
         )
-    T = _stacked_poses(current, keys)
+    T = _stacked_poses(poses, keys)
     M_ts = np.array([e.T_target_source for e in edges], dtype=np.float64)
     tau, kappa = sesync_tau_kappa(np.array([e.information_rot_trans for e in edges], dtype=np.float64))
-    fixed = graph.fixed_poses()
     anchor = int(np.searchsorted(keys, fixed[0])) if fixed else 0
     data = build_data(keys, target, source, M_ts[:, :3, :3], M_ts[:, :3, 3], tau, kappa, grounded=anchor)
     return data, T, anchor

@@ -1,19 +1,23 @@
-"""numpy <-> GTSAM for the pose graph: input checks, Values and poses, the Levenberg-Marquardt
-and iSAM2 batch calls, solver errors as :class:`~fpp_graph.errors.GraphError`.
+"""numpy <-> GTSAM for the pose graph, the one module that handles gtsam types: input checks,
+Values and poses, :class:`GraphProblem` (the factors of one optimisation, their costs and
+solves), the Levenberg-Marquardt and iSAM2 batch calls, marginals, solver errors as
+:class:`~fpp_graph.errors.GraphError`.
 
 gtsam is imported inside the functions so that importing the back-end stays cheap.
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from fpp_graph.config import PoseGraphConfig
+from fpp_graph.backend.noise_model import isotropic_information
+from fpp_graph.backend.records import PoseGraphEdge, PosePrior
 from fpp_graph.errors import GraphError
+from fpp_graph.types import ConstraintKind
 
 if TYPE_CHECKING:
     import gtsam
@@ -28,6 +32,16 @@ ORTHONORMAL_ATOL = 1e-12
 RIGID_ATOL = 1e-5
 #: Inner LM tolerance during GNC's outer iterations; a tight LM polish follows GNC.
 GNC_INNER_RELATIVE_TOL = 1e-6
+#: A solve stops when the cost falls by less than this fraction of itself. Near the minimum the
+#: cost's excess is half the squared distance to it in standard deviations, and the cost itself
+#: is of the order of the redundancy (half a chi-square): a relative change of 1e-10 leaves the
+#: poses about 1e-5 standard deviations from the minimum, far below the noise, so the result
+#: does not depend on it.
+RELATIVE_COST_TOLERANCE = 1e-10
+#: Where the Cauchy loss on loops (``robust: cauchy``) bends, in standard deviations: residuals
+#: are whitened by each edge's stated information, so one value serves every sensor; at 1 a loop
+#: loses weight (``1 / (1 + r^2)``) as soon as it exceeds its stated noise.
+CAUCHY_SCALE_SIGMA = 1.0
 
 
 def as_pose(T: ArrayLike, where: str) -> Array:
@@ -133,7 +147,7 @@ def run_lm(graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values, max_iterati
     return values, int(optimizer.iterations())
 
 
-def run_isam2_batch(graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values, cfg: PoseGraphConfig) -> tuple[gtsam.Values, int]:
+def run_isam2_batch(graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values, max_iterations: int) -> tuple[gtsam.Values, int]:
     """All factors in one iSAM2 update, then re-linearising updates until the cost settles."""
     import gtsam
 
@@ -145,12 +159,249 @@ def run_isam2_batch(graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values, cf
     values = isam.calculateEstimate()
     previous = graph.error(values)
     iterations = 1
-    while iterations < cfg.max_iterations:
+    while iterations < max_iterations:
         isam.update()
         iterations += 1
         values = isam.calculateEstimate()
         cost = graph.error(values)
-        if abs(previous - cost) <= cfg.relative_error_tol * max(previous, 1e-300):
+        if abs(previous - cost) <= RELATIVE_COST_TOLERANCE * max(previous, 1e-300):
             break
         previous = cost
     return values, iterations
+
+
+def pose_log(T: Array) -> Array:
+    """``Log(T)`` of a 4x4 rigid transform in GTSAM's ``[rot, trans]`` tangent order."""
+    import gtsam
+
+    return gtsam.Pose3.Logmap(gtsam.Pose3(T))
+
+
+def marginals(graph: gtsam.NonlinearFactorGraph, poses: Mapping[int, Array]) -> gtsam.Marginals:
+    """The marginals of ``graph`` linearised at ``poses`` (one factorisation for every pose)."""
+    import gtsam
+
+    try:
+        return gtsam.Marginals(graph, values_from(poses))
+    except RuntimeError as exc:
+        raise solver_error(exc) from None
+
+
+def marginal_covariance(marginals: gtsam.Marginals, key: int) -> Array:
+    """6x6 marginal covariance of pose ``key``, ``[rot, trans]`` order."""
+    return np.array(marginals.marginalCovariance(key), dtype=np.float64)
+
+
+class GraphProblem:
+    """GTSAM factors of one optimisation: anchors, priors and edges under one noise model.
+
+    Every stage of :func:`fpp_graph.backend.optimization.optimize_problem` works on one of these:
+    edges are referred to by their index, and a boolean mask over the edges (``active``) says
+    which ones a solve uses.
+    """
+
+    def __init__(
+        self,
+        given_poses: Mapping[int, Array],
+        edges: Sequence[PoseGraphEdge],
+        priors: Sequence[PosePrior],
+        anchors: Sequence[int],
+        noise_model: str,
+    ) -> None:
+        import gtsam
+
+        self.given_poses = given_poses
+        self.anchors = list(anchors)
+        self.edges = list(edges)
+        self.priors = list(priors)
+        self.num_edges = len(self.edges)
+        if self.edges:
+            info = np.stack([e.information_rot_trans for e in self.edges])
+            if noise_model == "isotropic":
+                info = isotropic_information(info)
+        else:
+            info = np.zeros((0, 6, 6))
+        self.model_information = info
+        stiffest = max([float(np.abs(np.diagonal(info, axis1=1, axis2=2)).max()) if len(info) else 1.0]
+                       + [float(np.abs(np.diag(p.information_rot_trans)).max()) for p in self.priors])
+        self.stiffest = stiffest
+        self.anchor_poses = {k: given_poses[k] for k in self.anchors}
+        anchor_noise = gtsam.noiseModel.Isotropic.Precision(6, ANCHOR_STIFFNESS * stiffest)
+        self.anchor_factors = [
+            gtsam.PriorFactorPose3(k, gtsam.Pose3(given_poses[k]), anchor_noise) for k in self.anchors
+        ]
+        self.prior_factors = [
+            gtsam.PriorFactorPose3(p.key, gtsam.Pose3(p.T_world_sensor), gtsam.noiseModel.Gaussian.Information(p.information_rot_trans))
+            for p in self.priors
+        ]
+        self.noise = [gtsam.noiseModel.Gaussian.Information(w) for w in info]
+        self.measured = [gtsam.Pose3(e.T_target_source) for e in self.edges]
+        self.gaussian = [
+            gtsam.BetweenFactorPose3(e.target_id, e.source_id, m, n)
+            for e, m, n in zip(self.edges, self.measured, self.noise, strict=True)
+        ]
+        self.is_loop = np.array([e.kind is ConstraintKind.LOOP for e in self.edges], dtype=bool)
+        self.cycle_checks: dict[bytes, object] = {}  # per active set, filled by the loop evidence
+
+    def all_edges(self) -> NDArray[np.bool_]:
+        return np.ones(self.num_edges, dtype=bool)
+
+    def given_values(self) -> gtsam.Values:
+        return values_from(self.given_poses)
+
+    # -- graphs ----------------------------------------------------------------------------
+    def gaussian_graph(self, active: NDArray[np.bool_]) -> gtsam.NonlinearFactorGraph:
+        """Anchors, priors and the active edges, Gaussian noise."""
+        import gtsam
+
+        graph = gtsam.NonlinearFactorGraph()
+        for f in self.anchor_factors:
+            graph.add(f)
+        for f in self.prior_factors:
+            graph.add(f)
+        for i in np.flatnonzero(active):
+            graph.add(self.gaussian[i])
+        return graph
+
+    def cauchy_graph(self, active: NDArray[np.bool_]) -> gtsam.NonlinearFactorGraph:
+        """As :meth:`gaussian_graph`, with a Cauchy loss on loop edges."""
+        import gtsam
+
+        graph = gtsam.NonlinearFactorGraph()
+        for f in [*self.anchor_factors, *self.prior_factors]:
+            graph.add(f)
+        loss = gtsam.noiseModel.mEstimator.Cauchy.Create(float(CAUCHY_SCALE_SIGMA))
+        for i in np.flatnonzero(active):
+            if self.is_loop[i]:
+                e = self.edges[i]
+                graph.add(gtsam.BetweenFactorPose3(e.target_id, e.source_id, self.measured[i], gtsam.noiseModel.Robust.Create(loss, self.noise[i])))
+            else:
+                graph.add(self.gaussian[i])
+        return graph
+
+    def weighted_graph(
+        self, base: gtsam.NonlinearFactorGraph, loops: NDArray[np.int64], weights: Array
+    ) -> gtsam.NonlinearFactorGraph:
+        """A copy of ``base`` (a :meth:`gaussian_graph`) and the edges ``loops`` with their
+        information scaled by ``weights`` (a zero weight leaves the edge out): a round of GNC."""
+        import gtsam
+
+        graph = gtsam.NonlinearFactorGraph(base)
+        for i, w in zip(loops, weights, strict=True):
+            if w > 0.0:
+                e = self.edges[i]
+                noise = gtsam.noiseModel.Gaussian.Information(w * self.model_information[i])
+                graph.add(gtsam.BetweenFactorPose3(e.target_id, e.source_id, self.measured[i], noise))
+        return graph
+
+    def chordal_graph(self, active: NDArray[np.bool_]) -> gtsam.NonlinearFactorGraph:
+        """Anchors, priors and active edges with every information divided by the stiffest one.
+
+        ``InitializePose3`` adds unit-precision priors of its own (its anchor orientation and
+        pose); next to edges of precision ~1e8 and more (sub-mm, sub-mrad ICP constraints) its
+        linear solves report an indeterminate system. Its result does not change under a common
+        scaling of all information, so the graph is normalised to a largest precision of 1 and
+        the anchors are given that precision.
+        """
+        import gtsam
+
+        scale = 1.0 / self.stiffest
+        graph = gtsam.NonlinearFactorGraph()
+        anchor_noise = gtsam.noiseModel.Isotropic.Precision(6, 1.0)
+        for k in self.anchors:
+            graph.add(gtsam.PriorFactorPose3(k, gtsam.Pose3(self.anchor_poses[k]), anchor_noise))
+        for p in self.priors:
+            noise = gtsam.noiseModel.Gaussian.Information(scale * p.information_rot_trans)
+            graph.add(gtsam.PriorFactorPose3(p.key, gtsam.Pose3(p.T_world_sensor), noise))
+        for i in np.flatnonzero(active):
+            e = self.edges[i]
+            noise = gtsam.noiseModel.Gaussian.Information(scale * self.model_information[i])
+            graph.add(gtsam.BetweenFactorPose3(e.target_id, e.source_id, self.measured[i], noise))
+        return graph
+
+    def chordal(self, active: NDArray[np.bool_]) -> tuple[gtsam.Values | None, str]:
+        """Chordal initialisation (``gtsam.InitializePose3``) over the active edges, anchors
+        held exactly; ``(None, reason)`` when it fails."""
+        import gtsam
+
+        try:
+            values = gtsam.InitializePose3.initialize(self.chordal_graph(active))
+            poses = poses_from(values, self.given_poses)
+        except Exception as exc:  # gtsam raises RuntimeError/ValueError subclasses from C++
+            return None, short_message(exc)
+        if not np.all(np.isfinite(np.stack(list(poses.values())))):
+            return None, "it returned non-finite poses"
+        poses = poses_with_gauge(poses, self.given_poses, self.anchors, bool(self.priors))
+        return values_from(poses), ""
+
+    # -- costs and residuals ---------------------------------------------------------------
+    def cost(self, values: gtsam.Values, active: NDArray[np.bool_]) -> float:
+        """``0.5 sum ||whitened||^2`` over priors and active edges (anchors excluded)."""
+        total = sum(f.error(values) for f in self.prior_factors)
+        for i in np.flatnonzero(active):
+            total += self.gaussian[i].error(values)
+        return float(total)
+
+    def edge_chi2(self, values: gtsam.Values, i: int) -> float:
+        """Whitened squared residual (``2 x`` GTSAM's error) of edge ``i`` at ``values``."""
+        return 2.0 * self.gaussian[i].error(values)
+
+    def loop_chi2(self, values: gtsam.Values, loops: NDArray[np.int64]) -> Array:
+        """Whitened squared residuals of edges ``loops`` at ``values``."""
+        return np.array([2.0 * self.gaussian[i].error(values) for i in loops], dtype=np.float64)
+
+    def whitened_jacobians(self, values: gtsam.Values, kept: NDArray[np.bool_]) -> Iterator[tuple[list[int], Array]]:
+        """Keys and whitened Jacobian of each prior and each edge ``kept``, linearised at ``values``."""
+        for factor in [*self.prior_factors, *(self.gaussian[i] for i in np.flatnonzero(kept))]:
+            linear = factor.linearize(values)
+            A, _ = linear.jacobian()
+            yield linear.keys(), A
+
+    def edge_jacobian(self, values: gtsam.Values, i: int) -> tuple[list[int], Array, Array]:
+        """Keys, whitened Jacobian and whitened residual of edge ``i`` linearised at ``values``."""
+        linear = self.gaussian[i].linearize(values)
+        A, b = linear.jacobian()
+        return linear.keys(), A, b
+
+    # -- solving ---------------------------------------------------------------------------
+    def solve(
+        self, initial: gtsam.Values, active: NDArray[np.bool_], *, solver: str = "lm", robust: str = "none",
+        max_iterations: int,
+    ) -> tuple[gtsam.Values, int]:
+        """Least squares (or the Cauchy loss on loops) over the active edges from ``initial``."""
+        try:
+            graph = self.cauchy_graph(active) if robust == "cauchy" else self.gaussian_graph(active)
+            if solver == "isam2":
+                return run_isam2_batch(graph, initial, max_iterations)
+            return run_lm(graph, initial, max_iterations, RELATIVE_COST_TOLERANCE)
+        except RuntimeError as exc:
+            raise solver_error(exc) from None
+
+    def poses(self, values: gtsam.Values) -> dict[int, Array]:
+        """The 4x4 poses of ``values``, in the order of the given poses."""
+        return poses_from(values, self.given_poses)
+
+    def poses_with_gauge(self, values: gtsam.Values) -> dict[int, Array]:
+        """The poses of ``values`` with the anchors held exactly (:func:`poses_with_gauge`)."""
+        return poses_with_gauge(poses_from(values, self.given_poses), self.given_poses, self.anchors, bool(self.priors))
+
+
+def poses_with_gauge(
+    poses: dict[int, Array], given: Mapping[int, Array], anchors: Sequence[int], has_priors: bool
+) -> dict[int, Array]:
+    """Hold anchors exactly: a rigid move of the whole solution when one anchor is the only
+    absolute information (an exact symmetry of the cost), else the anchors' given values."""
+    if not anchors:
+        return poses
+    if len(anchors) == 1 and not has_priors:
+        key = anchors[0]
+        correction = given[key] @ np.linalg.inv(poses[key])
+        correction = as_pose(correction, "gauge correction")
+        keys = list(poses)
+        moved = np.einsum("ij,njk->nik", correction, np.stack([poses[k] for k in keys]))
+        moved[:, 3] = (0.0, 0.0, 0.0, 1.0)
+        moved.setflags(write=False)
+        poses = dict(zip(keys, moved, strict=True))
+    for key in anchors:
+        poses[key] = given[key].copy()
+    return poses

@@ -15,6 +15,7 @@ from numpy.typing import ArrayLike
 
 from fpp_graph.backend.gtsam_bridge import (
     ANCHOR_STIFFNESS,
+    CAUCHY_SCALE_SIGMA,
     Array,
     as_information,
     as_pose,
@@ -263,7 +264,7 @@ class IncrementalPoseGraph:
         info = self._information(edge.information_rot_trans)
         noise = gtsam.noiseModel.Gaussian.Information(info)
         if kind is ConstraintKind.LOOP and self.config.robust == "cauchy":
-            noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(self.config.cauchy_scale), noise)
+            noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(CAUCHY_SCALE_SIGMA), noise)
         if first_edge:
             # The anchor's stiffness follows the first edge's information; until an edge
             # exists the first keyframe waits in _new_values (iSAM2 cannot hold a lone pose).

@@ -253,7 +253,7 @@ def odometry_cycle_chi2(
     roots : sequence of int
         Anchored keys (the gauge).
     """
-    import gtsam
+    from fpp_graph.backend.gtsam_bridge import pose_log
 
     key_array = np.asarray([int(k) for k in keys], dtype=np.int64)
     n = len(key_array)
@@ -294,7 +294,7 @@ def odometry_cycle_chi2(
     lca = lowest_common_ancestors(parent, src, tgt)
 
     disagreement = invert(T_target_source[loops]) @ (invert(P[tgt]) @ P[src])
-    error = np.array([gtsam.Pose3.Logmap(gtsam.Pose3(T)) for T in disagreement])
+    error = np.array([pose_log(T) for T in disagreement])
     A = adjoint(invert(P[src]))
     D = S[src] + S[tgt] - 2.0 * S[lca]
     C = covariance[loops] + A @ D @ np.swapaxes(A, 1, 2)

@@ -3,12 +3,11 @@
 Callers see 4x4 ``T_world_sensor`` matrices and 6x6 information matrices in ``[rot, trans]``
 order (GTSAM's tangent order); no gtsam type crosses this module's surface.
 
-- :class:`PoseGraph`: batch optimisation. Chordal initialisation (``gtsam.InitializePose3``,
-  falling back to the given poses when it fails), Levenberg-Marquardt over every edge, then
-  truncated least squares (GNC) only on evidence of an outlier loop (the rule is in
-  :mod:`fpp_graph.backend.outliers`, the solver in :mod:`fpp_graph.backend.robust_stage`), or a Cauchy loss; an optional global-optimality certificate
-  (:mod:`fpp_graph.backend.certificate`) and marginal covariances. Structural problems (disconnected parts, unconstrained poses) are found before
-  solving and raised as :class:`~fpp_graph.errors.GraphError` naming the poses.
+- :class:`PoseGraph`: building a graph, its batch optimisation (the pipeline of stages in
+  :mod:`fpp_graph.backend.optimization`: least squares, the evidence against each loop,
+  truncated least squares only on evidence of an outlier, the global-optimality certificate)
+  and marginal covariances. Structural problems (disconnected parts, unconstrained poses) are
+  found before solving and raised as :class:`~fpp_graph.errors.GraphError` naming the poses.
 - :class:`fpp_graph.backend.incremental.IncrementalPoseGraph` (its own module): iSAM2 for live use.
 - :func:`sesync_objective`: the SE-Sync objective ``F`` of a graph at given poses, so results
   compare with published certified optima.
@@ -28,7 +27,6 @@ A graph without any anchor that is connected gets its smallest key fixed (the ga
 from __future__ import annotations
 
 import logging
-import math
 import time
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import replace
@@ -39,15 +37,14 @@ from numpy.typing import ArrayLike, NDArray
 
 from fpp_graph.backend.graph_diagnostics import check_constrained
 from fpp_graph.backend.gtsam_bridge import (
+    GraphProblem,
     as_information,
     as_pose,
-    poses_from,
-    solver_error,
-    values_from,
+    marginal_covariance,
+    marginals,
 )
-from fpp_graph.backend.noise_model import sesync_tau_kappa
-from fpp_graph.backend.outliers import SCREEN_AGAIN_AFTER, LoopScreen
-from fpp_graph.backend.problem import GraphProblem
+from fpp_graph.backend.noise_model import sesync_objective_of_edges
+from fpp_graph.backend.optimization import optimize_problem
 from fpp_graph.backend.records import PoseGraphEdge, PoseGraphResult, PosePrior
 from fpp_graph.config import PoseGraphConfig
 from fpp_graph.errors import GraphError
@@ -61,6 +58,7 @@ if TYPE_CHECKING:  # gtsam is imported lazily so that importing this module stay
 log = logging.getLogger(__name__)
 
 Array = NDArray[np.float64]
+
 
 class PoseGraph:
     """A 3D pose graph: poses ``T_world_sensor``, relative-pose edges, anchors and priors.
@@ -241,15 +239,13 @@ class PoseGraph:
     def optimize(self, config: PoseGraphConfig | None = None) -> PoseGraphResult:
         """Optimise the graph; the stored poses become the solution.
 
-        Steps: structure check (raises :class:`GraphError` naming unconstrained parts),
-        initialisation (chordal or given), least squares over every edge (LM, or iSAM2 batch;
-        the Cauchy loss on loops with ``robust="cauchy"``), then with ``robust="gnc"`` the
-        robust stage of :mod:`fpp_graph.backend.outliers`: only when a loop's residual is evidence of
-        an outlier (family-wise chi-square test at the measured information scale) does
-        truncated least squares (GNC) run; residuals are judged at convergence, or after a few
-        iterations when a loop is also refuted by its odometry cycle (gross outliers). A graph
-        without outliers is returned as least squares gives it. Optionally (``remove_inconsistent_loops``) loops still over the bound
-        are removed one at a time, worst first, re-solving after each.
+        A structure check (raises :class:`GraphError` naming unconstrained parts), then the
+        pipeline of :func:`fpp_graph.backend.optimization.optimize_problem`: least squares over
+        every edge (chordal initialisation and LM, or iSAM2 batch; the Cauchy loss on loops with
+        ``robust="cauchy"``), the evidence against each loop (a family-wise chi-square test at
+        the measured information scale), truncated least squares (GNC) only on evidence of an
+        outlier with ``robust="gnc"``, and with ``certify`` the global-optimality certificate. A
+        graph without outliers is returned as least squares gives it.
 
         Parameters
         ----------
@@ -257,199 +253,29 @@ class PoseGraph:
             Defaults to ``PoseGraphConfig()``.
         """
         cfg = config or PoseGraphConfig()
-        start = time.perf_counter()
-        auto_anchor = check_constrained(list(self._poses), (e.pair for e in self._edges), self._anchored_keys())
-        anchors = list(self._fixed) + ([auto_anchor] if auto_anchor is not None else [])
-        problem = GraphProblem(self, anchors, cfg)
-        given = values_from(self._poses)
-        active = np.ones(problem.num_edges, dtype=bool)
-        initial_cost = problem.cost(given, active)
-        initial, initialization = self._initialize(problem, active, given, cfg)
-        initialized_cost = problem.cost(initial, active)
-        log.debug("initial cost %.6g (given), %.6g (%s)", initial_cost, initialized_cost, initialization)
-
-        values, iterations, converged, screen = self._least_squares(problem, initial, active, cfg)
-        rejected: list[int] = []
-        if cfg.robust == "gnc" and screen is not None and screen.flagged().size:
-            log.info("%d loop edge(s) over the bound at the least-squares solution: truncated least squares",
-                     screen.flagged().size)
-            values, more, rejected = problem.solve_tls(values, active, screen, cfg)
-            iterations += more
-            active[rejected] = False
-            screen = problem.screen(values, active, cfg)
-        values, removed, kept_flagged, more = self._remove_inconsistent(problem, values, active, screen, cfg)
-        iterations += more
-        values, certificate, more = self._certificate(problem, values, active, cfg, converged)
-        iterations += more
-        poses = self._store_solution(problem, values, active, anchors)
-
-        pairs = [e.pair for e in problem.edges]
-        result = PoseGraphResult(
-            poses_world_sensor={k: T.copy() for k, T in poses.items()},
-            initial_cost=float(initial_cost),
-            final_cost=float(problem.cost(values, active)),
-            iterations=int(iterations),
-            seconds=time.perf_counter() - start,
-            rejected_loops=[pairs[i] for i in sorted(set(rejected) | set(removed))],
-            inconsistent_loops=[pairs[i] for i in [*removed, *kept_flagged]],
-            initialization=initialization,
-            initialized_cost=float(initialized_cost),
-            noise_model=cfg.noise_model,
-            robust=cfg.robust,
-            solver=cfg.solver,
-            removed_loops=[pairs[i] for i in removed],
-            variance_factor=screen.variance_factor if screen is not None else 1.0,
-            loop_bound=screen.bound if screen is not None else math.nan,
-            certificate=certificate,
-        )
+        started = time.perf_counter()
+        problem = self._problem(cfg.noise_model)
+        result = optimize_problem(problem, cfg)
+        result = replace(result, seconds=time.perf_counter() - started)
+        self._poses.update({k: T.copy() for k, T in result.poses_world_sensor.items()})
+        self._pose_quat_xyzw.clear()
+        self._solution_graph = problem.gaussian_graph(result.kept_edges)
+        self._marginals = None
         log.info(
             "pose graph: %d poses, %d edges, cost %.6g -> %.6g in %d iterations, %.3f s (%s init, %s noise, robust %s); "
-            "%d loop(s) rejected, %d removed, %d inconsistent",
+            "%d loop(s) rejected, %d inconsistent",
             self.num_poses, self.num_edges, result.initial_cost, result.final_cost, result.iterations, result.seconds,
-            initialization.split(" ")[0], cfg.noise_model, cfg.robust, len(rejected), len(removed), len(result.inconsistent_loops),
+            result.initialization.split(" ")[0], cfg.noise_model, cfg.robust, len(result.rejected_loops),
+            len(result.inconsistent_loops),
         )
         return result
 
-    @staticmethod
-    def _least_squares(
-        problem: GraphProblem, initial: gtsam.Values, active: NDArray[np.bool_], cfg: PoseGraphConfig
-    ) -> tuple[gtsam.Values, int, bool, LoopScreen | None]:
-        """Least squares over every edge, screened early only on solution-independent evidence.
-
-        On a graph with gross outliers LM crawls for its whole budget (minutes at 10^4 edges)
-        before a screen after it could see them, so such a graph goes to the robust stage after
-        a few iterations. "Gross" is decided by evidence that does not depend on how far LM got:
-        a loop refuted by its cycle with the odometry (outliers.odometry_cycle_chi2, over the
-        same family-wise bound). Residuals at approximate values are no such evidence: a clean
-        graph that converges slowly (a torus with 0.7 rad rotation noise) still has thousands of
-        loops over the bound after 5 iterations, and GNC started there rejects true loops.
-        Without a refuted loop, least squares runs to convergence (or its budget) and the screen
-        there decides. Returns the values, LM iterations, whether LM converged, and the screen.
-        """
-        iterations, values, screen = 0, initial, None
-        cycles = None  # solution-independent; computed once for the full edge set
-        if cfg.robust == "gnc" and np.any(problem.is_loop):
-            screen = problem.screen(initial, active, cfg, measure_scale=False)
-            if screen.flagged().size:
-                cycles = problem.cycle_check(active)
-                refuted = problem.refuted_by_cycles(cycles, len(screen.loop_index), cfg)
-                if refuted.size:
-                    log.info("%d loop(s) refuted by their odometry cycle: screening again after %d iterations",
-                             refuted.size, SCREEN_AGAIN_AFTER)
-                    values, iterations = problem.solve(initial, active, cfg.model_copy(update={"max_iterations": SCREEN_AGAIN_AFTER}))
-                    screen = problem.screen(values, active, cfg, cycles=cycles)
-                else:
-                    log.info("%d loop(s) over the bound at the initial values, none refuted by its odometry cycle: "
-                             "least squares to convergence first", screen.flagged().size)
-                    screen = None
-        if screen is not None and screen.flagged().size:
-            return values, iterations, True, screen
-        values, more = problem.solve(values, active, cfg)
-        screen = problem.screen(values, active, cfg, cycles=cycles) if np.any(problem.is_loop) else None
-        return values, iterations + more, more < cfg.max_iterations, screen
-
-    def _certificate(
-        self, problem: GraphProblem, values: gtsam.Values, active: NDArray[np.bool_], cfg: PoseGraphConfig, converged: bool
-    ) -> tuple[gtsam.Values, Certificate | None, int]:
-        """The certificate when asked for (None otherwise); undecided, quickly, when LM did not converge."""
-        if not cfg.certify:
-            return values, None, 0
-        if not converged:
-            # A certificate needs a critical point; far from one its Newton refinement and the
-            # staircase cost minutes and decide nothing (seen on a torus with 0.7 rad noise).
-            reason = (f"not attempted: least squares stopped at its {cfg.max_iterations}-iteration limit "
-                      "without converging (not a critical point); raise pose_graph.max_iterations")
-            log.warning("%s", reason)
-            return values, self._undecided(problem, values, active, reason), 0
-        return self._certified(problem, values, active, cfg)
-
-    def _store_solution(self, problem: GraphProblem, values: gtsam.Values, active: NDArray[np.bool_], anchors: list[int]) -> dict[int, Array]:
-        """The solution becomes the graph's poses (anchors held exactly); caches reset."""
-        poses = problem.poses_with_gauge(values, self._poses, anchors, bool(self._priors))
-        self._poses.update(poses)
-        self._pose_quat_xyzw.clear()
-        self._solution_graph = problem.gaussian_graph(active)
-        self._marginals = None
-        return poses
-
-    def _certified(
-        self, problem: GraphProblem, values: gtsam.Values, active: NDArray[np.bool_], cfg: PoseGraphConfig
-    ) -> tuple[gtsam.Values, Certificate, int]:
-        """Certify the solution over the kept edges; escape a local minimum and polish with LM.
-
-        The certificate is of SE-Sync's objective at a critical point next to the solution
-        (:mod:`fpp_graph.backend.certificate`); its suboptimality bound is re-stated for the returned
-        poses (which minimise GTSAM's log-map cost, not ``F``): ``F(returned) - F*``.
-        """
-        kept = self._kept_graph(problem, active)
-        poses = poses_from(values, self._poses)
-        certificate = kept.certify(poses)
-        iterations = 0
-        if certificate.escaped:
-            log.info("the solution was a local minimum (lambda_min %.3g): escaped by the staircase (%s); polishing",
-                     certificate.certificate_min_eigenvalue, certificate.method)
-            values, iterations = problem.solve(values_from(certificate.poses_world_sensor), active, cfg, robust="none")
-            poses = poses_from(values, self._poses)
-            certificate = kept.certify(poses, escape=False)
-        returned = sesync_objective(kept, poses)
-        bound = certificate.suboptimality_bound + max(0.0, returned - certificate.objective)
-        return values, replace(certificate, suboptimality_bound=bound), iterations
-
-    def _undecided(self, problem: GraphProblem, values: gtsam.Values, active: NDArray[np.bool_], reason: str) -> Certificate:
-        """A certificate that decides nothing: not certified, bound unknown (inf), ``reason`` as method."""
-        from fpp_graph.backend.certificate import (
-            NUMERICAL_FLOOR,
-            RELATIVE_SUBOPTIMALITY,
-            Certificate,
-        )
-
-        poses = poses_from(values, self._poses)
-        F = sesync_objective(self._kept_graph(problem, active), poses)
-        return Certificate(
-            certified=False, certificate_min_eigenvalue=math.nan, spectral_gap=math.nan, suboptimality_bound=math.inf,
-            objective=F, input_objective=F, poses_world_sensor=poses, seconds=0.0, escaped=False, method=reason,
-            eta=math.nan, relative_suboptimality=RELATIVE_SUBOPTIMALITY, numerical_floor=NUMERICAL_FLOOR,
-            gradient_norm=math.nan,
-        )
-
-    @staticmethod
-    def _kept_graph(problem: GraphProblem, active: NDArray[np.bool_]) -> PoseGraph:
-        graph = PoseGraph()
-        graph._poses = dict(problem.given_poses)
-        graph._fixed = list(problem.anchors)
-        graph._edges = [problem.edges[i] for i in np.flatnonzero(active)]
-        return graph
-
-    @staticmethod
-    def _remove_inconsistent(
-        problem: GraphProblem, values: gtsam.Values, active: NDArray[np.bool_], screen: LoopScreen | None, cfg: PoseGraphConfig
-    ) -> tuple[gtsam.Values, list[int], list[int], int]:
-        """Loops over the screen's bound at the solution: removed worst first, or reported.
-
-        Returns the values, the removed loops, the flagged loops left in (removal off, or the
-        loop alone ties part of the graph to its anchor) and the iterations spent.
-        """
-        removed: list[int] = []
-        iterations = 0
-        while screen is not None:
-            flagged = [int(i) for i in screen.flagged()]
-            if not flagged or not cfg.remove_inconsistent_loops:
-                return values, removed, flagged, iterations
-            needed = problem.necessary_loops(active)
-            removable = [i for i in flagged if i not in needed]
-            if not removable:
-                log.warning("inconsistent loop edge(s) %s are the only links of part of the graph to its anchor; kept",
-                            [problem.edges[i].pair for i in flagged])
-                return values, removed, flagged, iterations
-            worst = removable[0]
-            log.info("loop edge %d->%d is inconsistent (whitened squared residual %.3g > bound %.3g); removing it and re-solving",
-                     *problem.edges[worst].pair, 2.0 * problem.gaussian[worst].error(values), screen.bound)
-            removed.append(worst)
-            active[worst] = False
-            values, more = problem.solve(values, active, cfg, robust="none" if cfg.robust == "gnc" else cfg.robust)
-            iterations += more
-            screen = problem.screen(values, active, cfg)
-        return values, removed, [], iterations
+    def _problem(self, noise_model: str) -> GraphProblem:
+        """The GTSAM problem of the graph, after the structure check (a connected graph without
+        any anchor gets its smallest key fixed)."""
+        auto_anchor = check_constrained(list(self._poses), (e.pair for e in self._edges), self._anchored_keys())
+        anchors = list(self._fixed) + ([auto_anchor] if auto_anchor is not None else [])
+        return GraphProblem(self._poses, self._edges, self._priors, anchors, noise_model)
 
     def marginal_covariance(self, key: int) -> Array:
         """6x6 marginal covariance of a pose at the last solution, ``[rot, trans]`` order.
@@ -458,20 +284,13 @@ class PoseGraph:
         the sensor (body) frame, with rotation in rad and translation in metres. Before any
         :meth:`optimize`, it is evaluated at the current poses with the file noise model.
         """
-        import gtsam
-
         key = self._require_pose(key, "marginal_covariance")
         if self._solution_graph is None:
-            auto_anchor = check_constrained(list(self._poses), (e.pair for e in self._edges), self._anchored_keys())
-            anchors = list(self._fixed) + ([auto_anchor] if auto_anchor is not None else [])
-            problem = GraphProblem(self, anchors, PoseGraphConfig(robust="none"))
-            self._solution_graph = problem.gaussian_graph(np.ones(problem.num_edges, dtype=bool))
+            problem = self._problem("file")
+            self._solution_graph = problem.gaussian_graph(problem.all_edges())
         if self._marginals is None:
-            try:
-                self._marginals = gtsam.Marginals(self._solution_graph, values_from(self._poses))
-            except RuntimeError as exc:
-                raise solver_error(exc) from None
-        return np.array(self._marginals.marginalCovariance(key), dtype=np.float64)
+            self._marginals = marginals(self._solution_graph, self._poses)
+        return marginal_covariance(self._marginals, key)
 
     def certify(
         self,
@@ -515,15 +334,6 @@ class PoseGraph:
     # -- internals -------------------------------------------------------------------------
     def _anchored_keys(self) -> set[int]:
         return set(self._fixed) | {p.key for p in self._priors}
-
-    def _initialize(self, problem: GraphProblem, active: NDArray[np.bool_], given: gtsam.Values, cfg: PoseGraphConfig) -> tuple[gtsam.Values, str]:
-        if cfg.initialization == "given" or problem.num_edges == 0:
-            return given, "given"
-        values, failure = problem.chordal(active)
-        if values is None:
-            log.warning("chordal initialisation failed (%s); starting from the given poses", failure)
-            return given, f"given (chordal initialisation failed: {failure})"
-        return values, "chordal"
 
     def _check_key(self, key: int) -> int:
         if isinstance(key, bool) or not isinstance(key, (int, np.integer)):
@@ -570,25 +380,6 @@ class PoseGraph:
 # SE-Sync objective
 # ----------------------------------------------------------------------------------------------
 def sesync_objective(graph: PoseGraph, poses: Mapping[int, ArrayLike] | None = None) -> float:
-    """SE-Sync's objective ``F`` at ``poses`` (default: the graph's current poses).
-
-    ``F = sum kappa ||R_s - R_t R_ts||_F^2 + tau ||t_s - t_t - R_t t_ts||^2`` over edges
-    ``(source s, target t)`` measuring ``T_target_source = (R_ts, t_ts)``, with ``tau`` and
-    ``kappa`` from each edge's information (:func:`sesync_tau_kappa`). Rosen et al. (IJRR
-    2019, table 2) publish certified optima of it for the standard benchmark graphs.
-    """
-    edges = graph.edges()
-    if not edges:
-        return 0.0
-    current = graph._poses if poses is None else poses
-    try:
-        T_src = np.stack([np.asarray(current[e.source_id], dtype=np.float64) for e in edges])
-        T_tgt = np.stack([np.asarray(current[e.target_id], dtype=np.float64) for e in edges])
-    except KeyError as exc:
-        raise GraphError(f"sesync_objective: no pose given for key {exc.args[0]}") from None
-    M = np.stack([e.T_target_source for e in edges])
-    tau, kappa = sesync_tau_kappa(np.stack([e.information_rot_trans for e in edges]))
-    R_t = T_tgt[:, :3, :3]
-    rot = T_src[:, :3, :3] - R_t @ M[:, :3, :3]
-    trans = T_src[:, :3, 3] - T_tgt[:, :3, 3] - np.einsum("nij,nj->ni", R_t, M[:, :3, 3])
-    return float(np.sum(kappa * np.sum(rot**2, axis=(1, 2))) + np.sum(tau * np.sum(trans**2, axis=1)))
+    """SE-Sync's objective ``F`` of the graph's edges at ``poses`` (default: the graph's current
+    poses); see :func:`fpp_graph.backend.noise_model.sesync_objective_of_edges`."""
+    return sesync_objective_of_edges(graph._edges, graph._poses if poses is None else poses)

@@ -1,4 +1,5 @@
-"""What a pose graph holds and returns: its edges, priors and the result of an optimisation."""
+"""What a pose graph holds and returns: its edges and priors, the solution each stage of the
+optimisation hands to the next (:class:`Solution`) and the result of an optimisation."""
 
 from __future__ import annotations
 
@@ -12,6 +13,8 @@ from numpy.typing import NDArray
 from fpp_graph.types import ConstraintKind
 
 if TYPE_CHECKING:
+    import gtsam
+
     from fpp_graph.backend.certificate import Certificate
 
 Array = NDArray[np.float64]
@@ -59,6 +62,33 @@ class PosePrior:
 
 
 @dataclass(frozen=True)
+class Solution:
+    """The poses one stage of the optimisation hands to the next.
+
+    Attributes
+    ----------
+    values : gtsam.Values
+        The poses (kept inside :mod:`fpp_graph.backend.gtsam_bridge`'s types between stages).
+    active : (M,) bool
+        The edges the solution uses (the graph's edges in insertion order; a rejected loop is
+        False).
+    iterations : int
+        Solver iterations spent so far.
+    converged : bool
+        Least squares stopped on its own convergence test, not at its iteration limit (a
+        certificate needs a critical point).
+    initialization : str
+        ``"chordal"`` or ``"given"``, with the reason when chordal initialisation failed.
+    """
+
+    values: gtsam.Values
+    active: NDArray[np.bool_]
+    iterations: int
+    converged: bool
+    initialization: str
+
+
+@dataclass(frozen=True)
 class PoseGraphResult:
     """Outcome of :meth:`PoseGraph.optimize`.
 
@@ -73,16 +103,14 @@ class PoseGraphResult:
         The same cost at the solution, over the edges kept (rejected loops excluded).
     iterations : int
         Levenberg-Marquardt (or iSAM2) iterations: the solve, GNC's polish and restarts (not
-        GNC's inner iterations, which GTSAM does not report) and consistency re-solves.
+        GNC's inner iterations, which GTSAM does not report) and the certificate's polish.
     seconds : float
-        Wall time of the whole call (checks, initialisation, solving, consistency check).
+        Wall time of the whole call (checks, initialisation, solving, certificate).
     rejected_loops : list of (source_id, target_id)
-        Every loop edge left out of the solution: by truncated least squares (GNC) or removed
-        by the consistency check.
+        Every loop edge left out of the solution by truncated least squares (GNC).
     inconsistent_loops : list of (source_id, target_id)
-        Loop edges whose whitened squared residual exceeded the bound: those removed (one at
-        a time, worst first, re-optimising after each, when ``remove_inconsistent_loops`` is
-        set) and those left in (removal off, or the loop alone ties part of the graph to its
+        Loop edges of the solution whose whitened squared residual exceeds the bound, worst
+        first (with ``robust`` none or cauchy, or loops that alone tie part of the graph to its
         anchor).
     initialization : str
         ``"chordal"`` or ``"given"``, with the reason when chordal initialisation failed.
@@ -90,8 +118,6 @@ class PoseGraphResult:
         The cost at the initial values handed to the solver (after initialisation).
     noise_model, robust, solver : str
         The options used.
-    removed_loops : list of (source_id, target_id)
-        The loops of ``rejected_loops`` removed by the consistency check (not by GNC).
     variance_factor : float
         Measured scale of the information (>= 1; 1 when no loop needed it, see
         :mod:`fpp_graph.backend.outliers`): the edges' errors are ``sqrt`` of it times the stated sigma.
@@ -103,6 +129,8 @@ class PoseGraphResult:
         ``suboptimality_bound`` is of their SE-Sync objective). When least squares stopped at
         its iteration limit the certificate is not attempted: ``certified`` is False, the bound
         is inf and ``method`` says why.
+    kept_edges : (M,) bool or None
+        Which of the graph's edges (insertion order) the solution uses.
     """
 
     poses_world_sensor: dict[int, Array]
@@ -117,7 +145,13 @@ class PoseGraphResult:
     noise_model: str = "file"
     robust: str = "none"
     solver: str = "lm"
-    removed_loops: list[tuple[int, int]] = field(default_factory=list)
     variance_factor: float = 1.0
     loop_bound: float = math.nan
     certificate: Certificate | None = None
+    kept_edges: NDArray[np.bool_] | None = field(default=None, compare=False, repr=False)
+
+    @property
+    def removed_loops(self) -> list[tuple[int, int]]:
+        """Always empty: loops leave a solution only by truncated least squares
+        (``rejected_loops``); the name stays for readers of the JSON summaries."""
+        return []

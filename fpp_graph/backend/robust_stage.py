@@ -1,30 +1,37 @@
-"""The robust stage of :meth:`fpp_graph.backend.pose_graph.PoseGraph.optimize`: truncated least squares
-on loop edges, run only on evidence of an outlier (the rule is in :mod:`fpp_graph.backend.outliers`).
+"""Stage 3 of the pose-graph optimisation: truncated least squares on loop edges, run only on
+evidence of an outlier (stage 2, :mod:`fpp_graph.backend.loop_evidence`).
 
-:func:`solve_tls` takes the least-squares solution over every edge and returns the robust one
-and the rejected loops: a start without the loops inconsistent with the odometry, GNC with the
-truncated-least-squares loss (Yang et al., RA-L 2020), least squares over its inliers, then loops
-left out are re-admitted when their residual at the solution (:func:`_readmit`) or, jointly,
-their chi-square against the kept graph's prediction (:func:`predicted_chi2`) is under the bound.
+:func:`truncated_least_squares` takes the least-squares solution over every edge and the
+evidence, and returns the robust solution without the rejected loops: a start without the loops
+inconsistent with the odometry, GNC with the truncated-least-squares loss (Yang et al., RA-L
+2020), least squares over its inliers, then loops left out are re-admitted when their residual
+at the solution (:func:`_readmit`) or, jointly, their chi-square against the kept graph's
+prediction (:func:`predicted_chi2`) is under the bound.
 """
 
 from __future__ import annotations
 
 import logging
+from dataclasses import replace
 from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
 
 from fpp_graph.backend.graph_diagnostics import connected_parts
-from fpp_graph.backend.gtsam_bridge import GNC_INNER_RELATIVE_TOL, run_lm, solver_error
+from fpp_graph.backend.gtsam_bridge import (
+    GNC_INNER_RELATIVE_TOL,
+    RELATIVE_COST_TOLERANCE,
+    GraphProblem,
+    run_lm,
+    solver_error,
+)
 from fpp_graph.backend.outliers import SCREEN_AGAIN_AFTER, LoopScreen
+from fpp_graph.backend.records import Solution
 from fpp_graph.config import PoseGraphConfig
 
 if TYPE_CHECKING:
     import gtsam
-
-    from fpp_graph.backend.problem import GraphProblem
 
 log = logging.getLogger(__name__)
 
@@ -41,12 +48,11 @@ _GNC_BINARY_TOL = 1e-3
 _MAX_READMISSION_ROUNDS = 50
 
 
-def solve_tls(
-    problem: GraphProblem, values: gtsam.Values, active: NDArray[np.bool_], screen: LoopScreen, cfg: PoseGraphConfig
-) -> tuple[gtsam.Values, int, list[int]]:
+def truncated_least_squares(problem: GraphProblem, solution: Solution, screen: LoopScreen, cfg: PoseGraphConfig) -> Solution:
     """Truncated least squares on loop edges, run only on evidence of an outlier.
 
-    ``values`` is the least-squares solution over all edges, which the outliers bend.
+    ``solution`` is the least-squares solution over all edges, which the outliers bend; the
+    result leaves the rejected loops out of its active edges.
 
     1. Loops whose cycle with the odometry is over the family-wise bound at the scale the
        loops show disagree with the odometry beyond what the noise (the path's propagated
@@ -72,8 +78,9 @@ def solve_tls(
        is kept only if the truncated least-squares cost does not rise and no loop is over the
        bound that was not before (else its better half by the prediction is tried).
     """
+    values, active = solution.values, solution.active
     try:
-        needed = problem.necessary_loops(active)
+        needed = necessary_loops(problem, active)
         candidates = active.copy()
         start_bound = screen.bound
         if screen.cycles is not None:
@@ -104,8 +111,38 @@ def solve_tls(
         raise solver_error(exc) from None
     for i in rejected:
         log.info("loop edge %d->%d rejected: whitened squared residual %.3g > bound %.3g at the robust solution",
-                 *problem.edges[i].pair, 2.0 * problem.gaussian[i].error(values), screen.bound)
-    return values, iterations, rejected
+                 *problem.edges[i].pair, problem.edge_chi2(values, i), screen.bound)
+    inliers = active.copy()
+    inliers[rejected] = False
+    return replace(solution, values=values, active=inliers, iterations=solution.iterations + iterations)
+
+
+def necessary_loops(problem: GraphProblem, active: NDArray[np.bool_]) -> set[int]:
+    """Active loop edges whose removal would leave part of the graph without an anchor.
+
+    Such a loop has no redundancy: nothing can confirm or refute it, and the solve needs it.
+    GNC treats them as known inliers.
+    """
+    import networkx as nx
+
+    graph = nx.MultiGraph()
+    graph.add_nodes_from(problem.given_poses)
+    index = {}
+    for i in np.flatnonzero(active):
+        u, v = problem.edges[i].pair
+        graph.add_edge(u, v, key=int(i))
+        index[frozenset((u, v))] = int(i)
+    anchored = set(problem.anchors) | {p.key for p in problem.priors}
+    needed = set()
+    for u, v in nx.bridges(graph):
+        i = index[frozenset((u, v))]  # a bridge is a single edge, so the pair names it
+        if not problem.is_loop[i]:
+            continue
+        graph.remove_edge(u, v, key=i)
+        if any(not anchored.intersection(part) for part in nx.connected_components(graph)):
+            needed.add(i)
+        graph.add_edge(u, v, key=i)
+    return needed
 
 
 def _start(problem: GraphProblem, values: gtsam.Values, edges: NDArray[np.bool_], cfg: PoseGraphConfig) -> tuple[gtsam.Values, int]:
@@ -136,8 +173,6 @@ def _gnc_tls(
     inner solve from the initial values, which costs minutes on graphs of 10^4 edges.
     Returns the values, the LM iterations and the loops whose weight ended below 0.5.
     """
-    import gtsam
-
     loops = np.array([i for i in np.flatnonzero(active & problem.is_loop) if i not in needed], dtype=np.int64)
     fixed = active.copy()
     fixed[loops] = False
@@ -149,12 +184,7 @@ def _gnc_tls(
     weights = np.ones(len(loops))
     for _ in range(_GNC_MAX_ROUNDS):
         weights = _tls_weights(r2, bound, mu)
-        graph = gtsam.NonlinearFactorGraph(base)
-        for i, w in zip(loops, weights, strict=True):
-            if w > 0.0:
-                e = problem.edges[i]
-                noise = gtsam.noiseModel.Gaussian.Information(w * problem.model_information[i])
-                graph.add(gtsam.BetweenFactorPose3(e.target_id, e.source_id, problem.measured[i], noise))
+        graph = problem.weighted_graph(base, loops, weights)
         values, more = run_lm(graph, values, _GNC_INNER_ITERATIONS, GNC_INNER_RELATIVE_TOL)
         iterations += more
         r2 = problem.loop_chi2(values, loops)
@@ -173,11 +203,11 @@ def _settle_inliers(
     outliers are gone: the better of the two by their cost), then loops left out whose
     residual is under the bound are re-admitted (an inlier by the definition of truncated
     least squares) and the solve repeated until the inlier set is stable."""
-    values, iterations = run_lm(problem.gaussian_graph(kept), values, cfg.max_iterations, cfg.relative_error_tol)
+    values, iterations = run_lm(problem.gaussian_graph(kept), values, cfg.max_iterations, RELATIVE_COST_TOLERANCE)
     if cfg.initialization == "chordal" and rejected:
         restart, _ = problem.chordal(kept)
         if restart is not None:
-            candidate, more = run_lm(problem.gaussian_graph(kept), restart, cfg.max_iterations, cfg.relative_error_tol)
+            candidate, more = run_lm(problem.gaussian_graph(kept), restart, cfg.max_iterations, RELATIVE_COST_TOLERANCE)
             iterations += more
             if problem.cost(candidate, kept) < problem.cost(values, kept):
                 values = candidate
@@ -191,13 +221,13 @@ def _readmit(
     """Re-admit loops under the bound at ``values`` and re-solve over ``kept``, until stable."""
     iterations = 0
     for _ in range(_MAX_READMISSION_ROUNDS):
-        back = [i for i in rejected if 2.0 * problem.gaussian[i].error(values) <= bound]
+        back = [i for i in rejected if problem.edge_chi2(values, i) <= bound]
         if not back:
             break
         log.debug("%d loop(s) re-admitted (whitened squared residual under the bound %.3g)", len(back), bound)
         rejected = [i for i in rejected if i not in back]
         kept[back] = True
-        values, more = run_lm(problem.gaussian_graph(kept), values, cfg.max_iterations, cfg.relative_error_tol)
+        values, more = run_lm(problem.gaussian_graph(kept), values, cfg.max_iterations, RELATIVE_COST_TOLERANCE)
         iterations += more
     return values, rejected, iterations
 
@@ -240,7 +270,7 @@ def _readmit_predicted(
         while group:
             trial = kept.copy()
             trial[group] = True
-            candidate, more = run_lm(problem.gaussian_graph(trial), values, cfg.max_iterations, cfg.relative_error_tol)
+            candidate, more = run_lm(problem.gaussian_graph(trial), values, cfg.max_iterations, RELATIVE_COST_TOLERANCE)
             iterations += more
             loops = np.flatnonzero(trial & problem.is_loop)
             over = {int(i) for i, r2 in zip(loops, problem.loop_chi2(candidate, loops), strict=True) if r2 > bound}
@@ -286,10 +316,8 @@ def predicted_chi2(problem: GraphProblem, values: gtsam.Values, kept: NDArray[np
     column = {k: 6 * n for n, k in enumerate(k for k in problem.given_poses if k not in anchored)}
     rows, cols, data = [], [], []
     row = 0
-    for factor in [*problem.prior_factors, *(problem.gaussian[i] for i in np.flatnonzero(kept))]:
-        linear = factor.linearize(values)
-        A, _ = linear.jacobian()
-        for n, key in enumerate(linear.keys()):
+    for keys, A in problem.whitened_jacobians(values, kept):
+        for n, key in enumerate(keys):
             if key in column:
                 r, c = np.nonzero(A[:, 6 * n : 6 * n + 6])
                 rows.append(row + r)
@@ -305,9 +333,8 @@ def predicted_chi2(problem: GraphProblem, values: gtsam.Values, kept: NDArray[np
     rhs = np.zeros(J.shape[1])
     chi2 = np.empty(len(loops))
     for m, i in enumerate(loops):
-        linear = problem.gaussian[i].linearize(values)
-        A, b = linear.jacobian()
-        blocks = [(column[k], A[:, 6 * n : 6 * n + 6]) for n, k in enumerate(linear.keys()) if k in column]
+        keys, A, b = problem.edge_jacobian(values, i)
+        blocks = [(column[k], A[:, 6 * n : 6 * n + 6]) for n, k in enumerate(keys) if k in column]
         for c, a in blocks:
             rhs[c : c + 6] += a.T @ b
         u = lu.solve(rhs)

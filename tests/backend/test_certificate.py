@@ -23,8 +23,8 @@ def linear_algebra(request, monkeypatch):
     return request.param
 
 
-ISOTROPIC = PoseGraphConfig(noise_model="isotropic", robust="none", remove_inconsistent_loops=False)
-FILE_MODEL = PoseGraphConfig(noise_model="file", robust="none", remove_inconsistent_loops=False)
+ISOTROPIC = PoseGraphConfig(noise_model="isotropic", robust="none")
+FILE_MODEL = PoseGraphConfig(noise_model="file", robust="none")
 
 
 def pose(rotvec, t) -> np.ndarray:

@@ -22,7 +22,7 @@ from fpp_graph.testing.synthetic_graphs import (
 )
 from fpp_graph.types import Constraint, ConstraintKind
 
-LM = PoseGraphConfig(robust="none", remove_inconsistent_loops=False)
+LM = PoseGraphConfig(robust="none")
 SIGMAS = np.array([0.01, 0.01, 0.01, 0.05, 0.05, 0.05])
 INFO = np.diag(1.0 / SIGMAS**2)
 
@@ -94,7 +94,7 @@ def test_optimize_replaces_the_stored_poses_and_a_second_call_starts_there():
 def test_isam2_batch_solver_matches_lm():
     sim = small_corridor()
     lm = sim.graph().optimize(LM)
-    isam = sim.graph().optimize(PoseGraphConfig(solver="isam2", robust="none", remove_inconsistent_loops=False))
+    isam = sim.graph().optimize(PoseGraphConfig(solver="isam2", robust="none"))
     assert isam.final_cost == pytest.approx(lm.final_cost, rel=1e-6)
     for k in lm.poses_world_sensor:
         np.testing.assert_allclose(isam.poses_world_sensor[k], lm.poses_world_sensor[k], atol=1e-6)
@@ -205,7 +205,7 @@ def test_single_pose_without_edges_is_returned_unchanged(rng):
 # -- initialisation -------------------------------------------------------------------------------
 def test_chordal_initialisation_escapes_the_odometry_local_minimum():
     sim = torus_graph(rings=20, per_ring=20, rot_sigma_rad=0.1, trans_sigma_m=0.05, rng=np.random.default_rng(0))
-    cfg = dict(robust="none", remove_inconsistent_loops=False, max_iterations=300)
+    cfg = dict(robust="none", max_iterations=300)
     from_odometry = sim.graph().optimize(PoseGraphConfig(initialization="given", **cfg))
     chordal = sim.graph().optimize(PoseGraphConfig(initialization="chordal", **cfg))
     reference = sim.graph(initial=sim.poses_true).optimize(PoseGraphConfig(initialization="given", **cfg))
@@ -232,7 +232,7 @@ def test_badly_scaled_information_fails_chordal_and_falls_back():
         given.add_edge(e.source_id, e.target_id, e.T_target_source, e.information_rot_trans, e.kind)
     result = graph.optimize(LM)
     assert result.initialization.startswith("given (chordal initialisation failed: Indeterminate linear system")
-    reference = given.optimize(PoseGraphConfig(initialization="given", robust="none", remove_inconsistent_loops=False))
+    reference = given.optimize(PoseGraphConfig(initialization="given", robust="none"))
     assert result.final_cost == pytest.approx(reference.final_cost, rel=1e-6)
 
 
@@ -269,7 +269,7 @@ def test_gnc_rejects_every_false_loop_and_matches_the_clean_optimum():
 
 def test_gnc_on_an_outlier_free_graph_rejects_nothing_and_equals_least_squares():
     sim = small_corridor(seed=2)
-    gnc = sim.graph().optimize(PoseGraphConfig(robust="gnc", remove_inconsistent_loops=False))
+    gnc = sim.graph().optimize(PoseGraphConfig(robust="gnc"))
     ls = sim.graph().optimize(LM)
     assert gnc.rejected_loops == []
     assert gnc.final_cost == pytest.approx(ls.final_cost, rel=1e-8)
@@ -283,14 +283,14 @@ def _with_one_bad_loop():
     return sim, bad
 
 
-def test_consistency_check_flags_removes_and_reoptimises():
+def test_least_squares_reports_an_inconsistent_loop_and_gnc_rejects_it():
     sim, bad = _with_one_bad_loop()
-    flagged = sim.graph().optimize(PoseGraphConfig(robust="none", remove_inconsistent_loops=False))
+    flagged = sim.graph().optimize(PoseGraphConfig(robust="none"))
     assert bad in flagged.inconsistent_loops
     assert flagged.rejected_loops == []
-    removed = sim.graph().optimize(PoseGraphConfig(robust="none", remove_inconsistent_loops=True))
-    assert removed.inconsistent_loops == [bad]
-    assert removed.rejected_loops == [bad]
+    robust = sim.graph().optimize(PoseGraphConfig(robust="gnc"))
+    assert robust.rejected_loops == [bad]
+    assert robust.inconsistent_loops == []
     # the result equals least squares without the bad edge
     graph = sim.graph()
     without = PoseGraph()
@@ -301,15 +301,24 @@ def test_consistency_check_flags_removes_and_reoptimises():
         if e.pair != bad:
             without.add_edge(e.source_id, e.target_id, e.T_target_source, e.information_rot_trans, e.kind)
     reference = without.optimize(LM)
-    assert removed.final_cost == pytest.approx(reference.final_cost, rel=1e-6)
-    assert flagged.final_cost > removed.final_cost
+    assert robust.final_cost == pytest.approx(reference.final_cost, rel=1e-6)
+    assert flagged.final_cost > robust.final_cost
     assert isinstance(GraphError("x"), FppError)
+
+
+def test_retired_keys_of_the_pose_graph_load_at_their_fixed_value():
+    from fpp_graph.config import ConfigError, config_from_dict
+
+    old = {"pose_graph": {"cauchy_scale": 1.0, "relative_error_tol": 1e-10, "remove_inconsistent_loops": False}}
+    assert config_from_dict(old).pose_graph == PoseGraphConfig()
+    with pytest.raises(ConfigError, match=r"pose_graph\.remove_inconsistent_loops is no longer a setting.*set pose_graph\.robust"):
+        config_from_dict({"pose_graph": {"remove_inconsistent_loops": True}})
 
 
 def test_cauchy_downweights_the_bad_loop():
     sim, bad = _with_one_bad_loop()
     ls = sim.graph().optimize(LM)
-    cauchy = sim.graph().optimize(PoseGraphConfig(robust="cauchy", remove_inconsistent_loops=False))
+    cauchy = sim.graph().optimize(PoseGraphConfig(robust="cauchy"))
     truth_ate = {name: ate_rmse_m(r.poses_world_sensor, sim.poses_true) for name, r in (("ls", ls), ("cauchy", cauchy))}
     assert truth_ate["cauchy"] < 0.5 * truth_ate["ls"]
     assert bad in cauchy.inconsistent_loops  # Gaussian residual still reported
@@ -368,7 +377,7 @@ def test_isotropic_cost_matches_sesync_objective_at_small_residuals():
     sim = corridor_trajectory(laps=2, side_poses=(20, 8), rot_sigma_rad=0.002, trans_sigma_m=0.002,
                               min_separation=10, loop_every=1, rng=np.random.default_rng(5))
     graph = sim.graph()
-    result = graph.optimize(PoseGraphConfig(noise_model="isotropic", robust="none", remove_inconsistent_loops=False))
+    result = graph.optimize(PoseGraphConfig(noise_model="isotropic", robust="none"))
     assert result.noise_model == "isotropic"
     assert result.final_cost == pytest.approx(sesync_objective(graph, result.poses_world_sensor), rel=1e-3)
 
@@ -377,7 +386,7 @@ def test_parking_garage_reaches_the_published_sesync_optimum():
     from fpp_graph.backend.g2o import read_g2o
 
     graph = read_g2o(shared_data_path("posegraphs", "parking-garage.g2o"))
-    result = graph.optimize(PoseGraphConfig(noise_model="isotropic", robust="none", remove_inconsistent_loops=False))
+    result = graph.optimize(PoseGraphConfig(noise_model="isotropic", robust="none"))
     F = sesync_objective(graph, result.poses_world_sensor)
     assert f"{F:.3e}" == "1.263e+00"
 
