@@ -56,50 +56,14 @@ def unit(symbol: str) -> dict[str, str]:
 
 
 class KeyframeConfig(StrictModel):
-    """Keyframe selection: a tracked frame becomes a keyframe when any enabled criterion fires
-    (with none enabled, every frame is one)."""
+    """Keyframe selection: a tracked frame becomes a keyframe once its view has changed enough."""
 
-    min_translation_m: float = Field(
-        0.0, ge=0,
-        description="a frame whose odometry moves it at least this far from the last keyframe becomes a keyframe; 0: criterion "
-        "off, so that min_view_change decides (a distance means a different change of view at 0.5 m than at 3 m)",
-    )
-    min_rotation_deg: float = Field(
-        0.0, ge=0,
-        description="a frame whose odometry turns it at least this much from the last keyframe becomes a keyframe; 0: criterion "
-        "off, so that min_view_change (which also counts turns, as pixel flow) decides",
-    )
-    max_overlap: float = Field(
-        1.0, gt=0, le=1, json_schema_extra=unit("-"),
-        description="a frame whose registration overlaps the last keyframe by at most this share (the constraint's overlap, else "
-        "its fitness) becomes a keyframe; 1: criterion off, so that min_view_change decides",
-    )
     min_view_change: float = Field(
         0.05, ge=0, le=1, json_schema_extra=unit("image side"),
         description="a new keyframe once the view moved by this fraction of the image's smaller side since the last keyframe "
-        "(pixel flow at the scene's median depth, in the sensor's own pixels): 0.05 leaves about 95 % overlap, so a 30 Hz camera "
-        "makes a keyframe every few frames and an FPP capture (a deliberate still view, steps of a third of the view or more) is "
-        "one every time; all four criteria off (0 / 0 / 1 / 0): every frame",
-    )
-    loop_check_probability: float = Field(
-        0.999, gt=0, lt=1, json_schema_extra=unit("-"),
-        description="a verified loop whose innovation d2 against the running (iSAM2) estimate exceeds the chi-square (6 dof) "
-        "quantile at this probability is held out of that estimate only, logged and counted (not dropped: the batch solve at the "
-        "end decides); 0.999: one true loop in a thousand is held out of the running estimate for nothing",
-    )
-    batch_every: int = Field(
-        0, ge=0, json_schema_extra=unit("keyframes"),
-        description="run the robust batch pose-graph solve every this many keyframes as well as at the end, restarting the "
-        "running (iSAM2) estimate from it; 0: only at the end. A cost bound: the running estimate costs the same per keyframe, a "
-        "batch solve O(map) (0.9 s at 121 poses on a real run), worth it only when many false loops pass the innovation test and "
-        "corrupt the running estimate",
-    )
-    verify_lag: int = Field(
-        2, ge=0, json_schema_extra=unit("keyframes"),
-        description="a keyframe's loop candidates are registered on the run's workers while this many later keyframes are "
-        "tracked, then applied in the order they were proposed (0: at once), so the result does not depend on timing or worker "
-        "count; 2, not 1: a keyframe has up to loop_closure.max_candidates_per_frame candidates and tracking the next keyframe "
-        "takes one or two registrations, so one keyframe of slack would leave 2 workers idle",
+        "(pixel flow at the scene's median depth, in the sensor's own pixels, from each frame's camera model): 0.05 leaves "
+        "about 95 % overlap, so a 30 Hz camera makes a keyframe every few frames and an FPP capture (a deliberate still view, "
+        "steps of a third of the view or more) is one every time; 0: every frame",
     )
     track_from_motion: bool | None = Field(
         None,
@@ -117,46 +81,17 @@ class LoopClosureConfig(StrictModel):
     proximity_radius_m: float = Field(
         0.3, ge=0,
         description="keyframes within this distance of the new keyframe under the current estimate (and facing within 90 "
-        "degrees of it) are proximity candidates: the reach of one view's overlap",
-    )
-    proximity_sigma: float = Field(
-        3.0, gt=0, json_schema_extra=unit("σ"),
-        description="the proximity radius grows by this many standard deviations of the new keyframe's position (largest axis "
-        "of its marginal covariance), so the gate widens as drift grows: 3 searches a revisit inside the pose uncertainty with "
-        "99.7 % probability per axis",
+        "degrees of it) are proximity candidates: the reach of one view's overlap; the radius grows with the drift "
+        "accumulated since the last closure (3 standard deviations of the position)",
     )
     appearance_top_k: int = Field(
         3, ge=0, json_schema_extra=unit("keyframes"),
         description="best appearance (VLAD bag-of-words) matches proposed per keyframe; a cost bound: each costs a registration",
     )
-    appearance_min_score: float = Field(
-        0.1, ge=-1, le=1, json_schema_extra=unit("-"),
-        description="minimum VLAD cosine similarity for an appearance candidate: low on purpose, verification by registration "
-        "rejects the false ones",
-    )
-    min_frame_separation: int = Field(
-        5, ge=1, json_schema_extra=unit("keyframes"),
-        description="keyframes fewer than this many keyframes apart are never loop candidates of each other: odometry already "
-        "links them",
-    )
-    revisit_view_change: float = Field(
-        1.0, ge=0, json_schema_extra=unit("image side"),
-        description="a keyframe is a loop candidate only once the camera's view has moved away from it by this fraction of the "
-        "image side at some keyframe since, or its optical axis turned by 90 degrees (1: the whole view, at its median depth, "
-        "left the image); until then the odometry chain runs through frames that keep seeing it (ORB-SLAM's covisibility "
-        "exclusion); 0: only min_frame_separation",
-    )
     max_candidates_per_frame: int = Field(
         8, ge=1, json_schema_extra=unit("candidates"),
         description="loop candidates per keyframe, appearance's first, proximity's (most predicted overlap first) filling the "
         "rest; a cost bound: each costs a registration",
-    )
-    query_view_change: float = Field(
-        0.25, ge=0, json_schema_extra=unit("image side"),
-        description="a keyframe asks for loop candidates once the camera has gone this fraction of the way to leaving the last "
-        "keyframe that asked (of an image side of pixel flow, or of 90 degrees of axis turn): a revisit is still queried about "
-        "four times, but a 30 Hz camera (a keyframe per 5 % step) no longer proposes the same revisit at every keyframe; FPP "
-        "captures (corridor steps of a third of the view, turntable steps of 28 degrees) query at every keyframe; 0: every keyframe",
     )
 
 
@@ -205,27 +140,24 @@ class PoseGraphConfig(StrictModel):
 class FusionConfig(StrictModel):
     """Global map re-fusion under the optimised poses."""
 
-    voxel_size_m: float = Field(
-        0.001, gt=0,
-        description="voxel grid of the fused coloured point cloud (map.ply): a few FPP pixel footprints, so it keeps the "
-        "sensor's detail and bounds the map's size",
+    voxel_size_m: float | None = Field(
+        None, gt=0,
+        description="voxel grid of the fused coloured point cloud (map.ply): a few of the sensor's pixel footprints, so it "
+        "keeps the sensor's detail and bounds the map's size; null: the source decides (FPP: 1 mm; RGB-D: 1 cm, a room is "
+        "metres wide)",
     )
-    tsdf_voxel_m: float = Field(
-        0.002, gt=0,
-        description="TSDF voxel of the mesh: the registration's ICP voxel (noise.voxel_m on FPP), the resolution the poses are "
-        "known at",
-    )
-    tsdf_truncation_m: float = Field(
-        0.008, gt=0,
-        description="TSDF truncation band, 4 TSDF voxels: it covers the voxel discretisation and the depth noise on both sides "
-        "of a surface",
+    tsdf_voxel_m: float | None = Field(
+        None, gt=0,
+        description="TSDF voxel of the mesh: the registration's ICP voxel, the resolution the poses are known at; the "
+        "truncation band is 4 of them (the voxel discretisation and the depth noise on both sides of a surface); null: the "
+        "source decides (FPP: 2 mm; RGB-D: 1 cm)",
     )
     mesh: bool = Field(True, description="also integrate a TSDF and extract mesh.ply; false: the point map alone (faster)")
     max_depth_m: float | None = Field(
         None, gt=0,
         description="points farther along the optical axis stay out of the map and the mesh (counted in the log); null: the "
-        "source decides (RGB-D: where its depth error 1.425e-3 z^2 reaches tsdf_truncation_m, 5.3 m with its 4 cm truncation "
-        "floor; FPP: no limit)",
+        "source decides (RGB-D: where its depth error 1.425e-3 z^2 reaches the TSDF's truncation band, 5.3 m with a 1 cm "
+        "TSDF voxel; FPP: no limit)",
     )
 
 
@@ -475,6 +407,25 @@ def retire_keys(keys: dict[str, RetiredKey]) -> None:
     """Declare dotted keys (``"registration.icp.max_iterations"``) that are no longer settings
     (a front-end calls it when its package is imported, like :func:`register_sections`)."""
     _RETIRED.update(keys)
+
+
+# the back-end's keys that stopped being settings: each value is a constant of the code that uses
+# it (fpp_graph/slam/keyframes.py, loop_closure.py, fpp_graph/slam/map_fusion.py), with its reason
+_BACKEND_RETIRED = {
+    "keyframes.min_translation_m": RetiredKey(0.0, "a distance means a different change of view at 0.5 m than at 3 m; the view change decides", "keyframes.min_view_change"),
+    "keyframes.min_rotation_deg": RetiredKey(0.0, "the view change counts turns as pixel flow", "keyframes.min_view_change"),
+    "keyframes.max_overlap": RetiredKey(1.0, "the view change measures the lost overlap in the sensor's own pixels", "keyframes.min_view_change"),
+    "keyframes.loop_check_probability": RetiredKey(0.999, "the chi-square (6 dof) quantile a true loop exceeds once in a thousand"),
+    "keyframes.batch_every": RetiredKey(0, "the robust batch solve runs once, at the end; the running iSAM2 estimate is updated per keyframe"),
+    "keyframes.verify_lag": RetiredKey(2, "two keyframes of slack keep two workers busy with one keyframe's candidates"),
+    "loop_closure.proximity_sigma": RetiredKey(3.0, "3 standard deviations of the position hold a revisit with 99.7 % probability per axis", "loop_closure.proximity_radius_m"),
+    "loop_closure.appearance_min_score": RetiredKey(0.1, "a low bar on purpose: verification by registration rejects the false candidates", "loop_closure.appearance_top_k"),
+    "loop_closure.min_frame_separation": RetiredKey(5, "odometry already links keyframes fewer than 5 apart"),
+    "loop_closure.revisit_view_change": RetiredKey(1.0, "a keyframe is a candidate once the whole view has left the image at some keyframe since"),
+    "loop_closure.query_view_change": RetiredKey(0.25, "a revisit is still queried about four times while the camera leaves it"),
+    "fusion.tsdf_truncation_m": RetiredKey(0.008, "the truncation band is 4 TSDF voxels: the voxel discretisation and the depth noise on both sides of a surface", "fusion.tsdf_voxel_m"),
+}
+retire_keys(_BACKEND_RETIRED)
 
 
 retire_keys({

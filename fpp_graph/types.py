@@ -55,6 +55,45 @@ def _checked_prepared(prepared: Mapping[str, Any], where: str) -> dict[str, NDAr
 
 
 @dataclass(frozen=True, eq=False)
+class CameraModel:
+    """The pinhole camera a frame's organised data was taken with (what the back-end's view
+    change, loop ranking and TSDF projection read).
+
+    Attributes
+    ----------
+    K : (3, 3) float64
+        Intrinsic matrix in pixels (``fx, fy`` on the diagonal, ``cx, cy`` in the last column).
+    width_px, height_px : int
+        Image size in pixels (``xyz_map`` and ``texture`` are ``height_px`` x ``width_px``).
+    readout_s : float
+        A rolling shutter's row readout time in seconds: the keyframe manager widens a moving
+        camera's constraints by its motion over it; 0: a global shutter or a still capture.
+    """
+
+    K: NDArray[np.float64]
+    width_px: int
+    height_px: int
+    readout_s: float = 0.0
+
+    def __post_init__(self) -> None:
+        K = np.array(self.K, dtype=np.float64)
+        if K.shape != (3, 3) or not np.all(np.isfinite(K)) or not (K[0, 0] > 0 and K[1, 1] > 0):
+            raise InputDataError(f"camera model: K must be a 3x3 pinhole matrix with positive focal lengths, got {K.tolist()}")
+        if int(self.width_px) <= 0 or int(self.height_px) <= 0:
+            raise InputDataError(f"camera model: image size must be positive pixels, got {self.width_px} x {self.height_px}")
+        try:
+            readout_s = float(self.readout_s)
+        except (TypeError, ValueError):
+            readout_s = float("nan")
+        if not (np.isfinite(readout_s) and readout_s >= 0):
+            raise InputDataError(f"camera model: readout_s must be the rolling shutter's readout time in seconds (0: a global shutter), got {self.readout_s!r}")
+        object.__setattr__(self, "K", _readonly(K))
+        object.__setattr__(self, "width_px", int(self.width_px))
+        object.__setattr__(self, "height_px", int(self.height_px))
+        object.__setattr__(self, "readout_s", readout_s)
+
+
+@dataclass(frozen=True, eq=False)
 class Frame:
     """One 3D frame of a sensor.
 
@@ -78,16 +117,23 @@ class Frame:
         Descriptors of ``keypoints_uv`` (float32 or uint8 for binary descriptors).
     T_world_sensor_guess : (4, 4) float64 or None
         Prior pose (e.g. from wheel odometry or the simulator), if any.
+    camera : CameraModel or None
+        The pinhole camera of ``xyz_map`` (its size must match): the keyframe rule
+        (``keyframes.min_view_change``) measures view change in its pixels and refuses a frame
+        without one; the loop detector ranks candidates and the TSDF projects depth with it.
     metadata : mapping
-        JSON-serialisable facts about the frame (camera model, decoder counts, ...). The back-end
-        reads ``"K"`` (3x3 pinhole, for view overlap) and ``"readout_s"`` (a rolling shutter's
-        row readout time in seconds: the keyframe manager widens a moving camera's constraints by
-        its motion over it; absent or 0: a global shutter or a still capture).
+        JSON-serialisable facts the front-end keeps with the frame (sensor name, decoder
+        counts, ...). The back-end stores it and never reads it.
     prepared : mapping of str to array
-        Arrays the front-end derived from this frame for its own registrar, made once where the
-        frame is made (a decode worker) so that no process that later registers the frame
-        recomputes them. The back-end stores them with the frame and hands them back unchanged;
-        it never reads them. Names are letters, digits, ``_`` and ``.``.
+        The registrar's own per-frame arrays: what :meth:`FramePreparer.prepare` derived from
+        the frame where it was made (a decode worker), so that no process that later registers
+        the frame recomputes them. The registrar owns the names (letters, digits, ``_`` and
+        ``.``; a dotted prefix groups one part's arrays); the back-end stores them with the
+        frame and hands them back unchanged, and never reads them.
+    xyz_map_stored : (H, W, 3) float32 or None
+        The float32 map ``xyz_map`` was widened from when the frame was read from the frame
+        store (which keeps maps as float32); code that works on float32 maps takes it instead
+        of narrowing ``xyz_map`` again. None for a frame not read from storage.
     """
 
     id: int
@@ -99,12 +145,16 @@ class Frame:
     keypoints_uv: NDArray[np.float64] | None = None
     descriptors: NDArray[Any] | None = None
     T_world_sensor_guess: NDArray[np.float64] | None = None
+    camera: CameraModel | None = None
     metadata: Mapping[str, Any] = field(default_factory=dict)
     prepared: Mapping[str, NDArray[Any]] = field(default_factory=dict)
+    xyz_map_stored: NDArray[np.float32] | None = None
 
     def __post_init__(self) -> None:
         where = f"frame {self.id}"
         object.__setattr__(self, "prepared", _checked_prepared(self.prepared, where))
+        if self.camera is not None and not isinstance(self.camera, CameraModel):
+            raise InputDataError(f"{where}: camera must be a fpp_graph.types.CameraModel, got {type(self.camera).__name__}")
         points = np.asarray(self.points, dtype=np.float64)
         if points.ndim != 2 or points.shape[1] != 3:
             raise InputDataError(f"{where}: points must be N x 3, got shape {points.shape}")
@@ -121,6 +171,13 @@ class Frame:
             if xyz.ndim != 3 or xyz.shape[2] != 3:
                 raise InputDataError(f"{where}: xyz_map must be H x W x 3, got {xyz.shape}")
             object.__setattr__(self, "xyz_map", _readonly(xyz))
+            if self.camera is not None and xyz.shape[:2] != (self.camera.height_px, self.camera.width_px):
+                raise InputDataError(
+                    f"{where}: xyz_map is {xyz.shape[1]} x {xyz.shape[0]} pixels but its camera model "
+                    f"{self.camera.width_px} x {self.camera.height_px}; both must come from the same camera"
+                )
+            if self.xyz_map_stored is not None and np.shape(self.xyz_map_stored) != xyz.shape:
+                raise InputDataError(f"{where}: xyz_map_stored shape {np.shape(self.xyz_map_stored)} does not match xyz_map {xyz.shape}")
             if self.texture is not None and np.shape(self.texture) != xyz.shape[:2]:
                 raise InputDataError(
                     f"{where}: texture shape {np.shape(self.texture)} does not match "
@@ -280,11 +337,25 @@ class FrameDescriber(Protocol):
 
 
 @runtime_checkable
+class FramePreparer(Protocol):
+    """Optional fourth capability of a :class:`PairRegistrar`: per-frame work done once.
+
+    A source calls ``prepare(frame)`` where it makes the frame (a decode worker); the result's
+    :attr:`Frame.prepared` holds the arrays the registrar reads back when it registers the frame
+    in any process (the frame store keeps them with the frame).
+    """
+
+    def prepare(self, frame: Frame) -> Frame:
+        """``frame`` with its :attr:`Frame.prepared` arrays (the same object when it needs none)."""
+        ...
+
+
+@runtime_checkable
 class PairVerifier(Protocol):
     """Registers pairs of stored keyframes off the tracking path (loop verification).
 
     The keyframe manager submits every loop candidate of a keyframe as soon as it is proposed and
-    reads the results ``keyframes.verify_lag`` keyframes later, in submission order, so a run's
+    reads the results a few keyframes later (:data:`~fpp_graph.slam.keyframes.VERIFY_LAG_KEYFRAMES`), in submission order, so a run's
     outcome does not depend on which worker finished first. An implementation may run the
     registration at once (in-process) or on any executor; both frames are keyframes already
     put in the manager's :class:`~fpp_graph.slam.frame_store.FrameStore`.

@@ -56,7 +56,9 @@ def main() -> None:
     rng = np.random.default_rng(1)
     place_descriptors = [rng.normal(size=(200, 32)).astype(np.float32) for _ in range(views)]
 
-    config = config_from_dict({"loop_closure": {"proximity_radius_m": 0.2}})
+    # these frames carry no camera model (Frame.camera), which the keyframe rule measures view
+    # change with: every frame is made a keyframe (views 22.5 degrees apart are distinct anyway)
+    config = config_from_dict({"keyframes": {"min_view_change": 0}, "loop_closure": {"proximity_radius_m": 0.2}})
     manager = KeyframeManager(NoisyOracleRegistrar(truth), config)
     for i in range(views * turns):
         # your front-end would make this Frame from its sensor data

@@ -112,7 +112,7 @@ def test_every_float_key_of_every_section_refuses_infinity_and_nan_from_python_t
     """The check is the models' own (``allow_inf_nan=False`` on their base), so a dict handed to
     config_from_dict, a string 'inf' and a new key are covered too, not just the keys listed here."""
     keys = _every_float_key()
-    assert len(keys) > 40 and "registration.icp.information_scale" in keys and "fusion.voxel_size_m" in keys
+    assert len(keys) > 10 and "fusion.voxel_size_m" in keys
     for dotted in keys:
         for value in (float("inf"), float("-inf"), float("nan"), "inf"):
             with pytest.raises(ConfigError, match=rf"{dotted}: Input should be a finite number"):

@@ -22,6 +22,11 @@ of tsdf, weight and colour), whatever the block size. It doubles when full
 (:meth:`TsdfMesher._make_room`: a new grid and a copy of the
 blocks, 0.1-0.5 s at 8 000 blocks where Open3D 0.20's own growth took 0.5-0.9 s)."""
 
+TSDF_TRUNCATION_VOXELS = 4
+"""The TSDF's truncation band in TSDF voxels: it covers the voxel discretisation (half a voxel
+either side) and the depth noise on both sides of a surface, which the voxel is chosen to match
+(the registration's ICP voxel, a few standard deviations of the sensor's depth noise)."""
+
 
 def tsdf_block_voxels(truncation_m: float, voxel_m: float) -> int:
     """Edge of a TSDF block in voxels: as thick as the truncation band (``2 * truncation``), 8 to

@@ -11,7 +11,7 @@ is reduced to its occupied voxels before it is merged.
   when the frame has an organised ``xyz_map`` (``grazing_weight``). Averaging the overlapping views of a surface reduces the sensor noise by about
   ``sqrt(weight)``.
 - Mesh: Open3D's TSDF ``VoxelBlockGrid`` (sparse, grows with the scene). Each frame's organised ``xyz_map`` is rendered into a
-  pinhole depth image (intrinsics from ``frame.metadata["K"]`` or fitted to the map), so FPP maps
+  pinhole depth image (intrinsics from the frame's camera model or fitted to the map), so FPP maps
   whose pixels follow a distorted lens still land on the right rays.
 
 After a pose-graph update, :meth:`VoxelMapFuser.refuse` rebuilds the map from the frames (their
@@ -39,7 +39,7 @@ from fpp_graph.errors import InputDataError
 # the PLY writers, re-exported: they lived here
 from fpp_graph.fusion.ply import write_mesh_ply as write_mesh_ply
 from fpp_graph.fusion.ply import write_point_cloud_ply as write_point_cloud_ply
-from fpp_graph.fusion.tsdf_mesh import TSDF_INITIAL_VOXELS, TsdfMesher, tsdf_block_voxels
+from fpp_graph.fusion.tsdf_mesh import TSDF_INITIAL_VOXELS, TSDF_TRUNCATION_VOXELS, TsdfMesher, tsdf_block_voxels
 from fpp_graph.fusion.voxel_grid import _reduce, project_to_local_planes, voxel_keys
 from fpp_graph.geometry import (
     finite_box,
@@ -65,9 +65,8 @@ class VoxelMapFuser:
     voxel_size_m : float
         Edge of the voxels of the point map, metres.
     tsdf_voxel_m : float
-        Edge of the TSDF voxels of the mesh, metres.
-    tsdf_truncation_m : float
-        TSDF truncation distance, metres (a few voxels; more than the sensor noise).
+        Edge of the TSDF voxels of the mesh, metres; the truncation band is
+        :data:`TSDF_TRUNCATION_VOXELS` of them (``tsdf_truncation_m``).
     mesh : bool
         Build the TSDF mesh as well (needs frames with ``xyz_map``).
     tsdf_depth_max_m : float
@@ -99,7 +98,6 @@ class VoxelMapFuser:
         self,
         voxel_size_m: float,
         tsdf_voxel_m: float,
-        tsdf_truncation_m: float,
         mesh: bool,
         tsdf_depth_max_m: float = 10.0,
         tsdf_min_weight: float = 1.0,
@@ -108,12 +106,12 @@ class VoxelMapFuser:
         surface_smoothing: bool = True,
         max_depth_m: float = math.inf,
     ) -> None:
-        for name, value in (("voxel_size_m", voxel_size_m), ("tsdf_voxel_m", tsdf_voxel_m), ("tsdf_truncation_m", tsdf_truncation_m)):
+        for name, value in (("voxel_size_m", voxel_size_m), ("tsdf_voxel_m", tsdf_voxel_m)):
             if not (np.isfinite(value) and value > 0):
                 raise InputDataError(f"map fusion: {name} must be a positive number of metres, got {value!r}")
         self.voxel_size_m = float(voxel_size_m)
         self.tsdf_voxel_m = float(tsdf_voxel_m)
-        self.tsdf_truncation_m = float(tsdf_truncation_m)
+        self.tsdf_truncation_m = TSDF_TRUNCATION_VOXELS * self.tsdf_voxel_m
         self.mesh = bool(mesh)
         self.tsdf_depth_max_m = float(tsdf_depth_max_m)
         self.tsdf_min_weight = float(tsdf_min_weight)
@@ -462,19 +460,16 @@ def _twice_gradient(f: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArra
 
 # -- intrinsics and depth rendering ---------------------------------------------------------
 def intrinsics_of(frame: Frame) -> NDArray[np.float64]:
-    """Pinhole ``K`` (3x3) of a frame's ``xyz_map``: ``metadata["K"]`` or a least-squares fit.
+    """Pinhole ``K`` (3x3) of a frame's ``xyz_map``: its camera model's or a least-squares fit.
 
     The fit solves ``u = fx x/z + cx`` and ``v = fy y/z + cy`` over the valid pixels
     (u = column, v = row). A lens with distortion gives a K that is right on average; the
     depth rendering then puts each point at its pinhole pixel, so the TSDF stays consistent.
     """
-    if "K" in frame.metadata:
-        K = np.asarray(frame.metadata["K"], dtype=np.float64)
-        if K.shape != (3, 3) or not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0:
-            raise InputDataError(f"frame {frame.id}: metadata['K'] must be a 3x3 camera matrix, got {K.tolist()}")
-        return K
+    if frame.camera is not None:
+        return np.array(frame.camera.K)
     if frame.xyz_map is None:
-        raise InputDataError(f"frame {frame.id}: no metadata['K'] and no xyz_map to estimate intrinsics from")
+        raise InputDataError(f"frame {frame.id}: no camera model and no xyz_map to estimate intrinsics from")
     xyz = frame.xyz_map
     valid = finite_points(xyz) & (xyz[..., 2] > 0)
     v, u = np.nonzero(valid)
@@ -492,7 +487,7 @@ def intrinsics_of(frame: Frame) -> NDArray[np.float64]:
     if not (fx > 0 and fy > 0):
         raise InputDataError(
             f"frame {frame.id}: the xyz_map does not look like a camera's organised map "
-            f"(fitted fx={fx:.4g}, fy={fy:.4g}); pass metadata['K']"
+            f"(fitted fx={fx:.4g}, fy={fy:.4g}); give the frame a camera model (Frame.camera)"
         )
     return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
 

@@ -30,8 +30,8 @@ import numpy as np
 from fpp_graph.atomic import atomic_open
 from fpp_graph.errors import InputDataError, OutputError
 from fpp_graph.geometry import masked_pixels
-from fpp_graph.slam.mapped_npz import mapped_npz
-from fpp_graph.types import Frame, grey_colors
+from fpp_graph.mapped_npz import mapped_npz
+from fpp_graph.types import CameraModel, Frame, grey_colors
 
 log = logging.getLogger(__name__)
 
@@ -105,6 +105,11 @@ def stored_arrays(frame: Frame) -> dict[str, np.ndarray]:
         arrays["colors"] = colors_u8
     if derived:
         arrays["derived_from_map"] = np.array(derived)
+    if frame.camera is not None:
+        camera = frame.camera
+        arrays["camera_K"] = camera.K
+        arrays["camera_size_px"] = np.array([camera.width_px, camera.height_px])
+        arrays["camera_readout_s"] = np.array(camera.readout_s)
     arrays["metadata_json"] = np.array(json.dumps(dict(frame.metadata), default=_json_default))
     for name, value in frame.prepared.items():
         arrays[PREPARED_PREFIX + name] = value
@@ -182,27 +187,29 @@ def frame_from_stored(get: dict[str, np.ndarray], origin: str) -> Frame:
             keypoints_uv=get.get("keypoints_uv"),
             descriptors=get.get("descriptors"),
             T_world_sensor_guess=get.get("T_world_sensor_guess"),
+            camera=_stored_camera(get),
             metadata=json.loads(str(get["metadata_json"])),
             prepared={k[len(PREPARED_PREFIX):]: v for k, v in get.items() if k.startswith(PREPARED_PREFIX)},
+            # widening is exact, so the float32 map equals xyz_map narrowed again: code that works
+            # on float32 maps (the dense alignment's surfaces) takes it instead of narrowing the
+            # 55 MB float64 map of a 1920x1200 frame (~10 ms a time, ~215 surfaces a turntable run)
+            xyz_map_stored=xyz32 if xyz32 is not None and xyz32.dtype == np.float32 else None,
         )
     except KeyError as exc:
         raise InputDataError(f"{origin} lacks {exc.args[0]!r}; delete it to recompute") from None
-    if xyz32 is not None and xyz32.dtype == np.float32:
-        _STORED_MAPS[frame] = xyz32
     return frame
 
 
-_STORED_MAPS: weakref.WeakKeyDictionary[Frame, np.ndarray] = weakref.WeakKeyDictionary()
-"""The float32 map each frame read by :func:`frame_from_stored` was widened from, while the frame lives."""
+def _stored_camera(get: dict[str, np.ndarray]) -> CameraModel | None:
+    if "camera_K" not in get:
+        return None
+    width_px, height_px = (int(v) for v in get["camera_size_px"])
+    return CameraModel(get["camera_K"], width_px, height_px, float(get["camera_readout_s"]))
 
 
 def stored_xyz_map_float32(frame: Frame) -> np.ndarray | None:
-    """The float32 map that ``frame.xyz_map`` was widened from, if ``frame`` was read from the
-    frame store (:func:`load_frame`, or a decode worker's hand-over), else None. Widening is exact,
-    so it equals ``frame.xyz_map.astype(np.float32)``: code that works on float32 maps (the dense
-    alignment's surfaces) takes it instead of narrowing the frame's 55 MB float64 map again (a
-    1920x1200 frame: ~10 ms a time, and a doll turntable run builds ~215 surfaces)."""
-    return _STORED_MAPS.get(frame)
+    """The float32 map that ``frame.xyz_map`` was widened from (:attr:`Frame.xyz_map_stored`)."""
+    return frame.xyz_map_stored
 
 
 def load_frame_points(path: str | os.PathLike[str], max_points: int, seed: int = 0) -> np.ndarray:

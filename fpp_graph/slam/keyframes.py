@@ -12,12 +12,13 @@
    the frame before it, which becomes a keyframe when it was tracked against the same keyframe
    (it saw more of the new frame's view), and is registered in full when that fails too, its
    reason counted;
-2. decides whether the frame is a keyframe (motion and overlap thresholds);
-3. for a keyframe (once the camera has gone ``loop_closure.query_view_change`` of the way to
+2. decides whether the frame is a keyframe (its view changed by ``keyframes.min_view_change``,
+   from the keyframe's :class:`~fpp_graph.types.CameraModel`);
+3. for a keyframe (once the camera has gone :data:`QUERY_VIEW_CHANGE` of the way to
    leaving the last keyframe that asked), asks the ``LoopDetector`` for revisit candidates (pose proximity with a gate
    that widens with the drift accumulated since the last closure, and appearance; never a
    keyframe of its local window), submits each to the ``PairVerifier`` (the ``PairRegistrar`` in
-   this process, or on the run's workers), applies the results ``keyframes.verify_lag``
+   this process, or on the run's workers), applies the results :data:`VERIFY_LAG_KEYFRAMES`
    keyframes later in submission order, and logs every accepted and rejected candidate with its
    reason and figures;
 4. keeps its running estimate with iSAM2 (:class:`~fpp_graph.backend.pose_graph.IncrementalPoseGraph`,
@@ -28,8 +29,7 @@
    grow with the map.
 
 :meth:`KeyframeManager.finish` runs the final robust optimisation (GNC by default: odometry edges
-are known inliers, loops may be false) per connected component and returns poses for every frame;
-``keyframes.batch_every`` can run it every K keyframes as well (0, the default: never).
+are known inliers, loops may be false) per connected component and returns poses for every frame.
 Only keyframes are kept (bounded by the :class:`~fpp_graph.slam.frame_store.FrameStore`).
 
 Chain breaks: a new segment starts its own iSAM2 graph anchored at its first keyframe's pose
@@ -55,7 +55,8 @@ from numpy.typing import NDArray
 from fpp_graph.backend.incremental import IncrementalPoseGraph
 from fpp_graph.backend.outliers import chi2_6_quantile
 from fpp_graph.config import Config
-from fpp_graph.geometry import compose, invert, rotation_angle_rad
+from fpp_graph.errors import InputDataError
+from fpp_graph.geometry import compose, invert
 from fpp_graph.slam.drift import (
     constraint_covariance,
     step_position_variance_m2,
@@ -79,6 +80,25 @@ from fpp_graph.types import (
 )
 
 log = logging.getLogger(__name__)
+
+VERIFY_LAG_KEYFRAMES = 2
+"""A keyframe's loop candidates are registered on the run's workers while this many later
+keyframes are tracked, then applied in the order they were proposed, so the result does not
+depend on timing or worker count. 2, not 1: a keyframe has up to
+``loop_closure.max_candidates_per_frame`` candidates and tracking the next keyframe takes one or
+two registrations, so one keyframe of slack would leave two workers idle."""
+
+LOOP_CHECK_PROBABILITY = 0.999
+"""A verified loop whose innovation d2 against the running (iSAM2) estimate exceeds the
+chi-square (6 dof) quantile at this probability is held out of that estimate only (the batch
+solve at the end decides): one true loop in a thousand is held out of it for nothing."""
+
+QUERY_VIEW_CHANGE = 0.25
+"""A keyframe asks for loop candidates once the camera has gone this fraction of the way to
+leaving the last keyframe that asked (of an image side of pixel flow, or of 90 degrees of axis
+turn): a revisit stays in view while the camera leaves it and is still queried about four times,
+while a 30 Hz camera (a keyframe per 5 % step of its view) no longer proposes the same revisit at
+every keyframe; views a third of an image apart query at every keyframe."""
 
 
 class KeyframeManager:
@@ -128,7 +148,6 @@ class KeyframeManager:
         # The running estimate: one iSAM2 graph per connected part, shared by its keyframes.
         self._incremental: dict[int, IncrementalPoseGraph] = {}
         self.held_out_loops: list[tuple[int, int]] = []
-        self.batch_solves = 0
         # the last keyframe that asked the loop detector for candidates, and its view
         self._last_query: tuple[int, ViewModel | None] | None = None
         # tracking from motion (keyframes.track_from_motion): the prediction, track() and its counts
@@ -139,7 +158,19 @@ class KeyframeManager:
 
     # -- per frame -------------------------------------------------------------------------
     def process(self, frame: Frame) -> bool:
-        """Add one frame; returns whether it became a keyframe."""
+        """Add one frame; returns whether it became a keyframe.
+
+        Raises
+        ------
+        InputDataError
+            The frame has no camera model while ``keyframes.min_view_change`` needs one.
+        """
+        if frame.camera is None and self.config.keyframes.min_view_change > 0:
+            raise InputDataError(
+                f"frame {frame.id} has no camera model (Frame.camera), which keyframes.min_view_change measures the view "
+                "change with: give the frame source's frames a fpp_graph.types.CameraModel, or set keyframes.min_view_change: 0 "
+                "to make every frame a keyframe"
+            )
         if not self.keyframe_ids:
             T0 = frame.T_world_sensor_guess if frame.T_world_sensor_guess is not None else np.eye(4)
             frame = self._add_keyframe(frame, np.array(T0), odometry=None, drift_var=0.0)
@@ -155,6 +186,7 @@ class KeyframeManager:
             self._promote(*promotable)
             T_predicted = self._tracking.predict(self.keyframe_ids[-1], frame.timestamp)
             odometry = self._tracking.track(self.store.get(self.keyframe_ids[-1]), frame, T_predicted)
+        tracked = odometry is not None  # by the registrar's track(), from the prediction
         if odometry is None:
             odometry = self._register_to_recent(frame, T_predicted)
         if odometry is None:
@@ -176,7 +208,7 @@ class KeyframeManager:
             self._make_keyframe(frame, odometry)
             return True
         self.T_keyframe_frame[frame.id] = (kf_id, odometry.T_target_source.copy())
-        self._last_tracked = (frame, odometry) if odometry.metadata.get("tracked") else None
+        self._last_tracked = (frame, odometry) if tracked else None
         return False
 
     def _make_keyframe(self, frame: Frame, odometry: Constraint) -> None:
@@ -222,23 +254,14 @@ class KeyframeManager:
         return None
 
     def _is_keyframe(self, odometry: Constraint) -> bool:
-        """Keyframe when any enabled criterion fires; with none enabled every frame is one."""
-        cfg = self.config.keyframes
-        T = odometry.T_target_source
-        overlap = odometry.overlap if math.isfinite(odometry.overlap) else odometry.fitness
-        criteria = []
-        if cfg.min_view_change > 0:
-            keyframe = self.store.get(odometry.target_id)
-            change = view_change(keyframe, T, self._keyframe_depth_m(keyframe))
-            if change is not None:  # a frame without a camera model is judged by the others
-                criteria.append(change >= cfg.min_view_change)
-        if cfg.min_translation_m > 0:
-            criteria.append(float(np.linalg.norm(T[:3, 3])) >= cfg.min_translation_m)
-        if cfg.min_rotation_deg > 0:
-            criteria.append(math.degrees(rotation_angle_rad(T[:3, :3])) >= cfg.min_rotation_deg)
-        if cfg.max_overlap < 1:
-            criteria.append(math.isfinite(overlap) and overlap <= cfg.max_overlap)
-        return any(criteria) if criteria else True
+        """Keyframe once the view moved by ``keyframes.min_view_change`` of the image side since
+        the last keyframe (0: every frame; a keyframe without points in front of it: always)."""
+        threshold = self.config.keyframes.min_view_change
+        if threshold <= 0:
+            return True
+        keyframe = self.store.get(odometry.target_id)
+        change = view_change(keyframe, odometry.T_target_source, self._keyframe_depth_m(keyframe))
+        return change is None or change >= threshold
 
     def _keyframe_depth_m(self, keyframe: Frame) -> float:
         """The keyframe's median depth, computed once (a median over ~2M points of an FPP frame)."""
@@ -289,15 +312,7 @@ class KeyframeManager:
         return IncrementalPoseGraph(self.config.pose_graph)
 
     def _keyframe_done(self, frame_id: int) -> None:
-        """One iSAM2 update of the keyframe's part; the estimate feeds later proximity gates.
-
-        Every ``keyframes.batch_every`` keyframes (when set) the robust batch solve runs as well
-        and the iSAM2 graphs restart from its solution.
-        """
-        every = self.config.keyframes.batch_every
-        if every and len(self.keyframe_ids) % every == 0:
-            self._batch_and_restart()
-            return
+        """One iSAM2 update of the keyframe's part; the estimate feeds later proximity gates."""
         graph = self._incremental[frame_id]
         try:
             estimate = graph.update()
@@ -309,50 +324,30 @@ class KeyframeManager:
         for k in graph.refreshed_keys:
             self.T_world_keyframe[k] = estimate[k]
 
-    def _batch_and_restart(self) -> None:
-        """The batch robust solve now (all parts); iSAM2 restarts from its solution, without
-        the loops it rejected and with the held-out loops it accepted."""
-        try:
-            poses, rejected, _ = self._optimize_components()
-        except Exception as exc:
-            log.warning("periodic batch optimisation failed (%s); keeping the iSAM2 estimate", exc)
-            return
-        self.batch_solves += 1
-        self.T_world_keyframe.update(poses)
-        rejected_set = set(rejected)
-        kept = [c for c in self.loops if (c.source_id, c.target_id) not in rejected_set]
-        for comp in self.components():
-            members = set(comp)
-            edges = [c for c in [*self.odometry, *kept] if c.source_id in members and c.target_id in members]
-            graph = IncrementalPoseGraph.from_constraints({k: self.T_world_keyframe[k] for k in comp}, edges, self.config.pose_graph)
-            for k in comp:
-                self._incremental[k] = graph
-            self.T_world_keyframe.update(graph.estimate())
-
     # -- loops -----------------------------------------------------------------------------
     def _close_loops(self, frame: Frame, force_query: bool = False) -> None:
         """Propose the keyframe's loop candidates (when it is due to query, see
         :meth:`_due_to_query`) and submit their verification; apply the verifications that are
-        due (those of the keyframe ``keyframes.verify_lag`` back)."""
+        due (those of the keyframe :data:`VERIFY_LAG_KEYFRAMES` back)."""
         if force_query or self._due_to_query(frame):
             self._last_query = (frame.id, ViewModel.of(frame, self._keyframe_depth_m(frame)))
             self._submit_loops(frame)
         else:
             self.loop_detector.add(frame)  # still a match for later queries
             self._pending_loops.append((frame.id, []))
-        self._apply_due_loops(keep=self.config.keyframes.verify_lag)
+        self._apply_due_loops(keep=VERIFY_LAG_KEYFRAMES)
 
     def _due_to_query(self, frame: Frame) -> bool:
         """Whether the keyframe asks for loop candidates: once the camera has gone
-        ``loop_closure.query_view_change`` (a quarter) of the way to leaving the last keyframe
+        :data:`QUERY_VIEW_CHANGE` (a quarter) of the way to leaving the last keyframe
         that asked, in either of the loop window's measures: that fraction of the image side of
         pixel flow, or of 90 degrees of optical-axis turn (always without a pinhole view). A
         revisit stays in view over a stretch of keyframes, so a query at every 5 % step of a
         30 Hz camera proposes the same revisit again and again; sparse captures (FPP corridor
         steps of a third of the view, turntable steps of 28 degrees) query every time."""
-        threshold = self.config.loop_closure.query_view_change
+        threshold = QUERY_VIEW_CHANGE
         last = self._last_query
-        due = threshold <= 0 or last is None or last[1] is None
+        due = last is None or last[1] is None
         if not due:
             last_id, view = last
             T_last_frame = invert(self.T_world_keyframe[last_id]) @ self.T_world_keyframe[frame.id]
@@ -440,7 +435,7 @@ class KeyframeManager:
 
         The test: ``d2 = r^T (Sigma_loop + Sigma_rel)^-1 r <= chi2_6(p)``, ``r`` the loop's
         residual at the current estimate (``Log(T_target_source^-1 T_world_target^-1
-        T_world_source)``, 6 dof), ``p = keyframes.loop_check_probability``. Why: for a true
+        T_world_source)``, 6 dof), ``p =`` :data:`LOOP_CHECK_PROBABILITY`. Why: for a true
         loop and an unbiased estimate, ``r`` is zero-mean Gaussian with the loop's covariance
         plus that of the estimated relative pose, so ``d2`` is chi-square with 6 degrees of
         freedom and the test holds out a true loop with probability ``1 - p`` only, whereas a
@@ -472,7 +467,7 @@ class KeyframeManager:
         T_m_q = invert(self.T_world_keyframe[m]) @ self.T_world_keyframe[q]
         sigma_rel = self._drift_cov[q] + transport_covariance(self._drift_cov[m], T_m_q)
         d2 = graph.loop_innovation(loop, relative_covariance=sigma_rel)
-        bound = chi2_6_quantile(self.config.keyframes.loop_check_probability)
+        bound = chi2_6_quantile(LOOP_CHECK_PROBABILITY)
         if d2 > bound:
             self.held_out_loops.append((q, m))
             log.warning(
@@ -547,7 +542,6 @@ class KeyframeManager:
         else:
             rejected, stats = [], {}
         stats["held_out_loops"] = len(self.held_out_loops)
-        stats["periodic_batch_solves"] = self.batch_solves
         if self.held_out_loops:
             log.info("%d loop(s) were held out of the running estimate by the innovation test: %s",
                      len(self.held_out_loops), self.held_out_loops)

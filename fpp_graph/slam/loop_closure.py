@@ -126,6 +126,26 @@ class PoseUncertainty:
     position_sigma_m: float
 
 
+PROXIMITY_SIGMAS = 3.0
+"""The proximity radius grows by this many standard deviations of the new keyframe's position
+(largest axis of its drift covariance), so the gate widens as drift grows: 3 holds a revisit
+inside the pose uncertainty with 99.7 % probability per axis."""
+
+APPEARANCE_MIN_SCORE = 0.1
+"""Least VLAD cosine similarity of an appearance candidate: low on purpose, verification by
+registration rejects the false ones (``loop_closure.appearance_top_k`` bounds their cost)."""
+
+MIN_KEYFRAME_SEPARATION = 5
+"""Keyframes fewer than this many keyframes apart are never loop candidates of each other: the
+odometry chain already links them."""
+
+REVISIT_VIEW_CHANGE = 1.0
+"""A keyframe is a loop candidate once the camera's view has moved away from it by this fraction
+of the image side at some keyframe since, or its optical axis turned by 90 degrees (1: the whole
+view, at its median depth, left the image); until then the odometry chain runs through frames
+that keep seeing it (ORB-SLAM's covisibility exclusion)."""
+
+
 class ProximityAppearanceLoopDetector:
     """Implements :class:`~fpp_graph.types.LoopDetector` with pose proximity and appearance.
 
@@ -140,8 +160,8 @@ class ProximityAppearanceLoopDetector:
     Appearance: the best ``appearance_top_k`` bag-of-words matches.
 
     Neither proposes a keyframe of the query's local window: one closer than
-    ``min_frame_separation`` in the sequence, or one the camera has not left yet, i.e. whose
-    view has not moved by ``revisit_view_change`` (a fraction of the image side, see
+    :data:`MIN_KEYFRAME_SEPARATION` in the sequence, or one the camera has not left yet, i.e. whose
+    view has not moved by :data:`REVISIT_VIEW_CHANGE` (a fraction of the image side, see
     :func:`~fpp_graph.slam.views.view_change`), nor turned its optical axis by 90 degrees, at any
     keyframe since, under the current estimate.
     Those are linked by the odometry chain through frames that keep seeing them; a revisit is
@@ -165,15 +185,14 @@ class ProximityAppearanceLoopDetector:
         view = ViewModel.of(frame)
         if view is not None:
             self._views[frame.id] = view
-            if self.config.revisit_view_change > 0:
-                self._in_view[frame.id] = view
+            self._in_view[frame.id] = view
 
     def local_window(self, frame_id: int, poses_world_sensor: Mapping[int, NDArray[np.float64]]) -> set[int]:
         """Keyframes the camera has not left by ``frame_id``'s pose (updated with it: once left, never back)."""
         T_world_query = poses_world_sensor.get(frame_id)
         if T_world_query is None:
             return set(self._in_view)
-        threshold = self.config.revisit_view_change
+        threshold = REVISIT_VIEW_CHANGE
         for fid in list(self._in_view):
             T_world_kf = poses_world_sensor.get(fid)
             # another part of the trajectory is not linked to the query by odometry: not local;
@@ -209,7 +228,7 @@ class ProximityAppearanceLoopDetector:
             return []
         index_of = self._index
         position_in_sequence = index_of.get(frame.id, len(self._order))
-        sep = cfg.min_frame_separation
+        sep = MIN_KEYFRAME_SEPARATION
         near = self._order[max(0, position_in_sequence - sep + 1): max(0, position_in_sequence + sep)]
         too_close = {fid for fid in near if abs(position_in_sequence - index_of[fid]) < sep}
         too_close.add(frame.id)
@@ -218,7 +237,7 @@ class ProximityAppearanceLoopDetector:
         distance_of: dict[int, float] = {}
         T_world_query = poses_world_sensor.get(frame.id)
         if T_world_query is not None:
-            radius = cfg.proximity_radius_m + cfg.proximity_sigma * max(0.0, position_sigma_m)
+            radius = cfg.proximity_radius_m + PROXIMITY_SIGMAS * max(0.0, position_sigma_m)
             # One vectorised pass over the keyframes (a 4x4 inverse per keyframe in Python cost
             # ~7 ms per query at 1000 keyframes): with T_other_query = T_world_other^-1
             # T_world_query, its translation's norm is the distance between the two positions
@@ -236,7 +255,7 @@ class ProximityAppearanceLoopDetector:
         proximity = sorted(found.values(), key=lambda c: (-c.score, distance_of[c.match_id]))
         appearance: list[LoopCandidate] = []
         for fid, score in self.appearance.query(frame.descriptors, cfg.appearance_top_k, exclude=too_close):
-            if score < cfg.appearance_min_score:
+            if score < APPEARANCE_MIN_SCORE:
                 continue
             if fid in found:
                 found[fid] = LoopCandidate(frame.id, fid, found[fid].score, "proximity+appearance")

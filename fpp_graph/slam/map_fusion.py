@@ -30,6 +30,16 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
+FUSION_VOXEL_M = 0.001
+"""The point map's voxel when neither the configuration nor the source sets
+``fusion.voxel_size_m``: 1 mm keeps a close-range sensor's detail (a few pixel footprints of a
+camera half a metre from its scene); a room-scale source sets a coarser one."""
+
+TSDF_VOXEL_M = 0.002
+"""The mesh's TSDF voxel when neither the configuration nor the source sets
+``fusion.tsdf_voxel_m``: twice :data:`FUSION_VOXEL_M`, the resolution a close-range sensor's
+registration knows its poses at."""
+
 ProgressCallback = Callable[[str, int, int], None]
 """``progress(stage, done, total)``: a run's progress report (:mod:`fpp_graph.slam.pipeline` and its steps)."""
 
@@ -39,9 +49,8 @@ def make_map_fuser(config: Config) -> VoxelMapFuser:
     from fpp_graph.fusion.voxel_map import VoxelMapFuser
 
     return VoxelMapFuser(
-        voxel_size_m=config.fusion.voxel_size_m,
-        tsdf_voxel_m=config.fusion.tsdf_voxel_m,
-        tsdf_truncation_m=config.fusion.tsdf_truncation_m,
+        voxel_size_m=config.fusion.voxel_size_m or FUSION_VOXEL_M,
+        tsdf_voxel_m=config.fusion.tsdf_voxel_m or TSDF_VOXEL_M,
         mesh=config.fusion.mesh,
         max_depth_m=config.fusion.max_depth_m or math.inf,
     )
@@ -198,7 +207,7 @@ def fuse_points_only(result_poses: dict[int, np.ndarray], keyframe_ids: list[int
     """Voxel-grid map under given poses, without a mesh (for before/after accuracy comparisons)."""
     from fpp_graph.fusion.voxel_map import VoxelMapFuser
 
-    fuser = VoxelMapFuser(voxel_size_m=voxel_size_m, tsdf_voxel_m=voxel_size_m, tsdf_truncation_m=4 * voxel_size_m, mesh=False)
+    fuser = VoxelMapFuser(voxel_size_m=voxel_size_m, tsdf_voxel_m=voxel_size_m, mesh=False)
     for kf in keyframe_ids:
         fuser.integrate(store.get(kf), result_poses[kf])
     return fuser.result()

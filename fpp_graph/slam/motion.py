@@ -17,7 +17,6 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import NDArray
 
-from fpp_graph.errors import InputDataError
 from fpp_graph.geometry import adjoint, invert, se3_exp, se3_log
 from fpp_graph.types import Constraint, Frame, FrameTracker, PairRegistrar
 
@@ -103,24 +102,10 @@ class ConstantVelocityPredictor:
 
 def readout_motion(frame: Frame, twist_per_s: Array | None) -> Array | None:
     """The twist ``[rot, trans]`` the camera moves through while ``frame``'s rows are read out:
-    ``twist_per_s`` times the frame's ``metadata["readout_s"]`` (a rolling shutter's readout time,
-    set by its source; absent or 0: a global shutter or a still capture). None when either is
-    unknown or zero.
-
-    Raises
-    ------
-    InputDataError
-        The frame's ``readout_s`` is not a finite, non-negative number of seconds."""
-    value = frame.metadata.get("readout_s", 0.0)
-    try:
-        readout_s = float(value or 0.0)
-    except (TypeError, ValueError):
-        readout_s = math.nan
-    if not (math.isfinite(readout_s) and readout_s >= 0):
-        raise InputDataError(
-            f"frame {frame.id}: metadata['readout_s'] must be the rolling shutter's readout time in seconds "
-            f"(0 or absent for a global shutter), got {value!r}; fix the frame source"
-        )
+    ``twist_per_s`` times its camera's :attr:`~fpp_graph.types.CameraModel.readout_s` (a rolling
+    shutter's readout time, checked when the camera model is made; 0 or no camera model: a global
+    shutter or a still capture). None when either is unknown or zero."""
+    readout_s = frame.camera.readout_s if frame.camera is not None else 0.0
     if twist_per_s is None or readout_s == 0 or not np.all(np.isfinite(twist_per_s)):
         return None
     return readout_s * np.asarray(twist_per_s, dtype=np.float64)

@@ -46,15 +46,15 @@ class ViewModel:
 
     @classmethod
     def of(cls, frame: Frame, depth_m: float | None = None) -> ViewModel | None:
-        """The frame's view; None without a pinhole model (``metadata["K"]``), an image size
-        (``xyz_map``) or points in front of the sensor. ``depth_m``: its :func:`median_depth_m`, when known."""
-        if "K" not in frame.metadata or frame.xyz_map is None or len(frame.points) == 0:
+        """The frame's view; None without a camera model (:attr:`Frame.camera`) or points in
+        front of the sensor. ``depth_m``: its :func:`median_depth_m`, when known."""
+        camera = frame.camera
+        if camera is None or len(frame.points) == 0:
             return None
         depth = median_depth_m(frame) if depth_m is None else depth_m
         if not depth > 0:
             return None
-        h, w = frame.xyz_map.shape[:2]
-        return cls(np.asarray(frame.metadata["K"], dtype=np.float64), int(h), int(w), float(depth))
+        return cls(camera.K, camera.height_px, camera.width_px, float(depth))
 
     def change(self, T_keyframe_frame: NDArray[np.float64]) -> float:
         """See :func:`view_change`."""
@@ -111,7 +111,7 @@ def view_change(keyframe: Frame, T_keyframe_frame: NDArray[np.float64], depth_m:
     keyframe's view (a 3x3 grid over the image at the keyframe's median depth) seen from the
     frame. Rotation, translation against the scene's depth and roll all count, in the sensor's
     own pixels, so the same fraction means the same loss of overlap for a 60-degree RGB-D camera
-    and a narrow FPP camera. None when the keyframe has no pinhole model (``metadata["K"]``) or
-    image size (``xyz_map``). ``depth_m``: the keyframe's :func:`median_depth_m`, when known."""
+    and a narrow FPP camera. None when the keyframe has no camera model (:attr:`Frame.camera`)
+    or no points in front of it. ``depth_m``: the keyframe's :func:`median_depth_m`, when known."""
     view = ViewModel.of(keyframe, depth_m)
     return None if view is None else view.change(T_keyframe_frame)

@@ -34,7 +34,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from fpp_graph.atomic import atomic_open
-from fpp_graph.slam.mapped_npz import mapped_npz
+from fpp_graph.mapped_npz import mapped_npz
 from frontend.fpp.projector_distortion import FIT_SAMPLES, InverseDistortionFit
 from frontend.fpp.rig import PinholeModel, RigCalibration
 from frontend.user_cache import user_cache_dir

@@ -14,12 +14,18 @@ from typing import Any
 
 from fpp_graph.config import Config, refuse_reference_time_offset
 from fpp_graph.trajectory import Trajectory
-from fpp_graph.types import Frame
+from fpp_graph.types import CameraModel, Frame
 from frontend.config import FPP_NOISE
 from frontend.fpp.rig import RigCalibration
 from frontend.fpp.sequence import SEQUENCE_FILE, read_sequence
 
 log = logging.getLogger(__name__)
+
+FPP_FUSION_VOXELS_M = {"voxel_size_m": 0.001, "tsdf_voxel_m": 0.002}
+"""The fusion voxels of a close-range FPP rig (where the configuration leaves them null): the
+point map's a few of the camera's pixel footprints at half a metre, so it keeps the sensor's
+detail and bounds the map's size; the TSDF's the registration's ICP voxel, the resolution the
+poses are known at."""
 
 
 class FppSequenceSource:
@@ -80,9 +86,11 @@ class FppSequenceSource:
         rec = self.sequence.frames[i]
         images = self.sequence.load_frame_images(i)
         frame = self.sensor.frame_from_images(rec.id, rec.timestamp, images)
+        camera = self.sequence.calibration.camera
         frame = Frame(
             id=frame.id, timestamp=frame.timestamp, points=frame.points, colors=frame.colors,
             xyz_map=frame.xyz_map, texture=frame.texture,
+            camera=CameraModel(camera.K, camera.width, camera.height),  # a still capture: no readout motion
             metadata={**frame.metadata, **camera_metadata(self.sequence.calibration)},
         )
         # the registrar's per-frame work that every pair of this frame needs, done here once
@@ -93,8 +101,11 @@ class FppSequenceSource:
 
     def resolve_config(self, config: Config) -> Config:
         """``config`` with the rig's noise model (:data:`frontend.config.FPP_NOISE`) where
-        ``registration.noise`` is left null (idempotent)."""
-        return config.model_copy(update={"registration": config.registration.with_noise(FPP_NOISE)})
+        ``registration.noise`` is left null, and the fusion voxels of :data:`FPP_FUSION_VOXELS_M`
+        where ``fusion`` leaves them null (idempotent; a value the user set is kept)."""
+        fusion = config.fusion
+        fusion = fusion.model_copy(update={k: v for k, v in FPP_FUSION_VOXELS_M.items() if getattr(fusion, k) is None})
+        return config.model_copy(update={"registration": config.registration.with_noise(FPP_NOISE), "fusion": fusion})
 
     def make_registrar(self):
         from frontend.registration import FppPairRegistrar, TextureCamera

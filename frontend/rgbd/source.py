@@ -46,12 +46,12 @@ Configuration
 -------------
 The registration's length thresholds are multiples of ``registration.noise``
 (:mod:`frontend.config`); :meth:`RgbdSource.resolve_config` fills the noise values a config leaves
-null with :data:`KINECT_V1_NOISE` (a user's own noise values win) and raises the fusion voxels to
-:data:`RGBD_FUSION_FLOORS` (a scene-scale matter, not noise: a 1 mm TSDF over a 3 m room is ~10^10
-voxels) and the dense refinement's pixel stride to :data:`RGBD_DENSE_STRIDE_FLOOR_PX` (the
-depth's correlation window). Where the config leaves them null it also sets the fusion's depth range
-(``fusion.max_depth_m``: where :data:`KINECT_DEPTH_SIGMA_PER_M2` reaches the TSDF truncation) and
-turns on tracking from motion (``keyframes.track_from_motion``: 30 Hz frames move a few millimetres
+null with :data:`KINECT_V1_NOISE` (a user's own noise values win; its dense refinement's pixel
+stride is the depth's correlation window).
+Where the config leaves them null it also sets the fusion voxels to :data:`RGBD_FUSION_VOXELS_M`
+(a scene-scale matter, not noise: a 1 mm TSDF over a 3 m room is ~10^10 voxels), the fusion's
+depth range (``fusion.max_depth_m``: where :data:`KINECT_DEPTH_SIGMA_PER_M2` reaches the TSDF
+truncation band) and turns on tracking from motion (``keyframes.track_from_motion``: 30 Hz frames move a few millimetres
 apart). The pipeline runs on the resolved config and writes it to the results folder.
 """
 
@@ -71,14 +71,17 @@ import numpy as np
 
 from fpp_graph.config import Config, refuse_reference_time_offset
 from fpp_graph.errors import InputDataError
+from fpp_graph.fusion.tsdf_mesh import TSDF_TRUNCATION_VOXELS
 from fpp_graph.geometry import masked_pixels
 from fpp_graph.trajectory import Trajectory, read_tum
-from fpp_graph.types import Frame, grey_colors
+from fpp_graph.types import CameraModel, Frame, grey_colors
 from frontend.config import SensorNoise
 
 log = logging.getLogger(__name__)
 
-KINECT_V1_NOISE = SensorNoise(point_sigma_m=0.0075, voxel_m=0.01, information_correlation=3e-4, shared_depth_sigma_per_m2=1.4e-3, readout_s=1.0 / 30.0)
+KINECT_V1_NOISE = SensorNoise(
+    point_sigma_m=0.0075, voxel_m=0.01, information_correlation=3e-4, shared_depth_sigma_per_m2=1.4e-3, readout_s=1.0 / 30.0, dense_stride_px=4,
+)
 """The Kinect v1 depth camera's noise model (see ``registration.noise``).
 
 - ``point_sigma_m``: its random depth error is ~1.4e-3 z^2 m (Khoshelham and Elberink, Sensors
@@ -94,25 +97,20 @@ KINECT_V1_NOISE = SensorNoise(point_sigma_m=0.0075, voxel_m=0.01, information_co
   view shares). ``scripts/rgbd_nees.py`` on 8 pairs of the 7-Scenes chess frames now gives mean
   NEES / 6 of 0.22 (median 0.09: conservative); the TUM fr1_rpy edges are over-confident (issue 22).
 - ``readout_s``: both its cameras are rolling shutters that read their rows over the frame period
-  (1/30 s); frames record it (``metadata["readout_s"]``) and the keyframe manager widens the
+  (1/30 s); frames record it (``CameraModel.readout_s``) and the keyframe manager widens the
   constraints of a moving camera by its motion over it (:func:`fpp_graph.slam.motion.with_readout_motion`).
+- ``dense_stride_px``: it computes disparity over a 9 x 9 pixel correlation window, so neighbouring
+  depth pixels share most of their error: the dense refinement samples every 4th pixel (half the
+  window; its coarse iterations every 8th); pixels in between add cost, not information.
 """
 KINECT_DEPTH_SIGMA_PER_M2 = 1.425e-3
 """A Kinect v1 depth's random error over the square of its range (1/m): ``sigma = 1.425e-3 z^2``
 (Khoshelham and Elberink, Sensors 2012; the simulator's :class:`~frontend.sim.rgbd.KinectModel`
 reproduces it). Sets how far its depth is fused (:meth:`RgbdSource.resolve_config`)."""
 
-RGBD_FUSION_FLOORS = {
-    "voxel_size_m": 0.01,
-    "tsdf_voxel_m": 0.01,
-    "tsdf_truncation_m": 0.04,
-}
-# The Kinect v1 computes disparity over a 9 x 9 pixel correlation window, so neighbouring depth
-# pixels share most of their error: the dense refinement samples every 4th pixel (half the
-# window; its coarse iterations every 8th), where FPP's finer-grained errors want every 2nd.
-# Pixels in between add cost, not information (with the ICP stop: chess ATE 6.8 -> 5.6 mm,
-# TUM fr1_rpy 29.3 -> 29.2 mm).
-RGBD_DENSE_STRIDE_FLOOR_PX = 4
+RGBD_FUSION_VOXELS_M = {"voxel_size_m": 0.01, "tsdf_voxel_m": 0.01}
+"""The fusion voxels of a room-scale depth camera (where the configuration leaves them null): the
+registration's ICP voxel, a few standard deviations of the Kinect's depth error at 1-2 m."""
 # Kinect v1 colour camera (the ROS/OpenNI defaults) and its offset from the depth camera: the
 # colour camera sits ~2.5 cm along +x of the depth (IR) camera.
 KINECT_V1_COLOR_K = np.array([[525.0, 0.0, 319.5], [0.0, 525.0, 239.5], [0.0, 0.0, 1.0]])
@@ -707,8 +705,8 @@ class RgbdSource:
             colors=grey_colors(color[valid] / 255.0),
             xyz_map=xyz,
             texture=color,
-            metadata={"K": self.K.tolist(), "sensor": "rgbd", "readout_s": self.config.registration.sensor_noise().readout_s,
-                      **({"distortion": self.distortion.tolist()} if self.distortion is not None else {})},
+            camera=CameraModel(self.K, xyz.shape[1], xyz.shape[0], readout_s=self.config.registration.sensor_noise().readout_s),
+            metadata={"sensor": "rgbd", **({"distortion": self.distortion.tolist()} if self.distortion is not None else {})},
         )
         # the registrar's per-frame work that every pair of this frame needs (its dense surface),
         # done here once, on a decode worker, and handed on with the frame
@@ -724,20 +722,18 @@ class RgbdSource:
 
     @staticmethod
     def resolve_config(config: Config) -> Config:
-        """``config`` with the Kinect's noise model where ``registration.noise`` is left null, the
-        RGB-D floors on fusion voxels and on the dense refinement's pixel stride, and the fusion's
-        depth range, tracking from motion and keyframes-only frame storage (``run.keep_frames``)
-        unless the config sets them (idempotent)."""
-        reg = config.registration.with_noise(KINECT_V1_NOISE)
-        dense = reg.dense
-        stride = max(dense.stride_px, RGBD_DENSE_STRIDE_FLOOR_PX)
-        reg = reg.model_copy(update={"dense": dense.model_copy(update={"stride_px": stride, "coarse_stride_px": max(dense.coarse_stride_px, 2 * stride)})})
+        """``config`` with the Kinect's noise model (its dense pixel stride included) where
+        ``registration.noise`` is left null, and the fusion voxels and depth range,
+        tracking from motion and keyframes-only frame storage (``run.keep_frames``) where the
+        config leaves them null (idempotent; a value the user set is kept)."""
+        reg = config.registration.with_noise(KINECT_V1_NOISE)  # the dense stride included: a user's value wins
         fus = config.fusion
-        fus = fus.model_copy(update={k: max(getattr(fus, k), v) for k, v in RGBD_FUSION_FLOORS.items()})
+        fus = fus.model_copy(update={k: v for k, v in RGBD_FUSION_VOXELS_M.items() if getattr(fus, k) is None})
         if fus.max_depth_m is None:
             # beyond the range where the depth error reaches the TSDF's truncation band a
-            # surface's points scatter over more than the band (5.3 m with the 4 cm floor)
-            fus = fus.model_copy(update={"max_depth_m": math.sqrt(fus.tsdf_truncation_m / KINECT_DEPTH_SIGMA_PER_M2)})
+            # surface's points scatter over more than the band (5.3 m with 1 cm voxels)
+            truncation_m = TSDF_TRUNCATION_VOXELS * fus.tsdf_voxel_m
+            fus = fus.model_copy(update={"max_depth_m": math.sqrt(truncation_m / KINECT_DEPTH_SIGMA_PER_M2)})
         keyframes = config.keyframes
         if keyframes.track_from_motion is None:  # 30 Hz video: the previous motion predicts the next
             keyframes = keyframes.model_copy(update={"track_from_motion": True})

@@ -26,7 +26,7 @@ import open3d as o3d
 from numpy.typing import NDArray
 from scipy import ndimage
 
-from fpp_graph.types import Frame
+from fpp_graph.types import CameraModel, Frame
 
 
 def camera_matrix(width: int, height: int, focal_px: float | None = None) -> NDArray[np.float64]:
@@ -199,6 +199,7 @@ def render_frame(
         points=xyz[hit],
         xyz_map=xyz_map,
         texture=texture,
+        camera=CameraModel(K, width, height),
         metadata={"T_world_sensor_true": T.copy(), "K": K.copy()},
     )
 

@@ -21,7 +21,7 @@ from fpp_graph.fusion.voxel_map import (
     render_depth,
 )
 from fpp_graph.geometry import compose, finite_points, make_pose
-from fpp_graph.types import Frame, MapFuser
+from fpp_graph.types import CameraModel, Frame, MapFuser
 
 CENTRE = np.array([0.0, 0.0, 1.0])
 RADIUS = 0.2
@@ -54,7 +54,7 @@ def sphere_frame(fid, T_world_sensor, noise_m, rng, with_K=True, K_cam=K, size=(
     texture = (u / w * 255).astype(np.uint8)
     return Frame(
         fid, float(fid), xyz[valid], colors=np.repeat(texture[valid][:, None] / 255.0, 3, 1),
-        xyz_map=xyz, texture=texture, metadata={"K": K_cam.tolist()} if with_K else {},
+        xyz_map=xyz, texture=texture, camera=CameraModel(K_cam, w, h) if with_K else None,
     )
 
 
@@ -83,11 +83,11 @@ def views():
 @pytest.fixture(scope="module")
 def fused(views):
     frames, poses = views
-    return VoxelMapFuser(0.002, 0.002, 0.008, mesh=True).fuse(frames, poses)
+    return VoxelMapFuser(0.002, 0.002, mesh=True).fuse(frames, poses)
 
 
 def test_fuser_is_a_map_fuser():
-    assert isinstance(VoxelMapFuser(0.001, 0.002, 0.008, mesh=False), MapFuser)
+    assert isinstance(VoxelMapFuser(0.001, 0.002, mesh=False), MapFuser)
 
 
 def test_fused_points_lie_on_the_surface(views, fused):
@@ -100,7 +100,7 @@ def test_fused_points_lie_on_the_surface(views, fused):
     assert acc.rms_m == pytest.approx(np.sqrt(np.mean(radial_error(fused.points_world_m) ** 2)), abs=2e-5)
     # every point counts, with weight cos(normal, ray) in (0, 1]
     assert 0.3 * sum(f.num_points for f in frames) < fused.weights.sum() < sum(f.num_points for f in frames)
-    plain = VoxelMapFuser(0.002, 0.002, 0.008, mesh=False, grazing_weight=False).fuse(frames, poses)
+    plain = VoxelMapFuser(0.002, 0.002, mesh=False, grazing_weight=False).fuse(frames, poses)
     assert plain.weights.sum() == sum(f.num_points for f in frames)
     assert fused.colors.shape == fused.points_world_m.shape
     assert 0.0 <= fused.colors.min() and fused.colors.max() <= 1.0
@@ -114,7 +114,7 @@ def test_weighted_average_reduces_noise():
     poses = ring_of_views(n=8, spread_rad=0.05)
     frames = [sphere_frame(i, T, 0.0002, rng, size=(160, 120), K_cam=K * [[0.5], [0.5], [1]]) for i, T in enumerate(poses)]
     raw = np.vstack([f.points @ T[:3, :3].T + T[:3, 3] for f, T in zip(frames, poses, strict=True)])
-    fused = VoxelMapFuser(0.006, 0.006, 0.024, mesh=False).fuse(frames, dict(enumerate(poses)))
+    fused = VoxelMapFuser(0.006, 0.006, mesh=False).fuse(frames, dict(enumerate(poses)))
     rms_raw = np.sqrt(np.mean(radial_error(raw) ** 2))
     r = radial_error(fused.points_world_m)
     assert fused.mesh_vertices is None
@@ -128,7 +128,7 @@ def test_voxel_mean_is_exact():
     # two frames, hand-made points: the voxel holds the weighted mean of what fell in it
     a = Frame(0, 0.0, np.array([[0.0101, 0.0101, 0.0101], [0.0109, 0.0109, 0.0109]]), colors=np.array([[1.0, 0, 0], [0, 0, 1.0]]))
     b = Frame(1, 1.0, np.array([[0.0, 0.0, 0.0]]), colors=np.array([[0.0, 1.0, 0.0]]))
-    fuser = VoxelMapFuser(0.001, 0.001, 0.004, mesh=False)
+    fuser = VoxelMapFuser(0.001, 0.001, mesh=False)
     fuser.integrate(a, np.eye(4))
     fuser.integrate(b, make_pose(translation=[0.0105, 0.0105, 0.0105]), point_weights=np.array([2.0]))
     out = fuser.result()
@@ -140,8 +140,8 @@ def test_voxel_mean_is_exact():
 
 def test_streaming_matches_batch_and_merges(views):
     frames, poses = views
-    batch = VoxelMapFuser(0.002, 0.002, 0.008, mesh=False).fuse(frames, poses)
-    stream = VoxelMapFuser(0.002, 0.002, 0.008, mesh=False)
+    batch = VoxelMapFuser(0.002, 0.002, mesh=False).fuse(frames, poses)
+    stream = VoxelMapFuser(0.002, 0.002, mesh=False)
     for f in frames:
         stream.integrate(f, poses[f.id])
         stream.result()  # intermediate results force merges along the way
@@ -169,8 +169,9 @@ def test_tsdf_mesh_is_close_to_the_surface(fused):
 ])
 def test_tsdf_blocks_are_as_thick_as_the_band(truncation_m, voxel_m, block):
     assert tsdf_block_voxels(truncation_m, voxel_m) == block
-    fuser = VoxelMapFuser(voxel_m, voxel_m, truncation_m, mesh=True)
-    assert fuser.tsdf_block_voxels == block and fuser.tsdf_block_count * block**3 >= 1000 * 16**3
+    if truncation_m == 4 * voxel_m:  # the band the fuser makes of its voxel
+        fuser = VoxelMapFuser(voxel_m, voxel_m, mesh=True)
+        assert fuser.tsdf_block_voxels == block and fuser.tsdf_block_count * block**3 >= 1000 * 16**3
 
 
 @pytest.mark.parametrize(("truncation_m", "voxel_m"), [(0.0, 0.002), (0.008, 0.0), (float("nan"), 0.002), (0.008, -1.0)])
@@ -183,7 +184,7 @@ def test_band_thick_blocks_mesh_the_same_surface(views, fused):
     """Blocks of 16^3 voxels (Open3D's default) leave the surface where the band-thick 8^3 put it:
     only the free space each view sets in front of it differs."""
     frames, poses = views
-    wide = VoxelMapFuser(0.002, 0.002, 0.008, mesh=True)
+    wide = VoxelMapFuser(0.002, 0.002, mesh=True)
     wide.tsdf_block_voxels, wide.tsdf_block_count = 16, 1000
     coarse = wide.fuse(frames, poses)
     assert fused.mesh_vertices is not None and coarse.mesh_vertices is not None
@@ -202,10 +203,10 @@ def test_tsdf_hash_map_grown_by_copy_meshes_what_an_ample_one_does(views, fused,
     # times while the views are integrated; the mesh is the one of a map that never grew
     frames, poses = views
     with caplog.at_level("DEBUG", logger="fpp_graph.fusion.tsdf_mesh"):
-        fuser = VoxelMapFuser(0.002, 0.002, 0.008, mesh=True, tsdf_block_count=1)
+        fuser = VoxelMapFuser(0.002, 0.002, mesh=True, tsdf_block_count=1)
         grown = fuser.fuse(frames, poses)
     assert sum("TSDF hash map grown" in r.getMessage() for r in caplog.records) >= 3
-    ample = VoxelMapFuser(0.002, 0.002, 0.008, mesh=True, tsdf_block_count=100_000).fuse(frames, poses)
+    ample = VoxelMapFuser(0.002, 0.002, mesh=True, tsdf_block_count=100_000).fuse(frames, poses)
     assert len(fused.mesh_triangles) > 1000
     for got, expected in ((grown, fused), (ample, fused)):
         np.testing.assert_array_equal(got.mesh_vertices, expected.mesh_vertices)
@@ -243,7 +244,7 @@ def test_canonical_mesh_does_not_depend_on_the_order_it_was_listed_in(rng):
 
 def test_two_fusions_of_the_same_frames_give_the_same_mesh(views, fused):
     frames, poses = views
-    again = VoxelMapFuser(0.002, 0.002, 0.008, mesh=True).fuse(frames, poses)
+    again = VoxelMapFuser(0.002, 0.002, mesh=True).fuse(frames, poses)
     for a, b in ((fused.mesh_vertices, again.mesh_vertices), (fused.mesh_triangles, again.mesh_triangles), (fused.mesh_vertex_colors, again.mesh_vertex_colors)):
         assert np.array_equal(a, b)
 
@@ -262,7 +263,7 @@ def test_intrinsics_are_estimated_without_metadata(views):
 
 def test_refuse_after_pose_update_moves_the_map(views):
     frames, poses = views
-    fuser = VoxelMapFuser(0.002, 0.003, 0.012, mesh=True)
+    fuser = VoxelMapFuser(0.002, 0.003, mesh=True)
     first = fuser.fuse(frames, poses)
     shift = make_pose(translation=[0.05, 0.0, 0.0])
     moved = fuser.refuse(frames, {k: compose(shift, T) for k, T in poses.items()})
@@ -302,7 +303,7 @@ def test_mesh_ply_round_trip_is_exact(tmp_path, fused):
 
 
 def test_empty_map_writes_a_valid_ply(tmp_path):
-    out = VoxelMapFuser(0.001, 0.002, 0.008, mesh=True).result()
+    out = VoxelMapFuser(0.001, 0.002, mesh=True).result()
     assert out.num_points == 0 and len(out.mesh_vertices) == 0
     write_point_cloud_ply(tmp_path / "m.ply", out.points_world_m, out.colors)
     assert (tmp_path / "m.ply").read_bytes().startswith(b"ply\nformat binary_little_endian 1.0\n")
@@ -311,14 +312,14 @@ def test_empty_map_writes_a_valid_ply(tmp_path):
 def test_bad_input_is_reported(views, tmp_path):
     frames, poses = views
     with pytest.raises(InputDataError, match=r"no pose for frames \[6\]"):
-        VoxelMapFuser(0.002, 0.002, 0.008, mesh=False).fuse(frames, {k: v for k, v in poses.items() if k != 6})
+        VoxelMapFuser(0.002, 0.002, mesh=False).fuse(frames, {k: v for k, v in poses.items() if k != 6})
     with pytest.raises(InputDataError, match="voxel_size_m must be a positive"):
-        VoxelMapFuser(0.0, 0.002, 0.008, mesh=False)
+        VoxelMapFuser(0.0, 0.002, mesh=False)
     far = Frame(0, 0.0, np.array([[5000.0, 0.0, 0.0]]))
     with pytest.raises(InputDataError, match="beyond the .* voxel grid"):
-        VoxelMapFuser(0.001, 0.002, 0.008, mesh=False).integrate(far, np.eye(4))
+        VoxelMapFuser(0.001, 0.002, mesh=False).integrate(far, np.eye(4))
     with pytest.raises(InputDataError, match="2 points but 3 weights"):
-        VoxelMapFuser(0.001, 0.002, 0.008, mesh=False).integrate(
+        VoxelMapFuser(0.001, 0.002, mesh=False).integrate(
             Frame(0, 0.0, np.zeros((2, 3))), np.eye(4), point_weights=np.ones(3)
         )
     with pytest.raises(InputDataError, match="colors shape"):
@@ -326,13 +327,12 @@ def test_bad_input_is_reported(views, tmp_path):
     with pytest.raises(InputDataError, match="triangle indices out of range"):
         write_mesh_ply(tmp_path / "x.ply", np.zeros((3, 3)), np.array([[0, 1, 3]]))
     assert not (tmp_path / "x.ply").exists()
-    bad_K = Frame(0, 0.0, frames[0].points, xyz_map=frames[0].xyz_map, metadata={"K": [[1, 0], [0, 1]]})
-    with pytest.raises(InputDataError, match="3x3 camera matrix"):
-        intrinsics_of(bad_K)
+    with pytest.raises(InputDataError, match="3x3 pinhole matrix"):
+        CameraModel(np.array([[1, 0], [0, 1]]), 4, 4)
 
 
 def test_frame_without_xyz_map_is_left_out_of_the_mesh(caplog):
-    fuser = VoxelMapFuser(0.001, 0.002, 0.008, mesh=True)
+    fuser = VoxelMapFuser(0.001, 0.002, mesh=True)
     fuser.integrate(Frame(0, 0.0, np.zeros((1, 3))), np.eye(4))
     assert fuser.frames_meshed == 0 and "no xyz_map" in caplog.text
     assert fuser.result().num_points == 1
@@ -425,7 +425,7 @@ def test_surface_smoothing_removes_the_voxel_sorting_of_noise():
         poses = ring_of_views(n=8, spread_rad=0.05)
         frames = [sphere_frame(i, T, noise, rng, size=(160, 120), K_cam=K * [[0.5], [0.5], [1]]) for i, T in enumerate(poses)]
         for smooth in (False, True):
-            fused = VoxelMapFuser(0.006, 0.006, 0.024, mesh=False, surface_smoothing=smooth).fuse(frames, dict(enumerate(poses)))
+            fused = VoxelMapFuser(0.006, 0.006, mesh=False, surface_smoothing=smooth).fuse(frames, dict(enumerate(poses)))
             out[noise, smooth] = np.sqrt(np.mean(radial_error(fused.points_world_m) ** 2))
     assert out[0.0, True] < out[0.0, False] + 5e-6  # no curvature bias (both ~12 um of voxel sampling)
     assert out[0.0002, True] < 0.5 * out[0.0002, False]
@@ -540,8 +540,8 @@ def test_points_beyond_max_depth_stay_out_of_map_and_mesh_and_are_counted(rng):
     # frame twice: the mesh needs a TSDF weight above 1)
     frame = sphere_frame(0, np.eye(4), 0.0, rng)
     z = frame.points[:, 2]
-    full = VoxelMapFuser(0.004, 0.004, 0.016, mesh=True)
-    near = VoxelMapFuser(0.004, 0.004, 0.016, mesh=True, max_depth_m=0.9)
+    full = VoxelMapFuser(0.004, 0.004, mesh=True)
+    near = VoxelMapFuser(0.004, 0.004, mesh=True, max_depth_m=0.9)
     for fuser in (full, near, full, near):
         fuser.integrate(frame, np.eye(4))
     assert near.points_beyond_max_depth == 2 * int(np.count_nonzero(z > 0.9)) > 0
@@ -552,7 +552,7 @@ def test_points_beyond_max_depth_stay_out_of_map_and_mesh_and_are_counted(rng):
     assert every.mesh_vertices[:, 2].max() > 0.92
     assert kept.mesh_vertices[:, 2].max() <= 0.9 + 0.016 + 0.004  # TSDF: its truncation band past the limit at most
     with pytest.raises(InputDataError, match="max_depth_m"):
-        VoxelMapFuser(0.004, 0.004, 0.016, mesh=False, max_depth_m=0.0)
+        VoxelMapFuser(0.004, 0.004, mesh=False, max_depth_m=0.0)
 
 
 def test_rgbd_fusion_range_is_where_kinect_noise_reaches_the_truncation():
@@ -561,7 +561,7 @@ def test_rgbd_fusion_range_is_where_kinect_noise_reaches_the_truncation():
 
     resolved = RgbdSource.resolve_config(Config())
     depth_m = resolved.fusion.max_depth_m
-    assert KINECT_DEPTH_SIGMA_PER_M2 * depth_m**2 == pytest.approx(resolved.fusion.tsdf_truncation_m)
+    assert KINECT_DEPTH_SIGMA_PER_M2 * depth_m**2 == pytest.approx(4 * resolved.fusion.tsdf_voxel_m)
     assert 5.0 < depth_m < 5.5
     assert RgbdSource.resolve_config(config_from_dict({"fusion": {"max_depth_m": 3.0}})).fusion.max_depth_m == 3.0
     assert Config().fusion.max_depth_m is None  # FPP: no limit
@@ -588,7 +588,7 @@ def test_fusion_on_worker_processes_gives_the_same_map(views, tmp_path):
     result = SimpleNamespace(keyframe_ids=[f.id for f in frames], poses_world_sensor=poses)
     config = load_config(None)
     serial_samples, parallel_samples = {}, {}
-    serial_fuser = VoxelMapFuser(0.002, 0.002, 0.008, mesh=True)
+    serial_fuser = VoxelMapFuser(0.002, 0.002, mesh=True)
     assert isinstance(serial_fuser, ParallelMapFuser)
     (tmp_path / "serial").mkdir()
     (tmp_path / "parallel").mkdir()
@@ -603,7 +603,7 @@ def test_fusion_on_worker_processes_gives_the_same_map(views, tmp_path):
 
     with ProcessPoolExecutor(2, mp_context=multiprocessing.get_context("spawn")) as pool:
         executor = CountingExecutor(pool)
-        parallel = fuse_map(tmp_path / "parallel", result, store, config, fuser=VoxelMapFuser(0.002, 0.002, 0.008, mesh=True),
+        parallel = fuse_map(tmp_path / "parallel", result, store, config, fuser=VoxelMapFuser(0.002, 0.002, mesh=True),
                             plot_samples=parallel_samples, executor=executor)
     # the mesh made by one task on a worker, each keyframe prepared there, then the surface
     # smoothing's chunks of 50 000 voxels
@@ -623,7 +623,7 @@ def test_fusion_on_worker_processes_gives_the_same_map(views, tmp_path):
 
 def test_preparer_refuses_a_bad_pose_before_any_work(views):
     frames, _ = views
-    prepare = VoxelMapFuser(0.002, 0.002, 0.008, mesh=True).preparer()
+    prepare = VoxelMapFuser(0.002, 0.002, mesh=True).preparer()
     with pytest.raises(InputDataError, match="pose of frame 0 must be a finite 4x4"):
         prepare(frames[0], np.full((4, 4), np.nan))
 

@@ -16,7 +16,7 @@ from fpp_graph.fusion.voxel_map import FrameMesher, VoxelMapFuser
 from fpp_graph.slam.frame_store import FrameStore
 from fpp_graph.slam.map_fusion import MESH_STOP_FILE, start_mesh_apart
 from fpp_graph.slam.workers import mesh_keyframes
-from fpp_graph.types import Frame, MeshSplittingMapFuser
+from fpp_graph.types import CameraModel, Frame, MeshSplittingMapFuser
 from tests.fusion.test_fusion import ring_of_views, sphere_frame
 
 
@@ -49,8 +49,8 @@ class InProcess:
 
 def test_split_mesh_hands_over_the_fusers_own_mesh(views):
     frames, poses = views
-    whole = VoxelMapFuser(0.002, 0.002, 0.008, mesh=True).fuse(frames, poses)
-    fuser = VoxelMapFuser(0.002, 0.002, 0.008, mesh=True)
+    whole = VoxelMapFuser(0.002, 0.002, mesh=True).fuse(frames, poses)
+    fuser = VoxelMapFuser(0.002, 0.002, mesh=True)
     assert isinstance(fuser, MeshSplittingMapFuser)
     mesher = fuser.split_mesh()
     assert isinstance(mesher, FrameMesher) and pickle.loads(pickle.dumps(mesher)) == mesher
@@ -69,17 +69,17 @@ def test_split_mesh_hands_over_the_fusers_own_mesh(views):
 
 def test_nothing_to_split_without_a_mesh_or_once_meshing_began(views):
     frames, poses = views
-    assert VoxelMapFuser(0.002, 0.002, 0.008, mesh=False).split_mesh() is None
-    begun = VoxelMapFuser(0.002, 0.002, 0.008, mesh=True)
+    assert VoxelMapFuser(0.002, 0.002, mesh=False).split_mesh() is None
+    begun = VoxelMapFuser(0.002, 0.002, mesh=True)
     begun.integrate(frames[0], poses[0])
     assert begun.split_mesh() is None and begun.mesh
 
 
 def test_mesher_leaves_out_frames_it_cannot_mesh_and_says_why(views):
     frames, poses = views
-    mesher = VoxelMapFuser(0.002, 0.002, 0.008, mesh=True).split_mesh()
+    mesher = VoxelMapFuser(0.002, 0.002, mesh=True).split_mesh()
     no_map = Frame(7, 0.0, frames[0].points)
-    empty = Frame(8, 0.0, np.zeros((1, 3)), xyz_map=np.full((4, 4, 3), np.nan), metadata={"K": np.eye(3).tolist()})
+    empty = Frame(8, 0.0, np.zeros((1, 3)), xyz_map=np.full((4, 4, 3), np.nan), camera=CameraModel(np.eye(3), 4, 4))
     mesh = mesher([(frames[0], poses[0]), (no_map, poses[0]), (empty, poses[0])])
     assert mesh.frames_meshed == 1 and mesh.frames_left_out == ((7, "no xyz_map"), (8, "no valid depth"))
     with pytest.raises(InputDataError, match="pose of frame 0 must be a finite 4x4"):
@@ -91,7 +91,7 @@ def test_mesh_made_apart_writes_mesh_ply_and_logs_what_it_left_out(views, tmp_pa
     no_map = Frame(9, 0.0, frames[0].points)
     store = stored(tmp_path, [*frames, no_map])
     result = SimpleNamespace(keyframe_ids=[f.id for f in frames] + [9], poses_world_sensor={**poses, 9: poses[0]})
-    fuser, executor = VoxelMapFuser(0.002, 0.002, 0.008, mesh=True), InProcess()
+    fuser, executor = VoxelMapFuser(0.002, 0.002, mesh=True), InProcess()
     apart = start_mesh_apart(tmp_path, result, store, fuser, executor)
     assert apart is not None and executor.tasks == ["mesh_keyframes"] and not fuser.mesh
     with caplog.at_level(logging.INFO, logger="fpp_graph.slam.map_fusion"):
@@ -100,15 +100,15 @@ def test_mesh_made_apart_writes_mesh_ply_and_logs_what_it_left_out(views, tmp_pa
     assert "frame 9 has no xyz_map; it is left out of the TSDF mesh" in caplog.text
     assert (tmp_path / "mesh.ply").exists() and summary["triangles"] > 1000
     # nothing to hand to a worker: no executor, frames not on disk, or a fuser that meshes as it fuses
-    assert start_mesh_apart(tmp_path, result, store, VoxelMapFuser(0.002, 0.002, 0.008, mesh=True), None) is None
-    assert start_mesh_apart(tmp_path, result, FrameStore(), VoxelMapFuser(0.002, 0.002, 0.008, mesh=True), executor) is None
-    assert start_mesh_apart(tmp_path, result, store, VoxelMapFuser(0.002, 0.002, 0.008, mesh=False), executor) is None
+    assert start_mesh_apart(tmp_path, result, store, VoxelMapFuser(0.002, 0.002, mesh=True), None) is None
+    assert start_mesh_apart(tmp_path, result, FrameStore(), VoxelMapFuser(0.002, 0.002, mesh=True), executor) is None
+    assert start_mesh_apart(tmp_path, result, store, VoxelMapFuser(0.002, 0.002, mesh=False), executor) is None
 
 
 def test_a_stopped_run_ends_the_mesh_before_its_next_keyframe(views, tmp_path):
     frames, poses = views
     store = stored(tmp_path, frames)
-    mesher = VoxelMapFuser(0.002, 0.002, 0.008, mesh=True).split_mesh()
+    mesher = VoxelMapFuser(0.002, 0.002, mesh=True).split_mesh()
     stop = tmp_path / MESH_STOP_FILE
     keyframes = [(str(store.path_of(f.id)), poses[f.id]) for f in frames]
     seen = []

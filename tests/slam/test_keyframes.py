@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -12,11 +13,12 @@ from scipy.spatial.transform import Rotation
 from fpp_graph.config import Config, LoopClosureConfig, config_from_dict
 from fpp_graph.geometry import invert, make_pose, pose_error, se3_exp
 from fpp_graph.slam.frame_store import FrameStore, load_frame, save_frame
-from fpp_graph.slam.keyframes import KeyframeManager
+from fpp_graph.slam.keyframes import VERIFY_LAG_KEYFRAMES, KeyframeManager
 from fpp_graph.slam.loop_closure import AppearanceIndex
-from fpp_graph.types import Constraint, ConstraintKind, Frame
+from fpp_graph.types import CameraModel, Constraint, ConstraintKind, Frame
 
 VIEWS = 13
+EVERY_FRAME = {"keyframes": {"min_view_change": 0.0}}  # frames without a camera model: each one a keyframe
 ROT_SIGMA = 2e-4  # rad per odometry step
 TRANS_SIGMA = 5e-5  # m per odometry step
 
@@ -83,11 +85,11 @@ def test_a_frame_the_keyframe_no_longer_tracks_is_tracked_against_the_frame_befo
     full as before."""
     poses = [make_pose(Rotation.from_euler("y", 4 * i, degrees=True).as_matrix(), [0, 0, 0]) for i in range(12)]
     registrar = TrackingMockRegistrar(poses, rng, track_max_deg)
-    cfg = config_from_dict({"keyframes": {"track_from_motion": True, "min_view_change": 0.0, "min_rotation_deg": 30.0},
-                            "loop_closure": {"enabled": False}})
+    # half the image side of view change: a turn of about 25 degrees, beyond what either tracks
+    cfg = config_from_dict({"keyframes": {"track_from_motion": True, "min_view_change": 0.5}, "loop_closure": {"enabled": False}})
     manager = KeyframeManager(registrar, cfg)
     for i in range(12):
-        manager.process(Frame(id=i, timestamp=i / 30.0, points=np.zeros((1, 3)), keypoints_uv=np.zeros((0, 2)), descriptors=np.zeros((0, 32), np.float32)))
+        manager.process(replace(_camera_frame(i), timestamp=i / 30.0, keypoints_uv=np.zeros((0, 2)), descriptors=np.zeros((0, 32), np.float32)))
     result = manager.finish()
     # each frame after the first counted once: tracked, or handed to the full registration
     assert result.tracking["tracked_frames"] + sum(result.tracking["fallbacks"].values()) == 11, result.tracking
@@ -114,7 +116,7 @@ def make_frames(n: int, rng, place_of=lambda i: i % VIEWS) -> list[Frame]:
 def test_turntable_loops_all_found_and_drift_removed(rng):
     poses = turntable_poses()
     registrar = MockRegistrar(poses, rng)
-    manager = KeyframeManager(registrar, Config())
+    manager = KeyframeManager(registrar, config_from_dict(EVERY_FRAME))
     frames = make_frames(len(poses), rng)
     for frame in frames:
         manager.process(frame)
@@ -136,7 +138,7 @@ def test_look_alike_places_do_not_become_loops(rng):
     poses = turntable_poses(turns=2)
     registrar = MockRegistrar(poses, rng)
     frames = make_frames(len(poses), rng, place_of=lambda i: 0 if i in (0, 6) else i % VIEWS)
-    manager = KeyframeManager(registrar, Config())
+    manager = KeyframeManager(registrar, config_from_dict(EVERY_FRAME))
     for f in frames:
         manager.process(f)
     result = manager.finish()
@@ -149,7 +151,7 @@ def test_chain_break_reports_disconnected_parts(rng):
     poses = turntable_poses(turns=1)
     # the pair 5-6 and the fallback 4-6 both fail: a break at frame 6, no revisit to rejoin
     registrar = MockRegistrar(poses, rng, broken=[(5, 6), (4, 6)])
-    cfg = config_from_dict({"loop_closure": {"enabled": False}})
+    cfg = config_from_dict({**EVERY_FRAME, "loop_closure": {"enabled": False}})
     manager = KeyframeManager(registrar, cfg)
     for f in make_frames(len(poses), rng):
         manager.process(f)
@@ -161,12 +163,14 @@ def test_chain_break_reports_disconnected_parts(rng):
 
 
 def test_keyframe_thresholds_skip_small_motion(rng):
-    poses = [make_pose(np.eye(3), [0.001 * i, 0, 0]) for i in range(10)]
+    # 1 cm a frame sideways at 2 m, f 500 px: 2.5 px of the 480 px side a frame, 0.018 of it
+    # after 3.5 frames
+    poses = [make_pose(np.eye(3), [0.01 * i, 0, 0]) for i in range(10)]
     registrar = MockRegistrar(poses, rng)
-    cfg = config_from_dict({"keyframes": {"min_translation_m": 0.0035}, "loop_closure": {"enabled": False}})
+    cfg = config_from_dict({"keyframes": {"min_view_change": 0.018}, "loop_closure": {"enabled": False}})
     manager = KeyframeManager(registrar, cfg)
-    for f in make_frames(10, rng):
-        manager.process(f)
+    for i in range(10):
+        manager.process(_camera_frame(i))
     result = manager.finish()
     assert result.keyframe_ids == [0, 4, 8]
     assert len(result.poses_world_sensor) == 10
@@ -181,7 +185,7 @@ def test_frame_store_bounded_and_round_trip(tmp_path, rng):
     frames = [
         Frame(id=i, timestamp=i * 0.1, points=xyz[~np.isnan(xyz[..., 0])], colors=np.full((19, 3), 0.5), xyz_map=xyz,
               texture=np.full((4, 5), 7, np.uint8), keypoints_uv=np.ones((3, 2)), descriptors=np.ones((3, 64), np.float32),
-              metadata={"K": np.eye(3)})
+              camera=CameraModel(np.eye(3), 5, 4), metadata={"K": np.eye(3)})
         for i in range(5)
     ]
     for f in frames:
@@ -199,6 +203,7 @@ def test_frame_store_bounded_and_round_trip(tmp_path, rng):
     assert store.loads == loads + 1
     np.testing.assert_allclose(back.xyz_map, xyz, atol=1e-6, equal_nan=True)
     assert back.metadata["K"] == np.eye(3).tolist()
+    assert np.array_equal(back.camera.K, np.eye(3)) and (back.camera.width_px, back.camera.height_px) == (5, 4)
     assert np.array_equal(back.texture, texture0)
     (tmp_path / "broken.npz").write_bytes(b"not a zip")
     from fpp_graph.errors import InputDataError
@@ -226,7 +231,7 @@ def test_chain_break_mid_sequence_is_rejoined_by_appearance_only(rng):
     # the same angle joins the parts again.
     poses = turntable_poses(turns=3)
     registrar = MockRegistrar(poses, rng, broken=[(19, 20), (18, 20)])
-    manager = KeyframeManager(registrar, Config())
+    manager = KeyframeManager(registrar, config_from_dict(EVERY_FRAME))
     for f in make_frames(len(poses), rng):
         manager.process(f)
     result = manager.finish()
@@ -308,9 +313,9 @@ def test_loops_go_to_isam2_and_the_batch_solve_runs_once_at_finish(rng, monkeypa
     original = PoseGraph.optimize
     monkeypatch.setattr(PoseGraph, "optimize", lambda self, cfg=None: calls.append(self.num_poses) or original(self, cfg))
     poses = turntable_poses(turns=2)
-    manager = KeyframeManager(MockRegistrar(poses, rng), Config())
+    manager = KeyframeManager(MockRegistrar(poses, rng), config_from_dict(EVERY_FRAME))
     frames = make_frames(len(poses), rng)
-    lag = manager.config.keyframes.verify_lag
+    lag = VERIFY_LAG_KEYFRAMES
     for f in frames[:VIEWS + 1 + lag]:
         manager.process(f)
     # keyframe 13 revisits keyframe 0 (applied verify_lag keyframes later): the running estimate
@@ -345,7 +350,7 @@ class WrongLoopRegistrar(MockRegistrar):
 def test_a_loop_failing_the_innovation_test_is_held_out_but_reaches_the_final_solve(rng, caplog):
     poses = turntable_poses(turns=3)
     wrong = (2 * VIEWS + 4, VIEWS + 4)
-    manager = KeyframeManager(WrongLoopRegistrar(poses, rng, wrong), Config())
+    manager = KeyframeManager(WrongLoopRegistrar(poses, rng, wrong), config_from_dict(EVERY_FRAME))
     with caplog.at_level("WARNING", logger="fpp_graph.slam.keyframes"):
         for f in make_frames(len(poses), rng):
             manager.process(f)
@@ -365,23 +370,6 @@ def test_a_loop_failing_the_innovation_test_is_held_out_but_reaches_the_final_so
     assert max(errs) < 10 * TRANS_SIGMA * math.sqrt(VIEWS)
 
 
-def test_periodic_batch_solve_every_k_keyframes(rng, monkeypatch):
-    from fpp_graph.backend.pose_graph import PoseGraph
-
-    calls = []
-    original = PoseGraph.optimize
-    monkeypatch.setattr(PoseGraph, "optimize", lambda self, cfg=None: calls.append(self.num_poses) or original(self, cfg))
-    poses = turntable_poses(turns=2)
-    manager = KeyframeManager(MockRegistrar(poses, rng), config_from_dict({"keyframes": {"batch_every": 10}}))
-    for f in make_frames(len(poses), rng):
-        manager.process(f)
-    assert calls == [10, 20] and manager.batch_solves == 2
-    result = manager.finish()
-    assert calls == [10, 20, len(poses)]
-    errs = [pose_error(poses[0] @ result.poses_world_sensor[i], poses[i])[1] for i in range(len(poses))]
-    assert max(errs) < 10 * TRANS_SIGMA * math.sqrt(VIEWS)
-
-
 def test_median_depth_is_computed_once_per_frame(monkeypatch):
     import gc
 
@@ -390,7 +378,7 @@ def test_median_depth_is_computed_once_per_frame(monkeypatch):
     def frame_at(frame_id: int, depths_m: np.ndarray) -> Frame:
         camera = _camera_frame(frame_id)
         points = np.column_stack([np.zeros(len(depths_m)), np.zeros(len(depths_m)), depths_m])
-        return Frame(id=frame_id, timestamp=-123.25, points=points, xyz_map=camera.xyz_map, metadata=camera.metadata)
+        return Frame(id=frame_id, timestamp=-123.25, points=points, xyz_map=camera.xyz_map, camera=camera.camera)
 
     medians = []
     real_median = np.median
@@ -419,20 +407,28 @@ def test_slow_camera_makes_a_keyframe_every_few_frames(rng):
     result = manager.finish()
     assert result.keyframe_ids == [0, 10, 20]
     assert len(result.poses_world_sensor) == 30
-    # 0 turns the criterion off: every frame is a keyframe, as for frames without a camera model
+    # 0 turns the criterion off: every frame is a keyframe
     manager = KeyframeManager(MockRegistrar(poses, rng), config_from_dict({"keyframes": {"min_view_change": 0.0}, "loop_closure": {"enabled": False}}))
     for i in range(30):
         manager.process(_camera_frame(i))
     assert len(manager.finish().keyframe_ids) == 30
 
 
-def test_loop_window_proposes_a_keyframe_only_after_the_camera_left_it():
+@pytest.fixture()
+def adjacent_keyframes_are_candidates(monkeypatch):
+    """Keyframes one apart may be loop candidates (the window of the view change alone)."""
+    from fpp_graph.slam import loop_closure
+
+    monkeypatch.setattr(loop_closure, "MIN_KEYFRAME_SEPARATION", 1)
+
+
+def test_loop_window_proposes_a_keyframe_only_after_the_camera_left_it(adjacent_keyframes_are_candidates, monkeypatch):
     """A camera slides sideways 2.4 m along a wall 2 m away and back: keyframes it never left are
     not loop candidates (odometry links them), the start is one on the way back."""
     from fpp_graph.config import LoopClosureConfig
     from fpp_graph.slam.loop_closure import ProximityAppearanceLoopDetector
 
-    detector = ProximityAppearanceLoopDetector(LoopClosureConfig(proximity_radius_m=0.3, min_frame_separation=1, appearance_top_k=0))
+    detector = ProximityAppearanceLoopDetector(LoopClosureConfig(proximity_radius_m=0.3, appearance_top_k=0))
     xs = [0.0, 0.1, 0.2, 0.4, 1.0, 2.0, 2.4, 1.5, 0.6, 0.2, 0.1]
     poses: dict[int, np.ndarray] = {}
     proposed = {}
@@ -450,20 +446,25 @@ def test_loop_window_proposes_a_keyframe_only_after_the_camera_left_it():
     assert all(not proposed[i] for i in range(4, 8))  # nothing near had been left on the way
     assert proposed[8] == {3}  # x = 0.6 is back within 0.3 m of keyframe 3, which was left
     # with the window off, the near neighbours are proposed at once
-    off = ProximityAppearanceLoopDetector(LoopClosureConfig(proximity_radius_m=0.3, min_frame_separation=1, appearance_top_k=0, revisit_view_change=0))
+    from fpp_graph.slam import loop_closure
+
+    monkeypatch.setattr(loop_closure, "REVISIT_VIEW_CHANGE", 0.0)
+    off = ProximityAppearanceLoopDetector(LoopClosureConfig(proximity_radius_m=0.3, appearance_top_k=0))
     off.add(_camera_frame(0))
     assert {c.match_id for c in off.candidates(_camera_frame(1), {0: poses[0], 1: poses[1]})} == {0}
 
 
-def test_proximity_candidates_come_best_overlap_first():
+def test_proximity_candidates_come_best_overlap_first(adjacent_keyframes_are_candidates, monkeypatch):
     """A camera turning on the spot (TUM fr1_rpy-like): every keyframe is within the radius, so
     the nearest positions say nothing; the keyframes looking where the query looks come first,
     and with fewer slots than candidates the ones looking away are the ones left out."""
     from fpp_graph.slam.loop_closure import ProximityAppearanceLoopDetector
 
     yaw_deg = [0, 15, 30, 45, 60, 75, 20, 5]
-    detector = ProximityAppearanceLoopDetector(LoopClosureConfig(
-        proximity_radius_m=0.3, min_frame_separation=1, appearance_top_k=0, revisit_view_change=0, max_candidates_per_frame=3))
+    from fpp_graph.slam import loop_closure
+
+    monkeypatch.setattr(loop_closure, "REVISIT_VIEW_CHANGE", 0.0)
+    detector = ProximityAppearanceLoopDetector(LoopClosureConfig(proximity_radius_m=0.3, appearance_top_k=0, max_candidates_per_frame=3))
     # the keyframes looking away are the nearest by position (1 mm of jitter against 5 mm)
     offset_m = {0: 0.005, 1: 0.005, 2: 0.001, 3: 0.001, 4: 0.001, 5: 0.001, 6: 0.0}
     poses = {i: make_pose(Rotation.from_euler("y", a, degrees=True).as_matrix(), [offset_m.get(i, 0.0), 0, 0]) for i, a in enumerate(yaw_deg)}
@@ -477,31 +478,31 @@ def test_proximity_candidates_come_best_overlap_first():
     assert scores == sorted(scores, reverse=True) and 0 < scores[-1] < scores[0] < 1
 
 
-def test_loop_window_ignores_keyframes_of_another_part():
+def test_loop_window_ignores_keyframes_of_another_part(adjacent_keyframes_are_candidates):
     """After a chain break the older part is not linked by odometry: outside the window."""
     from fpp_graph.config import LoopClosureConfig
     from fpp_graph.slam.loop_closure import ProximityAppearanceLoopDetector
 
-    detector = ProximityAppearanceLoopDetector(LoopClosureConfig(min_frame_separation=1))
+    detector = ProximityAppearanceLoopDetector(LoopClosureConfig())
     detector.add(_camera_frame(0))
     detector.add(_camera_frame(1))
     # the query's part holds keyframe 1 only: keyframe 0 leaves the window, keyframe 1 stays in it
     assert detector.local_window(2, {1: np.eye(4), 2: np.eye(4)}) == {1}
 
 
-def test_loop_window_lets_go_of_a_keyframe_seen_from_90_degrees_around():
+def test_loop_window_lets_go_of_a_keyframe_seen_from_90_degrees_around(adjacent_keyframes_are_candidates):
     """An orbit keeps the object's centre in the image (little pixel flow); its far side is not in view."""
     from fpp_graph.config import LoopClosureConfig
     from fpp_graph.slam.loop_closure import ProximityAppearanceLoopDetector
 
-    detector = ProximityAppearanceLoopDetector(LoopClosureConfig(min_frame_separation=1))
+    detector = ProximityAppearanceLoopDetector(LoopClosureConfig())
     poses = turntable_poses(turns=1)  # 13 views around an object 0.5 m away
     detector.add(_camera_frame(0, depth_m=0.5))
     assert detector.local_window(1, {0: poses[0], 1: poses[1]}) == {0}  # 28 deg around: still in view
     assert detector.local_window(4, {0: poses[0], 4: poses[4]}) == set()  # 111 deg around: left
 
 
-def test_a_30_hz_camera_queries_for_loops_once_per_quarter_view_an_fpp_capture_every_keyframe(rng):
+def test_a_30_hz_camera_queries_for_loops_once_per_quarter_view_an_fpp_capture_every_keyframe(rng, adjacent_keyframes_are_candidates, monkeypatch):
     """1 cm steps sideways at 2 m (f 500 px, 480 px high): a keyframe every 10 frames (5 % of the
     view), a loop query every 5th keyframe (25 %); out 2.5 m (past the whole view) and back, the
     revisit is still queried and closed. Steps of a third of the view (FPP captures) query at every keyframe."""
@@ -510,7 +511,7 @@ def test_a_30_hz_camera_queries_for_loops_once_per_quarter_view_an_fpp_capture_e
         def __init__(self):
             from fpp_graph.slam.loop_closure import ProximityAppearanceLoopDetector
 
-            self.inner = ProximityAppearanceLoopDetector(LoopClosureConfig(min_frame_separation=1, appearance_top_k=0))
+            self.inner = ProximityAppearanceLoopDetector(LoopClosureConfig(appearance_top_k=0))
             self.queries, self.added = [], []
 
         def add(self, frame):
@@ -545,8 +546,11 @@ def test_a_30_hz_camera_queries_for_loops_once_per_quarter_view_an_fpp_capture_e
         manager.process(_camera_frame(i))
     assert manager.finish().keyframe_ids == list(range(6)) and detector.queries == list(range(1, 6))
     # 0: every keyframe queries
+    from fpp_graph.slam import keyframes as keyframes_module
+
+    monkeypatch.setattr(keyframes_module, "QUERY_VIEW_CHANGE", 0.0)
     detector = CountingDetector()
-    manager = KeyframeManager(MockRegistrar(poses[:100], rng), config_from_dict({"loop_closure": {"query_view_change": 0}}), loop_detector=detector)
+    manager = KeyframeManager(MockRegistrar(poses[:100], rng), config_from_dict({}), loop_detector=detector)
     for i in range(100):
         manager.process(_camera_frame(i))
     assert detector.queries == manager.finish().keyframe_ids[1:]

@@ -14,7 +14,7 @@ from fpp_graph.slam.motion import (
     readout_motion,
     with_readout_motion,
 )
-from fpp_graph.types import Constraint, Frame
+from fpp_graph.types import CameraModel, Constraint, Frame
 
 STEP = se3_exp(np.array([0.01, -0.02, 0.015, 0.004, 0.001, -0.003]))  # ~1.4 deg and 5 mm per frame
 
@@ -84,7 +84,8 @@ def test_the_twist_per_second_is_the_last_step_over_its_time():
 
 
 def _frame(readout_s=None) -> Frame:
-    return Frame(id=0, timestamp=0.0, points=np.zeros((1, 3)), metadata={} if readout_s is None else {"readout_s": readout_s})
+    camera = None if readout_s is None else CameraModel(np.eye(3), 640, 480, readout_s=readout_s)
+    return Frame(id=0, timestamp=0.0, points=np.zeros((1, 3)), camera=camera)
 
 
 def test_readout_motion_is_the_twist_over_the_frames_readout():
@@ -94,10 +95,10 @@ def test_readout_motion_is_the_twist_over_the_frames_readout():
     assert readout_motion(_frame(0.0), twist) is None
     assert readout_motion(_frame(0.03), None) is None  # motion unknown
     assert readout_motion(_frame(0.03), np.full(6, np.nan)) is None
-    # a source that writes something else than seconds is told so, naming the frame and the value
+    # a source that gives something else than seconds is told so when it makes the camera model
     for bad in ("fast", -0.01, float("inf"), [0.03]):
-        with pytest.raises(InputDataError, match=r"frame 0: metadata\['readout_s'\] must be .* seconds"):
-            readout_motion(_frame(bad), twist)
+        with pytest.raises(InputDataError, match=r"camera model: readout_s must be .* seconds"):
+            _frame(bad)
 
 
 def test_a_negative_readout_in_the_config_is_refused():

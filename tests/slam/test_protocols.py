@@ -23,6 +23,7 @@ from fpp_graph.slam.pipeline import Pipeline
 from fpp_graph.slam.sources import FrameSource, check_frame_source
 from fpp_graph.trajectory import Trajectory
 from fpp_graph.types import (
+    CameraModel,
     Constraint,
     ConstraintKind,
     Frame,
@@ -93,10 +94,13 @@ class CentroidFuser:
 
 
 def object_frame(frame_id: int, T_world_sensor: np.ndarray, rng: np.random.Generator) -> Frame:
-    """A 10 cm cube of points at the origin, seen from ``T_world_sensor``."""
+    """A 10 cm cube of points at the origin, seen from ``T_world_sensor`` by a 640 x 480 camera."""
     points_world = rng.uniform(-0.05, 0.05, size=(300, 3))
     return Frame(id=frame_id, timestamp=float(frame_id), points=transform_points(invert(T_world_sensor), points_world),
-                 colors=np.full((300, 3), 0.5))
+                 colors=np.full((300, 3), 0.5), camera=FOREIGN_CAMERA)
+
+
+FOREIGN_CAMERA = CameraModel(np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]]), 640, 480)
 
 
 class TurntableSource:
@@ -210,11 +214,11 @@ class DescribingRegistrar:
 def test_a_describing_registrar_describes_each_keyframe_once_and_nothing_else(tmp_path):
     from fpp_graph.slam.frame_store import FrameStore, load_frame
 
-    truth = [make_pose(np.eye(3), [0.01 * i, 0.0, 0.0]) for i in range(7)]  # 1 cm steps
+    # 1 cm steps sideways 0.5 m from the cube: 10 px of 480 a step, a keyframe each third step
+    truth = [make_pose(np.eye(3), [0.01 * i, 0.0, -0.5]) for i in range(7)]
     registrar = DescribingRegistrar(truth)
     assert isinstance(registrar, FrameDescriber)
-    config = config_from_dict({"keyframes": {"min_view_change": 0, "min_translation_m": 0.025, "min_rotation_deg": 0, "max_overlap": 1},
-                               "loop_closure": {"enabled": False}})
+    config = config_from_dict({"keyframes": {"min_view_change": 0.05}, "loop_closure": {"enabled": False}})
     store = FrameStore(tmp_path)
     manager = KeyframeManager(registrar, config, store=store)
     rng = np.random.default_rng(2)

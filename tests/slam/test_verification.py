@@ -11,9 +11,10 @@ from concurrent.futures import Future, ThreadPoolExecutor
 import numpy as np
 import pytest
 from conftest import shared_data_path
-from test_keyframes import VIEWS, MockRegistrar, make_frames, turntable_poses
+from test_keyframes import EVERY_FRAME, VIEWS, MockRegistrar, make_frames, turntable_poses
 
 from fpp_graph.config import config_from_dict, load_config
+from fpp_graph.slam import keyframes
 from fpp_graph.slam.frame_store import FrameStore
 from fpp_graph.slam.keyframes import KeyframeManager
 from fpp_graph.slam.pipeline import Pipeline
@@ -57,14 +58,16 @@ def _run(verifier_factory, lag: int):
     rng = np.random.default_rng(3)
     poses = turntable_poses(turns=3)
     frames = make_frames(len(poses), rng)
-    config = config_from_dict({"keyframes": {"verify_lag": lag}})
+    config = config_from_dict(EVERY_FRAME)
     registrar = PairSeededRegistrar(poses, rng)
     store = FrameStore()
     verifier = verifier_factory(registrar, store) if verifier_factory else None
-    manager = KeyframeManager(registrar, config, store=store, verifier=verifier)
-    for f in frames:
-        manager.process(f)
-    return manager.finish(), verifier
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(keyframes, "VERIFY_LAG_KEYFRAMES", lag)
+        manager = KeyframeManager(registrar, config, store=store, verifier=verifier)
+        for f in frames:
+            manager.process(f)
+        return manager.finish(), verifier
 
 
 def test_shuffled_completion_gives_the_inline_run():
@@ -99,7 +102,7 @@ def test_verifiers_implement_the_protocol(tmp_path):
             ExecutorVerifier(pool, FrameStore())
 
 
-def test_a_failing_registration_surfaces_when_its_loops_are_applied():
+def test_a_failing_registration_surfaces_when_its_loops_are_applied(monkeypatch):
     class Exploding(PairSeededRegistrar):
         def register(self, target, source, T_guess=None, kind=ConstraintKind.ODOMETRY):
             if kind is ConstraintKind.LOOP:
@@ -107,7 +110,8 @@ def test_a_failing_registration_surfaces_when_its_loops_are_applied():
             return super().register(target, source, T_guess, kind)
 
     poses = turntable_poses(turns=2)
-    manager = KeyframeManager(Exploding(poses, None), config_from_dict({"keyframes": {"verify_lag": 1}}))
+    monkeypatch.setattr(keyframes, "VERIFY_LAG_KEYFRAMES", 1)
+    manager = KeyframeManager(Exploding(poses, None), config_from_dict(EVERY_FRAME))
     with pytest.raises(RuntimeError, match="registrar crashed"):
         for f in make_frames(len(poses), np.random.default_rng(0)):
             manager.process(f)
@@ -137,7 +141,7 @@ def _results(out):
 
 
 @pytest.mark.slow
-def test_worker_processes_and_dask_give_the_in_process_run(tmp_path):
+def test_worker_processes_and_dask_give_the_in_process_run(tmp_path, monkeypatch):
     """Real 7-Scenes frames 150-169 and 190-199 (a revisit of the first view): loops verified in
     the tracking process (one worker), on the process pool, and with ``fpp-slam run --scheduler
     local`` (Dask workers that receive the source with their tasks) are the same loops, and the
@@ -151,8 +155,9 @@ def test_worker_processes_and_dask_give_the_in_process_run(tmp_path):
     # every keyframe queries: the revisit here (frames 193-199) is shorter than the default query
     # spacing (a quarter view from keyframe 190, which asked), and this test is about the loops'
     # equivalence across executors, so it wants as many as the frames give
+    monkeypatch.setattr(keyframes, "QUERY_VIEW_CHANGE", 0.0)
     config_file = tmp_path / "config.yaml"
-    config_file.write_text("loop_closure:\n  query_view_change: 0\n")
+    config_file.write_text("loop_closure:\n  enabled: true\n")
     config = load_config(config_file)
     config = config.model_copy(update={"run": config.run.model_copy(update={"workers": 1})})
     # the tracking process runs its libraries on one thread beside a worker pool; so does this
