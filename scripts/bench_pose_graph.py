@@ -36,7 +36,7 @@ from fpp_graph.backend.incremental import IncrementalPoseGraph
 from fpp_graph.backend.noise_model import isotropic_information
 from fpp_graph.backend.pose_graph import PoseGraph, sesync_objective
 from fpp_graph.config import PoseGraphConfig
-from fpp_graph.testing.synthetic_graphs import ate_rmse_m, corridor_trajectory, torus_graph
+from fpp_graph.testing.synthetic_graphs import ate_rmse_m, corridor_trajectory, torus_rings_graph
 from fpp_graph.types import Constraint
 
 PUBLISHED_F = {"sphere2500": 1.687e3, "parking-garage": 1.263e0}
@@ -78,7 +78,7 @@ def sesync_section(data: Path, repeats: int) -> None:
 
 def torus_section() -> None:
     print("== 2. Chordal initialisation vs odometry chain (synthetic torus, 20 x 20 poses, 0.1 rad odometry noise) ==")
-    sim = torus_graph(rings=20, per_ring=20, rot_sigma_rad=0.1, trans_sigma_m=0.05, rng=np.random.default_rng(0))
+    sim = torus_rings_graph(rings=20, per_ring=20, rot_sigma_rad=0.1, trans_sigma_m=0.05, rng=np.random.default_rng(0))
     cfg = dict(robust="none", max_iterations=300)
     rows = []
     for label, initial, init in (("odometry chain", None, "given"), ("chordal", None, "chordal"), ("ground truth (reference)", sim.poses_true, "given")):
@@ -161,7 +161,7 @@ def open3d_section(data: Path, max_poses: int) -> None:
             graph = read_g2o(path)
             keys = sorted(graph.poses())[:max_poses]
             graphs.append((f"{name}[:{len(keys)}] iso", graph.subgraph(keys), True))
-    torus = torus_graph(rings=20, per_ring=20, rot_sigma_rad=0.1, trans_sigma_m=0.05, rng=np.random.default_rng(0))
+    torus = torus_rings_graph(rings=20, per_ring=20, rot_sigma_rad=0.1, trans_sigma_m=0.05, rng=np.random.default_rng(0))
     graphs.append(("torus 20x20 (bad odometry)", torus.graph(), False))
     corridor = corridor_trajectory(rng=np.random.default_rng(0))
     graphs.append(("corridor 3 laps", corridor.graph(), False))

@@ -13,6 +13,7 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -237,6 +238,44 @@ def tangent_hessian(data: SESyncData, B: Array, Lambda: Array, gauge: NDArray[np
                          shape=(size, size))
 
 
+@dataclass(frozen=True)
+class _TangentCoordinates:
+    """Tangent coordinates of :func:`newton` at rank ``r``: each pose's ``P = 3 (r - 2)`` rotation
+    directions (:func:`tangent_basis`), then its ``r`` position coordinates; the anchor's are
+    the gauge, removed from every linear system."""
+
+    data: SESyncData
+    r: int
+
+    @property
+    def P(self) -> int:
+        return 3 * (self.r - 2)
+
+    @property
+    def dim(self) -> int:
+        return self.data.n * (self.P + self.r)
+
+    def gauge(self, anchor: int) -> NDArray[np.int64]:
+        n, P, r = self.data.n, self.P, self.r
+        return np.r_[anchor * P + np.arange(P), n * P + anchor * r + np.arange(r)]
+
+    def gradient(self, X: Array, B: Array) -> Array:
+        """The Riemannian gradient of ``F`` at ``X`` in these coordinates."""
+        n = self.data.n
+        G = 2.0 * half_gradient(self.data, X)
+        return np.r_[np.einsum("nac,npac->np", rotation_blocks(G, n), B).ravel(), G[:, 3 * n :].T.ravel()]
+
+    def step(self, X: Array, B: Array, free: NDArray[np.int64], lu: SymmetricFactor, g_free: Array) -> Array | None:
+        """The retracted point of the step solving ``lu`` (None if it leaves SO(3))."""
+        n, P, r = self.data.n, self.P, self.r
+        xi = np.zeros(self.dim)
+        xi[free] = -lu.solve(g_free)
+        Y_new = polar(rotation_blocks(X, n) + np.einsum("np,npac->nac", xi[: n * P].reshape(n, P), B))
+        if r == 3 and np.any(np.linalg.det(Y_new) < 0):
+            return None
+        return np.hstack([stack_blocks(Y_new), X[:, 3 * n :] + xi[n * P :].reshape(n, r).T])
+
+
 def newton(
     data: SESyncData, X: Array, anchor: int, max_iterations: int | None = None
 ) -> tuple[Array, float, float, int]:
@@ -247,33 +286,16 @@ def newton(
     minimum) and grows until the damped Hessian is positive definite (inertia of its LDL^T) and
     the step lowers ``F``. The Hessian of the pullback through the (second-order) polar
     retraction is ``2 J^T (I_r kron (M - blkdiag(Lambda, 0))) J`` (SE-Sync's Hessian formula).
-
-    Returns
-    -------
-    X : (r, 4n)
-    F : float
-    gradient_norm : float
-    iterations : int
+    Returns ``X`` (r, 4n), ``F``, the gradient norm and the iterations.
     """
     max_iterations = MAX_NEWTON_ITERATIONS if max_iterations is None else max_iterations
     n, r = data.n, X.shape[0]
-    P = 3 * (r - 2)
-    dim = n * P + n * r
-    gauge = np.r_[anchor * P + np.arange(P), n * P + anchor * r + np.arange(r)]
-    free = np.delete(np.arange(dim), gauge)  # gauge is sorted and unique
-
-    def coordinates_gradient(X: Array, B: Array) -> Array:
-        G = 2.0 * half_gradient(data, X)
-        return np.r_[np.einsum("nac,npac->np", rotation_blocks(G, n), B).ravel(), G[:, 3 * n :].T.ravel()]
+    coordinates = _TangentCoordinates(data, r)
+    gauge = coordinates.gauge(anchor)
+    free = np.delete(np.arange(coordinates.dim), gauge)  # gauge is sorted and unique
 
     def step(X: Array, B: Array, lu: SymmetricFactor, g_free: Array) -> Array | None:
-        """The retracted point of the step solving ``lu`` (None if it leaves SO(3))."""
-        xi = np.zeros(dim)
-        xi[free] = -lu.solve(g_free)
-        Y_new = polar(rotation_blocks(X, n) + np.einsum("np,npac->nac", xi[: n * P].reshape(n, P), B))
-        if r == 3 and np.any(np.linalg.det(Y_new) < 0):
-            return None
-        return np.hstack([stack_blocks(Y_new), X[:, 3 * n :] + xi[n * P :].reshape(n, r).T])
+        return coordinates.step(X, B, free, lu, g_free)
 
     F = objective(data, X)
     mu = 0.0
@@ -281,9 +303,8 @@ def newton(
     previous_gradient = math.inf
     iterations = 0
     for iterations in range(1, max_iterations + 1):  # noqa: B007
-        Y = rotation_blocks(X, n)
-        B = tangent_basis(Y)  # (n, P, r, 3)
-        g = coordinates_gradient(X, B)
+        B = tangent_basis(rotation_blocks(X, n))  # (n, P, r, 3)
+        g = coordinates.gradient(X, B)
         gradient_norm = float(np.linalg.norm(g))
         grad_scale = data.spectral_scale * math.sqrt(n) * max(1.0, float(np.abs(X[:, 3 * n :]).max()))
         log.debug("newton (r=%d) iteration %d: F %.15g, |grad| %.3g (stop at %.3g), mu %.3g",
@@ -313,7 +334,7 @@ def newton(
         # gradient contracts (the test above), even when F no longer moves visibly.
         if decrease <= 1e-15 * abs(F) and iterations > 1 and not chord:
             break
-    g = coordinates_gradient(X, tangent_basis(rotation_blocks(X, n)))
+    g = coordinates.gradient(X, tangent_basis(rotation_blocks(X, n)))
     if iterations == max_iterations:
         log.warning("newton (r=%d): %d iterations without converging (|grad| %.3g): not a critical point",
                     r, iterations, float(np.linalg.norm(g)))

@@ -494,30 +494,6 @@ class IncrementalPoseGraph:
         other._position, other._recent_loops = {}, deque()
         other._reset_isam()
 
-    @classmethod
-    def from_constraints(
-        cls, poses: Mapping[int, ArrayLike], constraints: Sequence[Constraint], config: PoseGraphConfig | None = None, **kwargs
-    ) -> IncrementalPoseGraph:
-        """A graph holding ``poses`` (initial values, the first key anchored) and ``constraints``
-        at once (one batch iSAM2 step), to grow from there.
-
-        Parameters
-        ----------
-        poses : dict[int, (4, 4)]
-            ``T_world_sensor`` per keyframe, in the order keyframes were added.
-        constraints : sequence of Constraint
-            Odometry and loops between those keyframes; they must connect them all.
-        config, **kwargs
-            As for the constructor.
-        """
-        graph = cls(config, **kwargs)
-        order = [int(k) for k in poses]
-        if not order:
-            return graph
-        graph.add_keyframe(order[0], poses[order[0]])
-        graph._restart(poses, order, constraints)
-        return graph
-
     def _restart(self, poses: Mapping[int, Array], order: Sequence[int], edges: Sequence[Constraint]) -> None:
         """Start iSAM2 afresh on ``poses`` and ``edges`` (anchor kept): one batch step."""
         import gtsam

@@ -151,70 +151,23 @@ def torus_graph(
     *,
     step_m: float = 1.0,
     loops_per_pose: float = TORUS3D_LOOPS_PER_POSE,
-    rings: int | None = None,
-    per_ring: int | None = None,
-    major_radius_m: float | None = None,
-    minor_radius_m: float | None = None,
-    rot_sigma_rad: float | None = None,
-    trans_sigma_m: float | None = None,
 ) -> SyntheticGraph:
-    # 91 lines: a 14-line signature and a 50-line docstring over a 25-line body (steps: _torus_poses, _torus_loop_candidates)
     """A robot winding around a torus, like SE-Sync's torus3D (5000 poses, 9048 edges).
 
     The robot goes round the tube ``P = round(sqrt(num_poses / 2))`` poses per winding while
     advancing slowly round the torus's axis, one full turn over all poses (so the last winding
-    comes back next to the first). The tube radius makes the step ``step_m`` and the torus
-    radius is twice it, which puts neighbouring windings about one step apart (0.5 to 1.5 steps
-    from the inner to the outer equator). Each pose looks along its direction of travel (x)
-    with z along the surface's outward normal, so an odometry step turns about 2 pi / P rad
-    (0.126 rad for 5000 poses, sphere2500's median is 0.128).
+    comes back next to the first); neighbouring windings lie about one step ``step_m`` apart
+    (:func:`_torus_poses`). Odometry links consecutive poses. Loop candidates join each pose to
+    its nearest pose at least half a winding earlier, when closer than two steps;
+    ``round(loops_per_pose * num_poses)`` of them are kept, drawn at random. With the defaults:
+    5000 poses, 4999 odometry edges, 4049 loops, as torus3D.
 
-    Odometry links consecutive poses. Loop candidates join each pose to its nearest pose at
-    least half a winding earlier, when closer than two steps (one per pose except the first
-    winding); ``round(loops_per_pose * num_poses)`` of them are kept, drawn at random (all of
-    them if there are fewer). With the defaults: 5000 poses, 4999 odometry edges, 4049 loops,
-    9048 edges, as torus3D.
-
-    Noise defaults to sphere2500's regime as stated by its information matrices (see
-    ``SPHERE2500_*``): kappa 99 (rotation sigma 0.0711 rad per axis) and translation sigma
-    0.0696 of the step length (tau 10 at its 4.54 m median step), i.e. 0.0696 m per axis for
-    the default 1 m step. (sphere2500's own residuals at its optimum are about 4x smaller than
-    its information says: its measurements are less noisy than stated; here they are exactly
-    as stated.) Measurements are ``T_target_source_true @ Exp(n)``, ``n ~ N(0, diag(sigma^2))``
-    in ``[rot, trans]`` with information ``diag(1 / sigma^2)``, so the whitened residual at the
-    truth is chi-square with 6 degrees of freedom.
-
-    Parameters
-    ----------
-    num_poses : int
-        At least 8.
-    rotation_sigma_rad : float
-        Rotation noise per axis (rad).
-    translation_sigma_m : float, optional
-        Translation noise per axis (m); default ``0.0696 * step_m``.
-    rng : numpy Generator, optional
-        Default ``np.random.default_rng(0)``.
-    step_m : float
-        Length of an odometry step (m, approximately: the speed varies slightly with the
-        distance to the axis).
-    loops_per_pose : float
-        Loop edges kept per pose.
-    rings, per_ring, major_radius_m, minor_radius_m, rot_sigma_rad, trans_sigma_m
-        The earlier ring-by-ring torus: when any of these is given the call is
-        :func:`torus_rings_graph` with these arguments (and ``rng``); kept for old callers.
-
-    Returns
-    -------
-    SyntheticGraph
-        ``graph()`` is the :class:`PoseGraph` (initial values = odometry composed from the first
-        true pose, which is fixed), ``poses_true`` the truth, ``write_g2o(path)`` the g2o file.
+    Noise defaults to sphere2500's regime as stated by its information matrices (``SPHERE2500_*``):
+    rotation sigma 0.0711 rad per axis, translation sigma 0.0696 of the step length
+    (``translation_sigma_m`` overrides it). ``rng`` defaults to ``np.random.default_rng(0)``.
+    ``graph()`` of the result is the :class:`PoseGraph` (initial values = odometry composed
+    from the first true pose, which is fixed).
     """
-    legacy = {
-        "rings": rings, "per_ring": per_ring, "major_radius_m": major_radius_m,
-        "minor_radius_m": minor_radius_m, "rot_sigma_rad": rot_sigma_rad, "trans_sigma_m": trans_sigma_m,
-    }
-    if any(v is not None for v in legacy.values()):
-        return torus_rings_graph(**{k: v for k, v in legacy.items() if v is not None}, rng=rng)
     if num_poses < 8:
         raise GraphError(f"torus_graph: num_poses must be at least 8, got {num_poses}; ask for a larger torus")
     rng = rng or np.random.default_rng(0)
@@ -238,7 +191,12 @@ def torus_graph(
 
 def _torus_poses(num_poses: int, step_m: float) -> tuple[dict[int, Array], Array, int]:
     """True poses of the torus (one winding round the tube every ``per_winding`` steps, once
-    round the axis in all): poses, their centres (n, 3) and ``per_winding``."""
+    round the axis in all): poses, their centres (n, 3) and ``per_winding``.
+
+    The tube radius makes the step ``step_m`` and the torus radius is twice it, which puts
+    neighbouring windings 0.5 to 1.5 steps apart from the inner to the outer equator. Each pose
+    looks along its direction of travel (x) with z along the surface's outward normal, so an
+    odometry step turns about ``2 pi / per_winding`` rad."""
     per_winding = max(4, round(math.sqrt(num_poses / 2)))
     minor = step_m * per_winding / (2 * math.pi)
     major = 2.0 * minor

@@ -18,7 +18,7 @@ from fpp_graph.testing.synthetic_graphs import (
     ate_rmse_m,
     circuit_laps,
     corridor_trajectory,
-    torus_graph,
+    torus_rings_graph,
 )
 from fpp_graph.types import Constraint, ConstraintKind
 
@@ -204,7 +204,7 @@ def test_single_pose_without_edges_is_returned_unchanged(rng):
 
 # -- initialisation -------------------------------------------------------------------------------
 def test_chordal_initialisation_escapes_the_odometry_local_minimum():
-    sim = torus_graph(rings=20, per_ring=20, rot_sigma_rad=0.1, trans_sigma_m=0.05, rng=np.random.default_rng(0))
+    sim = torus_rings_graph(rings=20, per_ring=20, rot_sigma_rad=0.1, trans_sigma_m=0.05, rng=np.random.default_rng(0))
     cfg = dict(robust="none", max_iterations=300)
     from_odometry = sim.graph().optimize(PoseGraphConfig(initialization="given", **cfg))
     chordal = sim.graph().optimize(PoseGraphConfig(initialization="chordal", **cfg))

@@ -19,6 +19,7 @@ from fpp_graph.testing.synthetic_graphs import (
     corridor_trajectory,
     torus_graph,
     torus_graph_high_rotation_noise,
+    torus_rings_graph,
 )
 from fpp_graph.types import ConstraintKind
 
@@ -42,7 +43,7 @@ def _pose_gap(a: dict, b: dict) -> float:
 
 @pytest.mark.parametrize("seed", [0, 1])
 def test_clean_graph_is_returned_as_least_squares_gives_it(seed):
-    sim = torus_graph(rings=12, per_ring=15, rot_sigma_rad=0.02, trans_sigma_m=0.03, rng=np.random.default_rng(seed))
+    sim = torus_rings_graph(rings=12, per_ring=15, rot_sigma_rad=0.02, trans_sigma_m=0.03, rng=np.random.default_rng(seed))
     reference = sim.graph().optimize(LEAST_SQUARES)
     robust = sim.graph().optimize(PoseGraphConfig())
     assert robust.rejected_loops == [] and robust.removed_loops == []

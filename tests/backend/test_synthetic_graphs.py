@@ -14,6 +14,7 @@ from fpp_graph.testing.synthetic_graphs import (
     add_false_loops_to_graph,
     torus_graph,
     torus_graph_high_rotation_noise,
+    torus_rings_graph,
     typical_loop_information,
 )
 from fpp_graph.types import ConstraintKind
@@ -88,8 +89,8 @@ def test_torus_graph_starts_at_odometry_and_writes_g2o(tmp_path):
     assert sum(e.kind is ConstraintKind.LOOP for e in back.edges()) == sum(e.kind is ConstraintKind.LOOP for e in graph.edges())
 
 
-def test_legacy_ring_torus_still_answers():
-    sim = torus_graph(rings=6, per_ring=5, rot_sigma_rad=0.1, trans_sigma_m=0.05, rng=np.random.default_rng(0))
+def test_ring_torus_loops_every_pose_to_the_previous_ring():
+    sim = torus_rings_graph(rings=6, per_ring=5, rot_sigma_rad=0.1, trans_sigma_m=0.05, rng=np.random.default_rng(0))
     assert len(sim.poses_true) == 30
     assert sum(e[4] is ConstraintKind.LOOP for e in sim.edges) == 30
 
