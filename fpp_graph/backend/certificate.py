@@ -53,12 +53,8 @@ Tolerance. ``eta`` is relative to the problem, not absolute: ``eta = max(relativ
 F / (3n), numerical_floor * s)`` where ``s`` is the largest diagonal entry of the rotation block of
 ``M`` (the scale of ``S``'s spectrum). The first term makes a certificate mean "within
 ``relative_suboptimality`` of the optimum" (default 1e-6 relative in ``F``); the second keeps
-``eta`` above the rounding level of the factorisation (default 1e-11 s). An absolute ``eta = 1e-3``
-would be meaningless on parking-garage: ``3n eta = 5.0`` exceeds its optimum ``F* = 1.263``; the
-shared notes also found it too loose to reject spurious minima of the high-noise sphere and report
-a benchmark spectral gap of ~3e-7. Measured here (smallest eigenvalue of ``S`` after the 3 gauge
-ones, at the certified optima): sphere2500 0.394, parking-garage 4.59e-4, smallGrid3D 4.17; the
-default ``eta`` is 2.2e-7, 4.2e-9 and 2.7e-6 on them.
+``eta`` above the rounding level of the factorisation (default 1e-11 s). An absolute ``eta``
+would be meaningless across graphs: at 1e-3, ``3n eta`` exceeds parking-garage's optimum.
 """
 
 from __future__ import annotations
@@ -162,12 +158,6 @@ class Certificate:
     numerical_floor: float
     gradient_norm: float
     relaxation_objective: float = math.nan
-
-
-def data_from_graph(graph: PoseGraph, poses: Mapping[int, ArrayLike] | None = None) -> tuple[SESyncData, Array, int]:
-    """SE-Sync data of ``graph`` and the stacked poses to start from (:func:`data_from_edges`)."""
-    graph_poses = graph.poses()
-    return data_from_edges(sorted(graph_poses), graph.edges(), graph.fixed_poses(), graph_poses if poses is None else poses)
 
 
 def data_from_edges(
@@ -513,6 +503,8 @@ def certify_graph(
     """
     if max_rank < 4:
         raise GraphError(f"certify: max_rank must be at least 4 (one lift above SO(3)), got {max_rank}")
-    data, T, anchor = data_from_graph(graph, poses)
+    graph_poses = graph.poses()
+    data, T, anchor = data_from_edges(sorted(graph_poses), graph.edges(), graph.fixed_poses(),
+                                      graph_poses if poses is None else poses)
     return certify_arrays(data, T, anchor, escape=escape, max_rank=max_rank,
                           relative_suboptimality=relative_suboptimality, numerical_floor=numerical_floor)

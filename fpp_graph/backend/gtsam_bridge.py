@@ -113,19 +113,6 @@ def poses_from(values: gtsam.Values, keys: Iterable[int] | None = None) -> dict[
     return {int(k): poses[int(k)] for k in keys}
 
 
-def lm_params(max_iterations: int, relative_error_tol: float) -> gtsam.LevenbergMarquardtParams:
-    import gtsam
-
-    params = gtsam.LevenbergMarquardtParams()
-    params.setMaxIterations(int(max_iterations))
-    params.setRelativeErrorTol(float(relative_error_tol))
-    # Stop on the relative decrease only: the cost of a well-fitting graph can be tiny in
-    # absolute terms (parking-garage's optimum is 1.26) and an absolute threshold stops early.
-    params.setAbsoluteErrorTol(0.0)
-    params.setErrorTol(0.0)
-    return params
-
-
 def short_message(exc: BaseException) -> str:
     """GTSAM's exception texts run over many lines; the first sentence says what happened."""
     text = " ".join(str(exc).split())
@@ -142,7 +129,14 @@ def solver_error(exc: Exception) -> GraphError:
 def run_lm(graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values, max_iterations: int, relative_error_tol: float) -> tuple[gtsam.Values, int]:
     import gtsam
 
-    optimizer = gtsam.LevenbergMarquardtOptimizer(graph, initial, lm_params(max_iterations, relative_error_tol))
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(int(max_iterations))
+    params.setRelativeErrorTol(float(relative_error_tol))
+    # Stop on the relative decrease only: the cost of a well-fitting graph can be tiny in
+    # absolute terms (parking-garage's optimum is 1.26) and an absolute threshold stops early.
+    params.setAbsoluteErrorTol(0.0)
+    params.setErrorTol(0.0)
+    optimizer = gtsam.LevenbergMarquardtOptimizer(graph, initial, params)
     values = optimizer.optimize()
     return values, int(optimizer.iterations())
 

@@ -41,11 +41,10 @@ def screen_loops(problem: GraphProblem, solution: Solution, loop_false_alarm: fl
     """The evidence against each active loop at the solution (None for a graph without loops).
 
     The information's scale is measured (odometry cycles) only when some loop exceeds the
-    bound at unit scale: it can only widen the bound, so otherwise nothing is flagged.
-    ``measure_scale=False`` skips that measurement (a first look at approximate values). Where
-    the first-order cycle test does not hold (:data:`CYCLE_LINEAR_STEP_RAD`) its scale is not a
-    measurement either; the scale is then the a-posteriori variance factor of the least-squares
-    residuals (``2 cost / redundancy``), never below 1.
+    bound at unit scale, since it can only widen the bound; ``measure_scale=False`` skips it (a
+    first look at approximate values). Where the first-order cycle test does not hold
+    (:data:`CYCLE_LINEAR_STEP_RAD`) the scale is the a-posteriori variance factor of the
+    least-squares residuals (``2 cost / redundancy``), never below 1.
     """
     if not np.any(problem.is_loop):
         return None
@@ -124,14 +123,9 @@ def cycle_step_rad(problem: GraphProblem, cycles: CycleCheck) -> float:
 
 
 def refuted_by_cycles(problem: GraphProblem, cycles: CycleCheck, num_loops: int, loop_false_alarm: float) -> NDArray[np.int64]:
-    """Loops refuted by their odometry cycle: evidence against them that no solution enters.
-
-    A loop is refuted when its cycle's chi-square exceeds the family-wise bound at the scale
-    the cycles show (:meth:`~fpp_graph.backend.outliers.CycleCheck.measured_scale`, below 1 when
-    the information is conservative). The test propagates the odometry's covariance to first
-    order; it is evidence only where an odometry step's rotation error at that scale is at most
-    :data:`CYCLE_LINEAR_STEP_RAD`, and nothing is refuted beyond it.
-    """
+    """Loops refuted by their odometry cycle (evidence no solution enters): a cycle chi-square
+    over the family-wise bound at the scale the cycles show, where the first-order test holds
+    (:data:`CYCLE_LINEAR_STEP_RAD`); nothing is refuted beyond it."""
     step_rad = cycle_step_rad(problem, cycles)
     if step_rad > CYCLE_LINEAR_STEP_RAD:
         log.info("odometry steps' rotation error %.2g rad (at the cycles' scale %.3g) is beyond the first-order "

@@ -1,19 +1,10 @@
 """The pose-graph optimisation as one pipeline of named stages (:func:`optimize_problem`).
 
-Each stage is a function of its own module, takes the problem and a typed
-:class:`~fpp_graph.backend.records.Solution` (or the evidence) and returns the next one:
-
-1. :func:`~fpp_graph.backend.least_squares.least_squares` (``least_squares.py``): initial
-   values, then least squares over every edge; a graph without outliers comes out as plain
-   gtsam gives it.
-2. :func:`~fpp_graph.backend.loop_evidence.screen_loops` (``loop_evidence.py``): the evidence
-   against each loop, a family-wise chi-square test at the information's measured scale.
-3. :func:`~fpp_graph.backend.robust_stage.truncated_least_squares` (``robust_stage.py``): only
-   when some loop is evidence of an outlier (``robust: gnc``).
-4. :func:`~fpp_graph.backend.certificate_stage.certify_solution` (``certificate_stage.py``): with
-   ``certify``, the global-optimality certificate.
-
-The stages know nothing of this module; gtsam types stay in :mod:`fpp_graph.backend.gtsam_bridge`.
+Each stage is a function of its own module that takes the problem and a typed
+:class:`~fpp_graph.backend.records.Solution` (and the evidence) and returns the next one:
+``least_squares.py``, ``loop_evidence.py``, ``robust_stage.py`` (truncated least squares) and
+``certificate_stage.py``. The stages know nothing of this module; gtsam types stay in
+:mod:`fpp_graph.backend.gtsam_bridge`.
 """
 
 from __future__ import annotations

@@ -1,43 +1,19 @@
-"""Evidence against loop edges: the statistics behind the robust stage of the pose graph.
+"""Evidence against loop edges: the statistics behind stages 2 and 3 of the pose graph's
+optimisation (:mod:`fpp_graph.backend.loop_evidence`, :mod:`fpp_graph.backend.robust_stage`).
 
-The robust stage may only drop a loop on evidence. The rule (used by
-:meth:`fpp_graph.backend.pose_graph.PoseGraph.optimize` with ``robust="gnc"``):
-
-1. **Least squares first.** The graph is solved with every edge (chordal initialisation +
-   Levenberg-Marquardt): a graph without outliers comes out exactly as plain gtsam gives it.
-   The one shortcut: when loops are over the bound at the initial values and some loop is
-   refuted by its odometry cycle (below; evidence that does not depend on any solution), the
-   loops are screened again after a few iterations instead of at convergence, so that gross
-   outliers do not make LM crawl through its budget first. Residuals at approximate values alone
-   are no evidence: a clean graph that converges slowly (0.7 rad rotation noise per step) has
-   thousands of loops over the bound after a few iterations. The cycle test is first-order; it
-   counts only where an odometry step's rotation error is small (at such noise true loops show
-   cycle chi-squares in the hundreds).
-2. **The information's scale is measured, not trusted.** Front-ends state information that is
-   often too confident by a constant factor (ICP's information ignores correlated depth errors;
-   a g2o file may carry any scale). The *variance factor* ``s2`` (the a-posteriori variance
-   factor of least-squares adjustment) is estimated from the loops' disagreement with the
-   odometry: each loop's squared Mahalanobis error against the odometry path between its ends
-   (:func:`odometry_cycle_chi2`, first-order propagation along the odometry spanning tree, the
-   check Kimera-RPGO's PCM starts from) is ``s2 * chi2(6)`` under the model, so
-   ``s2 = q25(c) / q25(chi2(6))`` with ``q25`` the lower quartile. False loops only make cycle
-   errors larger, so the lower quartile stays on true loops while fewer than three in four
-   loops are false (a median would break at one in two), and it does not depend on the
-   least-squares solution (which outliers bend). It is never taken below 1: the test is never
-   stricter than the information claims. Where the first-order cycle test does not hold (an
-   odometry step's rotation error beyond 0.1 rad at the cycles' scale) the cycles measure
-   nothing; the scale is then the a-posteriori variance factor ``2 cost / redundancy`` of the
-   least-squares residuals (never below 1).
-3. **A family-wise test.** A loop is evidence of an outlier when its whitened squared residual
-   at the least-squares solution exceeds ``s2 * chi2_6(1 - alpha / L)`` for ``L`` loops
-   (Bonferroni): a graph without outliers sees any loop flagged with probability at most
-   ``alpha`` (at least-squares residuals, which are smaller than the errors, even less). A
-   per-edge bound at a fixed probability instead flags a few true loops of every large graph
-   (0.1 % of 4000 loops) and sends it to the robust solver.
-4. Only when some loop is flagged does truncated least squares run (GNC, odometry and priors
-   known inliers, the same bound as the truncation threshold), from a start that leaves out
-   the loops inconsistent with the odometry; afterwards every loop whose residual at the
-   solution is under the bound is an inlier (the definition of truncated least squares).
+- **A family-wise test** (:func:`family_bound`): a loop is evidence of an outlier when its
+  whitened squared residual exceeds ``s2 * chi2_6(1 - alpha / L)`` for ``L`` loops (Bonferroni),
+  so a graph without outliers sees any loop flagged with probability at most ``alpha``; a
+  per-edge bound at a fixed probability would flag a few true loops of every large graph.
+- **The information's scale is measured, not trusted**: front-ends state information that is
+  often too confident by a constant factor (ICP ignores correlated depth errors; a g2o file may
+  carry any scale). Each loop's squared Mahalanobis error against the odometry path between its
+  ends (:func:`odometry_cycle_chi2`, first-order propagation along the odometry spanning tree,
+  the check Kimera-RPGO's PCM starts from) is ``s2 * chi2(6)`` under the model, so
+  ``s2 = q25(c) / q25(chi2(6))`` (:class:`CycleCheck`): false loops only make cycle errors
+  larger, so the lower quartile stays on true loops while fewer than three in four are false,
+  and it does not depend on the least-squares solution, which outliers bend. It is never
+  taken below 1: the test is never stricter than the information claims.
 
 Poses are 4x4 ``T_world_sensor``; an edge ``(source s, target t)`` measures ``T_t_s``; tangent
 vectors and covariances are GTSAM's ``[rot, trans]`` with right perturbations.

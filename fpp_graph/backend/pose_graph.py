@@ -17,11 +17,10 @@ source-frame points into the target frame) and becomes ``BetweenFactorPose3(targ
 T_target_source)``, whose error is ``Log(T_target_source^-1 * T_world_target^-1 *
 T_world_source)`` in ``[rot, trans]``. The cost is GTSAM's ``0.5 * sum ||whitened error||^2``.
 
-Anchors: :meth:`PoseGraph.fix_pose` is a hard anchor. It is implemented as a prior whose
-information is 1e8 times the largest edge information, because GTSAM's exact constraint
-(``NonlinearEquality``) breaks GNC's re-weighting; with a single anchor the solution is then
-moved rigidly (an exact symmetry of the cost) so the anchored pose keeps its value to the bit.
-A graph without any anchor that is connected gets its smallest key fixed (the gauge).
+Anchors: :meth:`PoseGraph.fix_pose` is a prior 1e8 times stiffer than the stiffest edge
+(GTSAM's exact constraint breaks GNC's re-weighting); with a single anchor the solution is moved
+rigidly so the anchored pose keeps its value to the bit. A connected graph without any anchor
+gets its smallest key fixed (the gauge).
 """
 
 from __future__ import annotations
@@ -237,20 +236,13 @@ class PoseGraph:
 
     # -- optimisation ----------------------------------------------------------------------
     def optimize(self, config: PoseGraphConfig | None = None) -> PoseGraphResult:
-        """Optimise the graph; the stored poses become the solution.
+        """Optimise the graph (``config`` defaults to ``PoseGraphConfig()``); the stored poses
+        become the solution.
 
-        A structure check (raises :class:`GraphError` naming unconstrained parts), then the
-        pipeline of :func:`fpp_graph.backend.optimization.optimize_problem`: least squares over
-        every edge (chordal initialisation and LM, or iSAM2 batch; the Cauchy loss on loops with
-        ``robust="cauchy"``), the evidence against each loop (a family-wise chi-square test at
-        the measured information scale), truncated least squares (GNC) only on evidence of an
-        outlier with ``robust="gnc"``, and with ``certify`` the global-optimality certificate. A
-        graph without outliers is returned as least squares gives it.
-
-        Parameters
-        ----------
-        config : PoseGraphConfig, optional
-            Defaults to ``PoseGraphConfig()``.
+        A structure check (:class:`GraphError` naming unconstrained parts), then the pipeline of
+        :func:`fpp_graph.backend.optimization.optimize_problem`: least squares over every edge,
+        the evidence against each loop, truncated least squares only on evidence of an outlier
+        (``robust="gnc"``), and with ``certify`` the global-optimality certificate.
         """
         cfg = config or PoseGraphConfig()
         started = time.perf_counter()
@@ -303,28 +295,13 @@ class PoseGraph:
     ) -> Certificate:
         """Certify poses as a global optimum of SE-Sync's objective ``F`` (Rosen et al., IJRR 2019).
 
-        A thin wrapper of :func:`fpp_graph.backend.certificate.certify_graph` (see there and the module
-        docstring for the method, the tolerance and the suboptimality bound). The certificate is
-        for SE-Sync's isotropic model of the relative edges whatever noise model was used to
-        optimise; priors are ignored and the anchor (first fixed pose, else the smallest key)
-        keeps its value. The graph's stored poses are not changed: the refined (and, after an
-        escape, improved) poses are in ``Certificate.poses_world_sensor``.
-
-        Parameters
-        ----------
-        poses : dict[int, (4, 4)], optional
-            ``T_world_sensor`` to certify (default: the current poses, e.g. after :meth:`optimize`).
-        escape : bool
-            Run the Riemannian staircase from a non-certified critical point.
-        max_rank : int
-            Highest rank of the staircase.
-        relative_suboptimality, numerical_floor : float
-            Define the eigenvalue tolerance ``eta``.
-
-        Raises
-        ------
-        GraphError
-            No edges, a missing pose, or edges that do not connect all poses.
+        :func:`fpp_graph.backend.certificate.certify_graph` on this graph (see there for the
+        method, the parameters and the suboptimality bound): SE-Sync's isotropic model of the
+        relative edges, priors ignored, the anchor (first fixed pose, else the smallest key)
+        kept. ``poses`` defaults to the current ones; the stored poses are not changed, the
+        refined (and, after an escape, improved) poses are in ``Certificate.poses_world_sensor``.
+        A graph without edges, a missing pose or edges that do not connect all poses raise
+        :class:`GraphError`.
         """
         from fpp_graph.backend.certificate import certify_graph
 

@@ -63,23 +63,11 @@ class PosePrior:
 
 @dataclass(frozen=True)
 class Solution:
-    """The poses one stage of the optimisation hands to the next.
-
-    Attributes
-    ----------
-    values : gtsam.Values
-        The poses (kept inside :mod:`fpp_graph.backend.gtsam_bridge`'s types between stages).
-    active : (M,) bool
-        The edges the solution uses (the graph's edges in insertion order; a rejected loop is
-        False).
-    iterations : int
-        Solver iterations spent so far.
-    converged : bool
-        Least squares stopped on its own convergence test, not at its iteration limit (a
-        certificate needs a critical point).
-    initialization : str
-        ``"chordal"`` or ``"given"``, with the reason when chordal initialisation failed.
-    """
+    """The poses one stage of the optimisation hands to the next: ``values`` (gtsam's, kept
+    inside :mod:`fpp_graph.backend.gtsam_bridge` between stages), the ``active`` edges it uses
+    (a mask over the graph's edges; a rejected loop is False), the solver ``iterations`` so
+    far, whether least squares ``converged`` (stopped on its own test, not at its iteration
+    limit: a certificate needs a critical point) and the ``initialization`` used."""
 
     values: gtsam.Values
     active: NDArray[np.bool_]

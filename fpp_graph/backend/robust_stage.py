@@ -54,29 +54,18 @@ def truncated_least_squares(problem: GraphProblem, solution: Solution, screen: L
     ``solution`` is the least-squares solution over all edges, which the outliers bend; the
     result leaves the rejected loops out of its active edges.
 
-    1. Loops whose cycle with the odometry is over the family-wise bound at the scale the
-       loops show disagree with the odometry beyond what the noise (the path's propagated
-       covariance included) explains: they are left out of the start (Kimera-RPGO's
-       odometry check).
-    2. Least squares over the odometry, the priors and the other loops (chordal start): a
-       start that the gross outliers did not bend.
-    3. GNC with the truncated-least-squares loss on those loops from that start (odometry,
-       priors and loops the graph cannot do without are known inliers; the truncation
-       threshold is the screen's bound); the loops left out of the start stay out of it:
-       at GNC's convex end every loop weighs in, and a few hundred gross outliers then pull
-       the solution out of the start's basin.
-    4. The inlier set is made self-consistent: any left-out loop whose residual at the
-       solution is under the bound is an inlier by the definition of truncated least
-       squares (a true loop the first-order cycle test was too strict for comes back).
-    5. Loops still out whose cycle with the odometry is under the start's bound are tested against the
-       kept graph's prediction of them
-       (:func:`predicted_chi2`: the rise of the cost when one is added, chi2(6) for a true
-       loop, which the kept graph's covariance of the loop's relative pose widens). GNC drops
-       runs of neighbouring true loops together; without them their region bends so that each
-       looks bad on its residual at the solution without it, though each fits once they are
-       back. Those under the bound are re-admitted together and the solve repeated; the group
-       is kept only if the truncated least-squares cost does not rise and no loop is over the
-       bound that was not before (else its better half by the prediction is tried).
+    1. Loops whose cycle with the odometry is over the bound at the scale the loops show are
+       left out of the start (Kimera-RPGO's odometry check), and out of GNC: at GNC's convex
+       end every loop weighs in, and a few hundred gross outliers pull the solution away.
+    2. Least squares over the odometry, the priors and the other loops (chordal start).
+    3. GNC with the TLS loss on those loops from that start (odometry, priors and loops the
+       graph cannot do without are known inliers; the truncation threshold is the bound).
+    4. Any left-out loop whose residual at the solution is under the bound is an inlier, by
+       the definition of truncated least squares.
+    5. Loops still out that the odometry supports are tested against the kept graph's
+       prediction of them (:func:`predicted_chi2`) and re-admitted together when under the
+       bound and a re-solve confirms it: GNC drops runs of neighbouring true loops, whose
+       region bends without them so that each looks bad on its own.
     """
     values, active = solution.values, solution.active
     try:
@@ -240,18 +229,13 @@ def _readmit_predicted(
     (:func:`predicted_chi2`), jointly, re-solving; until no rejected loop passes.
 
     Only ``eligible`` loops are tried: those whose cycle with the odometry is under the bound at
-    the scale the loops show (evidence independent of the current solution; the first-order prediction is meaningless
-    for a loop off by a large rotation, and on graphs of weak loops many outliers would pass
-    it).
-
-    A group is accepted when, at the least-squares solution with it, (a) the truncated
-    least-squares cost is not higher than without it (the cost over the kept edges and the
-    group rises by at most the bound per loop of the group: the group's loops would otherwise
-    be cheaper truncated) and (b) no loop of the kept set or the group is over the bound that
-    was not over it before (the screen's rule at that solution). A true loop fits once its
-    region is unbent; an outlier the first-order prediction let through shows at the new
-    solution. A group that fails is halved (the half best predicted is tried); a single loop
-    that fails stays out.
+    the scale the loops show (evidence independent of the current solution). A group is
+    accepted when, at the least-squares solution with it, (a) the truncated least-squares cost
+    is not higher than without it (the cost rises by at most the bound per loop of the group)
+    and (b) no loop is over the bound that was not before. A true loop fits once its region is
+    unbent; an outlier the first-order prediction let through shows at the new solution. A
+    group that fails is halved (the half best predicted is tried); a single loop that fails
+    stays out.
     """
     iterations = 0
     refuted: set[int] = set()
