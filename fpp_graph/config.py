@@ -198,6 +198,31 @@ class EvaluationConfig(StrictModel):
     )
 
 
+class PluginsConfig(StrictModel):
+    """Plug-ins a run uses in place of the built-ins (fpp_graph/plugins.py): each null (the
+    built-in), a name registered under the point's entry-point group, or module:attribute;
+    `fpp-slam config plugins` lists the registered names."""
+
+    loop_detector: str | None = Field(
+        None, min_length=1,
+        description="proposes each keyframe's loop candidates: a factory registered under fpp_graph.loop_detectors, or "
+        "module:attribute, called with the run's config (fpp_graph.plugins.LoopDetectorFactory); null: proximity under the "
+        "running estimate and appearance",
+    )
+    registrar: str | None = Field(
+        None, min_length=1,
+        description="registers pairs of frames, for odometry and to verify loop candidates: a factory registered under "
+        "fpp_graph.registrars, or module:attribute, called with the run's config and frame source "
+        "(fpp_graph.plugins.RegistrarFactory); null: the frame source's own",
+    )
+    map_fuser: str | None = Field(
+        None, min_length=1,
+        description="fuses the keyframes under the optimised poses into map.ply: a factory registered under fpp_graph.map_fusers, "
+        "or module:attribute, called with the run's config (fpp_graph.plugins.MapFuserFactory); null: the voxel map and TSDF "
+        "mesh of the fusion section",
+    )
+
+
 def refuse_reference_time_offset(config: Config, where: str) -> None:
     """For a source whose reference poses belong to its frames (no clock to shift): a
     ConfigError when ``evaluation.reference_time_offset_s`` is not 0."""
@@ -299,6 +324,7 @@ class Config(StrictModel):
     fusion: FusionConfig = FusionConfig()
     run: RunConfig = RunConfig()
     evaluation: EvaluationConfig = EvaluationConfig()
+    plugins: PluginsConfig = PluginsConfig()
 
     @model_validator(mode="before")
     @classmethod

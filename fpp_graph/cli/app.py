@@ -21,7 +21,7 @@ from typing import Annotated
 import typer
 
 from fpp_graph.cli.common import examples_epilog, on_stop_signal, stop_signal
-from fpp_graph.cli.config_commands import config_defaults, config_dump
+from fpp_graph.cli.config_commands import config_defaults, config_dump, config_plugins
 from fpp_graph.cli.optimize import optimize_graph
 from fpp_graph.cli.report import report
 from fpp_graph.cli.run import batch, eval_, run
@@ -42,6 +42,7 @@ app = typer.Typer(
 config_app = typer.Typer(help="Inspect the configuration.", no_args_is_help=True)
 config_app.command("dump", epilog=examples_epilog(config_dump))(config_dump)
 config_app.command("defaults", epilog=examples_epilog(config_defaults))(config_defaults)
+config_app.command("plugins", epilog=examples_epilog(config_plugins))(config_plugins)
 
 
 def version_text() -> str:

@@ -1,4 +1,4 @@
-"""``fpp-slam config dump | defaults``."""
+"""``fpp-slam config dump | defaults | plugins``."""
 
 from __future__ import annotations
 
@@ -40,3 +40,27 @@ def config_defaults() -> None:
     from fpp_graph.config import default_config_text
 
     typer.echo(default_config_text(), nl=False)
+
+
+@examples(
+    "fpp-slam config plugins",
+    "fpp-slam config plugins --config my.yaml",
+)
+def config_plugins(config: ConfigOption = None) -> None:
+    """List the names each plug-in point takes (plugins.loop_detector, .registrar, .map_fuser):
+    null and the names registered under its entry-point group; * marks the one in use. With
+    --config, the plug-ins it selects are loaded (one that cannot be is an error)."""
+    from fpp_graph.config import load_config
+    from fpp_graph.plugins import POINTS, check_plugins, registered_plugins
+
+    cfg = load_config(config)
+    if config is not None:
+        check_plugins(cfg)  # a selection that cannot load: one line, exit 2
+    for key, names in registered_plugins().items():
+        chosen = getattr(cfg.plugins, key)
+        typer.echo(f"plugins.{key}: entry points {POINTS[key].group}")
+        rows = {"null": f"built-in: {POINTS[key].builtin}", **dict(sorted(names.items()))}
+        if chosen is not None and chosen not in names:
+            rows[chosen] = "module:attribute"
+        for name, value in rows.items():
+            typer.echo(f"  {'*' if name == (chosen or 'null') else ' '} {name} = {value}")

@@ -40,6 +40,7 @@ from fpp_graph.errors import InputDataError
 from fpp_graph.evaluation.plots import MAP_PLOT_POINTS
 from fpp_graph.evaluation.report import write_report
 from fpp_graph.geometry import compose
+from fpp_graph.plugins import check_plugins, chosen_loop_detector, chosen_map_fuser, chosen_registrar
 from fpp_graph.results_folder import config_differences, described_input, results_folder, run_log
 from fpp_graph.slam.cpu_time import process_tree_cpu_s
 from fpp_graph.slam.frame_store import (
@@ -177,10 +178,13 @@ def track(
 ) -> SlamResult:
     """Keyframes, odometry, loop closure and the final robust pose-graph optimisation.
 
+    The registrar and the loop detector are the ones ``config.plugins`` names
+    (:mod:`fpp_graph.plugins`; null: the source's registrar, the keyframe manager's detector).
     ``verifier`` registers loop candidates (default: in this process, see
     :class:`~fpp_graph.slam.keyframes.KeyframeManager`); ``plot_samples`` samples the
     keyframes' points as they go by, for the before/after map."""
-    manager = KeyframeManager(source.make_registrar(), config, store=store, verifier=verifier)
+    manager = KeyframeManager(chosen_registrar(config, source), config, store=store,
+                              loop_detector=chosen_loop_detector(config), verifier=verifier)
     keyframes_only = config.run.keep_frames == "keyframes"
     discarded = 0
     for frame in frames:
@@ -355,13 +359,16 @@ class Pipeline:
         progress: ProgressCallback | None = None,
         map_fuser: MapFuser | None = None,
     ) -> None:
-        """``map_fuser`` fuses the global map (default: :class:`~fpp_graph.fusion.voxel_map.VoxelMapFuser`
-        from ``config.fusion``)."""
+        """``map_fuser`` fuses the global map (default: the one ``config.plugins.map_fuser`` names,
+        else :class:`~fpp_graph.fusion.voxel_map.VoxelMapFuser` from ``config.fusion``). The
+        plug-ins the config names are loaded here, so that one that cannot be fails before the
+        results folder is touched."""
         self.source = source
         check_frame_source(source)
         self.config = source.resolve_config(config)
         self.config_set_by_source = config_set_by_source(config, self.config)
-        self.map_fuser = map_fuser
+        check_plugins(self.config)
+        self.map_fuser = map_fuser if map_fuser is not None else chosen_map_fuser(self.config)
         self.out = Path(out)
         self.resume = resume
         self.overwrite = overwrite
@@ -394,7 +401,7 @@ class Pipeline:
         executor = self._executor()
         # workers this pipeline did not start (Dask) receive the source with their tasks
         worker_source = None if self._owns_executor else (self.source, f"{out.resolve()}@{time.time_ns()}")
-        verifier = ExecutorVerifier(executor, store, *(worker_source or ())) if executor is not None else None
+        verifier = ExecutorVerifier(executor, store, *(worker_source or ()), config=self.config) if executor is not None else None
 
         def frames_with_timestamps() -> Iterator[Frame]:
             for frame in prepare_frames(self.source, out / "frames", executor, report.skipped_frames, self.progress, worker_source=worker_source,
@@ -426,6 +433,7 @@ class Pipeline:
         report.metrics = slam_summary(report)
         report.metrics["source"] = self.source.describe()  # what the reader made of the folder (e.g. images it left alone)
         report.metrics["config_set_by_source"] = self.config_set_by_source
+        report.metrics["plugins"] = self.config.plugins.model_dump()  # null: the built-in
         if gt_poses is not None:  # an evaluation that failed raises here, after the plots are written
             report.metrics["loop_evaluation"] = loop_evaluation.result()
         atomic_write_text(out / "metrics.json", json.dumps(report.metrics, indent=1, default=float))

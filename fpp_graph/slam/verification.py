@@ -14,6 +14,7 @@ from concurrent.futures import Executor, Future
 import numpy as np
 from numpy.typing import NDArray
 
+from fpp_graph.config import Config
 from fpp_graph.slam.frame_store import FrameStore
 from fpp_graph.slam.sources import FrameSource
 from fpp_graph.slam.workers import verify_pair
@@ -45,18 +46,22 @@ class ExecutorVerifier:
     Both frames are read there from the store's folder (they are keyframes, so the store has
     written them), and only paths, the initial guess and the resulting Constraint are pickled.
     Workers the run did not start (Dask) get the frame ``source`` with each task and adopt it
-    once per ``token`` (see :func:`fpp_graph.slam.workers.decode_to_cache`).
+    once per ``token`` (see :func:`fpp_graph.slam.workers.decode_to_cache`). The run's ``config``
+    goes with each task too: it names the registrar the workers make (``plugins.registrar``).
     """
 
-    def __init__(self, executor: Executor, store: FrameStore, source: FrameSource | None = None, token: str | None = None) -> None:
+    def __init__(
+        self, executor: Executor, store: FrameStore, source: FrameSource | None = None, token: str | None = None,
+        config: Config | None = None,
+    ) -> None:
         if store.directory is None:
             raise ValueError("ExecutorVerifier needs a FrameStore with a directory: workers read the frames from it")
         self.executor = executor
         self.store = store
-        self.source, self.token = source, token
+        self.source, self.token, self.config = source, token, config
 
     def submit(self, target_id: int, source_id: int, T_guess: NDArray[np.float64] | None, kind: ConstraintKind) -> Future[Constraint]:
         return self.executor.submit(
             verify_pair, str(self.store.path_of(target_id)), str(self.store.path_of(source_id)), T_guess, str(ConstraintKind(kind)),
-            self.source, self.token,
+            self.source, self.token, self.config,
         )

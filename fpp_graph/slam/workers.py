@@ -23,7 +23,9 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from fpp_graph.config import Config
 from fpp_graph.errors import FppError, OutputError
+from fpp_graph.plugins import chosen_registrar
 from fpp_graph.slam.frame_store import load_frame, save_frame, stored_arrays
 from fpp_graph.slam.heap import keep_large_blocks_in_heap, trim_heap
 from fpp_graph.slam.sources import FrameSource
@@ -260,19 +262,20 @@ def _held_frame(path: str) -> Frame:
 
 def verify_pair(
     target_path: str, source_path: str, T_guess: NDArray[np.float64] | None, kind: str,
-    source: FrameSource | None = None, token: str | None = None,
+    source: FrameSource | None = None, token: str | None = None, config: Config | None = None,
 ) -> Constraint:
-    """``register(target, source, T_guess, kind)`` of two cached frames with the source's registrar.
+    """``register(target, source, T_guess, kind)`` of two cached frames with the run's registrar.
 
-    The registrar is the one :meth:`FrameSource.make_registrar` gives the main process, made once
-    per worker; its RANSAC is seeded per pair, so the result does not depend on the worker.
-    ``source`` and ``token``: see :func:`decode_to_cache`.
+    The registrar is the one the main process tracks with, made once per worker: the plug-in
+    the run's ``config`` names (:func:`fpp_graph.plugins.chosen_registrar`), else, and without
+    a config, :meth:`FrameSource.make_registrar`; its RANSAC is seeded per pair, so the result
+    does not depend on the worker. ``source`` and ``token``: see :func:`decode_to_cache`.
     """
     global _REGISTRAR
     _adopt(source, token)
     assert _SOURCE is not None
     if _REGISTRAR is None:
-        _REGISTRAR = _SOURCE.make_registrar()
+        _REGISTRAR = _SOURCE.make_registrar() if config is None else chosen_registrar(config, _SOURCE)
     try:
         return _REGISTRAR.register(_held_frame(target_path), _held_frame(source_path), T_guess, kind=ConstraintKind(kind))
     finally:
