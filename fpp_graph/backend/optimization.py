@@ -42,7 +42,7 @@ def optimize_problem(problem: GraphProblem, cfg: PoseGraphConfig) -> PoseGraphRe
     solution = least_squares(problem, start, cfg, look_early=look_early)
     # 2. the evidence against each loop
     evidence = screen_loops(problem, solution, cfg.loop_false_alarm)
-    if look_early and not flagged(evidence):
+    if look_early and not flagged(evidence):  # nothing seen early: least squares to convergence
         solution = least_squares(problem, solution, cfg)
         evidence = screen_loops(problem, solution, cfg.loop_false_alarm)
     # 3. truncated least squares, only on evidence of an outlier
