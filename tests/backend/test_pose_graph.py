@@ -523,3 +523,20 @@ def test_isam2_update_cost_follows_the_loop_frontier_not_the_map(per_lap):
     # bounded by a few frontiers' worth of keyframes, far below the 300 in the map
     assert last < 4 * (per_lap + 1)
     assert ate_rmse_m(graph.estimate(), sim.poses_true) < 0.02
+
+
+def test_the_optimisation_stages_call_nothing_of_the_pipeline_and_leave_gtsam_to_the_bridge():
+    import ast
+    from pathlib import Path
+
+    import fpp_graph.backend as backend
+
+    root = Path(backend.__file__).parent
+    for name in ["least_squares", "loop_evidence", "robust_stage", "certificate_stage", "optimization"]:
+        tree = ast.parse((root / f"{name}.py").read_text(encoding="utf-8"))
+        imported = {n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)}
+        assert not imported & {"fpp_graph.backend.optimization", "fpp_graph.backend.pose_graph"}, name
+        bodies = [stmt for fn in ast.walk(tree) if isinstance(fn, ast.FunctionDef) for stmt in fn.body]
+        used = [n for stmt in bodies for n in ast.walk(stmt)
+                if isinstance(n, ast.Name) and n.id == "gtsam" or isinstance(n, ast.alias) and n.name == "gtsam"]
+        assert not used, f"{name} calls gtsam itself"
