@@ -32,7 +32,7 @@ from typing import Any, Literal
 
 from pydantic import Field, model_validator
 
-from fpp_graph.config import StrictModel, register_sections, unit
+from fpp_graph.config import RetiredKey, StrictModel, register_sections, retire_keys, unit
 from fpp_graph.errors import ConfigError
 
 log = logging.getLogger(__name__)
@@ -102,6 +102,12 @@ class NoiseModel(StrictModel):
         "its motion over that time (u u^T / 12, u = twist x readout); null: the source's (FPP 0: the rig holds still through a "
         "capture; Kinect v1 1/30 s: both its cameras read their rows over the frame period)",
     )
+    dense_stride_px: int | None = Field(
+        None, ge=1,
+        description="pixel stride of the dense fit's final iterations (its first ones take twice it): the span over which "
+        "neighbouring depth errors are correlated, so denser pixels add cost, not information; null: the source's (FPP 2: a "
+        "projector pixel spans ~2 camera pixels; Kinect v1 4: its 9x9 disparity correlation window)",
+    )
 
 
 @dataclass(frozen=True)
@@ -113,14 +119,16 @@ class SensorNoise:
     information_correlation: float
     shared_depth_sigma_per_m2: float = 0.0
     readout_s: float = 0.0
+    dense_stride_px: int = 1
 
 
-FPP_NOISE = SensorNoise(point_sigma_m=0.0005, voxel_m=0.002, information_correlation=1.0)
+FPP_NOISE = SensorNoise(point_sigma_m=0.0005, voxel_m=0.002, information_correlation=1.0, dense_stride_px=2)
 """The FPP rig: a keypoint lifted through the decoded map is off by ~0.5 mm (sub-pixel keypoint
 localisation over a 0.2-0.5 mm pixel footprint; the phase noise itself is ~0.02 mm); 2 mm voxels
 hold tens of pixels each, so a voxel's normal and covariance are the surface's, not its noise; the
 decoder's residuals are close to independent at the ICP voxel spacing; the rig holds still
-through a capture's images, so no readout motion."""
+through a capture's images, so no readout motion; a projector pixel spans ~2 camera pixels and the
+phase filter mixes neighbours, so the dense fit samples every 2nd pixel."""
 
 
 class FeaturesConfig(StrictModel):
@@ -136,40 +144,6 @@ class FeaturesConfig(StrictModel):
         description="strongest keypoints kept per frame: enough matches for RANSAC at inlier ratios ~0.1; matching cost grows "
         "with it",
     )
-    max_width_px: int = Field(
-        1024, ge=0,
-        description="wider textures are reduced by an integer factor before detection: the finest scales of a larger image are "
-        "sensor noise (0: never)",
-    )
-    surf_hessian_threshold: float = Field(
-        3e-6, gt=0, json_schema_extra=unit("-"),
-        description="SURF det(H) threshold on the contrast-stretched image in [0, 1]: low, so weakly textured surfaces still "
-        "yield keypoints (max_features keeps the strongest elsewhere)",
-    )
-
-
-class KeypointsConfig(StrictModel):
-    """Descriptor matching and the keypoints' share of the constraint information."""
-
-    ratio_test: float = Field(
-        0.9, gt=0, le=1, json_schema_extra=unit("-"),
-        description="Lowe's ratio of best to second-best descriptor distance: permissive, because the mutual check and 3D "
-        "RANSAC reject outliers geometrically, and a strict ratio drops true matches on repetitive texture and large "
-        "viewpoint changes",
-    )
-    mutual_check: bool = Field(
-        True, description="keep only mutual nearest neighbours: a true correspondence is the nearest neighbour both ways",
-    )
-    information_scale: float = Field(
-        0.1, gt=0, le=1, json_schema_extra=unit("-"),
-        description="multiplies the keypoints' information in the constraint: their errors share one detector and one texture, "
-        "so n keypoints are worth ~n/10 independent points (NEES-calibrated); the gates use the unscaled information",
-    )
-    edge_sigmas: float = Field(
-        10.0, gt=0, json_schema_extra=unit("noise.point_sigma_m"),
-        description="a keypoint whose four neighbouring pixels span more depth than this sits on a depth edge and is not lifted "
-        "(interpolating across the edge invents a point in mid-air); noise alone rarely spans half of it",
-    )
 
 
 class RansacConfig(StrictModel):
@@ -180,87 +154,15 @@ class RansacConfig(StrictModel):
         description="inlier distance: two matched points differ by sigma sqrt(2) per axis, so |d| < 4 sigma keeps 95 % of true "
         "matches (|d|^2 / 2 sigma^2 is chi-square with 3 dof, below 8 with probability 0.954)",
     )
-    max_iterations: int = Field(
-        10000, gt=0, json_schema_extra=unit("samples"),
-        description="upper bound on the samples drawn: 3-point samples at 0.9999 confidence need ~9200 draws at an inlier ratio "
-        "of 0.1; sampling stops earlier once the confidence is reached at the inlier ratio found",
-    )
-    confidence: float = Field(
-        0.9999, gt=0, lt=1, json_schema_extra=unit("-"),
-        description="probability of having drawn at least one all-inlier sample when sampling stops",
-    )
 
 
 class IcpConfig(StrictModel):
-    """ICP from RANSAC's pose (small_gicp)."""
+    """ICP from RANSAC's pose (an implementation of PointCloudAligner; small_gicp's)."""
 
     method: Literal["gicp", "point_to_plane", "none"] = Field(
         "gicp",
         description="small_gicp's GICP, point-to-plane ICP, or none; GICP uses both surfaces' local covariances, so differently "
         "sampled views fit",
-    )
-    correspondence_voxels: float = Field(
-        1.0, ge=0, json_schema_extra=unit("noise.voxel_m"),
-        description="correspondence distance = RANSAC's inlier distance (its pose's worst point) + this many voxels (the "
-        "sampling offset between the two clouds' voxels)",
-    )
-    max_iterations: int = Field(
-        50, gt=0, json_schema_extra=unit("iterations"),
-        description="a cost bound: GICP converges in ~5-20 iterations from a RANSAC pose; the limit bounds one that does not",
-    )
-    coarse_voxels: float = Field(
-        2.0, gt=0, json_schema_extra=unit("noise.voxel_m"),
-        description="ICP's voxel when the dense refinement follows: ICP then only needs to reach the dense fit's basin and give "
-        "its relief/plane verdict",
-    )
-    min_voxels: int = Field(
-        30, ge=6, json_schema_extra=unit("voxels"),
-        description="fewer voxels in either cloud and ICP is not attempted: too few residuals (5 per degree of freedom) for a "
-        "meaningful 6-dof information",
-    )
-    information_scale: float = Field(
-        1.0, gt=0, json_schema_extra=unit("-"),
-        description="multiplies ICP's information together with noise.information_correlation; calibrated by NEES (~1 on "
-        "simulated pairs)",
-    )
-    convergence_sigmas: float = Field(
-        0.002, gt=0, json_schema_extra=unit("noise.point_sigma_m"),
-        description="ICP stops when its last step is under this (rotations: as many radians per metre of lever): 1 um on FPP, "
-        "15 um on Kinect depth, two orders under a pair's own error; a tighter stop chases the noise (Kinect pairs then ran to "
-        "max_iterations, twice the time, for 0.01 mm); it also stops when 10 steps net less than ten such steps (correspondences "
-        "flipping back and forth)",
-    )
-
-
-class WeakDirectionsConfig(StrictModel):
-    """Directions the geometry leaves free (a wall's in-plane shifts and spin), taken from the keypoints."""
-
-    degeneracy_ratio: float = Field(
-        0.02, gt=0, json_schema_extra=unit("-"),
-        description="a direction whose information eigenvalue (rotations as arc length about the points' centroid) is below "
-        "this share of the trace of the translation block is unconstrained: its standard deviation is over sqrt(1/0.02) ~ 7 "
-        "times that of a direction holding the whole trace; a plane's in-plane directions read 0.001-0.01 (only the normals' "
-        "noise constrains them)",
-    )
-    plane_from_keypoints: bool = Field(
-        True,
-        description="on plane-like pairs the in-plane shifts and the spin come from the keypoints: there ICP's in-plane "
-        "information measures its normals' noise, not the pose, while the keypoints see the texture",
-    )
-    plane_disagreement_probability: float = Field(
-        0.9999, gt=0, lt=1, json_schema_extra=unit("-"),
-        description="chi-square (3 dof) probability beyond which ICP's in-plane pose disagrees with the keypoints and is "
-        "replaced by theirs; a false alarm trades ICP's precise pose for the keypoints', so 1 in 10^4",
-    )
-    joint_optimum_probability: float = Field(
-        0.999, gt=0, lt=1, json_schema_extra=unit("-"),
-        description="chi-square (6 dof) probability beyond which, on other weak pairs, ICP's pose moves to the joint ICP + "
-        "keypoint optimum",
-    )
-    hold_ratio: float = Field(
-        1e6, gt=1, json_schema_extra=unit("-"),
-        description="a held direction's information over the trace of the rest's: its step is ~1e-6 of theirs, and the normal "
-        "equations stay ~10^10 from float64's precision limit",
     )
 
 
@@ -269,112 +171,62 @@ class DenseConfig(StrictModel):
 
     enabled: bool = Field(
         True,
-        description="after ICP, align every stride_px-th pixel of both maps instead of voxels: the decoded map's noise averages "
-        "over ~100x more points (frames without an xyz_map skip it)",
-    )
-    stride_px: int = Field(
-        2, ge=1,
-        description="pixel stride of the final iterations: neighbouring pixels' errors correlate (phase filtering, projector "
-        "pixels spanning ~2 camera pixels), so every pixel carries little more at 4x the cost",
-    )
-    coarse_stride_px: int = Field(
-        4, ge=1, description="pixel stride of the first iterations: they only reach the basin",
-    )
-    max_points: int = Field(
-        160000, ge=100, json_schema_extra=unit("pixels"),
-        description="both strides grow until the final iterations sample at most this many pixels per map; a cost bound on a "
-        "pair",
-    )
-    coarse_iterations: int = Field(
-        2, ge=0, json_schema_extra=unit("iterations"),
-        description="Gauss-Newton iterations at coarse_stride_px: from ICP's pose it converges quadratically, so two coarse "
-        "steps and ...",
-    )
-    fine_iterations: int = Field(
-        1, ge=1, json_schema_extra=unit("iterations"),
-        description="... one step at stride_px reach the noise floor",
-    )
-    information_scale: float = Field(
-        0.15, gt=0, json_schema_extra=unit("-"),
-        description="multiplies the dense information: neighbouring pixels' errors correlate (the decoder's ripple spans several "
-        "pixels); calibrated by NEES",
+        description="after ICP, align every noise.dense_stride_px-th pixel of both maps instead of voxels: the decoded map's "
+        "noise averages over ~100x more points (frames without an xyz_map skip it)",
     )
 
 
 class PhotometricConfig(StrictModel):
-    """A plane's in-plane shifts and spin from the texture (needs FppPairRegistrar(texture_camera=...) and the dense refinement)."""
+    """A plane's in-plane shifts and spin from the texture (needs the rig's TextureCamera and the dense refinement)."""
 
     enabled: bool = Field(
         True,
         description="on plane-like pairs, align the source's texture to the target's map along the plane's directions: on a "
         "plane only the texture constrains them, to a fraction of a pixel",
     )
-    max_pixels: int = Field(
-        100000, ge=1000, json_schema_extra=unit("pixels"),
-        description="target pixels used (the strongest texture gradients): they carry the information; more pixels add cost, "
-        "not precision",
-    )
-    information_scale: float = Field(
-        0.01, gt=0, json_schema_extra=unit("-"),
-        description="multiplies the photometric information: texture errors correlate over the blur kernel and the shading "
-        "model's error; calibrated by NEES",
-    )
 
 
 class GatesConfig(StrictModel):
-    """Acceptance thresholds: every rejection reason of frontend/registration/gates.py."""
+    """The acceptance thresholds a user trades recall for precision with (the others of
+    frontend/registration/gates.py follow from the noise model)."""
 
     min_inliers: int = Field(
         15, ge=3, json_schema_extra=unit("matches"),
         description="fewer matches, matches with valid 3D, RANSAC inliers or keypoints agreeing after ICP: rejected; 12 agreeing "
         "beyond a 3-point sample make a chance pose improbable",
     )
-    min_fitness: float = Field(
-        0.1, ge=0, le=1, json_schema_extra=unit("-"),
-        description="share of source points with a target neighbour after ICP: rejects pairs that barely touch; low, because a "
-        "narrow overlap whose keypoints agree still constrains the pose",
-    )
     min_overlap: float = Field(
         0.1, ge=0, le=1, json_schema_extra=unit("-"),
-        description="share of the source view overlapping the target (low for the same reason as min_fitness)",
+        description="share of the source view overlapping the target after ICP: rejects pairs that barely touch; low, because "
+        "a narrow overlap whose keypoints agree still constrains the pose",
     )
-    max_inlier_rmse_sigmas: float = Field(
-        4.0, gt=0, json_schema_extra=unit("noise.point_sigma_m"),
-        description="ICP's inlier RMSE above this: the surfaces do not fit within their noise",
-    )
-    max_icp_shift_sigmas: float = Field(
-        6.0, gt=0, json_schema_extra=unit("noise.point_sigma_m"),
-        description="ICP moving RANSAC's inliers by more than this (1.5 RANSAC inlier distances): it left RANSAC's basin",
-    )
-    max_weak_sigma_sigmas: float = Field(
-        4.0, gt=0, json_schema_extra=unit("noise.point_sigma_m"),
-        description="weak directions are accepted when the keypoints pin them to this standard deviation: as well as RANSAC's "
-        "inlier distance",
-    )
-    min_texture_agreement: float = Field(
-        0.9, ge=0, le=1, json_schema_extra=unit("-"),
-        description="appearance-only loop on weak geometry: share of the overlap blocks whose textures correlate; a true "
-        "revisit's blocks agree except for occlusions and specular spots, a look-alike place only on its repeated object",
-    )
-    min_texture_overlap: float = Field(
-        0.7, ge=0, le=1, json_schema_extra=unit("-"),
-        description="... and the share of the source view that overlap covers: most of the view, so it includes the "
-        "surroundings, not the object alone",
-    )
-    min_agreement_blocks: int = Field(
-        20, ge=1, json_schema_extra=unit("blocks"),
-        description="fewer informative overlap blocks cannot tell a look-alike from a revisit: the agreement share of fewer "
-        "blocks has a standard error over 7 % (binomial at 0.9)",
-    )
-    texture_distance_sigmas: float = Field(
-        6.0, gt=0, json_schema_extra=unit("noise.point_sigma_m"),
-        description="texture agreement: a target surface within this distance of a source sample is the same surface (the ICP "
-        "basin's reach, max_icp_shift_sigmas)",
-    )
-    min_texture_px: int = Field(
-        32, ge=1,
-        description="smaller textures (either side) cannot hold a descriptor patch (ORB 31 px, SURF's smallest scale)",
-    )
+
+
+# Multiples of the noise model that fix the registration's other lengths (RegistrationConfig.lengths)
+ICP_COARSE_VOXELS = 2.0
+"""ICP's voxel, in ``noise.voxel_m``, when the dense fit follows: ICP then only has to reach the
+dense fit's basin and tell relief from a plane, which twice the surface sampling does."""
+ICP_CORRESPONDENCE_VOXELS = 1.0
+"""ICP's correspondence distance is RANSAC's inlier distance (its pose's worst point) plus one
+voxel: the sampling offset between two voxelised clouds of one surface."""
+ICP_INFORMATION_SCALE = 1.0
+"""ICP's information times ``noise.information_correlation``: the correlation is the sensor's, the
+point-to-plane information of independent residuals is otherwise exact."""
+ICP_CONVERGENCE_SIGMAS = 0.002
+"""ICP stops when its step is under this many ``point_sigma_m`` (radians per metre of lever for the
+rotation): two orders under one pair's error, so a tighter stop only chases the noise."""
+MAX_INLIER_RMSE_SIGMAS = 4.0
+"""ICP's inlier RMSE above 4 point sigmas: the surfaces do not fit within their noise."""
+MAX_ICP_SHIFT_SIGMAS = 6.0
+"""ICP moving RANSAC's inliers by more than 1.5 RANSAC inlier distances has left RANSAC's basin."""
+MAX_WEAK_SIGMA_SIGMAS = 4.0
+"""Weak directions are accepted when the keypoints pin them as well as RANSAC's inlier distance."""
+KEYPOINT_EDGE_SIGMAS = 10.0
+"""A keypoint whose four neighbouring pixels span more depth than 10 point sigmas sits on a depth
+edge (interpolating across it invents a point in mid-air); noise alone rarely spans half of it."""
+TEXTURE_DISTANCE_SIGMAS = 6.0
+"""Texture agreement: a target surface within ICP's basin (:data:`MAX_ICP_SHIFT_SIGMAS`) of a
+source sample is the same surface."""
 
 
 @dataclass(frozen=True)
@@ -396,15 +248,13 @@ class Lengths:
 
 class RegistrationConfig(StrictModel):
     """Pairwise registration (frontend/registration/), one sub-section per stage: the sensor's
-    noise model, keypoints, RANSAC, ICP, weak directions, dense and photometric refinement, and the
+    noise model, the features, RANSAC, ICP, the dense and photometric refinements, and the main
     acceptance gates."""
 
     noise: NoiseModel = NoiseModel()
     features: FeaturesConfig = FeaturesConfig()
-    keypoints: KeypointsConfig = KeypointsConfig()
     ransac: RansacConfig = RansacConfig()
     icp: IcpConfig = IcpConfig()
-    weak_directions: WeakDirectionsConfig = WeakDirectionsConfig()
     dense: DenseConfig = DenseConfig()
     photometric: PhotometricConfig = PhotometricConfig()
     gates: GatesConfig = GatesConfig()
@@ -419,13 +269,7 @@ class RegistrationConfig(StrictModel):
     def sensor_noise(self) -> SensorNoise:
         """The noise model with the FPP rig's values where it is left null."""
         n = self.noise
-        return SensorNoise(
-            n.point_sigma_m if n.point_sigma_m is not None else FPP_NOISE.point_sigma_m,
-            n.voxel_m if n.voxel_m is not None else FPP_NOISE.voxel_m,
-            n.information_correlation if n.information_correlation is not None else FPP_NOISE.information_correlation,
-            n.shared_depth_sigma_per_m2 if n.shared_depth_sigma_per_m2 is not None else FPP_NOISE.shared_depth_sigma_per_m2,
-            n.readout_s if n.readout_s is not None else FPP_NOISE.readout_s,
-        )
+        return SensorNoise(**{k: getattr(n, k) if getattr(n, k) is not None else getattr(FPP_NOISE, k) for k in NoiseModel.model_fields})
 
     def with_noise(self, noise: SensorNoise) -> RegistrationConfig:
         """This config with ``noise``'s values where the noise model is left null (user values win)."""
@@ -442,15 +286,15 @@ class RegistrationConfig(StrictModel):
         return Lengths(
             ransac_inlier_m=ransac_m,
             icp_voxel_m=voxel,
-            icp_coarse_voxel_m=self.icp.coarse_voxels * voxel,
-            icp_max_correspondence_m=ransac_m + self.icp.correspondence_voxels * voxel,
-            max_inlier_rmse_m=self.gates.max_inlier_rmse_sigmas * sigma,
-            max_icp_shift_m=self.gates.max_icp_shift_sigmas * sigma,
-            max_weak_sigma_m=self.gates.max_weak_sigma_sigmas * sigma,
-            icp_information_scale=self.icp.information_scale * noise.information_correlation,
-            icp_convergence_m=self.icp.convergence_sigmas * sigma,
-            keypoint_edge_step_m=self.keypoints.edge_sigmas * sigma,
-            texture_distance_m=self.gates.texture_distance_sigmas * sigma,
+            icp_coarse_voxel_m=ICP_COARSE_VOXELS * voxel,
+            icp_max_correspondence_m=ransac_m + ICP_CORRESPONDENCE_VOXELS * voxel,
+            max_inlier_rmse_m=MAX_INLIER_RMSE_SIGMAS * sigma,
+            max_icp_shift_m=MAX_ICP_SHIFT_SIGMAS * sigma,
+            max_weak_sigma_m=MAX_WEAK_SIGMA_SIGMAS * sigma,
+            icp_information_scale=ICP_INFORMATION_SCALE * noise.information_correlation,
+            icp_convergence_m=ICP_CONVERGENCE_SIGMAS * sigma,
+            keypoint_edge_step_m=KEYPOINT_EDGE_SIGMAS * sigma,
+            texture_distance_m=TEXTURE_DISTANCE_SIGMAS * sigma,
         )
 
 
@@ -465,49 +309,96 @@ def chi2_quantile(probability: float, dof: int) -> float:
 
 
 # ---------------------------------------------------------------------------------------------
-# old flat keys
+# old keys
 # ---------------------------------------------------------------------------------------------
 LEGACY_KEYS: dict[str, str] = {
     "feature": "features.type",
     "max_features": "features.max_features",
-    "feature_max_width_px": "features.max_width_px",
-    "surf_hessian_threshold": "features.surf_hessian_threshold",
-    "ratio_test": "keypoints.ratio_test",
-    "mutual_check": "keypoints.mutual_check",
-    "keypoint_information_scale": "keypoints.information_scale",
     "ransac_threshold_m": "ransac.inlier_sigmas",
-    "ransac_iterations": "ransac.max_iterations",
-    "ransac_confidence": "ransac.confidence",
     "icp_method": "icp.method",
     "icp_voxel_m": "noise.voxel_m",
-    "icp_max_correspondence_m": "icp.correspondence_voxels",
-    "icp_max_iterations": "icp.max_iterations",
-    "dense_icp_voxel_m": "icp.coarse_voxels",
-    "information_scale": "icp.information_scale",
-    "degeneracy_ratio": "weak_directions.degeneracy_ratio",
-    "plane_from_keypoints": "weak_directions.plane_from_keypoints",
     "dense_refinement": "dense.enabled",
-    "dense_stride_px": "dense.stride_px",
-    "dense_coarse_stride_px": "dense.coarse_stride_px",
-    "dense_max_points": "dense.max_points",
-    "dense_coarse_iterations": "dense.coarse_iterations",
-    "dense_fine_iterations": "dense.fine_iterations",
-    "dense_information_scale": "dense.information_scale",
     "photometric_plane_refinement": "photometric.enabled",
-    "photometric_max_pixels": "photometric.max_pixels",
-    "photometric_information_scale": "photometric.information_scale",
     "min_inliers": "gates.min_inliers",
-    "min_fitness": "gates.min_fitness",
     "min_overlap": "gates.min_overlap",
-    "max_inlier_rmse_m": "gates.max_inlier_rmse_sigmas",
-    "max_icp_shift_m": "gates.max_icp_shift_sigmas",
-    "max_weak_sigma_m": "gates.max_weak_sigma_sigmas",
-    "min_texture_agreement": "gates.min_texture_agreement",
-    "min_texture_overlap": "gates.min_texture_overlap",
 }
 """Old flat ``registration`` key -> its new dotted key in the section."""
 
-_IN_POINT_SIGMAS = {"ransac_threshold_m", "max_inlier_rmse_m", "max_icp_shift_m", "max_weak_sigma_m"}
+_RETIRED: dict[str, tuple[Any, str, str | None]] = {
+    "features.max_width_px": (1024, "a blob detector's finest scales on a wider image are sensor noise", None),
+    "features.surf_hessian_threshold": (3e-6, "low, so weak texture yields keypoints; features.max_features keeps the strongest", "registration.features.max_features"),
+    "keypoints.ratio_test": (0.9, "permissive: the mutual check and 3D RANSAC reject outliers geometrically", None),
+    "keypoints.mutual_check": (True, "a true correspondence is the nearest neighbour both ways", None),
+    "keypoints.information_scale": (0.1, "n keypoints of one detector on one texture are worth ~n/10 independent points", None),
+    "keypoints.edge_sigmas": (10.0, "a depth edge spans more than 10 point sigmas; noise rarely half of it", "registration.noise.point_sigma_m"),
+    "ransac.max_iterations": (10000, "3-point samples at 0.9999 confidence need ~9200 draws at an inlier ratio of 0.1", None),
+    "ransac.confidence": (0.9999, "one all-inlier sample missed in 10^4 pairs", None),
+    "icp.correspondence_voxels": (1.0, "the sampling offset between two voxelised clouds is one voxel", "registration.noise.voxel_m"),
+    "icp.max_iterations": (50, "GICP converges in 5-20 iterations from a RANSAC pose; 50 bounds one that does not", None),
+    "icp.coarse_voxels": (2.0, "reaching the dense fit's basin needs half the surface sampling", "registration.noise.voxel_m"),
+    "icp.min_voxels": (30, "5 residuals per degree of freedom for a 6-dof information", None),
+    "icp.information_scale": (1.0, "the residuals' correlation is the sensor's", "registration.noise.information_correlation"),
+    "icp.convergence_sigmas": (0.002, "ICP stops two orders under the point noise", "registration.noise.point_sigma_m"),
+    "weak_directions.degeneracy_ratio": (0.02, "an eigenvalue under 2 % of the trace: a standard deviation over 7 times the best direction's", None),
+    "weak_directions.plane_from_keypoints": (True, "on a plane only the keypoints see the in-plane directions", None),
+    "weak_directions.plane_disagreement_probability": (0.9999, "chi-square 3 dof: one false alarm in 10^4 pairs", None),
+    "weak_directions.joint_optimum_probability": (0.999, "chi-square 6 dof: one false alarm in 10^3 pairs", None),
+    "weak_directions.hold_ratio": (1e6, "a held direction steps 1e-6 of the rest, 10^10 from float64's precision", None),
+    "dense.stride_px": (2, "the span of correlated depth errors is the sensor's", "registration.noise.dense_stride_px"),
+    "dense.coarse_stride_px": (4, "the first iterations take twice the final stride", "registration.noise.dense_stride_px"),
+    "dense.max_points": (160000, "a cost bound: 160000 pixels hold the information of the overlap", None),
+    "dense.coarse_iterations": (2, "Gauss-Newton from ICP's pose converges quadratically: two coarse steps and one fine", None),
+    "dense.fine_iterations": (1, "Gauss-Newton from ICP's pose converges quadratically: two coarse steps and one fine", None),
+    "dense.information_scale": (0.15, "neighbouring pixels' errors correlate over the phase filter (NEES-calibrated)", None),
+    "photometric.max_pixels": (100000, "the strongest texture gradients carry the information; more pixels add cost", None),
+    "photometric.information_scale": (0.01, "texture errors correlate over the blur kernel and the shading model (NEES-calibrated)", None),
+    "gates.min_fitness": (0.1, "overlap is at most fitness: the overlap gate decides", "registration.gates.min_overlap"),
+    "gates.max_inlier_rmse_sigmas": (4.0, "surfaces that fit within their noise", "registration.noise.point_sigma_m"),
+    "gates.max_icp_shift_sigmas": (6.0, "1.5 RANSAC inlier distances bound RANSAC's basin", "registration.ransac.inlier_sigmas"),
+    "gates.max_weak_sigma_sigmas": (4.0, "weak directions pinned as well as RANSAC's inlier distance", "registration.ransac.inlier_sigmas"),
+    "gates.min_texture_agreement": (0.9, "a true revisit's blocks agree but for occlusions and specular spots", None),
+    "gates.min_texture_overlap": (0.7, "the agreeing overlap must include the surroundings", None),
+    "gates.min_agreement_blocks": (20, "fewer blocks' agreement share has a standard error over 7 % (binomial at 0.9)", None),
+    "gates.texture_distance_sigmas": (6.0, "the same surface is within ICP's basin", "registration.noise.point_sigma_m"),
+    "gates.min_texture_px": (32, "a descriptor patch needs 32 px (ORB 31 px, SURF's smallest scale)", None),
+}
+"""Registration keys that are constants of the code now: ``(old default, why, what to set instead)``."""
+
+_RETIRED_FLAT: dict[str, tuple[str, Any]] = {
+    "feature_max_width_px": ("features.max_width_px", 1024),
+    "surf_hessian_threshold": ("features.surf_hessian_threshold", 3e-6),
+    "ratio_test": ("keypoints.ratio_test", 0.9),
+    "mutual_check": ("keypoints.mutual_check", True),
+    "keypoint_information_scale": ("keypoints.information_scale", 0.1),
+    "ransac_iterations": ("ransac.max_iterations", 10000),
+    "ransac_confidence": ("ransac.confidence", 0.9999),
+    "icp_max_correspondence_m": ("icp.correspondence_voxels", 0.004),
+    "icp_max_iterations": ("icp.max_iterations", 50),
+    "dense_icp_voxel_m": ("icp.coarse_voxels", 0.004),
+    "information_scale": ("icp.information_scale", 1.0),
+    "degeneracy_ratio": ("weak_directions.degeneracy_ratio", 0.02),
+    "plane_from_keypoints": ("weak_directions.plane_from_keypoints", True),
+    "dense_stride_px": ("dense.stride_px", 2),
+    "dense_coarse_stride_px": ("dense.coarse_stride_px", 4),
+    "dense_max_points": ("dense.max_points", 160000),
+    "dense_coarse_iterations": ("dense.coarse_iterations", 2),
+    "dense_fine_iterations": ("dense.fine_iterations", 1),
+    "dense_information_scale": ("dense.information_scale", 0.15),
+    "photometric_max_pixels": ("photometric.max_pixels", 100000),
+    "photometric_information_scale": ("photometric.information_scale", 0.01),
+    "min_fitness": ("gates.min_fitness", 0.1),
+    "max_inlier_rmse_m": ("gates.max_inlier_rmse_sigmas", 0.002),
+    "max_icp_shift_m": ("gates.max_icp_shift_sigmas", 0.003),
+    "max_weak_sigma_m": ("gates.max_weak_sigma_sigmas", 0.002),
+    "min_texture_agreement": ("gates.min_texture_agreement", 0.9),
+    "min_texture_overlap": ("gates.min_texture_overlap", 0.7),
+}
+"""Old flat keys whose sectioned key is retired: retired too (the metre ones at their metre default)."""
+
+retire_keys({
+    **{f"registration.{key}": RetiredKey(value, reason, replacement) for key, (value, reason, replacement) in _RETIRED.items()},
+    **{f"registration.{old}": RetiredKey(value, _RETIRED[new][1], _RETIRED[new][2]) for old, (new, value) in _RETIRED_FLAT.items()},
+})
 
 
 def _converted(old: str, value: Any, data: dict[str, Any]) -> tuple[Any, str]:
@@ -516,17 +407,8 @@ def _converted(old: str, value: Any, data: dict[str, Any]) -> tuple[Any, str]:
     if not isinstance(noise, dict):  # given as a NoiseModel
         noise = noise.model_dump()
     sigma = noise.get("point_sigma_m") or FPP_NOISE.point_sigma_m
-    voxel = noise.get("voxel_m") or data.get("icp_voxel_m") or FPP_NOISE.voxel_m
-    if not isinstance(value, int | float) or isinstance(value, bool):
-        return value, ""
-    if old in _IN_POINT_SIGMAS:
+    if old == "ransac_threshold_m" and isinstance(value, int | float) and not isinstance(value, bool):
         return value / sigma, f" in noise.point_sigma_m ({1e3 * sigma:g} mm)"
-    if old == "dense_icp_voxel_m":
-        return value / voxel, f" in noise.voxel_m ({1e3 * voxel:g} mm)"
-    if old == "icp_max_correspondence_m":
-        ransac_sigmas = data.get("ransac_threshold_m", RansacConfig().inlier_sigmas * sigma) / sigma
-        ransac_m = (data.get("ransac") or {}).get("inlier_sigmas", ransac_sigmas) * sigma
-        return max(0.0, value - ransac_m) / voxel, f" (beyond RANSAC's {1e3 * ransac_m:g} mm) in noise.voxel_m ({1e3 * voxel:g} mm)"
     return value, ""
 
 

@@ -35,6 +35,7 @@ from numpy.typing import NDArray
 
 from fpp_graph.errors import InputDataError
 from fpp_graph.geometry import invert, se3_exp, se3_log
+from frontend.config import RegistrationConfig
 from frontend.organised_surface import (
     OrganisedSurface,
     fit_pinhole,
@@ -44,6 +45,25 @@ from frontend.organised_surface import (
 log = logging.getLogger(__name__)
 
 Array = NDArray[np.float64]
+
+
+DENSE_COARSE_STRIDE_FACTOR = 2
+"""The first iterations sample every (2 x ``noise.dense_stride_px``)-th pixel: they only have to
+reach the final stride's basin, at a quarter of its cost."""
+
+DENSE_MAX_POINTS = 160000
+"""Both strides grow until the final iterations sample at most this many pixels per map: a cost
+bound on a pair; beyond it the information grows, the pose error no longer (correlated errors)."""
+
+DENSE_COARSE_ITERATIONS = 2
+DENSE_FINE_ITERATIONS = 1
+"""Gauss-Newton from ICP's pose converges quadratically: two coarse steps and one at the final
+stride reach the noise floor."""
+
+DENSE_INFORMATION_SCALE = 0.15
+"""Multiplies the dense information: neighbouring pixels' errors correlate (a decoder's filter, a
+depth camera's correlation window span several pixels), so the independent-residual information
+is too confident by about this factor (calibrated by NEES)."""
 
 
 def point_to_plane_jacobian(T_target_source: Array, source_points: Array, target_normals: Array) -> Array:
@@ -253,33 +273,57 @@ def dense_information(
     return evaluate_dense(target, source, T, stride_px, gate_m, max_normal_angle_deg, symmetric).information(noise_floor_m)
 
 
+@dataclass(frozen=True)
+class DenseSchedule:
+    """What :func:`align_dense` iterates: ``coarse_iterations`` at ``coarse_stride_px``, then at most
+    ``fine_iterations`` at ``fine_stride_px`` (both strides grow in the same proportion until the
+    finer one samples at most ``max_points`` pixels of the larger map: an iteration's cost is
+    linear in the samples), from the residual gate ``max_distance_m`` (it shrinks to six robust
+    sigmas as the fit converges)."""
+
+    coarse_stride_px: int = 4
+    fine_stride_px: int = 1
+    coarse_iterations: int = 12
+    fine_iterations: int = 2
+    max_distance_m: float = 0.004
+    max_points: int | None = None
+
+    @classmethod
+    def of(cls, config: RegistrationConfig) -> DenseSchedule:
+        """A pair's schedule: the sensor's stride (``noise.dense_stride_px``), the correspondence gate."""
+        stride = config.sensor_noise().dense_stride_px
+        return cls(DENSE_COARSE_STRIDE_FACTOR * stride, stride, DENSE_COARSE_ITERATIONS, DENSE_FINE_ITERATIONS,
+                   config.lengths.icp_max_correspondence_m, DENSE_MAX_POINTS)
+
+    def strides(self, target: OrganisedSurface, source: OrganisedSurface) -> tuple[int, int]:
+        """The coarse and fine strides on these maps (:func:`dense_strides`)."""
+        return dense_strides(target, source, self.coarse_stride_px, self.fine_stride_px, self.max_points)
+
+
+MAX_NORMAL_ANGLE_DEG = 45.0
+"""Correspondences whose normals differ more are dropped: occlusions and thin structures."""
+NOISE_FLOOR_M = 2e-5
+"""Lower bound of the robust residual scale: a tenth of the finest sensor's point noise."""
+STEP_TOLERANCE = 1e-7
+"""A fit stops once a step moves under 0.1 micrometre and 0.1 microradian."""
+
+
 def align_dense(
-    target: OrganisedSurface, source: OrganisedSurface, T_init: NDArray, prior_information: NDArray | None = None,
-    coarse_stride_px: int = 4, fine_stride_px: int = 1, max_points: int | None = None, max_iterations: int = 12, fine_iterations: int = 2,
-    max_distance_m: float = 0.004, max_normal_angle_deg: float = 45.0, noise_floor_m: float = 2e-5, step_tolerance: float = 1e-7,
-    symmetric: bool = True, start: DenseEvaluation | None = None,
+    target: OrganisedSurface, source: OrganisedSurface, T_init: NDArray, schedule: DenseSchedule = DenseSchedule(),
+    prior_information: NDArray | None = None, start: DenseEvaluation | None = None,
 ) -> DenseAlignment:
-    """Refine ``T_target_source`` by dense point-to-plane alignment of two organised maps.
+    """Refine ``T_target_source`` by dense point-to-plane alignment of two organised maps
+    (symmetric: both maps' pixels, each against the other's surface).
 
     Parameters
     ----------
     target, source : OrganisedSurface
     T_init : (4, 4)
         Initial ``T_target_source`` (within about the correspondence gate: a GICP result).
+    schedule : DenseSchedule
+        Strides, iterations and the initial residual gate.
     prior_information : (6, 6), optional
         ``[rot, trans]`` information of a Gaussian prior centred on ``T_init``.
-    coarse_stride_px, fine_stride_px : int
-        Pixel strides of the coarse iterations and of the last ``fine_iterations``.
-    max_points : int, optional
-        Both strides grow (in the same proportion) until the finer one samples at most this
-        many pixels of the larger map: the cost of an iteration is linear in the samples, and a
-        wall filling a 1920x1200 view has four times the doll's pixels.
-    max_distance_m : float
-        Initial residual gate; it shrinks to six robust sigmas as the fit converges.
-    max_normal_angle_deg : float
-        Correspondences whose normals differ more are dropped (occlusions, thin structures).
-    noise_floor_m : float
-        Lower bound of the robust residual scale.
     start : DenseEvaluation, optional
         Normal equations already formed (:func:`evaluate_dense`, e.g. to ask whether the
         surfaces have relief); the first iteration takes them when they were formed at
@@ -294,6 +338,8 @@ def align_dense(
     InputDataError
         Fewer than 6 correspondences at the initial pose.
     """
+    max_normal_angle_deg, noise_floor_m, step_tolerance, symmetric = MAX_NORMAL_ANGLE_DEG, NOISE_FLOOR_M, STEP_TOLERANCE, True
+    max_distance_m, max_iterations, fine_iterations = schedule.max_distance_m, schedule.coarse_iterations, schedule.fine_iterations
     T0 = np.asarray(T_init, dtype=np.float64)
     Lambda = None if prior_information is None else 0.5 * (np.asarray(prior_information, float) + np.asarray(prior_information, float).T)
     min_cos = math.cos(math.radians(max_normal_angle_deg))
@@ -317,7 +363,7 @@ def align_dense(
         small = float(np.linalg.norm(xi[:3])) < step_tolerance and float(np.linalg.norm(xi[3:])) < step_tolerance
         return small, info, sigma, int(np.count_nonzero(w)), used
 
-    coarse_stride_px, fine_stride_px = dense_strides(target, source, coarse_stride_px, fine_stride_px, max_points)
+    coarse_stride_px, fine_stride_px = schedule.strides(target, source)
     for _ in range(max_iterations if coarse_stride_px != fine_stride_px else 0):
         if iterate(coarse_stride_px)[0]:
             break
@@ -332,4 +378,4 @@ def align_dense(
     return DenseAlignment(T, info, sigma, n_used, iterations, converged, used, sampled, state["gate"])
 
 
-__all__ = ["DenseAlignment", "DenseEvaluation", "OrganisedSurface", "align_dense", "dense_information", "evaluate_dense", "dense_strides", "cross_rows", "fit_pinhole", "point_to_plane_jacobian", "sample_bilinear"]
+__all__ = ["DenseAlignment", "DenseEvaluation", "DenseSchedule", "OrganisedSurface", "align_dense", "dense_information", "evaluate_dense", "dense_strides", "cross_rows", "fit_pinhole", "point_to_plane_jacobian", "sample_bilinear"]

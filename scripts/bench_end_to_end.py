@@ -84,7 +84,7 @@ def instrument(timers: ExclusiveTimers) -> None:
     timers.wrap(frontend.fpp.sequence.Sequence, "load_frame_images", "read PNG")
     timers.wrap(frontend.fpp.sensor.FppSensor, "frame_from_images", "decode + triangulate")
     timers.wrap(frontend.features.detect, "detect_and_describe", "features")
-    timers.wrap(frontend.registration.FppPairRegistrar, "register", "registration")
+    timers.wrap(frontend.registration.TexturedSurfaceRegistrar, "register", "registration")
     timers.wrap(PoseGraph, "optimize", "pose graph")
     timers.wrap(PoseGraph, "marginal_covariance", "pose graph")
     timers.wrap(fpp_graph.slam.keyframes.KeyframeManager, "process", "keyframes + loop detection")

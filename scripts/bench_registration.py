@@ -3,7 +3,7 @@
 Stages: features on both frames (detect + describe), matching, lift + RANSAC, ICP cloud
 preparation (organised subsample, voxel grid, KD-trees, normals/covariances of the ICP subsets),
 ICP, information/verification, dense point-to-plane refinement. The bench wall's bumps are
-shallow enough to count as plane-like under the default ``weak_directions.degeneracy_ratio`` (the dense stage is
+shallow enough to count as plane-like under the default ``DEGENERACY_RATIO`` (the dense stage is
 then skipped), so SURF also runs with ``--dense-ratio`` (default 0.01) to time the dense stage,
 and with ``dense.enabled`` off as the peer without it. A flat wall (same poses) times the
 plane-like path: with the rig's camera (``TextureCamera``) the dense fit holds the tilts and
@@ -35,7 +35,8 @@ import numpy as np  # noqa: E402
 
 from fpp_graph.geometry import invert, pose_error  # noqa: E402
 from frontend.config import RegistrationConfig  # noqa: E402
-from frontend.registration import FppPairRegistrar, TextureCamera  # noqa: E402
+from frontend.registration import TexturedSurfaceRegistrar, TextureCamera  # noqa: E402
+from frontend.registration.weak_directions import DEGENERACY_RATIO  # noqa: E402
 from frontend.testing.synthetic_frames import (  # noqa: E402
     bumpy_wall_scene,
     camera_matrix,
@@ -44,7 +45,18 @@ from frontend.testing.synthetic_frames import (  # noqa: E402
 )
 
 
-def fa_kp(reg: FppPairRegistrar, frame) -> np.ndarray:
+def _set_degeneracy_ratio(ratio: float) -> None:
+    """Every registration stage judging weak directions at ``ratio`` (a bench setting, not a config key)."""
+    import frontend.registration.refinement
+    import frontend.registration.registrar
+    import frontend.registration.stages
+    import frontend.registration.tracking
+
+    for module in (frontend.registration.stages, frontend.registration.refinement, frontend.registration.registrar, frontend.registration.tracking):
+        module.DEGENERACY_RATIO = ratio
+
+
+def fa_kp(reg: TexturedSurfaceRegistrar, frame) -> np.ndarray:
     """Keypoints the registrar computed for ``frame`` (its cache)."""
     kp = reg.describe(frame).keypoints_uv
     return kp if kp is not None else np.zeros((0, 2))
@@ -58,7 +70,7 @@ def main() -> None:
     ap.add_argument("--height", type=int, default=1200)
     ap.add_argument("--voxel-m", type=float, default=None, help="override registration.noise.voxel_m")
     ap.add_argument("--no-flat", action="store_true", help="skip the flat-wall rows (plane-like path with and without the photometric refinement)")
-    ap.add_argument("--dense-ratio", type=float, default=0.01, help="weak_directions.degeneracy_ratio of the surf+dense row (the dense stage runs on this wall)")
+    ap.add_argument("--dense-ratio", type=float, default=0.01, help="DEGENERACY_RATIO of the surf+dense rows (the dense stage runs on this wall)")
     args = ap.parse_args()
     cv2.setNumThreads(1)
     scene = bumpy_wall_scene(seed=0)
@@ -74,7 +86,7 @@ def main() -> None:
     pairs = {"relief": (a, b)}
     camera = None
     if "surf" in args.features.split(","):
-        weak = {"weak_directions": {"degeneracy_ratio": args.dense_ratio}}
+        weak = {"_ratio": args.dense_ratio}
         rows += [("surf+dense", "surf", weak), ("surf-nodense", "surf", {"dense": {"enabled": False}, **weak})]
         if not args.no_flat:
             # a flat wall with the rig's camera: the plane-like path (dense fit holding the tilts and
@@ -87,8 +99,9 @@ def main() -> None:
         overrides = dict(overrides)
         pa, pb = pairs[overrides.pop("_pair", "relief")]
         with_camera = overrides.pop("_camera", False)
+        _set_degeneracy_ratio(overrides.pop("_ratio", DEGENERACY_RATIO))
         extra = {} if args.voxel_m is None else {"noise": {"voxel_m": args.voxel_m}}
-        reg = FppPairRegistrar(RegistrationConfig(features={"type": feat}, **extra, **overrides), texture_camera=camera if with_camera else None)
+        reg = TexturedSurfaceRegistrar(RegistrationConfig(features={"type": feat}, **extra, **overrides), texture_camera=camera if with_camera else None)
         runs = []
         for _ in range(args.repeat):
             fa, fb = dataclasses.replace(pa), dataclasses.replace(pb)  # fresh objects: no cache hits

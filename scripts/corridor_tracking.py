@@ -23,7 +23,7 @@ from fpp_graph.evaluation.metrics import ate_rpe
 from fpp_graph.slam.frame_store import FrameStore, load_frame
 from fpp_graph.slam.keyframes import KeyframeManager
 from fpp_graph.trajectory import Trajectory, read_tum
-from frontend.registration import FppPairRegistrar
+from frontend.registration import TexturedSurfaceRegistrar
 
 
 def main() -> None:
@@ -38,7 +38,7 @@ def main() -> None:
     G = read_tum(args.gt).poses_world_sensor
     store = FrameStore.open(args.results / "frames", max_in_memory=cfg.run.frames_in_memory)
     ids = sorted(store.ids)[: args.frames]
-    manager = KeyframeManager(FppPairRegistrar(cfg.registration), cfg, store=store)
+    manager = KeyframeManager(TexturedSurfaceRegistrar(cfg.registration), cfg, store=store)
     t0 = time.time()
     for i in ids:
         manager.process(load_frame(store.path_of(i)))

@@ -54,10 +54,10 @@ from fpp_graph.errors import ConfigError  # noqa: E402
 from fpp_graph.geometry import invert, pose_error, se3_log  # noqa: E402
 from fpp_graph.types import ConstraintKind, Frame  # noqa: E402
 from frontend.config import RegistrationConfig  # noqa: E402
-from frontend.features.detect import match_descriptors  # noqa: E402
+from frontend.features.detect import MATCH_RATIO, match_descriptors  # noqa: E402
 from frontend.fpp.sensor import FppSensor  # noqa: E402
-from frontend.localization import DenseReference, localize_dlt, localize_photometric  # noqa: E402
-from frontend.registration import FppPairRegistrar, TextureCamera, lift_keypoints  # noqa: E402
+from frontend.localization import DenseReference, PhotometricQuery, PhotometricSettings, localize_dlt, localize_photometric  # noqa: E402
+from frontend.registration import TexturedSurfaceRegistrar, TextureCamera, lift_keypoints  # noqa: E402
 from frontend.sim import (  # noqa: E402
     FppSimulator,
     binned_calibration,
@@ -129,13 +129,13 @@ def pct(x, qs=(50, 90, 100)) -> str:
 # ---------------------------------------------------------------------------------------------
 # line 1 + 3 + 4: accuracy, NEES, DLT over adjacent pairs
 # ---------------------------------------------------------------------------------------------
-def dlt_rows(reg: FppPairRegistrar, c, a: Frame, b: Frame, T_true: np.ndarray, K, dist) -> dict:
+def dlt_rows(reg: TexturedSurfaceRegistrar, c, a: Frame, b: Frame, T_true: np.ndarray, K, dist) -> dict:
     """DLT of the source camera in the target frame (independent of the registration's pose):
     all descriptor matches lifted through the target's xyz map, DLT + RANSAC + LM, then the
     dense KLT refinement; compared with the truth and with the registration when accepted."""
     out: dict = {}
     A, B = reg.describe(a), reg.describe(b)
-    m = match_descriptors(A.descriptors, B.descriptors, reg.config.keypoints.ratio_test, reg.config.keypoints.mutual_check)
+    m = match_descriptors(A.descriptors, B.descriptors, MATCH_RATIO, True)
     X, ok = lift_keypoints(a.xyz_map, A.keypoints_uv[m[:, 0]])
     if ok.sum() < 6:
         return out
@@ -162,7 +162,7 @@ def dlt_rows(reg: FppPairRegistrar, c, a: Frame, b: Frame, T_true: np.ndarray, K
 
 def run_pairs(group: str, frames: SimulatedFrames, pairs: list[tuple[int, int]], features: list[str], with_dlt: bool) -> list[dict]:
     camera = TextureCamera.from_rig(frames.decoding)  # as the pipeline's FPP source builds it: from the calibration it decodes with
-    regs = {f: FppPairRegistrar(RegistrationConfig(features={"type": f}), texture_camera=camera) for f in features}
+    regs = {f: TexturedSurfaceRegistrar(RegistrationConfig(features={"type": f}), texture_camera=camera) for f in features}
     rows = []
     cache: dict[int, Frame] = {}
     for i, j in pairs:
@@ -261,7 +261,7 @@ def run_map_localisation(group: str, frames: SimulatedFrames, triples: list[tupl
     P = frames.poses
     Tpc = frames.decoding.T_projector_camera
     proj_centre = -Tpc[:3, :3].T @ Tpc[:3, 3]
-    reg = FppPairRegistrar(RegistrationConfig())
+    reg = TexturedSurfaceRegistrar(RegistrationConfig())
     rows = []
     for km1, k, kp1 in triples:
         F = {j: frames.frame(P[j], j) for j in (km1, k, kp1)}
@@ -283,9 +283,9 @@ def run_map_localisation(group: str, frames: SimulatedFrames, triples: list[tupl
         c_reg = (P[km1] @ c.T_target_source)[:3, 3] if c.accepted else None
         refs = {j: DenseReference(F[j].xyz_map, F[j].texture, P[j]) for j in (km1, kp1)}
         valid_query = np.isfinite(F[k].xyz_map[..., 2])
-        photometric = functools.partial(localize_photometric, texture_query=F[k].texture, T_query_world_init=loc.T_camera_world, K=frames.K,
-                                        dist=frames.dist, projector_centre_m=proj_centre, valid_query=valid_query, max_pixels=photometric_pixels,
-                                        range_smoothing_px=photometric_smoothing_px)
+        query = PhotometricQuery(F[k].texture, loc.T_camera_world, frames.K, frames.dist, proj_centre, valid_query)
+        photometric = functools.partial(lambda refs_used: localize_photometric(
+            refs_used, query, PhotometricSettings(max_pixels=photometric_pixels, range_smoothing_px=photometric_smoothing_px)))
         runs = {
             "klt": functools.partial(localize_dense_map, [refs[km1], refs[kp1]], F[k].texture, loc.T_camera_world, frames.K, frames.dist,
                                      tracker="klt", max_points=max_points, min_distance_px=min_distance_px),
@@ -344,7 +344,7 @@ def corridor_lookalike_poses(frames: SimulatedFrames, offsets: list[tuple[float,
 
 
 def run_rejection(frames: SimulatedFrames, n_frames: int, n_lookalike_offsets: int, seed: int) -> dict:
-    reg = FppPairRegistrar(RegistrationConfig(), texture_camera=TextureCamera.from_rig(frames.decoding))
+    reg = TexturedSurfaceRegistrar(RegistrationConfig(), texture_camera=TextureCamera.from_rig(frames.decoding))
     poses = frames.poses
     centres = poses[:, :3, 3]
     looks = poses[:, :3, 2]

@@ -36,7 +36,7 @@ import numpy as np  # noqa: E402
 from fpp_graph.geometry import invert, pose_error, se3_log  # noqa: E402
 from frontend.config import RegistrationConfig  # noqa: E402
 from frontend.localization import localize_dlt  # noqa: E402
-from frontend.registration import FppPairRegistrar, lift_keypoints  # noqa: E402
+from frontend.registration import TexturedSurfaceRegistrar, lift_keypoints  # noqa: E402
 from frontend.testing.synthetic_frames import bumpy_wall_scene, render_frame, wall_pose  # noqa: E402
 
 W, H = 640, 400
@@ -80,7 +80,7 @@ def pct(x, qs=(50, 90, 100)) -> str:
 def accuracy(pairs, features) -> dict:
     out = {}
     for feat in features:
-        reg = FppPairRegistrar(RegistrationConfig(features={"type": feat}, icp={"information_scale": 1.0}))
+        reg = TexturedSurfaceRegistrar(RegistrationConfig(features={"type": feat}))
         rows = []
         for kind, a, b, T_true in pairs:
             t0 = time.perf_counter()
@@ -123,7 +123,7 @@ def accuracy(pairs, features) -> dict:
 
 
 def rejection(seed: int) -> dict:
-    reg = FppPairRegistrar(RegistrationConfig())
+    reg = TexturedSurfaceRegistrar(RegistrationConfig())
     frames = []
     positions = [(x, y) for x in (-0.85, -0.3, 0.25, 0.8) for y in (-0.36, 0.36)]
     for s in range(3):

@@ -24,7 +24,9 @@ from frontend.config import (
     SensorNoise,
     chi2_quantile,
 )
-from frontend.rgbd.source import KINECT_V1_NOISE, RGBD_DENSE_STRIDE_FLOOR_PX, RgbdSource
+from frontend.dense_alignment import DenseSchedule
+from frontend.registration.weak_directions import JOINT_OPTIMUM_PROBABILITY, PLANE_DISAGREEMENT_PROBABILITY
+from frontend.rgbd.source import KINECT_V1_NOISE, RgbdSource
 
 # the FPP thresholds before they were expressed from the noise model: the defaults must give them exactly
 OLD_FPP_LENGTHS = {
@@ -55,11 +57,13 @@ def test_default_thresholds_are_the_fpp_rigs():
     assert RegistrationConfig().with_noise(FPP_NOISE).lengths == lengths
 
 
-def test_rgbd_differs_from_fpp_by_its_noise_model_and_dense_stride_only():
+def test_rgbd_differs_from_fpp_by_its_noise_model_only():
     fpp, rgbd = Config().registration, RgbdSource.resolve_config(Config()).registration
-    assert rgbd.model_copy(update={"noise": fpp.noise, "dense": fpp.dense}) == fpp
+    assert rgbd.model_copy(update={"noise": fpp.noise}) == fpp
     # the Kinect's 9x9 correlation window: every 4th pixel (coarse steps every 8th), not FPP's 2nd
-    assert (rgbd.dense.stride_px, rgbd.dense.coarse_stride_px) == (RGBD_DENSE_STRIDE_FLOOR_PX, 2 * RGBD_DENSE_STRIDE_FLOOR_PX)
+    schedule = DenseSchedule.of(rgbd)
+    assert (schedule.fine_stride_px, schedule.coarse_stride_px) == (4, 8)
+    assert (DenseSchedule.of(fpp).fine_stride_px, DenseSchedule.of(fpp).coarse_stride_px) == (2, 4)
     assert rgbd.sensor_noise() == KINECT_V1_NOISE
     sigma = KINECT_V1_NOISE.point_sigma_m
     lengths = rgbd.lengths
@@ -76,14 +80,15 @@ def test_rgbd_differs_from_fpp_by_its_noise_model_and_dense_stride_only():
     mine = config_from_dict({"registration": {"noise": {"point_sigma_m": 0.004}}})
     resolved = RgbdSource.resolve_config(mine).registration
     assert resolved.noise.point_sigma_m == 0.004 and resolved.noise.voxel_m == KINECT_V1_NOISE.voxel_m
-    coarser = RgbdSource.resolve_config(config_from_dict({"registration": {"dense": {"stride_px": 6}}})).registration.dense
-    assert (coarser.stride_px, coarser.coarse_stride_px) == (6, 12)
+    # a user's stride wins over the source's, finer or coarser
+    for stride in (2, 6):
+        mine = RgbdSource.resolve_config(config_from_dict({"registration": {"noise": {"dense_stride_px": stride}}})).registration
+        assert (DenseSchedule.of(mine).fine_stride_px, DenseSchedule.of(mine).coarse_stride_px) == (stride, 2 * stride)
 
 
 def test_chi_square_probabilities_give_the_former_constants():
-    cfg = RegistrationConfig().weak_directions
-    assert chi2_quantile(cfg.plane_disagreement_probability, 3) == pytest.approx(21.108, abs=1e-3)
-    assert chi2_quantile(cfg.joint_optimum_probability, 6) == pytest.approx(22.458, abs=1e-3)
+    assert chi2_quantile(PLANE_DISAGREEMENT_PROBABILITY, 3) == pytest.approx(21.108, abs=1e-3)
+    assert chi2_quantile(JOINT_OPTIMUM_PROBABILITY, 6) == pytest.approx(22.458, abs=1e-3)
 
 
 def test_old_flat_keys_still_work_with_a_warning_naming_the_new_key(tmp_path):
@@ -99,19 +104,27 @@ def test_old_flat_keys_still_work_with_a_warning_naming_the_new_key(tmp_path):
     assert reg.lengths.ransac_inlier_m == pytest.approx(0.003)
 
 
-def test_every_old_metre_key_keeps_its_length():
-    old = {"ransac_threshold_m": 0.0025, "icp_voxel_m": 0.003, "icp_max_correspondence_m": 0.007, "dense_icp_voxel_m": 0.006,
-           "max_inlier_rmse_m": 0.0021, "max_icp_shift_m": 0.0041, "max_weak_sigma_m": 0.0013}
+def test_every_old_metre_key_keeps_its_length_or_is_retired_at_it():
+    old = {"ransac_threshold_m": 0.0025, "icp_voxel_m": 0.003}
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", DeprecationWarning)
         lengths = RegistrationConfig(**old).lengths
     assert lengths.ransac_inlier_m == pytest.approx(0.0025)
     assert lengths.icp_voxel_m == pytest.approx(0.003)
-    assert lengths.icp_max_correspondence_m == pytest.approx(0.007)
-    assert lengths.icp_coarse_voxel_m == pytest.approx(0.006)
-    assert lengths.max_inlier_rmse_m == pytest.approx(0.0021)
-    assert lengths.max_icp_shift_m == pytest.approx(0.0041)
-    assert lengths.max_weak_sigma_m == pytest.approx(0.0013)
+    fixed = {"icp_max_correspondence_m": 0.004, "dense_icp_voxel_m": 0.004, "max_inlier_rmse_m": 0.002, "max_icp_shift_m": 0.003,
+             "max_weak_sigma_m": 0.002}
+    lengths = config_from_dict({"registration": fixed}).registration.lengths
+    assert (lengths.icp_max_correspondence_m, lengths.icp_coarse_voxel_m, lengths.max_inlier_rmse_m) == pytest.approx((0.004, 0.004, 0.002))
+    assert (lengths.max_icp_shift_m, lengths.max_weak_sigma_m) == pytest.approx((0.003, 0.002))
+    with pytest.raises(ConfigError, match=r"registration\.max_icp_shift_m is no longer a setting .*set registration\.ransac\.inlier_sigmas instead"):
+        config_from_dict({"registration": {"max_icp_shift_m": 0.0041}})
+
+
+def test_retired_registration_keys_load_at_their_value_and_name_what_to_set():
+    loaded = config_from_dict({"registration": {"icp": {"max_iterations": 50}, "dense": {"stride_px": 2}, "degeneracy_ratio": 0.02}})
+    assert loaded.registration == RegistrationConfig()
+    with pytest.raises(ConfigError, match=r"registration\.dense\.stride_px is no longer a setting .*set registration\.noise\.dense_stride_px instead"):
+        config_from_dict({"registration": {"dense": {"stride_px": 4}}})
 
 
 def test_every_old_key_names_an_existing_new_key():

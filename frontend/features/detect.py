@@ -62,6 +62,22 @@ def _opencv_detector(make: Callable[[], cv2.Feature2D], max_features: int, max_w
     return detect
 
 
+MAX_WIDTH_PX = 1024
+"""Wider textures are reduced by an integer factor before detection: a blob detector's finest
+scales on a larger image are the sensor's noise, not the surface's texture."""
+
+SURF_HESSIAN_THRESHOLD = 3e-6
+"""SURF's det(H) threshold on the contrast-stretched image in [0, 1]: low, so weakly textured
+surfaces still yield keypoints (``features.max_features`` keeps the strongest elsewhere)."""
+
+
+MATCH_RATIO = 0.9
+"""Lowe's ratio of best to second-best descriptor distance: permissive, because the mutual check
+and 3D RANSAC reject outliers geometrically, and a strict ratio drops true matches on repetitive
+texture and large viewpoint changes. Matches are also mutual nearest neighbours: a true
+correspondence is the nearest neighbour both ways."""
+
+
 def make_detector(config: RegistrationConfig) -> Detector:
     """Build the detector+descriptor selected by ``config.features.type``.
 
@@ -73,9 +89,9 @@ def make_detector(config: RegistrationConfig) -> Detector:
     """
     features = config.features
     n = int(features.max_features)
-    width = int(features.max_width_px)
+    width = MAX_WIDTH_PX
     if features.type == "surf":
-        params = SurfParams(hessian_threshold=float(features.surf_hessian_threshold), max_features=n, max_working_width=width)
+        params = SurfParams(hessian_threshold=SURF_HESSIAN_THRESHOLD, max_features=n, max_working_width=width)
 
         def surf(image: NDArray[np.uint8]) -> tuple[NDArray[np.float64], NDArray]:
             kp = surf_detect_and_compute(image, params)
@@ -97,9 +113,9 @@ def feature_signature(config: RegistrationConfig) -> str:
     """What the keypoints of a frame were computed with: frames cached by an earlier run are
     re-described when any detector setting differs, not just the feature type."""
     features = config.features
-    sig = f"{features.type}:n={int(features.max_features)}:w={int(features.max_width_px)}"
+    sig = f"{features.type}:n={int(features.max_features)}:w={MAX_WIDTH_PX}"
     if features.type == "surf":
-        sig += f":h={float(features.surf_hessian_threshold):.3g}"
+        sig += f":h={SURF_HESSIAN_THRESHOLD:.3g}"
     return sig
 
 

@@ -20,6 +20,8 @@ from frontend.localization.dlt import (
 )
 from frontend.localization.photometric import (
     PhotometricLocalizationResult,
+    PhotometricQuery,
+    PhotometricSettings,
     localize_photometric,
     pyramid_for_start,
 )
@@ -29,6 +31,8 @@ __all__ = [
     "DenseReference",
     "LocalizationResult",
     "PhotometricLocalizationResult",
+    "PhotometricQuery",
+    "PhotometricSettings",
     "ReferencePixels",
     "decompose_projection",
     "dlt_projection_matrix",

@@ -36,9 +36,10 @@ from frontend.localization.dlt import LocalizationResult, localize_dlt
 from frontend.localization.photometric import (
     DenseReference,
     PhotometricLocalizationResult,
+    PhotometricQuery,
     localize_photometric,
 )
-from frontend.registration.keypoints import lift_keypoints
+from frontend.organised_surface import lift_keypoints
 
 log = logging.getLogger(__name__)
 
@@ -204,7 +205,7 @@ def locate_in_map(
     frames = [views[j].frame() for j in refs_idx]
     refs = [DenseReference(f.xyz_map, f.texture, views[j].T_world_frame) for f, j in zip(frames, refs_idx, strict=True)]
     try:
-        photometric = localize_photometric(refs, texture, dlt.T_camera_world, K, dist, projector_centre_m=projector_centre_m)
+        photometric = localize_photometric(refs, PhotometricQuery(texture, dlt.T_camera_world, K, dist, projector_centre_m))
     except (InputDataError, np.linalg.LinAlgError) as exc:
         log.info("photometric refinement not possible: %s", exc)
         photometric = None

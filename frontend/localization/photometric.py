@@ -99,27 +99,69 @@ def pyramid_for_start(start_sigma_px: float, iterations: Sequence[int] = PYRAMID
     return tuple(iterations[len(iterations) - min(len(iterations), coarsest + 1):])
 
 
-# Long only by its docstring (16 parameters); its code calls the named steps below.
+@dataclass(frozen=True, eq=False)
+class PhotometricQuery:
+    """The camera :func:`localize_photometric` locates.
+
+    Attributes
+    ----------
+    texture : (H, W) uint8
+    T_camera_world_init : (4, 4)
+        Initial ``T_camera_world`` (e.g. :func:`localize_dlt`), good to a few pixels.
+    K, dist : the camera's intrinsics and OpenCV distortion.
+    projector_centre_m : (3,), optional
+        The projector's centre in the sensor (camera) frame, shared by references and query.
+    valid : (H, W) bool, optional
+        Pixels lit by the projector (e.g. ``isfinite(xyz_map[..., 2])``).
+    """
+
+    texture: NDArray
+    T_camera_world_init: NDArray
+    K: NDArray
+    dist: NDArray | None = None
+    projector_centre_m: NDArray | None = None
+    valid: NDArray | None = None
+
+
+@dataclass(frozen=True)
+class PhotometricSettings:
+    """How :func:`localize_photometric` fits.
+
+    Attributes
+    ----------
+    max_pixels : int
+        Pixels per reference (the strongest gradients).
+    iterations : sequence of int
+        Gauss-Newton steps per pyramid level, coarsest first (one level per entry).
+    normal_step_px : int
+        Pixel step of the map's normals.
+    range_smoothing_px : float, optional
+        Smoothing of the map points along their rays (:func:`smoothed_along_rays`, 0: raw
+        points); default image width / 960 (2 px at 1920 wide).
+    max_range_smoothing_px : float, optional
+        Wider smoothing where the map is locally indistinguishable from a plane at that width
+        (:func:`adaptively_smoothed_along_rays`); default 5 x ``range_smoothing_px``; at or below
+        ``range_smoothing_px`` it is off.
+    min_pixels : int
+        Fewer map pixels in view and the fit fails.
+    stop_step_sigmas : float, optional
+        Stop at a pose step under this many standard deviations of its ``information`` (coarse
+        levels: :data:`COARSE_STOP_STEP_PX`; :func:`_level_converged`); default steps under 1e-7.
+    """
+
+    max_pixels: int = 150_000
+    iterations: tuple[int, ...] = PYRAMID_ITERATIONS
+    normal_step_px: int = 4
+    range_smoothing_px: float | None = None
+    max_range_smoothing_px: float | None = None
+    min_pixels: int = 2000
+    stop_step_sigmas: float | None = None
+
+
 def localize_photometric(
-    references: Sequence[DenseReference],
-    texture_query: NDArray,
-    T_query_world_init: NDArray,
-    K: NDArray,
-    dist: NDArray | None = None,
-    projector_centre_m: NDArray | None = None,
-    valid_query: NDArray | None = None,
-    max_pixels: int = 150_000,
-    levels: int = 3,
-    iterations: Sequence[int] = PYRAMID_ITERATIONS,
-    normal_step_px: int = 4,
-    range_smoothing_px: float | None = None,
-    max_range_smoothing_px: float | None = None,
-    min_pixels: int = 2000,
-    prior_information: NDArray | None = None,
-    stop_step_sigmas: float | None = None,
-    reference_pixels: Sequence[ReferencePixels] | None = None,
+    references: Sequence[DenseReference], query: PhotometricQuery, settings: PhotometricSettings = PhotometricSettings(),
+    prior_information: NDArray | None = None, reference_pixels: Sequence[ReferencePixels] | None = None,
 ) -> PhotometricLocalizationResult:
-    # 96 lines: 58 are the docstring and 19 the signature; the body reads as its steps (inputs, map pixels, query, coarse-to-fine fit, result)
     """Refine a camera pose by direct photometric alignment of FPP map pixels (after the DLT).
 
     Every textured pixel of the reference frames carries an FPP point; the query pose is the one
@@ -131,86 +173,76 @@ def localize_photometric(
     ``E = cos(theta) / d^2`` of the surface point (normal from the organised map, ``d`` the
     distance to the projector, which moves with the camera); the model predicts the query
     intensity as ``g * I_ref * (k + E_query) / (k + E_ref) + h`` with a global gain ``g``, offset
-    ``h`` and ambient ratio ``k`` estimated with the pose. Without ``projector_centre_m`` only ``g``
-    and ``h`` are fitted (a camera under fixed lighting). ``valid_query`` (the query frame's
+    ``h`` and ambient ratio ``k`` estimated with the pose. Without ``query.projector_centre_m`` only
+    ``g`` and ``h`` are fitted (a camera under fixed lighting). ``query.valid`` (the query frame's
     decoded pixels) keeps points that the projector does not light in the query out of the fit.
 
     Parameters
     ----------
     references : sequence of DenseReference
         Map frames (xyz map, texture, pose in the world).
-    texture_query : (H, W) uint8
-    T_query_world_init : (4, 4)
-        Initial ``T_camera_world`` (e.g. :func:`localize_dlt`), good to a few pixels.
-    K, dist : the query camera's intrinsics and OpenCV distortion.
-    projector_centre_m : (3,), optional
-        The projector's centre in the sensor (camera) frame, shared by references and query.
-    valid_query : (H, W) bool, optional
-        Query pixels lit by the projector (e.g. ``isfinite(xyz_map[..., 2])``).
-    max_pixels : int
-        Pixels per reference (the strongest gradients).
-    levels, iterations
-        Pyramid levels and Gauss-Newton steps per level, coarsest first.
-    range_smoothing_px : float, optional
-        Smoothing of the map points along their rays (:func:`smoothed_along_rays`, 0: raw
-        points); default image width / 960 (2 px at 1920 wide).
-    max_range_smoothing_px : float, optional
-        Wider smoothing where the map is locally indistinguishable from a plane at that width
-        (:func:`adaptively_smoothed_along_rays`); default 5 x ``range_smoothing_px`` (12 corridor frames, 2 px narrow: 6 px wide 0.049 mm median, 10 px 0.039, 16 px 0.037 but a longer tail and the doll worse); at or below
-        ``range_smoothing_px`` it is off.
+    query : PhotometricQuery
+    settings : PhotometricSettings
     prior_information : (6, 6), optional
-        Information of a Gaussian prior on the pose at ``T_query_world_init`` (``[rot, trans]`` of a
+        Information of a Gaussian prior on the pose at the initial one (``[rot, trans]`` of a
         left perturbation, as ``information``). With a large one along some directions they are
         held where the start put them: a pair's registrar holds what the geometry fixes (a wall's
         tilts and distance) and lets the texture set the rest (its in-plane shifts and spin).
-    stop_step_sigmas : float, optional
-        Stop at a pose step under this many standard deviations of its ``information`` (coarse
-        levels: :data:`COARSE_STOP_STEP_PX`; :func:`_level_converged`); default steps under 1e-7.
     reference_pixels : sequence of ReferencePixels, optional
         One per reference, prepared with the same settings (:func:`~frontend.localization.reference.reference_pixels`).
-
-    Returns
-    -------
-    PhotometricLocalizationResult
 
     Raises
     ------
     InputDataError
         Images or maps of the wrong type or size, non-finite poses, a malformed K.
     """
-    q, T_init, Km, Lambda = _checked_photometric_inputs(texture_query, T_query_world_init, K, references, valid_query, levels, iterations, prior_information)
-    c_proj = None if projector_centre_m is None else np.asarray(projector_centre_m, dtype=np.float64).reshape(3)
-    smoothing_px, max_smoothing_px = smoothing_widths(q.shape[1], range_smoothing_px, max_range_smoothing_px)
-    pixels = _map_pixels(references, c_proj, max_pixels, normal_step_px, smoothing_px, max_smoothing_px, reference_pixels)
-    if pixels.X_world.shape[0] < min_pixels:
+    q, T_init, Km, Lambda = _checked_photometric_inputs(query, references, prior_information)
+    c_proj = None if query.projector_centre_m is None else np.asarray(query.projector_centre_m, dtype=np.float64).reshape(3)
+    smoothing_px, max_smoothing_px = smoothing_widths(q.shape[1], settings.range_smoothing_px, settings.max_range_smoothing_px)
+    pixels = _map_pixels(references, c_proj, settings.max_pixels, settings.normal_step_px, smoothing_px, max_smoothing_px, reference_pixels)
+    if pixels.X_world.shape[0] < settings.min_pixels:
         return _failed_photometric()
-    Q, V = _query_on_pinhole(q, Km, dist, valid_query)
+    Q, V = _query_on_pinhole(q, Km, query.dist, query.valid)
     fit = _PhotometricFit(T_init.copy(), ambient=0.3 if c_proj is not None else 0.0)
-    if not _refine_coarse_to_fine(fit, Q, V, Km, references, pixels, c_proj, Lambda, T_init, iterations, min_pixels, stop_step_sigmas):
+    problem = _PhotometricProblem(references, pixels, Km, c_proj, Lambda, T_init, settings.min_pixels, settings.stop_step_sigmas)
+    if not _refine_coarse_to_fine(fit, Q, V, problem, settings.iterations):
         return _failed_photometric()
     T = fit.T
-    ok = _converged(fit, min_pixels, stop_step_sigmas)
+    ok = _converged(fit, settings.min_pixels, settings.stop_step_sigmas)
     log.debug("photometric localisation: %d pixels, sigma %.2f grey, k %.3f, %d steps, last step %.2g rad %.2g m",
               fit.used, fit.sigma, fit.ambient, fit.steps, fit.step_rad, fit.step_m)
     information = fit.information
     return PhotometricLocalizationResult(T, -T[:3, :3].T @ T[:3, 3], fit.used, fit.sigma, fit.ambient, fit.steps, ok, 0.5 * (information + information.T))
 
 
-def _refine_coarse_to_fine(
-    fit: _PhotometricFit, Q: NDArray[np.float32], V: NDArray[np.uint8], Km: Array, references: Sequence[DenseReference], pixels: _MapPixels,
-    c_proj: Array | None, Lambda: Array | None, T_init: Array, iterations: Sequence[int], min_pixels: int, stop_step_sigmas: float | None,
-) -> bool:
+@dataclass(frozen=True, eq=False)
+class _PhotometricProblem:
+    """What every Gauss-Newton step of one localisation reads: the map pixels, the query's K, the
+    projector, the prior (``Lambda`` about ``T_init``) and the stop rules."""
+
+    references: Sequence[DenseReference]
+    pixels: _MapPixels
+    Km: Array
+    c_proj: Array | None
+    Lambda: Array | None
+    T_init: Array
+    min_pixels: int
+    stop_step_sigmas: float | None
+
+
+def _refine_coarse_to_fine(fit: _PhotometricFit, Q: NDArray[np.float32], V: NDArray[np.uint8], problem: _PhotometricProblem, iterations: Sequence[int]) -> bool:
     """Gauss-Newton steps on ``fit`` over the query's pyramid, coarsest level first (``iterations``
     per level, each level until :func:`_level_converged`); False when a step fails."""
+    p = problem
     pyramid = [Q]  # each level once (cv2.buildPyramid is not in the Python bindings)
     for _ in range(len(iterations) - 1):
         pyramid.append(cv2.pyrDown(pyramid[-1]))
     for level, n_iter in zip(range(len(iterations) - 1, -1, -1), iterations, strict=True):
-        view = _pyramid_level(pyramid[level], V, level, Km, references, pixels)
+        view = _pyramid_level(pyramid[level], V, level, p.Km, p.references, p.pixels)
         for _ in range(n_iter):
-            if not _gauss_newton_step(fit, view, pixels, c_proj, Lambda, T_init, min_pixels):
+            if not _gauss_newton_step(fit, view, p.pixels, p.c_proj, p.Lambda, p.T_init, p.min_pixels):
                 return False
-            if _level_converged(fit, level, stop_step_sigmas):
+            if _level_converged(fit, level, p.stop_step_sigmas):
                 break
     return True
 
@@ -242,14 +274,14 @@ def _level_converged(fit: _PhotometricFit, level: int, stop_step_sigmas: float |
 
 
 def _checked_photometric_inputs(
-    texture_query: NDArray, T_query_world_init: NDArray, K: NDArray, references: Sequence[DenseReference], valid_query: NDArray | None,
-    levels: int, iterations: Sequence[int], prior_information: NDArray | None,
+    query: PhotometricQuery, references: Sequence[DenseReference], prior_information: NDArray | None,
 ) -> tuple[NDArray[np.uint8], Array, Array, Array | None]:
     """The query texture, a copy of the initial pose, K and the symmetrised prior information (or None),
     or :class:`InputDataError` saying which argument is malformed."""
-    q = np.asarray(texture_query)
-    T = np.asarray(T_query_world_init, dtype=np.float64).copy()
-    Km = np.asarray(K, dtype=np.float64)
+    q = np.asarray(query.texture)
+    T = np.asarray(query.T_camera_world_init, dtype=np.float64).copy()
+    Km = np.asarray(query.K, dtype=np.float64)
+    valid_query = query.valid
     if q.ndim != 2 or q.dtype != np.uint8:
         raise InputDataError(f"photometric localisation needs an H x W uint8 query texture, got {q.dtype} {q.shape}")
     if T.shape != (4, 4) or not np.all(np.isfinite(T)):
@@ -259,9 +291,7 @@ def _checked_photometric_inputs(
     if not references:
         raise InputDataError("photometric localisation needs at least one reference frame")
     if valid_query is not None and np.asarray(valid_query).shape != q.shape:
-        raise InputDataError(f"photometric localisation: valid_query must be {q.shape}, got {np.asarray(valid_query).shape}")
-    if len(iterations) != levels:
-        raise InputDataError(f"photometric localisation: {levels} levels need {levels} iteration counts, got {list(iterations)}")
+        raise InputDataError(f"photometric localisation: the valid query pixels must be {q.shape}, got {np.asarray(valid_query).shape}")
     Lambda = None
     if prior_information is not None:
         Lambda = np.asarray(prior_information, dtype=np.float64)

@@ -16,6 +16,7 @@ from scipy.spatial import cKDTree
 
 from fpp_graph.geometry import finite_points, invert, pose_error, transform_points
 from frontend.dense_alignment import point_to_plane_jacobian
+from frontend.registration.aligner import AlignmentRequest, PointCloudAligner
 
 Array = NDArray[np.float64]
 
@@ -33,6 +34,15 @@ thinning: over 13 ray-cast synthetic pairs (12 of ``scripts/registration_accurac
 bench pair) the median error was 0.0015 deg / 0.007 mm against 0.0010 deg / 0.006 mm with all
 voxels, at half the ICP time. The information is scaled to the source points actually aligned
 (:func:`refine_icp`)."""
+
+
+ICP_MAX_ITERATIONS = 50
+"""A cost bound: GICP converges in ~5-20 iterations from a RANSAC pose; the bound stops one that
+does not (it is then judged unconverged)."""
+
+ICP_MIN_VOXELS = 30
+"""Fewer voxels in either cloud and ICP is not attempted: 5 residuals per degree of freedom are
+the fewest that give a 6-dof information its meaning."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -334,15 +344,15 @@ class SourceCrop:
         return True
 
 
-def _align(tgt: IcpRole, src: IcpRole, T0: NDArray, method: str, max_correspondence_m: float, max_iterations: int,
+def _align(tgt: IcpRole, src: IcpRole, T0: NDArray, registration_type: str, max_correspondence_m: float, max_iterations: int,
            convergence_m: float, basin: IcpBasin | None = None, crop: SourceCrop | None = None) -> tuple[NDArray, bool, int]:
-    """small_gicp's alignment of ``src`` to ``tgt`` from ``T0``: ``(T_target_source, converged, iterations)``.
+    """small_gicp's alignment (``registration_type``: its ``GICP`` or ``PLANE_ICP``) of ``src`` to
+    ``tgt`` from ``T0``: ``(T_target_source, converged, iterations)``.
 
     small_gicp stops once one step moves less than ``convergence_m`` (metres, and radians per
     metre of lever). Near the optimum its correspondences can flip back and forth: the pose then
-    hops among a few states 0.01-0.3 mm apart and never takes a small step (TUM fr1_rpy: 40 of
-    its 133 verified loops ran to the 50-iteration bound, two thirds of their ICP iterations). So it
-    runs :data:`ICP_CYCLE_CHECK_ITERATIONS` at a time and also stops when a whole run of them
+    hops among a few states 0.01-0.3 mm apart and never takes a small step. So it runs
+    :data:`ICP_CYCLE_CHECK_ITERATIONS` at a time and also stops when a whole run of them
     moved the pose by less than that many steps' bound in all: steps that cancel are a cycle, not
     progress. A pose still sliding (a plane toward more overlap) moves far more and goes on
     until it has left ``basin`` without slowing down (:meth:`IcpBasin.sliding`). It stays
@@ -352,9 +362,6 @@ def _align(tgt: IcpRole, src: IcpRole, T0: NDArray, method: str, max_corresponde
     """
     import small_gicp
 
-    if method == "none":
-        return T0.copy(), True, 0
-    reg_type = {"gicp": "GICP", "point_to_plane": "PLANE_ICP"}[method]
     T, iterations = np.asarray(T0, dtype=np.float64), 0
     last_run_m: float | None = None  # how far the previous run moved the basin's points
     while True:
@@ -364,13 +371,13 @@ def _align(tgt: IcpRole, src: IcpRole, T0: NDArray, method: str, max_corresponde
             src.cloud if crop is None else crop.cloud,
             tgt.tree,
             init_T_target_source=T,
-            registration_type=reg_type,
+            registration_type=registration_type,
             max_correspondence_distance=max_correspondence_m,
             num_threads=1,
             max_iterations=run,
             # small_gicp's defaults (0.1 deg, 1 mm) stop far above FPP precision; the stop is set
-            # by the sensor's noise instead (registration.icp.convergence_sigmas), in radians per
-            # metre of lever for the rotation
+            # by the sensor's noise instead (ICP_CONVERGENCE_SIGMAS of frontend.config), in
+            # radians per metre of lever for the rotation
             rotation_epsilon=convergence_m,
             translation_epsilon=convergence_m,
         )
@@ -394,49 +401,11 @@ def _align(tgt: IcpRole, src: IcpRole, T0: NDArray, method: str, max_corresponde
             return T, False, iterations
 
 
-# Long for its numpydoc docstring; alignment and the correspondence figures share one sample, so one body.
-def refine_icp(
-    target: IcpCloud,
-    source: IcpCloud,
-    T_init: NDArray,
-    method: str = "gicp",
-    max_correspondence_m: float = 0.004,
-    max_iterations: int = 50,
-    analysis_points: int = 6000,
-    convergence_m: float = 1e-6,
-    basin: IcpBasin | None = None,
-) -> IcpResult:
-    """Refine ``T_target_source`` by GICP or point-to-plane ICP (small_gicp, one thread).
-
-    Parameters
-    ----------
-    target, source : IcpCloud
-        From :func:`prepare_icp_cloud`.
-    T_init : (4, 4)
-        Initial ``T_target_source`` (the RANSAC result).
-    method : {"gicp", "point_to_plane", "none"}
-        ``none`` skips the optimisation but still measures the correspondences.
-    analysis_points : int
-        Correspondences for the quality figures and the information are measured on about this
-        many evenly strided source (and target) voxels.
-    convergence_m : float
-        ICP stops when its last step moves less than this (metres; radians for the rotation).
-    basin : IcpBasin, optional
-        ICP also stops, checked every :data:`ICP_CYCLE_CHECK_ITERATIONS` iterations, once it
-        has left it and is not slowing down (unconverged); and it iterates on the source points
-        within its radius (plus the correspondence distance) of the target only
-        (:class:`SourceCrop`).
-
-    Returns
-    -------
-    IcpResult
-    """
-    T0 = np.asarray(T_init, dtype=np.float64)
+def measure_alignment(target: IcpCloud, source: IcpCloud, T: NDArray, converged: bool, iterations: int, max_correspondence_m: float,
+                      analysis_points: int = 6000) -> IcpResult:
+    """The correspondences of ``source`` in ``target`` at ``T`` (``T_target_source``): fitness,
+    overlap, point-to-plane residuals, on about ``analysis_points`` evenly strided points of each."""
     tgt, src = target.target, source.source
-    # ICP's basin bounds how far it may move a point: the source points beyond the reach of the
-    # target by that much never correspond and are left out of its iterations
-    crop = SourceCrop(tgt, src, T0, max_correspondence_m, basin.radius_m) if basin is not None and method != "none" else None
-    T, converged, iterations = _align(tgt, src, T0, method, max_correspondence_m, max_iterations, convergence_m, basin, crop)
     # the quality figures and the information need only a fixed-size, evenly spread sample of
     # the source voxels (the information is scaled to the count ICP aligned)
     stride = max(1, src.size // analysis_points)
@@ -455,18 +424,68 @@ def refine_icp(
     frac_t = float(np.mean(idx_t >= 0)) if idx_t.size else 0.0
     rmse = float(np.sqrt(np.mean(r**2))) if r.size else float("nan")
     return IcpResult(
-        T_target_source=T,
-        converged=converged,
-        iterations=iterations,
-        fitness=fitness,
-        overlap=min(fitness, frac_t),
-        inlier_rmse_m=rmse,
+        T_target_source=T, converged=converged, iterations=iterations, fitness=fitness, overlap=min(fitness, frac_t), inlier_rmse_m=rmse,
         # the correspondences behind the estimate: the source points ICP aligned that found a target
-        num_correspondences=int(round(fitness * src.size)),
-        source_points=Ps[ok],
-        target_normals_matched=n_t,
-        residuals_m=r,
+        num_correspondences=int(round(fitness * src.size)), source_points=Ps[ok], target_normals_matched=n_t, residuals_m=r,
     )
+
+
+@dataclass(frozen=True)
+class SmallGicpAligner:
+    """small_gicp's ICP (one thread) as a :class:`~frontend.registration.aligner.PointCloudAligner`:
+    ``GICP`` (both surfaces' local covariances, so differently sampled views fit) or
+    ``PLANE_ICP`` (point-to-plane).
+
+    With a basin (:class:`IcpBasin`) ICP also stops, checked every :data:`ICP_CYCLE_CHECK_ITERATIONS`
+    iterations, once it has left it and is not slowing down (unconverged); and it iterates on the
+    source points within its radius (plus the correspondence distance) of the target only
+    (:class:`SourceCrop`). ``max_iterations=0`` measures the start."""
+
+    registration_type: str = "GICP"
+
+    def align(self, target: IcpCloud, source: IcpCloud, request: AlignmentRequest) -> IcpResult:
+        T0 = np.asarray(request.T_init, dtype=np.float64)
+        if request.max_iterations <= 0:
+            return CorrespondencesAligner().align(target, source, request)
+        tgt, src, basin = target.target, source.source, request.basin
+        # ICP's basin bounds how far it may move a point: the source points beyond the reach of the
+        # target by that much never correspond and are left out of its iterations
+        crop = SourceCrop(tgt, src, T0, request.max_correspondence_m, basin.radius_m) if basin is not None else None
+        T, converged, iterations = _align(tgt, src, T0, self.registration_type, request.max_correspondence_m, request.max_iterations,
+                                          request.convergence_m, basin, crop)
+        return measure_alignment(target, source, T, converged, iterations, request.max_correspondence_m, request.analysis_points)
+
+
+class CorrespondencesAligner:
+    """No ICP (``icp.method: none``): the start pose, its correspondences measured."""
+
+    def align(self, target: IcpCloud, source: IcpCloud, request: AlignmentRequest) -> IcpResult:
+        T0 = np.asarray(request.T_init, dtype=np.float64)
+        return measure_alignment(target, source, T0.copy(), True, 0, request.max_correspondence_m, request.analysis_points)
+
+
+ALIGNERS: dict[str, PointCloudAligner] = {
+    "gicp": SmallGicpAligner("GICP"),
+    "point_to_plane": SmallGicpAligner("PLANE_ICP"),
+    "none": CorrespondencesAligner(),
+}
+"""The implementation of each ``registration.icp.method``."""
+
+
+def make_aligner(method: str) -> PointCloudAligner:
+    """The aligner of ``registration.icp.method``."""
+    return ALIGNERS[method]
+
+
+def refine_icp(
+    target: IcpCloud, source: IcpCloud, T_init: NDArray, method: str = "gicp", max_correspondence_m: float = 0.004,
+    max_iterations: int = 50, analysis_points: int = 6000, convergence_m: float = 1e-6, basin: IcpBasin | None = None,
+) -> IcpResult:
+    """``T_target_source`` refined from ``T_init`` by the aligner of ``method`` (:func:`make_aligner`;
+    ``none`` measures the correspondences at ``T_init``); the arguments are those of
+    :class:`~frontend.registration.aligner.AlignmentRequest`."""
+    request = AlignmentRequest(np.asarray(T_init, dtype=np.float64), max_correspondence_m, max_iterations, convergence_m, basin, analysis_points)
+    return make_aligner(method).align(target, source, request)
 
 
 def information_from_icp(icp: IcpResult, scale: float = 1.0, min_sigma_m: float = 1e-6) -> Array:

@@ -1,5 +1,6 @@
-"""Keypoint geometry of a pair: 2D matches lifted to 3D, the closed-form RANSAC pose, and what the
-keypoints say about a pose (their information, their inliers).
+"""Keypoint geometry of a pair: the closed-form RANSAC pose on the matches lifted to 3D
+(:func:`frontend.organised_surface.lift_keypoints`), and what the keypoints say about a pose
+(their information, their inliers).
 
 Also :func:`drop_sensor_fixed_matches`, the one match filter that knows about the FPP projector.
 """
@@ -14,65 +15,24 @@ import numpy as np
 from numpy.typing import NDArray
 
 from fpp_graph.geometry import kabsch
+from frontend.organised_surface import lift_keypoints  # noqa: F401  (the keypoints' 2D -> 3D step lives with the organised maps)
 
 Array = NDArray[np.float64]
 
 
-# ---------------------------------------------------------------------------------------------
-# 2D -> 3D
-# ---------------------------------------------------------------------------------------------
-def lift_keypoints(
-    xyz_map: NDArray, keypoints_uv: NDArray, max_depth_step_m: float = 0.005
-) -> tuple[Array, NDArray[np.bool_]]:
-    """3D points (sensor frame, metres) under sub-pixel keypoints, by bilinear interpolation.
+RANSAC_MAX_ITERATIONS = 10000
+"""Upper bound on RANSAC's samples: 3-point samples at :data:`RANSAC_CONFIDENCE` need ~9200 draws
+at an inlier ratio of 0.1; sampling stops earlier once the confidence is reached at the inlier
+ratio found."""
 
-    Parameters
-    ----------
-    xyz_map : (H, W, 3) float64
-        Organised points, NaN where invalid.
-    keypoints_uv : (K, 2) float64
-        ``(u = column, v = row)`` pixel coordinates, pixel-centre convention.
-    max_depth_step_m : float
-        Skip a keypoint whose four neighbours span more depth than this (an edge: interpolating
-        across it would invent a point in mid-air).
+RANSAC_CONFIDENCE = 0.9999
+"""Probability of having drawn at least one all-inlier sample when sampling stops: a pair's
+keypoint pose is missed by chance once in 10^4 pairs."""
 
-    Returns
-    -------
-    points : (K, 3) float64
-        Interpolated points; NaN rows where ``valid`` is False.
-    valid : (K,) bool
-        All four neighbours inside the image, finite, and on one surface.
-    """
-    xyz = np.asarray(xyz_map, dtype=np.float64)
-    uv = np.asarray(keypoints_uv, dtype=np.float64).reshape(-1, 2)
-    H, W = xyz.shape[:2]
-    out = np.full((uv.shape[0], 3), np.nan)
-    valid = np.zeros(uv.shape[0], dtype=bool)
-    if uv.shape[0] == 0:
-        return out, valid
-    finite_uv = np.all(np.isfinite(uv), axis=1)
-    u = np.where(finite_uv, uv[:, 0], -10.0)
-    v = np.where(finite_uv, uv[:, 1], -10.0)
-    u0 = np.floor(u).astype(np.int64)
-    v0 = np.floor(v).astype(np.int64)
-    inside = (u0 >= 0) & (v0 >= 0) & (u0 + 1 < W) & (v0 + 1 < H)
-    idx = np.flatnonzero(inside)
-    if idx.size == 0:
-        return out, valid
-    a, b = u0[idx], v0[idx]
-    p00, p10, p01, p11 = xyz[b, a], xyz[b, a + 1], xyz[b + 1, a], xyz[b + 1, a + 1]
-    corners = np.stack([p00, p10, p01, p11], axis=1)  # (k, 4, 3)
-    ok = np.all(np.isfinite(corners), axis=(1, 2))
-    z = corners[..., 2]
-    with np.errstate(invalid="ignore"):
-        ok &= (z.max(axis=1) - z.min(axis=1)) <= max_depth_step_m
-    fu = (u[idx] - a)[:, None]
-    fv = (v[idx] - b)[:, None]
-    interp = (1 - fv) * ((1 - fu) * p00 + fu * p10) + fv * ((1 - fu) * p01 + fu * p11)
-    sel = idx[ok]
-    out[sel] = interp[ok]
-    valid[sel] = True
-    return out, valid
+KEYPOINT_INFORMATION_SCALE = 0.1
+"""Multiplies the keypoints' information in a constraint (the gates use it unscaled): keypoint
+errors share one detector and one texture, so n keypoints are worth ~n/10 independent points
+(calibrated by NEES)."""
 
 
 # ---------------------------------------------------------------------------------------------

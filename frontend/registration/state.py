@@ -1,29 +1,25 @@
-"""The running state of one pair through :meth:`FppPairRegistrar.register`.
+"""What every stage of a pair shares (:class:`PairFrames`, its typed input) and what the pair
+reports while it runs (:class:`PairReport`: timings, the constraint's metadata and quality figures).
 
-Each stage writes its typed result into :class:`PairState`; the gates (:mod:`.gates`) read it.
-``meta`` is only the constraint's metadata being assembled (output), never read for control.
+``PairReport.meta`` is only the constraint's metadata being assembled (output), never read for
+control: what a stage needs from an earlier one is in its typed input.
 """
 
 from __future__ import annotations
 
+import contextlib
+import logging
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from fpp_graph.types import ConstraintKind, Frame
-from frontend.registration.keypoints import RansacResult
-from frontend.registration.refinement import DenseOutcome, PhotometricOutcome, WeakGeometryCheck
-from frontend.registration.stages import (
-    IcpOutcome,
-    KeypointMatches,
-    KeypointTerm,
-    LiftedMatches,
-    PoseEstimate,
-    WeakDirectionOutcome,
-)
+from fpp_graph.types import Constraint, ConstraintKind, Frame
+
+log = logging.getLogger(__name__)
 
 
 class StageTimer:
@@ -51,35 +47,69 @@ class StageTimer:
         for stage in stages:
             self.wall_s[stage] = self.cpu_s[stage] = 0.0
 
+    @contextlib.contextmanager
+    def timed(self, stage: str) -> Iterator[None]:
+        """Time the block as ``stage`` (not recorded when it raises)."""
+        started = self.start()
+        yield
+        self.stop(stage, started)
 
-@dataclass
-class PairState:
-    """Everything known about the pair so far; a stage's field is None until it has run."""
+
+@dataclass(frozen=True, eq=False)
+class PairFrames:
+    """The pair being registered: ``T_target_source`` is sought.
+
+    Attributes
+    ----------
+    target, source : Frame
+    kind : ConstraintKind or str
+        Recorded on the constraint.
+    T_guess : (4, 4) or None
+        A prior ``T_target_source`` (scored as one more RANSAC hypothesis, never trusted alone).
+    """
 
     target: Frame
     source: Frame
-    kind: ConstraintKind | str
-    T_guess: NDArray[np.float64] | None
-    timer: StageTimer = field(default_factory=StageTimer)
-    meta: dict[str, Any] = field(default_factory=dict)
-    matches: KeypointMatches | None = None
-    lifted: LiftedMatches | None = None
-    ransac: RansacResult | None = None
-    icp: IcpOutcome | None = None
-    weak: WeakDirectionOutcome | None = None
-    keypoints: KeypointTerm | None = None
-    pose: PoseEstimate | None = None
-    dense: DenseOutcome | None = None
-    photometric: PhotometricOutcome | None = None
-    check: WeakGeometryCheck | None = None
+    kind: ConstraintKind | str = ConstraintKind.ODOMETRY
+    T_guess: NDArray[np.float64] | None = None
 
     @property
-    def quality(self) -> dict[str, Any]:
-        """The constraint's quality figures as far as they are known: RANSAC's inlier count, then
-        ICP's correspondences at the current pose."""
-        if self.ransac is None:
-            return {}
-        icp = self.weak.icp if self.weak is not None else self.icp.icp if self.icp is not None else None
-        if icp is None:
-            return {"inlier_count": self.ransac.num_inliers}
-        return {"fitness": icp.fitness, "inlier_rmse_m": icp.inlier_rmse_m, "inlier_count": self.ransac.num_inliers, "overlap": icp.overlap}
+    def is_loop(self) -> bool:
+        return ConstraintKind(self.kind) is ConstraintKind.LOOP
+
+    @property
+    def appearance_only(self) -> bool:
+        """A loop candidate proposed by appearance alone (no pose guess): a look-alike place can
+        fool its keypoints, so its textures must agree over the overlap."""
+        return self.is_loop and self.T_guess is None
+
+
+@dataclass(eq=False)
+class PairReport:
+    """What a pair reports as it runs: the stages' timings, the constraint's metadata in the order
+    written, and its quality figures as far as they are known (RANSAC's inlier count, then ICP's
+    correspondences at the current pose)."""
+
+    pair: PairFrames
+    timer: StageTimer = field(default_factory=StageTimer)
+    meta: dict[str, Any] = field(default_factory=dict)
+    quality: dict[str, Any] = field(default_factory=dict)
+
+    def add(self, metadata: dict[str, Any]) -> None:
+        self.meta.update(metadata)
+
+    def rejected(self, reason: str, metadata: dict[str, Any] | None = None) -> Constraint:
+        """The rejected constraint with ``reason`` and ``metadata`` (default: everything reported)."""
+        pair = self.pair
+        log.info("pair %d->%d rejected: %s", pair.source.id, pair.target.id, reason)
+        meta = dict(self.meta if metadata is None else metadata)
+        meta["timings_s"] = dict(self.timer.wall_s)
+        return Constraint.rejected(pair.source.id, pair.target.id, reason, kind=pair.kind, metadata=meta, **self.quality)
+
+
+class Rejected(Exception):
+    """A gate rejected the pair: carries the rejected constraint out of the stages."""
+
+    def __init__(self, constraint: Constraint):
+        super().__init__(constraint.rejection_reason)
+        self.constraint = constraint

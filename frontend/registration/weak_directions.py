@@ -23,6 +23,25 @@ from frontend.registration.keypoints import information_from_keypoints, keypoint
 Array = NDArray[np.float64]
 
 
+DEGENERACY_RATIO = 0.02
+"""A direction whose information eigenvalue (rotations as arc length about the points' centroid)
+is below this share of the trace of the translation block is unconstrained: its standard
+deviation is over sqrt(1/0.02) ~ 7 times that of a direction holding the whole trace; a plane's
+in-plane directions read 0.001-0.01 (only the normals' noise constrains them)."""
+
+PLANE_DISAGREEMENT_PROBABILITY = 0.9999
+"""Chi-square (3 dof) probability beyond which ICP's in-plane pose disagrees with the keypoints and
+is replaced by theirs: a false alarm trades ICP's precise pose for the keypoints', so 1 in 10^4."""
+
+JOINT_OPTIMUM_PROBABILITY = 0.999
+"""Chi-square (6 dof) probability beyond which, on other weak pairs, ICP's pose moves to the joint
+ICP + keypoint optimum."""
+
+HOLD_RATIO = 1e6
+"""A held direction's information over the trace of the rest's: its step is ~1e-6 of theirs, and
+the normal equations stay ~10^10 from float64's precision limit."""
+
+
 def joint_keypoint_step(
     T_target_source: NDArray, information_icp: NDArray, source_points: NDArray, target_points: NDArray, iterations: int = 3
 ) -> Array:

@@ -11,6 +11,8 @@ from fpp_graph.geometry import invert, se3_exp, se3_log
 from frontend.config import RegistrationConfig
 from frontend.localization import (
     DenseReference,
+    PhotometricQuery,
+    PhotometricSettings,
     decompose_projection,
     dlt_projection_matrix,
     localize_dlt,
@@ -21,7 +23,7 @@ from frontend.localization.surface import (
     depth_edge_free_mask,
     smoothed_along_rays,
 )
-from frontend.registration import FppPairRegistrar, lift_keypoints
+from frontend.registration import TexturedSurfaceRegistrar, lift_keypoints
 from frontend.testing.synthetic_frames import bumpy_wall_scene, render_frame, wall_pose
 
 K = np.array([[683.0, 0.0, 319.5], [0.0, 683.0, 199.5], [0.0, 0.0, 1.0]])
@@ -86,7 +88,7 @@ def test_dlt_agrees_with_registration():
     Ta, Tb = wall_pose(0.0), wall_pose(0.1, -0.02, yaw_deg=3, roll_deg=2)
     a = render_frame(scene, Ta, 640, 400, frame_id=0)
     b = render_frame(scene, Tb, 640, 400, frame_id=1)
-    reg = FppPairRegistrar(RegistrationConfig())
+    reg = TexturedSurfaceRegistrar(RegistrationConfig())
     c = reg.register(a, b)
     assert c.accepted
     m = c.metadata["matches_used"]
@@ -144,10 +146,9 @@ def _locate_middle(fringe_triple, with_projector: bool = True, **kwargs):
     rig, poses, frames, projector_centre = fringe_triple
     T_init = se3_exp(np.radians([0.1, -0.08, 0.05]).tolist() + [0.001, -0.0008, 0.0005]) @ invert(poses[1])
     lit = np.isfinite(frames[1].xyz_map[..., 2])
-    return localize_photometric(
-        _middle_references(fringe_triple), frames[1].texture, T_init, rig.camera.K, rig.camera.dist,
-        projector_centre if with_projector else None, lit, max_pixels=40_000, **kwargs,
-    )
+    query = PhotometricQuery(frames[1].texture, T_init, rig.camera.K, rig.camera.dist, projector_centre if with_projector else None, lit)
+    prepared = kwargs.pop("reference_pixels", None)
+    return localize_photometric(_middle_references(fringe_triple), query, PhotometricSettings(max_pixels=40_000, **kwargs), reference_pixels=prepared)
 
 
 def test_photometric_localisation_with_the_fpp_shading_model(fringe_triple):
@@ -217,8 +218,8 @@ def test_a_start_near_the_optimum_needs_only_the_finest_level(fringe_triple):
     lit = np.isfinite(frames[1].xyz_map[..., 2])
 
     def locate(T_init, iterations):
-        return localize_photometric(_middle_references(fringe_triple), frames[1].texture, T_init, rig.camera.K, rig.camera.dist,
-                                    projector_centre, lit, max_pixels=40_000, levels=len(iterations), iterations=iterations)
+        query = PhotometricQuery(frames[1].texture, T_init, rig.camera.K, rig.camera.dist, projector_centre, lit)
+        return localize_photometric(_middle_references(fringe_triple), query, PhotometricSettings(max_pixels=40_000, iterations=iterations))
 
     all_levels, finest = locate(near, (10, 8, 20)), locate(near, (20,))
     assert finest.success and finest.iterations < all_levels.iterations
@@ -291,22 +292,20 @@ def test_photometric_localisation_bad_input(fringe_triple):
     ref = DenseReference(frames[0].xyz_map, frames[0].texture, poses[0])
     T = invert(poses[1])
     with pytest.raises(InputDataError, match="uint8 query"):
-        localize_photometric([ref], frames[1].texture.astype(float), T, K)
+        localize_photometric([ref], PhotometricQuery(frames[1].texture.astype(float), T, K))
     with pytest.raises(InputDataError, match="finite 4x4 initial"):
-        localize_photometric([ref], frames[1].texture, np.full((4, 4), np.nan), K)
-    with pytest.raises(InputDataError, match="valid_query"):
-        localize_photometric([ref], frames[1].texture, T, K, valid_query=np.ones((10, 10), bool))
+        localize_photometric([ref], PhotometricQuery(frames[1].texture, np.full((4, 4), np.nan), K))
+    with pytest.raises(InputDataError, match="valid query pixels"):
+        localize_photometric([ref], PhotometricQuery(frames[1].texture, T, K, valid=np.ones((10, 10), bool)))
     with pytest.raises(InputDataError, match="one frame"):
-        localize_photometric([DenseReference(frames[0].xyz_map[:100], frames[0].texture, poses[0])], frames[1].texture, T, K)
+        localize_photometric([DenseReference(frames[0].xyz_map[:100], frames[0].texture, poses[0])], PhotometricQuery(frames[1].texture, T, K))
     with pytest.raises(InputDataError, match="at least one reference"):
-        localize_photometric([], frames[1].texture, T, K)
-    with pytest.raises(InputDataError, match="iteration counts"):
-        localize_photometric([ref], frames[1].texture, T, K, levels=2)
+        localize_photometric([], PhotometricQuery(frames[1].texture, T, K))
     # a reference without valid points, or a pose that sees none of the map: no pose, no exception
     empty = DenseReference(np.full_like(frames[0].xyz_map, np.nan), frames[0].texture, poses[0])
-    assert not localize_photometric([empty], frames[1].texture, T, K).success
+    assert not localize_photometric([empty], PhotometricQuery(frames[1].texture, T, K)).success
     away = se3_exp([0.0, np.pi, 0.0, 0.0, 0.0, 0.0]) @ T  # looking the other way
-    out = localize_photometric([ref], frames[1].texture, away, K)
+    out = localize_photometric([ref], PhotometricQuery(frames[1].texture, away, K))
     assert not out.success and np.all(np.isnan(out.T_camera_world))
 
 

@@ -11,8 +11,9 @@ import pytest
 from fpp_graph.errors import InputDataError
 from fpp_graph.geometry import invert, pose_error, se3_exp
 from frontend.config import RegistrationConfig
-from frontend.dense_alignment import OrganisedSurface, align_dense
-from frontend.registration import FppPairRegistrar, plane_directions, weak_direction_pin
+from frontend.dense_alignment import DenseSchedule, OrganisedSurface, align_dense
+from frontend.registration import TexturedSurfaceRegistrar, plane_directions, weak_direction_pin
+from frontend.registration.state import PairFrames
 from frontend.testing.synthetic_frames import bumpy_wall_scene, render_frame, wall_pose
 
 W, H = 640, 400
@@ -72,7 +73,7 @@ def test_lookup_follows_the_maps_own_distorted_rays():
 @pytest.mark.parametrize("noise_m, rot_tol_deg, trans_tol_m", [(0.0, 0.0005, 3e-6), (2e-4, 0.01, 6e-5)])
 def test_align_dense_recovers_the_pose(wall, noise_m, rot_tol_deg, trans_tol_m):
     a, b, T_true = _pair(wall, noise_m)
-    result = align_dense(OrganisedSurface(a.xyz_map), OrganisedSurface(b.xyz_map), _perturbed(T_true), fine_stride_px=1, max_iterations=15, fine_iterations=3)
+    result = align_dense(OrganisedSurface(a.xyz_map), OrganisedSurface(b.xyz_map), _perturbed(T_true), DenseSchedule(coarse_iterations=15, fine_iterations=3))
     rot, trans = pose_error(result.T_target_source, T_true)
     assert math.degrees(rot) < rot_tol_deg
     assert trans < trans_tol_m
@@ -117,21 +118,34 @@ def test_bad_input_is_an_fpp_error(wall):
         align_dense(OrganisedSurface(a.xyz_map), OrganisedSurface(b.xyz_map), far)
 
 
-def test_registrar_refines_relief_and_leaves_a_plane_to_the_keypoints(wall):
+def with_degeneracy_ratio(monkeypatch, ratio: float) -> None:
+    """Every registration stage judging weak directions at ``ratio`` instead of DEGENERACY_RATIO."""
+    import frontend.registration.refinement as refinement
+    import frontend.registration.registrar as registrar
+    import frontend.registration.stages as stages
+    import frontend.registration.tracking as tracking
+
+    for module in (stages, refinement, registrar, tracking):
+        monkeypatch.setattr(module, "DEGENERACY_RATIO", ratio)
+
+
+def test_registrar_refines_relief_and_leaves_a_plane_to_the_keypoints(wall, monkeypatch):
     a, b, T_true = _pair(wall, 2e-4)
     # this wall's bumps are shallow: its third-weakest direction sits at 0.018 of the information,
-    # plane-like under the default weak_directions.degeneracy_ratio (0.02); the corridor's walls reach 0.016
-    c = FppPairRegistrar(RegistrationConfig(weak_directions={"degeneracy_ratio": 0.01})).register(a, b)
+    # plane-like under the default DEGENERACY_RATIO (0.02)
+    with_degeneracy_ratio(monkeypatch, 0.01)
+    c = TexturedSurfaceRegistrar(RegistrationConfig()).register(a, b)
     assert c.accepted, c.rejection_reason
     assert c.metadata.get("dense_iterations", 0) >= 2 and "dense_not_used" not in c.metadata
     rot, trans = pose_error(c.T_target_source, T_true)
     assert math.degrees(rot) < 0.01 and trans < 1e-4
-    c_off = FppPairRegistrar(RegistrationConfig(dense={"enabled": False})).register(a, b)
+    c_off = TexturedSurfaceRegistrar(RegistrationConfig(dense={"enabled": False})).register(a, b)
     assert "dense_iterations" not in c_off.metadata
     flat = bumpy_wall_scene(seed=5, flat=True)
     fa = render_frame(flat, wall_pose(0.0), W, H, frame_id=0)
     fb = render_frame(flat, wall_pose(0.10, 0.02, yaw_deg=4), W, H, frame_id=1)
-    c_flat = FppPairRegistrar(RegistrationConfig()).register(fa, fb)
+    monkeypatch.undo()
+    c_flat = TexturedSurfaceRegistrar(RegistrationConfig()).register(fa, fb)
     assert "plane-like" in c_flat.metadata.get("dense_not_used", ""), c_flat.metadata.get("dense_not_used")
 
 
@@ -151,14 +165,15 @@ def test_the_same_map_gives_the_same_surface_in_any_buffer():
 
 
 @pytest.mark.parametrize("ratio", [0.01, 0.02])
-def test_relief_check_agrees_with_the_fits_own_verdict(wall, ratio):
-    """``dense_sees_relief`` asks one evaluation at the start pose what the fit's information
+def test_relief_check_agrees_with_the_fits_own_verdict(wall, ratio, monkeypatch):
+    """``DenseStage.relief_at`` asks one evaluation at the start pose what the fit's information
     says at its end: the bumpy wall's third-weakest direction (0.018) is relief at 0.01 and a
     plane at 0.02; the flat wall is a plane at both."""
     from frontend.dense_alignment import dense_information
     from frontend.registration.weak_directions import check_degeneracy
 
-    registrar = FppPairRegistrar(RegistrationConfig(weak_directions={"degeneracy_ratio": ratio}))
+    with_degeneracy_ratio(monkeypatch, ratio)
+    dense = TexturedSurfaceRegistrar(RegistrationConfig()).dense
     flat = bumpy_wall_scene(seed=5, flat=True)
     for scene, has_relief in ((wall, ratio < 0.018), (flat, False)):
         Ta, Tb = wall_pose(0.0), wall_pose(0.10, 0.02, yaw_deg=4, pitch_deg=-2, roll_deg=3)
@@ -168,12 +183,12 @@ def test_relief_check_agrees_with_the_fits_own_verdict(wall, ratio):
         fit = align_dense(OrganisedSurface(a.xyz_map), OrganisedSurface(b.xyz_map), T_start)
         fit_sees_relief = len(check_degeneracy(fit.information, fit.source_points, ratio).unconstrained) < 3
         assert fit_sees_relief == has_relief
-        assert registrar.dense_sees_relief(a, b, T_start) == has_relief
+        assert dense.relief_at(PairFrames(a, b), T_start)[0] == has_relief
         info, used = dense_information(OrganisedSurface(a.xyz_map), OrganisedSurface(b.xyz_map), T_start, 8, 0.004)
         assert info.shape == (6, 6) and np.allclose(info, info.T) and len(used) > 1000
     far = T_start.copy()
     far[:3, 3] += [3.0, 0.0, 0.0]  # no overlap: no verdict, the held fit decides
-    assert registrar.dense_sees_relief(a, b, far) is False
+    assert dense.relief_at(PairFrames(a, b), far) == (False, None)
     with pytest.raises(InputDataError, match="correspondences"):
         dense_information(OrganisedSurface(a.xyz_map), OrganisedSurface(b.xyz_map), far, 8, 0.004)
 
@@ -191,31 +206,32 @@ def test_a_fit_takes_the_relief_checks_normal_equations_only_where_they_were_for
     formed = []
     normal_equations = dense_alignment._normal_equations
     monkeypatch.setattr(dense_alignment, "_normal_equations", lambda *args: formed.append(args[3]) or normal_equations(*args))
-    settings = {"coarse_stride_px": 4, "fine_stride_px": 2, "max_iterations": 2, "fine_iterations": 1, "max_distance_m": 0.004}
-    plain = align_dense(target, source, T_start, **settings)
+    settings = DenseSchedule(coarse_stride_px=4, fine_stride_px=2, coarse_iterations=2, fine_iterations=1, max_distance_m=0.004)
+    plain = align_dense(target, source, T_start, settings)
     assert formed == [4, 4, 2]
     evaluation = evaluate_dense(target, source, T_start, 4, 0.004)
     formed.clear()
-    reused = align_dense(target, source, T_start, start=evaluation, **settings)
+    reused = align_dense(target, source, T_start, settings, start=evaluation)
     assert formed == [4, 2]
     assert np.array_equal(reused.T_target_source, plain.T_target_source) and np.array_equal(reused.information, plain.information)
     elsewhere = evaluate_dense(target, source, T_start @ se3_exp(np.full(6, 1e-9)), 4, 0.004)
     other_stride = evaluate_dense(target, source, T_start, 8, 0.004)
     for evaluation in (elsewhere, other_stride):
         formed.clear()
-        again = align_dense(target, source, T_start, start=evaluation, **settings)
+        again = align_dense(target, source, T_start, settings, start=evaluation)
         assert formed == [4, 4, 2]
         assert np.array_equal(again.T_target_source, plain.T_target_source)
 
 
-def test_the_registrar_hands_its_relief_check_to_the_fit_of_the_same_pair_only(wall):
+def test_the_dense_stage_hands_its_relief_check_to_the_fit_that_starts_there(wall, monkeypatch):
+    """The relief check's evaluation is returned with its verdict, formed at the pose it was
+    asked at: the fit starting there takes it as its first step (no state kept between pairs)."""
     a, b, T_true = _pair(wall, 2e-4)
-    c = render_frame(wall, wall_pose(0.05), W, H, frame_id=2, depth_noise_m=2e-4)
-    registrar = FppPairRegistrar(RegistrationConfig(weak_directions={"degeneracy_ratio": 0.01}))
+    with_degeneracy_ratio(monkeypatch, 0.01)
+    dense = TexturedSurfaceRegistrar(RegistrationConfig()).dense
     T_start = _perturbed(T_true)
-    assert registrar.dense_sees_relief(a, b, T_start)
-    assert registrar._evaluation_of(a, c) is None  # another pair: dropped
-    assert registrar._evaluation_of(a, b) is None  # and not kept for later
-    registrar.dense_sees_relief(a, b, T_start)
-    evaluation = registrar._evaluation_of(a, b)
-    assert evaluation is not None and np.array_equal(evaluation.T_target_source, T_start)
+    relief, evaluation = dense.relief_at(PairFrames(a, b), T_start)
+    assert relief and evaluation is not None and np.array_equal(evaluation.T_target_source, T_start)
+    fit, why_not = dense.fit(PairFrames(a, b), T_start, np.zeros((6, 6)), None, np.zeros((0, 3)), start=evaluation)
+    alone, _ = dense.fit(PairFrames(a, b), T_start, np.zeros((6, 6)), None, np.zeros((0, 3)))
+    assert why_not == "" and np.array_equal(fit.T_target_source, alone.T_target_source)

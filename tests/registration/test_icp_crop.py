@@ -38,7 +38,7 @@ def test_the_crop_keeps_the_shared_part_and_ends_where_the_whole_source_ends():
     near_shared = source.source.points[:, 0] < 0.3  # the source's own copy of the shared patch
     assert crop.kept[near_shared].all() and not crop.kept[~near_shared].any()
     assert crop.cloud is not source.source.cloud and crop.cloud.size() == crop.size
-    whole = _align(target.target, source.source, np.eye(4), "gicp", 0.03, 50, 1e-7)
+    whole = _align(target.target, source.source, np.eye(4), "GICP", 0.03, 50, 1e-7)
     cropped = refine_icp(target, source, np.eye(4), "gicp", 0.03, 50, convergence_m=1e-7, basin=IcpBasin(_INLIERS, 0.045))
     assert np.abs(cropped.T_target_source[:3, 3] - T_true[:3, 3]).max() < 2e-4
     assert np.abs(cropped.T_target_source - whole[0]).max() < 5e-5

@@ -43,7 +43,7 @@ def _align_with(monkeypatch, step, max_iterations=50, convergence_m=1e-5, basin=
     fake = _ScriptedGicp(step)
     monkeypatch.setitem(sys.modules, "small_gicp", fake)  # _align imports it at call time
     role = types.SimpleNamespace(cloud=None, tree=None)
-    T, converged, iterations = icp_module._align(role, role, np.eye(4), "gicp", 0.01, max_iterations, convergence_m, basin)
+    T, converged, iterations = icp_module._align(role, role, np.eye(4), "GICP", 0.01, max_iterations, convergence_m, basin)
     return T, converged, iterations, fake.calls
 
 

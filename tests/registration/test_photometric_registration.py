@@ -1,4 +1,4 @@
-"""The photometric refinement of plane-like pairs (FppPairRegistrar with a TextureCamera)."""
+"""The photometric refinement of plane-like pairs (TexturedSurfaceRegistrar with a TextureCamera)."""
 
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ import pytest
 
 from fpp_graph.geometry import invert, pose_error, se3_exp, se3_log
 from frontend.config import RegistrationConfig
-from frontend.localization import DenseReference, localize_photometric
-from frontend.registration import FppPairRegistrar, TextureCamera
+from frontend.localization import DenseReference, PhotometricQuery, PhotometricSettings, localize_photometric
+from frontend.registration import TexturedSurfaceRegistrar, TextureCamera
 
 
 @pytest.fixture(scope="module")
@@ -28,8 +28,8 @@ def wall_pair():
 def test_texture_sets_a_walls_in_plane_directions(wall_pair):
     rig, poses, frames = wall_pair
     T_true = invert(poses[0]) @ poses[1]
-    plain = FppPairRegistrar(RegistrationConfig()).register(frames[0], frames[1])
-    photo_reg = FppPairRegistrar(RegistrationConfig(), texture_camera=TextureCamera.from_rig(rig))
+    plain = TexturedSurfaceRegistrar(RegistrationConfig()).register(frames[0], frames[1])
+    photo_reg = TexturedSurfaceRegistrar(RegistrationConfig(), texture_camera=TextureCamera.from_rig(rig))
     photo = photo_reg.register(frames[0], frames[1])
     assert plain.accepted and photo.accepted
     assert "T_before_photometric" in photo.metadata, photo.metadata.get("photometric_not_used")
@@ -57,35 +57,37 @@ def test_photometric_prior_holds_directions(wall_pair):
     ref = DenseReference(frames[0].xyz_map, frames[0].texture, poses[0])
     T_start = se3_exp([0.0005, -0.0004, 0.0003, 2e-4, -1e-4, 1e-4]) @ invert(poses[1])
     lit = np.isfinite(frames[1].xyz_map[..., 2])
-    free = localize_photometric([ref], frames[1].texture, T_start, cam.K, cam.dist, cam.projector_centre_m, lit, max_pixels=40_000)
-    held = localize_photometric([ref], frames[1].texture, T_start, cam.K, cam.dist, cam.projector_centre_m, lit, max_pixels=40_000,
-                                prior_information=1e16 * np.eye(6))
+    query, settings = PhotometricQuery(frames[1].texture, T_start, cam.K, cam.dist, cam.projector_centre_m, lit), PhotometricSettings(max_pixels=40_000)
+    free = localize_photometric([ref], query, settings)
+    held = localize_photometric([ref], query, settings, prior_information=1e16 * np.eye(6))
     assert free.success and np.all(np.isfinite(free.information)) and free.information[3, 3] > 0
     assert np.linalg.norm(se3_log(free.T_camera_world @ invert(T_start))) > 1e-4  # it moved towards the truth
     assert np.linalg.norm(se3_log(held.T_camera_world @ invert(T_start))) < 1e-7  # everything held
     # translation held, rotation free: the translation of T stays, the rotation moves
     Lam = np.diag([0.0, 0.0, 0.0, 1e16, 1e16, 1e16])
-    part = localize_photometric([ref], frames[1].texture, T_start, cam.K, cam.dist, cam.projector_centre_m, lit, max_pixels=40_000, prior_information=Lam)
+    part = localize_photometric([ref], query, settings, prior_information=Lam)
     step = se3_log(part.T_camera_world @ invert(T_start))
     assert np.linalg.norm(step[3:]) < 1e-7 and np.linalg.norm(step[:3]) > 1e-5
     with pytest.raises(Exception, match="prior_information"):
-        localize_photometric([ref], frames[1].texture, T_start, cam.K, prior_information=np.eye(5))
+        localize_photometric([ref], PhotometricQuery(frames[1].texture, T_start, cam.K), prior_information=np.eye(5))
 
 
 def test_a_wall_seen_with_relief_at_the_start_is_not_held(wall_pair, monkeypatch):
     """The fit held for the texture runs on a plane; when every pixel already shows relief at the
     keypoints' pose it is skipped (it would find the relief and be redone unheld)."""
+    from frontend.registration.state import PairFrames
+
     rig, _, frames = wall_pair
-    registrar = FppPairRegistrar(RegistrationConfig(), texture_camera=TextureCamera.from_rig(rig))
+    registrar = TexturedSurfaceRegistrar(RegistrationConfig(), texture_camera=TextureCamera.from_rig(rig))
     fits = []
-    refine = registrar.refine_dense
-    monkeypatch.setattr(registrar, "refine_dense", lambda *a: fits.append(a[4]) or refine(*a))
+    fit = registrar.dense.fit
+    monkeypatch.setattr(registrar.dense, "fit", lambda *a, **k: fits.append(a[3]) or fit(*a, **k))
     held = registrar.register(frames[0], frames[1])
     assert held.accepted and "dense_relief_at_start" not in held.metadata and "dense_pinned" in held.metadata
     assert len(fits) == 1 and fits[0] is not None  # one fit, with the plane's directions pinned
-    assert registrar.dense_sees_relief(frames[0], frames[1], held.T_target_source) is False
+    assert registrar.dense.relief_at(PairFrames(frames[0], frames[1]), held.T_target_source)[0] is False
     fits.clear()
-    monkeypatch.setattr(registrar, "dense_sees_relief", lambda *a: True)
+    monkeypatch.setattr(registrar.dense, "relief_at", lambda *a: (True, None))
     unheld = registrar.register(frames[0], frames[1])
     assert unheld.metadata.get("dense_relief_at_start") and unheld.metadata.get("dense_rechecks_plane_rule")
     assert all(pinned is None for pinned in fits)  # no held fit
@@ -100,11 +102,11 @@ def test_the_photometric_step_takes_the_pyramid_levels_its_start_needs(wall_pair
     real = localization.localize_photometric
 
     def recorded(*args, **kwargs):
-        asked.append(kwargs["iterations"])
+        asked.append(args[2].iterations)
         return real(*args, **kwargs)
 
     monkeypatch.setattr(localization, "localize_photometric", recorded)
-    photo = FppPairRegistrar(RegistrationConfig(), texture_camera=TextureCamera.from_rig(rig)).register(frames[0], frames[1])
+    photo = TexturedSurfaceRegistrar(RegistrationConfig(), texture_camera=TextureCamera.from_rig(rig)).register(frames[0], frames[1])
     assert photo.accepted and "T_before_photometric" in photo.metadata
     # the keypoints' pose is within a pixel of the texture's at 640x400: the quarter-resolution level is not needed
     assert len(asked) == 1 and 1 <= len(asked[0]) < len(PYRAMID_ITERATIONS)

@@ -1,4 +1,4 @@
-"""FppPairRegistrar.prepare: a frame's dense surface and, for a plane-like frame, its photometric
+"""TexturedSurfaceRegistrar.prepare: a frame's dense surface and, for a plane-like frame, its photometric
 reference pixels, made once and stored with the frame."""
 
 from __future__ import annotations
@@ -14,9 +14,9 @@ from fpp_graph.types import Frame
 from frontend.config import RegistrationConfig
 from frontend.localization.reference import reference_from_arrays, reference_settings
 from frontend.organised_surface import SURFACE_ARRAYS, OrganisedSurface
-from frontend.registration import FppPairRegistrar, TextureCamera
+from frontend.registration import TexturedSurfaceRegistrar, TextureCamera
 from frontend.registration.registrar import PREPARED_REFERENCE
-from frontend.registration.weak_directions import surface_is_plane_like
+from frontend.registration.weak_directions import DEGENERACY_RATIO, surface_is_plane_like
 from frontend.testing.synthetic_frames import (
     bumpy_wall_scene,
     camera_matrix,
@@ -28,11 +28,11 @@ W, H = 640, 400
 FIELDS = ("index", "X_world", "n_world", "E_ref", "has_normal")
 
 
-def registrar(**photometric) -> FppPairRegistrar:
+def registrar(**photometric) -> TexturedSurfaceRegistrar:
     config = RegistrationConfig()
     if photometric:
         config = config.model_copy(update={"photometric": config.photometric.model_copy(update=photometric)})
-    return FppPairRegistrar(config, texture_camera=TextureCamera(camera_matrix(W, H), np.zeros(5), np.array([0.1, 0.0, 0.0])))
+    return TexturedSurfaceRegistrar(config, texture_camera=TextureCamera(camera_matrix(W, H), np.zeros(5), np.array([0.1, 0.0, 0.0])))
 
 
 @pytest.fixture(scope="module")
@@ -53,8 +53,7 @@ def relief_frame(flat_frame):
 
 
 def test_plane_like_test_tells_a_wall_from_relief(flat_frame, relief_frame):
-    config = RegistrationConfig()
-    ratio = config.weak_directions.degeneracy_ratio
+    ratio = DEGENERACY_RATIO
     assert surface_is_plane_like(flat_frame.xyz_map, 0.002, ratio)
     assert not surface_is_plane_like(relief_frame.xyz_map, 0.002, ratio)
     assert not surface_is_plane_like(np.full((20, 20, 3), np.nan), 0.002, ratio)  # no surface: nothing to prepare
@@ -74,9 +73,12 @@ def test_prepared_reference_is_what_a_reader_of_the_stored_frame_would_compute(f
     assert np.shares_memory(used.X_world, read.prepared[PREPARED_REFERENCE + "X_world"])
 
 
-def test_other_settings_compute_their_own_reference(flat_frame):
+def test_other_settings_compute_their_own_reference(flat_frame, monkeypatch):
+    import frontend.registration.refinement as refinement
+
     prepared = registrar().prepare(flat_frame)
-    fewer = registrar(max_pixels=5000)
+    monkeypatch.setattr(refinement, "PHOTOMETRIC_MAX_PIXELS", 5000)
+    fewer = registrar()
     settings = reference_settings(W, np.array([0.1, 0.0, 0.0]), 5000)
     assert reference_from_arrays(prepared.prepared, PREPARED_REFERENCE, settings) is None
     reference = fewer.photometric_reference(prepared)
@@ -89,14 +91,14 @@ def test_frames_that_need_no_reference_get_their_surface_only(flat_frame, relief
 
     for frame in (
         registrar().prepare(relief_frame),  # relief: its pairs are not weak
-        FppPairRegistrar(RegistrationConfig()).prepare(flat_frame),  # no rig: no photometric step
+        TexturedSurfaceRegistrar(RegistrationConfig()).prepare(flat_frame),  # no rig: no photometric step
         registrar(enabled=False).prepare(flat_frame),
     ):
         assert not reference_names(frame)
         assert set(SURFACE_ARRAYS) <= set(frame.prepared)
     no_dense = RegistrationConfig()
     no_dense = no_dense.model_copy(update={"dense": no_dense.dense.model_copy(update={"enabled": False})})
-    assert FppPairRegistrar(no_dense).prepare(flat_frame) is flat_frame  # nothing a pair of it needs
+    assert TexturedSurfaceRegistrar(no_dense).prepare(flat_frame) is flat_frame  # nothing a pair of it needs
     no_map = dataclasses.replace(flat_frame, xyz_map=None)
     assert registrar().prepare(no_map) is no_map
 

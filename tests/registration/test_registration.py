@@ -13,7 +13,7 @@ from fpp_graph.geometry import invert, make_pose, pose_error, se3_exp, se3_log
 from fpp_graph.types import Frame, PairRegistrar
 from frontend.config import RegistrationConfig
 from frontend.registration import (
-    FppPairRegistrar,
+    TexturedSurfaceRegistrar,
     IcpResult,
     check_degeneracy,
     disagreement_along,
@@ -130,7 +130,7 @@ def test_lift_keypoints_bilinear_and_invalid():
 
 def test_register_adjacent_pair_accuracy(pair):
     a, b, T_true = pair
-    reg = FppPairRegistrar(RegistrationConfig())
+    reg = TexturedSurfaceRegistrar(RegistrationConfig())
     assert isinstance(reg, PairRegistrar)
     c = reg.register(a, b)
     assert c.accepted, c.rejection_reason
@@ -211,7 +211,7 @@ def test_plane_directions_are_the_in_plane_shifts_and_the_spin_about_the_normal(
 def test_no_overlap_is_rejected_with_reason(wall):
     a = render_frame(wall, wall_pose(-0.8), W, H, frame_id=10)
     b = render_frame(wall, wall_pose(0.8), W, H, frame_id=11)
-    c = FppPairRegistrar(RegistrationConfig()).register(a, b)
+    c = TexturedSurfaceRegistrar(RegistrationConfig()).register(a, b)
     assert not c.accepted and c.rejection_reason
     assert np.all(c.information == 0)
 
@@ -222,7 +222,7 @@ def test_flat_wall_flags_weak_directions_and_rejects_when_keypoints_do_not_pin_t
     scene = bumpy_wall_scene(seed=8, flat=True)
     a = render_frame(scene, wall_pose(0.0), W, H, frame_id=0)
     b = render_frame(scene, wall_pose(0.1), W, H, frame_id=1)
-    c = FppPairRegistrar(RegistrationConfig()).register(a, b)
+    c = TexturedSurfaceRegistrar(RegistrationConfig()).register(a, b)
     assert c.accepted, c.rejection_reason
     assert any("translation" in d for d in c.metadata["geometrically_weak"])
     T_true = np.linalg.inv(a.metadata["T_world_sensor_true"]) @ b.metadata["T_world_sensor_true"]
@@ -231,8 +231,11 @@ def test_flat_wall_flags_weak_directions_and_rejects_when_keypoints_do_not_pin_t
     assert np.linalg.norm(c.T_target_source[:3, 3] - T_true[:3, 3]) < 1e-4
     weak = " ".join(c.metadata["weak_directions_from_keypoints"])
     assert weak.count("translation") == 2 and weak.count("rotation") == 1
-    strict = RegistrationConfig(gates={"max_weak_sigma_sigmas": 2e-6})
-    c = FppPairRegistrar(strict).register(a, b)
+    import frontend.config as frontend_config
+
+    with pytest.MonkeyPatch.context() as patch:  # weak directions held to 1 nm: the keypoints do not pin them
+        patch.setattr(frontend_config, "MAX_WEAK_SIGMA_SIGMAS", 2e-6)
+        c = TexturedSurfaceRegistrar(RegistrationConfig()).register(a, b)
     assert not c.accepted
     assert "degenerate" in c.rejection_reason and "translation" in c.rejection_reason
 
@@ -247,10 +250,14 @@ def test_plane_redone_on_fine_voxels_only_after_the_coarse_icp_converged():
     T_true = np.linalg.inv(a.metadata["T_world_sensor_true"]) @ b.metadata["T_world_sensor_true"]
     config = RegistrationConfig()
     lengths = config.lengths
-    converged = FppPairRegistrar(config).register(a, b)
+    converged = TexturedSurfaceRegistrar(config).register(a, b)
     assert converged.metadata["coarse_icp_plane_like"] and converged.metadata["icp_voxel_m"] == pytest.approx(lengths.icp_voxel_m)
     assert "fine_icp_skipped" not in converged.metadata
-    bounded = FppPairRegistrar(config.model_copy(update={"icp": config.icp.model_copy(update={"max_iterations": 1})})).register(a, b)
+    import frontend.registration.stages as stages
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(stages, "ICP_MAX_ITERATIONS", 1)
+        bounded = TexturedSurfaceRegistrar(config).register(a, b)
     assert not bounded.metadata["icp_converged"]
     assert bounded.metadata["icp_voxel_m"] == pytest.approx(lengths.icp_coarse_voxel_m)
     assert "did not converge" in bounded.metadata["fine_icp_skipped"] and "coarse_icp_plane_like" not in bounded.metadata
@@ -262,7 +269,7 @@ def test_plane_redone_on_fine_voxels_only_after_the_coarse_icp_converged():
 
 def test_bad_input_frames(pair):
     a, b, _ = pair
-    reg = FppPairRegistrar(RegistrationConfig())
+    reg = TexturedSurfaceRegistrar(RegistrationConfig())
     no_texture = dataclasses.replace(a, texture=None)
     c = reg.register(no_texture, b)
     assert not c.accepted and "no texture" in c.rejection_reason
@@ -284,7 +291,7 @@ def test_bad_input_frames(pair):
 def test_guess_is_only_a_hypothesis(pair):
     a, b, T_true = pair
     wrong = se3_exp([0.0, 0.0, 0.3, 0.05, 0.0, 0.0]) @ T_true
-    c = FppPairRegistrar(RegistrationConfig()).register(a, b, T_guess=wrong)
+    c = TexturedSurfaceRegistrar(RegistrationConfig()).register(a, b, T_guess=wrong)
     assert c.accepted and pose_error(c.T_target_source, T_true)[1] < 2e-5
 
 
@@ -318,7 +325,7 @@ def test_look_alike_loop_on_a_plane_is_rejected(poster_wall):
     # guess) the keypoints agree on the poster, but the textures over the whole overlap do not.
     a = render_frame(poster_wall, wall_pose(-0.5 + 0.02), W, H, frame_id=0)
     b = render_frame(poster_wall, wall_pose(0.5 + 0.02), W, H, frame_id=1)
-    reg = FppPairRegistrar(RegistrationConfig())
+    reg = TexturedSurfaceRegistrar(RegistrationConfig())
     as_odometry = reg.register(a, b)  # keypoints alone are fooled: this is what the guard is for
     assert as_odometry.accepted and abs(as_odometry.T_target_source[0, 3]) < 0.05
     agreement = texture_agreement(a, b, as_odometry.T_target_source)
@@ -337,7 +344,7 @@ def test_true_revisit_on_a_plane_is_accepted_as_appearance_only_loop(poster_wall
     b = render_frame(poster_wall, wall_pose(-0.5 + 0.03, 0.02, yaw_deg=1.0), W, H, frame_id=1)
     T_true = invert(wall_pose(-0.5)) @ wall_pose(-0.5 + 0.03, 0.02, yaw_deg=1.0)
     assert texture_agreement(a, b, T_true).fraction > 0.95
-    reg = FppPairRegistrar(RegistrationConfig())
+    reg = TexturedSurfaceRegistrar(RegistrationConfig())
     loop = reg.register(a, b, kind="loop")
     assert loop.accepted, loop.rejection_reason
     assert "dense" in reg.last_timings_s  # tested at the ICP pose, then refined and tested again
@@ -351,18 +358,17 @@ def test_look_alike_is_refused_before_the_photometric_step(poster_wall, monkeypa
     # (2-3 s a pair at 1920x1200): a look-alike place is refused by its textures first, a true
     # revisit still takes the step. The step is recorded here, not run (these frames carry no
     # projector shading to fit).
-    import frontend.registration.registrar as registrar_module
     from frontend.registration import TextureCamera
     from frontend.registration.refinement import PhotometricOutcome
 
     calls = []
 
-    def recorded(target, source, refine, pose, keypoints, weak, inliers, config):
-        calls.append((target.id, source.id))
-        return PhotometricOutcome(pose, np.zeros((6, 6)), {"photometric_not_used": "recorded by the test"})
+    def recorded(given, prefix):
+        calls.append((given.pair.target.id, given.pair.source.id))
+        return PhotometricOutcome(given.pose, np.zeros((6, 6)), {"photometric_not_used": "recorded by the test"})
 
-    monkeypatch.setattr(registrar_module, "photometric_stage", recorded)
-    reg = FppPairRegistrar(RegistrationConfig(), texture_camera=TextureCamera(camera_matrix(W, H), np.zeros(5), np.array([0.1, 0.0, 0.0])))
+    reg = TexturedSurfaceRegistrar(RegistrationConfig(), texture_camera=TextureCamera(camera_matrix(W, H), np.zeros(5), np.array([0.1, 0.0, 0.0])))
+    monkeypatch.setattr(reg.photometric, "run", recorded)
     assert reg.texture_sets_planes
     twin_a = render_frame(poster_wall, wall_pose(-0.5 + 0.02), W, H, frame_id=0)
     twin_b = render_frame(poster_wall, wall_pose(0.5 + 0.02), W, H, frame_id=1)
@@ -489,14 +495,14 @@ def test_registrar_does_not_keep_frames_alive(pair):
     import weakref
 
     a, b, _ = pair
-    reg = FppPairRegistrar(RegistrationConfig())
+    reg = TexturedSurfaceRegistrar(RegistrationConfig())
     da, db = with_features(dataclasses.replace(a), reg.config), with_features(dataclasses.replace(b), reg.config)
     assert reg.register(da, db).accepted
     refs = [weakref.ref(da), weakref.ref(db)]
     del da, db
     gc.collect()
     assert all(r() is None for r in refs)
-    assert len(reg._features) == 0 and len(reg._clouds) == 0
+    assert len(reg.matching.features._described) == 0 and len(reg.icp.clouds._clouds) == 0
 
 
 def test_organised_subsample_keeps_the_valid_strided_pixels():

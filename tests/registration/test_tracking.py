@@ -1,4 +1,4 @@
-"""Frame-to-keyframe tracking from a motion prediction (``FppPairRegistrar.track``) and its use
+"""Frame-to-keyframe tracking from a motion prediction (``TexturedSurfaceRegistrar.track``) and its use
 by the keyframe manager (``keyframes.track_from_motion``), on simulated Kinect-class frames."""
 
 from __future__ import annotations
@@ -11,8 +11,8 @@ from fpp_graph.config import Config, config_from_dict
 from fpp_graph.geometry import invert, pose_error, se3_exp
 from fpp_graph.slam.keyframes import KeyframeManager
 from fpp_graph.types import FrameDescriber, FrameTracker
-from frontend.dense_alignment import align_dense
-from frontend.registration import FppPairRegistrar
+from frontend.dense_alignment import DenseSchedule, align_dense
+from frontend.registration import TexturedSurfaceRegistrar
 from frontend.registration.tracking import MIN_PATCH_CORRELATION, patch_correlation
 from frontend.rgbd.source import RgbdSource
 from frontend.sim.rgbd import (
@@ -81,7 +81,7 @@ def test_a_bare_wall_is_not_tracked(tmp_path):
 
 def _run(source, frames, track: bool):
     config = source.resolve_config(config_from_dict({"keyframes": {"track_from_motion": track}, "loop_closure": {"enabled": False}}))
-    manager = KeyframeManager(FppPairRegistrar(config.registration), config)
+    manager = KeyframeManager(TexturedSurfaceRegistrar(config.registration), config)
     for frame in frames:
         manager.process(frame)
     return manager, manager.finish()
@@ -124,7 +124,7 @@ def test_tracking_off_or_without_track_registers_every_frame_in_full(corridor, c
 
     config = source.resolve_config(config_from_dict({"keyframes": {"track_from_motion": True}, "loop_closure": {"enabled": False}}))
     with caplog.at_level("WARNING"):
-        manager = KeyframeManager(RegisterOnly(FppPairRegistrar(config.registration)), config)
+        manager = KeyframeManager(RegisterOnly(TexturedSurfaceRegistrar(config.registration)), config)
     assert "RegisterOnly has no track()" in caplog.text
     for frame in frames[:4]:
         manager.process(frame)
@@ -184,22 +184,19 @@ def test_keyframe_constraints_widen_by_the_cameras_motion_over_its_readout(corri
 
 
 def _whole_fit(registrar, target, source, T_start):
-    dense, lengths = registrar.config.dense, registrar.config.lengths
-    return align_dense(
-        registrar.dense_surface(target), registrar.dense_surface(source), T_start, coarse_stride_px=dense.coarse_stride_px,
-        fine_stride_px=dense.stride_px, max_points=dense.max_points, max_iterations=dense.coarse_iterations,
-        fine_iterations=dense.fine_iterations, max_distance_m=lengths.icp_max_correspondence_m,
-    )
+    surfaces = registrar.dense_surface(target), registrar.dense_surface(source)
+    return align_dense(*surfaces, T_start, DenseSchedule.of(registrar.config))
 
 
-def test_a_fit_without_weak_directions_is_the_whole_dense_fit(corridor):
+def test_a_fit_without_weak_directions_is_the_whole_dense_fit(corridor, monkeypatch):
     # tracking runs the coarse iterations, looks for weak directions, then the fine ones with the
     # gate the coarse ones left: with no direction weak (ratio 0) that is one whole fit, bit for bit
     import frontend.registration.tracking as tracking
 
     source, frames, poses = corridor
     config = source.config.registration
-    registrar = FppPairRegistrar(config.model_copy(update={"weak_directions": config.weak_directions.model_copy(update={"degeneracy_ratio": 0.0})}))
+    monkeypatch.setattr(tracking, "DEGENERACY_RATIO", 0.0)
+    registrar = TexturedSurfaceRegistrar(config)
     T_predicted = invert(poses[0]) @ poses[3] @ se3_exp([0.004, 0, 0, 0.005, 0, 0])
     tracked = registrar.track(frames[0], frames[3], T_predicted)
     # the start tracking takes: the prediction's rotation made orthonormal
@@ -220,10 +217,11 @@ def test_weak_directions_seen_by_the_coarse_iterations_skip_the_fine_ones(corrid
     registrar = source.make_registrar()
     strides: list[int] = []
     real = tracking.align_dense
-    monkeypatch.setattr(tracking, "align_dense", lambda *a, **k: strides.append((k["coarse_stride_px"], k["fine_stride_px"])) or real(*a, **k))
+    monkeypatch.setattr(tracking, "align_dense", lambda *a, **k: strides.append((a[3].coarse_stride_px, a[3].fine_stride_px)) or real(*a, **k))
     tracked = registrar.track(frames[0], frames[3], invert(poses[0]) @ poses[3] @ se3_exp([0.004, 0, 0, 0.005, 0, 0]))
     assert tracked.accepted and tracked.metadata["unconstrained_directions"]
-    coarse, fine = registrar.config.dense.coarse_stride_px, registrar.config.dense.stride_px
+    schedule = DenseSchedule.of(registrar.config)
+    coarse, fine = schedule.coarse_stride_px, schedule.fine_stride_px
     assert strides == [(coarse, coarse), (coarse, fine)]
     rot_deg, trans_m = _error_deg_m(tracked.T_target_source, invert(poses[0]) @ poses[3])
     assert rot_deg < 0.15 and trans_m < 0.006
