@@ -187,12 +187,8 @@ def marginal_covariance(marginals: gtsam.Marginals, key: int) -> Array:
 
 
 class GraphProblem:
-    """GTSAM factors of one optimisation: anchors, priors and edges under one noise model.
-
-    Every stage of :func:`fpp_graph.backend.optimization.optimize_problem` works on one of these:
-    edges are referred to by their index, and a boolean mask over the edges (``active``) says
-    which ones a solve uses.
-    """
+    """GTSAM factors of one optimisation (anchors, priors, edges under one noise model), which
+    every stage works on: edges by their index, ``active`` a mask of the edges a solve uses."""
 
     def __init__(
         self,

@@ -140,6 +140,5 @@ class PoseGraphResult:
 
     @property
     def removed_loops(self) -> list[tuple[int, int]]:
-        """Always empty: loops leave a solution only by truncated least squares
-        (``rejected_loops``); the name stays for readers of the JSON summaries."""
+        """Always empty: loops leave a solution only by truncated least squares (``rejected_loops``)."""
         return []
