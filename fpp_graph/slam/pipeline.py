@@ -40,7 +40,12 @@ from fpp_graph.errors import InputDataError
 from fpp_graph.evaluation.plots import MAP_PLOT_POINTS
 from fpp_graph.evaluation.report import write_report
 from fpp_graph.geometry import compose
-from fpp_graph.plugins import check_plugins, chosen_loop_detector, chosen_map_fuser, chosen_registrar
+from fpp_graph.plugins import (
+    check_plugins,
+    chosen_loop_detector,
+    chosen_map_fuser,
+    chosen_registrar,
+)
 from fpp_graph.results_folder import config_differences, described_input, results_folder, run_log
 from fpp_graph.slam.cpu_time import process_tree_cpu_s
 from fpp_graph.slam.frame_store import (
