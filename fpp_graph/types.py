@@ -125,9 +125,9 @@ class Frame:
         JSON-serialisable facts the front-end keeps with the frame (sensor name, decoder
         counts, ...). The back-end stores it and never reads it.
     prepared : mapping of str to array
-        The registrar's own per-frame arrays: what :meth:`FramePreparer.prepare` derived from
-        the frame where it was made (a decode worker), so that no process that later registers
-        the frame recomputes them. The registrar owns the names (letters, digits, ``_`` and
+        The registrar's own per-frame arrays: what its ``prepare(frame) -> Frame`` derived from
+        the frame where the source made it (a decode worker), so that no process that later
+        registers the frame recomputes them. The registrar owns the names (letters, digits, ``_`` and
         ``.``; a dotted prefix groups one part's arrays); the back-end stores them with the
         frame and hands them back unchanged, and never reads them.
     xyz_map_stored : (H, W, 3) float32 or None
@@ -149,12 +149,11 @@ class Frame:
     metadata: Mapping[str, Any] = field(default_factory=dict)
     prepared: Mapping[str, NDArray[Any]] = field(default_factory=dict)
     xyz_map_stored: NDArray[np.float32] | None = None
+    _stored_xyz_map_of: NDArray[np.float64] | None = field(default=None, repr=False)  # the xyz_map it belongs to
 
     def __post_init__(self) -> None:
         where = f"frame {self.id}"
         object.__setattr__(self, "prepared", _checked_prepared(self.prepared, where))
-        if self.camera is not None and not isinstance(self.camera, CameraModel):
-            raise InputDataError(f"{where}: camera must be a fpp_graph.types.CameraModel, got {type(self.camera).__name__}")
         points = np.asarray(self.points, dtype=np.float64)
         if points.ndim != 2 or points.shape[1] != 3:
             raise InputDataError(f"{where}: points must be N x 3, got shape {points.shape}")
@@ -176,13 +175,18 @@ class Frame:
                     f"{where}: xyz_map is {xyz.shape[1]} x {xyz.shape[0]} pixels but its camera model "
                     f"{self.camera.width_px} x {self.camera.height_px}; both must come from the same camera"
                 )
-            if self.xyz_map_stored is not None and np.shape(self.xyz_map_stored) != xyz.shape:
-                raise InputDataError(f"{where}: xyz_map_stored shape {np.shape(self.xyz_map_stored)} does not match xyz_map {xyz.shape}")
             if self.texture is not None and np.shape(self.texture) != xyz.shape[:2]:
                 raise InputDataError(
                     f"{where}: texture shape {np.shape(self.texture)} does not match "
                     f"xyz_map {xyz.shape[:2]}; both must come from the same camera"
                 )
+        if self.xyz_map_stored is not None:
+            if self.xyz_map is None or np.shape(self.xyz_map_stored) != self.xyz_map.shape:
+                raise InputDataError(f"{where}: xyz_map_stored shape {np.shape(self.xyz_map_stored)} does not match xyz_map")
+            # a frame made from this one with another xyz_map (dataclasses.replace) leaves it behind
+            belongs = self._stored_xyz_map_of is None or self._stored_xyz_map_of is self.xyz_map
+            object.__setattr__(self, "xyz_map_stored", self.xyz_map_stored if belongs else None)
+        object.__setattr__(self, "_stored_xyz_map_of", self.xyz_map if self.xyz_map_stored is not None else None)
         if self.texture is not None:
             texture = np.asarray(self.texture)
             if texture.ndim != 2 or texture.dtype != np.uint8:
@@ -333,20 +337,6 @@ class FrameDescriber(Protocol):
 
     def describe(self, frame: Frame) -> Frame:
         """``frame`` with ``keypoints_uv`` and ``descriptors`` (the same object when it has them)."""
-        ...
-
-
-@runtime_checkable
-class FramePreparer(Protocol):
-    """Optional fourth capability of a :class:`PairRegistrar`: per-frame work done once.
-
-    A source calls ``prepare(frame)`` where it makes the frame (a decode worker); the result's
-    :attr:`Frame.prepared` holds the arrays the registrar reads back when it registers the frame
-    in any process (the frame store keeps them with the frame).
-    """
-
-    def prepare(self, frame: Frame) -> Frame:
-        """``frame`` with its :attr:`Frame.prepared` arrays (the same object when it needs none)."""
         ...
 
 

@@ -71,13 +71,15 @@ def demo(
                 )
         typer.echo(f"simulated in {time.perf_counter() - start:.1f} s; running SLAM ...")
         from fpp_graph.evaluation.results import evaluate_results
+        from fpp_graph.evaluation.run_analyses import run_analyses
         from fpp_graph.slam.pipeline import run_sequence
         from fpp_graph.slam.sources import open_source
 
         source = open_source(sequence_dir, config)
         with RichProgress() as progress:
             shown = _StagesShownEarly(progress, len(source.frame_ids()))
-            report = run_sequence(sequence_dir, config, results_dir, resume=False, overwrite=True, kind="fpp", progress=shown)
+            report = run_sequence(sequence_dir, config, results_dir, resume=False, overwrite=True, kind="fpp", progress=shown,
+                                  analyses=run_analyses())
             shown.finished()
         metrics = evaluate_results(results_dir, source)
     keep = (

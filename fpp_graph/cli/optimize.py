@@ -29,9 +29,9 @@ def optimize_graph(
     """Optimise a g2o pose graph: chordal init, LM, robust loops on evidence, certificate."""
     import json
 
-    from fpp_graph.backend.graph_run import graph_run_summary, optimize_g2o_file
     from fpp_graph.config import PoseGraphConfig, RunConfig, load_config
     from fpp_graph.outputs import refuse_existing_file, refuse_input_overlap, translated_os_errors
+    from fpp_graph.slam.graph_run import graph_run_summary, optimize_g2o_file
 
     if out is not None:  # refused before the optimisation, not after it
         refuse_input_overlap(out, [graph_file, config])

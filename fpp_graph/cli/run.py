@@ -46,15 +46,17 @@ def run(
     out = out or default_out(sequence)
     cfg = load_config(config)
     if sequence.suffix.lower() == ".g2o":
-        from fpp_graph.backend.graph_run import run_graph_file
         from fpp_graph.config import dump_config
+        from fpp_graph.evaluation.run_analyses import run_analyses
         from fpp_graph.results_folder import results_folder, run_log
+        from fpp_graph.slam.graph_run import run_graph_file
 
         setup_logging(cfg.run.log_level)
         with results_folder(out, sequence, dump_config(cfg), resume, overwrite) as results, run_log(results, cfg.run.log_level):
-            summary = run_graph_file(sequence, cfg, results)
+            summary = run_graph_file(sequence, cfg, results, run_analyses())
         typer.echo(json.dumps(summary, indent=1, default=float))
         return
+    from fpp_graph.evaluation.run_analyses import run_analyses
     from fpp_graph.slam.heap import keep_large_blocks_in_heap
     from fpp_graph.slam.pipeline import run_sequence
 
@@ -72,7 +74,8 @@ def run(
                 for obj in reversed(dask_objects):  # the client, then the local cluster
                     stack.callback(obj.close)
                 stack.callback(executor.shutdown, wait=False)
-            report = run_sequence(sequence, cfg, out, resume=resume, overwrite=overwrite, kind=kind, progress=progress, executor=executor)
+            report = run_sequence(sequence, cfg, out, resume=resume, overwrite=overwrite, kind=kind, progress=progress, executor=executor,
+                                  analyses=run_analyses())
     except Exception:
         if stop_signal() is None:
             raise
@@ -131,10 +134,11 @@ def batch(
     overwrite: Annotated[bool, typer.Option("--overwrite")] = False,
 ) -> None:
     """Many sequences through a concurrent.futures executor (or Dask distributed)."""
+    from fpp_graph.evaluation.run_analyses import run_analyses
     from fpp_graph.slam.batch import run_batch
 
     setup_logging("WARNING")
-    rows = run_batch(sequences, out, config, workers=workers, scheduler=scheduler, resume=resume, overwrite=overwrite)
+    rows = run_batch(sequences, out, config, workers=workers, scheduler=scheduler, resume=resume, overwrite=overwrite, analyses=run_analyses())
     failed = [r for r in rows if r.get("error")]
     for r in rows:
         typer.echo(json.dumps(r, default=float))

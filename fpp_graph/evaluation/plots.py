@@ -24,6 +24,7 @@ from numpy.typing import NDArray
 from fpp_graph.atomic import atomic_open
 from fpp_graph.errors import InputDataError
 from fpp_graph.geometry import kabsch, transform_points
+from fpp_graph.slam.plot_samples import MAP_PLOT_POINTS
 
 log = logging.getLogger(__name__)
 
@@ -187,8 +188,6 @@ def _subsample(points: NDArray, colors: NDArray | None, max_points: int, seed: i
     return points[pick], None if colors is None else colors[pick]
 
 
-# Points drawn per map in a before/after top view (each cloud is subsampled to this).
-MAP_PLOT_POINTS = 200_000
 
 # Pixels along the longer side of a map panel's raster: a panel is ~900 px wide at 150 dpi.
 MAP_RASTER_PX = 900
@@ -342,34 +341,4 @@ def plot_map_before_after(
     if mappable is not None:
         label = "distance to reference (mm)" if errors[0] is not None or errors[1] is not None else f"{view.up_label} ({view.unit})"
         fig.colorbar(mappable, ax=list(axes), shrink=0.7, label=label)
-    _save(fig, path)
-
-
-def plot_errors(
-    path: str | os.PathLike[str],
-    per_frame_error_mm: NDArray[np.float64],
-    frame_ids: Sequence[int] | NDArray | None = None,
-    title: str = "absolute trajectory error",
-    ylabel: str = "translation error (mm)",
-) -> None:
-    """Per-frame error curve (e.g. ATE in mm) with its RMSE and mean as horizontal lines."""
-    err = np.asarray(per_frame_error_mm, dtype=np.float64).reshape(-1)
-    if err.size == 0:
-        raise InputDataError(f"plot {path}: no errors to plot")
-    x = np.arange(err.size) if frame_ids is None else np.asarray(frame_ids).reshape(-1)
-    if x.shape != err.shape:
-        raise InputDataError(f"plot {path}: {x.size} frame ids for {err.size} errors")
-    finite = np.isfinite(err)
-    rmse = float(np.sqrt(np.mean(err[finite] ** 2))) if finite.any() else float("nan")
-    mean = float(np.mean(err[finite])) if finite.any() else float("nan")
-    fig, (ax,) = _new_figure(size=(9.0, 4.0))
-    ax.plot(x, err, "-", lw=1.0, color="tab:blue", label="per frame")
-    ax.axhline(rmse, color="tab:red", lw=1.0, label=f"RMSE {rmse:.3g}")
-    ax.axhline(mean, color="tab:orange", lw=1.0, ls="--", label=f"mean {mean:.3g}")
-    ax.set_xlabel("frame")
-    ax.set_ylabel(ylabel)
-    ax.set_ylim(bottom=0)
-    ax.grid(True, lw=0.3)
-    ax.legend(loc="best", fontsize=8)
-    ax.set_title(title)
     _save(fig, path)

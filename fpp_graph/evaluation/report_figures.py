@@ -83,13 +83,8 @@ def _segments(first: NDArray[np.int64], second: NDArray[np.int64], positions: _P
     return out
 
 
-def loop_hover(row: LoopRow) -> str:
-    """A loop's hover text: its keyframes, stage, verdict (with the reason) and figures."""
-    return f"loop {row.query} → {row.match} {_hover_rest(row)}"
-
-
-#: What a loop's marker shows on hover: its keyframes (``customdata``) and the rest of
-#: :func:`loop_hover` (``text``).
+#: What a loop's marker shows on hover: its keyframes (``customdata``), stage, verdict (with the
+#: reason) and figures (``text``).
 LOOP_HOVER_TEMPLATE = "loop %{customdata[0]:d} → %{customdata[1]:d} %{text}<extra></extra>"
 
 _LOOP_KEY = attrgetter("stage", "accepted", "reason", "fitness", "inliers", "inlier_rmse_mm")

@@ -22,11 +22,14 @@ from collections.abc import Iterator
 from concurrent.futures import Executor, ProcessPoolExecutor
 from contextlib import ExitStack, contextmanager
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from fpp_graph.errors import FppError, InputDataError
+
+if TYPE_CHECKING:
+    from fpp_graph.slam.pipeline import RunAnalyses
 
 log = logging.getLogger(__name__)
 
@@ -58,8 +61,10 @@ def plain_row(row: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
-def run_one(sequence: str, out: str, config_path: str | None, resume: bool, overwrite: bool) -> dict[str, Any]:
-    """Run one sequence into ``out``; returns its summary row, or one with ``error``, never raises."""
+def run_one(sequence: str, out: str, config_path: str | None, resume: bool, overwrite: bool, analyses: RunAnalyses | None = None) -> dict[str, Any]:
+    """Run one sequence into ``out`` (``analyses``: what the run adds, see
+    :class:`~fpp_graph.slam.pipeline.RunAnalyses`); returns its summary row, or one with
+    ``error``, never raises."""
     from fpp_graph.config import config_from_dict, load_config
 
     row: dict[str, Any] = {"sequence": sequence, "results": out}
@@ -69,19 +74,19 @@ def run_one(sequence: str, out: str, config_path: str | None, resume: bool, over
         # (a Dask worker is a daemon process and could not start a pool of its own anyway)
         config = config_from_dict({**config.model_dump(mode="json"), "run": {**config.run.model_dump(mode="json"), "workers": 1}})
         if Path(sequence).suffix.lower() == ".g2o":
-            from fpp_graph.backend.graph_run import run_graph_file
             from fpp_graph.config import dump_config
             from fpp_graph.results_folder import results_folder
+            from fpp_graph.slam.graph_run import run_graph_file
 
             if not Path(sequence).is_file():
                 raise InputDataError(f"pose graph {sequence} does not exist")
             with results_folder(Path(out), Path(sequence), dump_config(config), resume, overwrite) as results:
-                metrics = run_graph_file(Path(sequence), config, results)
+                metrics = run_graph_file(Path(sequence), config, results, analyses)
         else:
             from fpp_graph.slam.pipeline import Pipeline
             from fpp_graph.slam.sources import open_source
 
-            metrics = Pipeline(open_source(sequence, config), config, Path(out), resume=resume, overwrite=overwrite).run().metrics
+            metrics = Pipeline(open_source(sequence, config), config, Path(out), resume=resume, overwrite=overwrite, analyses=analyses).run().metrics
         row.update({k: metrics[k] for k in ROW_METRICS if k in metrics})
     except FppError as exc:
         row["error"] = str(exc)
@@ -151,9 +156,10 @@ def result_or_error(future: Any, sequence: str, out: str) -> dict[str, Any]:
 def run_batch(
     sequences: list[Path], out: Path, config_path: Path | None, workers: int = 1,
     scheduler: str | None = None, resume: bool = False, overwrite: bool = False,
-    connect_timeout_s: float = 10.0,
+    connect_timeout_s: float = 10.0, analyses: RunAnalyses | None = None,
 ) -> list[dict[str, Any]]:
-    """Run every sequence into ``out/<name>``; returns one summary row per sequence, in order."""
+    """Run every sequence into ``out/<name>`` (``analyses``: what each run adds); returns one
+    summary row per sequence, in order."""
     names = [results_name(s) for s in sequences]
     if len(set(names)) != len(names):
         duplicated = sorted({n for n in names if names.count(n) > 1})
@@ -168,6 +174,6 @@ def run_batch(
         for obj in reversed(dask_objects):  # closed last-in first-out: the client, then the local cluster
             stack.callback(obj.close)
         stack.callback(executor.shutdown, wait=True)
-        futures = [executor.submit(run_one, seq, seq_out, config_arg, bool(resume), bool(overwrite)) for seq, seq_out in tasks]
+        futures = [executor.submit(run_one, seq, seq_out, config_arg, bool(resume), bool(overwrite), analyses) for seq, seq_out in tasks]
         rows = [result_or_error(f, seq, seq_out) for f, (seq, seq_out) in zip(futures, tasks, strict=True)]
     return [{**row, "sequence": str(seq)} for row, seq in zip(rows, sequences, strict=True)]  # as the user named it

@@ -8,11 +8,14 @@ import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from fpp_graph.atomic import atomic_write_text
 from fpp_graph.backend.pose_graph import PoseGraph, PoseGraphResult
 from fpp_graph.config import Config, PoseGraphConfig
+
+if TYPE_CHECKING:
+    from fpp_graph.slam.pipeline import RunAnalyses
 
 
 @dataclass
@@ -75,15 +78,13 @@ def graph_run_summary(run: GraphRun, certify: bool) -> dict[str, Any]:
     }
 
 
-def run_graph_file(path: Path, config: Config, out: Path) -> dict[str, Any]:
+def run_graph_file(path: Path, config: Config, out: Path, analyses: RunAnalyses | None = None) -> dict[str, Any]:
     """``fpp-slam run GRAPH.g2o``: optimise with the configured back-end; write ``trajectory.tum``,
     ``graph.g2o``, ``metrics.json`` (the summary, plus ``frames``) and, last, ``report.html``
-    (:mod:`fpp_graph.evaluation.report`, from the graph and poses in memory; its time added to
-    ``metrics.json`` as ``report_seconds``)
-    into ``out`` (a folder that :func:`~fpp_graph.results_folder.results_folder` claimed: it holds
-    ``config.yaml``)."""
+    when ``analyses`` has a ``write_report`` (from the graph and poses in memory; its time added
+    to ``metrics.json`` as ``report_seconds``) into ``out`` (a folder that
+    :func:`~fpp_graph.results_folder.results_folder` claimed: it holds ``config.yaml``)."""
     from fpp_graph.backend.g2o import write_g2o
-    from fpp_graph.evaluation.report import write_report
     from fpp_graph.trajectory import Trajectory, write_tum
 
     run = optimize_g2o_file(path, config.pose_graph)
@@ -94,7 +95,8 @@ def run_graph_file(path: Path, config: Config, out: Path) -> dict[str, Any]:
     write_g2o(out / "graph.g2o", run.graph, poses=poses)
     summary = {"frames": len(ids), **graph_run_summary(run, certify=config.pose_graph.certify)}
     atomic_write_text(out / "metrics.json", json.dumps(summary, indent=1, default=float))
-    # last: a failure to write it costs no other output; it draws the graph and poses in memory
-    summary["report_seconds"] = write_report(out, replace=True, graph=run.graph, poses=poses, metrics=summary).seconds
-    atomic_write_text(out / "metrics.json", json.dumps(summary, indent=1, default=float))
+    if analyses is not None and analyses.write_report is not None:
+        # last: a failure to write it costs no other output; it draws the graph and poses in memory
+        summary["report_seconds"] = analyses.write_report(out, replace=True, graph=run.graph, poses=poses, metrics=summary).seconds
+        atomic_write_text(out / "metrics.json", json.dumps(summary, indent=1, default=float))
     return summary

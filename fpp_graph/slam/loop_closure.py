@@ -14,9 +14,7 @@ descriptors, so it adapts to whatever descriptor the front-end uses (SURF, SIFT,
 from __future__ import annotations
 
 import logging
-import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
@@ -117,13 +115,6 @@ class AppearanceIndex:
         scores = [(fid, float(q @ v)) for fid, v in self._vectors.items() if fid not in exclude]
         scores.sort(key=lambda s: -s[1])
         return scores[:top_k]
-
-
-@dataclass(frozen=True)
-class PoseUncertainty:
-    """Position standard deviation (m) of a keyframe relative to another, from the covariance."""
-
-    position_sigma_m: float
 
 
 PROXIMITY_SIGMAS = 3.0
@@ -266,12 +257,3 @@ class ProximityAppearanceLoopDetector:
         proximity = [found[c.match_id] for c in proximity]
         n_prox = max(0, cfg.max_candidates_per_frame - len(appearance))
         return [*proximity[:n_prox], *appearance][: cfg.max_candidates_per_frame]
-
-
-def position_sigma_from_covariance(covariance_rot_trans: NDArray[np.float64] | None) -> float:
-    """Largest position standard deviation (m) of a 6x6 [rot, trans] covariance; 0 if unknown."""
-    if covariance_rot_trans is None:
-        return 0.0
-    cov = np.asarray(covariance_rot_trans)[3:, 3:]
-    eig = np.linalg.eigvalsh(0.5 * (cov + cov.T))
-    return math.sqrt(max(float(eig.max()), 0.0))

@@ -133,12 +133,12 @@ def fuse_points(
 ) -> FusedMap:
     """Fuse the keyframes into ``fuser`` under the optimised poses and write ``map.ply`` (and
     ``mesh.ply`` when the fuser made a mesh). ``plot_samples``, when given, receives a random subset
-    of each keyframe's points (sensor frame, :data:`~fpp_graph.evaluation.plots.MAP_PLOT_POINTS` over all keyframes) in the same
+    of each keyframe's points (sensor frame, :data:`~fpp_graph.slam.plot_samples.MAP_PLOT_POINTS` over all keyframes) in the same
     pass, so the "before loop closure" map is drawn without reading the frames again.
     ``executor``: a :class:`~fpp_graph.types.ParallelMapFuser`'s per-keyframe work runs there,
     a few keyframes at a time, folded in in keyframe order (the same map)."""
-    from fpp_graph.evaluation.plots import MAP_PLOT_POINTS
     from fpp_graph.fusion.ply import write_mesh_ply, write_point_cloud_ply
+    from fpp_graph.slam.plot_samples import MAP_PLOT_POINTS
 
     # (no samples drawn when none are asked for: the pipeline takes its own while tracking)
     per_keyframe = -(-MAP_PLOT_POINTS // max(len(result.keyframe_ids), 1)) if plot_samples is not None else 0

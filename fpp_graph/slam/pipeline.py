@@ -10,8 +10,10 @@ function usable on its own:
 3. :func:`track` - keyframes, odometry, loop detection/verification, robust pose graph;
 4. :func:`write_trajectory_and_graph` - ``trajectory.tum``, ``graph.g2o``;
 5. :func:`~fpp_graph.slam.map_fusion.fuse_points` - re-fuse the global map under the optimised poses (``map.ply``), its mesh made on a worker meanwhile (:func:`~fpp_graph.slam.map_fusion.start_mesh_apart`, ``mesh.ply``);
-6. :func:`write_metrics_and_plots` - ``metrics.json`` and PNG plots.
-7. :func:`~fpp_graph.evaluation.report.write_report` - ``report.html``, last (a failure there costs no other output).
+6. ``metrics.json``, and what the run's :class:`RunAnalyses` add: the plots, the loops against
+   ground truth and, last, ``report.html`` (a failure there costs no other output). The layer that
+   reads results supplies them (:func:`fpp_graph.evaluation.run_analyses.run_analyses`, which
+   ``fpp-slam run`` passes); this package does not import it.
 
 :func:`run_sequence` is the whole of ``fpp-slam run SEQUENCE`` (source discovery, config,
 pipeline). Every output file is written atomically (temp file + rename).
@@ -37,8 +39,6 @@ import numpy as np
 from fpp_graph.atomic import atomic_write_text
 from fpp_graph.config import Config, dump_config
 from fpp_graph.errors import InputDataError
-from fpp_graph.evaluation.plots import MAP_PLOT_POINTS
-from fpp_graph.evaluation.report import write_report
 from fpp_graph.geometry import compose
 from fpp_graph.plugins import (
     check_plugins,
@@ -59,10 +59,9 @@ from fpp_graph.slam.map_fusion import (
     ProgressCallback,
     fuse_points,
     make_map_fuser,
-    points_under_poses,
     start_mesh_apart,
 )
-from fpp_graph.slam.plot_samples import PlotSamples
+from fpp_graph.slam.plot_samples import MAP_PLOT_POINTS, PlotSamples
 from fpp_graph.slam.slam_result import SlamResult
 from fpp_graph.slam.sources import FrameSource, check_frame_source
 from fpp_graph.slam.verification import ExecutorVerifier
@@ -77,6 +76,23 @@ from fpp_graph.trajectory import Trajectory, write_tum
 from fpp_graph.types import Frame, MapFuser, PairVerifier
 
 log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class RunAnalyses:
+    """What a sequence or pose-graph run adds from the layer that reads results (each None: left out).
+
+    ``write_plots(out, result, keyframe_samples, gt_poses)`` draws the plots (in a thread while the
+    map is fused); ``evaluate_loops(out, gt_poses)`` scores the loop candidates against the
+    reference poses (picklable: it runs on a worker while the map is fused; its result has
+    ``as_dict()``); ``write_report(out, **what)`` writes ``report.html`` last and returns what has
+    ``seconds`` (the keywords of :func:`fpp_graph.evaluation.report.write_report`).
+    :func:`fpp_graph.evaluation.run_analyses.run_analyses` gives the built-in ones.
+    """
+
+    write_plots: Callable[[Path, SlamResult, dict[int, np.ndarray], dict[int, np.ndarray] | None], None] | None = None
+    evaluate_loops: Callable[[Path, dict[int, np.ndarray]], Any] | None = None
+    write_report: Callable[..., Any] | None = None
 
 @dataclass
 class RunReport:
@@ -288,22 +304,6 @@ def _finite(x: float) -> float | None:
     return float(x) if np.isfinite(x) else None
 
 
-def write_plots(out: Path, result: SlamResult, samples: dict[int, np.ndarray], gt_poses: dict[int, np.ndarray] | None = None) -> None:
-    """``trajectory_top.png`` and ``map_before_after.png``: the keyframes' point ``samples`` under
-    odometry alone and under the optimised poses."""
-    from fpp_graph.evaluation.plots import plot_map_before_after, plot_trajectory_top_view
-
-    accepted = [(r.query_id, r.match_id) for r in result.loop_records if r.verified and not r.rejected_by_backend]
-    rejected = [(r.query_id, r.match_id) for r in result.loop_records if (not r.verified) or r.rejected_by_backend]
-    plot_trajectory_top_view(
-        out / "trajectory_top.png", result.poses_world_sensor, [(c.source_id, c.target_id) for c in result.odometry],
-        accepted, rejected, gt_poses=gt_poses, title="trajectory (top view)",
-    )
-    if samples:
-        before = points_under_poses(samples, odometry_only_poses(result))
-        plot_map_before_after(out / "map_before_after.png", before, points_under_poses(samples, result.poses_world_sensor))
-
-
 class _Background:
     """``fn(*args)`` in a thread of this process; :meth:`result` waits and raises what it raised."""
 
@@ -363,6 +363,7 @@ class Pipeline:
         executor: Executor | None = None,
         progress: ProgressCallback | None = None,
         map_fuser: MapFuser | None = None,
+        analyses: RunAnalyses | None = None,
     ) -> None:
         """``map_fuser`` fuses the global map (default: the one ``config.plugins.map_fuser`` names,
         else :class:`~fpp_graph.fusion.voxel_map.VoxelMapFuser` from ``config.fusion``). The
@@ -374,6 +375,7 @@ class Pipeline:
         self.config_set_by_source = config_set_by_source(config, self.config)
         check_plugins(self.config)
         self.map_fuser = map_fuser if map_fuser is not None else chosen_map_fuser(self.config)
+        self.analyses = analyses if analyses is not None else RunAnalyses()  # what the run adds (RunAnalyses)
         self.out = Path(out)
         self.resume = resume
         self.overwrite = overwrite
@@ -428,7 +430,7 @@ class Pipeline:
                 write_trajectory_and_graph(out, report.slam, timestamps)
                 write_loop_log(out, report.slam)
             gt_poses = self._ground_truth_poses(ids)
-            loop_evaluation = _LoopEvaluation(out, gt_poses, executor)
+            loop_evaluation = _LoopEvaluation(out, gt_poses, executor, self.analyses.evaluate_loops)
             self._fuse_and_plot(out, report, store, executor, loop_evaluation, gt_poses, samples.of(report.slam.keyframe_ids))
         finally:  # done, failed or interrupted: the worker processes end with the run's last use of them
             self._shutdown_executor()
@@ -439,12 +441,13 @@ class Pipeline:
         report.metrics["source"] = self.source.describe()  # what the reader made of the folder (e.g. images it left alone)
         report.metrics["config_set_by_source"] = self.config_set_by_source
         report.metrics["plugins"] = self.config.plugins.model_dump()  # null: the built-in
-        if gt_poses is not None:  # an evaluation that failed raises here, after the plots are written
+        if loop_evaluation.active:  # an evaluation that failed raises here, after the plots are written
             report.metrics["loop_evaluation"] = loop_evaluation.result()
         atomic_write_text(out / "metrics.json", json.dumps(report.metrics, indent=1, default=float))
-        with self._timed(report, "report"):  # last: a failure to write it costs no other output
-            write_report(out, reference=self.source.ground_truth(), keyframe_samples=samples.of(report.slam.keyframe_ids),
-                         replace=True, reference_must_fit=False)
+        if self.analyses.write_report is not None:
+            with self._timed(report, "report"):  # last: a failure to write it costs no other output
+                self.analyses.write_report(out, reference=self.source.ground_truth(), keyframe_samples=samples.of(report.slam.keyframe_ids),
+                                           replace=True, reference_must_fit=False)
         report.metrics["seconds"] = sum(report.seconds_by_stage.values())  # seconds_by_stage is the metrics' own dict
         atomic_write_text(out / "metrics.json", json.dumps(report.metrics, indent=1, default=float))
         return report
@@ -460,15 +463,17 @@ class Pipeline:
         fuser = make_map_fuser(self.config) if self.map_fuser is None else self.map_fuser
         with self._timed(report, "fuse"):
             mesh = start_mesh_apart(out, report.slam, store, fuser, executor)
-        plots = _Background(write_plots, out, report.slam, samples, gt_poses)
+        write_plots = self.analyses.write_plots
+        plots = _Background(write_plots, out, report.slam, samples, gt_poses) if write_plots is not None else None
         try:
             with self._timed(report, "fuse"):  # the keyframes' shares of the map on the workers too
                 fuse_points(out, report.slam, store, fuser, self.progress, executor=executor)
-            if gt_poses is not None:
+            if loop_evaluation.active:
                 with self._timed(report, "evaluate_loops"):  # a stage of its own (what it adds to the run): only sequences with ground truth pay it
                     loop_evaluation.finish()
-            with self._timed(report, "plots"):  # what is left of them
-                plots.result()
+            if plots is not None:
+                with self._timed(report, "plots"):  # what is left of them
+                    plots.result()
             if mesh is not None:
                 with self._timed(report, "fuse"):
                     mesh.finish()
@@ -541,19 +546,19 @@ class Pipeline:
 
 
 class _LoopEvaluation:
-    """Loop candidates against ground truth (:func:`fpp_graph.evaluation.loops.evaluate_results_loops`),
+    """Loop candidates against ground truth (:attr:`RunAnalyses.evaluate_loops`),
     started on a worker while the map is fused: it reads only what is written before fusion
     (``loops.json``, ``graph.g2o``, the keyframes' cached points), and run after the plots in the
-    main process it left both workers idle (the doll turntable's 1.4 s of a 44 s run). Without
+    main process it left both workers idle (1.4 s of a 44 s run on two cores). Without
     an executor it runs in :meth:`finish`. A failure is kept and raised by :meth:`result`, so it
     costs no other output."""
 
-    def __init__(self, out: Path, gt_poses: dict[int, np.ndarray] | None, executor: Executor | None) -> None:
-        from fpp_graph.evaluation.loops import evaluate_results_loops
-
-        self._run = lambda: evaluate_results_loops(out, gt_poses)
-        self._future = executor.submit(evaluate_results_loops, out, gt_poses) if executor is not None and gt_poses is not None else None
+    def __init__(self, out: Path, gt_poses: dict[int, np.ndarray] | None, executor: Executor | None,
+                 evaluate: Callable[[Path, dict[int, np.ndarray]], Any] | None) -> None:
+        self._run = lambda: evaluate(out, gt_poses)
+        self._future = executor.submit(evaluate, out, gt_poses) if executor is not None and gt_poses is not None and evaluate is not None else None
         self._outcome: tuple[dict[str, Any] | None, BaseException | None] | None = None
+        self.active = evaluate is not None and gt_poses is not None  # whether there is an evaluation to run
 
     def finish(self) -> None:
         """Wait for (or run) the evaluation; before the executor shuts down."""
@@ -575,12 +580,14 @@ class _LoopEvaluation:
 def run_sequence(
     sequence: Path, config: Config, out: Path, resume: bool = False, overwrite: bool = False,
     kind: str | None = None, progress: ProgressCallback | None = None, executor: Executor | None = None,
+    analyses: RunAnalyses | None = None,
 ) -> RunReport:
     """``fpp-slam run SEQUENCE``: open the sequence with its registered source (``kind`` forces
     one) and run the pipeline into ``out`` under ``config`` (e.g. ``load_config(path)``).
     ``executor``: decode frames and verify loops there (e.g. Dask's) instead of a process pool
-    of ``run.workers`` processes the run starts and ends."""
+    of ``run.workers`` processes the run starts and ends. ``analyses``: what the run adds
+    (:class:`RunAnalyses`; ``fpp-slam run`` passes :func:`fpp_graph.evaluation.run_analyses.run_analyses`)."""
     from fpp_graph.slam.sources import open_source
 
     source = open_source(sequence, config, kind=kind)
-    return Pipeline(source, config, out, resume=resume, overwrite=overwrite, progress=progress, executor=executor).run()
+    return Pipeline(source, config, out, resume=resume, overwrite=overwrite, progress=progress, executor=executor, analyses=analyses).run()

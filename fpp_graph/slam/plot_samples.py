@@ -11,6 +11,9 @@ from numpy.typing import NDArray
 
 from fpp_graph.types import Frame
 
+# Points drawn per map in a before/after top view (each cloud is subsampled to this).
+MAP_PLOT_POINTS = 200_000
+
 
 class PlotSamples:
     """A random sample of each keyframe's points (sensor frame), ``budget`` points over all.
@@ -26,7 +29,7 @@ class PlotSamples:
     ----------
     budget : int
         Points over all keyframes (the plot's own limit,
-        :data:`~fpp_graph.evaluation.plots.MAP_PLOT_POINTS`).
+        :data:`~fpp_graph.slam.plot_samples.MAP_PLOT_POINTS`).
     """
 
     def __init__(self, budget: int) -> None:

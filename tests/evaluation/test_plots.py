@@ -9,7 +9,6 @@ from scipy.spatial.transform import Rotation
 
 from fpp_graph.errors import InputDataError
 from fpp_graph.evaluation.plots import (
-    plot_errors,
     plot_map_before_after,
     plot_trajectory_top_view,
     top_view,
@@ -126,12 +125,3 @@ def test_map_before_after_coloured_by_error(tmp_path, rng):
     assert dark(left) > dark(right) + 1000
     with pytest.raises(InputDataError, match="errors_after_m has 10 values"):
         plot_map_before_after(path, before, after, errors_after_m=np.zeros(10))
-
-
-def test_plot_errors(tmp_path):
-    plot_errors(tmp_path / "ate.png", np.array([0.1, 0.5, np.nan, 0.3]), frame_ids=[3, 4, 5, 6])
-    assert (tmp_path / "ate.png").read_bytes().startswith(b"\x89PNG")
-    with pytest.raises(InputDataError, match="no errors"):
-        plot_errors(tmp_path / "x.png", [])
-    with pytest.raises(InputDataError, match="2 frame ids for 3 errors"):
-        plot_errors(tmp_path / "x.png", [1.0, 2.0, 3.0], frame_ids=[1, 2])

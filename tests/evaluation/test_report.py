@@ -16,6 +16,7 @@ import pytest
 
 from fpp_graph.cli import main
 from fpp_graph.evaluation.report import CORRECTION_POINTS, MAP_POINTS
+from fpp_graph.evaluation.run_analyses import run_analyses
 from fpp_graph.trajectory import read_tum
 
 _FPP_SLAM = [sys.executable, "-m", "fpp_graph.cli"]
@@ -93,7 +94,7 @@ def sequence_run(tmp_path_factory):
     root = tmp_path_factory.mktemp("report")
     sequence = wall_sequences.write_tum_rgbd_sequence(root / "seq")
     config = config_from_dict({"run": {"workers": 1}, "fusion": {"mesh": False}})
-    report = Pipeline(open_source(sequence, config), config, root / "out").run()
+    report = Pipeline(open_source(sequence, config), config, root / "out", analyses=run_analyses()).run()
     return root / "out", sequence, report
 
 
@@ -259,6 +260,7 @@ def test_the_odometry_only_chain_is_a_walk_along_it(shape):
 
 def test_a_report_that_cannot_be_written_costs_no_other_output(sequence_run, graph_run, tmp_path, monkeypatch, capsys):
     import fpp_graph.evaluation.report as report_module
+    import fpp_graph.evaluation.run_analyses as run_analyses_module
     import fpp_graph.slam.pipeline as pipeline
     from fpp_graph.config import config_from_dict
     from fpp_graph.errors import OutputError
@@ -268,14 +270,14 @@ def test_a_report_that_cannot_be_written_costs_no_other_output(sequence_run, gra
         raise OutputError(f"cannot write {out}/report.html: No space left on device; the disk is full")
 
     monkeypatch.setattr(report_module, "write_report", disk_full)
-    monkeypatch.setattr(pipeline, "write_report", disk_full)
+    monkeypatch.setattr(run_analyses_module, "write_report", disk_full)
     capsys.readouterr()
     assert main(["run", str(graph_run.parent / "g.g2o"), "--out", str(tmp_path / "graph")]) == 2
     assert "No space left on device" in capsys.readouterr().err.strip().splitlines()[-1]
     _, sequence, _ = sequence_run
     config = config_from_dict({"run": {"workers": 1}, "fusion": {"mesh": False}})
     with pytest.raises(OutputError, match="No space left"):
-        pipeline.Pipeline(open_source(sequence, config), config, tmp_path / "sequence").run()
+        pipeline.Pipeline(open_source(sequence, config), config, tmp_path / "sequence", analyses=run_analyses()).run()
     for out, names in ((tmp_path / "graph", ("trajectory.tum", "graph.g2o", "metrics.json")),
                        (tmp_path / "sequence", ("trajectory.tum", "graph.g2o", "metrics.json", "loops.json", "map.ply", "map_before_after.png"))):
         assert all((out / name).is_file() for name in names) and not (out / "report.html").exists()

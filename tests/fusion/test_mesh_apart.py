@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from fpp_graph.errors import InputDataError
+from fpp_graph.evaluation.run_analyses import run_analyses
 from fpp_graph.fusion.voxel_map import FrameMesher, VoxelMapFuser
 from fpp_graph.slam.frame_store import FrameStore
 from fpp_graph.slam.map_fusion import MESH_STOP_FILE, start_mesh_apart
@@ -149,10 +150,10 @@ def test_a_run_stopped_while_fusing_stops_the_mesh_and_resumes_whole(tmp_path):
             raise KeyboardInterrupt
 
     with pytest.raises(KeyboardInterrupt):
-        Pipeline(open_source(seq, config), config, out, progress=progress).run()
+        Pipeline(open_source(seq, config), config, out, progress=progress, analyses=run_analyses()).run()
     assert stopped_with and "map.ply" not in stopped_with[0]  # stopped inside the fusion
     assert (out / MESH_STOP_FILE).exists() and not (out / "metrics.json").exists()
-    report = Pipeline(open_source(seq, config), config, out, resume=True).run()
+    report = Pipeline(open_source(seq, config), config, out, resume=True, analyses=run_analyses()).run()
     assert report.metrics["keyframes"] >= 2
     assert (out / "mesh.ply").stat().st_size > 0 and (out / "map.ply").exists() and (out / "map_before_after.png").exists()
     assert not list(out.rglob("*.tmp"))

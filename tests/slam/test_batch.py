@@ -18,6 +18,7 @@ import pytest
 from fpp_graph.backend.g2o import write_g2o
 from fpp_graph.cli import main as cli_main
 from fpp_graph.errors import InputDataError
+from fpp_graph.evaluation.run_analyses import run_analyses
 from fpp_graph.slam.batch import plain_row, result_or_error, results_name, run_batch, run_one
 from fpp_graph.testing.synthetic_graphs import ate_rmse_m, corridor_trajectory
 from fpp_graph.trajectory import read_tum
@@ -44,7 +45,7 @@ def sequences(tmp_path_factory):
 def config_file(tmp_path_factory):
     """Every batch here runs with this file (it must reach the workers): a coarse map, no mesh."""
     path = tmp_path_factory.mktemp("batch_config") / "coarse.yaml"
-    path.write_text("fusion:\n  voxel_size_m: 0.004\n  tsdf_voxel_m: 0.008\n  tsdf_truncation_m: 0.032\n  mesh: false\n")
+    path.write_text("fusion:\n  voxel_size_m: 0.004\n  tsdf_voxel_m: 0.008\n  mesh: false\n")
     return path
 
 
@@ -92,7 +93,7 @@ def check_rows(rows: list[dict], paths: list[Path], sims: dict, out: Path) -> No
 def process_pool_run(sequences, config_file, tmp_path_factory):
     paths, _ = sequences
     out = tmp_path_factory.mktemp("batch_pool") / "out"
-    return out, run_batch(paths, out, config_file, workers=2)
+    return out, run_batch(paths, out, config_file, workers=2, analyses=run_analyses())  # as fpp-slam batch
 
 
 def test_process_pool_batch(sequences, process_pool_run):
@@ -110,7 +111,7 @@ def test_batch_refuses_existing_results_per_sequence(sequences, config_file, pro
     first_contents = folder_contents(out / "corridor_a")
     again = run_batch(paths[:1], out, config_file)
     assert "already holds results" in again[0]["error"]
-    redone = run_batch(paths[:1], out, config_file, overwrite=True)
+    redone = run_batch(paths[:1], out, config_file, overwrite=True, analyses=run_analyses())
     assert folder_contents(out / "corridor_a") == first_contents
     assert without_seconds(redone) == without_seconds(first[:1])
 
@@ -159,7 +160,7 @@ def test_scheduler_address_matches_process_pool(sequences, config_file, process_
     pool_out, pool_rows = process_pool_run
     out = tmp_path / "out"
     with dask_distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
-        rows = run_batch([*paths, fpp_sequence], out, config_file, scheduler=cluster.scheduler_address)
+        rows = run_batch([*paths, fpp_sequence], out, config_file, scheduler=cluster.scheduler_address, analyses=run_analyses())
         with dask_distributed.Client(cluster.scheduler_address) as client:  # the work ran on that worker
             assert sum(client.run(lambda dask_worker: dask_worker.state.transition_counter).values()) >= 4 * 3
     rows, fpp_row = rows[:3], rows[3]

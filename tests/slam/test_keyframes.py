@@ -10,7 +10,7 @@ import pytest
 from camera_frames import camera_frame as _camera_frame
 from scipy.spatial.transform import Rotation
 
-from fpp_graph.config import Config, LoopClosureConfig, config_from_dict
+from fpp_graph.config import LoopClosureConfig, config_from_dict
 from fpp_graph.geometry import invert, make_pose, pose_error, se3_exp
 from fpp_graph.slam.frame_store import FrameStore, load_frame, save_frame
 from fpp_graph.slam.keyframes import VERIFY_LAG_KEYFRAMES, KeyframeManager

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from fpp_graph.errors import InputDataError
-from fpp_graph.slam.frame_store import load_frame, load_frame_points, save_frame
 from fpp_graph.mapped_npz import mapped_npz
+from fpp_graph.slam.frame_store import load_frame, load_frame_points, save_frame
 from fpp_graph.types import Frame
 
 

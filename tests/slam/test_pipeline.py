@@ -13,6 +13,7 @@ from wall_sequences import XS, write_tum_rgbd_sequence
 
 from fpp_graph.config import config_from_dict
 from fpp_graph.errors import InputDataError, OutputError
+from fpp_graph.evaluation.run_analyses import run_analyses
 from fpp_graph.slam.pipeline import Pipeline
 from fpp_graph.trajectory import Trajectory, read_tum
 
@@ -68,7 +69,7 @@ class WallSource:
 
 
 def config():
-    return config_from_dict({"run": {"workers": 1}, "fusion": {"voxel_size_m": 0.002, "tsdf_voxel_m": 0.004, "tsdf_truncation_m": 0.016}})
+    return config_from_dict({"run": {"workers": 1}, "fusion": {"voxel_size_m": 0.002, "tsdf_voxel_m": 0.004}})
 
 
 @pytest.fixture(scope="module")
@@ -79,7 +80,7 @@ def finished_run(tmp_path_factory):
     source = WallSource()
     write_mesh_ply(root / "gt_mesh.ply", source.scene.vertices, source.scene.triangles)
     source.mesh_path = root / "gt_mesh.ply"
-    report = Pipeline(source, config(), root / "out").run()
+    report = Pipeline(source, config(), root / "out", analyses=run_analyses()).run()
     return source, report
 
 
@@ -109,15 +110,16 @@ def test_loop_evaluation_on_a_worker_equals_the_inline_one_and_a_failure_waits_f
     import shutil
     from concurrent.futures import ThreadPoolExecutor
 
+    from fpp_graph.evaluation.loops import evaluate_results_loops
     from fpp_graph.slam.pipeline import _LoopEvaluation
 
     source, report = finished_run
     out = report.results_dir
     ids = source.frame_ids()
     gt = {fid: T for fid, T in zip(ids, source.ground_truth().poses_world_sensor, strict=True)}
-    inline = _LoopEvaluation(out, gt, None)
+    inline = _LoopEvaluation(out, gt, None, evaluate_results_loops)
     with ThreadPoolExecutor(1) as pool:
-        on_worker = _LoopEvaluation(out, gt, pool)
+        on_worker = _LoopEvaluation(out, gt, pool, evaluate_results_loops)
         on_worker.finish()
     assert on_worker.result() == inline.result()
     assert on_worker.result()["true_loops"] >= 1
@@ -126,7 +128,7 @@ def test_loop_evaluation_on_a_worker_equals_the_inline_one_and_a_failure_waits_f
     shutil.copytree(out, broken)
     next(iter(sorted((broken / "frames").glob("frame_*.npz")))).unlink()
     with ThreadPoolExecutor(1) as pool:
-        failing = _LoopEvaluation(broken, gt, pool)
+        failing = _LoopEvaluation(broken, gt, pool, evaluate_results_loops)
         failing.finish()  # held
     with pytest.raises(InputDataError, match="frame cache of the run is needed"):
         failing.result()
@@ -145,9 +147,9 @@ def test_trajectory_and_map_are_accurate(finished_run):
 def test_existing_results_refused_then_resumed(finished_run):
     source, report = finished_run
     with pytest.raises(OutputError, match="--resume"):
-        Pipeline(WallSource(), config(), report.results_dir).run()
+        Pipeline(WallSource(), config(), report.results_dir, analyses=run_analyses()).run()
     again = WallSource()
-    resumed = Pipeline(again, config(), report.results_dir, resume=True).run()
+    resumed = Pipeline(again, config(), report.results_dir, resume=True, analyses=run_analyses()).run()
     assert again.loads == 1  # only the corrupt frame is retried; the rest come from the cache
     np.testing.assert_allclose(
         read_tum(resumed.results_dir / "trajectory.tum").positions_xyz_m,
@@ -158,7 +160,7 @@ def test_existing_results_refused_then_resumed(finished_run):
 def test_foreign_folder_never_overwritten(tmp_path):
     (tmp_path / "precious.txt").write_text("user data")
     with pytest.raises(OutputError, match="not an fpp-slam results folder"):
-        Pipeline(WallSource(), config(), tmp_path, overwrite=True).run()
+        Pipeline(WallSource(), config(), tmp_path, overwrite=True, analyses=run_analyses()).run()
     assert (tmp_path / "precious.txt").read_text() == "user data"
 
 
@@ -259,13 +261,13 @@ def test_cli_refuses_existing_results_unless_resume_or_overwrite(tmp_path, tum_s
 
 def test_truncated_cache_file_is_recomputed_on_resume(tmp_path):
     """What a crash mid-write would leave without atomic writes: a truncated frame cache."""
-    first = Pipeline(WallSource(broken=None), config(), tmp_path / "out").run()
+    first = Pipeline(WallSource(broken=None), config(), tmp_path / "out", analyses=run_analyses()).run()
     cached = sorted((first.results_dir / "frames").glob("*.npz"))
     data = cached[3].read_bytes()
     cached[3].write_bytes(data[: len(data) // 3])
     (first.results_dir / "metrics.json").unlink()
     again = WallSource(broken=None)
-    resumed = Pipeline(again, config(), first.results_dir, resume=True).run()
+    resumed = Pipeline(again, config(), first.results_dir, resume=True, analyses=run_analyses()).run()
     assert again.loads == 1  # only the truncated frame was decoded again
     np.testing.assert_allclose(
         read_tum(resumed.results_dir / "trajectory.tum").positions_xyz_m,
@@ -487,7 +489,7 @@ def test_tracking_beside_its_own_worker_pool_keeps_libraries_on_one_thread(tmp_p
     import cv2
     from threadpoolctl import threadpool_info
 
-    pipeline = Pipeline(WallSource(), config(), tmp_path / "out")
+    pipeline = Pipeline(WallSource(), config(), tmp_path / "out", analyses=run_analyses())
     before = [i["num_threads"] for i in threadpool_info()]
     cv_before = cv2.getNumThreads()
     pipeline._owns_executor = True
@@ -568,13 +570,13 @@ def test_cpu_utilisation_counts_the_runs_own_workers_and_not_anothers_executor(t
 
     two = config_from_dict({"run": {"workers": 2}, "fusion": {"mesh": False}})
     own_before = resource.getrusage(resource.RUSAGE_SELF)
-    report = Pipeline(open_source(tum_sequence, two), two, tmp_path / "pool").run()
+    report = Pipeline(open_source(tum_sequence, two), two, tmp_path / "pool", analyses=run_analyses()).run()
     own_after = resource.getrusage(resource.RUSAGE_SELF)
     own_s = (own_after.ru_utime - own_before.ru_utime) + (own_after.ru_stime - own_before.ru_stime)
     assert report.metrics["cpu_seconds"] > own_s + 0.5  # two spawned workers import and decode
     assert 0 < report.metrics["cpu_utilisation"] <= 1.05
     with ThreadPoolExecutor(2) as pool:
-        report = Pipeline(open_source(tum_sequence, two), two, tmp_path / "foreign", executor=pool).run()
+        report = Pipeline(open_source(tum_sequence, two), two, tmp_path / "foreign", executor=pool, analyses=run_analyses()).run()
     assert report.metrics["cpu_seconds"] is None and report.metrics["cpu_utilisation"] is None
 
 

@@ -17,6 +17,7 @@ import pytest
 
 from fpp_graph.config import config_from_dict
 from fpp_graph.errors import InputDataError
+from fpp_graph.evaluation.run_analyses import run_analyses
 from fpp_graph.geometry import invert, make_pose, se3_exp, transform_points
 from fpp_graph.slam.keyframes import KeyframeManager
 from fpp_graph.slam.pipeline import Pipeline
@@ -166,7 +167,7 @@ def test_keyframe_manager_runs_on_a_foreign_registrar_and_loop_detector():
 def test_pipeline_runs_on_a_foreign_source_and_map_fuser(tmp_path):
     config = config_from_dict({"run": {"workers": 1}})
     fuser = CentroidFuser()
-    report = Pipeline(TurntableSource(), config, tmp_path / "out", map_fuser=fuser).run()
+    report = Pipeline(TurntableSource(), config, tmp_path / "out", map_fuser=fuser, analyses=run_analyses()).run()
     assert len(fuser.points) == len(report.slam.keyframe_ids) == VIEWS * TURNS
     # the map is the foreign fuser's: one point per keyframe, each the cube's centre (the origin)
     import open3d as o3d
@@ -190,7 +191,7 @@ def test_a_source_without_the_declared_members_is_refused_naming_them():
 
     assert not isinstance(Incomplete(), FrameSource)
     with pytest.raises(InputDataError, match="Incomplete lacks .*resolve_config.* of the FrameSource protocol"):
-        Pipeline(Incomplete(), config_from_dict({}), Path("unused"))
+        Pipeline(Incomplete(), config_from_dict({}), Path("unused"), analyses=run_analyses())
     check_frame_source(TurntableSource())  # a complete one passes
 
 

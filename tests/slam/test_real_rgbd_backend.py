@@ -16,6 +16,7 @@ from conftest import shared_data_path
 
 from fpp_graph.config import load_config
 from fpp_graph.evaluation.results import evaluate_results
+from fpp_graph.evaluation.run_analyses import run_analyses
 from fpp_graph.slam.pipeline import Pipeline
 from fpp_graph.slam.sources import open_source
 
@@ -28,7 +29,7 @@ def _run_and_evaluate(tmp_path_factory, name: str):
     sequence = shared_data_path("rgbd", name)
     out = tmp_path_factory.mktemp(name)
     config = load_config(None)
-    Pipeline(open_source(sequence, config), config, out).run()
+    Pipeline(open_source(sequence, config), config, out, analyses=run_analyses()).run()
     metrics = json.loads((out / "metrics.json").read_text())
     source = open_source(sequence, config)
     gt_by_id = {e.frame_id: e.T_world_sensor for e in source.entries}

@@ -89,13 +89,14 @@ def test_a_run_records_its_input_config_and_version(finished):
     assert (out / "config.yaml").exists() and (out / "run.log").stat().st_size > 0
 
 
-def test_a_value_the_source_raises_is_logged_and_recorded(finished):
-    from frontend.rgbd.source import RGBD_FUSION_FLOORS
+def test_a_value_the_source_fills_is_recorded_and_one_the_user_set_is_kept(finished):
+    from frontend.rgbd.source import RGBD_FUSION_VOXELS_M
 
     _, _, out, stderr = finished
-    change = json.loads((out / "metrics.json").read_text())["config_set_by_source"]["fusion.voxel_size_m"]
-    assert change == {"given": 0.003, "used": RGBD_FUSION_FLOORS["voxel_size_m"], "set_by_user": True}
-    assert "changes fusion.voxel_size_m from 0.003" in " ".join(stderr.split())
+    changes = json.loads((out / "metrics.json").read_text())["config_set_by_source"]
+    assert "fusion.voxel_size_m" not in changes  # the user's 0.003 m
+    assert changes["fusion.tsdf_voxel_m"] == {"given": None, "used": RGBD_FUSION_VOXELS_M["tsdf_voxel_m"], "set_by_user": False}
+    assert "changes fusion" not in " ".join(stderr.split())
 
 
 def test_resume_refuses_the_results_of_another_input(finished, tmp_path, capsys):
@@ -124,7 +125,7 @@ def test_resume_refuses_another_config_naming_the_key(run_copy, capsys):
     other.write_text(config.read_text().replace("voxel_size_m: 0.003", "voxel_size_m: 0.02"))
     before = checksums(out)
     line = refused(capsys, "run", sequence, "--out", out, "--config", other, "--resume")
-    assert "was made under another configuration (fusion.voxel_size_m: 0.01 there, 0.02 now)" in line
+    assert "was made under another configuration (fusion.voxel_size_m: 0.003 there, 0.02 now)" in line
     assert checksums(out) == before
 
 

@@ -14,6 +14,7 @@ from conftest import shared_data_path
 from test_keyframes import EVERY_FRAME, VIEWS, MockRegistrar, make_frames, turntable_poses
 
 from fpp_graph.config import config_from_dict, load_config
+from fpp_graph.evaluation.run_analyses import run_analyses
 from fpp_graph.slam import keyframes
 from fpp_graph.slam.frame_store import FrameStore
 from fpp_graph.slam.keyframes import KeyframeManager
@@ -166,7 +167,7 @@ def test_worker_processes_and_dask_give_the_in_process_run(tmp_path, monkeypatch
     # loop to the other side of RANSAC's inlier bound, 28 against 27 inliers, on one machine)
     restore = single_threaded_libraries()
     try:
-        Pipeline(open_source(sequence, config), config, tmp_path / "inline").run()
+        Pipeline(open_source(sequence, config), config, tmp_path / "inline", analyses=run_analyses()).run()
     finally:
         restore()
     runs = {"inline": _results(tmp_path / "inline")}
