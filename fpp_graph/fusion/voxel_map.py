@@ -39,7 +39,12 @@ from fpp_graph.errors import InputDataError
 # the PLY writers, re-exported: they lived here
 from fpp_graph.fusion.ply import write_mesh_ply as write_mesh_ply
 from fpp_graph.fusion.ply import write_point_cloud_ply as write_point_cloud_ply
-from fpp_graph.fusion.tsdf_mesh import TSDF_INITIAL_VOXELS, TSDF_TRUNCATION_VOXELS, TsdfMesher, tsdf_block_voxels
+from fpp_graph.fusion.tsdf_mesh import (
+    TSDF_INITIAL_VOXELS,
+    TSDF_TRUNCATION_VOXELS,
+    TsdfMesher,
+    tsdf_block_voxels,
+)
 from fpp_graph.fusion.voxel_grid import _reduce, project_to_local_planes, voxel_keys
 from fpp_graph.geometry import (
     finite_box,

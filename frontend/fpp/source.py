@@ -108,10 +108,10 @@ class FppSequenceSource:
         return config.model_copy(update={"registration": config.registration.with_noise(FPP_NOISE), "fusion": fusion})
 
     def make_registrar(self):
-        from frontend.registration import FppPairRegistrar, TextureCamera
+        from frontend.registration import TextureCamera, TexturedSurfaceRegistrar
 
         # the rig's camera and projector: plane-like pairs (walls) get their in-plane directions from the texture
-        return FppPairRegistrar(self.config.registration, seed=self.config.run.seed, texture_camera=TextureCamera.from_rig(self.sequence.calibration))
+        return TexturedSurfaceRegistrar(self.config.registration, seed=self.config.run.seed, texture_camera=TextureCamera.from_rig(self.sequence.calibration))
 
     def ground_truth(self) -> Trajectory | None:
         return self.sequence.ground_truth

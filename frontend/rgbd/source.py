@@ -745,9 +745,9 @@ class RgbdSource:
         return config.model_copy(update={"registration": reg, "fusion": fus, "keyframes": keyframes, "run": run})
 
     def make_registrar(self):
-        from frontend.registration import FppPairRegistrar
+        from frontend.registration import TexturedSurfaceRegistrar
 
-        return FppPairRegistrar(self.config.registration, seed=self.config.run.seed)
+        return TexturedSurfaceRegistrar(self.config.registration, seed=self.config.run.seed)
 
     def ground_truth(self) -> Trajectory | None:
         """The reference poses of the frames that have one (None when none has): a motion capture
