@@ -18,7 +18,9 @@ registrar built without a source assumes).
 
 Old flat keys (``registration.min_inliers``, ``registration.ransac_threshold_m``, ...) are still
 read: each is moved to its section with a :class:`DeprecationWarning` (and a log warning) naming
-the new key; metre thresholds are converted to the multiples they now are.
+the new key (RANSAC's metre distance converted to the multiple it now is). Keys that are no longer
+settings are retired (:func:`fpp_graph.config.retire_keys`): their values are constants of the
+code with their reasons, and a file setting one to that value still loads.
 """
 
 from __future__ import annotations
@@ -202,31 +204,16 @@ class GatesConfig(StrictModel):
     )
 
 
-# Multiples of the noise model that fix the registration's other lengths (RegistrationConfig.lengths)
-ICP_COARSE_VOXELS = 2.0
-"""ICP's voxel, in ``noise.voxel_m``, when the dense fit follows: ICP then only has to reach the
-dense fit's basin and tell relief from a plane, which twice the surface sampling does."""
-ICP_CORRESPONDENCE_VOXELS = 1.0
-"""ICP's correspondence distance is RANSAC's inlier distance (its pose's worst point) plus one
-voxel: the sampling offset between two voxelised clouds of one surface."""
-ICP_INFORMATION_SCALE = 1.0
-"""ICP's information times ``noise.information_correlation``: the correlation is the sensor's, the
-point-to-plane information of independent residuals is otherwise exact."""
-ICP_CONVERGENCE_SIGMAS = 0.002
-"""ICP stops when its step is under this many ``point_sigma_m`` (radians per metre of lever for the
-rotation): two orders under one pair's error, so a tighter stop only chases the noise."""
-MAX_INLIER_RMSE_SIGMAS = 4.0
-"""ICP's inlier RMSE above 4 point sigmas: the surfaces do not fit within their noise."""
-MAX_ICP_SHIFT_SIGMAS = 6.0
-"""ICP moving RANSAC's inliers by more than 1.5 RANSAC inlier distances has left RANSAC's basin."""
-MAX_WEAK_SIGMA_SIGMAS = 4.0
-"""Weak directions are accepted when the keypoints pin them as well as RANSAC's inlier distance."""
-KEYPOINT_EDGE_SIGMAS = 10.0
-"""A keypoint whose four neighbouring pixels span more depth than 10 point sigmas sits on a depth
-edge (interpolating across it invents a point in mid-air); noise alone rarely spans half of it."""
-TEXTURE_DISTANCE_SIGMAS = 6.0
-"""Texture agreement: a target surface within ICP's basin (:data:`MAX_ICP_SHIFT_SIGMAS`) of a
-source sample is the same surface."""
+# Multiples of the noise model that fix the registration's other lengths (RegistrationConfig.lengths):
+ICP_COARSE_VOXELS = 2.0  # ICP's voxel when the dense fit follows: its basin and a relief/plane verdict need half the sampling
+ICP_CORRESPONDENCE_VOXELS = 1.0  # + RANSAC's distance: two voxelised clouds of one surface are a voxel apart at most
+ICP_INFORMATION_SCALE = 1.0  # times noise.information_correlation: the residuals' correlation is the sensor's
+ICP_CONVERGENCE_SIGMAS = 0.002  # ICP stops two orders under the point noise: a tighter stop chases the noise
+MAX_INLIER_RMSE_SIGMAS = 4.0  # ICP's inlier RMSE above 4 point sigmas: the surfaces do not fit within their noise
+MAX_ICP_SHIFT_SIGMAS = 6.0  # RANSAC's inliers moved by over 1.5 RANSAC distances: ICP left RANSAC's basin
+MAX_WEAK_SIGMA_SIGMAS = 4.0  # weak directions are accepted when the keypoints pin them as well as RANSAC's distance
+KEYPOINT_EDGE_SIGMAS = 10.0  # four pixels spanning more depth sit on an edge (a lift across it invents a point); noise rarely spans 5
+TEXTURE_DISTANCE_SIGMAS = 6.0  # texture agreement: a target surface within ICP's basin of a source sample is the same surface
 
 
 @dataclass(frozen=True)
@@ -364,40 +351,27 @@ _RETIRED: dict[str, tuple[Any, str, str | None]] = {
 }
 """Registration keys that are constants of the code now: ``(old default, why, what to set instead)``."""
 
-_RETIRED_FLAT: dict[str, tuple[str, Any]] = {
-    "feature_max_width_px": ("features.max_width_px", 1024),
-    "surf_hessian_threshold": ("features.surf_hessian_threshold", 3e-6),
-    "ratio_test": ("keypoints.ratio_test", 0.9),
-    "mutual_check": ("keypoints.mutual_check", True),
-    "keypoint_information_scale": ("keypoints.information_scale", 0.1),
-    "ransac_iterations": ("ransac.max_iterations", 10000),
-    "ransac_confidence": ("ransac.confidence", 0.9999),
-    "icp_max_correspondence_m": ("icp.correspondence_voxels", 0.004),
-    "icp_max_iterations": ("icp.max_iterations", 50),
-    "dense_icp_voxel_m": ("icp.coarse_voxels", 0.004),
-    "information_scale": ("icp.information_scale", 1.0),
-    "degeneracy_ratio": ("weak_directions.degeneracy_ratio", 0.02),
-    "plane_from_keypoints": ("weak_directions.plane_from_keypoints", True),
-    "dense_stride_px": ("dense.stride_px", 2),
-    "dense_coarse_stride_px": ("dense.coarse_stride_px", 4),
-    "dense_max_points": ("dense.max_points", 160000),
-    "dense_coarse_iterations": ("dense.coarse_iterations", 2),
-    "dense_fine_iterations": ("dense.fine_iterations", 1),
-    "dense_information_scale": ("dense.information_scale", 0.15),
-    "photometric_max_pixels": ("photometric.max_pixels", 100000),
-    "photometric_information_scale": ("photometric.information_scale", 0.01),
-    "min_fitness": ("gates.min_fitness", 0.1),
-    "max_inlier_rmse_m": ("gates.max_inlier_rmse_sigmas", 0.002),
-    "max_icp_shift_m": ("gates.max_icp_shift_sigmas", 0.003),
-    "max_weak_sigma_m": ("gates.max_weak_sigma_sigmas", 0.002),
-    "min_texture_agreement": ("gates.min_texture_agreement", 0.9),
-    "min_texture_overlap": ("gates.min_texture_overlap", 0.7),
+_RETIRED_FLAT: dict[str, str] = {
+    "feature_max_width_px": "features.max_width_px", "surf_hessian_threshold": "features.surf_hessian_threshold",
+    "ratio_test": "keypoints.ratio_test", "mutual_check": "keypoints.mutual_check", "keypoint_information_scale": "keypoints.information_scale",
+    "ransac_iterations": "ransac.max_iterations", "ransac_confidence": "ransac.confidence", "icp_max_correspondence_m": "icp.correspondence_voxels",
+    "icp_max_iterations": "icp.max_iterations", "dense_icp_voxel_m": "icp.coarse_voxels", "information_scale": "icp.information_scale",
+    "degeneracy_ratio": "weak_directions.degeneracy_ratio", "plane_from_keypoints": "weak_directions.plane_from_keypoints",
+    "dense_stride_px": "dense.stride_px", "dense_coarse_stride_px": "dense.coarse_stride_px", "dense_max_points": "dense.max_points",
+    "dense_coarse_iterations": "dense.coarse_iterations", "dense_fine_iterations": "dense.fine_iterations",
+    "dense_information_scale": "dense.information_scale", "photometric_max_pixels": "photometric.max_pixels",
+    "photometric_information_scale": "photometric.information_scale", "min_fitness": "gates.min_fitness",
+    "max_inlier_rmse_m": "gates.max_inlier_rmse_sigmas", "max_icp_shift_m": "gates.max_icp_shift_sigmas",
+    "max_weak_sigma_m": "gates.max_weak_sigma_sigmas", "min_texture_agreement": "gates.min_texture_agreement",
+    "min_texture_overlap": "gates.min_texture_overlap",
 }
+_FLAT_METRE_DEFAULTS = {"icp_max_correspondence_m": 0.004, "dense_icp_voxel_m": 0.004, "max_inlier_rmse_m": 0.002, "max_icp_shift_m": 0.003,
+                        "max_weak_sigma_m": 0.002}
 """Old flat keys whose sectioned key is retired: retired too (the metre ones at their metre default)."""
 
 retire_keys({
     **{f"registration.{key}": RetiredKey(value, reason, replacement) for key, (value, reason, replacement) in _RETIRED.items()},
-    **{f"registration.{old}": RetiredKey(value, _RETIRED[new][1], _RETIRED[new][2]) for old, (new, value) in _RETIRED_FLAT.items()},
+    **{f"registration.{old}": RetiredKey(_FLAT_METRE_DEFAULTS.get(old, _RETIRED[new][0]), *_RETIRED[new][1:]) for old, new in _RETIRED_FLAT.items()},
 })
 
 

@@ -1,12 +1,12 @@
 """Dense point-to-plane alignment of two organised FPP maps (every decoded pixel, both ways).
 
 Why a second ICP after the voxel GICP of :mod:`frontend.registration`: a decoded FPP pixel is
-noisy (about 0.1-0.3 mm along its ray in the simulator, nearly white: a 7x7 mean of the error
-map is 5-10x smaller) but unbiased, so the pose is limited by how many pixels take part and by
-how the surfaces are sampled. GICP on 2 mm voxel centroids uses ~1/40 of the pixels and its
-plane-to-plane cost depends on where the voxel grid cuts each view; on simulated turntable
-pairs it is 0.005-0.02 deg off even on the simulator's exact points, where this alignment is
-0.0001 deg off (``scripts/registration_acceptance.py`` reports the decoded-data figures).
+noisy (about 0.1-0.3 mm along its ray, nearly white: a 7x7 mean of the error map is 5-10x
+smaller) but unbiased, so the pose is limited by how many pixels take part and by how the
+surfaces are sampled. GICP on 2 mm voxel centroids uses ~1/40 of the pixels and its
+plane-to-plane cost depends on where the voxel grid cuts each view, a bias that exact points
+keep; every pixel, associated along its own ray, has none (``scripts/registration_acceptance.py``
+reports the decoded-data figures).
 
 How: each point of one map is associated with the pixel of the other whose ray passes through
 it, and the surface and normal there (:class:`frontend.organised_surface.OrganisedSurface`:
@@ -236,7 +236,8 @@ class DenseEvaluation:
 
     def information(self, noise_floor_m: float = 2e-5) -> tuple[Array, Array]:
         """The robust information (6x6 ``[rot, trans]``) and the source points that took part:
-        :func:`dense_information`. Raises InputDataError with fewer than 6 correspondences."""
+        : what every ``stride_px``-th pixel's geometry constrains at ``T_target_source``, without a
+        step (a fraction of a fit's cost). Raises InputDataError with fewer than 6 correspondences."""
         if self.residuals.size < 6:
             raise InputDataError(
                 f"dense information: {self.residuals.size} correspondences within {1e3 * self.gate_m:.2f} mm; the views do not overlap at this pose"
@@ -254,23 +255,6 @@ def evaluate_dense(
     min_cos = math.cos(math.radians(max_normal_angle_deg))
     JT, r, used = _normal_equations(target, source, T, stride_px, gate_m, min_cos, symmetric)
     return DenseEvaluation(T, int(stride_px), float(gate_m), min_cos, bool(symmetric), JT, r, used)
-
-
-def dense_information(
-    target: OrganisedSurface, source: OrganisedSurface, T: NDArray, stride_px: int, gate_m: float,
-    max_normal_angle_deg: float = 45.0, noise_floor_m: float = 2e-5, symmetric: bool = True,
-) -> tuple[Array, Array]:
-    """What every ``stride_px``-th pixel's geometry constrains at ``T``, without a step: the
-    robust information :func:`align_dense` would form there (6x6 ``[rot, trans]``) and the
-    source points that took part. A fraction of a fit's cost, for asking whether the surfaces
-    have relief before fitting (:meth:`DenseEvaluation.information` of :func:`evaluate_dense`).
-
-    Raises
-    ------
-    InputDataError
-        Fewer than 6 correspondences within ``gate_m``.
-    """
-    return evaluate_dense(target, source, T, stride_px, gate_m, max_normal_angle_deg, symmetric).information(noise_floor_m)
 
 
 @dataclass(frozen=True)
@@ -378,4 +362,4 @@ def align_dense(
     return DenseAlignment(T, info, sigma, n_used, iterations, converged, used, sampled, state["gate"])
 
 
-__all__ = ["DenseAlignment", "DenseEvaluation", "DenseSchedule", "OrganisedSurface", "align_dense", "dense_information", "evaluate_dense", "dense_strides", "cross_rows", "fit_pinhole", "point_to_plane_jacobian", "sample_bilinear"]
+__all__ = ["DenseAlignment", "DenseEvaluation", "DenseSchedule", "OrganisedSurface", "align_dense", "evaluate_dense", "dense_strides", "cross_rows", "fit_pinhole", "point_to_plane_jacobian", "sample_bilinear"]

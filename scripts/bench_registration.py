@@ -35,7 +35,7 @@ import numpy as np  # noqa: E402
 
 from fpp_graph.geometry import invert, pose_error  # noqa: E402
 from frontend.config import RegistrationConfig  # noqa: E402
-from frontend.registration import TexturedSurfaceRegistrar, TextureCamera  # noqa: E402
+from frontend.registration import TextureCamera, TexturedSurfaceRegistrar  # noqa: E402
 from frontend.registration.weak_directions import DEGENERACY_RATIO  # noqa: E402
 from frontend.testing.synthetic_frames import (  # noqa: E402
     bumpy_wall_scene,

@@ -56,8 +56,14 @@ from fpp_graph.types import ConstraintKind, Frame  # noqa: E402
 from frontend.config import RegistrationConfig  # noqa: E402
 from frontend.features.detect import MATCH_RATIO, match_descriptors  # noqa: E402
 from frontend.fpp.sensor import FppSensor  # noqa: E402
-from frontend.localization import DenseReference, PhotometricQuery, PhotometricSettings, localize_dlt, localize_photometric  # noqa: E402
-from frontend.registration import TexturedSurfaceRegistrar, TextureCamera, lift_keypoints  # noqa: E402
+from frontend.localization import (  # noqa: E402
+    DenseReference,
+    PhotometricQuery,
+    PhotometricSettings,
+    localize_dlt,
+    localize_photometric,
+)
+from frontend.registration import TextureCamera, TexturedSurfaceRegistrar, lift_keypoints  # noqa: E402
 from frontend.sim import (  # noqa: E402
     FppSimulator,
     binned_calibration,
@@ -284,8 +290,8 @@ def run_map_localisation(group: str, frames: SimulatedFrames, triples: list[tupl
         refs = {j: DenseReference(F[j].xyz_map, F[j].texture, P[j]) for j in (km1, kp1)}
         valid_query = np.isfinite(F[k].xyz_map[..., 2])
         query = PhotometricQuery(F[k].texture, loc.T_camera_world, frames.K, frames.dist, proj_centre, valid_query)
-        photometric = functools.partial(lambda refs_used: localize_photometric(
-            refs_used, query, PhotometricSettings(max_pixels=photometric_pixels, range_smoothing_px=photometric_smoothing_px)))
+        photometric = functools.partial(localize_photometric, query=query,
+                                        settings=PhotometricSettings(max_pixels=photometric_pixels, range_smoothing_px=photometric_smoothing_px))
         runs = {
             "klt": functools.partial(localize_dense_map, [refs[km1], refs[kp1]], F[k].texture, loc.T_camera_world, frames.K, frames.dist,
                                      tracker="klt", max_points=max_points, min_distance_px=min_distance_px),

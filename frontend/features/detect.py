@@ -1,8 +1,8 @@
 """2D keypoints on FPP texture images and their matching.
 
-Detectors (``registration.feature`` in the config): ``surf`` (the project's own implementation,
+Detectors (``registration.features.type`` in the config): ``surf`` (the project's own implementation,
 :mod:`frontend.features.surf`, as the paper uses), and OpenCV's ``sift``, ``orb`` and ``akaze``. Images
-wider than ``registration.feature_max_width_px`` are reduced by an integer factor before
+wider than :data:`MAX_WIDTH_PX` are reduced by an integer factor before
 detection (area averaging); keypoints are returned in full-image pixels, so the 2D-to-3D lift
 reads the full-resolution ``xyz_map``.
 
@@ -133,8 +133,8 @@ def stretch_contrast(texture: NDArray[np.uint8], percentile: float = 99.0, floor
 
     The detectors' thresholds (SURF's Hessian, SIFT's contrast, ORB's FAST) are absolute grey
     levels, but an FPP texture is the background term ``a`` of the fringes: at most about half
-    the camera's range and often darker. On simulator frames (grey p99 ~110-130) stretching
-    multiplied the correct SURF matches by 2-5 (``scripts/registration_acceptance.py``).
+    the camera's range and often darker, so a fixed threshold finds a fraction of the keypoints
+    it would on a full-range image (``scripts/registration_acceptance.py`` counts the matches).
     """
     hist = cv2.calcHist([texture], [0], None, [256], [0, 256]).ravel()
     hist[: floor + 1] = 0

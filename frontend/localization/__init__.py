@@ -13,6 +13,7 @@ along the rays, the depth-edge mask, normals and the projector's irradiance.
 """
 
 from frontend.localization.dlt import (
+    DltSettings,
     LocalizationResult,
     decompose_projection,
     dlt_projection_matrix,
@@ -29,6 +30,7 @@ from frontend.localization.reference import DenseReference, ReferencePixels, ref
 
 __all__ = [
     "DenseReference",
+    "DltSettings",
     "LocalizationResult",
     "PhotometricLocalizationResult",
     "PhotometricQuery",

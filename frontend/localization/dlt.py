@@ -185,16 +185,21 @@ def _sample_pose(X: Array, uv: Array, K: Array) -> Array:
     return T
 
 
+@dataclass(frozen=True)
+class DltSettings:
+    """How :func:`localize_dlt` fits: RANSAC's inlier reprojection error (``ransac_threshold_px``),
+    its sample bound and confidence, the fewest inliers of a success (at least 6), and whether the
+    pose is refined by Levenberg-Marquardt with the lens distortion (``refine``)."""
+
+    ransac_threshold_px: float = 2.0
+    max_iterations: int = 1000
+    confidence: float = 0.9999
+    min_inliers: int = 6
+    refine: bool = True
+
+
 def localize_dlt(
-    points_world_m: NDArray,
-    keypoints_uv: NDArray,
-    K: NDArray,
-    dist: NDArray | None = None,
-    ransac_threshold_px: float = 2.0,
-    max_iterations: int = 1000,
-    confidence: float = 0.9999,
-    min_inliers: int = 6,
-    refine: bool = True,
+    points_world_m: NDArray, keypoints_uv: NDArray, K: NDArray, dist: NDArray | None = None, settings: DltSettings = DltSettings(),
     rng: np.random.Generator | None = None,
 ) -> LocalizationResult:
     """Locate a camera from 3D map points and their 2D keypoints (DLT + RANSAC + LM).
@@ -210,10 +215,9 @@ def localize_dlt(
     dist : (k,), optional
         OpenCV distortion coefficients; keypoints are undistorted for the DLT and the LM uses
         the full model.
-    ransac_threshold_px : float
-        Inlier reprojection error.
-    min_inliers : int
-        Fewer inliers (or fewer than 6 points) gives ``success = False``.
+    settings : DltSettings
+    rng : numpy Generator, optional
+        RANSAC's sampling (default seed 0).
 
     Returns
     -------
@@ -233,11 +237,12 @@ def localize_dlt(
         uv = cv2.undistortPoints(uv_raw.reshape(-1, 1, 2), Km, dist_arr, P=Km).reshape(-1, 2)
     else:
         uv = uv_raw
-    best_T, best_count, drawn = _ransac_pose(X, uv, Km, ransac_threshold_px, max_iterations, confidence, rng or np.random.default_rng(0))
+    ransac_threshold_px, min_inliers = settings.ransac_threshold_px, settings.min_inliers
+    best_T, best_count, drawn = _ransac_pose(X, uv, Km, ransac_threshold_px, settings.max_iterations, settings.confidence, rng or np.random.default_rng(0))
     if best_T is None or best_count < max(6, min_inliers):
         return _failed_localization(n, drawn)
     T, inl = _refit_on_inliers(best_T, X, uv, Km, ransac_threshold_px)
-    if refine:
+    if settings.refine:
         T, inl = _refine_reprojection(T, inl, X, uv, uv_raw, Km, dist_arr, ransac_threshold_px)
     err = _reprojection_errors(T, X, uv, Km)
     rms = float(np.sqrt(np.mean(err[inl] ** 2))) if inl.any() else float("nan")

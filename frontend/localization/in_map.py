@@ -47,8 +47,8 @@ MIN_DLT_INLIERS = 20
 """Fewer consistent 2D-3D matches and the view is refused: a random 6-point DLT reaches ~10 inliers
 among a few hundred wrong matches at a 2 px threshold, a true view of the map hundreds."""
 MAX_PHOTOMETRIC_SHIFT_M = 0.005
-"""The photometric pose may move the DLT centre by a few millimetres (the DLT's own error on a
-turntable or a wall is 1-3 mm); more means it converged elsewhere."""
+"""The photometric pose may move the DLT centre by a few millimetres (the DLT's own error from
+sub-pixel keypoints at 0.3-0.6 m is 1-3 mm); more means it converged elsewhere."""
 MIN_PHOTOMETRIC_PIXELS = 5000
 
 

@@ -89,9 +89,9 @@ def pyramid_for_start(start_sigma_px: float, iterations: Sequence[int] = PYRAMID
     A level's Gauss-Newton linearisation holds within about one of its own pixels (the assumption
     of :data:`COARSE_STOP_STEP_PX`), and level ``l``'s pixel is ``2^l`` full-resolution ones, so a
     start within :data:`START_SIGMAS` deviations of ``2^l`` pixels needs no level coarser than
-    ``l``. A pair's registration starts the texture's step from the keypoints' pose, within a pixel
-    (simulated corridor walls: 3 sigma 0.05-2.7 px, the step's whole motion 0.01-1.2 px), where the
-    coarse levels only added steps; a NaN or infinite sigma (unknown) keeps every level."""
+    ``l``. A pair's registration starts the texture's step from the keypoints' pose, within a few
+    pixels (sub-pixel keypoints), where the coarse levels only add steps; a NaN or infinite sigma
+    (unknown) keeps every level."""
     reach_px = START_SIGMAS * float(start_sigma_px)
     if not math.isfinite(reach_px):
         return tuple(iterations)

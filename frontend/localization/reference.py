@@ -150,8 +150,8 @@ def reference_pixel_arrays(
     ``max_range_smoothing_px`` where the data allow: :func:`adaptively_smoothed_along_rays`): an
     FPP point's range noise (about 0.25 mm per pixel at 1920x1200) moves its projection in the
     other view by a good fraction of a pixel, and errors in the regressors bias a photometric fit
-    (a corridor frame against its neighbours: 0.23 mm off with raw points, 0.04 mm smoothed,
-    0.005 mm with exact ones)."""
+    (errors-in-variables: the bias grows with the regressors' noise variance, which the smoothing
+    divides)."""
     xyz = np.asarray(ref.xyz_map, dtype=np.float64)
     tex = np.asarray(ref.texture)
     if xyz.ndim != 3 or xyz.shape[2] != 3 or tex.shape != xyz.shape[:2]:

@@ -1,15 +1,8 @@
-"""The ICP of a pair as a declared protocol: :class:`PointCloudAligner`.
-
-The ICP stage (:class:`~frontend.registration.stages.IcpStage`) aligns the voxelised clouds of
-two frames from RANSAC's pose through this protocol, and the weak-direction stage measures the
-correspondences at a pose through it (``max_iterations=0``). The implementations in
-:mod:`frontend.registration.icp` are small_gicp's GICP and point-to-plane ICP
-(:class:`~frontend.registration.icp.SmallGicpAligner`) and, for ``icp.method: none``,
-:class:`~frontend.registration.icp.CorrespondencesAligner` (the start pose, measured);
-:func:`~frontend.registration.icp.make_aligner` chooses one from ``registration.icp.method``.
-Another ICP plugs in as an object with this ``align`` method passed to the registrar
-(``TexturedSurfaceRegistrar(aligner=...)``).
-"""
+"""The ICP of a pair as a declared protocol, :class:`PointCloudAligner`: the ICP stage aligns two
+frames' voxelised clouds through it. Implementations (:mod:`frontend.registration.icp`):
+small_gicp's GICP and point-to-plane ICP, and the start pose measured (``icp.method: none``);
+:func:`~frontend.registration.icp.make_aligner` chooses one, ``TexturedSurfaceRegistrar(aligner=...)``
+takes another."""
 
 from __future__ import annotations
 
@@ -25,24 +18,12 @@ if TYPE_CHECKING:
 
 @dataclass(frozen=True, eq=False)
 class AlignmentRequest:
-    """What one alignment is asked to do.
-
-    Attributes
-    ----------
-    T_init : (4, 4)
-        Initial ``T_target_source`` (RANSAC's pose).
-    max_correspondence_m : float
-        Pairs of points further apart do not correspond.
-    max_iterations : int
-        0: no iteration, the correspondences measured at ``T_init``.
-    convergence_m : float
-        Stop once a step moves less than this (metres; radians per metre of lever).
-    basin : IcpBasin, optional
-        Stop, unconverged, once the fit has left it and is not slowing down.
-    analysis_points : int
-        The quality figures and the information are measured on about this many evenly strided
-        source (and target) points.
-    """
+    """One alignment: from ``T_init`` (``T_target_source``, RANSAC's pose), points further apart
+    than ``max_correspondence_m`` do not correspond; at most ``max_iterations`` (0: the start's
+    correspondences measured), stopping once a step moves less than ``convergence_m`` (metres;
+    radians per metre of lever) or, unconverged, once the fit has left ``basin`` without slowing
+    down. The quality figures and the information are measured on about ``analysis_points``
+    evenly strided points of each cloud."""
 
     T_init: NDArray[np.float64]
     max_correspondence_m: float
@@ -55,8 +36,8 @@ class AlignmentRequest:
 @runtime_checkable
 class PointCloudAligner(Protocol):
     """An ICP: aligns ``source`` onto ``target`` (voxelised clouds of two frames, sensor frames,
-    metres) and reports the pose with its correspondences (:class:`~frontend.registration.icp.IcpResult`:
-    fitness, overlap, point-to-plane residuals for the information)."""
+    metres) and reports the pose with its correspondences (fitness, overlap, point-to-plane
+    residuals for the information)."""
 
     def align(self, target: IcpCloud, source: IcpCloud, request: AlignmentRequest) -> IcpResult: ...
 

@@ -1,7 +1,7 @@
 """Every reason :meth:`TexturedSurfaceRegistrar.register` can reject a pair for, in one table.
 
 A :class:`Gate` is checked at its :class:`Checkpoint` on the typed result of the stage before
-it (:data:`CHECKED`), in table order; the first that fails rejects the pair with its reason text. The reason
+it, in table order; the first that fails rejects the pair with its reason text. The reason
 strings are part of the interface: tests assert them and reports count them.
 """
 
@@ -25,8 +25,7 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 MIN_FITNESS = 0.1
-"""Share of source points with a target neighbour after ICP; at least the overlap
-(``gates.min_overlap``, its smaller direction), so it only names the side that fails first."""
+"""Share of source points with a target neighbour after ICP: at least the overlap (``gates.min_overlap``)."""
 
 MIN_TEXTURE_AGREEMENT = 0.9
 """Appearance-only loop on weak geometry: share of the overlap blocks whose textures correlate; a
@@ -46,17 +45,17 @@ MIN_TEXTURE_PX = 32
 
 
 class Checkpoint(enum.Enum):
-    """Where in the pipeline a gate is checked: after the stage that fills what it reads."""
+    """Where in the pipeline a gate is checked, and the stage result its gates read."""
 
-    INPUT = "input"  # before any work
-    FEATURES = "features"  # after detection and matching
-    MATCHES = "matches"  # after dropping sensor-fixed matches
-    LIFTED = "lifted"  # after lifting the matches to 3D
-    RANSAC = "ransac"
-    ICP = "icp"
-    POSE = "pose"  # after the weak-direction rules: ICP's pose, or with directions from the keypoints
-    REVISIT = "revisit"  # an appearance-only revisit on weak geometry about to take the dense or the photometric step: the look-alike test first
-    FINAL = "final"  # after the dense and photometric refinements
+    INPUT = "input"  # before any work: PairFrames
+    FEATURES = "features"  # after detection and matching: KeypointMatches
+    MATCHES = "matches"  # after dropping sensor-fixed matches: KeypointMatches
+    LIFTED = "lifted"  # after lifting the matches to 3D: LiftedMatches
+    RANSAC = "ransac"  # KeypointPose
+    ICP = "icp"  # IcpOutcome
+    POSE = "pose"  # after the weak-direction rules (ICP's pose, or with directions from the keypoints): WeakDirectionOutcome
+    REVISIT = "revisit"  # an appearance-only revisit on weak geometry before the dense or the photometric step: WeakGeometryCheck
+    FINAL = "final"  # after the dense and photometric refinements: WeakGeometryCheck
 
 
 Predicate = Callable[[Any, RegistrationConfig], bool]
@@ -72,8 +71,7 @@ class Gate:
     name : str
     checkpoint : Checkpoint
     fails : callable (result, config) -> bool
-        True rejects the pair; ``result`` is the typed result of the checkpoint's stage
-        (:data:`CHECKED`).
+        True rejects the pair; ``result`` is the typed result of the checkpoint's stage.
     reason : callable (result, config) -> str
         The rejection reason (only called when ``fails``).
     threshold : str or None
@@ -89,20 +87,6 @@ class Gate:
     reason: Report
     threshold: str | None
     metadata: Callable[[Any, dict[str, Any]], dict[str, Any]] | None = None
-
-
-CHECKED: dict[Checkpoint, str] = {
-    Checkpoint.INPUT: "PairFrames",
-    Checkpoint.FEATURES: "KeypointMatches",
-    Checkpoint.MATCHES: "KeypointMatches",
-    Checkpoint.LIFTED: "LiftedMatches",
-    Checkpoint.RANSAC: "KeypointPose",
-    Checkpoint.ICP: "IcpOutcome",
-    Checkpoint.POSE: "WeakDirectionOutcome",
-    Checkpoint.REVISIT: "WeakGeometryCheck",
-    Checkpoint.FINAL: "WeakGeometryCheck",
-}
-"""The result each checkpoint's gates read (:mod:`.stages`, :mod:`.refinement`, :mod:`.state`)."""
 
 
 def _frame_gates(role: str) -> list[Gate]:
@@ -167,9 +151,9 @@ GATES: tuple[Gate, ...] = (
     Gate("features", Checkpoint.FEATURES, lambda m, c: m.error is not None, lambda m, c: f"features failed: {m.error}", None),
     Gate("matches", Checkpoint.MATCHES, lambda m, c: m.count < c.gates.min_inliers,
          lambda m, c: f"too few matches ({m.count} < {c.gates.min_inliers})", "gates.min_inliers"),
-    Gate("matches_3d", Checkpoint.LIFTED, lambda l, c: l.count < c.gates.min_inliers,
-         lambda l, c: f"too few matches with valid 3D ({l.count} < {c.gates.min_inliers})", "gates.min_inliers",
-         metadata=lambda l, meta: {"matches": meta["matches"]}),
+    Gate("matches_3d", Checkpoint.LIFTED, lambda lifted, c: lifted.count < c.gates.min_inliers,
+         lambda lifted, c: f"too few matches with valid 3D ({lifted.count} < {c.gates.min_inliers})", "gates.min_inliers",
+         metadata=lambda lifted, meta: {"matches": meta["matches"]}),
     Gate("ransac_inliers", Checkpoint.RANSAC, lambda k, c: k.ransac.num_inliers < c.gates.min_inliers,
          lambda k, c: f"too few inliers ({k.ransac.num_inliers} < {c.gates.min_inliers} RANSAC inliers of {k.lifted.count})", "gates.min_inliers"),
     Gate("icp_points", Checkpoint.ICP, lambda i, c: i.too_few_voxels is not None,
@@ -203,4 +187,4 @@ def check(checkpoint: Checkpoint, result: Any, report: PairReport, config: Regis
             raise Rejected(report.rejected(gate.reason(result, config), gate.metadata(result, report.meta) if gate.metadata else None))
 
 
-__all__ = ["CHECKED", "GATES", "Checkpoint", "Gate", "check"]
+__all__ = ["GATES", "Checkpoint", "Gate", "check"]

@@ -33,7 +33,7 @@ is linear in the point counts while the pose error grows only with the square ro
 thinning: over 13 ray-cast synthetic pairs (12 of ``scripts/registration_accuracy.py`` and the
 bench pair) the median error was 0.0015 deg / 0.007 mm against 0.0010 deg / 0.006 mm with all
 voxels, at half the ICP time. The information is scaled to the source points actually aligned
-(:func:`refine_icp`)."""
+(:func:`measure_alignment`)."""
 
 
 ICP_MAX_ITERATIONS = 50
@@ -193,7 +193,7 @@ def organised_subsample(xyz_map: NDArray, voxel_m: float) -> Array:
 
 @dataclass(frozen=True, eq=False)
 class IcpResult:
-    """Outcome of :func:`refine_icp`.
+    """Outcome of an alignment (:class:`~frontend.registration.aligner.PointCloudAligner`).
 
     Attributes
     ----------
@@ -233,13 +233,12 @@ class IcpBasin:
 
     Beyond it the registration either rejects the pair ("ICP left the RANSAC basin") or, where
     the overlap leaves directions free, takes those directions from the keypoints or from RANSAC
-    (:func:`~frontend.registration.stages.handle_weak_directions`). ICP that left it and is not
-    slowing down is sliding along such directions (a wall, a corridor's axis) and finds nothing
-    there to converge to: on the simulated 2000-frame RGB-D walk a third of the loop
-    candidates' ICP runs slid 6-30 cm that way to the 50-iteration bound, two thirds of the
-    verification's ICP time. ICP that left it while converging goes on, since its other
-    directions are still settling (TUM fr1_rpy's office: fits of 10-36 iterations moved the
-    keypoints past the 45 mm gate along a wall's free directions within the first 10).
+    (:class:`~frontend.registration.stages.WeakDirectionStage`). ICP that left it and is not
+    slowing down is sliding along such directions (a plane's in-plane shifts, a long hall's axis)
+    and finds nothing there to converge to: it would run to its iteration bound for a pose the
+    gates then refuse or replace. ICP that left it while converging goes on, since its other
+    directions are still settling (a fit moving the keypoints past the gate along a plane's free
+    directions in its first iterations can still settle).
     """
 
     points: Array
@@ -282,8 +281,8 @@ class SourceCrop:
     A loop candidate's views often share a fraction of their surface (a revisit seen from
     elsewhere). Every ICP iteration searches the target for every source point, and a point far
     from all target points costs small_gicp's unbounded search ~15x a point on the shared
-    surface: on the simulated 2000-frame walk's loop candidates the points that could never
-    correspond took most of ICP's time. Whenever ICP stops, points outside the crop that the
+    surface, so on a partial overlap the points that can never correspond take most of ICP's
+    time. Whenever ICP stops, points outside the crop that the
     final pose brings within the correspondence distance are added (:meth:`cover`) and ICP goes
     on with them, so a converged result has every correspondence the whole cloud would give.
 
@@ -477,17 +476,6 @@ def make_aligner(method: str) -> PointCloudAligner:
     return ALIGNERS[method]
 
 
-def refine_icp(
-    target: IcpCloud, source: IcpCloud, T_init: NDArray, method: str = "gicp", max_correspondence_m: float = 0.004,
-    max_iterations: int = 50, analysis_points: int = 6000, convergence_m: float = 1e-6, basin: IcpBasin | None = None,
-) -> IcpResult:
-    """``T_target_source`` refined from ``T_init`` by the aligner of ``method`` (:func:`make_aligner`;
-    ``none`` measures the correspondences at ``T_init``); the arguments are those of
-    :class:`~frontend.registration.aligner.AlignmentRequest`."""
-    request = AlignmentRequest(np.asarray(T_init, dtype=np.float64), max_correspondence_m, max_iterations, convergence_m, basin, analysis_points)
-    return make_aligner(method).align(target, source, request)
-
-
 def information_from_icp(icp: IcpResult, scale: float = 1.0, min_sigma_m: float = 1e-6) -> Array:
     """6x6 information of ``T_target_source`` in ``[rot, trans]`` order from point-to-plane terms.
 
@@ -495,8 +483,8 @@ def information_from_icp(icp: IcpResult, scale: float = 1.0, min_sigma_m: float 
     correspondence (right perturbation, see module doc) and ``sigma^2`` the residual variance
     ``sum r^2 / (n - 6)`` (floored at ``min_sigma_m``). Neighbouring voxel residuals are not
     independent and voxelisation adds a bias that noise statistics do not see, so the raw matrix
-    is overconfident; ``scale`` (< 1) is the correction calibrated by NEES over simulated pairs
-    (``scripts/registration_accuracy.py``).
+    is overconfident; ``scale`` (< 1, the sensor's ``noise.information_correlation``) corrects it
+    (checked by NEES: ``scripts/registration_accuracy.py``).
 
     Returns
     -------

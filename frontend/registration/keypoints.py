@@ -88,8 +88,8 @@ def _rigid_consistent(st: NDArray, ss: NDArray, threshold_m: float) -> NDArray[n
         dt = np.linalg.norm(st[:, i] - st[:, j], axis=1)
         ds = np.linalg.norm(ss[:, i] - ss[:, j], axis=1)
         # 5 thresholds apart (10 mm at the default): a triangle that small is still well
-        # conditioned at FPP noise (~0.1 mm), and a larger minimum threw away the few
-        # all-inlier samples of a corridor pair whose 34 inliers sit on one poster
+        # conditioned at FPP noise (~0.1 mm), and a larger minimum throws away the few
+        # all-inlier samples of a pair whose inliers sit on one small textured patch
         ok &= (np.abs(dt - ds) < 2 * threshold_m) & (ds > 5 * threshold_m)
     return ok
 
@@ -227,10 +227,8 @@ def keypoint_inliers(residuals_m: NDArray, threshold_m: float = np.inf, robust_s
     ``robust_sigmas`` robust deviations (1.4826 MAD) above the median of those.
 
     RANSAC's threshold (2 mm) is loose next to the keypoints' own scatter (0.1-0.3 mm on
-    1920x1200 frames), and the mismatches it lets through pull the keypoint estimate: on plane-like
-    corridor pairs, whose in-plane shifts and spin come from the keypoints alone, trimming them
-    took 39 simulated pairs from 0.0140 / 0.037 / 0.138 deg (p50 / p90 / max) to 0.0083 / 0.026 /
-    0.056 deg and 0.057 to 0.051 mm median. For 3D residual norms of Gaussian scatter (chi with
+    1920x1200 frames), and the mismatches it lets through pull the keypoint estimate, most where a
+    plane's in-plane shifts and spin come from the keypoints alone. For 3D residual norms of Gaussian scatter (chi with
     3 dof) the default bound is ~3.4 sigma: about 1 % of good correspondences are cut.
     """
     r = np.asarray(residuals_m, dtype=np.float64)
@@ -250,8 +248,8 @@ def drop_sensor_fixed_matches(
     The texture of an FPP frame is lit by the projector, which moves with the camera: the edge
     and corners of its illuminated field (and any projector hot spot) stay at fixed image
     positions on a wall at constant distance, and SURF finds them in every frame with the same
-    descriptor. Their 3D points agree under the identity motion, so on 1920x1200 corridor frames
-    (~100 such matches of ~300) RANSAC chose "no motion" over the true 0.31 m step. A match that
+    descriptor. Their 3D points agree under the identity motion, so where they are a third of the
+    matches RANSAC chooses "no motion" over the true step. A match that
     moved less than ``image_width_px / 640`` pixels (1 px at 640x400, 3 px at 1920x1200) is such a
     sensor-fixed feature when most matches moved; when most did not, the sensor is standing still
     and every match is kept.

@@ -26,7 +26,14 @@ from fpp_graph.errors import FppError
 from fpp_graph.geometry import invert
 from fpp_graph.types import Frame
 from frontend.config import RegistrationConfig
-from frontend.dense_alignment import DENSE_INFORMATION_SCALE, DenseAlignment, DenseEvaluation, DenseSchedule, align_dense, evaluate_dense
+from frontend.dense_alignment import (
+    DENSE_INFORMATION_SCALE,
+    DenseAlignment,
+    DenseEvaluation,
+    DenseSchedule,
+    align_dense,
+    evaluate_dense,
+)
 from frontend.localization.reference import reference_from_arrays, reference_settings
 from frontend.organised_surface import OrganisedSurface
 from frontend.registration.keypoints import KEYPOINT_INFORMATION_SCALE
@@ -108,16 +115,9 @@ class DenseInput:
 
 @dataclass(frozen=True, eq=False)
 class DenseOutcome:
-    """The pose after the dense stage.
-
-    Attributes
-    ----------
-    pose : PoseEstimate
-    relief_took_over : bool
-        An unheld dense fit saw relief and replaced the keypoints' weak directions (or refined a
-        pose that had none): the texture then has nothing left to set.
-    metadata : dict
-    """
+    """The pose after the dense stage; ``relief_took_over``: an unheld dense fit saw relief and
+    replaced the keypoints' weak directions (or refined a pose that had none), so the texture has
+    nothing left to set."""
 
     pose: PoseEstimate
     relief_took_over: bool
@@ -270,17 +270,8 @@ class PhotometricInput:
 
 @dataclass(frozen=True, eq=False)
 class PhotometricOutcome:
-    """The pose after the photometric step.
-
-    Attributes
-    ----------
-    pose : PoseEstimate
-    information : (6, 6)
-        The texture's information (scaled), zero when the step was not used. Carried by the
-        constraint only: the gates (a plane is admitted when the keypoints pin it; look-alike
-        places) stay on the geometry and the keypoints.
-    metadata : dict
-    """
+    """The pose after the photometric step, and the texture's information (scaled; zero when the
+    step was not used), which the constraint carries and the gates do not judge."""
 
     pose: PoseEstimate
     information: Array
@@ -395,18 +386,9 @@ class PhotometricStage:
 # ---------------------------------------------------------------------------------------------
 @dataclass(frozen=True, eq=False)
 class WeakGeometryCheck:
-    """What the final gates judge a pose by.
-
-    Attributes
-    ----------
-    degeneracy : Degeneracy
-        Of the joint information.
-    weak_sigma_m : float
-        Largest standard deviation along the weak directions with the keypoints (NaN when none).
-    agreement : TextureAgreement or None
-        The textures' agreement, for a weak appearance-only loop candidate only.
-    metadata : dict
-    """
+    """What the final gates judge a pose by: the joint information's degeneracy, the largest standard
+    deviation along its weak directions with the keypoints (NaN when none), and the textures'
+    agreement (a weak appearance-only loop candidate only)."""
 
     degeneracy: Degeneracy
     weak_sigma_m: float

@@ -12,7 +12,6 @@ from numpy.typing import NDArray
 from fpp_graph.errors import InputDataError
 from fpp_graph.types import Constraint, ConstraintKind, Frame
 from frontend.config import RegistrationConfig
-from frontend.features.detect import detect_and_describe
 from frontend.localization.reference import reference_to_arrays
 from frontend.organised_surface import OrganisedSurface
 from frontend.registration.aligner import PointCloudAligner
@@ -96,14 +95,6 @@ class TexturedSurfaceRegistrar:
     def describe(self, frame: Frame) -> Frame:
         """The frame with keypoints/descriptors of the configured type (cached)."""
         return self.matching.features.describe(frame)
-
-    def dense_surface(self, frame: Frame) -> OrganisedSurface:
-        """The frame's organised map prepared for the dense fit (cached)."""
-        return self.dense.surfaces.surface(frame)
-
-    def photometric_reference(self, frame: Frame):
-        """The frame's pixels as the photometric step's reference (stored by :meth:`prepare`, else made; cached)."""
-        return self.photometric.reference(frame, PREPARED_REFERENCE)
 
     def prepare(self, frame: Frame) -> Frame:
         """``frame`` with what every pair it takes part in will need, made once where the frame is
@@ -261,7 +252,3 @@ class TexturedSurfaceRegistrar:
             **report.quality,
         )
 
-
-def with_features(frame: Frame, config: RegistrationConfig) -> Frame:
-    """Alias of :func:`frontend.features.detect.detect_and_describe` for pipeline code that only imports this module."""
-    return detect_and_describe(frame, config)

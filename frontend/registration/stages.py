@@ -30,7 +30,14 @@ from fpp_graph.errors import FppError
 from fpp_graph.geometry import se3_exp
 from fpp_graph.types import Frame
 from frontend.config import RegistrationConfig, chi2_quantile
-from frontend.features.detect import MATCH_RATIO, Detector, detect_and_describe, feature_signature, make_detector, match_descriptors
+from frontend.features.detect import (
+    MATCH_RATIO,
+    Detector,
+    detect_and_describe,
+    feature_signature,
+    make_detector,
+    match_descriptors,
+)
 from frontend.organised_surface import lift_keypoints
 from frontend.registration.aligner import AlignmentRequest, PointCloudAligner
 from frontend.registration.icp import (
@@ -75,19 +82,9 @@ Array = NDArray[np.float64]
 # ---------------------------------------------------------------------------------------------
 @dataclass(frozen=True, eq=False)
 class KeypointMatches:
-    """Descriptor matches of a pair.
-
-    Attributes
-    ----------
-    matches : (M, 2) int64
-        Rows ``(target keypoint, source keypoint)``, sensor-fixed matches dropped.
-    keypoints_uv_target, keypoints_uv_source : (K, 2) float64
-        All keypoints of each frame (pixels).
-    sensor_fixed_dropped : int
-        Matches dropped by :func:`~frontend.registration.keypoints.drop_sensor_fixed_matches`.
-    error : str or None
-        Why detection or matching failed (the arrays are then empty).
-    """
+    """Descriptor matches of a pair: ``matches`` (M, 2) rows ``(target keypoint, source keypoint)``
+    without the sensor-fixed ones (``sensor_fixed_dropped`` of them), every keypoint of each frame
+    (pixels), and ``error``: why detection or matching failed (the arrays are then empty)."""
 
     matches: NDArray[np.int64]
     keypoints_uv_target: Array
@@ -153,14 +150,8 @@ class KeypointMatching:
 
 @dataclass(frozen=True, eq=False)
 class LiftedMatches:
-    """The matches whose keypoints both have a 3D point (sensor frames, metres).
-
-    Attributes
-    ----------
-    points_target_m, points_source_m : (n, 3) float64
-    matches : (n, 2) int64
-        The keypoint indices behind each row.
-    """
+    """The matches whose keypoints both have a 3D point (sensor frames, metres), with the keypoint
+    indices behind each row (``matches``)."""
 
     points_target_m: Array
     points_source_m: Array
@@ -188,13 +179,7 @@ class MatchLifting:
 
 @dataclass(frozen=True, eq=False)
 class KeypointPose:
-    """RANSAC's pose from the lifted matches: the start of ICP and the keypoints' basin.
-
-    Attributes
-    ----------
-    lifted : LiftedMatches
-    ransac : RansacResult
-    """
+    """RANSAC's pose from the lifted matches: the start of ICP and the keypoints' basin."""
 
     lifted: LiftedMatches
     ransac: RansacResult
@@ -240,28 +225,11 @@ def _quality(icp: IcpResult | None, inlier_count: int) -> dict[str, Any]:
 # ---------------------------------------------------------------------------------------------
 @dataclass(frozen=True, eq=False)
 class IcpOutcome:
-    """ICP from RANSAC's pose.
-
-    Attributes
-    ----------
-    icp : IcpResult or None
-        None when the clouds were too small (``too_few_voxels``).
-    target_cloud, source_cloud : IcpCloud or None
-        The clouds of the last voxel size tried.
-    voxel_m : float or None
-        Voxel size of the last ICP run (None: none ran).
-    coarse_plane_like : bool
-        The coarse voxels read as a plane, so ICP was redone on the fine ones.
-    fine_skipped : bool
-        The coarse voxels read as a plane but their ICP had not converged within
-        ``icp.max_iterations`` (sliding along the plane), so it was not redone on the fine ones.
-    too_few_voxels : (target voxels, source voxels, voxel_m) or None
-        Clouds below ``icp.min_voxels``.
-    information_raw : (6, 6) or None
-        :func:`~frontend.registration.icp.information_from_icp` at ICP's pose (None: diverged).
-    degeneracy : Degeneracy or None
-        Of ``information_raw``.
-    """
+    """ICP from RANSAC's pose: its result (None when a cloud had fewer than ``ICP_MIN_VOXELS``:
+    ``too_few_voxels`` = (target voxels, source voxels, voxel_m)), the clouds and voxel size of the
+    last run, whether the coarse voxels read as a plane and ICP was redone on the fine ones
+    (``coarse_plane_like``) or was not, its coarse run sliding unconverged (``fine_skipped``), and its
+    information at its pose (``information_raw``, None when it diverged) with its ``degeneracy``."""
 
     icp: IcpResult | None
     target_cloud: IcpCloud | None
@@ -382,25 +350,10 @@ class WeakRule(enum.Enum):
 
 @dataclass(frozen=True, eq=False)
 class WeakDirectionOutcome:
-    """The pose after the weak-direction rules, and how the keypoints agree with it.
-
-    Attributes
-    ----------
-    T_target_source : (4, 4)
-    icp : IcpResult
-        ICP's correspondences measured at ``T_target_source``.
-    rule : WeakRule
-    directions : Degeneracy or None
-        The directions taken from the keypoints (None with :attr:`WeakRule.NONE`).
-    keypoint_residuals_m : (n,)
-        ``|P_target - T P_source|`` of every lifted match.
-    keypoint_inliers : int
-        Residuals below RANSAC's inlier distance.
-    shift_m : float
-        Largest move of RANSAC's keypoint inliers from RANSAC's pose: a large move means ICP
-        left RANSAC's basin.
-    metadata : dict
-    """
+    """The pose after the weak-direction rules: ICP's correspondences measured there (``icp``), the
+    ``rule`` applied and the ``directions`` taken from the keypoints (None with :attr:`WeakRule.NONE`),
+    ``|P_target - T P_source|`` of every lifted match and how many are within RANSAC's distance, and
+    ``shift_m``: the largest move of RANSAC's inliers from RANSAC's pose (ICP left its basin when large)."""
 
     T_target_source: Array
     icp: IcpResult
@@ -500,20 +453,9 @@ class WeakDirectionStage:
 # ---------------------------------------------------------------------------------------------
 @dataclass(frozen=True, eq=False)
 class PoseEstimate:
-    """A pose and its information, ``[rot, trans]``.
-
-    Attributes
-    ----------
-    T_target_source : (4, 4)
-    information_geometry : (6, 6)
-        ICP's or the dense fit's, without the directions taken from the keypoints.
-    information_keypoints : (6, 6)
-        Raw: the gates judge it raw, the constraint carries it scaled.
-    information : (6, 6)
-        Their sum: what the gates judge.
-    degeneracy : Degeneracy
-        Of ``information``.
-    """
+    """A pose and its information, ``[rot, trans]``: the geometry's (ICP's or the dense fit's, without
+    the directions taken from the keypoints), the keypoints' raw one (the gates judge it raw, the
+    constraint carries it scaled), their sum (what the gates judge) and its degeneracy."""
 
     T_target_source: Array
     information_geometry: Array
@@ -524,19 +466,9 @@ class PoseEstimate:
 
 @dataclass(frozen=True, eq=False)
 class KeypointTerm:
-    """The keypoints' point-to-point term at any pose; the inlier set stays the one chosen at ICP's pose.
-
-    Attributes
-    ----------
-    points_target_m, points_source_m : (n, 3)
-        All lifted matches.
-    inliers : (n,) bool
-        :func:`~frontend.registration.keypoints.keypoint_inliers` at the weak-direction stage's pose.
-    support_points_m : (m, 3)
-        The source points behind the geometry's information (centroid and radius of the
-        degeneracy test).
-    degeneracy_ratio : float
-    """
+    """The keypoints' point-to-point term at any pose: all lifted matches, the inliers chosen at the
+    weak-direction stage's pose, and the source points behind the geometry's information (the
+    degeneracy test's centroid and radius)."""
 
     points_target_m: Array
     points_source_m: Array

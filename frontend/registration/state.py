@@ -57,16 +57,9 @@ class StageTimer:
 
 @dataclass(frozen=True, eq=False)
 class PairFrames:
-    """The pair being registered: ``T_target_source`` is sought.
-
-    Attributes
-    ----------
-    target, source : Frame
-    kind : ConstraintKind or str
-        Recorded on the constraint.
-    T_guess : (4, 4) or None
-        A prior ``T_target_source`` (scored as one more RANSAC hypothesis, never trusted alone).
-    """
+    """The pair being registered (``T_target_source`` is sought), the ``kind`` recorded on the
+    constraint, and ``T_guess``: a prior ``T_target_source`` (one more RANSAC hypothesis, never
+    trusted alone)."""
 
     target: Frame
     source: Frame

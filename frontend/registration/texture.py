@@ -38,10 +38,19 @@ class TextureAgreement:
     overlap: float = float("nan")
 
 
+MIN_BLOCK_NCC = 0.8
+"""Two views' textures of one block agree at this normalised cross-correlation: per block, the
+projector's shading (a smooth gain that changes with the pose) cancels, camera noise does not."""
+MIN_BLOCK_STD_GREY = 2.0
+"""A block whose texture varies less than about the camera's noise (grey levels) is uniform: it
+tells nothing about agreement and is left out."""
+MAX_PROJECTION_RMS_PX = 3.0
+"""A target map whose fitted pinhole reprojects its own points worse than this cannot place the
+source's samples on its pixels: no verdict."""
+
+
 # One body: projection and the per-block statistics share the sample layout (h, w, b) end to end.
-def _score_blocks(
-    in_view: NDArray, geo: NDArray, tex_s: NDArray, tex_t: NDArray, valid_s: NDArray, h: int, w: int, b: int, min_ncc: float, min_std_grey: float
-) -> TextureAgreement:
+def _score_blocks(in_view: NDArray, geo: NDArray, tex_s: NDArray, tex_t: NDArray, valid_s: NDArray, h: int, w: int, b: int) -> TextureAgreement:
     """Per ``b x b`` block of the (h, w) sample grid: seen, same shape, textured, NCC; the agreement over the informative blocks."""
 
     def blocks(a: NDArray) -> NDArray:
@@ -59,9 +68,9 @@ def _score_blocks(
         ncc = cov / np.sqrt(np.maximum(var_s, 0) * np.maximum(var_t, 0))
     seen = n_view >= 0.5 * b * b
     shape_ok = n >= 0.8 * n_view
-    textured = (var_s > min_std_grey**2) & (var_t > min_std_grey**2)
+    textured = (var_s > MIN_BLOCK_STD_GREY**2) & (var_t > MIN_BLOCK_STD_GREY**2)
     informative = seen & (~shape_ok | textured)
-    agree = seen & shape_ok & textured & (ncc >= min_ncc)
+    agree = seen & shape_ok & textured & (ncc >= MIN_BLOCK_NCC)
     count = int(informative.sum())
     source_blocks = int((blocks(valid_s.astype(np.float32)).sum(axis=2) >= 0.5 * b * b).sum())
     overlap = float(seen.sum()) / max(source_blocks, 1)
@@ -77,9 +86,6 @@ def texture_agreement(
     block_px: int | None = None,
     sample_px: int | None = None,
     max_distance_m: float = 0.003,
-    min_ncc: float = 0.8,
-    min_std_grey: float = 2.0,
-    max_projection_rms_px: float = 3.0,
 ) -> TextureAgreement:
     """Blockwise agreement of the two frames' surfaces and textures over the overlap under ``T_target_source``.
 
@@ -88,17 +94,17 @@ def texture_agreement(
     ``block_px`` squares. A block is *seen* when half its samples land on target pixels with a
     3D point; it agrees when the target's surface lies within ``max_distance_m`` of 80 % of
     them and the two textures there correlate (normalised cross-correlation, per block, so the
-    projector's shading, which changes with the pose, cancels) to ``min_ncc``. Seen blocks
+    projector's shading, which changes with the pose, cancels) to :data:`MIN_BLOCK_NCC`. Seen blocks
     whose surfaces differ count against; blocks of uniform texture are left out.
 
-    Why: keypoint inliers of a look-alike place (a repeated poster) all sit on the repeated
+    Why: keypoint inliers of a look-alike place (a repeated print or object) all sit on the repeated
     object, while around it the walls differ in texture, or in shape (a handrail in one view
     where the other sees the flat wall): over the whole overlap only a true revisit agrees.
     """
     if source.xyz_map is None or target.xyz_map is None or source.texture is None or target.texture is None:
         return TextureAgreement(float("nan"), 0)
     cam = fit_pinhole(target.xyz_map)
-    if cam is None or not cam[1] <= max_projection_rms_px:
+    if cam is None or not cam[1] <= MAX_PROJECTION_RMS_PX:
         return TextureAgreement(float("nan"), 0)
     fx, fy, cx, cy = cam[0]
     T = np.asarray(T_target_source, dtype=np.float64)
@@ -137,7 +143,7 @@ def texture_agreement(
     tex_t = np.zeros(n_px, np.float32)
     tex_t[idx[same]] = np.asarray(target.texture[v[same], u[same]], dtype=np.float32)
 
-    return _score_blocks(in_view, geo, tex_s, tex_t, valid_s, h, w, b, min_ncc, min_std_grey)
+    return _score_blocks(in_view, geo, tex_s, tex_t, valid_s, h, w, b)
 
 
 @dataclass(frozen=True)

@@ -12,11 +12,11 @@ then registers the frame the full way (the prediction joins RANSAC as one more h
 Gates (each a measured property of the fit, thresholds from the sensor's noise model):
 
 * the dense fit raised or returned a non-finite pose;
-* directions the geometry leaves nearly free (a wall's in-plane shifts and spin, a corridor's
+* directions the geometry leaves nearly free (a wall's in-plane shifts and spin, a long hall's
   axis: :func:`~frontend.registration.weak_directions.check_degeneracy` with
   ``DEGENERACY_RATIO``) are taken from the keypoints as a full registration
-  takes them (the dense fit alone keeps the prediction's error there: a corridor's 12 mm
-  velocity error stayed 12 mm). The keyframe's keypoints are followed into the frame by
+  takes them (the dense fit alone keeps the prediction's error there: nothing in the geometry
+  corrects it). The keyframe's keypoints are followed into the frame by
   Lucas-Kanade from the dense pose's prediction, so the frame itself is never described
   (SURF on a 640x480 frame costs about what tracking it does); rejected when too few followed
   keypoints agree with the dense pose or they leave a direction above
@@ -44,10 +44,19 @@ from fpp_graph.errors import FppError
 from fpp_graph.geometry import invert, se3_exp, transform_points
 from fpp_graph.types import Constraint, ConstraintKind, Frame
 from frontend.config import RegistrationConfig
-from frontend.dense_alignment import DENSE_INFORMATION_SCALE, DenseAlignment, DenseSchedule, align_dense
+from frontend.dense_alignment import (
+    DENSE_INFORMATION_SCALE,
+    DenseAlignment,
+    DenseSchedule,
+    align_dense,
+)
 from frontend.organised_surface import OrganisedSurface, lift_keypoints
 from frontend.registration.icp import with_shared_error_floor
-from frontend.registration.keypoints import KEYPOINT_INFORMATION_SCALE, information_from_keypoints, keypoint_inliers
+from frontend.registration.keypoints import (
+    KEYPOINT_INFORMATION_SCALE,
+    information_from_keypoints,
+    keypoint_inliers,
+)
 from frontend.registration.weak_directions import (
     DEGENERACY_RATIO,
     Degeneracy,
@@ -129,7 +138,7 @@ class DenseTracker:
         """The dense fit again from the keypoints' pose for the weak directions (:meth:`_keypoint_step`)
         with the keypoints as the prior, as a full registration's dense stage: the relief outweighs
         them where it has any (a table's objects), they hold the directions it leaves free (a
-        corridor's axis). Returns that fit, its information (with the prior) and metadata, or why not."""
+        long hall's axis). Returns that fit, its information (with the prior) and metadata, or why not."""
         config = self.config
         weak = "; ".join(degeneracy.unconstrained)
         step = self._keypoint_step(target, source, dense, degeneracy)
@@ -313,18 +322,12 @@ _LIFTED: weakref.WeakKeyDictionary[Frame, _LiftedKeypoints] = weakref.WeakKeyDic
 # which the texture they share is weaker than their independent noise (SNR 1: rho = s / (s + n))
 MIN_PATCH_CORRELATION = 0.5
 # The window covers the support of SURF's smallest filter (9 x 9 px), the texture that made a
-# keypoint; OpenCV's default (21 px) followed the same keypoints to the same poses (300 simulated
-# corridor frames: ATE 1.30 vs 1.32 mm; 7-Scenes chess 5.2 mm both) at twice the cost.
+# keypoint; a wider one (OpenCV's default 21 px) adds pixels the keypoint does not depend on, at
+# twice the cost (7-Scenes chess: 5.2 mm ATE either way).
 FOLLOW_WINDOW_PX = 11
 # Pyramid levels above the image: the search reaches 2^levels half-windows (+-20 px); the dense
 # pose is off only along weak directions, by the motion prediction's error over one frame.
 FOLLOW_LEVELS = 2
-
-
-def patch_correlation(image_a: NDArray, uv_a: NDArray, image_b: NDArray, uv_b: NDArray, window_px: int = FOLLOW_WINDOW_PX) -> NDArray[np.float32]:
-    """Zero-mean normalised correlation of the ``window_px`` square windows centred at ``uv_a`` in
-    ``image_a`` and ``uv_b`` in ``image_b`` (bilinear, sub-pixel; 0 for a flat window)."""
-    return window_correlation(patch_windows(image_a, uv_a, window_px), patch_windows(image_b, uv_b, window_px))
 
 
 def patch_windows(image: NDArray, uv: NDArray, window_px: int = FOLLOW_WINDOW_PX) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
@@ -358,4 +361,4 @@ def rms_motion_m(T_a: NDArray, T_b: NDArray, points: NDArray) -> float:
     return float(np.sqrt(np.mean(np.einsum("ij,ij->i", d, d))))
 
 
-__all__ = ["rms_motion_m", "track_dense"]
+__all__ = ["DenseTracker", "rms_motion_m"]

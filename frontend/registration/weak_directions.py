@@ -303,8 +303,8 @@ def surface_is_plane_like(xyz_map: NDArray, voxel_m: float, ratio: float) -> boo
 
     Every pair the frame takes part in overlaps a part of that surface, so such a frame (a wall)
     gives weak pairs only; one with relief may still give weak pairs where the overlap is flat.
-    ``voxel_m`` and ``ratio`` as the registrar's ICP voxel and ``weak_directions.degeneracy_ratio``.
-    Simulated corridor: 86 of 105 frames (not the corners), turntable 0 of 39; 20-40 ms a frame.
+    ``voxel_m`` and ``ratio`` as the registrar's ICP voxel and :data:`DEGENERACY_RATIO`; 20-40 ms a
+    1920x1200 frame.
     """
     role = prepare_icp_cloud(organised_subsample(xyz_map, voxel_m), voxel_m).source
     if len(role.points) < 7:

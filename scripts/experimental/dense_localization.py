@@ -20,7 +20,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from fpp_graph.errors import InputDataError
-from frontend.localization import DenseReference, LocalizationResult, localize_dlt
+from frontend.localization import DenseReference, DltSettings, LocalizationResult, localize_dlt
 from frontend.localization.photometric import sample_bilinear_clamped
 
 log = logging.getLogger(__name__)
@@ -190,7 +190,7 @@ def localize_dense_map(
                 uv_all.append(tracked[1])
         if not X_all or sum(len(x) for x in X_all) < max(6, min_inliers):
             return result
-        res = localize_dlt(np.concatenate(X_all), np.concatenate(uv_all), Km, dist_arr, ransac_threshold_px=ransac_threshold_px, min_inliers=min_inliers)
+        res = localize_dlt(np.concatenate(X_all), np.concatenate(uv_all), Km, dist_arr, DltSettings(ransac_threshold_px=ransac_threshold_px, min_inliers=min_inliers))
         if not res.success:
             return result
         result, T = res, res.T_camera_world

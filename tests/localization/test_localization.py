@@ -11,6 +11,7 @@ from fpp_graph.geometry import invert, se3_exp, se3_log
 from frontend.config import RegistrationConfig
 from frontend.localization import (
     DenseReference,
+    DltSettings,
     PhotometricQuery,
     PhotometricSettings,
     decompose_projection,
@@ -45,7 +46,7 @@ def test_dlt_exact_and_centre():
     assert np.allclose(decompose_projection(F, K, X[:6]), T, atol=1e-8)
     # sign of F is arbitrary: -F gives the same pose (points in front)
     assert np.allclose(decompose_projection(-F, K, X[:6]), T, atol=1e-8)
-    res = localize_dlt(X, uv, K, refine=False)
+    res = localize_dlt(X, uv, K, settings=DltSettings(refine=False))
     assert res.success and res.num_inliers == len(X)
     assert np.allclose(res.camera_centre_world_m, -T[:3, :3].T @ T[:3, 3], atol=1e-10)
 

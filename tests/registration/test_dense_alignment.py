@@ -169,7 +169,7 @@ def test_relief_check_agrees_with_the_fits_own_verdict(wall, ratio, monkeypatch)
     """``DenseStage.relief_at`` asks one evaluation at the start pose what the fit's information
     says at its end: the bumpy wall's third-weakest direction (0.018) is relief at 0.01 and a
     plane at 0.02; the flat wall is a plane at both."""
-    from frontend.dense_alignment import dense_information
+    from frontend.dense_alignment import evaluate_dense
     from frontend.registration.weak_directions import check_degeneracy
 
     with_degeneracy_ratio(monkeypatch, ratio)
@@ -184,13 +184,13 @@ def test_relief_check_agrees_with_the_fits_own_verdict(wall, ratio, monkeypatch)
         fit_sees_relief = len(check_degeneracy(fit.information, fit.source_points, ratio).unconstrained) < 3
         assert fit_sees_relief == has_relief
         assert dense.relief_at(PairFrames(a, b), T_start)[0] == has_relief
-        info, used = dense_information(OrganisedSurface(a.xyz_map), OrganisedSurface(b.xyz_map), T_start, 8, 0.004)
+        info, used = evaluate_dense(OrganisedSurface(a.xyz_map), OrganisedSurface(b.xyz_map), T_start, 8, 0.004).information()
         assert info.shape == (6, 6) and np.allclose(info, info.T) and len(used) > 1000
     far = T_start.copy()
     far[:3, 3] += [3.0, 0.0, 0.0]  # no overlap: no verdict, the held fit decides
     assert dense.relief_at(PairFrames(a, b), far) == (False, None)
     with pytest.raises(InputDataError, match="correspondences"):
-        dense_information(OrganisedSurface(a.xyz_map), OrganisedSurface(b.xyz_map), far, 8, 0.004)
+        evaluate_dense(OrganisedSurface(a.xyz_map), OrganisedSurface(b.xyz_map), far, 8, 0.004).information()
 
 
 def test_a_fit_takes_the_relief_checks_normal_equations_only_where_they_were_formed(wall, monkeypatch):

@@ -8,7 +8,14 @@ import numpy as np
 import pytest
 
 from fpp_graph.geometry import se3_exp
-from frontend.registration.icp import IcpBasin, SourceCrop, _align, prepare_icp_cloud, refine_icp
+from frontend.registration.aligner import AlignmentRequest
+from frontend.registration.icp import (
+    IcpBasin,
+    SmallGicpAligner,
+    SourceCrop,
+    _align,
+    prepare_icp_cloud,
+)
 
 
 def _bumpy_patch(rng: np.random.Generator, centre_x: float, n: int = 6000) -> np.ndarray:
@@ -39,7 +46,7 @@ def test_the_crop_keeps_the_shared_part_and_ends_where_the_whole_source_ends():
     assert crop.kept[near_shared].all() and not crop.kept[~near_shared].any()
     assert crop.cloud is not source.source.cloud and crop.cloud.size() == crop.size
     whole = _align(target.target, source.source, np.eye(4), "GICP", 0.03, 50, 1e-7)
-    cropped = refine_icp(target, source, np.eye(4), "gicp", 0.03, 50, convergence_m=1e-7, basin=IcpBasin(_INLIERS, 0.045))
+    cropped = SmallGicpAligner().align(target, source, AlignmentRequest(np.eye(4), 0.03, 50, 1e-7, IcpBasin(_INLIERS, 0.045)))
     assert np.abs(cropped.T_target_source[:3, 3] - T_true[:3, 3]).max() < 2e-4
     assert np.abs(cropped.T_target_source - whole[0]).max() < 5e-5
     # the figures are of the whole source: half of it has a counterpart

@@ -12,11 +12,12 @@ import pytest
 
 from fpp_graph.geometry import se3_exp
 from frontend.registration import icp as icp_module
+from frontend.registration.aligner import AlignmentRequest
 from frontend.registration.icp import (
     ICP_CYCLE_CHECK_ITERATIONS,
     IcpBasin,
+    SmallGicpAligner,
     prepare_icp_cloud,
-    refine_icp,
 )
 
 
@@ -97,7 +98,7 @@ def test_real_gicp_pair_converges_to_the_true_pose():
     T_true = se3_exp(np.array([0.01, -0.02, 0.015, 0.004, -0.003, 0.002]))
     source = (planes - T_true[:3, 3]) @ T_true[:3, :3]  # T_true maps source to target
     target_cloud, source_cloud = prepare_icp_cloud(planes, 0.004), prepare_icp_cloud(source, 0.004)
-    result = refine_icp(target_cloud, source_cloud, np.eye(4), "gicp", 0.03, 50, convergence_m=1e-7)
+    result = SmallGicpAligner().align(target_cloud, source_cloud, AlignmentRequest(np.eye(4), 0.03, 50, 1e-7))
     assert np.abs(result.T_target_source[:3, 3] - T_true[:3, 3]).max() < 2e-4
     assert result.iterations <= 50
 
@@ -165,8 +166,8 @@ def test_real_gicp_sliding_along_a_corridor_stops_past_the_gate():
     source = (walls[(walls[:, 1] > -0.5)] - T_true[:3, 3]) @ T_true[:3, :3] + [0, 0.3, 0]  # overlap shifted 30 cm along the axis
     target_cloud, source_cloud = prepare_icp_cloud(walls[walls[:, 1] < 0.5], 0.01), prepare_icp_cloud(source, 0.01)
     T0 = np.eye(4)
-    free = refine_icp(target_cloud, source_cloud, T0, "gicp", 0.04, 50, convergence_m=1.5e-5)
-    held = refine_icp(target_cloud, source_cloud, T0, "gicp", 0.04, 50, convergence_m=1.5e-5, basin=IcpBasin(_INLIERS, 0.03))
+    free = SmallGicpAligner().align(target_cloud, source_cloud, AlignmentRequest(T0, 0.04, 50, 1.5e-5))
+    held = SmallGicpAligner().align(target_cloud, source_cloud, AlignmentRequest(T0, 0.04, 50, 1.5e-5, IcpBasin(_INLIERS, 0.03)))
     assert free.iterations >= 45 and not free.converged  # (small_gicp counts 9 in some runs of 10)
     assert held.iterations <= 40 and not held.converged  # stopped runs before the bound
     shift_m = np.abs(held.T_target_source[:3, 3] - T0[:3, 3])

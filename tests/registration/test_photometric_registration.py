@@ -7,8 +7,13 @@ import pytest
 
 from fpp_graph.geometry import invert, pose_error, se3_exp, se3_log
 from frontend.config import RegistrationConfig
-from frontend.localization import DenseReference, PhotometricQuery, PhotometricSettings, localize_photometric
-from frontend.registration import TexturedSurfaceRegistrar, TextureCamera
+from frontend.localization import (
+    DenseReference,
+    PhotometricQuery,
+    PhotometricSettings,
+    localize_photometric,
+)
+from frontend.registration import TextureCamera, TexturedSurfaceRegistrar
 
 
 @pytest.fixture(scope="module")

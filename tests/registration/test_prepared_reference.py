@@ -14,7 +14,7 @@ from fpp_graph.types import Frame
 from frontend.config import RegistrationConfig
 from frontend.localization.reference import reference_from_arrays, reference_settings
 from frontend.organised_surface import SURFACE_ARRAYS, OrganisedSurface
-from frontend.registration import TexturedSurfaceRegistrar, TextureCamera
+from frontend.registration import TextureCamera, TexturedSurfaceRegistrar
 from frontend.registration.registrar import PREPARED_REFERENCE
 from frontend.registration.weak_directions import DEGENERACY_RATIO, surface_is_plane_like
 from frontend.testing.synthetic_frames import (
@@ -64,8 +64,8 @@ def test_prepared_reference_is_what_a_reader_of_the_stored_frame_would_compute(f
     assert {PREPARED_REFERENCE + name for name in (*FIELDS, "settings")} <= set(prepared.prepared)
     save_frame(tmp_path / "f.npz", prepared)
     read = load_frame(tmp_path / "f.npz")
-    used = registrar().photometric_reference(read)
-    computed = registrar().photometric_reference(dataclasses.replace(read, prepared={}))
+    used = registrar().photometric.reference(read, PREPARED_REFERENCE)
+    computed = registrar().photometric.reference(dataclasses.replace(read, prepared={}), PREPARED_REFERENCE)
     assert used.settings == computed.settings
     for name in FIELDS:
         assert np.array_equal(getattr(used, name), getattr(computed, name), equal_nan=True), name
@@ -81,7 +81,7 @@ def test_other_settings_compute_their_own_reference(flat_frame, monkeypatch):
     fewer = registrar()
     settings = reference_settings(W, np.array([0.1, 0.0, 0.0]), 5000)
     assert reference_from_arrays(prepared.prepared, PREPARED_REFERENCE, settings) is None
-    reference = fewer.photometric_reference(prepared)
+    reference = fewer.photometric.reference(prepared, PREPARED_REFERENCE)
     assert reference.settings == settings and reference.index.size == 5000
 
 
@@ -106,7 +106,7 @@ def test_frames_that_need_no_reference_get_their_surface_only(flat_frame, relief
 def test_prepared_surface_is_the_one_a_reader_of_the_stored_frame_would_make(relief_frame, tmp_path):
     save_frame(tmp_path / "f.npz", registrar().prepare(relief_frame))
     read = load_frame(tmp_path / "f.npz")
-    used = registrar().dense_surface(read)
+    used = registrar().dense.surfaces.surface(read)
     made = OrganisedSurface(read.xyz_map)
     # it is the stored arrays that were used, not a second computation
     assert np.shares_memory(used.normals_binned, read.prepared["surface.normals"])
@@ -132,7 +132,7 @@ def test_the_stored_float32_map_is_known_for_frames_read_from_the_store_only(rel
     # a frame made otherwise, or changed since it was read, has none: it may hold another map
     assert stored_xyz_map_float32(relief_frame) is None
     assert stored_xyz_map_float32(dataclasses.replace(read, xyz_map=read.xyz_map + 1.0)) is None
-    surface = registrar().dense_surface(dataclasses.replace(read, id=9))
+    surface = registrar().dense.surfaces.surface(dataclasses.replace(read, id=9))
     assert not np.shares_memory(surface.xyz, stored)
 
 
@@ -152,4 +152,4 @@ def test_a_map_too_sparse_for_a_surface_is_returned_as_it_is(flat_frame):
     frame = dataclasses.replace(flat_frame, xyz_map=sparse, points=sparse[5, 5:10])
     assert registrar().prepare(frame) is frame
     with pytest.raises(InputDataError, match="valid pixels"):
-        registrar().dense_surface(frame)  # the pair that needs it says so
+        registrar().dense.surfaces.surface(frame)  # the pair that needs it says so

@@ -12,9 +12,10 @@ from fpp_graph.errors import InputDataError
 from fpp_graph.geometry import invert, make_pose, pose_error, se3_exp, se3_log
 from fpp_graph.types import Frame, PairRegistrar
 from frontend.config import RegistrationConfig
+from frontend.features.detect import detect_and_describe
 from frontend.registration import (
-    TexturedSurfaceRegistrar,
     IcpResult,
+    TexturedSurfaceRegistrar,
     check_degeneracy,
     disagreement_along,
     fit_pinhole,
@@ -28,7 +29,6 @@ from frontend.registration import (
     prepare_icp_cloud,
     ransac_rigid,
     texture_agreement,
-    with_features,
 )
 from frontend.testing.synthetic_frames import (
     ProceduralAlbedo,
@@ -496,7 +496,7 @@ def test_registrar_does_not_keep_frames_alive(pair):
 
     a, b, _ = pair
     reg = TexturedSurfaceRegistrar(RegistrationConfig())
-    da, db = with_features(dataclasses.replace(a), reg.config), with_features(dataclasses.replace(b), reg.config)
+    da, db = detect_and_describe(dataclasses.replace(a), reg.config), detect_and_describe(dataclasses.replace(b), reg.config)
     assert reg.register(da, db).accepted
     refs = [weakref.ref(da), weakref.ref(db)]
     del da, db

@@ -13,7 +13,7 @@ from fpp_graph.slam.keyframes import KeyframeManager
 from fpp_graph.types import FrameDescriber, FrameTracker
 from frontend.dense_alignment import DenseSchedule, align_dense
 from frontend.registration import TexturedSurfaceRegistrar
-from frontend.registration.tracking import MIN_PATCH_CORRELATION, patch_correlation
+from frontend.registration.tracking import MIN_PATCH_CORRELATION, patch_windows, window_correlation
 from frontend.rgbd.source import RgbdSource
 from frontend.sim.rgbd import (
     KinectModel,
@@ -131,6 +131,10 @@ def test_tracking_off_or_without_track_registers_every_frame_in_full(corridor, c
     assert manager.finish().tracking == {}
 
 
+def patch_correlation(image_a, uv_a, image_b, uv_b):
+    return window_correlation(patch_windows(image_a, uv_a), patch_windows(image_b, uv_b))
+
+
 def test_patch_correlation_separates_shared_texture_from_noise():
     rng = np.random.default_rng(3)
     texture = cv2.GaussianBlur(rng.uniform(0, 255, (120, 160)).astype(np.float32), (0, 0), 2.0)
@@ -184,7 +188,7 @@ def test_keyframe_constraints_widen_by_the_cameras_motion_over_its_readout(corri
 
 
 def _whole_fit(registrar, target, source, T_start):
-    surfaces = registrar.dense_surface(target), registrar.dense_surface(source)
+    surfaces = registrar.dense.surfaces.surface(target), registrar.dense.surfaces.surface(source)
     return align_dense(*surfaces, T_start, DenseSchedule.of(registrar.config))
 
 
