@@ -51,7 +51,7 @@ def test_every_key_of_the_resolved_config_has_a_row_with_a_description_and_a_uni
     assert rows["registration.ransac.inlier_sigmas"].unit == "noise.point_sigma_m"
     assert rows["pose_graph.loop_false_alarm"].unit == "-"
     assert rows["pose_graph.robust"].unit == "-" and rows["pose_graph.robust"].allowed == "none, cauchy, gnc"
-    assert rows["registration.weak_directions.plane_disagreement_probability"].allowed == "(0, 1)"
+    assert rows["registration.noise.information_correlation"].allowed == "(0, 1]"
 
 
 def test_every_key_of_the_default_yamls_is_in_the_reference_with_its_default():
