@@ -14,7 +14,7 @@ is reduced to its occupied voxels before it is merged.
   pinhole depth image (intrinsics from the frame's camera model or fitted to the map), so FPP maps
   whose pixels follow a distorted lens still land on the right rays.
 
-After a pose-graph update, :meth:`VoxelMapFuser.refuse` rebuilds the map from the frames (their
+After a pose-graph update, :meth:`VoxelMapFuser.fuse` rebuilds the map from the frames (their
 ``points``/``xyz_map``/``texture``, e.g. from the :class:`~fpp_graph.slam.frame_store.FrameStore`);
 the raw fringe images are not needed again.
 
@@ -248,14 +248,6 @@ class VoxelMapFuser:
         for frame in frames:
             self.integrate(frame, poses_world_sensor[frame.id])
         return self.result()
-
-    def refuse(self, frames: Sequence[Frame], new_poses_world_sensor: Mapping[int, NDArray[np.float64]]) -> FusedMap:
-        """Rebuild the map after a pose-graph update: the same frames under new poses.
-
-        The frames' ``points``/``xyz_map``/``texture`` suffice (a FrameStore holds them); the
-        raw fringe images are not decoded again.
-        """
-        return self.fuse(frames, new_poses_world_sensor)
 
 
 @dataclass(frozen=True, eq=False)

@@ -207,11 +207,6 @@ def _stored_camera(get: dict[str, np.ndarray]) -> CameraModel | None:
     return CameraModel(get["camera_K"], width_px, height_px, float(get["camera_readout_s"]))
 
 
-def stored_xyz_map_float32(frame: Frame) -> np.ndarray | None:
-    """The float32 map that ``frame.xyz_map`` was widened from (:attr:`Frame.xyz_map_stored`)."""
-    return frame.xyz_map_stored
-
-
 def load_frame_points(path: str | os.PathLike[str], max_points: int, seed: int = 0) -> np.ndarray:
     """Up to ``max_points`` of a saved frame's points, drawn uniformly without replacement (seeded),
     in their order, float64 (N, 3): what an evaluation over hundreds of frames needs, without

@@ -118,7 +118,7 @@ class KeyframeManager:
         self.config = config or Config()
         self.store = store if store is not None else FrameStore()
         # loop candidates are registered by the verifier (in this process by default, or on the
-        # run's workers) and applied keyframes.verify_lag keyframes later, in submission order
+        # run's workers) and applied VERIFY_LAG_KEYFRAMES keyframes later, in submission order
         self.verifier: PairVerifier = verifier if verifier is not None else InlineVerifier(registrar, self.store)
         self._pending_loops: deque[tuple[int, list[tuple[LoopCandidate, Future[Constraint]]]]] = deque()
         # each keyframe's twist over its rolling-shutter readout (motion.readout_motion; None: still)

@@ -141,7 +141,7 @@ class ProximityAppearanceLoopDetector:
     """Implements :class:`~fpp_graph.types.LoopDetector` with pose proximity and appearance.
 
     Proximity: earlier keyframes whose position, under the current estimate, lies within
-    ``proximity_radius_m + proximity_sigma * sigma`` of the query, where ``sigma`` is the position
+    ``proximity_radius_m + PROXIMITY_SIGMAS * sigma`` of the query, where ``sigma`` is the position
     standard deviation of the query's marginal covariance (so the gate widens as drift grows) and
     whose optical axes point within 90 degrees (a sensor facing away sees nothing in common),
     best first by the share of the query's image their view covers under the estimate

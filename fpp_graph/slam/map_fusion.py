@@ -30,15 +30,10 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-FUSION_VOXEL_M = 0.001
-"""The point map's voxel when neither the configuration nor the source sets
-``fusion.voxel_size_m``: 1 mm keeps a close-range sensor's detail (a few pixel footprints of a
-camera half a metre from its scene); a room-scale source sets a coarser one."""
-
-TSDF_VOXEL_M = 0.002
-"""The mesh's TSDF voxel when neither the configuration nor the source sets
-``fusion.tsdf_voxel_m``: twice :data:`FUSION_VOXEL_M`, the resolution a close-range sensor's
-registration knows its poses at."""
+# The fusion voxels when neither the configuration nor the source sets them: a close-range
+# sensor's (the point map a few pixel footprints of a camera half a metre away, the TSDF the
+# resolution its registration knows the poses at); a room-scale source sets coarser ones.
+FUSION_VOXEL_M, TSDF_VOXEL_M = 0.001, 0.002
 
 ProgressCallback = Callable[[str, int, int], None]
 """``progress(stage, done, total)``: a run's progress report (:mod:`fpp_graph.slam.pipeline` and its steps)."""

@@ -3,7 +3,7 @@
 Odometry is sequential (each frame needs the last keyframe), but a keyframe's loop candidates
 are independent registrations: :class:`ExecutorVerifier` sends them to the run's worker
 processes while tracking goes on. The keyframe manager applies their results a fixed number
-of keyframes later in submission order (``keyframes.verify_lag``), so a run gives the same
+of keyframes later in submission order (:data:`~fpp_graph.slam.keyframes.VERIFY_LAG_KEYFRAMES`), so a run gives the same
 loops, poses and map with either verifier and any number of workers.
 """
 

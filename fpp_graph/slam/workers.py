@@ -73,7 +73,7 @@ WORKER_NICENESS = 10
 
 The tracking process is a run's critical path: each frame is tracked after the one before,
 while what the workers do can wait a little (frames decoded a few ahead, loop candidates verified
-``keyframes.verify_lag`` keyframes behind). With a worker per core, three busy processes shared
+a few keyframes behind, ``VERIFY_LAG_KEYFRAMES``). With a worker per core, three busy processes shared
 two cores and the tracking process got two thirds of one whenever both workers had work: at
 niceness 10 the scheduler weighs it ~9:1 against each worker, so it keeps its core. The
 simulated 2000-frame walk (``scripts/long_rgbd_sequence.py``) ran 221 -> 217 s (decode + track

@@ -706,7 +706,8 @@ class RgbdSource:
             xyz_map=xyz,
             texture=color,
             camera=CameraModel(self.K, xyz.shape[1], xyz.shape[0], readout_s=self.config.registration.sensor_noise().readout_s),
-            metadata={"sensor": "rgbd", **({"distortion": self.distortion.tolist()} if self.distortion is not None else {})},
+            # the front-end's own record of the camera, as FPP frames keep theirs (the back-end reads ``camera``)
+            metadata={"K": self.K.tolist(), "sensor": "rgbd", **({"distortion": self.distortion.tolist()} if self.distortion is not None else {})},
         )
         # the registrar's per-frame work that every pair of this frame needs (its dense surface),
         # done here once, on a decode worker, and handed on with the frame

@@ -266,7 +266,7 @@ def test_refuse_after_pose_update_moves_the_map(views):
     fuser = VoxelMapFuser(0.002, 0.003, mesh=True)
     first = fuser.fuse(frames, poses)
     shift = make_pose(translation=[0.05, 0.0, 0.0])
-    moved = fuser.refuse(frames, {k: compose(shift, T) for k, T in poses.items()})
+    moved = fuser.fuse(frames, {k: compose(shift, T) for k, T in poses.items()})
     assert moved.num_points == pytest.approx(first.num_points, rel=0.05)
     centre_moved = CENTRE + [0.05, 0.0, 0.0]
     r = np.linalg.norm(moved.points_world_m - centre_moved, axis=1) - RADIUS

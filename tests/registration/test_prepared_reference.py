@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from fpp_graph.errors import InputDataError
-from fpp_graph.slam.frame_store import load_frame, save_frame, stored_xyz_map_float32
+from fpp_graph.slam.frame_store import load_frame, save_frame
 from fpp_graph.types import Frame
 from frontend.config import RegistrationConfig
 from frontend.localization.reference import reference_from_arrays, reference_settings
@@ -118,22 +118,23 @@ def test_prepared_surface_is_the_one_a_reader_of_the_stored_frame_would_make(rel
         assert np.array_equal(a, b)
     assert (used.fx, used.fy, used.cx, used.cy) == (made.fx, made.fy, made.cx, made.cy)
     # the surface's map is the stored float32 one, not the frame's float64 map narrowed again
-    assert np.shares_memory(used.xyz, stored_xyz_map_float32(read))
+    assert np.shares_memory(used.xyz, read.xyz_map_stored)
     np.testing.assert_array_equal(used.xyz, made.xyz)
 
 
 def test_the_stored_float32_map_is_known_for_frames_read_from_the_store_only(relief_frame, tmp_path):
     save_frame(tmp_path / "f.npz", relief_frame)
     read = load_frame(tmp_path / "f.npz")
-    stored = stored_xyz_map_float32(read)
+    stored = read.xyz_map_stored
     assert stored.dtype == np.float32
     np.testing.assert_array_equal(stored, read.xyz_map.astype(np.float32))
     np.testing.assert_array_equal(stored.astype(np.float64), read.xyz_map)
-    # a frame made otherwise, or changed since it was read, has none: it may hold another map
-    assert stored_xyz_map_float32(relief_frame) is None
-    assert stored_xyz_map_float32(dataclasses.replace(read, xyz_map=read.xyz_map + 1.0)) is None
+    # a frame made otherwise, or made from it with another map, has none; one made from it with
+    # the same map keeps it, and its surface reads it
+    assert relief_frame.xyz_map_stored is None
+    assert dataclasses.replace(read, xyz_map=read.xyz_map + 1.0).xyz_map_stored is None
     surface = registrar().dense.surfaces.surface(dataclasses.replace(read, id=9))
-    assert not np.shares_memory(surface.xyz, stored)
+    assert np.shares_memory(surface.xyz, stored)
 
 
 def test_stored_surface_of_another_map_or_setting_is_not_used(relief_frame):

@@ -170,9 +170,9 @@ def test_keyframe_constraints_widen_by_the_cameras_motion_over_its_readout(corri
     import dataclasses
 
     source, frames, _ = corridor
-    assert frames[0].metadata["readout_s"] == pytest.approx(1 / 30)
+    assert frames[0].camera.readout_s == pytest.approx(1 / 30)
     _, moving = _run(source, frames, track=True)
-    global_shutter = [dataclasses.replace(f, metadata={**f.metadata, "readout_s": 0.0}) for f in frames]
+    global_shutter = [dataclasses.replace(f, camera=dataclasses.replace(f.camera, readout_s=0.0)) for f in frames]
     _, still = _run(source, global_shutter, track=True)
     assert moving.keyframe_ids == still.keyframe_ids and len(moving.odometry) >= 2
     for a, b in zip(moving.odometry, still.odometry, strict=True):

@@ -318,7 +318,7 @@ def test_loops_go_to_isam2_and_the_batch_solve_runs_once_at_finish(rng, monkeypa
     lag = VERIFY_LAG_KEYFRAMES
     for f in frames[:VIEWS + 1 + lag]:
         manager.process(f)
-    # keyframe 13 revisits keyframe 0 (applied verify_lag keyframes later): the running estimate
+    # keyframe 13 revisits keyframe 0 (applied VERIFY_LAG_KEYFRAMES keyframes later): the running estimate
     # is corrected, without a batch solve
     assert any(c.source_id == VIEWS and c.target_id == 0 for c in manager.loops) and calls == []
     chain_err = pose_error(poses[0] @ _chain_pose(manager.odometry, VIEWS), poses[VIEWS])[1]

@@ -46,7 +46,7 @@ def test_chess_proposes_no_loops_inside_the_local_window(chess_run):
     metrics, _ = chess_run
     # 17 of the 50 frames are keyframes (keyframes.min_view_change); the camera leaves the first
     # keyframes' view once and comes back at the end (frames 194-197): only those few are proposed
-    # (loop_closure.revisit_view_change), where 68 neighbours still in view were before
+    # (loop_closure.REVISIT_VIEW_CHANGE), where 68 neighbours still in view were before
     assert 10 <= metrics["keyframes"] <= 25, metrics
     # every frame after the first went through tracking from motion (on for RGB-D); the table's
     # objects hold the dense fit, so nearly all are tracked (49 of 49 when measured)
