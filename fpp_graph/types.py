@@ -9,6 +9,7 @@ Everything here is numpy arrays and frozen dataclasses, so it pickles across pro
 from __future__ import annotations
 
 import enum
+import numbers
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from concurrent.futures import Future
 from dataclasses import dataclass, field
@@ -81,10 +82,7 @@ class CameraModel:
             raise InputDataError(f"camera model: K must be a 3x3 pinhole matrix with positive focal lengths, got {K.tolist()}")
         if int(self.width_px) <= 0 or int(self.height_px) <= 0:
             raise InputDataError(f"camera model: image size must be positive pixels, got {self.width_px} x {self.height_px}")
-        try:
-            readout_s = float(self.readout_s)
-        except (TypeError, ValueError):
-            readout_s = float("nan")
+        readout_s = float(self.readout_s) if isinstance(self.readout_s, numbers.Real) else float("nan")
         if not (np.isfinite(readout_s) and readout_s >= 0):
             raise InputDataError(f"camera model: readout_s must be the rolling shutter's readout time in seconds (0: a global shutter), got {self.readout_s!r}")
         object.__setattr__(self, "K", _readonly(K))

@@ -434,23 +434,12 @@ class Correction:
     of_poses: bool = False  # True: the poses' own positions (a pose graph, without points)
 
 
-def odometry_only_poses_of_graph(
-    keyframe_poses: Mapping[int, NDArray[np.float64]], odometry: Mapping[tuple[int, int], NDArray[np.float64]],
-) -> dict[int, NDArray[np.float64]]:
-    """Keyframe poses from chaining the graph's odometry alone (``(source, target)`` ->
-    ``T_target_source``), each chain anchored at its first keyframe's optimised pose: what
-    :func:`fpp_graph.slam.pipeline.odometry_only_poses` gives a run in memory, from ``graph.g2o``
-    (:func:`odometry_only_stack`)."""
-    ids = sorted(keyframe_poses)
-    stack = np.array([keyframe_poses[k] for k in ids], dtype=np.float64).reshape(-1, 4, 4)
-    return dict(zip(ids, odometry_only_stack(ids, stack, odometry), strict=True))
-
-
 def odometry_only_stack(
     ids: list[int], poses: NDArray[np.float64], odometry: Mapping[tuple[int, int], NDArray[np.float64]],
 ) -> NDArray[np.float64]:
-    """:func:`odometry_only_poses_of_graph` of the keyframes ``ids`` (ascending) whose optimised
-    poses are ``poses`` (N, 4, 4), as an (N, 4, 4) array.
+    """The poses of the keyframes ``ids`` (ascending; optimised poses ``poses``, N x 4 x 4) from
+    chaining the graph's odometry (``(source, target)`` -> ``T_target_source``) alone, as an
+    (N, 4, 4) array: what :func:`fpp_graph.slam.pipeline.odometry_only_poses` gives a run in memory.
 
     A keyframe follows its odometry edge's target when that comes before it in id order, else
     starts a chain (at its optimised pose). One matrix product a keyframe in Python took 12 ms

@@ -21,11 +21,9 @@ from frontend.fpp.sequence import SEQUENCE_FILE, read_sequence
 
 log = logging.getLogger(__name__)
 
+# The fusion voxels of a close-range rig where the configuration leaves them null: the point map's
+# a few camera pixel footprints at half a metre, the TSDF's the registration's ICP voxel.
 FPP_FUSION_VOXELS_M = {"voxel_size_m": 0.001, "tsdf_voxel_m": 0.002}
-"""The fusion voxels of a close-range FPP rig (where the configuration leaves them null): the
-point map's a few of the camera's pixel footprints at half a metre, so it keeps the sensor's
-detail and bounds the map's size; the TSDF's the registration's ICP voxel, the resolution the
-poses are known at."""
 
 
 class FppSequenceSource:

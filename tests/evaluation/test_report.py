@@ -296,12 +296,13 @@ def test_the_page_loads_nothing_from_the_network(graph_run):
 
 
 def test_odometry_only_poses_from_the_graph_are_the_pipelines(sequence_run):
-    from fpp_graph.evaluation.report_data import odometry_only_poses_of_graph, read_run
+    from fpp_graph.evaluation.report_data import odometry_only_stack, read_run
     from fpp_graph.slam.pipeline import odometry_only_poses
 
     out, _, report = sequence_run
     run = read_run(out)
-    from_graph = odometry_only_poses_of_graph(run.keyframe_poses, run.odometry)
+    ids = sorted(run.keyframe_poses)
+    from_graph = dict(zip(ids, odometry_only_stack(ids, np.array([run.keyframe_poses[k] for k in ids]), run.odometry), strict=True))
     in_memory = odometry_only_poses(report.slam)
     assert from_graph.keys() == in_memory.keys()
     for k in in_memory:
