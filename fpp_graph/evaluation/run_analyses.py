@@ -1,9 +1,6 @@
-"""What a run adds from this package, which reads results: its plots, its loops scored against the
-reference poses and its ``report.html`` (:func:`run_analyses`, the
-:class:`~fpp_graph.slam.pipeline.RunAnalyses` that ``fpp-slam run`` and ``batch`` pass).
-
-The run itself (:mod:`fpp_graph.slam`) does not import this package: evaluation sits above it.
-"""
+"""What a run adds from this package, which reads results and sits above the run (which does not
+import it): the plots, the loops scored against the reference poses and ``report.html``
+(:func:`run_analyses`, the :class:`~fpp_graph.slam.pipeline.RunAnalyses` ``fpp-slam run`` passes)."""
 
 from __future__ import annotations
 

@@ -158,13 +158,8 @@ class KeyframeManager:
 
     # -- per frame -------------------------------------------------------------------------
     def process(self, frame: Frame) -> bool:
-        """Add one frame; returns whether it became a keyframe.
-
-        Raises
-        ------
-        InputDataError
-            The frame has no camera model while ``keyframes.min_view_change`` needs one.
-        """
+        """Add one frame; returns whether it became a keyframe (InputDataError: the frame has no
+        camera model while ``keyframes.min_view_change`` needs one)."""
         if frame.camera is None and self.config.keyframes.min_view_change > 0:
             raise InputDataError(
                 f"frame {frame.id} has no camera model (Frame.camera), which keyframes.min_view_change measures the view "
