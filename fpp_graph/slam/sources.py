@@ -72,10 +72,11 @@ class FrameSource(Protocol):
 
     def resolve_config(self, config: Config) -> Config:
         """The run's configuration for this sensor: ``config`` with the source's own values where
-        the config leaves them open (the sensor's noise model, which the registration thresholds
-        are multiples of; scene-scale fusion voxels: an RGB-D room is metres wide, an FPP scene
-        centimetres), or ``config`` itself when the sensor needs none. Called once, before any
-        frame is loaded; the values a user set win."""
+        the config leaves them null (the sensor's noise model, which the registration thresholds
+        are multiples of; ``fusion.voxel_size_m``, ``tsdf_voxel_m`` and ``max_depth_m``: an RGB-D
+        room is metres wide, an FPP scene centimetres; ``keyframes.track_from_motion``;
+        ``run.keep_frames``), or ``config`` itself when the sensor needs none. Called once, before
+        any frame is loaded; a value the user set is never changed."""
         ...
 
 
