@@ -25,7 +25,10 @@ from frontend.config import (
     chi2_quantile,
 )
 from frontend.dense_alignment import DenseSchedule
-from frontend.registration.weak_directions import JOINT_OPTIMUM_PROBABILITY, PLANE_DISAGREEMENT_PROBABILITY
+from frontend.registration.weak_directions import (
+    JOINT_OPTIMUM_PROBABILITY,
+    PLANE_DISAGREEMENT_PROBABILITY,
+)
 from frontend.rgbd.source import KINECT_V1_NOISE, RgbdSource
 
 # the FPP thresholds before they were expressed from the noise model: the defaults must give them exactly
