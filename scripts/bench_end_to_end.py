@@ -115,6 +115,7 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.ERROR)
 
     from fpp_graph.config import config_from_dict
+    from fpp_graph.evaluation.run_analyses import run_analyses
     from fpp_graph.slam.pipeline import Pipeline
     from fpp_graph.slam.sources import open_source
     from frontend.demo import simulate_once
@@ -131,7 +132,7 @@ def main(argv: list[str] | None = None) -> int:
     source = open_source(seq, cfg)
     wall0, cpu0 = time.perf_counter(), time.process_time()
     with timers.stage("other (pipeline glue)"):
-        report = Pipeline(source, cfg, args.out / f"{args.scene}_{res}" / "split", overwrite=True).run()
+        report = Pipeline(source, cfg, args.out / f"{args.scene}_{res}" / "split", overwrite=True, analyses=run_analyses()).run()
     wall, cpu = time.perf_counter() - wall0, time.process_time() - cpu0
     n = report.frames_used
     print(f"\n## split, one process, {res}, {n} frames ({report.metrics['keyframes']} keyframes, "
@@ -150,7 +151,7 @@ def main(argv: list[str] | None = None) -> int:
     if not args.skip_end_to_end:
         cfg2 = config_from_dict({"run": {"workers": args.workers}})
         wall0, cpu0 = time.perf_counter(), cpu_with_children()
-        report2 = Pipeline(open_source(seq, cfg2), cfg2, args.out / f"{args.scene}_{res}" / "end_to_end", overwrite=True).run()
+        report2 = Pipeline(open_source(seq, cfg2), cfg2, args.out / f"{args.scene}_{res}" / "end_to_end", overwrite=True, analyses=run_analyses()).run()
         wall2, cpu2 = time.perf_counter() - wall0, cpu_with_children() - cpu0
         n2 = report2.frames_used
         print(f"\n## end to end, {args.workers} decoding workers, {res}: {n2} frames in {wall2:.1f} s wall, {cpu2:.1f} s CPU "

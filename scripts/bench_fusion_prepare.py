@@ -79,7 +79,7 @@ def main(argv: list[str] | None = None) -> int:
     trajectory = read_tum(args.results / "trajectory.tum")
     fusion = yaml.safe_load((args.results / "config.yaml").read_text())["fusion"]
     fuser = VoxelMapFuser(
-        voxel_size_m=fusion["voxel_size_m"], tsdf_voxel_m=fusion["tsdf_voxel_m"], tsdf_truncation_m=fusion["tsdf_truncation_m"],
+        voxel_size_m=fusion["voxel_size_m"], tsdf_voxel_m=fusion["tsdf_voxel_m"],
         mesh=fusion["mesh"], max_depth_m=fusion.get("max_depth_m") or float("inf"),
     )
     prepare = fuser.preparer()

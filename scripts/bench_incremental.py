@@ -42,7 +42,7 @@ from fpp_graph.slam.drift import transport_covariance
 from fpp_graph.testing.synthetic_graphs import SyntheticGraph, ate_rmse_m, circuit_laps
 from fpp_graph.types import Constraint, ConstraintKind
 
-CHI2_6_999 = 22.457744484825323  # chi-square bound, 6 dof, p = 0.999 (the default keyframes.loop_check_probability)
+CHI2_6_999 = 22.457744484825323  # chi-square bound, 6 dof, p = 0.999 (the keyframe manager's loop check)
 
 
 def by_source(sim: SyntheticGraph) -> dict[int, list[Constraint]]:

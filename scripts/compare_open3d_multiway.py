@@ -48,11 +48,12 @@ def cpu_seconds() -> float:
 def run_ours(seq: Path, out: Path, config_path: Path | None = None) -> dict:
     from fpp_graph.config import load_config
     from fpp_graph.evaluation.results import evaluate_results
+    from fpp_graph.evaluation.run_analyses import run_analyses
     from fpp_graph.slam.pipeline import run_sequence
     from fpp_graph.slam.sources import open_source
 
     wall0, cpu0 = time.perf_counter(), cpu_seconds()
-    run_sequence(seq, load_config(config_path), out, resume=False, overwrite=True, kind=None)
+    run_sequence(seq, load_config(config_path), out, resume=False, overwrite=True, kind=None, analyses=run_analyses())
     wall, cpu = time.perf_counter() - wall0, cpu_seconds() - cpu0
     metrics = evaluate_results(out, open_source(seq, load_config(None)))
     return {"wall_s": wall, "cpu_s": cpu, **metrics}
@@ -65,6 +66,7 @@ def open3d_multiway(ours_dir: Path, seq: Path, out: Path) -> dict:
 
     from fpp_graph.config import load_config
     from fpp_graph.evaluation.results import evaluate_results
+    from fpp_graph.fusion.tsdf_mesh import TSDF_TRUNCATION_VOXELS
     from fpp_graph.slam.frame_store import load_frame
     from fpp_graph.slam.sources import open_source
     from fpp_graph.trajectory import Trajectory, write_tum
@@ -78,7 +80,7 @@ def open3d_multiway(ours_dir: Path, seq: Path, out: Path) -> dict:
     frames = [load_frame(p) for p in sorted((ours_dir / "frames").glob("frame_*.npz"))]
     poses, pairs, kept_loops = _open3d_pose_graph(frames, loops, config.registration.lengths.icp_voxel_m)
     t_graph = time.perf_counter() - wall0
-    cloud = _open3d_tsdf(frames, poses, config.fusion.tsdf_voxel_m, config.fusion.tsdf_truncation_m)
+    cloud = _open3d_tsdf(frames, poses, config.fusion.tsdf_voxel_m, TSDF_TRUNCATION_VOXELS * config.fusion.tsdf_voxel_m)
     wall, cpu = time.perf_counter() - wall0, cpu_seconds() - cpu0
     if not o3d.io.write_point_cloud(str(out / "map.ply"), cloud):
         raise RuntimeError(f"Open3D could not write {out / 'map.ply'} ({len(cloud.points)} points)")

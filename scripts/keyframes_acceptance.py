@@ -168,6 +168,7 @@ def same_angle_pairs(slam, views: int) -> dict:
 
 def run_sequence(name: str, resolution: str, results_root: Path, voxel_mm: float | None = None) -> dict:
     from fpp_graph.config import load_config
+    from fpp_graph.evaluation.run_analyses import run_analyses
     from fpp_graph.slam.pipeline import Pipeline
     from fpp_graph.slam.sources import open_source
 
@@ -176,12 +177,12 @@ def run_sequence(name: str, resolution: str, results_root: Path, voxel_mm: float
     cfg = cfg.model_copy(update={"run": cfg.run.model_copy(update={"workers": 1})})
     if voxel_mm:  # map resolution (a 6 m corridor at 1 mm is ~12 M voxels)
         v = voxel_mm * 1e-3
-        cfg = cfg.model_copy(update={"fusion": cfg.fusion.model_copy(update={"voxel_size_m": v, "tsdf_voxel_m": 2 * v, "tsdf_truncation_m": 8 * v})})
+        cfg = cfg.model_copy(update={"fusion": cfg.fusion.model_copy(update={"voxel_size_m": v, "tsdf_voxel_m": 2 * v})})
     source = open_source(seq, cfg)
     out = results_root / f"{name}_{resolution}"
     wall, cpu = time.perf_counter(), time.process_time()
     with RssSampler() as rss:
-        report = Pipeline(source, cfg, out, overwrite=True, progress=rss.progress).run()
+        report = Pipeline(source, cfg, out, overwrite=True, progress=rss.progress, analyses=run_analyses()).run()
     wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
     slam = report.slam
     res: dict = {

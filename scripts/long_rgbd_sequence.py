@@ -54,6 +54,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from fpp_graph.config import load_config
     from fpp_graph.evaluation.results import evaluate_results
+    from fpp_graph.evaluation.run_analyses import run_analyses
     from fpp_graph.slam.pipeline import run_sequence
     from fpp_graph.slam.sources import open_source
     from frontend.sim.rgbd import simulate_rgbd_corridor
@@ -74,7 +75,7 @@ def main(argv: list[str] | None = None) -> int:
             sampler.progress(stage, done, total)
 
         wall0, cpu0 = time.perf_counter(), cpu_seconds()
-        report = run_sequence(seq, load_config(args.config), args.out, overwrite=True, progress=progress)
+        report = run_sequence(seq, load_config(args.config), args.out, overwrite=True, progress=progress, analyses=run_analyses())
         wall, cpu = time.perf_counter() - wall0, cpu_seconds() - cpu0
     evaluation = evaluate_results(args.out, open_source(seq, load_config(None)))
 

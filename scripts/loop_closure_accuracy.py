@@ -32,12 +32,13 @@ COLUMNS = [
 def run_one(scene: str, seed: int, folder: Path, full: bool, frames: int | None, config_path: Path | None = None) -> dict:
     from fpp_graph.config import load_config
     from fpp_graph.evaluation.results import evaluate_results
+    from fpp_graph.evaluation.run_analyses import run_analyses
     from fpp_graph.slam.pipeline import run_sequence
     from fpp_graph.slam.sources import open_source
     from frontend.demo import simulate_once
 
     seq = simulate_once(scene, folder / "sequence", full, frames, seed)
-    report = run_sequence(seq, load_config(config_path), folder / "results", resume=False, overwrite=True, kind=None)
+    report = run_sequence(seq, load_config(config_path), folder / "results", resume=False, overwrite=True, kind=None, analyses=run_analyses())
     m = evaluate_results(folder / "results", open_source(seq, load_config(None)))
     run = report.metrics
     row = {

@@ -70,6 +70,7 @@ def constraint_nees(results: Path, gt_by_id: dict[int, np.ndarray]) -> dict[str,
 def run_ours(seq: Path, out: Path, config_path: Path | None = None, seed: int | None = None) -> dict:
     from fpp_graph.config import load_config
     from fpp_graph.evaluation.results import evaluate_results
+    from fpp_graph.evaluation.run_analyses import run_analyses
     from fpp_graph.slam.pipeline import run_sequence
     from fpp_graph.slam.sources import open_source
 
@@ -77,7 +78,7 @@ def run_ours(seq: Path, out: Path, config_path: Path | None = None, seed: int | 
     config = load_config(config_path)
     if seed is not None:
         config = config.model_copy(update={"run": config.run.model_copy(update={"seed": seed})})
-    report = run_sequence(seq, config, out, overwrite=True)
+    report = run_sequence(seq, config, out, overwrite=True, analyses=run_analyses())
     wall, cpu = time.perf_counter() - wall0, cpu_seconds() - cpu0
     # the run's config: its evaluation section (the reference's time offset) reads the reference
     source = open_source(seq, config)

@@ -314,10 +314,31 @@ def reference_text() -> str:
     parts.append("")
     parts += [render_table(replace(t, level=t.level + 1)) for t in run]
     parts.append(f"*{_count(run)}.*\n")
+    parts.append(retired_text())
     parts.append(SCENE_HEADER)
     parts += [render_table(t) for t in scene]
     parts.append(f"*{_count(scene)}.*\n")
     return "\n".join(parts)
+
+
+def retired_text() -> str:
+    """The keys that are no longer settings, with the value the code fixes and why: an old config
+    file that sets one to that value loads with a warning, another value is refused."""
+    from fpp_graph.config import retired_keys
+
+    lines = [
+        "### Keys that are no longer settings\n",
+        "These keys were settings once; their values are now fixed by the physics or statistics in the",
+        "last column, or derive from another key. A config file that sets one to its fixed value still",
+        "loads (with a warning to remove the line); any other value is refused, naming the key to set",
+        "instead where there is one.\n",
+        "| Key | Fixed value | Why | Set instead |",
+        "|---|---|---|---|",
+    ]
+    for key, old in sorted(retired_keys().items()):
+        lines.append(f"| `{key}` | {_cell(format_value(old.value))} | {_cell(old.reason)} | "
+                     f"{f'`{old.replacement}`' if old.replacement else '-'} |")
+    return "\n".join(lines) + f"\n\n*{len(retired_keys())} keys.*\n"
 
 
 def _count(tables: list[Table]) -> str:

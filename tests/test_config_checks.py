@@ -50,7 +50,7 @@ def _one_line_refusal(code: int, captured, *needles: str) -> str:
     [
         ("fusion:\n  voxel_size_m: {}\n", "fusion.voxel_size_m"),
         ("fusion:\n  max_depth_m: {}\n", "fusion.max_depth_m"),
-        ("keyframes:\n  loop_check_probability: {}\n", "keyframes.loop_check_probability"),
+        ("pose_graph:\n  loop_false_alarm: {}\n", "pose_graph.loop_false_alarm"),
         ("evaluation:\n  reference_time_offset_s: {}\n", "evaluation.reference_time_offset_s"),
         ("registration:\n  ransac:\n    inlier_sigmas: {}\n", "registration.ransac.inlier_sigmas"),
         ("registration:\n  noise:\n    point_sigma_m: {}\n", "registration.noise.point_sigma_m"),
