@@ -50,6 +50,9 @@ MAX_PHOTOMETRIC_SHIFT_M = 0.005
 """The photometric pose may move the DLT centre by a few millimetres (the DLT's own error from
 sub-pixel keypoints at 0.3-0.6 m is 1-3 mm); more means it converged elsewhere."""
 MIN_PHOTOMETRIC_PIXELS = 5000
+"""Fewer textured pixels and the photometric refinement is not trusted over the DLT pose: with
+grey-level noise of ~1 level against gradients of tens, a 6-dof fit needs thousands of residuals
+(hundreds per degree of freedom) before its pose error falls below the DLT's millimetres."""
 
 
 class LocalizationError(RegistrationError):
