@@ -35,12 +35,11 @@ def tsdf_block_voxels(truncation_m: float, voxel_m: float) -> int:
     them to +1, which the mesh does not use). The defaults' band is 8 voxels (FPP: 2 mm voxels,
     8 mm truncation; RGB-D: 1 cm, 4 cm). 8^3 blocks against Open3D's 16^3, ms a keyframe
     (integration alone): 7-Scenes chess 16-18 against 41, TUM fr1_rpy 25 against 49-51 (views of
-    walls metres away: most of a 16 cm block is empty), the simulated RGB-D walk 13.9 against
-    15.2, the doll 11.7 against 15-16, the FPP corridor 72 against 76. The mesh is the same
-    surface: its vertices' distance to the true surface 2.312 against 2.310 mm RMS on the walk,
-    0.172 against 0.173 mm on the corridor (the same vertex counts within 0.01 %); on TUM's far
-    walls, 4-5 m away where the Kinect's depth error reaches the band, 4 % more vertices stay
-    that the wide blocks' free-space updates had carved away. Below 8 the hash map's per-block
+    walls metres away: most of a 16 cm block is empty), simulated FPP and RGB-D sequences 5-25 %
+    faster. The mesh is the same surface (vertex distances to the true surface equal within
+    0.01 mm RMS on simulated sequences, the same vertex counts within 0.01 %); on walls 4-5 m
+    away, where a Kinect's depth error reaches the band, 4 % more vertices stay that the wide
+    blocks' free-space updates carve away. Below 8 the hash map's per-block
     work grows; 16 is Open3D's default."""
     if not (math.isfinite(truncation_m) and math.isfinite(voxel_m) and truncation_m > 0 and voxel_m > 0):
         raise InputDataError(f"map fusion: the TSDF's truncation and voxel must be positive lengths in metres, got {truncation_m!r} and {voxel_m!r}")
@@ -146,8 +145,8 @@ class TsdfMesher:
         """Grow the TSDF's hash map before ``incoming_blocks`` are activated in it, where Open3D
         would grow it itself (when its size plus the blocks asked for exceed its capacity).
 
-        Open3D 0.20 grows a filled map (``HashMap.reserve``) at ~0.1-0.2 ms a block: the FPP
-        corridor's growths to 16 000, 32 000 and 64 000 blocks took 0.7, 1.7 and 3.7 s of its
+        Open3D 0.20 grows a filled map (``HashMap.reserve``) at ~0.1-0.2 ms a block: a room-sized
+        FPP map's growths to 16 000, 32 000 and 64 000 blocks took 0.7, 1.7 and 3.7 s of its
         10.9 s of TSDF integration. A new grid of twice the capacity, its blocks activated at
         once and their voxels copied through numpy, holds the same blocks and voxel values (the
         mesh is the same: :func:`canonical_mesh` lists it by content, not by the hash map's slots)."""

@@ -192,7 +192,8 @@ def frame_from_stored(get: dict[str, np.ndarray], origin: str) -> Frame:
             prepared={k[len(PREPARED_PREFIX):]: v for k, v in get.items() if k.startswith(PREPARED_PREFIX)},
             # widening is exact, so the float32 map equals xyz_map narrowed again: code that works
             # on float32 maps (the dense alignment's surfaces) takes it instead of narrowing the
-            # 55 MB float64 map of a 1920x1200 frame (~10 ms a time, ~215 surfaces a turntable run)
+            # 55 MB float64 map of a 1920x1200 frame (~10 ms each time, and a run builds a surface
+            # for every pair it registers)
             xyz_map_stored=xyz32 if xyz32 is not None and xyz32.dtype == np.float32 else None,
         )
     except KeyError as exc:

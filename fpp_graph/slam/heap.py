@@ -57,19 +57,16 @@ def keep_large_blocks_in_heap() -> bool:
 
     glibc maps a block above its mmap threshold (at most 32 MB) afresh and unmaps it when freed,
     so the kernel zeroes every page of each such array on first use; a 1920x1200 FPP frame's
-    float64 map is 55 MB, and zeroing pages was 15 % of a doll run's cycles (``perf``:
-    ``clear_page_erms``). From the heap the next frame's arrays reuse the freed pages (ten such
-    arrays in a row: 713 page faults instead of 7260); the heap is not shrunk on every free either
-    (the top's trim threshold is raised), and :func:`trim_heap` still hands the free pages back
-    every :data:`HEAP_TRIM_PERIOD_S`. In the doll turntable's workers: system time 22.0 / 20.4 ->
-    16.5 / 12.9 s, the run 5 % faster; the corridor 299.5 -> 280.0 s (system 101.8 -> 68.6 s);
-    the same trajectories and maps. RGB-D frames are far below the ceiling (the 2000-frame walk:
-    peak RSS ratio 1.06 / 1.10, as before). In the tracking process too (``fpp-slam run`` and the
-    benchmark scripts set it in their own process; the pipeline trims the heap between its stages,
-    not while fusing, where it cost the corridor 10 s of page faults): the corridor 249.9 -> 227.9
-    s (system time 66.4 -> 43.2 s, paired), the same results; the doll gains less (with the faster
-    sensor start-up, 0.7 s in the median of five alternating pairs). Process-wide and not undone,
-    so only for processes the project owns: the library never sets it in a caller's process."""
+    float64 map is 55 MB, and on 1920x1200 sequences zeroing pages took ~15 % of the cycles
+    (``perf``: ``clear_page_erms``). From the heap the next frame's arrays reuse the freed pages
+    (ten such arrays in a row: 713 page faults instead of 7260); the heap is not shrunk on every
+    free either (the top's trim threshold is raised), and :func:`trim_heap` still hands the free
+    pages back every :data:`HEAP_TRIM_PERIOD_S`. Results are the same; system time falls by a
+    quarter to a third on 1920x1200 FPP runs, and RGB-D frames are far below the threshold.
+    ``fpp-slam run`` and the benchmark scripts set it in their own processes (the pipeline trims
+    the heap between its stages, not while fusing, where a trim refaults the map's pages).
+    Process-wide and not undone, so only for processes the project owns: the library never sets
+    it in a caller's process."""
     if _MALLOPT is None:
         return False
     return bool(_MALLOPT(_M_MMAP_MAX, 0)) and bool(_MALLOPT(_M_TRIM_THRESHOLD, 2**31 - 1))

@@ -338,8 +338,8 @@ class KeyframeManager:
         that asked, in either of the loop window's measures: that fraction of the image side of
         pixel flow, or of 90 degrees of optical-axis turn (always without a pinhole view). A
         revisit stays in view over a stretch of keyframes, so a query at every 5 % step of a
-        30 Hz camera proposes the same revisit again and again; sparse captures (FPP corridor
-        steps of a third of the view, turntable steps of 28 degrees) query every time."""
+        30 Hz camera proposes the same revisit again and again; sparse captures (steps of a third
+        of the view or more) query every time."""
         threshold = QUERY_VIEW_CHANGE
         last = self._last_query
         due = last is None or last[1] is None

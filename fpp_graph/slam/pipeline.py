@@ -423,8 +423,7 @@ class Pipeline:
             report.frames_used = len(timestamps)
             # each stage's free heap back before the next one's temporaries: in a process that keeps
             # large blocks in the heap (fpp-slam run's) they would otherwise stay resident (not while
-            # fusing: trimming every 5 s there cost the corridor's fusion 10 s of page faults, 81.6
-            # against 70.0 s)
+            # fusing: a trim there hands back pages the next frame's map faults in again)
             trim_heap(period_s=0.0)
             with self._timed(report, "write_graph"):
                 write_trajectory_and_graph(out, report.slam, timestamps)

@@ -23,7 +23,7 @@ from fpp_graph.types import Frame
 def median_depth_m(frame: Frame) -> float:
     """Median depth (z, metres) of a frame's points; NaN without points. Computed once per frame
     object: the keyframe policy and the loop detector's view of a keyframe each ask for it, and
-    it is a median over ~2 M points of an FPP frame (~35 ms; a 105-frame corridor run asked 210 times)."""
+    it is a median over ~2 M points of a 1920x1200 FPP frame (~35 ms, asked about twice per frame)."""
     depth = _MEDIAN_DEPTHS_M.get(frame)
     if depth is None:
         depth = float(np.median(np.asarray(frame.points)[:, 2])) if len(frame.points) else math.nan
