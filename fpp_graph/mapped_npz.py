@@ -3,7 +3,7 @@
 ``np.load`` reads every member of an ``.npz`` through :mod:`zipfile`: the bytes are copied from
 the page cache into a buffer, checksummed (CRC-32) and copied again into fresh arrays whose pages
 the kernel must first clear. A decoded 1920x1200 frame is ~30 MB, and a run reads each keyframe
-again for every loop it verifies (the doll turntable: ~310 reads of 9 GB in total; ``perf``
+again for every loop it verifies (a 72-view FPP sequence: ~310 reads of 9 GB in total; ``perf``
 put the CRC alone at 2.6 % of the run's cycles, the copies and the fresh pages on top). ``np.savez``
 stores its members uncompressed, so each array lies in the file as an ``.npy`` record: this
 module maps the file once and hands out views of it (pages come straight from the page cache,
@@ -15,8 +15,8 @@ while mapped would fault the process that reads a view past the new end (SIGBUS)
 store never writes in place (:func:`fpp_graph.atomic.atomic_open` writes a new file and renames
 it over the old one), and :func:`mapped_npz` checks every member against the file's size when
 it maps it. Each mapping holds a file descriptor until its last view is released, so a process
-holds as many as it holds frames (the frame store keeps a few: the doll turntable's tracking
-process had at most 9 frame files mapped, 25 descriptors open in all).
+holds as many as it holds frames (the frame store keeps a few: a tracking process holds
+about ten frame files mapped).
 """
 
 from __future__ import annotations

@@ -67,8 +67,8 @@ def top_view(points_m: NDArray[np.float64]) -> TopView:
     if len(P) >= 3:
         _, s, Vt = np.linalg.svd(P - P.mean(axis=0), full_matrices=False)
         # only a plane has a normal to look down: a trajectory walked back and forth along one
-        # line (a corridor's passes) has two equally thin directions, and its flattest one is
-        # then sideways as often as up (the simulated RGB-D walk was drawn seen from the side)
+        # line (passes along a hallway) has two equally thin directions, and its flattest one is
+        # then sideways as often as up
         if s[1] > 10 * max(s[2], 1e-15):
             normal = Vt[2]
             k = int(np.argmax(np.abs(normal)))

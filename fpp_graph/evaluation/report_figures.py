@@ -192,7 +192,7 @@ def scene_layout(up: NDArray[np.float64], forward: NDArray[np.float64] | None, h
     mean viewing direction (``forward``), ``up`` up."""
     up = np.asarray(up, dtype=np.float64) / np.linalg.norm(up)
     side = None if forward is None else forward - (forward @ up) * up
-    if side is None or np.linalg.norm(side) < 0.3:  # sensors looking every way (a turntable): any side
+    if side is None or np.linalg.norm(side) < 0.3:  # sensors looking every way (around an object): any side
         side = np.eye(3)[int(np.argmin(np.abs(up)))]
         side = side - (side @ up) * up
     side = side / np.linalg.norm(side)
