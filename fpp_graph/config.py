@@ -657,21 +657,3 @@ def dump_config(config: Config) -> str:
 
     dumped = config.model_dump(mode="json")
     return yaml.safe_dump({name: dumped[name] for name in config.section_names()}, sort_keys=False)
-
-
-def __getattr__(name: str) -> Any:
-    """``fpp_graph.config.RegistrationConfig`` / ``DecodeConfig`` (and any front-end section
-    model) by their old import path, with a DeprecationWarning naming the owning module."""
-    import warnings
-
-    if name.startswith("__"):  # the import system probes e.g. __path__: no plug-in sections for that
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    for model in plugin_sections().values():
-        if model.__name__ == name:
-            warnings.warn(
-                f"fpp_graph.config.{name} is deprecated: the front-end owns it; import it from {model.__module__}",
-                DeprecationWarning,
-                stacklevel=2,
-            )
-            return model
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

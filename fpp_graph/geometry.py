@@ -81,11 +81,6 @@ def rotations_from_quats_xyzw(quats_xyzw: ArrayLike) -> Array:
     return R
 
 
-def pose_from_quat_xyzw(translation: ArrayLike, quat_xyzw: ArrayLike) -> Array:
-    """Pose from a translation and a unit quaternion in ``x y z w`` order."""
-    return make_pose(rotations_from_quats_xyzw(quat_xyzw), translation)
-
-
 def quat_xyzw_from_pose(T: ArrayLike) -> Array:
     """Unit quaternion ``x y z w`` of a pose's rotation, with ``w >= 0``."""
     from scipy.spatial.transform import Rotation  # imported on use: see rotations_from_quats_xyzw

@@ -146,13 +146,6 @@ def test_old_key_errors_name_the_new_key(tmp_path):
         load_config(path)
 
 
-def test_old_import_path_of_the_section_models_warns():
-    with pytest.warns(DeprecationWarning, match="frontend.config"):
-        assert config_module.RegistrationConfig is RegistrationConfig
-    with pytest.raises(AttributeError):
-        _ = config_module.NoSuchConfig
-
-
 def test_a_third_party_section_is_validated_like_the_others():
     class LidarConfig(StrictModel):
         max_range_m: float = 30.0

@@ -45,7 +45,7 @@ def test_is_rigid_and_pose_error(rng):
     assert abs(rot_err - 1e-3) < 1e-12
     assert abs(trans_err - 1e-4) < 1e-12
     q = g.quat_xyzw_from_pose(T)
-    np.testing.assert_allclose(g.pose_from_quat_xyzw(T[:3, 3], q), T, atol=1e-12)
+    np.testing.assert_allclose(g.make_pose(g.rotations_from_quats_xyzw(q), T[:3, 3]), T, atol=1e-12)
 
 
 def test_rotations_from_quats_match_scipy_bitwise_and_normalise():

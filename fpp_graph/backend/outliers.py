@@ -38,27 +38,18 @@ SCREEN_AGAIN_AFTER = 5
 
 Array = NDArray[np.float64]
 
-#: Median and lower quartile of the chi-square distribution with 6 degrees of freedom.
-CHI2_6_MEDIAN = 5.348120627447122
+#: Lower quartile of the chi-square distribution with 6 degrees of freedom.
 CHI2_6_LOWER_QUARTILE = 3.4545988357210384
 #: Fewest odometry cycles from which the variance factor is taken (with four, one true loop
 #: holds the lower quartile against three false ones); below it the information is trusted.
 MIN_CYCLES_FOR_SCALE = 4
 
 
-def chi2_6_survival(x: float) -> float:
-    """``P(chi2_6 > x)``: for an even number of degrees of freedom ``2k`` the tail is closed form,
-    ``exp(-x/2) * sum_{i<k} (x/2)^i / i!`` (the Poisson(x/2) probability of fewer than ``k``
-    events)."""
-    half = 0.5 * x
-    return math.exp(-half) * (1.0 + half + 0.5 * half * half)
-
-
 def chi2_6_upper_quantile(tail: float) -> float:
     """The ``x`` with ``P(chi2_6 > x) = tail``, ``0 < tail < 1``.
 
-    Newton's method on ``g(x) = log P(chi2_6 > x) - log(tail)`` with the closed-form tail of
-    :func:`chi2_6_survival`; ``g'(x) = -x^2 / (16 + 8x + 2x^2)``, so ``g`` is decreasing and
+    Newton's method on ``g(x) = log P(chi2_6 > x) - log(tail)`` with the closed-form tail
+    ``P(chi2_6 > x) = exp(-x/2) (1 + x/2 + x^2/8)``; ``g'(x) = -x^2 / (16 + 8x + 2x^2)``, so ``g`` is decreasing and
     concave and the iterates from the mean (6) reach the root from above after at most one step
     and then decrease to it monotonically. Agrees with ``scipy.special.chdtri(6, tail)`` to
     ~1e-14 relative; written out because importing scipy.special costs ~50 ms of every

@@ -95,19 +95,12 @@ class PoseGraph:
         Raises
         ------
         GraphError
-            The key exists already (use :meth:`set_pose`), is negative, or the pose is not rigid.
+            The key exists already, is negative, or the pose is not rigid.
         """
         key = self._check_key(key)
         if key in self._poses:
-            raise GraphError(f"pose {key} is already in the graph; use set_pose to change its value")
+            raise GraphError(f"pose {key} is already in the graph")
         self._poses[key] = as_pose(T_world_sensor, f"pose {key}")
-        self._invalidate()
-
-    def set_pose(self, key: int, T_world_sensor: ArrayLike) -> None:
-        """Replace the current value (initial guess) of an existing pose."""
-        key = self._require_pose(key, "set_pose")
-        self._poses[key] = as_pose(T_world_sensor, f"pose {key}")
-        self._pose_quat_xyzw.pop(key, None)
         self._invalidate()
 
     def fix_pose(self, key: int) -> None:

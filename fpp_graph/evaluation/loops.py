@@ -58,42 +58,9 @@ OVERLAP_MAX_POINTS = 3000
 """Samples of a frame of the median surface area in the overlap test (:func:`overlap_samples`)."""
 
 
-def ground_truth_overlaps(
-    points_sensor: Mapping[int, NDArray[np.float64]],
-    poses_gt_world_sensor: Mapping[int, NDArray[np.float64]],
-    pairs: Iterable[tuple[int, int]] | None = None,
-    tolerance_m: float = 0.005,
-    max_points: int = OVERLAP_MAX_POINTS,
-    seed: int = 0,
-    query_points: int = 1000,
-) -> dict[tuple[int, int], float]:
-    """Ground-truth overlap of frame pairs (``(i, j)`` with ``i < j``), in [0, 1].
-
-    Parameters
-    ----------
-    points_sensor : frame id -> (N, 3)
-        Each frame's points in its sensor frame, metres.
-    poses_gt_world_sensor : frame id -> (4, 4)
-        Ground-truth poses.
-    pairs : iterable of (i, j), optional
-        Pairs to evaluate (default: every pair of frames given).
-    tolerance_m : float
-        A point is shared when the other frame has a point this close; widened to the samples'
-        reach when the frames are too large to sample that finely (:func:`overlap_samples`).
-    max_points : int
-        Samples of a frame of the median surface area (the budget that sets the density).
-    query_points : int
-        Samples of each frame whose shared fraction is counted: the standard error of a fraction
-        is 0.9 % near the true-loop line (0.1), 1.6 % at most (0.5); each costs a search over every
-        frame that sees its place (500 took the 2000-frame walk's evaluation from 33 to 22 s, but
-        a test pair whose overlap is 1/3 then read 0.27).
-    """
-    return _overlaps(overlap_samples(points_sensor, poses_gt_world_sensor, pairs, tolerance_m, max_points, seed, query_points))
-
-
 @dataclass(frozen=True, eq=False)
 class OverlapSamples:
-    """What :func:`ground_truth_overlaps` compares: per frame, random reference samples of one
+    """What the ground-truth overlaps compare: per frame, random reference samples of one
     surface density (world frame) and a random subset of them as queries.
 
     Attributes
@@ -125,7 +92,7 @@ def overlap_samples(
     seed: int = 0,
     query_points: int = 1000,
 ) -> OverlapSamples:
-    """Samples of equal surface density for :func:`ground_truth_overlaps`.
+    """Samples of equal surface density for the ground-truth overlaps of frame pairs.
 
     "Frame b has a point within the tolerance" only measures shared surface when b's samples lie
     closer together than the tolerance. A fixed number of samples per frame does not: 3000 of a

@@ -55,10 +55,6 @@ class AppearanceIndex:
         self._tree: cKDTree | None = None
         self._vectors: dict[int, NDArray[np.float64]] = {}
 
-    @property
-    def trained(self) -> bool:
-        return self._tree is not None
-
     def _train(self) -> None:
         from scipy.cluster.vq import kmeans2
 

@@ -22,6 +22,13 @@ from fpp_graph.geometry import compose, make_pose
 from fpp_graph.trajectory import Trajectory
 
 
+def ground_truth_overlaps(points_sensor, poses_gt_world_sensor, pairs=None, **kwargs):
+    """The ground-truth overlap of frame pairs as :func:`fpp_graph.evaluation.loops.evaluate_results_loops` computes it."""
+    from fpp_graph.evaluation.loops import _overlaps, overlap_samples
+
+    return _overlaps(overlap_samples(points_sensor, poses_gt_world_sensor, pairs, **kwargs))
+
+
 def turntable_poses(n_views=36, turns=2, radius_m=0.5, tilt_rad=0.3, centre=(0.1, -0.2, 1.5)):
     """Sensor on a circle around a tilted axis, looking at the centre, the same poses each turn."""
     axis_R = Rotation.from_rotvec([tilt_rad, 0.2, 0.0]).as_matrix()
@@ -241,7 +248,7 @@ def test_ground_truth_overlaps_equal_a_per_pair_brute_force():
     or outside the tolerance."""
     from scipy.spatial import cKDTree
 
-    from fpp_graph.evaluation.loops import ground_truth_overlaps, overlap_samples
+    from fpp_graph.evaluation.loops import overlap_samples
 
     rng = np.random.default_rng(3)
     tol = 0.005
@@ -283,7 +290,7 @@ def test_ground_truth_overlap_does_not_depend_on_how_densely_a_frame_is_sampled(
     times sparser), the second shifted by a quarter of the wall: the overlap is the shared area
     (0.75, at most 5 % low by design), not the chance that two sparse random samples fall within 5 mm (3000 samples of 6 m^2
     lie ~45 mm apart, which gave 0.01). A parallel wall 0.2 m behind shares nothing."""
-    from fpp_graph.evaluation.loops import evaluate_loops, ground_truth_overlaps, overlap_samples
+    from fpp_graph.evaluation.loops import evaluate_loops, overlap_samples
 
     def wall(step_m, z_m=2.0, shift_m=0.0):
         u, v = np.meshgrid(np.arange(-1.5, 1.5, step_m), np.arange(-1.0, 1.0, step_m))
@@ -308,7 +315,6 @@ def test_ground_truth_overlap_does_not_depend_on_how_densely_a_frame_is_sampled(
 
 
 def test_ground_truth_overlaps_names_a_frame_without_pose_or_points():
-    from fpp_graph.evaluation.loops import ground_truth_overlaps
 
     points = {0: np.zeros((5, 3)), 1: np.ones((5, 3))}
     with pytest.raises(InputDataError, match=r"no ground-truth pose for frames \[1\]"):

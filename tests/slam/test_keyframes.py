@@ -258,7 +258,7 @@ def test_frame_store_opens_an_existing_folder(tmp_path, rng):
 
 
 def test_loop_evaluation_precision_recall_per_stage(rng):
-    from fpp_graph.evaluation.loops import evaluate_loops, ground_truth_overlaps
+    from fpp_graph.evaluation.loops import _overlaps, evaluate_loops, overlap_samples
 
     # 12 keyframes along a wall, 0.2 m apart, each seeing a 0.3 m patch: neighbours overlap,
     # and 0/10 and 1/11 see the same wall section again (revisits)
@@ -267,7 +267,7 @@ def test_loop_evaluation_precision_recall_per_stage(rng):
     patch = np.column_stack([rng.uniform(-0.15, 0.15, 2000), rng.uniform(-0.1, 0.1, 2000), np.full(2000, 0.5)])
     points = {i: patch for i in poses}
     kf = sorted(poses)
-    overlaps = ground_truth_overlaps(points, poses)
+    overlaps = _overlaps(overlap_samples(points, poses))
     assert overlaps[(0, 10)] > 0.9 and overlaps[(0, 1)] == pytest.approx(1 / 3, abs=0.05) and overlaps[(0, 5)] == 0.0
     rows = [
         {"query": 10, "match": 0, "stage": "proximity+appearance", "verified": True, "rejected_by_backend": False},
