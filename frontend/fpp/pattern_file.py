@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Any
 
 from fpp_graph.config import read_yaml_file
 from fpp_graph.errors import ConfigError
@@ -80,17 +79,3 @@ def load_pattern_spec(path: str | os.PathLike[str]) -> PatternSpec:
         raise ConfigError(f"{path}: format is {data['format']!r}, expected {FORMAT!r}")
     spec_data = {k: v for k, v in data.items() if k not in _FREE_KEYS}
     return PatternSpec.from_dict(spec_data, where=str(path))
-
-
-def pattern_spec_document(spec: PatternSpec, description: str | None = None) -> dict[str, Any]:
-    """The content of a pattern file for ``spec`` (with its explicit image order spelled out)."""
-    out: dict[str, Any] = {"format": FORMAT}
-    if description:
-        out["description"] = description
-    out.update(spec.to_dict())
-    out["order"] = [im.token() for im in spec.layout()]
-    out.pop("with_reference", None)
-    out.pop("gray_inverse", None)
-    out.pop("reference_position", None)
-    out.pop("gray_order", None)
-    return out

@@ -55,7 +55,6 @@ return exactly ``2 pi`` for phases a hair below it, which the unwrapping handles
 
 from __future__ import annotations
 
-import logging
 import math
 import threading
 from collections.abc import Sequence
@@ -77,8 +76,6 @@ from frontend.fpp.unwrapping import (
     unwrap_chain,
 )
 from frontend.fpp.wrapped_phase import TWO_PI, Scratch, phase_weights, wrapped_phase_band
-
-logger = logging.getLogger(__name__)
 
 INVALID_REASONS = ("low_modulation", "saturated", "shadow", "bad_order")
 # The decoder's output maps (keys of its band dictionaries) and their pixel types.

@@ -53,7 +53,7 @@ from fpp_graph.outputs import LOCK_NAME
 from fpp_graph.trajectory import Trajectory, read_tum, write_tum
 from frontend.fpp.images import check_images_match_calibration, image_size, load_image_stack
 from frontend.fpp.patterns import PatternSpec
-from frontend.fpp.rig import RigCalibration, load_calibration
+from frontend.fpp.rig import RigCalibration
 
 log = logging.getLogger(__name__)
 
@@ -154,20 +154,6 @@ class Sequence:
                 f"calibration is of another camera (or the images were resized or cropped): put the calibration of the camera "
                 f"that took these images in {SEQUENCE_FILE}"
             )
-
-    def ground_truth_pose(self, i: int) -> NDArray[np.float64] | None:
-        if self.ground_truth is None:
-            return None
-        return self.ground_truth.poses_world_sensor[i]
-
-
-def read_ground_truth_calibration(path: str | os.PathLike[str]) -> RigCalibration | None:
-    """The true rig of a (simulated) sequence folder, or None when it has no such file.
-
-    Evaluation only: the decoder uses ``sequence.yaml``'s calibration, which may be an estimate.
-    """
-    gt_path = Path(path) / GT_CALIBRATION_FILE
-    return load_calibration(gt_path) if gt_path.is_file() else None
 
 
 def read_sequence(path: str | os.PathLike[str]) -> Sequence:

@@ -136,11 +136,11 @@ class PhotometricSettings:
     normal_step_px : int
         Pixel step of the map's normals.
     range_smoothing_px : float, optional
-        Smoothing of the map points along their rays (:func:`smoothed_along_rays`, 0: raw
+        Smoothing of the map points along their rays (:func:`~frontend.localization.surface.smoothing_scale`, 0: raw
         points); default image width / 960 (2 px at 1920 wide).
     max_range_smoothing_px : float, optional
         Wider smoothing where the map is locally indistinguishable from a plane at that width
-        (:func:`adaptively_smoothed_along_rays`); default 5 x ``range_smoothing_px``; at or below
+        (:func:`~frontend.localization.surface.adaptive_smoothing_scale`); default 5 x ``range_smoothing_px``; at or below
         ``range_smoothing_px`` it is off.
     min_pixels : int
         Fewer map pixels in view and the fit fails.

@@ -146,8 +146,8 @@ def reference_pixel_arrays(
     reference: valid, away from depth edges by the smoothing's reach (:func:`depth_edge_free_mask`),
     not saturated or black, the ``max_pixels`` with the strongest texture gradient.
 
-    The points are smoothed along their rays (:func:`smoothed_along_rays`, up to
-    ``max_range_smoothing_px`` where the data allow: :func:`adaptively_smoothed_along_rays`): an
+    The points are smoothed along their rays (:func:`smoothing_scale`, up to
+    ``max_range_smoothing_px`` where the data allow: :func:`adaptive_smoothing_scale`): an
     FPP point's range noise (about 0.25 mm per pixel at 1920x1200) moves its projection in the
     other view by a good fraction of a pixel, and errors in the regressors bias a photometric fit
     (errors-in-variables: the bias grows with the regressors' noise variance, which the smoothing

@@ -56,23 +56,17 @@ def _twice_smoothed_inverse_depth(inv_z: NDArray, ok: NDArray[np.bool_], sigma_p
     return out
 
 
-def smoothed_along_rays(xyz_map: Array, sigma_px: float) -> Array:
-    """Organised points moved along their rays to a smoothed depth, without the smoothing's bias.
+def smoothing_scale(depth_m: Array, sigma_px: float) -> Array:
+    """Per pixel, the factor ``smoothed depth / depth`` that moves organised points along their
+    rays to a smoothed depth without the smoothing's bias (NaN where invalid).
 
     Inverse depth is smoothed (normalised Gaussian convolution over the valid pixels): on a plane
     it is affine in the pixel coordinates, so a plane stays exactly where it is. On a curved
     surface a Gaussian of variance s^2 shifts it by s^2/2 times its Laplacian; "twicing"
     (``2 G(f) - G(G(f))``) cancels that term, leaving a fourth-order bias ~s^4 of the surface's
-    fourth derivatives.
-
-    ``xyz_map`` is (H, W, 3) float64, metres in its sensor frame, NaN where invalid; ``sigma_px`` the
-    Gaussian's standard deviation in pixels. Returns (H, W, 3), NaN where the input is invalid."""
-    return xyz_map * smoothing_scale(xyz_map[..., 2], sigma_px)[..., None]
-
-
-def smoothing_scale(depth_m: Array, sigma_px: float) -> Array:
-    """The factor ``smoothed depth / depth`` of :func:`smoothed_along_rays` per pixel (NaN where invalid):
-    callers that need a few pixels scale just those (the full (H, W, 3) product costs ~0.1 s)."""
+    fourth derivatives. ``sigma_px`` is the Gaussian's standard deviation in pixels; the smoothed
+    points are ``xyz_map * scale[..., None]`` (callers that need a few pixels scale just those:
+    the full (H, W, 3) product costs ~0.1 s)."""
     z = depth_m
     ok = np.isfinite(z)
     inv_z = np.where(ok, 1.0 / np.where(ok, z, 1.0), 0.0)
@@ -96,8 +90,9 @@ def _smoother_noise_gains(small_px: float, large_px: float) -> tuple[float, floa
     return float(np.linalg.norm(impulse - k_small)), float(np.linalg.norm(diff)), float(np.linalg.norm(diff_averaged))
 
 
-def adaptively_smoothed_along_rays(xyz_map: Array, small_px: float, large_px: float, kappa: float = 3.0) -> Array:
-    """:func:`smoothed_along_rays` with ``large_px`` wherever the data cannot tell it from ``small_px``, else ``small_px``.
+def adaptive_smoothing_scale(depth_m: Array, small_px: float, large_px: float, kappa: float = 3.0, at: NDArray[np.intp] | None = None) -> Array:
+    """The factor of :func:`smoothing_scale` with ``large_px`` wherever the data cannot tell it from
+    ``small_px``, else ``small_px``; with ``at`` (flat pixel indices) only at those pixels, (len(at),).
 
     A plane is exact under either width, and the range noise left falls as 1/width, so walls want
     the wide one; on curved relief (an object's limb) the wide one keeps a bias that the twicing does
@@ -107,16 +102,6 @@ def adaptively_smoothed_along_rays(xyz_map: Array, small_px: float, large_px: fl
     is used where that average, and the pixel's own difference, stay within ``kappa`` standard
     deviations of what noise alone gives. The noise level is local (the variance of the raw
     inverse depth about the narrow estimate over the wide window): it changes with range and albedo.
-
-    ``xyz_map`` (H, W, 3) metres, NaN where invalid; ``small_px``, ``large_px`` the two widths in
-    pixels. Returns (H, W, 3), NaN where the input is invalid.
-    """
-    return xyz_map * adaptive_smoothing_scale(xyz_map[..., 2], small_px, large_px, kappa)[..., None]
-
-
-def adaptive_smoothing_scale(depth_m: Array, small_px: float, large_px: float, kappa: float = 3.0, at: NDArray[np.intp] | None = None) -> Array:
-    """The per-pixel factor of :func:`adaptively_smoothed_along_rays` (as :func:`smoothing_scale`);
-    with ``at`` (flat pixel indices) only at those pixels, (len(at),).
 
     Its eight Gaussian blurs run over the whole frame; the arithmetic between them runs in bands of
     :data:`SMOOTHING_BAND_ROWS` rows, each pixel's by itself, so the numbers are those of the
@@ -219,7 +204,7 @@ def _wide_is_unbiased(
     ok: NDArray[np.bool_], gains: tuple[float, float, float], kappa: float,
 ) -> NDArray[np.bool_]:
     """Pixels where the wide estimate stays within ``kappa`` noise deviations of the narrow one,
-    pixel by pixel and averaged over the wide window (see :func:`adaptively_smoothed_along_rays`);
+    pixel by pixel and averaged over the wide window (see :func:`adaptive_smoothing_scale`);
     ``local_variance`` / ``local_difference``: the blurred squared residual about the narrow
     estimate and the blurred difference, ``den`` their normalisation."""
     gain_residual, gain_difference, gain_averaged = gains

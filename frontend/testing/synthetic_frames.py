@@ -129,19 +129,6 @@ def bumpy_wall_scene(
     return SyntheticScene(np.concatenate(parts_v), np.concatenate(parts_t).astype(np.int32), albedo)
 
 
-def look_at(position_world: NDArray, target_world: NDArray) -> NDArray[np.float64]:
-    """``T_world_sensor`` of a camera at ``position_world`` looking at ``target_world`` (y down ~ +y world)."""
-    z = np.asarray(target_world, float) - np.asarray(position_world, float)
-    z /= np.linalg.norm(z)
-    x = np.cross(np.array([0.0, 1.0, 0.0]), z)
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    T = np.eye(4)
-    T[:3, :3] = np.stack([x, y, z], axis=1)
-    T[:3, 3] = position_world
-    return T
-
-
 def render_frame(
     scene: SyntheticScene,
     T_world_sensor: NDArray,

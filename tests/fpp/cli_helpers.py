@@ -10,7 +10,7 @@ from pathlib import Path
 import yaml
 
 from frontend.commands import capture as capture_commands
-from frontend.fpp.pattern_file import pattern_spec_document
+from frontend.fpp.pattern_file import FORMAT
 from frontend.fpp.patterns import PatternSpec
 
 app_module = importlib.import_module("fpp_graph.cli.app")  # the module (the package exports the Typer app under that name)
@@ -43,5 +43,9 @@ def run_cli(*args: str) -> tuple[int, str, str]:
 
 
 def write_pattern_file(path: Path, spec: PatternSpec) -> Path:
-    path.write_text(yaml.safe_dump(pattern_spec_document(spec, "test capture")))
+    """A pattern file of ``spec`` with its explicit image order spelled out."""
+    document = {"format": FORMAT, "description": "test capture", **spec.to_dict(), "order": [im.token() for im in spec.layout()]}
+    for key in ("with_reference", "gray_inverse", "reference_position", "gray_order"):
+        document.pop(key, None)
+    path.write_text(yaml.safe_dump(document))
     return path

@@ -20,14 +20,23 @@ from frontend.localization import (
     localize_photometric,
 )
 from frontend.localization.surface import (
-    adaptively_smoothed_along_rays,
+    adaptive_smoothing_scale,
     depth_edge_free_mask,
-    smoothed_along_rays,
+    smoothing_scale,
 )
 from frontend.registration import TexturedSurfaceRegistrar, lift_keypoints
 from frontend.testing.synthetic_frames import bumpy_wall_scene, render_frame, wall_pose
 
 K = np.array([[683.0, 0.0, 319.5], [0.0, 683.0, 199.5], [0.0, 0.0, 1.0]])
+
+
+def smoothed_along_rays(xyz_map, sigma_px):
+    """Organised points moved along their rays to the twice-smoothed depth."""
+    return xyz_map * smoothing_scale(xyz_map[..., 2], sigma_px)[..., None]
+
+
+def adaptively_smoothed_along_rays(xyz_map, small_px, large_px):
+    return xyz_map * adaptive_smoothing_scale(xyz_map[..., 2], small_px, large_px)[..., None]
 
 
 def _scene(rng, n=200):

@@ -13,7 +13,8 @@ import pytest
 
 from fpp_graph.errors import ConfigError, InputDataError
 from frontend.fpp.sensor import FppSensor
-from frontend.fpp.sequence import read_ground_truth_calibration, read_sequence
+from frontend.fpp.rig import load_calibration
+from frontend.fpp.sequence import GT_CALIBRATION_FILE, read_sequence
 from frontend.sim import (
     BoardCalibrationSettings,
     RigParameters,
@@ -97,7 +98,7 @@ def test_sequence_stores_the_estimate_and_the_truth_apart(estimated, cache_dir, 
     assert seq.source["calibration"] == "estimated"
     expected = binned_calibration(est.calibration, 480, 300)
     np.testing.assert_allclose(seq.calibration.camera.K, expected.camera.K, atol=1e-12)
-    gt = read_ground_truth_calibration(out)
+    gt = load_calibration(out / GT_CALIBRATION_FILE)
     np.testing.assert_allclose(gt.camera.K, build_rig(with_camera_resolution(RigParameters(**SMALL_RIG), 480, 300)).camera.K, atol=1e-12)
     np.testing.assert_allclose(gt.T_projector_camera, truth.T_projector_camera, atol=1e-12)
     # decoded with the estimate and put at the true pose, the points lie off the mesh by the rigid
@@ -119,7 +120,7 @@ def test_true_calibration_mode_and_determinism(cache_dir, tmp_path):
     b = simulate_sequence(small_scene(), tmp_path / "b", max_frames=1, resolution=(480, 300), calibration_mode="true")
     seq = read_sequence(a)
     assert seq.source["calibration"] == "true"
-    np.testing.assert_array_equal(seq.calibration.camera.K, read_ground_truth_calibration(a).camera.K)
+    np.testing.assert_array_equal(seq.calibration.camera.K, load_calibration(a / GT_CALIBRATION_FILE).camera.K)
     assert digest(a) == digest(b)  # same seed, same images
     seeded = small_scene(mode="true")
     seeded["render"] = {"seed": 5}
@@ -134,7 +135,7 @@ def test_bad_settings_are_one_line_errors(tmp_path):
         simulate_sequence(small_scene(mode="true"), tmp_path / "y", max_frames=1, resolution=(480, 320))
     with pytest.raises(ConfigError, match="mode"):
         simulate_sequence(small_scene(mode="guessed"), tmp_path / "z", max_frames=1)
-    assert read_ground_truth_calibration(tmp_path) is None
+    assert not (tmp_path / GT_CALIBRATION_FILE).exists()
     with pytest.raises(InputDataError):
         read_sequence(tmp_path)
 
