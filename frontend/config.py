@@ -16,28 +16,20 @@ not by per-sensor floors. A noise value left ``null`` is the frame source's
 (:meth:`FrameSource.resolve_config`; :data:`FPP_NOISE` for the FPP rig, which is also what a
 registrar built without a source assumes).
 
-Old flat keys (``registration.min_inliers``, ``registration.ransac_threshold_m``, ...) are still
-read: each is moved to its section with a :class:`DeprecationWarning` (and a log warning) naming
-the new key (RANSAC's metre distance converted to the multiple it now is). Keys that are no longer
-settings are retired (:func:`fpp_graph.config.retire_keys`): their values are constants of the
+Keys that are no longer settings are retired (:func:`fpp_graph.config.retire_keys`): their values are constants of the
 code with their reasons, and a file setting one to that value still loads.
 """
 
 from __future__ import annotations
 
-import logging
-import warnings
 from dataclasses import dataclass
 from functools import lru_cache
 from importlib import resources
 from typing import Any, Literal
 
-from pydantic import Field, model_validator
+from pydantic import Field
 
 from fpp_graph.config import RetiredKey, StrictModel, register_sections, retire_keys, unit
-from fpp_graph.errors import ConfigError
-
-log = logging.getLogger(__name__)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -246,13 +238,6 @@ class RegistrationConfig(StrictModel):
     photometric: PhotometricConfig = PhotometricConfig()
     gates: GatesConfig = GatesConfig()
 
-    @model_validator(mode="before")
-    @classmethod
-    def _read_old_flat_keys(cls, data: Any) -> Any:
-        if isinstance(data, dict) and any(key in LEGACY_KEYS for key in data):
-            return migrate_flat_keys(data)
-        return data
-
     def sensor_noise(self) -> SensorNoise:
         """The noise model with the FPP rig's values where it is left null."""
         n = self.noise
@@ -296,21 +281,8 @@ def chi2_quantile(probability: float, dof: int) -> float:
 
 
 # ---------------------------------------------------------------------------------------------
-# old keys
+# retired keys
 # ---------------------------------------------------------------------------------------------
-LEGACY_KEYS: dict[str, str] = {
-    "feature": "features.type",
-    "max_features": "features.max_features",
-    "ransac_threshold_m": "ransac.inlier_sigmas",
-    "icp_method": "icp.method",
-    "icp_voxel_m": "noise.voxel_m",
-    "dense_refinement": "dense.enabled",
-    "photometric_plane_refinement": "photometric.enabled",
-    "min_inliers": "gates.min_inliers",
-    "min_overlap": "gates.min_overlap",
-}
-"""Old flat ``registration`` key -> its new dotted key in the section."""
-
 _RETIRED: dict[str, tuple[Any, str, str | None]] = {
     "features.max_width_px": (1024, "a blob detector's finest scales on a wider image are sensor noise", None),
     "features.surf_hessian_threshold": (3e-6, "low, so weak texture yields keypoints; features.max_features keeps the strongest", "registration.features.max_features"),
@@ -375,43 +347,6 @@ retire_keys({
 })
 
 
-def _converted(old: str, value: Any, data: dict[str, Any]) -> tuple[Any, str]:
-    """An old metre threshold as the multiple it now is, and how it was read (else unchanged)."""
-    noise = data.get("noise") or {}
-    if not isinstance(noise, dict):  # given as a NoiseModel
-        noise = noise.model_dump()
-    sigma = noise.get("point_sigma_m") or FPP_NOISE.point_sigma_m
-    if old == "ransac_threshold_m" and isinstance(value, int | float) and not isinstance(value, bool):
-        return value / sigma, f" in noise.point_sigma_m ({1e3 * sigma:g} mm)"
-    return value, ""
-
-
-def migrate_flat_keys(data: dict[str, Any]) -> dict[str, Any]:
-    """``data`` with every old flat key moved to its section (warning once per key)."""
-    out = {k: (dict(v) if isinstance(v, dict) else v) for k, v in data.items() if k not in LEGACY_KEYS}
-    for old, value in data.items():
-        if old not in LEGACY_KEYS:
-            continue
-        new = LEGACY_KEYS[old]
-        section, key = new.split(".")
-        target = out.setdefault(section, {})
-        if not isinstance(target, dict):  # a section given as a model
-            target = out[section] = target.model_dump(exclude_unset=True)
-        if key in target:
-            raise ConfigError(
-                f"registration.{old} and registration.{new} are both set: registration.{old} is the old name of "
-                f"registration.{new}; remove registration.{old}"
-            )
-        converted, how = _converted(old, value, data)
-        target[key] = converted
-        message = f"config key registration.{old} is deprecated: use registration.{new}"
-        if how:
-            message += f" (read {value!r} as {converted:g}{how})"
-        log.warning("%s", message)
-        warnings.warn(message, DeprecationWarning, stacklevel=4)
-    return out
-
-
 def _documented_defaults() -> str:
     return resources.files("frontend").joinpath("default_config.yaml").read_text(encoding="utf-8")
 
@@ -420,12 +355,10 @@ register_sections({"decode": DecodeConfig, "registration": RegistrationConfig}, 
 
 __all__ = [
     "FPP_NOISE",
-    "LEGACY_KEYS",
     "DecodeConfig",
     "Lengths",
     "NoiseModel",
     "RegistrationConfig",
     "SensorNoise",
     "chi2_quantile",
-    "migrate_flat_keys",
 ]

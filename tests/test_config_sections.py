@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import warnings
-
 import pytest
 
 from fpp_graph import config as config_module
@@ -12,13 +10,11 @@ from fpp_graph.config import (
     StrictModel,
     config_from_dict,
     default_config_text,
-    load_config,
     register_sections,
 )
 from fpp_graph.errors import ConfigError
 from frontend.config import (
     FPP_NOISE,
-    LEGACY_KEYS,
     DecodeConfig,
     RegistrationConfig,
     SensorNoise,
@@ -94,26 +90,7 @@ def test_chi_square_probabilities_give_the_former_constants():
     assert chi2_quantile(JOINT_OPTIMUM_PROBABILITY, 6) == pytest.approx(22.458, abs=1e-3)
 
 
-def test_old_flat_keys_still_work_with_a_warning_naming_the_new_key(tmp_path):
-    path = tmp_path / "old.yaml"
-    path.write_text("registration:\n  min_inliers: 20\n  ransac_threshold_m: 0.003\n  feature: orb\n  dense_refinement: false\n")
-    with pytest.warns(DeprecationWarning) as caught:
-        cfg = load_config(path)
-    text = " ".join(str(w.message) for w in caught)
-    assert "registration.gates.min_inliers" in text and "registration.ransac.inlier_sigmas" in text
-    assert "registration.features.type" in text and "registration.dense.enabled" in text
-    reg = cfg.registration
-    assert reg.gates.min_inliers == 20 and reg.features.type == "orb" and not reg.dense.enabled
-    assert reg.lengths.ransac_inlier_m == pytest.approx(0.003)
-
-
-def test_every_old_metre_key_keeps_its_length_or_is_retired_at_it():
-    old = {"ransac_threshold_m": 0.0025, "icp_voxel_m": 0.003}
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", DeprecationWarning)
-        lengths = RegistrationConfig(**old).lengths
-    assert lengths.ransac_inlier_m == pytest.approx(0.0025)
-    assert lengths.icp_voxel_m == pytest.approx(0.003)
+def test_every_old_metre_key_is_retired_at_its_length():
     fixed = {"icp_max_correspondence_m": 0.004, "dense_icp_voxel_m": 0.004, "max_inlier_rmse_m": 0.002, "max_icp_shift_m": 0.003,
              "max_weak_sigma_m": 0.002}
     lengths = config_from_dict({"registration": fixed}).registration.lengths
@@ -128,22 +105,6 @@ def test_retired_registration_keys_load_at_their_value_and_name_what_to_set():
     assert loaded.registration == RegistrationConfig()
     with pytest.raises(ConfigError, match=r"registration\.dense\.stride_px is no longer a setting .*set registration\.noise\.dense_stride_px instead"):
         config_from_dict({"registration": {"dense": {"stride_px": 4}}})
-
-
-def test_every_old_key_names_an_existing_new_key():
-    for old, new in LEGACY_KEYS.items():
-        section, key = new.split(".")
-        assert key in RegistrationConfig.model_fields[section].annotation.model_fields, old
-
-
-def test_old_key_errors_name_the_new_key(tmp_path):
-    path = tmp_path / "bad.yaml"
-    path.write_text("registration:\n  min_inliers: 1\n")
-    with pytest.warns(DeprecationWarning), pytest.raises(ConfigError, match=r"registration\.gates\.min_inliers"):
-        load_config(path)
-    path.write_text("registration:\n  min_inliers: 20\n  gates:\n    min_inliers: 15\n")
-    with pytest.raises(ConfigError, match=r"registration\.min_inliers and registration\.gates\.min_inliers are both set"):
-        load_config(path)
 
 
 def test_a_third_party_section_is_validated_like_the_others():
