@@ -204,6 +204,16 @@ class CertificateMatrix:
         eigenvectors : (3n, k)
             NaN when ``psd`` on the dense path (small problems): only a failed certificate's
             staircase uses them, and eigenvalues alone cost a third of the decomposition.
+
+        Why shift-invert Lanczos on the inertia factorisation rather than a preconditioned
+        LOBPCG (Rosen 2022): the verdict must be proven, and only a factorisation proves
+        ``lambda_min >= -eta`` (an iterative eigensolver can miss an eigenvalue), so ``S + eta I``
+        is factored in any case; that factor is then the exact shift-invert operator, and LOBPCG
+        preconditioned with it (block started from, or constrained against, the gauge
+        directions ``R^T``) needs more solves than Lanczos to resolve the spectral gap
+        (``scripts/bench_certificate.py`` times the eigen test within the certificate). A
+        preconditioned eigensolver pays where it replaces the factorisation, which a rigorous
+        verdict does not allow.
         """
         dense = self.size <= dense_eigen_order()
         lu, negatives = (None, -1) if dense else self.negative_count(-eta)

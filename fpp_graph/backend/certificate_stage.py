@@ -53,7 +53,9 @@ def certify_solution(problem: GraphProblem, solution: Solution, cfg: PoseGraphCo
         solution = replace(solution, values=values, iterations=solution.iterations + iterations)
         poses = problem.poses(values)
         certificate = _certify(problem, edges, poses, escape=False)
-    returned = sesync_objective_of_edges(edges, poses)
+    # F of the poses returned: they are the last certificate's input, whose F it evaluated before
+    # refining (``input_objective``: the same sum over these edges, not computed twice)
+    returned = certificate.input_objective
     bound = certificate.suboptimality_bound + max(0.0, returned - certificate.objective)
     return solution, replace(certificate, suboptimality_bound=bound)
 

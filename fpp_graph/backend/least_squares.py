@@ -21,13 +21,13 @@ def initial_values(problem: GraphProblem, initialization: str) -> Solution:
     """Chordal initialisation over every edge (``gtsam.InitializePose3``), or the given poses
     (asked for, or when chordal initialisation fails)."""
     active = problem.all_edges()
-    given = problem.given_values()
+    # the given poses become gtsam Values only when they are the start (a pose at a time)
     if initialization == "given" or problem.num_edges == 0:
-        return Solution(given, active, 0, False, "given")
+        return Solution(problem.given_values(), active, 0, False, "given")
     values, failure = problem.chordal(active)
     if values is None:
         log.warning("chordal initialisation failed (%s); starting from the given poses", failure)
-        return Solution(given, active, 0, False, f"given (chordal initialisation failed: {failure})")
+        return Solution(problem.given_values(), active, 0, False, f"given (chordal initialisation failed: {failure})")
     return Solution(values, active, 0, False, "chordal")
 
 
