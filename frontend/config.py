@@ -341,8 +341,20 @@ _FLAT_METRE_DEFAULTS = {"icp_max_correspondence_m": 0.004, "dense_icp_voxel_m": 
                         "max_weak_sigma_m": 0.002}
 """Old flat keys whose sectioned key is retired: retired too (the metre ones at their metre default)."""
 
+_RENAMED_FLAT: dict[str, tuple[Any, str]] = {
+    "feature": ("surf", "features.type"), "max_features": (4000, "features.max_features"),
+    "ransac_threshold_m": (0.002, "ransac.inlier_sigmas"), "icp_method": ("gicp", "icp.method"),
+    "icp_voxel_m": (0.002, "noise.voxel_m"), "dense_refinement": (True, "dense.enabled"),
+    "photometric_plane_refinement": (True, "photometric.enabled"), "min_inliers": (15, "gates.min_inliers"),
+    "min_overlap": (0.1, "gates.min_overlap"),
+}
+"""Old flat keys whose setting lives on under a sectioned name: ``(old default, new key)``. A file
+that sets one to its old default loads; another value is refused, naming the key to set."""
+
 retire_keys({
     **{f"registration.{key}": RetiredKey(value, reason, replacement) for key, (value, reason, replacement) in _RETIRED.items()},
+    **{f"registration.{old}": RetiredKey(value, f"the old flat name of registration.{new}", f"registration.{new}")
+       for old, (value, new) in _RENAMED_FLAT.items()},
     **{f"registration.{old}": RetiredKey(_FLAT_METRE_DEFAULTS.get(old, _RETIRED[new][0]), *_RETIRED[new][1:]) for old, new in _RETIRED_FLAT.items()},
 })
 

@@ -45,3 +45,11 @@ def test_every_retired_key_is_out_of_the_models():
         for part in parts[:-1]:
             node = node.get(part, {}) if isinstance(node, dict) else {}
         assert parts[-1] not in node, dotted
+
+
+def test_an_old_flat_registration_key_names_its_new_key():
+    """A config written for the flat registration section fails naming the sectioned key."""
+    with pytest.raises(ConfigError, match=r"registration\.min_inliers is no longer a setting \(the old flat name of "
+                                          r"registration\.gates\.min_inliers\): set registration\.gates\.min_inliers instead"):
+        config_from_dict({"registration": {"min_inliers": 30}}, source="old.yaml")
+    assert config_from_dict({"registration": {"min_inliers": 15}}).registration.gates.min_inliers == 15
