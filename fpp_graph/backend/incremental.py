@@ -46,23 +46,16 @@ class IncrementalPoseGraph:
     whole graph and restarts iSAM2 from its solution without the loops GNC rejected.
 
     Constant cost per update. iSAM2 re-eliminates the cliques between the variables a new
-    factor touches and the root of the Bayes tree. Left to itself, its incremental
-    constrained COLAMD puts *every* key a new factor observes last, so each loop pulls an old
-    keyframe up to the root and the tree's top grows with the map (on 20 laps of a 50-keyframe
-    circuit with a loop per keyframe the re-eliminated variables grow from ~30 to ~120 and the
-    update time about tenfold over 1000 keyframes). Here the most recent keyframes form the
-    last ordering group instead: the active region stays at the root, old keyframes a loop
-    touches are eliminated below it, and the re-eliminated part stays bounded by that group.
-    The group is the loop frontier: one keyframe more than the longest span (in keyframes) of
-    the loops added within the last ``ordering_window`` keyframes, so a loop's target is in
-    it, and no larger (a fixed 100-keyframe group re-eliminated ~45 variables per update on a
-    10-keyframe circuit where the frontier needs ~17). Every iSAM2 step of an update needs
-    that ordering: the extra steps after a loop used to run with iSAM2's default, which
-    re-ordered the re-eliminated top by plain COLAMD and left old keyframes (one per lap, a cut
-    across the whole map) in the root clique, so the update time grew with the map again (6.6x
-    from the first to the last 100 keyframes of the 1000-keyframe circuit). What remains is
-    the problem's own frontier, which forms over the first laps and is flat after them
-    (:attr:`reeliminated_variables` reports it per update).
+    factor touches and the root of the Bayes tree. Its default ordering puts every key a new
+    factor observes last, so each loop pulls an old keyframe up to the root and the update time
+    grows with the map (about tenfold over 1000 keyframes of a 50-keyframe circuit). Here the
+    most recent keyframes form the last ordering group instead, in every iSAM2 step of an
+    update: the loop frontier, one keyframe more than the longest span (in keyframes) of the
+    loops added within the last ``ordering_window`` keyframes, so a loop's target is in it and
+    the group is no larger (a fixed 100-keyframe group re-eliminated ~45 variables per update
+    where the frontier needs ~17). Old keyframes a loop touches are eliminated below it, and
+    the re-eliminated part stays bounded by the problem's own frontier, flat after the first
+    laps (:attr:`reeliminated_variables` reports it per update).
 
     Parameters
     ----------
@@ -76,8 +69,7 @@ class IncrementalPoseGraph:
         Additional iSAM2 steps after an update that brought loops (re-linearisation settles).
     ordering_window : int
         The longest loop frontier kept last in the elimination order, and how far back (in
-        keyframes) loops count towards it (see above); 0 leaves iSAM2's default ordering. The extra steps after a loop keep the same ordering (with
-        iSAM2's default there, old keyframes drift up to the root and the cost grows again).
+        keyframes) loops count towards it (see above); 0 leaves iSAM2's default ordering.
     refresh_per_update : int
         Older keyframes whose cached pose each :meth:`update` re-reads from iSAM2, round robin
         (see "Reading the estimate").
@@ -93,8 +85,8 @@ class IncrementalPoseGraph:
     reorder, and whenever what the update should re-read (those keys, or every variable it
     re-eliminated if that is more: a loop reaching deep) is more than a fifth of the map: one
     read of all is then the cheaper. Above that the read-out no longer grows with the map.
-    :meth:`estimate` reads every pose, so
-    it is exact; :meth:`loop_innovation` re-reads the loop's two keyframes.
+    :meth:`estimate` reads every pose, so it is exact; :meth:`loop_innovation` re-reads the
+    loop's two keyframes.
     """
 
     def __init__(
@@ -409,13 +401,6 @@ class IncrementalPoseGraph:
         if self._stale and key in self._in_isam:
             self._read([key])
         return self._current(key)
-
-    def marginal_covariance(self, key: int) -> Array:
-        """6x6 ``[rot, trans]`` marginal covariance (body frame) from iSAM2's Bayes tree."""
-        self.update()
-        if int(key) not in self._estimate:
-            raise GraphError(f"marginal_covariance: keyframe {key} is not in the graph")
-        return np.array(self._isam.marginalCovariance(int(key)), dtype=np.float64)
 
     def loop_innovation(self, constraint: Constraint, relative_covariance: ArrayLike | None = None) -> float:
         """Squared Mahalanobis norm of a loop's innovation at the current estimate.

@@ -205,16 +205,12 @@ class LoopReturnErrors:
         Per turn j = 1..J, RMS over the views of ``||p_jk - p_0k||``, metres.
     rotation_deg : (J,) float64
         Per turn, RMS over the views of the angle of ``R_0k^T R_jk``, degrees.
-    per_view_translation_m : (J, V) float64
-        Each view's position difference; NaN for views a partial last turn does not reach.
-    per_view_rotation_deg : (J, V) float64
-        Each view's rotation angle difference, degrees; NaN likewise.
+
+    A partial last turn is averaged over the views it reaches.
     """
 
     translation_m: NDArray[np.float64]
     rotation_deg: NDArray[np.float64]
-    per_view_translation_m: NDArray[np.float64]
-    per_view_rotation_deg: NDArray[np.float64]
 
 
 def loop_return_errors(poses_world_sensor: NDArray[np.float64], views_per_turn: int) -> LoopReturnErrors:
@@ -250,8 +246,6 @@ def loop_return_errors(poses_world_sensor: NDArray[np.float64], views_per_turn: 
     return LoopReturnErrors(
         translation_m=np.sqrt(np.nanmean(trans**2, axis=1)),
         rotation_deg=np.sqrt(np.nanmean(rot**2, axis=1)),
-        per_view_translation_m=trans,
-        per_view_rotation_deg=rot,
     )
 
 

@@ -15,7 +15,6 @@ from fpp_graph.errors import InputDataError
 # +-1048 m at 1 mm voxels, far beyond any indoor map.
 _KEY_BITS = 21
 _KEY_OFFSET = 1 << (_KEY_BITS - 1)
-_KEY_MASK = (1 << _KEY_BITS) - 1
 
 
 def voxel_keys(points_m: NDArray[np.float64], voxel_size_m: float) -> NDArray[np.int64]:

@@ -71,7 +71,6 @@ PatternKind = Literal["gray", "complementary_gray", "multi_frequency", "single_f
 _KINDS = ("gray", "complementary_gray", "multi_frequency", "single_frequency", "gray_code")
 _AXES = ("columns", "rows", "both")
 _DEFAULT_PERIODS = {"gray": (128,), "complementary_gray": (128,), "multi_frequency": (64, 58, 53), "single_frequency": (1,)}
-_PHASE_KINDS = ("gray", "complementary_gray", "multi_frequency", "single_frequency")
 _GRAY_KINDS = ("gray", "complementary_gray", "gray_code")
 
 #: The role names of an explicit image ``order`` (F = frequency index in ``periods``, N = phase

@@ -213,7 +213,7 @@ class Decoder:
         # the part of the phase origin that reordering the steps cannot remove, subtracted from phi
         self._origin_residual = float(np.angle(np.exp(1j * (spec.phase_origin_rad - m * TWO_PI / spec.phase_steps))))
         self._code_index, self._code_inverse = binary_images(layout, "")
-        self._row_code_index, self._row_code_inverse = binary_images(layout, "rows")
+        binary_images(layout, "rows")  # refuses row bits given inverses for some but not all
         self._white_index = next((i for i, im in enumerate(layout) if im.role == "white"), None)
         self._black_index = next((i for i, im in enumerate(layout) if im.role == "black"), None)
         self._sin, self._cos = phase_weights(spec.phase_steps)

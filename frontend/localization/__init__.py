@@ -15,12 +15,9 @@ along the rays, the depth-edge mask, normals and the projector's irradiance.
 from frontend.localization.dlt import (
     DltSettings,
     LocalizationResult,
-    decompose_projection,
-    dlt_projection_matrix,
     localize_dlt,
 )
 from frontend.localization.photometric import (
-    PhotometricLocalizationResult,
     PhotometricQuery,
     PhotometricSettings,
     localize_photometric,
@@ -32,12 +29,9 @@ __all__ = [
     "DenseReference",
     "DltSettings",
     "LocalizationResult",
-    "PhotometricLocalizationResult",
     "PhotometricQuery",
     "PhotometricSettings",
     "ReferencePixels",
-    "decompose_projection",
-    "dlt_projection_matrix",
     "localize_dlt",
     "localize_photometric",
     "pyramid_for_start",

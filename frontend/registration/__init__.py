@@ -28,38 +28,9 @@ import warnings
 from fpp_graph.geometry import kabsch
 from frontend.organised_surface import fit_pinhole, lift_keypoints
 from frontend.registration.aligner import AlignmentRequest, PointCloudAligner
-from frontend.registration.icp import (
-    ICP_SOURCE_MAX_POINTS,
-    ICP_TARGET_MAX_POINTS,
-    IcpCloud,
-    IcpResult,
-    IcpRole,
-    SmallGicpAligner,
-    information_from_icp,
-    make_aligner,
-    organised_subsample,
-    prepare_icp_cloud,
-)
-from frontend.registration.keypoints import (
-    RansacResult,
-    drop_sensor_fixed_matches,
-    information_from_keypoints,
-    keypoint_inliers,
-    ransac_rigid,
-)
+from frontend.registration.icp import make_aligner
 from frontend.registration.registrar import TexturedSurfaceRegistrar
-from frontend.registration.texture import TextureAgreement, TextureCamera, texture_agreement
-from frontend.registration.weak_directions import (
-    Degeneracy,
-    centred_coordinates,  # noqa: F401  (private; the tests import it from here)
-    check_degeneracy,
-    disagreement_along,  # noqa: F401  (private; the tests import it from here)
-    joint_keypoint_step,
-    plane_directions,
-    weak_direction_pin,
-    weak_directions_from,  # noqa: F401  (private; the tests import it from here)
-    without_weak_directions,
-)
+from frontend.registration.texture import TextureCamera
 
 
 def __getattr__(name: str):
@@ -73,32 +44,10 @@ def __getattr__(name: str):
 __all__ = [
     "AlignmentRequest",
     "PointCloudAligner",
-    "SmallGicpAligner",
     "TexturedSurfaceRegistrar",
     "make_aligner",
-    "ICP_SOURCE_MAX_POINTS",
-    "ICP_TARGET_MAX_POINTS",
-    "Degeneracy",
-    "IcpCloud",
-    "IcpResult",
-    "IcpRole",
-    "RansacResult",
-    "TextureAgreement",
     "TextureCamera",
-    "check_degeneracy",
-    "drop_sensor_fixed_matches",
     "fit_pinhole",
-    "information_from_icp",
-    "information_from_keypoints",
-    "joint_keypoint_step",
     "kabsch",
-    "keypoint_inliers",
     "lift_keypoints",
-    "organised_subsample",
-    "plane_directions",
-    "prepare_icp_cloud",
-    "ransac_rigid",
-    "texture_agreement",
-    "weak_direction_pin",
-    "without_weak_directions",
 ]

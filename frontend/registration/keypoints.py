@@ -15,7 +15,6 @@ import numpy as np
 from numpy.typing import NDArray
 
 from fpp_graph.geometry import kabsch
-from frontend.organised_surface import lift_keypoints  # noqa: F401  (the keypoints' 2D -> 3D step lives with the organised maps)
 
 Array = NDArray[np.float64]
 

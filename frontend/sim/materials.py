@@ -5,7 +5,8 @@
 * :class:`VertexColorMaterial`: the mesh's vertex colours, interpolated barycentrically;
 * :class:`ImageMaterial`: an image mapped through per-corner UVs (posters).
 
-Every material answers ``albedo(points_world, triangle_ids, bary_uv)`` (:class:`Material`).
+Every material answers ``albedo(points_world, triangle_ids, bary_uv)``: the albedo in [0, 1] at
+hit points (N, 3) on triangles (N,) with barycentrics (N, 2).
 """
 
 from __future__ import annotations
@@ -13,20 +14,12 @@ from __future__ import annotations
 import math
 import threading
 from dataclasses import dataclass
-from typing import Protocol
 
 import cv2
 import numpy as np
 from numpy.typing import NDArray
 from scipy import ndimage
 from scipy.spatial.transform import Rotation
-
-
-class Material(Protocol):
-    def albedo(self, points_world: NDArray, triangle_ids: NDArray, bary_uv: NDArray) -> NDArray[np.float64]:
-        """Albedo in [0, 1] at hit points (N,3) on triangles (N,) with barycentrics (N,2)."""
-        ...
-
 
 _LATTICE = 1024  # noise tile size in cells; the texture repeats every 256 * scale_m
 _NOISE_CACHE: dict[int, list[NDArray[np.float32]]] = {}

@@ -417,8 +417,6 @@ def test_isam2_matches_the_batch_optimum():
     for k in batch.poses_world_sensor:
         np.testing.assert_allclose(estimate[k][:3, 3], batch.poses_world_sensor[k][:3, 3], atol=1e-3)
     np.testing.assert_array_equal(estimate[0], sim.poses_true[0])
-    cov = incremental.marginal_covariance(max(estimate))
-    assert cov.shape == (6, 6) and np.all(np.linalg.eigvalsh(cov) > 0)
     graph = incremental.to_pose_graph()
     assert graph.num_poses == len(sim.poses_true) and graph.fixed_poses() == [0]
 

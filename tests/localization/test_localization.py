@@ -14,11 +14,10 @@ from frontend.localization import (
     DltSettings,
     PhotometricQuery,
     PhotometricSettings,
-    decompose_projection,
-    dlt_projection_matrix,
     localize_dlt,
     localize_photometric,
 )
+from frontend.localization.dlt import decompose_projection, dlt_projection_matrix
 from frontend.localization.surface import (
     adaptive_smoothing_scale,
     depth_edge_free_mask,

@@ -12,8 +12,9 @@ from fpp_graph.errors import InputDataError
 from fpp_graph.geometry import invert, pose_error, se3_exp
 from frontend.config import RegistrationConfig
 from frontend.dense_alignment import DenseSchedule, OrganisedSurface, align_dense
-from frontend.registration import TexturedSurfaceRegistrar, plane_directions, weak_direction_pin
+from frontend.registration import TexturedSurfaceRegistrar
 from frontend.registration.state import PairFrames
+from frontend.registration.weak_directions import plane_directions, weak_direction_pin
 from frontend.testing.synthetic_frames import bumpy_wall_scene, render_frame, wall_pose
 
 W, H = 640, 400
@@ -97,7 +98,7 @@ def test_strong_prior_holds_its_directions(wall):
     held = align_dense(surf_a, surf_b, T0, prior_information=pin)
     moved = np.linalg.inv(T0) @ held.T_target_source
     from fpp_graph.geometry import se3_log
-    from frontend.registration import centred_coordinates
+    from frontend.registration.weak_directions import centred_coordinates
 
     xi_c = np.linalg.solve(centred_coordinates(free.source_points), se3_log(moved))
     along_pinned = deg.directions @ xi_c

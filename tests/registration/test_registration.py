@@ -13,22 +13,19 @@ from fpp_graph.geometry import invert, make_pose, pose_error, se3_exp, se3_log
 from fpp_graph.types import Frame, PairRegistrar
 from frontend.config import RegistrationConfig
 from frontend.features.detect import detect_and_describe
-from frontend.registration import (
-    IcpResult,
-    TexturedSurfaceRegistrar,
+from frontend.registration import TexturedSurfaceRegistrar, fit_pinhole, kabsch, lift_keypoints
+from frontend.registration.icp import IcpResult, information_from_icp, prepare_icp_cloud
+from frontend.registration.keypoints import (
+    information_from_keypoints,
+    keypoint_inliers,
+    ransac_rigid,
+)
+from frontend.registration.texture import texture_agreement
+from frontend.registration.weak_directions import (
     check_degeneracy,
     disagreement_along,
-    fit_pinhole,
-    information_from_icp,
-    information_from_keypoints,
     joint_keypoint_step,
-    kabsch,
-    keypoint_inliers,
-    lift_keypoints,
     plane_directions,
-    prepare_icp_cloud,
-    ransac_rigid,
-    texture_agreement,
 )
 from frontend.testing.synthetic_frames import (
     ProceduralAlbedo,
@@ -506,7 +503,7 @@ def test_registrar_does_not_keep_frames_alive(pair):
 
 
 def test_organised_subsample_keeps_the_valid_strided_pixels():
-    from frontend.registration import organised_subsample
+    from frontend.registration.icp import organised_subsample
 
     yy, xx = np.mgrid[0:200, 0:300]
     xyz = np.stack([xx * 1e-4, yy * 1e-4, np.full(xx.shape, 0.5)], axis=-1)  # 0.1 mm pixels
@@ -524,7 +521,7 @@ def test_organised_subsample_keeps_the_valid_strided_pixels():
 
 
 def test_sensor_fixed_matches_are_dropped_unless_most_are_fixed():
-    from frontend.registration import drop_sensor_fixed_matches
+    from frontend.registration.keypoints import drop_sensor_fixed_matches
 
     rng = np.random.default_rng(3)
     uv_target = rng.uniform(0, 1900, size=(100, 2))
@@ -545,7 +542,11 @@ def test_sensor_fixed_matches_are_dropped_unless_most_are_fixed():
 
 def test_weak_directions_come_from_the_keypoints_and_lose_icp_information():
     from fpp_graph.geometry import make_pose
-    from frontend.registration import Degeneracy, weak_directions_from, without_weak_directions
+    from frontend.registration.weak_directions import (
+        Degeneracy,
+        weak_directions_from,
+        without_weak_directions,
+    )
 
     rng = np.random.default_rng(0)
     wall = np.column_stack([rng.uniform(-0.2, 0.2, 500), rng.uniform(-0.1, 0.1, 500), np.full(500, 0.5)])

@@ -12,11 +12,10 @@ import numpy as np
 import pytest
 
 from fpp_graph.errors import ConfigError, InputDataError
-from frontend.fpp.sensor import FppSensor
 from frontend.fpp.rig import load_calibration
+from frontend.fpp.sensor import FppSensor
 from frontend.fpp.sequence import GT_CALIBRATION_FILE, read_sequence
 from frontend.sim import (
-    BoardCalibrationSettings,
     RigParameters,
     binned_calibration,
     build_rig,
@@ -24,6 +23,7 @@ from frontend.sim import (
     simulate_sequence,
     with_camera_resolution,
 )
+from frontend.sim.calibration import BoardCalibrationSettings
 
 SMALL_RIG = {"camera_width": 960, "camera_height": 600, "camera_focal_px": 1024.0, "camera_principal_offset_px": [1.6, -1.35]}
 SMALL_CALIBRATION = {"poses": 8, "supersample": 2}

@@ -9,26 +9,25 @@ from conftest import shared_data_path
 from fpp_graph.errors import ConfigError, FppError, InputDataError
 from frontend.fpp.sensor import FppSensor
 from frontend.sim import (
-    CorridorConfig,
     FppSimulator,
-    ProceduralMaterial,
     RenderSettings,
     Scene,
-    SurfacePart,
-    TurntableConfig,
-    box,
     build_corridor,
-    build_turntable,
     default_pattern_spec,
     default_rig,
-    frame_overlap,
-    load_mesh,
     load_simulation,
-    make_doll,
-    make_poster,
     plane_scene,
-    project_points,
     sphere_scene,
+)
+from frontend.sim.materials import ProceduralMaterial
+from frontend.sim.parts import SurfacePart, box, load_mesh, make_doll
+from frontend.sim.render import project_points
+from frontend.sim.scenes import (
+    CorridorConfig,
+    TurntableConfig,
+    build_turntable,
+    frame_overlap,
+    make_poster,
 )
 
 
