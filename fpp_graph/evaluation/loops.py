@@ -166,11 +166,9 @@ def _shared_fractions(
     frame ``b`` within ``tolerance_m`` (absent: 0).
 
     One KD-tree over every frame's reference points and one radius query per query point,
-    instead of a tree per frame queried once per pair: a pair's cost grew with the number of
-    pairs whose bounding boxes meet, and over 2000 simulated RGB-D frames (496 keyframes, 34 k
-    such pairs) that took 47 s of the run. The frames are queried on a thread per core: the
-    search and the counting release the GIL (that run's 23.5 s became 11.5 s on 2 cores), and a
-    frame's result does not depend on the others'.
+    instead of a tree per frame queried once per pair, whose cost grew with the number of pairs
+    whose bounding boxes meet. The frames are queried on a thread per core: the search and the
+    counting release the GIL, and a frame's result does not depend on the others'.
     """
     counts = np.array([len(reference[f]) for f in ids], dtype=np.int64)
     if not counts.sum():

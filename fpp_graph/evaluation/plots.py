@@ -197,10 +197,9 @@ def _draw_points_raster(ax, xy: NDArray[np.float64], rgba: NDArray[np.float64], 
     """Draw 2D points as one image: each raster pixel shows the last point (in the given order)
     that falls in it, transparent where none does.
 
-    A scatter of 200 000 markers cost Agg ~1.5 s a panel (a fixed 3-5 s of every run, 17 % of a
-    50-frame RGB-D run); the raster costs a few ms and shows the same map at the panel's
-    resolution. Callers order the points so the one to see is last (the highest, the largest
-    error).
+    A scatter of 200 000 markers cost Agg ~1.5 s a panel; the raster costs a few ms and shows the
+    same map at the panel's resolution. Callers order the points so the one to see is last (the
+    highest, the largest error).
     """
     span = np.maximum(hi - lo, 1e-12)
     scale = (MAP_RASTER_PX - 1) / float(span.max())

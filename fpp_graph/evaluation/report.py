@@ -27,9 +27,7 @@ typed arrays (base64). A map point costs 17 bytes (float32 position and a one-by
 index), a correction point 21 (a float32 motion instead): the point budgets below keep both
 under 2.5 MB whatever the run. The trajectory and the loop candidates (their hover texts hold the
 reasons) grow with the run: the page stays within :data:`SIZE_BUDGET_MB` = 10 MB for 1000 frames
-(``scripts/report_screenshots.py`` checks it on a synthetic 1000-frame run with a
-2-million-point map and 2500 candidates: 8.3 MB). The demo's report is 7.4 MB, the 7-Scenes
-chess run's 7.3 MB, sphere2500.g2o's 5.4 MB, parking-garage.g2o's 5.5 MB.
+(``scripts/report_screenshots.py`` checks it on a synthetic 1000-frame run).
 
 Time: the figures are plain dicts (:mod:`~fpp_graph.evaluation.report_figures`) and plotly.js is
 read as a file: the plotly package is never imported (its import and its figures took 0.4 s of
@@ -37,14 +35,9 @@ every report). A ``.g2o`` run hands its graph and poses over (``graph``, ``poses
 ``metrics``) instead of having ``graph.g2o`` read back; a sequence run's report reads its small
 files again (``trajectory.tum``, ``graph.g2o``, ``loops.json``: 2.5 ms for the chess run) and
 ``map.ply``, whose reading, thinning and palette take most of its time (0.2 s for chess). Garbage
-collection waits while the report is written (:func:`write_report`). Measured on a shared
-2-core machine: 0.26-0.41 s of the demo's 24-29 s run (1.0-1.7 %), 0.29-0.43 s of the chess
-run's 11-14 s (2.3-3.2 %), 29-45 ms after sphere2500's 1.0-1.7 s of reading and optimising
-(median 2.5 %), 29-62 ms after parking-garage's 0.75-1.3 s (median 3.5 %; over 5 % in a few runs
-where the machine slowed the report's same work from 28 to 48 ms of CPU); before: 0.57 s, 0.65 s,
-0.4 s and 0.5 s. Of a pose graph's 30 ms, writing and syncing the 5.5 MB file is 7-9, the graph's
-edges and loops (rows, hover texts, tables) about 9, the JSON 4, the odometry-only chain and the
-correction 3.
+collection waits while the report is written (:func:`write_report`). The report costs a few
+percent of a run: ~0.3 s of the demo's and the chess run's, ~30 ms of a pose graph's (a quarter
+of it writing and syncing the file).
 """
 
 from __future__ import annotations

@@ -19,8 +19,7 @@ log = logging.getLogger(__name__)
 TSDF_INITIAL_VOXELS = 1000 * 16**3
 """The TSDF hash map's first capacity in voxels: Open3D's customary 1000 blocks of 16^3 (82 MB
 of tsdf, weight and colour), whatever the block size. It doubles when full
-(:meth:`TsdfMesher._make_room`: a new grid and a copy of the
-blocks, 0.1-0.5 s at 8 000 blocks where Open3D 0.20's own growth took 0.5-0.9 s)."""
+(:meth:`TsdfMesher._make_room`: a new grid and a copy of the blocks)."""
 
 TSDF_TRUNCATION_VOXELS = 4
 """The TSDF's truncation band in TSDF voxels: it covers the voxel discretisation (half a voxel
@@ -33,14 +32,11 @@ def tsdf_block_voxels(truncation_m: float, voxel_m: float) -> int:
     16 voxels. Integration updates every voxel of each block the band touches; in a block much
     thicker than the band most voxels are free space in front of the surface (each view sets
     them to +1, which the mesh does not use). The defaults' band is 8 voxels (FPP: 2 mm voxels,
-    8 mm truncation; RGB-D: 1 cm, 4 cm). 8^3 blocks against Open3D's 16^3, ms a keyframe
-    (integration alone): 7-Scenes chess 16-18 against 41, TUM fr1_rpy 25 against 49-51 (views of
-    walls metres away: most of a 16 cm block is empty), simulated FPP and RGB-D sequences 5-25 %
-    faster. The mesh is the same surface (vertex distances to the true surface equal within
-    0.01 mm RMS on simulated sequences, the same vertex counts within 0.01 %); on walls 4-5 m
-    away, where a Kinect's depth error reaches the band, 4 % more vertices stay that the wide
-    blocks' free-space updates carve away. Below 8 the hash map's per-block
-    work grows; 16 is Open3D's default."""
+    8 mm truncation; RGB-D: 1 cm, 4 cm). 8^3 blocks integrate a keyframe 2-2.5x faster than
+    Open3D's default 16^3 on RGB-D sequences (views of walls metres away: most of a 16 cm block
+    is empty) and make the same surface (vertex distances to the true surface equal within
+    0.01 mm RMS on simulated sequences; on walls 4-5 m away 4 % more vertices stay that wide
+    blocks' free-space updates carve away). Below 8 the hash map's per-block work grows."""
     if not (math.isfinite(truncation_m) and math.isfinite(voxel_m) and truncation_m > 0 and voxel_m > 0):
         raise InputDataError(f"map fusion: the TSDF's truncation and voxel must be positive lengths in metres, got {truncation_m!r} and {voxel_m!r}")
     return int(min(max(math.ceil(2.0 * truncation_m / voxel_m - 1e-9), 8), 16))
@@ -145,9 +141,8 @@ class TsdfMesher:
         """Grow the TSDF's hash map before ``incoming_blocks`` are activated in it, where Open3D
         would grow it itself (when its size plus the blocks asked for exceed its capacity).
 
-        Open3D 0.20 grows a filled map (``HashMap.reserve``) at ~0.1-0.2 ms a block: a room-sized
-        FPP map's growths to 16 000, 32 000 and 64 000 blocks took 0.7, 1.7 and 3.7 s of its
-        10.9 s of TSDF integration. A new grid of twice the capacity, its blocks activated at
+        Open3D 0.20 grows a filled map (``HashMap.reserve``) at ~0.1-0.2 ms a block, over half of
+        a room-sized FPP map's TSDF integration. A new grid of twice the capacity, its blocks activated at
         once and their voxels copied through numpy, holds the same blocks and voxel values (the
         mesh is the same: :func:`canonical_mesh` lists it by content, not by the hash map's slots)."""
         hashmap = self._volume.hashmap()

@@ -26,12 +26,8 @@ import time
 HEAP_TRIM_PERIOD_S = 5.0
 """At most one trim per five seconds per process: a trim costs about a tenth of a second of page
 faults afterwards (the once-a-second trim's 12 %), so about 2 % of the run. The free space grows
-with the frames processed, not with time: once the runs got faster, ten seconds let ~65 frames'
-fragments build up between trims instead of ~48. Measured on the 2000-frame walk (peak RSS,
-second half over first, tracking process / all processes): every 5 s 1.09 / 1.10 at 304 s;
-every 10 s 1.14 / 1.17 and 1.16 / 1.14 at 313 and 306 s (on the code before the fine-ICP skip,
-at 4.8 frames/s: 1.07 / 1.06 at 414 s, against 1.15 / 1.13 and 409 s without trimming); once a
-second (at 4.8 frames/s): 1.04 / 1.05 but 448 s."""
+with the frames processed, not with time: on the 2000-frame walk the peak RSS of the second half
+grew 10 % over the first at 5 s, 15 % at 10 s (as without trimming)."""
 
 
 def _load_glibc(function: str, argtypes: list, restype):

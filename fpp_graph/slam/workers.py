@@ -36,9 +36,8 @@ DECODE_AHEAD_FRAMES = 16
 candidates too, in submission order, and a revisit's keyframes bring up to
 ``loop_closure.max_candidates_per_frame`` (8) each, 2-3 keyframes in a row: at ~0.1 s a
 640x480 candidate on 2 workers, ~1 s of verification during which a decode waits behind them,
-~12 frames of 30 Hz tracking. 4 ahead left the tracking process waiting on decodes in those
-stretches (the simulated 2000-frame walk: decode + track 173 -> 167 s, the whole run 217 ->
-211 s). A frame handed over in memory is ~6 MB (640x480 RGB-D; FPP frames go through the
+~12 frames of 30 Hz tracking; 4 ahead left the tracking process waiting on decodes in those
+stretches. A frame handed over in memory is ~6 MB (640x480 RGB-D; FPP frames go through the
 cache on disk), ~100 MB in flight."""
 
 _SOURCE: FrameSource | None = None
@@ -75,9 +74,8 @@ The tracking process is a run's critical path: each frame is tracked after the o
 while what the workers do can wait a little (frames decoded a few ahead, loop candidates verified
 a few keyframes behind, ``VERIFY_LAG_KEYFRAMES``). With a worker per core, three busy processes shared
 two cores and the tracking process got two thirds of one whenever both workers had work: at
-niceness 10 the scheduler weighs it ~9:1 against each worker, so it keeps its core. The
-simulated 2000-frame walk (``scripts/long_rgbd_sequence.py``) ran 221 -> 217 s (decode + track
-177 -> 173 s; at 19: 212 s). 10, not 19: a user's other programs keep a share of the cores
+niceness 10 the scheduler weighs it ~9:1 against each worker, so it keeps its core. 10, not
+19: a user's other programs keep a share of the cores
 against the workers, which a run needs too."""
 
 
@@ -122,9 +120,8 @@ def single_threaded_libraries() -> Callable[[], None]:
     """OpenCV and the BLAS libraries on one thread in this process; returns what restores them.
 
     A run's processes (one per core) already fill the cores; a library's own threads on top
-    oversubscribe them, and OpenBLAS's threads then spin: a 4800 x 21 least-squares fit took 54
-    ms with 2 BLAS threads on a busy 2-core machine against 3 ms with one.
-    """
+    oversubscribe them, and OpenBLAS's threads then spin (a small least-squares fit on a busy
+    2-core machine: 54 ms with 2 BLAS threads, 3 ms with one)."""
     import cv2
     from threadpoolctl import threadpool_limits
 

@@ -95,7 +95,7 @@ KINECT_V1_NOISE = SensorNoise(
   rejected every true loop as inconsistent with odometry. The keypoint and dense parts are not
   scaled by it; ``shared_depth_sigma_per_m2`` bounds the whole pair instead (the depth error a
   view shares). ``scripts/rgbd_nees.py`` on 8 pairs of the 7-Scenes chess frames now gives mean
-  NEES / 6 of 0.22 (median 0.09: conservative); the TUM fr1_rpy edges are over-confident (issue 22).
+  NEES / 6 of 0.22 (median 0.09: conservative); the TUM fr1_rpy edges are over-confident.
 - ``readout_s``: both its cameras are rolling shutters that read their rows over the frame period
   (1/30 s); frames record it (``CameraModel.readout_s``) and the keyframe manager widens the
   constraints of a moving camera by its motion over it (:func:`fpp_graph.slam.motion.with_readout_motion`).
