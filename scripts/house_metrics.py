@@ -108,7 +108,7 @@ def subpackage_graph(graph: nx.DiGraph, root: Path = ROOT) -> nx.DiGraph:
 
 def long_functions(root: Path = ROOT) -> list[tuple[int, str, str]]:
     rows = []
-    for name, path in module_files(root).items():
+    for path in module_files(root).values():
         for node in ast.walk(ast.parse(path.read_text())):
             if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
                 length = node.end_lineno - node.lineno + 1
@@ -120,7 +120,7 @@ def long_functions(root: Path = ROOT) -> list[tuple[int, str, str]]:
 
 def wide_functions(root: Path = ROOT) -> list[tuple[int, str, str]]:
     rows = []
-    for name, path in module_files(root).items():
+    for path in module_files(root).values():
         for node in ast.walk(ast.parse(path.read_text())):
             if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
                 a = node.args

@@ -23,7 +23,13 @@ from fpp_graph.backend.g2o import read_g2o
 from fpp_graph.config import config_from_dict
 from fpp_graph.errors import ConfigError
 from fpp_graph.geometry import invert
-from fpp_graph.plugins import POINTS, check_plugins, chosen_loop_detector, chosen_map_fuser, registered_plugins
+from fpp_graph.plugins import (
+    POINTS,
+    check_plugins,
+    chosen_loop_detector,
+    chosen_map_fuser,
+    registered_plugins,
+)
 from fpp_graph.trajectory import read_tum
 
 FOREIGN_MODULE = '''
