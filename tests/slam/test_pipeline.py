@@ -54,9 +54,9 @@ class WallSource:
         return config
 
     def make_registrar(self):
-        from frontend.registration import FppPairRegistrar
+        from frontend.registration import TexturedSurfaceRegistrar
 
-        return FppPairRegistrar(config().registration)
+        return TexturedSurfaceRegistrar(config().registration)
 
     def ground_truth(self):
         return Trajectory.from_poses([float(i) for i in range(len(XS))], self.poses)
