@@ -20,8 +20,8 @@ import time
 from pathlib import Path
 from typing import Any
 
-from fpp_graph.config import read_yaml_file
 from fpp_graph.errors import ConfigError
+from fpp_graph.yaml_files import read_yaml_file
 from frontend.sim import build_rig, estimate_rig_calibration
 from frontend.sim.calibration import parse_calibration_settings
 from frontend.sim.rig import parse_rig_parameters

@@ -49,10 +49,10 @@ import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
 from fpp_graph.atomic import atomic_write_text  # noqa: E402
-from fpp_graph.config import read_yaml_file  # noqa: E402
 from fpp_graph.errors import ConfigError  # noqa: E402
 from fpp_graph.geometry import invert, pose_error, se3_log  # noqa: E402
 from fpp_graph.types import ConstraintKind, Frame  # noqa: E402
+from fpp_graph.yaml_files import read_yaml_file  # noqa: E402
 from frontend.config import RegistrationConfig  # noqa: E402
 from frontend.features.detect import MATCH_RATIO, match_descriptors  # noqa: E402
 from frontend.fpp.sensor import FppSensor  # noqa: E402

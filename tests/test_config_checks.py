@@ -14,8 +14,9 @@ import pytest
 from pydantic import BaseModel
 
 from fpp_graph.cli import main
-from fpp_graph.config import Config, config_from_dict, load_config, plugin_sections, read_yaml_file
+from fpp_graph.config import Config, config_from_dict, load_config, plugin_sections
 from fpp_graph.errors import ConfigError, InputDataError
+from fpp_graph.yaml_files import read_yaml_file
 
 GRAPH = """VERTEX_SE3:QUAT 0 0 0 0 0 0 0 1
 VERTEX_SE3:QUAT 1 1 0 0 0 0 0 1

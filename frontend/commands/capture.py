@@ -61,8 +61,8 @@ def _is_sequence_file(path: Path) -> bool:
 
 
 def _sequence_calibration(path: Path) -> RigCalibration:
-    from fpp_graph.config import read_yaml_file
     from fpp_graph.errors import CalibrationError
+    from fpp_graph.yaml_files import read_yaml_file
     from frontend.fpp.rig import RigCalibration
 
     meta = read_yaml_file(path, CalibrationError, "sequence")

@@ -43,8 +43,8 @@ def scene_config(scene: str, config_path: Path | None, mesh: Path | None, seed: 
     InputDataError
         A mesh file that does not exist.
     """
-    from fpp_graph.config import read_yaml_file
     from fpp_graph.errors import ConfigError, InputDataError
+    from fpp_graph.yaml_files import read_yaml_file
 
     if scene not in SCENES:
         raise ConfigError(f"unknown scene {scene!r}; choose one of {', '.join(SCENES)}")

@@ -414,8 +414,8 @@ def _is_sequence_entry(path: Path) -> bool:
 
 def recorded_source(folder: str | os.PathLike[str]) -> dict[str, Any]:
     """The ``source`` section of ``folder/sequence.yaml`` ({} when absent or unreadable)."""
-    from fpp_graph.config import read_yaml_file
     from fpp_graph.errors import FppError
+    from fpp_graph.yaml_files import read_yaml_file
     from frontend.fpp.sequence import SEQUENCE_FILE
 
     try:

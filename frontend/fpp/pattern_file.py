@@ -10,8 +10,8 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from fpp_graph.config import read_yaml_file
 from fpp_graph.errors import ConfigError
+from fpp_graph.yaml_files import read_yaml_file
 from frontend.fpp.patterns import ORDER_TOKENS, PatternSpec
 
 FORMAT = "fpp-graph patterns v1"

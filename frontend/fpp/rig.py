@@ -17,9 +17,9 @@ import yaml
 from numpy.typing import NDArray
 
 from fpp_graph.atomic import atomic_write_text
-from fpp_graph.config import read_yaml_file
 from fpp_graph.errors import CalibrationError
 from fpp_graph.geometry import is_rigid
+from fpp_graph.yaml_files import read_yaml_file
 
 _UNIT_TO_M = {"m": 1.0, "mm": 1e-3, "cm": 1e-2}
 

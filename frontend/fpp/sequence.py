@@ -47,10 +47,10 @@ import yaml
 from numpy.typing import NDArray
 
 from fpp_graph.atomic import atomic_write_bytes, atomic_write_text
-from fpp_graph.config import read_yaml_file
 from fpp_graph.errors import CalibrationError, InputDataError, OutputError
 from fpp_graph.outputs import LOCK_NAME
 from fpp_graph.trajectory import Trajectory, read_tum, write_tum
+from fpp_graph.yaml_files import read_yaml_file
 from frontend.fpp.images import check_images_match_calibration, image_size, load_image_stack
 from frontend.fpp.patterns import PatternSpec
 from frontend.fpp.rig import RigCalibration

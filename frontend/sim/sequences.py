@@ -21,8 +21,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from fpp_graph.config import read_yaml_file
 from fpp_graph.errors import ConfigError
+from fpp_graph.yaml_files import read_yaml_file
 from frontend.fpp.capture import SIMULATED, refuse_sequence_output, sequence_output
 from frontend.fpp.patterns import PatternSpec
 from frontend.fpp.rig import RigCalibration
