@@ -16,9 +16,11 @@ import time
 import numpy as np
 
 from fpp_graph.backend.certificate_stage import certify_solution
+from fpp_graph.backend.drop_account import account_for_drops
 from fpp_graph.backend.gtsam_bridge import GraphProblem
 from fpp_graph.backend.least_squares import initial_values, least_squares
 from fpp_graph.backend.loop_evidence import flagged, refuted_at_start, screen_loops
+from fpp_graph.backend.loop_groups import readmit_groups
 from fpp_graph.backend.records import PoseGraphResult
 from fpp_graph.backend.robust_stage import truncated_least_squares
 from fpp_graph.config import PoseGraphConfig
@@ -46,10 +48,14 @@ def optimize_problem(problem: GraphProblem, cfg: PoseGraphConfig) -> PoseGraphRe
         solution = least_squares(problem, solution, cfg)
         evidence = screen_loops(problem, solution, cfg.loop_false_alarm)
     # 3. truncated least squares, only on evidence of an outlier
+    groups = []
     if gnc and flagged(evidence):
         log.info("%d loop edge(s) over the bound at the least-squares solution: truncated least squares",
                  evidence.flagged().size)
         solution = truncated_least_squares(problem, solution, evidence, cfg)
+        # groups of agreeing loops against overconfident odometry: wrong loops, or odometry
+        # more confident than it is right (the rule is in loop_groups.py)
+        solution, groups = readmit_groups(problem, solution, evidence, cfg)
         evidence = screen_loops(problem, solution, cfg.loop_false_alarm)
     # 4. the certificate
     certificate = None
@@ -75,4 +81,6 @@ def optimize_problem(problem: GraphProblem, cfg: PoseGraphConfig) -> PoseGraphRe
         loop_bound=evidence.bound if evidence is not None else math.nan,
         certificate=certificate,
         kept_edges=solution.active,
+        loop_groups=groups,
+        drop_account=account_for_drops(problem, solution, cfg.max_iterations),
     )

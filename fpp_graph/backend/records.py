@@ -16,6 +16,8 @@ if TYPE_CHECKING:
     import gtsam
 
     from fpp_graph.backend.certificate import Certificate
+    from fpp_graph.backend.drop_account import DropAccount
+    from fpp_graph.backend.loop_groups import LoopGroup
 
 Array = NDArray[np.float64]
 
@@ -119,6 +121,12 @@ class PoseGraphResult:
         is inf and ``method`` says why.
     kept_edges : (M,) bool or None
         Which of the graph's edges (insertion order) the solution uses.
+    loop_groups : list of LoopGroup
+        Groups of agreeing loops that truncated least squares left out, weighed against the
+        odometry (:mod:`fpp_graph.backend.loop_groups`): re-admitted or not, and why.
+    drop_account : DropAccount or None
+        When loops are left out: the objective over the kept and over all edges, and how far
+        least squares over every edge would move the answer (None when every edge is kept).
     """
 
     poses_world_sensor: dict[int, Array]
@@ -137,6 +145,8 @@ class PoseGraphResult:
     loop_bound: float = math.nan
     certificate: Certificate | None = None
     kept_edges: NDArray[np.bool_] | None = field(default=None, compare=False, repr=False)
+    loop_groups: list[LoopGroup] = field(default_factory=list, compare=False, repr=False)
+    drop_account: DropAccount | None = field(default=None, compare=False, repr=False)
 
     @property
     def removed_loops(self) -> list[tuple[int, int]]:

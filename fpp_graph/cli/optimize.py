@@ -84,5 +84,15 @@ def _one_line(s: dict, out: Path | None) -> str:
     return (
         f"{s['poses']} poses, {s['edges']} edges: cost {s['initial_cost']:.6g} -> {s['final_cost']:.6g} "
         f"(SE-Sync F {s['sesync_objective']:.6g}) in {s['iterations']} iterations, {s['seconds']:.3f} s; "
-        f"{len(s['rejected_loops'])} loop(s) rejected" + certificate + (f" -> {out}" if out else "")
+        f"{len(s['rejected_loops'])} loop(s) rejected" + _drops(s) + certificate + (f" -> {out}" if out else "")
     )
+
+
+def _drops(s: dict) -> str:
+    """What keeping the dropped loops would have cost (nothing when every loop is kept)."""
+    account = s.get("drop_account")
+    if not account:
+        return ""
+    return (f" (keeping them: F over all edges {account['objective_all_edges']:.6g} -> "
+            f"{account['least_squares_objective_all_edges']:.6g}, over the kept edges {account['objective_kept_edges']:.6g}; "
+            f"poses move by up to {account['moved_max_m']:.3g} m and {account['moved_max_deg']:.3g} deg)")

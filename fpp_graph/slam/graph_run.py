@@ -6,7 +6,7 @@ from __future__ import annotations
 import json
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -50,6 +50,7 @@ def graph_run_summary(run: GraphRun, certify: bool) -> dict[str, Any]:
     from fpp_graph.backend.pose_graph import sesync_objective
 
     graph, result, cert = run.graph, run.result, run.result.certificate
+    graph_pairs = [e.pair for e in graph.edges()]
     return {
         "input": str(run.path),
         "poses": graph.num_poses,
@@ -75,6 +76,10 @@ def graph_run_summary(run: GraphRun, certify: bool) -> dict[str, Any]:
         "certificate_min_eigenvalue": None if cert is None else _finite_or_none(cert.certificate_min_eigenvalue),
         "suboptimality_bound": None if cert is None else _finite_or_none(cert.suboptimality_bound),
         "certificate_method": None if cert is None else cert.method,
+        "loop_groups": [{"loops": [list(graph_pairs[i]) for i in g.edges], "variance_factor": _finite_or_none(g.variance_factor),
+                         "admitted": g.admitted, "reason": g.reason} for g in result.loop_groups],
+        "drop_account": None if result.drop_account is None else {
+            k: _finite_or_none(v) if isinstance(v, float) else v for k, v in asdict(result.drop_account).items()},
     }
 
 
