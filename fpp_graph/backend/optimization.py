@@ -82,5 +82,5 @@ def optimize_problem(problem: GraphProblem, cfg: PoseGraphConfig) -> PoseGraphRe
         certificate=certificate,
         kept_edges=solution.active,
         loop_groups=groups,
-        drop_account=account_for_drops(problem, solution, cfg.max_iterations),
+        drop_account=account_for_drops(problem, solution),
     )

@@ -14,7 +14,11 @@ from fpp_graph.backend.gtsam_bridge import GraphProblem
 from fpp_graph.backend.least_squares import initial_values, least_squares
 from fpp_graph.backend.loop_cycles import log_of, pairwise_cycle_chi2
 from fpp_graph.backend.loop_evidence import screen_loops
-from fpp_graph.backend.loop_groups import MAX_VARIANCE_FACTOR, readmit_groups, smallest_variance_factor
+from fpp_graph.backend.loop_groups import (
+    MAX_VARIANCE_FACTOR,
+    readmit_groups,
+    smallest_variance_factor,
+)
 from fpp_graph.backend.outliers import family_bound
 from fpp_graph.backend.pose_graph import sesync_objective
 from fpp_graph.cli import main
