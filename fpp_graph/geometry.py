@@ -30,13 +30,15 @@ def make_pose(rotation: ArrayLike | None = None, translation: ArrayLike | None =
 
 
 def invert(T_a_b: ArrayLike) -> Array:
-    """Return ``T_b_a`` for a rigid ``T_a_b``, (4, 4) or a stack (..., 4, 4) (exact, using R^T)."""
+    """Return ``T_b_a`` for a rigid ``T_a_b``, (4, 4) or a stack (..., 4, 4) (exact, using R^T);
+    planar (3, 3) poses likewise."""
     T = np.asarray(T_a_b, dtype=np.float64)
-    Rt = np.swapaxes(T[..., :3, :3], -1, -2)
+    d = T.shape[-1] - 1
+    Rt = np.swapaxes(T[..., :d, :d], -1, -2)
     out = np.zeros(T.shape)
-    out[..., :3, :3] = Rt
-    out[..., :3, 3] = -(Rt @ T[..., :3, 3, None])[..., 0]
-    out[..., 3, 3] = 1.0
+    out[..., :d, :d] = Rt
+    out[..., :d, d] = -(Rt @ T[..., :d, d, None])[..., 0]
+    out[..., d, d] = 1.0
     return out
 
 
