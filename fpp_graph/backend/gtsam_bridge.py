@@ -362,11 +362,18 @@ class GraphProblem:
         pose); next to edges of precision ~1e8 and more (sub-mm, sub-mrad ICP constraints) its
         linear solves report an indeterminate system. Its result does not change under a common
         scaling of all information, so the graph is normalised to a largest precision of 1 and
-        the anchors are given that precision. LAGO (2D) is treated alike.
+        the anchors are given that precision. LAGO (2D) is treated alike; it reads each edge's
+        heading sigma from a diagonal noise model only, so in 2D each information is replaced by
+        the diagonal of its marginal precisions (``1 / diag(covariance)``), which keeps each
+        coordinate's variance; the start is all it shapes, LM then uses the full matrices.
         """
         import gtsam
 
         scale = 1.0 / self.stiffest
+        information = self.model_information
+        if self.dimension == 2 and len(information):
+            marginal = 1.0 / np.diagonal(np.linalg.inv(information), axis1=1, axis2=2)
+            information = np.einsum("ni,ij->nij", marginal, np.eye(3))
         graph = gtsam.NonlinearFactorGraph()
         anchor_noise = gtsam.noiseModel.Isotropic.Precision(self.dof, 1.0)
         for k in self.anchors:
@@ -375,7 +382,7 @@ class GraphProblem:
             graph.add(prior_factor(p.key, p.T_world_sensor, gaussian_noise(scale * p.information_rot_trans)))
         for i in np.flatnonzero(active):
             e = self.edges[i]
-            graph.add(between_factor(e.target_id, e.source_id, self.measured[i], gaussian_noise(scale * self.model_information[i])))
+            graph.add(between_factor(e.target_id, e.source_id, self.measured[i], gaussian_noise(scale * information[i])))
         return graph
 
     def chordal(self, active: NDArray[np.bool_]) -> tuple[gtsam.Values | None, str]:
