@@ -61,7 +61,7 @@ def sesync_tau_kappa(information_rot_trans: ArrayLike) -> tuple[Array, Array]:
     info = np.asarray(information_rot_trans, dtype=np.float64)
     if dimension_of_information(info) == 2:
         trans_cov_trace = np.trace(np.linalg.inv(info[..., 1:, 1:]), axis1=-2, axis2=-1)
-        return 2.0 / trans_cov_trace, info[..., 0, 0].copy()
+        return 2.0 / trans_cov_trace, 1.0 * info[..., 0, 0]  # a copy; a scalar for one matrix, as in 3D
     rot_cov_trace = np.trace(np.linalg.inv(info[..., :3, :3]), axis1=-2, axis2=-1)
     trans_cov_trace = np.trace(np.linalg.inv(info[..., 3:, 3:]), axis1=-2, axis2=-1)
     return 3.0 / trans_cov_trace, 3.0 / (2.0 * rot_cov_trace)
