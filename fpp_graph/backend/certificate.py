@@ -434,21 +434,12 @@ def certify_arrays(
     log.info("certificate: %s, F %.10g, lambda_min %.3g (eta %.3g), bound %.3g, %s, %.3f s",
              "certified" if psd else "NOT certified", F, lambda_min, eta, bound, method, seconds)
     return Certificate(
-        certified=bool(psd),
-        certificate_min_eigenvalue=lambda_min,
-        spectral_gap=float(w[d]) if len(w) > d else math.nan,
-        suboptimality_bound=float(bound),
-        objective=float(F),
-        input_objective=float(input_F),
-        poses_world_sensor=poses,
-        seconds=seconds,
-        escaped=escaped,
-        method=method,
-        eta=float(eta),
-        relative_suboptimality=float(relative_suboptimality),
-        numerical_floor=float(numerical_floor),
-        gradient_norm=float(gradient_norm),
-        relaxation_objective=float(relaxation_F),
+        certified=bool(psd), certificate_min_eigenvalue=lambda_min,
+        spectral_gap=float(w[d]) if len(w) > d else math.nan,  # the first eigenvalue after the d gauge ones
+        suboptimality_bound=float(bound), objective=float(F), input_objective=float(input_F),
+        poses_world_sensor=poses, seconds=seconds, escaped=escaped, method=method, eta=float(eta),
+        relative_suboptimality=float(relative_suboptimality), numerical_floor=float(numerical_floor),
+        gradient_norm=float(gradient_norm), relaxation_objective=float(relaxation_F),
     )
 
 
