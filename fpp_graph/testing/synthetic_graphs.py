@@ -584,9 +584,9 @@ def manhattan_graph(
     The robot moves one cell per step, keeping its heading or (with ``turn_probability``)
     turning by +-90 degrees, inside a square of side ``round(sqrt(num_poses) / 2)`` cells so
     that it revisits places; it turns back at the border. Each pose looks along its direction
-    of travel. Odometry links consecutive poses. Loop candidates join a pose to an earlier
-    visit of its cell at least ``min_separation`` steps before (the most recent such visit);
-    ``round(loops_per_pose * num_poses)`` of them are kept, drawn at random.
+    of travel. Odometry links consecutive poses. Loop candidates join a pose to the earlier
+    visits of its cell at least ``min_separation`` steps before (the two most recent such
+    visits); ``round(loops_per_pose * num_poses)`` of them are kept, drawn at random.
 
     Measurements carry noise ``N(0, diag(rotation_sigma_rad^2, translation_sigma_m^2 I2))`` in
     ``[theta, x, y]`` and that information. ``rng`` defaults to ``np.random.default_rng(0)``.
@@ -619,8 +619,7 @@ def manhattan_graph(
     candidates = []
     for k, cell in enumerate(map(tuple, cells.tolist())):
         earlier = [j for j in last_visits.get(cell, []) if k - j >= min_separation]
-        if earlier:
-            candidates.append((k, earlier[-1]))
+        candidates.extend((k, j) for j in earlier[-2:])
         last_visits.setdefault(cell, []).append(k)
     count = min(len(candidates), round(loops_per_pose * num_poses))
     for c in np.sort(rng.choice(len(candidates), size=count, replace=False)):
