@@ -8,6 +8,7 @@ gtsam is imported inside the functions so that importing the back-end stays chea
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable, Iterator, Mapping, Sequence
 from typing import TYPE_CHECKING
 
@@ -105,7 +106,8 @@ def gtsam_pose(T: Array) -> gtsam.Pose3 | gtsam.Pose2:
     import gtsam
 
     if T.shape == (3, 3):
-        return gtsam.Pose2(float(T[0, 2]), float(T[1, 2]), float(np.arctan2(T[1, 0], T[0, 0])))
+        x, y, cos, sin = T[0, 2].item(), T[1, 2].item(), T[0, 0].item(), T[1, 0].item()  # Python floats: math is ~10x numpy on scalars
+        return gtsam.Pose2(x, y, math.atan2(sin, cos))
     return gtsam.Pose3(T)
 
 
@@ -296,7 +298,7 @@ class GraphProblem:
         self.prior_factors = [
             prior_factor(p.key, p.T_world_sensor, gaussian_noise(p.information_rot_trans)) for p in self.priors
         ]
-        self.noise = [gaussian_noise(w) for w in info]
+        self.noise = [gtsam.noiseModel.Gaussian.Information(w) for w in gtsam_information(info)]  # permuted at once
         self.measured = [gtsam_pose(e.T_target_source) for e in self.edges]
         self.gaussian = [
             between_factor(e.target_id, e.source_id, m, n)
@@ -380,9 +382,10 @@ class GraphProblem:
             graph.add(prior_factor(k, self.anchor_poses[k], anchor_noise))
         for p in self.priors:
             graph.add(prior_factor(p.key, p.T_world_sensor, gaussian_noise(scale * p.information_rot_trans)))
+        information = gtsam_information(scale * information)
         for i in np.flatnonzero(active):
             e = self.edges[i]
-            graph.add(between_factor(e.target_id, e.source_id, self.measured[i], gaussian_noise(scale * information[i])))
+            graph.add(between_factor(e.target_id, e.source_id, self.measured[i], gtsam.noiseModel.Gaussian.Information(information[i])))
         return graph
 
     def chordal(self, active: NDArray[np.bool_]) -> tuple[gtsam.Values | None, str]:
