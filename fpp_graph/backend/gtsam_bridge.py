@@ -365,23 +365,20 @@ class GraphProblem:
         linear solves report an indeterminate system. Its result does not change under a common
         scaling of all information, so the graph is normalised to a largest precision of 1 and
         the anchors are given that precision. LAGO (2D) is treated alike; it reads each edge's
-        heading sigma from a diagonal noise model only, so in 2D each information is replaced by
-        the diagonal of its marginal precisions (``1 / diag(covariance)``), which keeps each
-        coordinate's variance; the start is all it shapes, LM then uses the full matrices.
+        and prior's heading sigma from a diagonal noise model only, so in 2D each information is
+        replaced by the diagonal of its marginal precisions (``1 / diag(covariance)``), which
+        keeps each coordinate's variance; the start is all it shapes, LM then uses the full matrices.
         """
         import gtsam
 
         scale = 1.0 / self.stiffest
-        information = self.model_information
-        if self.dimension == 2 and len(information):
-            marginal = 1.0 / np.diagonal(np.linalg.inv(information), axis1=1, axis2=2)
-            information = np.einsum("ni,ij->nij", marginal, np.eye(3))
+        information = _for_initialiser(self.model_information)
         graph = gtsam.NonlinearFactorGraph()
         anchor_noise = gtsam.noiseModel.Isotropic.Precision(self.dof, 1.0)
         for k in self.anchors:
             graph.add(prior_factor(k, self.anchor_poses[k], anchor_noise))
         for p in self.priors:
-            graph.add(prior_factor(p.key, p.T_world_sensor, gaussian_noise(scale * p.information_rot_trans)))
+            graph.add(prior_factor(p.key, p.T_world_sensor, gaussian_noise(scale * _for_initialiser(p.information_rot_trans))))
         information = gtsam_information(scale * information)
         for i in np.flatnonzero(active):
             e = self.edges[i]
@@ -455,6 +452,15 @@ class GraphProblem:
         """The poses of ``values`` with the anchors held exactly (:func:`poses_with_gauge`)."""
         return poses_with_gauge(poses_from(values, self.given_poses, self.dimension), self.given_poses, self.anchors,
                                 bool(self.priors))
+
+
+def _for_initialiser(information_rot_trans: Array) -> Array:
+    """Information (..., n, n) as the initialiser takes it: 6x6 as is; 3x3 (planar, for LAGO,
+    which needs diagonal noise) replaced by its marginal precisions ``1 / diag(inv(information))``."""
+    if information_rot_trans.shape[-1] != 3 or information_rot_trans.size == 0:
+        return information_rot_trans
+    marginal = 1.0 / np.diagonal(np.linalg.inv(information_rot_trans), axis1=-2, axis2=-1)
+    return marginal[..., :, None] * np.eye(3)
 
 
 def poses_with_gauge(

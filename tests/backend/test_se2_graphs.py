@@ -136,6 +136,23 @@ def test_planar_marginal_covariance_is_theta_x_y() -> None:
     np.testing.assert_allclose(covariance, np.diag(sigmas**2), rtol=1e-6, atol=1e-10)  # the anchor is 1e8x stiffer, not exact
 
 
+def test_the_lago_start_takes_edges_and_priors_with_correlated_information() -> None:
+    """LAGO reads diagonal noise only; full 3x3 informations must not cost the chordal-like start."""
+    sim = manhattan_graph(150, rng=np.random.default_rng(3))
+    correlated = np.array([[2500.0, 30.0, 20.0], [30.0, 400.0, 50.0], [20.0, 50.0, 300.0]])  # [theta, x, y]
+    graph = PoseGraph(dimension=2)
+    initial = sim.odometry_chain()
+    for k in sorted(sim.poses_true):
+        graph.add_pose(k, initial[k])
+    for s, t, T, _, kind in sim.edges:
+        graph.add_edge(s, t, T, correlated, kind)
+    graph.add_prior(0, sim.poses_true[0], correlated)
+    graph.add_prior(100, sim.poses_true[100], correlated)
+    result = graph.optimize(PoseGraphConfig(certify=False))
+    assert result.initialization == "chordal"
+    assert ate_rmse_m(result.poses_world_sensor, sim.poses_true) < 0.5
+
+
 def test_se2_helpers_agree_with_gtsam() -> None:
     rng = np.random.default_rng(2)
     for _ in range(20):
