@@ -30,8 +30,8 @@ def make_pose(rotation: ArrayLike | None = None, translation: ArrayLike | None =
 
 
 def invert(T_a_b: ArrayLike) -> Array:
-    """Return ``T_b_a`` for a rigid ``T_a_b``, (4, 4) or a stack (..., 4, 4), or planar (3, 3)
-    (exact, using R^T)."""
+    """Return ``T_b_a`` for a rigid ``T_a_b``, (4, 4) or a stack (..., 4, 4) (exact, using R^T);
+    planar (3, 3) poses likewise."""
     T = np.asarray(T_a_b, dtype=np.float64)
     d = T.shape[-1] - 1
     Rt = np.swapaxes(T[..., :d, :d], -1, -2)

@@ -3,6 +3,7 @@
 Part of the certificate (:mod:`fpp_graph.backend.certificate`, whose module docstring states the problem,
 the method and the tolerance): the sparse assembly of ``M`` (step 1) and, on the grounded augmented
 matrix, the LDL^T inertia count of ``S + eta I`` and the smallest eigenpairs of ``S`` (step 3).
+For SE(d), d = 3 or 2 (read from the measured rotations): ``M`` is (d+1) n square, ``S`` dn.
 """
 
 from __future__ import annotations
@@ -27,15 +28,18 @@ _ARPACK_MIN_ORDER = 30
 
 
 def dense_eigen_order() -> int:
-    """Largest order of S (3n) decomposed densely: half the order up to which the other systems
+    """Largest order of S (dn) decomposed densely: half the order up to which the other systems
     are factored densely (:data:`fpp_graph.backend.symmetric_factor.DENSE_ORDER`), because the
-    refinement's Newton Hessian (order 6n - 6) is twice S's; so a problem small enough for dense
-    Newton steps never imports scipy.sparse.linalg."""
+    refinement's Newton Hessian (order 6n - 6 in 3D, 3n - 3 in 2D) is at most twice S's; so a
+    problem small enough for dense Newton steps never imports scipy.sparse.linalg."""
     return max(symmetric_factor.DENSE_ORDER // 2, _ARPACK_MIN_ORDER)
 
 
-#: Eigenpairs computed: the 3 gauge ones and the first non-gauge one (the spectral gap).
-_NUM_EIGENPAIRS = 4
+def eigenpairs_computed(d: int) -> int:
+    """Eigenpairs of ``S`` computed: the d gauge ones (``S R^T = 0`` at a critical point: the d
+    columns of ``R^T``, one per row of the rotations, span S's kernel) and the first non-gauge
+    one (the spectral gap)."""
+    return d + 1
 
 
 # ----------------------------------------------------------------------------------------------
@@ -49,8 +53,8 @@ class SESyncData:
     ----------
     keys : (n,) int64
         Pose keys, in the order of the variables.
-    M : (4n, 4n) scipy.sparse.csr_matrix
-        ``F = tr(X M X^T)`` with ``X = [R_1 .. R_n | t_1 .. t_n]``.
+    M : ((d+1) n, (d+1) n) scipy.sparse.csr_matrix
+        ``F = tr(X M X^T)`` with ``X = [R_1 .. R_n | t_1 .. t_n]`` (d x (d+1) n).
     grounded : int
         Index of the pose whose position is held at 0 when translations are eliminated.
     translation_factor : SymmetricFactor
@@ -81,6 +85,11 @@ class SESyncData:
     def n(self) -> int:
         return len(self.keys)
 
+    @property
+    def d(self) -> int:
+        """Dimension of the poses: 3 for SE(3), 2 for SE(2)."""
+        return self.R_target_source.shape[-1]
+
 
 def build_data(
     keys: NDArray[np.int64],
@@ -99,57 +108,58 @@ def build_data(
     keys : (n,) int
     target_index, source_index : (m,) int
         Variable indices (into ``keys``) of each edge's target ``t`` and source ``s``.
-    R_target_source : (m, 3, 3)
-    t_target_source : (m, 3)
+    R_target_source : (m, d, d)
+        d = 3 (SE(3)) or 2 (SE(2)).
+    t_target_source : (m, d)
         Metres.
     tau, kappa : (m,)
         SE-Sync's translation and rotation precisions.
     grounded : int
         Variable index whose position is grounded.
     """
-    n = len(keys)
+    n, d = len(keys), np.shape(R_target_source)[-1]
     i, j = np.asarray(target_index), np.asarray(source_index)
     m = len(i)
-    e3 = np.arange(3)
+    ed = np.arange(d)
     rows, cols, vals = [], [], []
 
     def block(r0: Array, c0: Array, values: Array) -> None:
-        """(m, 3, 3) blocks at rows r0+a, cols c0+b."""
-        rows.append((r0[:, None, None] + e3[None, :, None] + 0 * e3[None, None, :]).ravel())
-        cols.append((c0[:, None, None] + 0 * e3[None, :, None] + e3[None, None, :]).ravel())
+        """(m, d, d) blocks at rows r0+a, cols c0+b."""
+        rows.append((r0[:, None, None] + ed[None, :, None] + 0 * ed[None, None, :]).ravel())
+        cols.append((c0[:, None, None] + 0 * ed[None, :, None] + ed[None, None, :]).ravel())
         vals.append(values.ravel())
 
-    eye = np.broadcast_to(np.eye(3), (m, 3, 3))
+    eye = np.broadcast_to(np.eye(d), (m, d, d))
     k = kappa[:, None, None]
     tt = tau[:, None, None] * np.einsum("ma,mb->mab", t_target_source, t_target_source)
     # rotation term kappa ||R_s - R_t R_ts||^2: blocks (s,s) = (t,t) = kappa I, (t,s) = -kappa R_ts
-    block(3 * j, 3 * j, k * eye)
-    block(3 * i, 3 * i, k * eye + tt)
-    block(3 * i, 3 * j, -k * R_target_source)
-    block(3 * j, 3 * i, -k * np.transpose(R_target_source, (0, 2, 1)))
+    block(d * j, d * j, k * eye)
+    block(d * i, d * i, k * eye + tt)
+    block(d * i, d * j, -k * R_target_source)
+    block(d * j, d * i, -k * np.transpose(R_target_source, (0, 2, 1)))
     # translation term tau ||t_s - t_t - R_t t_ts||^2
-    ti, tj = 3 * n + i, 3 * n + j
+    ti, tj = d * n + i, d * n + j
     rows += [ti, tj, ti, tj]
     cols += [ti, tj, tj, ti]
     vals += [tau, tau, -tau, -tau]
-    coupling = tau[:, None] * t_target_source  # (m, 3): +at (R_t, t_t), - at (R_t, t_s)
-    r_rot = (3 * i)[:, None] + e3[None, :]
+    coupling = tau[:, None] * t_target_source  # (m, d): +at (R_t, t_t), - at (R_t, t_s)
+    r_rot = (d * i)[:, None] + ed[None, :]
     for t_col, sign in ((ti, 1.0), (tj, -1.0)):
-        c = np.broadcast_to(t_col[:, None], (m, 3))
+        c = np.broadcast_to(t_col[:, None], (m, d))
         rows += [r_rot.ravel(), c.ravel()]
         cols += [c.ravel(), r_rot.ravel()]
         vals += [(sign * coupling).ravel(), (sign * coupling).ravel()]
     M = sp.csr_matrix(
-        (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(4 * n, 4 * n)
+        (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=((d + 1) * n, (d + 1) * n)
     )
     M.sum_duplicates()
     M = ((M + M.T) * 0.5).tocsr()  # exact symmetry
-    keep = np.delete(np.arange(n), grounded) + 3 * n
+    keep = np.delete(np.arange(n), grounded) + d * n
     L_t = M[keep][:, keep].tocsc()
     factor, _ = factor_symmetric(L_t)
     if factor is None:  # a connected, grounded Laplacian with positive weights is definite
         raise ValueError("the grounded translation Laplacian is not positive definite (tau <= 0 or disconnected edges)")
-    scale = float(M.diagonal()[: 3 * n].max())
+    scale = float(M.diagonal()[: d * n].max())
     ones = np.ones(m)
     to_source = sp.csr_matrix((ones, (j, np.arange(m))), shape=(n, m))
     to_target = sp.csr_matrix((ones, (i, np.arange(m))), shape=(n, m))
@@ -162,17 +172,17 @@ def build_data(
 # The certificate matrix S = Q - Lambda
 # ----------------------------------------------------------------------------------------------
 class CertificateMatrix:
-    """``S = Q - Lambda`` (3n x 3n) through the grounded augmented matrix (never dense ``Q``)."""
+    """``S = Q - Lambda`` (dn x dn) through the grounded augmented matrix (never dense ``Q``)."""
 
     def __init__(self, data: SESyncData, Lambda: Array) -> None:
-        n = data.n
+        dn = data.d * data.n
         self.data = data
-        self.size = 3 * n
-        keep = np.concatenate([np.arange(3 * n), 3 * n + np.delete(np.arange(n), data.grounded)])
+        self.size = dn
+        keep = np.concatenate([np.arange(dn), dn + np.delete(np.arange(data.n), data.grounded)])
         self.augmented = (data.M[keep][:, keep] - block_diagonal(Lambda, len(keep))).tocsc()
-        self._M_RR = self.augmented[: 3 * n, : 3 * n]
-        self._M_tR = self.augmented[3 * n :, : 3 * n].tocsr()
-        self._M_Rt = self.augmented[: 3 * n, 3 * n :].tocsr()
+        self._M_RR = self.augmented[:dn, :dn]
+        self._M_tR = self.augmented[dn:, :dn].tocsr()
+        self._M_Rt = self.augmented[:dn, dn:].tocsr()
 
     def shifted(self, sigma: float) -> sp.csc_matrix:
         """The augmented matrix of ``S - sigma I``."""
@@ -180,7 +190,7 @@ class CertificateMatrix:
         return (self.augmented - shift).tocsc()
 
     def matvec(self, v: Array) -> Array:
-        """``S v`` for ``v`` of shape (3n,) or (3n, k)."""
+        """``S v`` for ``v`` of shape (dn,) or (dn, k)."""
         y = self.data.translation_factor.solve(np.ascontiguousarray(self._M_tR @ v))
         return self._M_RR @ v - self._M_Rt @ y
 
@@ -192,8 +202,9 @@ class CertificateMatrix:
         (-1: unknown), always sparse: the inertia is what is asked."""
         return factor_symmetric(self.shifted(sigma), dense_order=0)
 
-    def smallest(self, eta: float, k: int = _NUM_EIGENPAIRS) -> tuple[bool, Array, Array]:
-        """Inertia test of ``S + eta I`` and the ``k`` smallest eigenpairs of ``S``.
+    def smallest(self, eta: float, k: int | None = None) -> tuple[bool, Array, Array]:
+        """Inertia test of ``S + eta I`` and the ``k`` smallest eigenpairs of ``S`` (default
+        :func:`eigenpairs_computed`).
 
         Returns
         -------
@@ -201,7 +212,7 @@ class CertificateMatrix:
             ``S + eta I`` has no negative eigenvalue (``lambda_min >= -eta``).
         eigenvalues : (k,)
             Ascending.
-        eigenvectors : (3n, k)
+        eigenvectors : (dn, k)
             NaN when ``psd`` on the dense path (small problems): only a failed certificate's
             staircase uses them, and eigenvalues alone cost a third of the decomposition.
 
@@ -215,6 +226,7 @@ class CertificateMatrix:
         preconditioned eigensolver pays where it replaces the factorisation, which a rigorous
         verdict does not allow.
         """
+        k = eigenpairs_computed(self.data.d) if k is None else k
         dense = self.size <= dense_eigen_order()
         lu, negatives = (None, -1) if dense else self.negative_count(-eta)
         if lu is None or negatives < 0:

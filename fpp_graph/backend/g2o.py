@@ -1,10 +1,19 @@
-"""g2o 3D pose-graph files: ``VERTEX_SE3:QUAT``, ``EDGE_SE3:QUAT`` and ``FIX``, read and written.
+"""g2o pose-graph files, 3D (``VERTEX_SE3:QUAT``, ``EDGE_SE3:QUAT``) and planar
+(``VERTEX_SE2``, ``EDGE_SE2``), with ``FIX``, read and written.
 
 Format (one record per line, ``#`` starts a comment)::
 
     VERTEX_SE3:QUAT id tx ty tz qx qy qz qw
     EDGE_SE3:QUAT i j tx ty tz qx qy qz qw  I11 I12 ... I16 I22 ... I66
+    VERTEX_SE2 id x y theta
+    EDGE_SE2 i j dx dy dtheta  I11 I12 I13 I22 I23 I33
     FIX id [id ...]
+
+A planar file (the SE-Sync collection's intel, manhattan, city10000, ..., and what 2D LiDAR
+front-ends such as slam_toolbox or Cartographer export) reads into a ``PoseGraph(dimension=2)``
+with 3x3 homogeneous poses; its edges' 6 numbers are the upper triangle of the 3x3 information
+in the file's ``[x, y, theta]`` order, held as ``[theta, x, y]`` (``[rot, trans]``) and permuted
+back on write; headings are written back as read. A file mixing 2D and 3D records is refused.
 
 A vertex holds ``T_world_sensor``. An edge's measurement is ``T_i_j``: it maps points of vertex
 ``j`` into vertex ``i``, so ``i`` is the target and ``j`` the source of a
@@ -49,18 +58,28 @@ from fpp_graph.atomic import atomic_open
 from fpp_graph.backend.pose_graph import PoseGraph, PoseGraphEdge
 from fpp_graph.errors import InputDataError
 from fpp_graph.geometry import rotations_from_quats_xyzw
+from fpp_graph.planar import se2_heading_rad, se2_pose
 from fpp_graph.types import ConstraintKind
 
 log = logging.getLogger(__name__)
 
 VERTEX_TAG = "VERTEX_SE3:QUAT"
 EDGE_TAG = "EDGE_SE3:QUAT"
+VERTEX_SE2_TAG = "VERTEX_SE2"
+EDGE_SE2_TAG = "EDGE_SE2"
 FIX_TAG = "FIX"
 _QUAT_NORM_TOLERANCE = 1e-3  # files of other tools carry 6-7 digit quaternions
 _MIN_EIGENVALUE_RATIO = 1e-14  # below this smallest/largest eigenvalue, information is singular in double
 _G2O_FROM_ROT_TRANS = np.array([3, 4, 5, 0, 1, 2])  # [trans, rot] <-> [rot, trans] (its own inverse)
 _UPPER = np.triu_indices(6)
-_KNOWN_2D = {"VERTEX_SE2", "EDGE_SE2", "VERTEX_XY", "EDGE_SE2_XY"}
+_G2O_FROM_ROT_TRANS_2D = np.array([1, 2, 0])  # [theta, x, y] -> [x, y, theta]
+_ROT_TRANS_FROM_G2O_2D = np.array([2, 0, 1])  # [x, y, theta] -> [theta, x, y]
+_UPPER_2D = np.triu_indices(3)
+_LANDMARKS = {"VERTEX_XY", "EDGE_SE2_XY", "VERTEX_TRACKXYZ", "EDGE_SE3_TRACKXYZ"}
+#: Per dimension: vertex tag, edge tag, vertex fields, edge fields (both after the ids).
+_TAGS = {3: (VERTEX_TAG, EDGE_TAG, 7, 28), 2: (VERTEX_SE2_TAG, EDGE_SE2_TAG, 3, 9)}
+_FIELDS = {VERTEX_TAG: "id tx ty tz qx qy qz qw", EDGE_TAG: "i j tx ty tz qx qy qz qw and 21 information entries",
+           VERTEX_SE2_TAG: "id x y theta", EDGE_SE2_TAG: "i j dx dy dtheta and 6 information entries"}
 
 
 def _fail(path: Path, line: int, message: str) -> InputDataError:
@@ -152,8 +171,10 @@ def _checked_information(info: NDArray[np.float64], lines: list[int], path: Path
     suspect = np.flatnonzero(~full_ok)
     if len(suspect) == 0:
         return info
-    eig_rot = _eigenvalues(info[suspect, :3, :3])
-    eig_trans = _eigenvalues(info[suspect, 3:, 3:])
+    dof = info.shape[-1]
+    rot = 3 if dof == 6 else 1  # rotation block: 3x3 in 3D, theta alone in 2D
+    eig_rot = _eigenvalues(info[suspect, :rot, :rot])
+    eig_trans = _eigenvalues(info[suspect, rot:, rot:])
     rot_ok, trans_ok = _is_definite(eig_rot), _is_definite(eig_trans)
     # the projection's eigenvalues are the blocks' together: it must pass the same test
     eig_both = np.sort(np.concatenate([eig_rot, eig_trans], axis=1), axis=1)
@@ -174,10 +195,10 @@ def _checked_information(info: NDArray[np.float64], lines: list[int], path: Path
         else:
             verb = "is" if len(failed) == 1 else "are"
             problem = f"{' and '.join(failed)} of the information matrix {verb} not positive definite"
-        raise _fail(path, lines[int(suspect[k])], f"{problem}; an edge must constrain all 6 degrees of freedom")
+        raise _fail(path, lines[int(suspect[k])], f"{problem}; an edge must constrain all {dof} degrees of freedom")
     info = info.copy()
-    info[suspect, :3, 3:] = 0.0
-    info[suspect, 3:, :3] = 0.0
+    info[suspect, :rot, rot:] = 0.0
+    info[suspect, rot:, :rot] = 0.0
     log.warning(
         "%s: %d edge(s) have an information matrix that is not positive definite although its rotation and "
         "translation blocks are (first on line %d); their rotation-translation coupling is dropped "
@@ -192,12 +213,13 @@ class _Records:
     """The records of a g2o file as read line by line, each with its line number."""
 
     vertex_ids: list[int]
-    vertex_values: list[list[str]]  # tx ty tz qx qy qz qw, as written (parsed in one numpy pass)
+    vertex_values: list[list[str]]  # tx ty tz qx qy qz qw (2D: x y theta), as written (parsed in one numpy pass)
     vertex_lines: list[int]
     edge_ids: list[tuple[int, int]]  # (i, j): target i, source j
-    edge_values: list[list[str]]  # tx ty tz qx qy qz qw and 21 information entries, as written
+    edge_values: list[list[str]]  # tx ty tz qx qy qz qw and 21 information entries (2D: dx dy dtheta and 6), as written
     edge_lines: list[int]
     fixed: list[tuple[int, int]]  # (vertex id, line)
+    dimension: int = 3  # of the pose records (3 when there are none)
 
 
 UTF8_BOM = b"\xef\xbb\xbf"
@@ -218,6 +240,7 @@ def _read_records(path: Path, data: bytes) -> _Records:
     e_vals: list[list[str]] = []
     e_lines: list[int] = []
     fixed: list[tuple[int, int]] = []
+    first: dict[int, tuple[str, int]] = {}  # dimension -> the first pose record of it (tag, line)
     for lineno, raw in enumerate(data.splitlines(), start=1):
         try:
             line = raw.decode("ascii")
@@ -232,45 +255,55 @@ def _read_records(path: Path, data: bytes) -> _Records:
         tag = tokens[0]
         if "_" in line[line.index(tag) + len(tag):]:  # float() would accept "1_000"
             raise _fail(path, lineno, "numbers must not contain '_'")
-        if tag == VERTEX_TAG:
-            if len(tokens) != 9:
-                raise _fail(path, lineno, f"{tag} needs 8 fields (id tx ty tz qx qy qz qw), got {len(tokens) - 1}")
-            v_ids.append(_parse_id(tokens[1], path, lineno, tag))
-            v_vals.append(tokens[2:])
-            v_lines.append(lineno)
-        elif tag == EDGE_TAG:
-            if len(tokens) != 31:
-                raise _fail(
-                    path, lineno,
-                    f"{tag} needs 30 fields (i j tx ty tz qx qy qz qw and 21 information entries), got {len(tokens) - 1}",
-                )
-            e_ids.append((_parse_id(tokens[1], path, lineno, tag), _parse_id(tokens[2], path, lineno, tag)))
-            e_vals.append(tokens[3:])
-            e_lines.append(lineno)
-        elif tag == FIX_TAG:
+        if tag == FIX_TAG:
             if len(tokens) < 2:
                 raise _fail(path, lineno, "FIX needs at least one vertex id")
             fixed.extend((_parse_id(t, path, lineno, tag), lineno) for t in tokens[1:])
-        elif tag in _KNOWN_2D:
-            raise _fail(path, lineno, f"{tag} is a 2D record; only 3D graphs (VERTEX_SE3:QUAT, EDGE_SE3:QUAT) are supported")
+            continue
+        dimension = next((d for d, tags in _TAGS.items() if tag in tags[:2]), None)
+        if dimension is None:
+            if tag in _LANDMARKS:
+                raise _fail(path, lineno, f"{tag} is a landmark record; only pose graphs (poses and relative-pose edges) are supported")
+            raise _fail(path, lineno, f"unknown record {tag!r}; expected {VERTEX_TAG}, {EDGE_TAG}, "
+                                      f"{VERTEX_SE2_TAG}, {EDGE_SE2_TAG} or {FIX_TAG}")
+        first.setdefault(dimension, (tag, lineno))
+        if len(first) > 1:
+            other_tag, other_line = first[5 - dimension]
+            raise _fail(path, lineno, f"{tag} is a {dimension}D record but line {other_line} holds {other_tag}, a "
+                                      f"{5 - dimension}D one; a pose graph file is either planar or 3D, not both")
+        vertex_tag, _, vertex_fields, edge_fields = _TAGS[dimension]
+        if tag == vertex_tag:
+            if len(tokens) != 2 + vertex_fields:
+                raise _fail(path, lineno, f"{tag} needs {1 + vertex_fields} fields ({_FIELDS[tag]}), got {len(tokens) - 1}")
+            v_ids.append(_parse_id(tokens[1], path, lineno, tag))
+            v_vals.append(tokens[2:])
+            v_lines.append(lineno)
         else:
-            raise _fail(path, lineno, f"unknown record {tag!r}; expected {VERTEX_TAG}, {EDGE_TAG} or {FIX_TAG}")
-    return _Records(v_ids, v_vals, v_lines, e_ids, e_vals, e_lines, fixed)
+            if len(tokens) != 3 + edge_fields:
+                raise _fail(path, lineno, f"{tag} needs {2 + edge_fields} fields ({_FIELDS[tag]}), got {len(tokens) - 1}")
+            e_ids.append((_parse_id(tokens[1], path, lineno, tag), _parse_id(tokens[2], path, lineno, tag)))
+            e_vals.append(tokens[3:])
+            e_lines.append(lineno)
+    return _Records(v_ids, v_vals, v_lines, e_ids, e_vals, e_lines, fixed, next(iter(first), 3))
 
 
 def _parse_vertices(records: _Records, path: Path) -> tuple[dict[int, int], NDArray[np.float64], NDArray[np.float64]]:
-    """Checked vertices: each id's line, the (n, 7) values and the (n, 4, 4) ``T_world_sensor``."""
+    """Checked vertices: each id's line, the (n, 7) values and the (n, 4, 4) ``T_world_sensor``
+    (2D: (n, 3) and (n, 3, 3))."""
+    vertex_tag, _, fields, _ = _TAGS[records.dimension]
     if not records.vertex_ids:
-        raise InputDataError(f"{path}: no {VERTEX_TAG} records; not a 3D g2o pose graph")
+        raise InputDataError(f"{path}: no {vertex_tag} records; not a g2o pose graph")
     vertex_line: dict[int, int] = {}
     for key, lineno in zip(records.vertex_ids, records.vertex_lines, strict=True):
         if key in vertex_line:
             raise _fail(path, lineno, f"vertex {key} is defined twice (first on line {vertex_line[key]})")
         vertex_line[key] = lineno
-    v = _numbers(records.vertex_values, records.vertex_lines, path, VERTEX_TAG).reshape(-1, 7)
+    v = _numbers(records.vertex_values, records.vertex_lines, path, vertex_tag).reshape(-1, fields)
     bad = np.flatnonzero(~np.all(np.isfinite(v), axis=1))
     if len(bad):
-        raise _fail(path, records.vertex_lines[int(bad[0])], f"{VERTEX_TAG}: NaN or infinite value")
+        raise _fail(path, records.vertex_lines[int(bad[0])], f"{vertex_tag}: NaN or infinite value")
+    if records.dimension == 2:
+        return vertex_line, v, se2_pose(v[:, 0], v[:, 1], v[:, 2])
     poses = np.tile(np.eye(4), (len(v), 1, 1))
     poses[:, :3, :3] = _rotations_from_quats(v[:, 3:], records.vertex_lines, path, VERTEX_TAG)
     poses[:, :3, 3] = v[:, :3]
@@ -280,18 +313,26 @@ def _parse_vertices(records: _Records, path: Path) -> tuple[dict[int, int], NDAr
 def _parse_edges(
     records: _Records, vertex_line: Mapping[int, int], path: Path
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
-    """Checked edges: the (m, 28) values, (m, 3, 3) rotations and (m, 6, 6) ``[rot, trans]`` information."""
+    """Checked edges: the (m, 28) values, (m, 3, 3) rotations and (m, 6, 6) ``[rot, trans]``
+    information (2D: (m, 9) values, (m, 3, 3) relative poses and (m, 3, 3) ``[theta, x, y]`` information)."""
+    vertex_tag, edge_tag, _, fields = _TAGS[records.dimension]
     e_lines = records.edge_lines
-    e = _numbers(records.edge_values, records.edge_lines, path, EDGE_TAG).reshape(-1, 28)
+    e = _numbers(records.edge_values, records.edge_lines, path, edge_tag).reshape(-1, fields)
     bad = np.flatnonzero(~np.all(np.isfinite(e), axis=1))
     if len(bad):
-        raise _fail(path, e_lines[int(bad[0])], f"{EDGE_TAG}: NaN or infinite value")
+        raise _fail(path, e_lines[int(bad[0])], f"{edge_tag}: NaN or infinite value")
     for (i, j), lineno in zip(records.edge_ids, e_lines, strict=True):
         for key in (i, j):
             if key not in vertex_line:
-                raise _fail(path, lineno, f"edge {i}->{j} refers to vertex {key}, which has no {VERTEX_TAG} record")
+                raise _fail(path, lineno, f"edge {i}->{j} refers to vertex {key}, which has no {vertex_tag} record")
         if i == j:
             raise _fail(path, lineno, f"edge {i}->{j} links a vertex to itself")
+    if records.dimension == 2:
+        info_g2o = np.zeros((len(e), 3, 3))
+        info_g2o[:, _UPPER_2D[0], _UPPER_2D[1]] = e[:, 3:]
+        info_g2o = info_g2o + np.transpose(np.triu(info_g2o, 1), (0, 2, 1))
+        info = info_g2o[:, _ROT_TRANS_FROM_G2O_2D][:, :, _ROT_TRANS_FROM_G2O_2D]
+        return e, se2_pose(e[:, 0], e[:, 1], e[:, 2]).reshape(-1, 3, 3), _checked_information(info, e_lines, path)
     rotations = _rotations_from_quats(e[:, 3:7], e_lines, path, EDGE_TAG)
     info_g2o = np.zeros((len(e), 6, 6))
     info_g2o[:, _UPPER[0], _UPPER[1]] = e[:, 7:]
@@ -304,14 +345,18 @@ def _parse_edges(
 def _graph_edges(
     records: _Records, e: NDArray[np.float64], rotations: NDArray[np.float64], info: NDArray[np.float64]
 ) -> list[PoseGraphEdge]:
-    """The edges as read-only :class:`PoseGraphEdge`: odometry between vertices adjacent in id order."""
+    """The edges as read-only :class:`PoseGraphEdge`: odometry between vertices adjacent in id order.
+    (2D: ``rotations`` are the whole (m, 3, 3) relative poses.)"""
     order = np.sort(np.asarray(records.vertex_ids, dtype=np.int64))
     rank = {int(k): r for r, k in enumerate(order)}
     info.setflags(write=False)
-    T_all = np.zeros((len(e), 4, 4))  # every edge's T_target_source at once; each edge holds a view
-    T_all[:, :3, :3] = rotations
-    T_all[:, :3, 3] = e[:, :3]
-    T_all[:, 3, 3] = 1.0
+    if records.dimension == 2:
+        T_all = rotations
+    else:
+        T_all = np.zeros((len(e), 4, 4))  # every edge's T_target_source at once; each edge holds a view
+        T_all[:, :3, :3] = rotations
+        T_all[:, :3, 3] = e[:, :3]
+        T_all[:, 3, 3] = 1.0
     T_all.setflags(write=False)
     edges = []
     for n, (i, j) in enumerate(records.edge_ids):
@@ -321,7 +366,8 @@ def _graph_edges(
 
 
 def read_g2o(path: str | os.PathLike[str]) -> PoseGraph:
-    """Read a 3D g2o pose graph into a :class:`~fpp_graph.backend.pose_graph.PoseGraph`.
+    """Read a g2o pose graph, 3D or planar, into a :class:`~fpp_graph.backend.pose_graph.PoseGraph`
+    (``dimension`` 3 or 2, from the records).
 
     Vertices become poses (initial values), ``FIX`` lines fixed poses, edges edges with
     information converted to ``[rot, trans]`` order. Raises
@@ -346,10 +392,13 @@ def read_g2o(path: str | os.PathLike[str]) -> PoseGraph:
     e, rotations, info = _parse_edges(records, vertex_line, path)
     for key, lineno in records.fixed:
         if key not in vertex_line:
-            raise _fail(path, lineno, f"FIX refers to vertex {key}, which has no {VERTEX_TAG} record")
+            raise _fail(path, lineno, f"FIX refers to vertex {key}, which has no {_TAGS[records.dimension][0]} record")
     edges = _graph_edges(records, e, rotations, info)
-    graph = PoseGraph()
-    graph._load(records.vertex_ids, poses, v[:, 3:].copy(), edges, e[:, 3:7].copy(), [k for k, _ in records.fixed])
+    graph = PoseGraph(dimension=records.dimension)
+    # the file's rotations as written (quaternions; 2D headings) so that a write gives them back
+    rotation_fields = slice(2, 3) if records.dimension == 2 else slice(3, 7)
+    graph._load(records.vertex_ids, poses, v[:, rotation_fields].copy(), edges, e[:, rotation_fields].copy(),
+                [k for k, _ in records.fixed])
     log.debug("read %s: %d vertices, %d edges, %d fixed", path, len(records.vertex_ids), len(edges), len(records.fixed))
     return graph
 
@@ -370,7 +419,7 @@ def _fmt(values: ArrayLike) -> str:
 
 
 def write_g2o(path: str | os.PathLike[str], graph: PoseGraph, poses: Mapping[int, ArrayLike] | None = None, replace: bool = True) -> None:
-    """Write ``graph`` as a 3D g2o file, atomically and at full precision.
+    """Write ``graph`` as a g2o file (3D, or SE2 records for a planar graph), atomically and at full precision.
 
     Parameters
     ----------
@@ -379,7 +428,7 @@ def write_g2o(path: str | os.PathLike[str], graph: PoseGraph, poses: Mapping[int
     graph : PoseGraph
         Vertices (in the graph's order), ``FIX`` for fixed poses, edges. Priors have no g2o
         record and are left out (with a warning).
-    poses : mapping int -> (4, 4), optional
+    poses : mapping int -> (4, 4) (planar: (3, 3)), optional
         Vertex poses to write instead of the graph's current ones (e.g. a result's
         ``poses_world_sensor``); keys absent here keep the graph's pose.
     replace : bool
@@ -401,18 +450,25 @@ def write_g2o(path: str | os.PathLike[str], graph: PoseGraph, poses: Mapping[int
         if poses is not None and key in poses:
             given = np.asarray(poses[key], dtype=np.float64)
             if not np.array_equal(given, T):
-                T = as_pose(given, f"write_g2o: pose {key}")
+                T = as_pose(given, f"write_g2o: pose {key}", graph.dimension)
         matrices.append(T)
         q = graph._pose_quat_xyzw.get(key)
         if q is not None and T is current[key]:
             cached[key] = q
-    matrices_arr = np.asarray(matrices).reshape(-1, 4, 4)
+    if graph.priors():
+        log.warning("write_g2o: %d prior(s) have no g2o record and are not written", len(graph.priors()))
+    d = graph.dimension
+    matrices_arr = np.asarray(matrices).reshape(-1, d + 1, d + 1)
+    lines = (_planar_lines if d == 2 else _lines)(graph, keys, matrices_arr, cached)
+    with atomic_open(path, "w", replace=replace, encoding="ascii") as handle:
+        handle.writelines(lines)
+
+
+def _lines(graph: PoseGraph, keys: list[int], matrices_arr: NDArray[np.float64], cached: Mapping[int, NDArray[np.float64]]) -> list[str]:
+    """The 3D records: vertices at ``matrices_arr`` (quaternions ``cached`` where given), FIX, edges."""
     computed = _quats_for(matrices_arr[:, :3, :3])
     edges = graph.edges()
     edge_quats = _quats_for(np.asarray([e.T_target_source[:3, :3] for e in edges]).reshape(-1, 3, 3))
-    if graph.priors():
-        log.warning("write_g2o: %d prior(s) have no g2o record and are not written", len(graph.priors()))
-
     lines = []
     for n, key in enumerate(keys):
         q = cached.get(key, computed[n])
@@ -425,5 +481,22 @@ def write_g2o(path: str | os.PathLike[str], graph: PoseGraph, poses: Mapping[int
         lines.append(
             f"{EDGE_TAG} {e.target_id} {e.source_id} {_fmt(e.T_target_source[:3, 3])} {_fmt(q)} {_fmt(info_g2o[_UPPER])}\n"
         )
-    with atomic_open(path, "w", replace=replace, encoding="ascii") as handle:
-        handle.writelines(lines)
+    return lines
+
+
+def _planar_lines(graph: PoseGraph, keys: list[int], matrices_arr: NDArray[np.float64], cached: Mapping[int, NDArray[np.float64]]) -> list[str]:
+    """The SE2 records: ``x y theta`` of vertices (headings ``cached`` where read from a file), FIX,
+    edges with the information's upper triangle in g2o's ``[x, y, theta]`` order."""
+    headings = se2_heading_rad(matrices_arr)
+    lines = []
+    for n, key in enumerate(keys):
+        theta = cached.get(key, headings[n : n + 1])
+        lines.append(f"{VERTEX_SE2_TAG} {key} {_fmt(matrices_arr[n, :2, 2])} {_fmt(theta)}\n")
+    for key in graph.fixed_poses():
+        lines.append(f"{FIX_TAG} {key}\n")
+    for n, e in enumerate(graph.edges()):
+        T = e.T_target_source
+        theta = graph._edge_quat_xyzw.get(n, se2_heading_rad(T)[None])
+        info_g2o = e.information_rot_trans[_G2O_FROM_ROT_TRANS_2D][:, _G2O_FROM_ROT_TRANS_2D]
+        lines.append(f"{EDGE_SE2_TAG} {e.target_id} {e.source_id} {_fmt(T[:2, 2])} {_fmt(theta)} {_fmt(info_g2o[_UPPER_2D])}\n")
+    return lines

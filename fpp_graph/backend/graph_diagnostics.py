@@ -84,7 +84,8 @@ def check_constrained(
     -------
     int or None
         When the graph has no anchor at all but is connected, the smallest key: fixing it removes
-        the 6-DoF gauge freedom without changing the optimum. ``None`` when anchors are present.
+        the gauge freedom (6 degrees of freedom; 3 in a planar graph) without changing the optimum.
+        ``None`` when anchors are present.
 
     Raises
     ------

@@ -8,6 +8,7 @@ gtsam is imported inside the functions so that importing the back-end stays chea
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable, Iterator, Mapping, Sequence
 from typing import TYPE_CHECKING
 
@@ -17,6 +18,7 @@ from numpy.typing import ArrayLike, NDArray
 from fpp_graph.backend.noise_model import isotropic_information
 from fpp_graph.backend.records import PoseGraphEdge, PosePrior
 from fpp_graph.errors import GraphError
+from fpp_graph.planar import GTSAM_FROM_ROT_TRANS, ROT_TRANS_FROM_GTSAM, se2_log, se2_pose
 from fpp_graph.types import ConstraintKind
 
 if TYPE_CHECKING:
@@ -44,32 +46,44 @@ RELATIVE_COST_TOLERANCE = 1e-10
 CAUCHY_SCALE_SIGMA = 1.0
 
 
-def as_pose(T: ArrayLike, where: str) -> Array:
-    """A validated 4x4 rigid transform; rotations off SO(3) by < 1e-5 are projected onto it."""
+def dof_of(dimension: int) -> int:
+    """Degrees of freedom of a pose in ``dimension`` 2 (SE(2): 3) or 3 (SE(3): 6)."""
+    return 3 if dimension == 2 else 6
+
+
+def as_pose(T: ArrayLike, where: str, dimension: int = 3) -> Array:
+    """A validated rigid transform, 4x4 (``dimension`` 3) or 3x3 homogeneous (2); rotations off
+    SO(d) by < 1e-5 are projected onto it."""
     T = np.array(T, dtype=np.float64)
-    if T.shape != (4, 4):
-        raise GraphError(f"{where}: a pose must be a 4x4 matrix, got shape {T.shape}")
+    d = dimension
+    if T.shape != (d + 1, d + 1):
+        raise GraphError(f"{where}: a {d}D pose must be a {d + 1}x{d + 1} matrix, got shape {T.shape}")
     if not np.all(np.isfinite(T)):
         raise GraphError(f"{where}: the pose contains NaN or infinite values")
-    R = T[:3, :3]
-    deviation = np.abs(R.T @ R - np.eye(3)).max()
-    if deviation > RIGID_ATOL or abs(np.linalg.det(R) - 1.0) > RIGID_ATOL or not np.allclose(T[3], [0, 0, 0, 1], atol=RIGID_ATOL):
+    R = T[:d, :d]
+    last_row = np.eye(d + 1)[d]
+    deviation = np.abs(R.T @ R - np.eye(d)).max()
+    if deviation > RIGID_ATOL or abs(np.linalg.det(R) - 1.0) > RIGID_ATOL or not np.allclose(T[d], last_row, atol=RIGID_ATOL):
+        zeros = " 0" * d
         raise GraphError(
-            f"{where}: not a rigid transform (rotation off SO(3) by {deviation:.2g}, det {np.linalg.det(R):.6g}, "
-            f"last row {T[3].tolist()}); pass a 4x4 [R t; 0 0 0 1] with orthonormal R"
+            f"{where}: not a rigid transform (rotation off SO({d}) by {deviation:.2g}, det {np.linalg.det(R):.6g}, "
+            f"last row {T[d].tolist()}); pass a {d + 1}x{d + 1} [R t;{zeros[1:]} 1] with orthonormal R"
         )
     if deviation > ORTHONORMAL_ATOL:
         U, _, Vt = np.linalg.svd(R)
-        T[:3, :3] = U @ Vt
-    T[3] = (0.0, 0.0, 0.0, 1.0)
+        T[:d, :d] = U @ Vt
+    T[d] = last_row
     return T
 
 
-def as_information(information: ArrayLike, where: str) -> Array:
-    """A validated 6x6 symmetric positive-definite information matrix (exactly symmetrised)."""
+def as_information(information: ArrayLike, where: str, dimension: int = 3) -> Array:
+    """A validated symmetric positive-definite information matrix (exactly symmetrised), 6x6
+    ``[rot, trans]`` (``dimension`` 3) or 3x3 ``[theta, x, y]`` (2)."""
     info = np.array(information, dtype=np.float64)
-    if info.shape != (6, 6):
-        raise GraphError(f"{where}: information must be 6x6 [rot, trans], got shape {info.shape}")
+    dof = dof_of(dimension)
+    if info.shape != (dof, dof):
+        order = "[theta, x, y]" if dimension == 2 else "[rot, trans]"
+        raise GraphError(f"{where}: information of a {dimension}D edge must be {dof}x{dof} {order}, got shape {info.shape}")
     if not np.all(np.isfinite(info)):
         raise GraphError(f"{where}: information contains NaN or infinite values")
     scale = max(float(np.abs(info).max()), 1e-300)
@@ -82,9 +96,51 @@ def as_information(information: ArrayLike, where: str) -> Array:
         eig = np.linalg.eigvalsh(info)
         raise GraphError(
             f"{where}: information matrix is not positive definite (smallest eigenvalue {eig.min():.3g}); "
-            "every edge must constrain all 6 degrees of freedom: reject the measurement instead"
+            f"every edge must constrain all {dof} degrees of freedom: reject the measurement instead"
         ) from None
     return info
+
+
+def gtsam_pose(T: Array) -> gtsam.Pose3 | gtsam.Pose2:
+    """gtsam's pose of a 4x4 (Pose3) or 3x3 homogeneous (Pose2) matrix."""
+    import gtsam
+
+    if T.shape == (3, 3):
+        x, y, cos, sin = T[0, 2].item(), T[1, 2].item(), T[0, 0].item(), T[1, 0].item()  # Python floats: math is ~10x numpy on scalars
+        return gtsam.Pose2(x, y, math.atan2(sin, cos))
+    return gtsam.Pose3(T)
+
+
+def gtsam_information(information_rot_trans: Array) -> Array:
+    """Information in gtsam's tangent order: Pose3's is ``[rot, trans]`` as here, Pose2's
+    ``[x, y, theta]`` (a permutation of the 3x3 ``[theta, x, y]``)."""
+    if information_rot_trans.shape[-1] == 3:
+        return information_rot_trans[..., GTSAM_FROM_ROT_TRANS, :][..., GTSAM_FROM_ROT_TRANS]
+    return information_rot_trans
+
+
+def gaussian_noise(information_rot_trans: Array) -> gtsam.noiseModel.Base:
+    """gtsam's Gaussian noise model of an information matrix in ``[rot, trans]`` order."""
+    import gtsam
+
+    return gtsam.noiseModel.Gaussian.Information(gtsam_information(information_rot_trans))
+
+
+def between_factor(target: int, source: int, measured: gtsam.Pose3 | gtsam.Pose2, noise: gtsam.noiseModel.Base) -> gtsam.NonlinearFactor:
+    """``BetweenFactorPose3`` or ``BetweenFactorPose2`` of ``T_target_source`` = ``measured``."""
+    import gtsam
+
+    factor = gtsam.BetweenFactorPose2 if isinstance(measured, gtsam.Pose2) else gtsam.BetweenFactorPose3
+    return factor(target, source, measured, noise)
+
+
+def prior_factor(key: int, T_world_sensor: Array, noise: gtsam.noiseModel.Base) -> gtsam.NonlinearFactor:
+    """``PriorFactorPose3`` or ``PriorFactorPose2`` holding ``T_world_sensor``."""
+    import gtsam
+
+    pose = gtsam_pose(T_world_sensor)
+    factor = gtsam.PriorFactorPose2 if isinstance(pose, gtsam.Pose2) else gtsam.PriorFactorPose3
+    return factor(key, pose, noise)
 
 
 def values_from(poses: Mapping[int, Array]) -> gtsam.Values:
@@ -92,20 +148,25 @@ def values_from(poses: Mapping[int, Array]) -> gtsam.Values:
 
     values = gtsam.Values()
     for key, T in poses.items():
-        values.insert(int(key), gtsam.Pose3(T))
+        values.insert(int(key), gtsam_pose(T))
     return values
 
 
-def poses_from(values: gtsam.Values, keys: Iterable[int] | None = None) -> dict[int, Array]:
-    """4x4 poses of ``values`` (all Pose3 keys, or ``keys``), in one vectorised extraction."""
+def poses_from(values: gtsam.Values, keys: Iterable[int] | None = None, dimension: int = 3) -> dict[int, Array]:
+    """Poses of ``values`` (all keys, or ``keys``), in one vectorised extraction: 4x4 from Pose3
+    (``dimension`` 3), 3x3 homogeneous from Pose2 (2)."""
     import gtsam
 
     all_keys = [int(k) for k in values.keys()]
-    rows = gtsam.utilities.extractPose3(values)  # key order, R row-major then t
-    T = np.zeros((len(all_keys), 4, 4))
-    T[:, :3, :3] = rows[:, :9].reshape(-1, 3, 3)
-    T[:, :3, 3] = rows[:, 9:12]
-    T[:, 3, 3] = 1.0
+    if dimension == 2:
+        rows = gtsam.utilities.extractPose2(values)  # key order, x y theta
+        T = se2_pose(rows[:, 0], rows[:, 1], rows[:, 2]).reshape(-1, 3, 3)
+    else:
+        rows = gtsam.utilities.extractPose3(values)  # key order, R row-major then t
+        T = np.zeros((len(all_keys), 4, 4))
+        T[:, :3, :3] = rows[:, :9].reshape(-1, 3, 3)
+        T[:, :3, 3] = rows[:, 9:12]
+        T[:, 3, 3] = 1.0
     T.setflags(write=False)  # handed out as views: read-only instead of one copy per pose
     poses = dict(zip(all_keys, T, strict=True))
     if keys is None:
@@ -165,9 +226,12 @@ def run_isam2_batch(graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values, ma
 
 
 def pose_log(T: Array) -> Array:
-    """``Log(T)`` of a 4x4 rigid transform in GTSAM's ``[rot, trans]`` tangent order."""
+    """``Log(T)`` of a 4x4 rigid transform in GTSAM's ``[rot, trans]`` tangent order (of a
+    3x3 planar one in ``[theta, x, y]``)."""
     import gtsam
 
+    if T.shape == (3, 3):
+        return se2_log(T)
     return gtsam.Pose3.Logmap(gtsam.Pose3(T))
 
 
@@ -182,13 +246,23 @@ def marginals(graph: gtsam.NonlinearFactorGraph, poses: Mapping[int, Array]) -> 
 
 
 def marginal_covariance(marginals: gtsam.Marginals, key: int) -> Array:
-    """6x6 marginal covariance of pose ``key``, ``[rot, trans]`` order."""
-    return np.array(marginals.marginalCovariance(key), dtype=np.float64)
+    """Marginal covariance of pose ``key``, ``[rot, trans]`` order: 6x6 for a Pose3, 3x3
+    ``[theta, x, y]`` for a Pose2 (gtsam's ``[x, y, theta]`` permuted)."""
+    covariance = np.array(marginals.marginalCovariance(key), dtype=np.float64)
+    if covariance.shape == (3, 3):
+        return covariance[ROT_TRANS_FROM_GTSAM][:, ROT_TRANS_FROM_GTSAM]
+    return covariance
 
 
 class GraphProblem:
     """GTSAM factors of one optimisation (anchors, priors, edges under one noise model), which
-    every stage works on: edges by their index, ``active`` a mask of the edges a solve uses."""
+    every stage works on: edges by their index, ``active`` a mask of the edges a solve uses.
+
+    ``dimension`` 3 builds Pose3 factors, 2 Pose2 factors (planar graphs are solved as such,
+    not lifted into 3D); ``dof`` is a pose's degrees of freedom (6 or 3). Informations stay in
+    ``[rot, trans]`` order here (``model_information``) and are permuted to gtsam's tangent
+    order only inside its noise models.
+    """
 
     def __init__(
         self,
@@ -197,9 +271,12 @@ class GraphProblem:
         priors: Sequence[PosePrior],
         anchors: Sequence[int],
         noise_model: str,
+        dimension: int = 3,
     ) -> None:
         import gtsam
 
+        self.dimension = dimension
+        self.dof = dof_of(dimension)
         self.given_poses = given_poses
         self.anchors = list(anchors)
         self.edges = list(edges)
@@ -210,24 +287,21 @@ class GraphProblem:
             if noise_model == "isotropic":
                 info = isotropic_information(info)
         else:
-            info = np.zeros((0, 6, 6))
+            info = np.zeros((0, self.dof, self.dof))
         self.model_information = info
         stiffest = max([float(np.abs(np.diagonal(info, axis1=1, axis2=2)).max()) if len(info) else 1.0]
                        + [float(np.abs(np.diag(p.information_rot_trans)).max()) for p in self.priors])
         self.stiffest = stiffest
         self.anchor_poses = {k: given_poses[k] for k in self.anchors}
-        anchor_noise = gtsam.noiseModel.Isotropic.Precision(6, ANCHOR_STIFFNESS * stiffest)
-        self.anchor_factors = [
-            gtsam.PriorFactorPose3(k, gtsam.Pose3(given_poses[k]), anchor_noise) for k in self.anchors
-        ]
+        anchor_noise = gtsam.noiseModel.Isotropic.Precision(self.dof, ANCHOR_STIFFNESS * stiffest)
+        self.anchor_factors = [prior_factor(k, given_poses[k], anchor_noise) for k in self.anchors]
         self.prior_factors = [
-            gtsam.PriorFactorPose3(p.key, gtsam.Pose3(p.T_world_sensor), gtsam.noiseModel.Gaussian.Information(p.information_rot_trans))
-            for p in self.priors
+            prior_factor(p.key, p.T_world_sensor, gaussian_noise(p.information_rot_trans)) for p in self.priors
         ]
-        self.noise = [gtsam.noiseModel.Gaussian.Information(w) for w in info]
-        self.measured = [gtsam.Pose3(e.T_target_source) for e in self.edges]
+        self.noise = [gtsam.noiseModel.Gaussian.Information(w) for w in gtsam_information(info)]  # permuted at once
+        self.measured = [gtsam_pose(e.T_target_source) for e in self.edges]
         self.gaussian = [
-            gtsam.BetweenFactorPose3(e.target_id, e.source_id, m, n)
+            between_factor(e.target_id, e.source_id, m, n)
             for e, m, n in zip(self.edges, self.measured, self.noise, strict=True)
         ]
         self.is_loop = np.array([e.kind is ConstraintKind.LOOP for e in self.edges], dtype=bool)
@@ -264,7 +338,7 @@ class GraphProblem:
         for i in np.flatnonzero(active):
             if self.is_loop[i]:
                 e = self.edges[i]
-                graph.add(gtsam.BetweenFactorPose3(e.target_id, e.source_id, self.measured[i], gtsam.noiseModel.Robust.Create(loss, self.noise[i])))
+                graph.add(between_factor(e.target_id, e.source_id, self.measured[i], gtsam.noiseModel.Robust.Create(loss, self.noise[i])))
             else:
                 graph.add(self.gaussian[i])
         return graph
@@ -280,8 +354,7 @@ class GraphProblem:
         for i, w in zip(loops, weights, strict=True):
             if w > 0.0:
                 e = self.edges[i]
-                noise = gtsam.noiseModel.Gaussian.Information(w * self.model_information[i])
-                graph.add(gtsam.BetweenFactorPose3(e.target_id, e.source_id, self.measured[i], noise))
+                graph.add(between_factor(e.target_id, e.source_id, self.measured[i], gaussian_noise(w * self.model_information[i])))
         return graph
 
     def chordal_graph(self, active: NDArray[np.bool_]) -> gtsam.NonlinearFactorGraph:
@@ -291,32 +364,36 @@ class GraphProblem:
         pose); next to edges of precision ~1e8 and more (sub-mm, sub-mrad ICP constraints) its
         linear solves report an indeterminate system. Its result does not change under a common
         scaling of all information, so the graph is normalised to a largest precision of 1 and
-        the anchors are given that precision.
+        the anchors are given that precision. LAGO (2D) is treated alike; it reads each edge's
+        and prior's heading sigma from a diagonal noise model only, so in 2D each information is
+        replaced by the diagonal of its marginal precisions (``1 / diag(covariance)``), which
+        keeps each coordinate's variance; the start is all it shapes, LM then uses the full matrices.
         """
         import gtsam
 
         scale = 1.0 / self.stiffest
+        information = _for_initialiser(self.model_information)
         graph = gtsam.NonlinearFactorGraph()
-        anchor_noise = gtsam.noiseModel.Isotropic.Precision(6, 1.0)
+        anchor_noise = gtsam.noiseModel.Isotropic.Precision(self.dof, 1.0)
         for k in self.anchors:
-            graph.add(gtsam.PriorFactorPose3(k, gtsam.Pose3(self.anchor_poses[k]), anchor_noise))
+            graph.add(prior_factor(k, self.anchor_poses[k], anchor_noise))
         for p in self.priors:
-            noise = gtsam.noiseModel.Gaussian.Information(scale * p.information_rot_trans)
-            graph.add(gtsam.PriorFactorPose3(p.key, gtsam.Pose3(p.T_world_sensor), noise))
+            graph.add(prior_factor(p.key, p.T_world_sensor, gaussian_noise(scale * _for_initialiser(p.information_rot_trans))))
+        information = gtsam_information(scale * information)
         for i in np.flatnonzero(active):
             e = self.edges[i]
-            noise = gtsam.noiseModel.Gaussian.Information(scale * self.model_information[i])
-            graph.add(gtsam.BetweenFactorPose3(e.target_id, e.source_id, self.measured[i], noise))
+            graph.add(between_factor(e.target_id, e.source_id, self.measured[i], gtsam.noiseModel.Gaussian.Information(information[i])))
         return graph
 
     def chordal(self, active: NDArray[np.bool_]) -> tuple[gtsam.Values | None, str]:
-        """Chordal initialisation (``gtsam.InitializePose3``) over the active edges, anchors
-        held exactly; ``(None, reason)`` when it fails."""
+        """Chordal initialisation over the active edges, anchors held exactly (``gtsam.InitializePose3``
+        in 3D, LAGO, gtsam's Pose2 initialiser, in 2D); ``(None, reason)`` when it fails."""
         import gtsam
 
         try:
-            values = gtsam.InitializePose3.initialize(self.chordal_graph(active))
-            poses = poses_from(values, self.given_poses)
+            graph = self.chordal_graph(active)
+            values = gtsam.lago.initialize(graph) if self.dimension == 2 else gtsam.InitializePose3.initialize(graph)
+            poses = poses_from(values, self.given_poses, self.dimension)
         except Exception as exc:  # gtsam raises RuntimeError/ValueError subclasses from C++
             return None, short_message(exc)
         if not np.all(np.isfinite(np.stack(list(poses.values())))):
@@ -368,12 +445,22 @@ class GraphProblem:
             raise solver_error(exc) from None
 
     def poses(self, values: gtsam.Values) -> dict[int, Array]:
-        """The 4x4 poses of ``values``, in the order of the given poses."""
-        return poses_from(values, self.given_poses)
+        """The poses (4x4, or 3x3 in 2D) of ``values``, in the order of the given poses."""
+        return poses_from(values, self.given_poses, self.dimension)
 
     def poses_with_gauge(self, values: gtsam.Values) -> dict[int, Array]:
         """The poses of ``values`` with the anchors held exactly (:func:`poses_with_gauge`)."""
-        return poses_with_gauge(poses_from(values, self.given_poses), self.given_poses, self.anchors, bool(self.priors))
+        return poses_with_gauge(poses_from(values, self.given_poses, self.dimension), self.given_poses, self.anchors,
+                                bool(self.priors))
+
+
+def _for_initialiser(information_rot_trans: Array) -> Array:
+    """Information (..., n, n) as the initialiser takes it: 6x6 as is; 3x3 (planar, for LAGO,
+    which needs diagonal noise) replaced by its marginal precisions ``1 / diag(inv(information))``."""
+    if information_rot_trans.shape[-1] != 3 or information_rot_trans.size == 0:
+        return information_rot_trans
+    marginal = 1.0 / np.diagonal(np.linalg.inv(information_rot_trans), axis1=-2, axis2=-1)
+    return marginal[..., :, None] * np.eye(3)
 
 
 def poses_with_gauge(
@@ -385,11 +472,12 @@ def poses_with_gauge(
         return poses
     if len(anchors) == 1 and not has_priors:
         key = anchors[0]
+        d = given[key].shape[-1] - 1
         correction = given[key] @ np.linalg.inv(poses[key])
-        correction = as_pose(correction, "gauge correction")
+        correction = as_pose(correction, "gauge correction", d)
         keys = list(poses)
         moved = np.einsum("ij,njk->nik", correction, np.stack([poses[k] for k in keys]))
-        moved[:, 3] = (0.0, 0.0, 0.0, 1.0)
+        moved[:, d] = np.eye(d + 1)[d]
         moved.setflags(write=False)
         poses = dict(zip(keys, moved, strict=True))
     for key in anchors:

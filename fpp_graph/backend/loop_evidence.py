@@ -50,13 +50,13 @@ def screen_loops(problem: GraphProblem, solution: Solution, loop_false_alarm: fl
         return None
     values, active = solution.values, solution.active
     loops = np.flatnonzero(active & problem.is_loop)
-    unit_bound = family_bound(len(loops), loop_false_alarm)
+    unit_bound = family_bound(len(loops), loop_false_alarm, problem.dof)
     r2 = problem.loop_chi2(values, loops)
     if len(loops) == 0 or r2.max() <= unit_bound or not measure_scale:
         return LoopScreen(loops, r2, 1.0, unit_bound, None)
     cycles = cycle_check(problem, active)
     if cycle_step_rad(problem, cycles) > CYCLE_LINEAR_STEP_RAD:
-        redundancy = 6 * (int(np.sum(active)) + len(problem.priors) + len(problem.anchors) - len(problem.given_poses))
+        redundancy = problem.dof * (int(np.sum(active)) + len(problem.priors) + len(problem.anchors) - len(problem.given_poses))
         s2 = max(1.0, 2.0 * problem.cost(values, active) / redundancy) if redundancy > 0 else 1.0
         log.info("odometry cycles beyond first order: variance factor %.3g from the residuals (redundancy %d)", s2, redundancy)
     else:
@@ -108,7 +108,7 @@ def cycle_check(problem: GraphProblem, active: NDArray[np.bool_]) -> CycleCheck:
             problem.is_loop[idx],
             [*problem.anchors, *(p.key for p in problem.priors)],
         )
-        problem.cycle_checks[key] = CycleCheck(idx[check.loop_index], check.chi2)
+        problem.cycle_checks[key] = CycleCheck(idx[check.loop_index], check.chi2, check.dof)
     return problem.cycle_checks[key]
 
 
@@ -118,7 +118,8 @@ def cycle_step_rad(problem: GraphProblem, cycles: CycleCheck) -> float:
     odometry = problem.model_information[~problem.is_loop]
     if not len(odometry):
         return 0.0
-    rotation_variance = np.linalg.eigvalsh(np.linalg.inv(odometry)[:, :3, :3])[:, -1]
+    rot = problem.dof - problem.dimension  # rotation degrees of freedom: 3 in 3D, 1 in 2D
+    rotation_variance = np.linalg.eigvalsh(np.linalg.inv(odometry)[:, :rot, :rot])[:, -1]
     return math.sqrt(cycles.measured_scale() * float(np.median(rotation_variance)))
 
 
@@ -131,5 +132,5 @@ def refuted_by_cycles(problem: GraphProblem, cycles: CycleCheck, num_loops: int,
         log.info("odometry steps' rotation error %.2g rad (at the cycles' scale %.3g) is beyond the first-order "
                  "cycle test: no loop refuted by it", step_rad, cycles.measured_scale())
         return np.zeros(0, dtype=np.int64)
-    bound = cycles.measured_scale() * family_bound(num_loops, loop_false_alarm)
+    bound = cycles.measured_scale() * family_bound(num_loops, loop_false_alarm, problem.dof)
     return cycles.loop_index[cycles.chi2 > bound]

@@ -16,7 +16,8 @@ optimisation (:mod:`fpp_graph.backend.loop_evidence`, :mod:`fpp_graph.backend.ro
   taken below 1: the test is never stricter than the information claims.
 
 Poses are 4x4 ``T_world_sensor``; an edge ``(source s, target t)`` measures ``T_t_s``; tangent
-vectors and covariances are GTSAM's ``[rot, trans]`` with right perturbations.
+vectors and covariances are GTSAM's ``[rot, trans]`` with right perturbations. Planar graphs
+(3x3 poses, ``[theta, x, y]``) take the same tests with 3 degrees of freedom where 3D has 6.
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from fpp_graph.geometry import adjoint, invert
+from fpp_graph.planar import se2_adjoint, se2_log
 
 log = logging.getLogger(__name__)
 
@@ -40,6 +42,8 @@ Array = NDArray[np.float64]
 
 #: Lower quartile of the chi-square distribution with 6 degrees of freedom.
 CHI2_6_LOWER_QUARTILE = 3.4545988357210384
+#: Lower quartile of the chi-square distribution with 3 degrees of freedom (a planar pose).
+CHI2_3_LOWER_QUARTILE = 1.2125329030456686
 #: Fewest odometry cycles from which the variance factor is taken (with four, one true loop
 #: holds the lower quartile against three false ones); below it the information is trusted.
 MIN_CYCLES_FOR_SCALE = 4
@@ -69,12 +73,45 @@ def chi2_6_upper_quantile(tail: float) -> float:
     return x
 
 
+def chi2_3_upper_quantile(tail: float) -> float:
+    """The ``x`` with ``P(chi2_3 > x) = tail``, ``0 < tail < 1`` (a planar pose's 3 degrees of freedom).
+
+    Newton's method on ``g(x) = log P(chi2_3 > x) - log(tail)`` with the closed-form tail
+    ``P(chi2_3 > x) = erfc(sqrt(x/2)) + sqrt(2x/pi) exp(-x/2)`` and density
+    ``sqrt(x / (2 pi)) exp(-x/2)``; ``g`` is decreasing and concave as for 6 degrees of freedom,
+    so the iterates from the mean (3) converge monotonically after at most one step. Agrees with
+    ``scipy.special.chdtri(3, tail)`` to ~1e-13 relative (no scipy import, as for 6).
+    """
+    if not 0.0 < tail < 1.0:
+        raise ValueError(f"chi-square tail probability must be in (0, 1), got {tail!r}")
+    log_tail = math.log(tail)
+    x = 3.0
+    for _ in range(200):
+        upper = math.erfc(math.sqrt(0.5 * x)) + math.sqrt(2.0 * x / math.pi) * math.exp(-0.5 * x)
+        density = math.sqrt(x / (2.0 * math.pi)) * math.exp(-0.5 * x)
+        g = math.log(upper) - log_tail
+        x_next = max(x + g * upper / density, 0.5 * x)  # -g / g', g' = -density / upper
+        if abs(x_next - x) <= 4.0 * math.ulp(x):
+            return x_next
+        x = x_next
+    return x
+
+
+def chi2_upper_quantile(tail: float, dof: int = 6) -> float:
+    """The ``x`` with ``P(chi2_dof > x) = tail``, for a pose's ``dof`` (6 in 3D, 3 in 2D)."""
+    if dof == 6:
+        return chi2_6_upper_quantile(tail)
+    if dof == 3:
+        return chi2_3_upper_quantile(tail)
+    raise ValueError(f"chi-square quantiles are available for 3 and 6 degrees of freedom, got {dof}")
+
+
 def chi2_6_quantile(probability: float) -> float:
     """``chi2_6`` quantile at ``probability`` (the lower-tail probability)."""
     return chi2_6_upper_quantile(1.0 - probability)
 
 
-def family_bound(num_loops: int, false_alarm: float) -> float:
+def family_bound(num_loops: int, false_alarm: float, dof: int = 6) -> float:
     """Bonferroni bound on a loop's whitened squared residual (unit variance factor).
 
     Parameters
@@ -83,8 +120,10 @@ def family_bound(num_loops: int, false_alarm: float) -> float:
         Loops tested together.
     false_alarm : float
         Probability that any loop of a graph without outliers exceeds the bound.
+    dof : int
+        Degrees of freedom of a residual: 6 (3D poses) or 3 (planar poses).
     """
-    return chi2_6_upper_quantile(false_alarm / max(int(num_loops), 1))
+    return chi2_upper_quantile(false_alarm / max(int(num_loops), 1), dof)
 
 
 @dataclass(frozen=True)
@@ -97,17 +136,21 @@ class CycleCheck:
         Indices (into the edge list given) of the loops whose ends share an odometry tree.
     chi2 : (K,) float64
         ``e^T (C_loop + C_path)^-1 e`` of each such loop, ``e`` the cycle error.
+    dof : int
+        Degrees of freedom of a cycle error: 6 (3D), 3 (planar).
     """
 
     loop_index: NDArray[np.int64]
     chi2: Array
+    dof: int = 6
 
     def measured_scale(self) -> float:
-        """``q25(chi2) / q25(chi2_6)``: the scale the loops show, below 1 when the information is
+        """``q25(chi2) / q25(chi2_dof)``: the scale the loops show, below 1 when the information is
         conservative (1 with fewer than ``MIN_CYCLES_FOR_SCALE`` cycles)."""
         if len(self.chi2) < MIN_CYCLES_FOR_SCALE:
             return 1.0
-        return float(np.percentile(self.chi2, 25)) / CHI2_6_LOWER_QUARTILE
+        quartile = CHI2_3_LOWER_QUARTILE if self.dof == 3 else CHI2_6_LOWER_QUARTILE
+        return float(np.percentile(self.chi2, 25)) / quartile
 
     def variance_factor(self) -> float:
         """The variance factor of the bound: ``max(1, measured_scale)``."""
@@ -207,66 +250,84 @@ def odometry_cycle_chi2(
     ``(s, t)`` the path between its ends has left covariance ``D = S_s + S_t - 2 S_lca`` and
     the predicted ``T_t_s = P_t^-1 P_s`` right covariance ``Ad(P_s^-1) D Ad(P_s^-1)^T``.
 
+    Planar edges (3x3 poses, 3x3 ``[theta, x, y]`` information) take SE(2)'s adjoint and log
+    (:mod:`fpp_graph.planar`) and give chi-squares of 3 degrees of freedom.
+
     Parameters
     ----------
     keys : sequence of int
         Pose keys.
     source_target : (M, 2) int
         ``(source, target)`` of every edge.
-    T_target_source : (M, 4, 4)
-    information_rot_trans : (M, 6, 6)
+    T_target_source : (M, 4, 4), planar (M, 3, 3)
+    information_rot_trans : (M, 6, 6), planar (M, 3, 3)
         The information the solver uses (after the noise model).
     is_loop : (M,) bool
     roots : sequence of int
         Anchored keys (the gauge).
     """
-    from fpp_graph.backend.gtsam_bridge import pose_log
-
+    planar = T_target_source.shape[-1] == 3
+    dof = 3 if planar else 6
     key_array = np.asarray([int(k) for k in keys], dtype=np.int64)
     n = len(key_array)
     if n == 0:
-        return CycleCheck(np.zeros(0, dtype=np.int64), np.zeros(0))
+        return CycleCheck(np.zeros(0, dtype=np.int64), np.zeros(0), dof)
     # node index of every key (its position in ``keys``)
     sorter = np.argsort(key_array, kind="stable")
     ends = sorter[np.searchsorted(key_array, np.asarray(source_target, dtype=np.int64).reshape(-1, 2), sorter=sorter)]
     known = {int(k) for k in key_array}
     root_index = sorter[np.searchsorted(key_array, [int(r) for r in roots if int(r) in known], sorter=sorter)]
-    odometry = np.flatnonzero(~is_loop)
     covariance = np.linalg.inv(information_rot_trans)
-    order, parent, parent_edge, tree = odometry_forest(n, ends[odometry].reshape(-1, 2), root_index)
-
-    # pose of each node from its tree's root: P_child = P_parent @ (T_t_s or its inverse)
-    child = order[parent[order] != order]
-    edge = odometry[parent_edge[child]]
-    forward = parent[child] == ends[edge, 1]
-    step = np.where(forward[:, None, None], T_target_source[edge], invert(T_target_source[edge]))
-    poses = [np.eye(4)] * n
-    for c, p, M in zip(child.tolist(), parent[child].tolist(), step, strict=True):
-        poses[c] = poses[p] @ M
-    P = np.stack(poses)
-    # left covariance accumulated from the root: each edge adds Ad(P_source) Sigma Ad(P_source)^T
-    A = adjoint(P[ends[edge, 0]])
-    added = A @ covariance[edge] @ np.swapaxes(A, 1, 2)
-    covariances = [np.zeros((6, 6))] * n
-    for c, p, Q in zip(child.tolist(), parent[child].tolist(), added, strict=True):
-        covariances[c] = covariances[p] + Q
-    S = np.stack(covariances)
+    P, S, parent, tree = _odometry_poses(n, ends, ~is_loop, T_target_source, covariance, root_index)
 
     loops = np.flatnonzero(is_loop)
     src, tgt = ends[loops, 0], ends[loops, 1]
     same = tree[src] == tree[tgt]
     loops, src, tgt = loops[same], src[same], tgt[same]
     if len(loops) == 0:
-        return CycleCheck(np.zeros(0, dtype=np.int64), np.zeros(0))
+        return CycleCheck(np.zeros(0, dtype=np.int64), np.zeros(0), dof)
     lca = lowest_common_ancestors(parent, src, tgt)
 
     disagreement = invert(T_target_source[loops]) @ (invert(P[tgt]) @ P[src])
-    error = np.array([pose_log(T) for T in disagreement])
-    A = adjoint(invert(P[src]))
+    if planar:
+        error = se2_log(disagreement)
+        A = se2_adjoint(invert(P[src]))
+    else:
+        from fpp_graph.backend.gtsam_bridge import pose_log
+
+        error = np.array([pose_log(T) for T in disagreement])
+        A = adjoint(invert(P[src]))
     D = S[src] + S[tgt] - 2.0 * S[lca]
     C = covariance[loops] + A @ D @ np.swapaxes(A, 1, 2)
     chi2 = np.einsum("ni,ni->n", error, np.linalg.solve(C, error[..., None])[..., 0])
-    return CycleCheck(loops.astype(np.int64), chi2)
+    return CycleCheck(loops.astype(np.int64), chi2, dof)
+
+
+def _odometry_poses(
+    n: int, ends: NDArray[np.int64], is_odometry: NDArray[np.bool_], T_target_source: Array, covariance: Array,
+    root_index: NDArray[np.int64],
+) -> tuple[Array, Array, NDArray[np.int64], NDArray[np.int64]]:
+    """The odometry composed along its breadth-first forest (:func:`odometry_forest`): each
+    node's pose ``P`` from its tree's root, its left covariance ``S``, its parent and tree label."""
+    planar = T_target_source.shape[-1] == 3
+    odometry = np.flatnonzero(is_odometry)
+    order, parent, parent_edge, tree = odometry_forest(n, ends[odometry].reshape(-1, 2), root_index)
+    # pose of each node from its tree's root: P_child = P_parent @ (T_t_s or its inverse)
+    child = order[parent[order] != order]
+    edge = odometry[parent_edge[child]]
+    forward = parent[child] == ends[edge, 1]
+    step = np.where(forward[:, None, None], T_target_source[edge], invert(T_target_source[edge]))
+    poses = [np.eye(T_target_source.shape[-1])] * n
+    for c, p, M in zip(child.tolist(), parent[child].tolist(), step, strict=True):
+        poses[c] = poses[p] @ M
+    P = np.stack(poses)
+    # left covariance accumulated from the root: each edge adds Ad(P_source) Sigma Ad(P_source)^T
+    A = se2_adjoint(P[ends[edge, 0]]) if planar else adjoint(P[ends[edge, 0]])
+    added = A @ covariance[edge] @ np.swapaxes(A, 1, 2)
+    covariances = [np.zeros(covariance.shape[1:])] * n
+    for c, p, Q in zip(child.tolist(), parent[child].tolist(), added, strict=True):
+        covariances[c] = covariances[p] + Q
+    return P, np.stack(covariances), parent, tree
 
 
 def describe_scale(s2: float, bound: float, num_cycles: int) -> str:

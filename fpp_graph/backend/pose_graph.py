@@ -1,7 +1,9 @@
-"""The pose graph: a numpy-in, numpy-out wrapper over GTSAM ``Pose3`` factor graphs.
+"""The pose graph: a numpy-in, numpy-out wrapper over GTSAM ``Pose3`` (planar: ``Pose2``) factor graphs.
 
 Callers see 4x4 ``T_world_sensor`` matrices and 6x6 information matrices in ``[rot, trans]``
-order (GTSAM's tangent order); no gtsam type crosses this module's surface.
+order (GTSAM's tangent order); no gtsam type crosses this module's surface. A planar graph
+(``PoseGraph(dimension=2)``) has 3x3 homogeneous poses and 3x3 information in ``[theta, x, y]``
+order (GTSAM's Pose2 tangent, ``[x, y, theta]``, is permuted inside the bridge).
 
 - :class:`PoseGraph`: building a graph, its batch optimisation (the pipeline of stages in
   :mod:`fpp_graph.backend.optimization`: least squares, the evidence against each loop,
@@ -60,7 +62,11 @@ Array = NDArray[np.float64]
 
 
 class PoseGraph:
-    """A 3D pose graph: poses ``T_world_sensor``, relative-pose edges, anchors and priors.
+    """A 3D (or planar) pose graph: poses ``T_world_sensor``, relative-pose edges, anchors and priors.
+
+    ``dimension`` 3 (default): 4x4 poses, 6x6 ``[rot, trans]`` information, solved as gtsam
+    Pose3. ``dimension`` 2: 3x3 homogeneous poses ``[[cos, -sin, x], [sin, cos, y], [0, 0, 1]]``,
+    3x3 information in ``[rot, trans]`` = ``[theta, x, y]`` order, solved as gtsam Pose2.
 
     Examples
     --------
@@ -75,14 +81,18 @@ class PoseGraph:
     latest estimate and a second call starts from it.
     """
 
-    def __init__(self) -> None:
+    def __init__(self, dimension: int = 3) -> None:
+        if dimension not in (2, 3):
+            raise GraphError(f"a pose graph is planar (dimension 2) or 3D (dimension 3), got dimension {dimension!r}")
+        self._dimension = int(dimension)
         self._poses: dict[int, Array] = {}
         self._fixed: list[int] = []
         self._priors: list[PosePrior] = []
         self._edges: list[PoseGraphEdge] = []
-        # Exact quaternions (x y z w) of poses/edges read from a file, so that a g2o write
-        # after a read reproduces the file's numbers (a matrix -> quaternion round trip need
-        # not be bit-exact). Dropped when the pose changes.
+        # Exact rotations of poses/edges as read from a file, quaternions (x y z w) in 3D and
+        # headings [theta] in 2D, so that a g2o write after a read reproduces the file's numbers
+        # (a matrix -> quaternion or angle round trip need not be bit-exact). Dropped when the
+        # pose changes.
         self._pose_quat_xyzw: dict[int, Array] = {}
         self._edge_quat_xyzw: dict[int, Array] = {}
         self._solution_graph: gtsam.NonlinearFactorGraph | None = None  # factors of the last solve
@@ -100,7 +110,7 @@ class PoseGraph:
         key = self._check_key(key)
         if key in self._poses:
             raise GraphError(f"pose {key} is already in the graph")
-        self._poses[key] = as_pose(T_world_sensor, f"pose {key}")
+        self._poses[key] = as_pose(T_world_sensor, f"pose {key}", self._dimension)
         self._invalidate()
 
     def fix_pose(self, key: int) -> None:
@@ -111,10 +121,11 @@ class PoseGraph:
             self._invalidate()
 
     def add_prior(self, key: int, T_world_sensor: ArrayLike, information_rot_trans: ArrayLike) -> None:
-        """Add a unary prior on a pose, with 6x6 information in ``[rot, trans]`` order."""
+        """Add a unary prior on a pose, with 6x6 (2D: 3x3) information in ``[rot, trans]`` order."""
         key = self._require_pose(key, "add_prior")
         where = f"prior on pose {key}"
-        self._priors.append(PosePrior(key, as_pose(T_world_sensor, where), as_information(information_rot_trans, where)))
+        self._priors.append(PosePrior(key, as_pose(T_world_sensor, where, self._dimension),
+                                      as_information(information_rot_trans, where, self._dimension)))
         self._invalidate()
 
     def add_edge(
@@ -131,10 +142,10 @@ class PoseGraph:
         ----------
         source_id, target_id : int
             Keys of poses already in the graph.
-        T_target_source : (4, 4)
+        T_target_source : (4, 4), 2D: (3, 3)
             Measured relative pose, metres.
-        information_rot_trans : (6, 6)
-            Symmetric positive-definite information, ``[rot, trans]`` order.
+        information_rot_trans : (6, 6), 2D: (3, 3)
+            Symmetric positive-definite information, ``[rot, trans]`` order (2D: ``[theta, x, y]``).
         kind : {"odometry", "loop"}
             Odometry edges are known inliers for GNC; loop edges can be rejected.
         """
@@ -147,8 +158,8 @@ class PoseGraph:
             kind = ConstraintKind(kind)
         except ValueError:
             raise GraphError(f"{where}: kind must be 'odometry' or 'loop', got {kind!r}") from None
-        T = as_pose(T_target_source, where)
-        info = as_information(information_rot_trans, where)
+        T = as_pose(T_target_source, where, self._dimension)
+        info = as_information(information_rot_trans, where, self._dimension)
         T.setflags(write=False)  # edges are shared with callers through edges()
         info.setflags(write=False)
         self._edges.append(PoseGraphEdge(source_id, target_id, T, info, kind))
@@ -178,6 +189,11 @@ class PoseGraph:
 
     # -- reading ---------------------------------------------------------------------------
     @property
+    def dimension(self) -> int:
+        """2 for a planar graph (SE(2) poses), 3 for a 3D one (SE(3))."""
+        return self._dimension
+
+    @property
     def num_poses(self) -> int:
         return len(self._poses)
 
@@ -205,7 +221,7 @@ class PoseGraph:
         missing = sorted(keep - set(self._poses))
         if missing:
             raise GraphError(f"subgraph: poses {missing[:10]} are not in the graph")
-        out = PoseGraph()
+        out = PoseGraph(self._dimension)
         for k, T in self._poses.items():
             if k in keep:
                 out._poses[k] = T.copy()
@@ -225,7 +241,8 @@ class PoseGraph:
 
     def __repr__(self) -> str:
         loops = sum(e.kind is ConstraintKind.LOOP for e in self._edges)
-        return f"PoseGraph({self.num_poses} poses, {self.num_edges} edges ({loops} loops), fixed {self._fixed})"
+        planar = ", planar" if self._dimension == 2 else ""
+        return f"PoseGraph({self.num_poses} poses, {self.num_edges} edges ({loops} loops), fixed {self._fixed}{planar})"
 
     # -- optimisation ----------------------------------------------------------------------
     def optimize(self, config: PoseGraphConfig | None = None) -> PoseGraphResult:
@@ -260,10 +277,11 @@ class PoseGraph:
         any anchor gets its smallest key fixed)."""
         auto_anchor = check_constrained(list(self._poses), (e.pair for e in self._edges), self._anchored_keys())
         anchors = list(self._fixed) + ([auto_anchor] if auto_anchor is not None else [])
-        return GraphProblem(self._poses, self._edges, self._priors, anchors, noise_model)
+        return GraphProblem(self._poses, self._edges, self._priors, anchors, noise_model, self._dimension)
 
     def marginal_covariance(self, key: int) -> Array:
-        """6x6 marginal covariance of a pose at the last solution, ``[rot, trans]`` order.
+        """6x6 marginal covariance of a pose at the last solution, ``[rot, trans]`` order (2D:
+        3x3, ``[theta, x, y]``).
 
         The covariance is of GTSAM's right perturbation ``T_world_sensor * Exp(xi)``, i.e. in
         the sensor (body) frame, with rotation in rad and translation in metres. Before any

@@ -33,9 +33,9 @@ class PoseGraphEdge:
     ----------
     source_id, target_id : int
         Pose keys; the measurement maps source-frame points into the target frame.
-    T_target_source : (4, 4) float64
+    T_target_source : (4, 4) float64, planar (3, 3)
         Measured relative pose (metres).
-    information_rot_trans : (6, 6) float64
+    information_rot_trans : (6, 6) float64, planar (3, 3) [theta, x, y]
         Information of the measurement, ``[rot, trans]`` order (the file's, not the
         solver's noise model when an isotropic model is chosen at optimisation time).
     kind : ConstraintKind
@@ -84,7 +84,7 @@ class PoseGraphResult:
 
     Attributes
     ----------
-    poses_world_sensor : dict[int, (4, 4) float64]
+    poses_world_sensor : dict[int, (4, 4) float64], planar (3, 3)
         Optimised poses.
     initial_cost : float
         ``0.5 * sum ||whitened residual||^2`` over all edges and priors at the poses the graph

@@ -281,7 +281,7 @@ def predicted_chi2(problem: GraphProblem, values: gtsam.Values, kept: NDArray[np
     ``b^T (I + A H^-1 A^T)^-1 b`` with ``b, A`` the loop's whitened residual and Jacobian at
     ``values`` and ``H`` the Gauss-Newton information of the priors and the kept edges (anchors
     held exactly). For a true loop its residual at the solution without it is
-    ``N(0, I + A H^-1 A^T)`` to first order, so the statistic is ``chi2(6)`` at the variance
+    ``N(0, I + A H^-1 A^T)`` to first order, so the statistic is ``chi2(dof)`` (6, planar 3) at the variance
     factor's scale and the family-wise bound applies to it as to every loop; it is also what
     truncated least squares weighs: adding the loop lowers the TLS cost exactly when the rise
     is under the truncation bound. A loop that its region bends away from while it is left out
@@ -291,24 +291,25 @@ def predicted_chi2(problem: GraphProblem, values: gtsam.Values, kept: NDArray[np
 
     Exact (to first order) where it is at most ``bound``; above it the value may be the lower
     bound ``|b|^4 / (|b|^2 + g^T H^-1 g)``, ``g = A^T b`` (Cauchy-Schwarz), which takes one
-    sparse solve instead of six and decides most outliers.
+    sparse solve instead of one per degree of freedom and decides most outliers.
     """
     import scipy.sparse as sp
     import scipy.sparse.linalg as spla
 
+    dof = problem.dof
     anchored = set(problem.anchors)
-    column = {k: 6 * n for n, k in enumerate(k for k in problem.given_poses if k not in anchored)}
+    column = {k: dof * n for n, k in enumerate(k for k in problem.given_poses if k not in anchored)}
     rows, cols, data = [], [], []
     row = 0
     for keys, A in problem.whitened_jacobians(values, kept):
         for n, key in enumerate(keys):
             if key in column:
-                r, c = np.nonzero(A[:, 6 * n : 6 * n + 6])
+                r, c = np.nonzero(A[:, dof * n : dof * n + dof])
                 rows.append(row + r)
                 cols.append(column[key] + c)
-                data.append(A[r, 6 * n + c])
+                data.append(A[r, dof * n + c])
         row += A.shape[0]
-    J = sp.csr_matrix((np.concatenate(data), (np.concatenate(rows), np.concatenate(cols))), shape=(row, 6 * len(column)))
+    J = sp.csr_matrix((np.concatenate(data), (np.concatenate(rows), np.concatenate(cols))), shape=(row, dof * len(column)))
     # H is symmetric positive definite: a symmetric ordering and no pivoting keep the factor
     # sparse. Right-hand sides go one column at a time: SuperLU's multi-column solve goes
     # through threaded BLAS and is several times slower per column.
@@ -318,25 +319,25 @@ def predicted_chi2(problem: GraphProblem, values: gtsam.Values, kept: NDArray[np
     chi2 = np.empty(len(loops))
     for m, i in enumerate(loops):
         keys, A, b = problem.edge_jacobian(values, i)
-        blocks = [(column[k], A[:, 6 * n : 6 * n + 6]) for n, k in enumerate(keys) if k in column]
+        blocks = [(column[k], A[:, dof * n : dof * n + dof]) for n, k in enumerate(keys) if k in column]
         for c, a in blocks:
-            rhs[c : c + 6] += a.T @ b
+            rhs[c : c + dof] += a.T @ b
         u = lu.solve(rhs)
-        spread_b = float(sum(rhs[c : c + 6] @ u[c : c + 6] for c, _ in blocks))
+        spread_b = float(sum(rhs[c : c + dof] @ u[c : c + dof] for c, _ in blocks))
         for c, _ in blocks:
-            rhs[c : c + 6] = 0.0
+            rhs[c : c + dof] = 0.0
         bb = float(b @ b)
         chi2[m] = bb * bb / (bb + spread_b) if bb > 0.0 else 0.0
         if chi2[m] > bound:
             continue
-        spread = np.eye(6)
-        for j in range(6):
+        spread = np.eye(dof)
+        for j in range(dof):
             for c, a in blocks:
-                rhs[c : c + 6] = a[j]
+                rhs[c : c + dof] = a[j]
             u = lu.solve(rhs)
             for c, a in blocks:
-                spread[:, j] += a @ u[c : c + 6]
-                rhs[c : c + 6] = 0.0
+                spread[:, j] += a @ u[c : c + dof]
+                rhs[c : c + dof] = 0.0
         chi2[m] = float(b @ np.linalg.solve(spread, b))
     return chi2
 

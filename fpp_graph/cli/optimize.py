@@ -17,7 +17,7 @@ from fpp_graph.cli.common import ConfigOption, examples, setup_logging
     "fpp-slam optimize ../shared/data/posegraphs/parking-garage.g2o --noise-model isotropic --robust none --json",
 )
 def optimize_graph(
-    graph_file: Annotated[Path, typer.Argument(help="3D g2o pose graph (VERTEX_SE3:QUAT, EDGE_SE3:QUAT).")],
+    graph_file: Annotated[Path, typer.Argument(help="g2o pose graph, 3D (VERTEX_SE3:QUAT, EDGE_SE3:QUAT) or planar (VERTEX_SE2, EDGE_SE2).")],
     out: Annotated[Optional[Path], typer.Option("--out", "-o", help="Write the optimised graph here (g2o, full precision).")] = None,  # noqa: UP045
     noise_model: Annotated[Optional[str], typer.Option("--noise-model", help="file | isotropic (SE-Sync's tau/kappa). Default: config.")] = None,  # noqa: UP045
     robust: Annotated[Optional[str], typer.Option("--robust", help="none | cauchy | gnc (on loop edges). Default: config.")] = None,  # noqa: UP045

@@ -140,7 +140,7 @@ def read_run(results_dir: str | Path) -> RunData:
     loop_edges: list[tuple[int, int]] = []
     if (results_dir / "graph.g2o").is_file():
         graph = read_g2o(results_dir / "graph.g2o")
-        poses = graph.poses()
+        poses = {k: _in_3d(T) for k, T in graph.poses().items()}
         odometry, loop_edges = _edges_of(graph.edges())
     else:
         notes.append("graph.g2o is missing: keyframes and graph edges are left out")
@@ -166,7 +166,7 @@ def graph_run_data(results_dir: str | Path, graph: PoseGraph, poses: Mapping[int
 
     results_dir = Path(results_dir)
     ids = sorted(poses)
-    stacked = np.array([poses[k] for k in ids], dtype=np.float64).reshape(-1, 4, 4)
+    stacked = np.array([_in_3d(poses[k]) for k in ids], dtype=np.float64).reshape(-1, 4, 4)
     quats = Rotation.from_matrix(stacked[:, :3, :3]).as_quat() if ids else np.zeros((0, 4))
     trajectory = Trajectory(np.asarray(ids, dtype=np.float64), stacked[:, :3, 3].copy(), quats)
     plain_metrics = json.loads(json.dumps(metrics, default=float))  # as metrics.json reads back: numpy scalars as numbers
@@ -188,10 +188,19 @@ def _edges_of(edges: list[PoseGraphEdge]) -> tuple[dict[tuple[int, int], NDArray
     odometry_kind = ConstraintKind.ODOMETRY  # an enum member's lookup costs more than the comparison
     for e in edges:
         if e.kind == odometry_kind:
-            odometry[(e.source_id, e.target_id)] = e.T_target_source
+            odometry[(e.source_id, e.target_id)] = _in_3d(e.T_target_source)
         else:
             loop_edges.append((e.source_id, e.target_id))
     return odometry, loop_edges
+
+
+def _in_3d(T: NDArray[np.float64]) -> NDArray[np.float64]:
+    """A 4x4 pose as is; a planar graph's 3x3 one lifted into the plane z = 0 (the report draws 3D)."""
+    if T.shape == (3, 3):
+        from fpp_graph.planar import lift_to_se3
+
+        return lift_to_se3(T)
+    return T
 
 
 def _config_and_provenance(results_dir: Path) -> dict[str, Any]:

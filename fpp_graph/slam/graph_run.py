@@ -53,6 +53,7 @@ def graph_run_summary(run: GraphRun, certify: bool) -> dict[str, Any]:
     graph_pairs = [e.pair for e in graph.edges()]
     return {
         "input": str(run.path),
+        "dimension": graph.dimension,
         "poses": graph.num_poses,
         "edges": graph.num_edges,
         "loops": sum(e.kind == "loop" for e in graph.edges()),
@@ -86,17 +87,21 @@ def graph_run_summary(run: GraphRun, certify: bool) -> dict[str, Any]:
 def run_graph_file(path: Path, config: Config, out: Path, analyses: RunAnalyses | None = None) -> dict[str, Any]:
     """``fpp-slam run GRAPH.g2o``: optimise with the configured back-end; write ``trajectory.tum``,
     ``graph.g2o``, ``metrics.json`` (the summary, plus ``frames``) and, last, ``report.html``
+    (a planar graph's ``trajectory.tum`` holds its poses in the plane z = 0 with a yaw
+    quaternion; its ``graph.g2o`` stays SE2)
     when ``analyses`` has a ``write_report`` (from the graph and poses in memory; its time added
     to ``metrics.json`` as ``report_seconds``) into ``out`` (a folder that
     :func:`~fpp_graph.results_folder.results_folder` claimed: it holds ``config.yaml``)."""
     from fpp_graph.backend.g2o import write_g2o
+    from fpp_graph.planar import lift_to_se3
     from fpp_graph.trajectory import Trajectory, write_tum
 
     run = optimize_g2o_file(path, config.pose_graph)
     poses = run.result.poses_world_sensor
     ids = sorted(poses)
     # g2o carries no timestamps: the vertex id stands in for time
-    write_tum(out / "trajectory.tum", Trajectory.from_poses([float(i) for i in ids], [poses[i] for i in ids]))
+    poses_3d = [lift_to_se3(poses[i]) if run.graph.dimension == 2 else poses[i] for i in ids]
+    write_tum(out / "trajectory.tum", Trajectory.from_poses([float(i) for i in ids], poses_3d))
     write_g2o(out / "graph.g2o", run.graph, poses=poses)
     summary = {"frames": len(ids), **graph_run_summary(run, certify=config.pose_graph.certify)}
     atomic_write_text(out / "metrics.json", json.dumps(summary, indent=1, default=float))
