@@ -15,36 +15,23 @@ from numpy.typing import NDArray
 from fpp_graph.backend.gtsam_bridge import GraphProblem
 from fpp_graph.backend.outliers import lowest_common_ancestors, odometry_forest
 from fpp_graph.geometry import adjoint, invert
+from fpp_graph.planar import se2_adjoint, se2_log
 
 Array = NDArray[np.float64]
 
 
 def adjoint_of(T: Array) -> Array:
     """The adjoint of a stack of poses: SE(3) (``[rot, trans]``) or SE(2) (``[theta, x, y]``)."""
-    if T.shape[-1] == 4:
-        return adjoint(T)
-    Ad = np.zeros(T.shape[:-2] + (3, 3))
-    Ad[..., 0, 0] = 1.0
-    Ad[..., 1:, 1:] = T[..., :2, :2]
-    Ad[..., 1, 0] = T[..., 1, 2]
-    Ad[..., 2, 0] = -T[..., 0, 2]
-    return Ad
+    return adjoint(T) if T.shape[-1] == 4 else se2_adjoint(T)
 
 
 def log_of(T: Array) -> Array:
     """``Log`` of a stack of poses in the tangent order of :func:`adjoint_of`."""
-    if T.shape[-1] == 4:
-        from fpp_graph.backend.gtsam_bridge import pose_log
+    if T.shape[-1] == 3:
+        return se2_log(T)
+    from fpp_graph.backend.gtsam_bridge import pose_log
 
-        return np.array([pose_log(M) for M in T.reshape(-1, 4, 4)]).reshape(T.shape[:-2] + (6,))
-    theta = np.arctan2(T[..., 1, 0], T[..., 0, 0])
-    small = np.abs(theta) < 1e-9
-    safe = np.where(small, 1.0, theta)
-    a = np.where(small, 1.0 - theta**2 / 6.0, np.sin(safe) / safe)  # V = a I + b [[0,-1],[1,0]]
-    b = np.where(small, theta / 2.0, (1.0 - np.cos(safe)) / safe)
-    det = a * a + b * b
-    x, y = T[..., 0, 2], T[..., 1, 2]
-    return np.stack([theta, (a * x + b * y) / det, (-b * x + a * y) / det], axis=-1)
+    return np.array([pose_log(M) for M in T.reshape(-1, 4, 4)]).reshape(T.shape[:-2] + (6,))
 
 
 def _forest(problem: GraphProblem) -> tuple[dict[int, int], NDArray[np.int64], Array, Array, NDArray[np.int64]]:
@@ -74,19 +61,23 @@ def _forest(problem: GraphProblem) -> tuple[dict[int, int], NDArray[np.int64], A
     return node, parent, P, S, tree
 
 
-def pairwise_cycle_chi2(problem: GraphProblem, first: NDArray[np.int64], second: NDArray[np.int64]) -> Array:
+def pairwise_cycle_chi2(problem: GraphProblem, first: NDArray[np.int64], second: NDArray[np.int64]) -> tuple[Array, Array]:
     """``(len(first), len(second))`` chi-squares of the cycles of every pair ``(a, b)`` of loops
-    (edge indices) through the odometry; inf where the ends of a pair are not in one odometry
-    tree or ``a == b``."""
+    (edge indices) through the odometry, and the share of the odometry paths in each cycle's
+    covariance: the largest generalised eigenvalue of the paths' covariance against the two
+    loops' (above 1 the odometry is less certain than the loops in some direction, and the
+    cycle tests the odometry more than the loops). Both inf where the ends of a pair are not in
+    one odometry tree or ``a == b``."""
     node, parent, P, S, tree = _forest(problem)
     chi2 = np.full((len(first), len(second)), math.inf)
+    path_share = np.full((len(first), len(second)), math.inf)
     a, b = (x.ravel() for x in np.meshgrid(np.arange(len(first)), np.arange(len(second)), indexing="ij"))
     edge_a, edge_b = np.asarray(first)[a], np.asarray(second)[b]
     s_a, t_a = _ends(problem, node, edge_a)
     s_b, t_b = _ends(problem, node, edge_b)
     ok = (tree[t_a] == tree[t_b]) & (tree[s_a] == tree[s_b]) & (edge_a != edge_b)
     if not np.any(ok):
-        return chi2
+        return chi2, path_share
     a, b, edge_a, edge_b, s_a, t_a, s_b, t_b = (x[ok] for x in (a, b, edge_a, edge_b, s_a, t_a, s_b, t_b))
     Z_a = np.stack([problem.edges[i].T_target_source for i in edge_a])
     Z_b = np.stack([problem.edges[i].T_target_source for i in edge_b])
@@ -96,11 +87,14 @@ def pairwise_cycle_chi2(problem: GraphProblem, first: NDArray[np.int64], second:
     C2 = _moved(adjoint_of(invert(P[t_b])), _path(S, parent, t_a, t_b))
     C3 = np.linalg.inv(problem.model_information[edge_b])
     C4 = _moved(adjoint_of(invert(P[s_a])), _path(S, parent, s_b, s_a))
-    C = (_moved(adjoint_of(invert(M2 @ Z_b @ M4)), C1) + _moved(adjoint_of(invert(Z_b @ M4)), C2)
-         + _moved(adjoint_of(invert(M4)), C3) + C4)
+    loops = _moved(adjoint_of(invert(M2 @ Z_b @ M4)), C1) + _moved(adjoint_of(invert(M4)), C3)
+    paths = _moved(adjoint_of(invert(Z_b @ M4)), C2) + C4
     e = log_of(invert(Z_a) @ M2 @ Z_b @ M4)
-    chi2[a, b] = np.einsum("ni,ni->n", e, np.linalg.solve(C, e[..., None])[..., 0])
-    return chi2
+    chi2[a, b] = np.einsum("ni,ni->n", e, np.linalg.solve(loops + paths, e[..., None])[..., 0])
+    L = np.linalg.cholesky(loops)
+    whitened = np.linalg.solve(L, np.swapaxes(np.linalg.solve(L, paths), -1, -2))  # L^-1 paths L^-T
+    path_share[a, b] = np.linalg.eigvalsh(0.5 * (whitened + np.swapaxes(whitened, -1, -2)))[:, -1]
+    return chi2, path_share
 
 
 def _ends(problem: GraphProblem, node: dict[int, int], edges: NDArray[np.int64]) -> tuple[NDArray[np.int64], NDArray[np.int64]]:

@@ -13,7 +13,9 @@ them for the loops left out by truncated least squares, by a rule stated in thre
    kept graph's stated standard deviation of where the graph puts it.
 2. **Agreement** (pairwise consistency, as in PCM, Mangelson et al. ICRA 2018): two loops agree
    when the cycle ``loop a, odometry, loop b^-1, odometry`` through the odometry spanning forest
-   is within the loop bound at the stated information. For two loops of one revisit the cycle
+   is within the loop bound at the stated information, and the odometry paths of that cycle are
+   no less certain than the two loops (so that the cycle tests the loops: through a long,
+   loose stretch of odometry any two loops would pass). For two loops of one revisit the cycle
    runs through the short stretches between their ends, not through the stretch they close, so
    the test does not depend on whether that stretch is overconfident.
 3. **The group's variance factor**: for a clique of agreeing loops left out (at least two, or
@@ -267,12 +269,12 @@ def agreeing_groups(problem: GraphProblem, out: NDArray[np.int64], kept: NDArray
 
     from fpp_graph.backend.loop_cycles import pairwise_cycle_chi2
 
-    among = pairwise_cycle_chi2(problem, out, out)
-    with_kept = pairwise_cycle_chi2(problem, out, kept) if len(kept) else np.zeros((len(out), 0))
-    supported = {int(i) for i, row in zip(out, with_kept, strict=True) if np.any(row <= bound)}
+    among = _agree(*pairwise_cycle_chi2(problem, out, out), bound)
+    with_kept = _agree(*pairwise_cycle_chi2(problem, out, kept), bound) if len(kept) else np.zeros((len(out), 0), dtype=bool)
+    supported = {int(i) for i, row in zip(out, with_kept, strict=True) if np.any(row)}
     graph = nx.Graph()
     graph.add_nodes_from(int(i) for i in out)
-    graph.add_edges_from((int(out[a]), int(out[b])) for a, b in zip(*np.nonzero(among <= bound), strict=True) if a < b)
+    graph.add_edges_from((int(out[a]), int(out[b])) for a, b in zip(*np.nonzero(among), strict=True) if a < b)
     groups, used = [], set()
     for clique in sorted(nx.find_cliques(graph), key=lambda q: (-len(q), sorted(q))):
         clique = sorted(i for i in clique if i not in used)
@@ -280,3 +282,10 @@ def agreeing_groups(problem: GraphProblem, out: NDArray[np.int64], kept: NDArray
             groups.append(clique)
             used.update(clique)
     return groups
+
+
+def _agree(chi2: Array, path_share: Array, bound: float) -> NDArray[np.bool_]:
+    """Pairs whose cycle closes within ``bound`` and tests the loops: the odometry paths of the
+    cycle no less certain than the two loops (else any two loops far apart would agree through
+    the loose odometry between them)."""
+    return (chi2 <= bound) & (path_share <= 1.0)

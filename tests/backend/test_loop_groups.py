@@ -12,7 +12,7 @@ import pytest
 
 from fpp_graph.backend.gtsam_bridge import GraphProblem
 from fpp_graph.backend.least_squares import initial_values, least_squares
-from fpp_graph.backend.loop_cycles import log_of, pairwise_cycle_chi2
+from fpp_graph.backend.loop_cycles import pairwise_cycle_chi2
 from fpp_graph.backend.loop_evidence import screen_loops
 from fpp_graph.backend.loop_groups import (
     MAX_VARIANCE_FACTOR,
@@ -104,12 +104,13 @@ def test_loops_of_one_false_revisit_agree_and_a_loop_of_another_does_not() -> No
     group = [i for i, e in enumerate(problem.edges) if e.pair in set(sim.false_loops)]
     stranger = len(problem.edges) - 1
     loops = np.array([*group, stranger])
-    chi2 = pairwise_cycle_chi2(problem, loops, loops)
+    chi2, path_share = pairwise_cycle_chi2(problem, loops, loops)
     bound = family_bound(len(group) + 1, 0.01)
     same = chi2[:4, :4][np.triu_indices(4, 1)]
     assert np.all(same < bound)  # the four carry one offset: they agree
     assert np.all(chi2[4, :4] > 100 * bound)  # the fifth carries another
     assert np.all(np.isinf(np.diag(chi2)))
+    assert np.all(path_share[:4, :4][np.triu_indices(4, 1)] < 1.0)  # a few odometry steps between their ends
 
 
 def test_the_smallest_variance_factor_solves_the_predicted_chi_square() -> None:
@@ -121,16 +122,6 @@ def test_the_smallest_variance_factor_solves_the_predicted_chi_square() -> None:
     assert smallest_variance_factor(b, spread, bound) == pytest.approx((900.0 / bound - 1.0) / 4.0, rel=1e-6)
     assert smallest_variance_factor(0.1 * b, spread, bound) == 1.0
     assert math.isinf(smallest_variance_factor(1e3 * b, spread, bound))
-
-
-def test_planar_log_inverts_the_planar_exponential() -> None:
-    theta, u = 0.7, np.array([0.3, -1.2])
-    a, c = math.sin(theta) / theta, (1.0 - math.cos(theta)) / theta
-    V = np.array([[a, -c], [c, a]])
-    T = np.eye(3)
-    T[:2, :2] = [[math.cos(theta), -math.sin(theta)], [math.sin(theta), math.cos(theta)]]
-    T[:2, 2] = V @ u
-    assert log_of(T[None])[0] == pytest.approx([theta, *u], abs=1e-12)
 
 
 def test_optimize_json_and_summary_give_the_account(tmp_path, capsys) -> None:
