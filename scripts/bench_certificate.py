@@ -1,8 +1,9 @@
 """Where the time of one ``fpp-slam optimize GRAPH --noise-model isotropic --json`` process goes.
 
 Per graph (sphere2500, parking-garage from ``../shared/data/posegraphs``, skipped with a message
-when absent; a 5000-pose torus from :func:`fpp_graph.testing.synthetic_graphs.torus_graph`
-written to a temporary directory), each run is a fresh process that runs the ``optimize``
+when absent; a 5000-pose torus from :func:`fpp_graph.testing.synthetic_graphs.torus_graph` and
+planar Manhattan-world graphs of 1000, 3500 and 10000 poses from
+:func:`fpp_graph.testing.synthetic_graphs.manhattan_graph`, written to a temporary directory), each run is a fresh process that runs the ``optimize``
 command as the CLI does, with the pipeline's stage functions wrapped in timers:
 
 - ``startup``: interpreter start-up (a bare ``python -c pass``, measured separately);
@@ -12,6 +13,7 @@ command as the CLI does, with the pipeline's stage functions wrapped in timers:
 - ``LM``: least squares and the loop evidence; ``robust``: truncated least squares (when run);
 - ``cert``: the certificate stage, and within it ``newton`` (the refinement to a critical point
   of SE-Sync's F) and ``eig`` (the minimum-eigenvalue test of ``S``);
+- ``write``: writing the optimised graph (``--out``, g2o at full precision);
 - ``whole``: the process's wall time seen from outside.
 
 Then the plain-gtsam peer (``scripts/plain_gtsam_g2o.py``) and the project, unwrapped, as whole
@@ -41,6 +43,9 @@ sys.path.insert(0, str(REPO))
 from scripts.bench_pose_graph_peer import SHARED_POSEGRAPHS, peer_command, project_command, run_json  # noqa: E402
 
 GRAPHS = ("sphere2500", "parking-garage")
+#: Sizes of the synthetic planar graphs (:func:`fpp_graph.testing.synthetic_graphs.manhattan_graph`):
+#: the size of the smaller public planar benchmarks (intel, CSAIL), of M3500 and of city10000.
+PLANAR_POSES = (1000, 3500, 10000)
 
 #: The child process: the ``optimize`` command with the pipeline's stages wrapped in timers.
 #: Times go to stderr as one JSON line (stdout keeps the command's own JSON).
@@ -67,6 +72,7 @@ import fpp_graph.backend.certificate as cert
 from fpp_graph.backend.certificate_matrix import CertificateMatrix
 pre = set(sys.modules)
 timed(g2o, "read_g2o", "read")
+timed(g2o, "write_g2o", "write")
 timed(opt, "initial_values", "init")
 timed(opt, "least_squares", "LM")
 timed(opt, "screen_loops", "LM")
@@ -75,10 +81,10 @@ timed(opt, "certify_solution", "cert")
 timed(cert, "newton", "newton")
 timed(CertificateMatrix, "smallest", "eig")
 try:
-    code = main(["optimize", sys.argv[1], "--noise-model", "isotropic", "--json"])
+    code = main(["optimize", sys.argv[1], "--noise-model", "isotropic", "--json", "--out", sys.argv[2]])
 finally:
     times["imports"] = times.pop("first_read")  # the CLI and everything imported before the file is read
-    times["other"] = time.perf_counter() - T0 - times["imports"] - sum(times.get(k, 0.0) for k in ("read", "init", "LM", "robust", "cert"))
+    times["other"] = time.perf_counter() - T0 - times["imports"] - sum(times.get(k, 0.0) for k in ("read", "init", "LM", "robust", "cert", "write"))
     times = {k: v for k, v in times.items() if not k.startswith("first_")}
     times["modules_imported"] = len(set(sys.modules) - pre)
     print(json.dumps(times), file=sys.stderr)
@@ -101,9 +107,11 @@ def split(path: Path) -> dict[str, float]:
 
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join(p for p in (str(REPO), env.get("PYTHONPATH", "")) if p)
-    start = time.perf_counter()
-    done = subprocess.run([sys.executable, "-c", _CHILD, str(path)], capture_output=True, text=True, env=env, check=True)
-    whole = time.perf_counter() - start
+    with tempfile.TemporaryDirectory(prefix="bench_cert_out_") as out:
+        start = time.perf_counter()
+        done = subprocess.run([sys.executable, "-c", _CHILD, str(path), str(Path(out) / "optimised.g2o")],
+                              capture_output=True, text=True, env=env, check=True)
+        whole = time.perf_counter() - start
     times = json.loads(done.stderr.strip().splitlines()[-1])
     result = json.loads(done.stdout.strip().splitlines()[-1])
     times["whole"] = whole
@@ -118,11 +126,11 @@ def main() -> int:
     parser.add_argument("--runs", type=int, default=3, help="runs of each measurement per graph (minimum kept)")
     parser.add_argument("--json", type=Path, default=None, help="also write the figures to this JSON file")
     args = parser.parse_args()
-    from fpp_graph.testing.synthetic_graphs import torus_graph
+    from fpp_graph.testing.synthetic_graphs import manhattan_graph, torus_graph
 
     startup = startup_seconds()
     print(f"interpreter start-up (python -c pass): {startup:.3f} s")
-    keys = ("imports", "read", "init", "LM", "robust", "cert", "newton", "eig")
+    keys = ("imports", "read", "init", "LM", "robust", "cert", "newton", "eig", "write")
     print(f"{'graph':<16}" + "".join(f"{k:>9}" for k in keys)
           + f"{'whole':>8}{'cert %':>8}{'F':>13}{'cert':>6}{'rej':>5}{'ours s':>8}{'peer s':>8}{'ratio':>7}")
     rows = []
@@ -135,6 +143,10 @@ def main() -> int:
         torus = Path(tmp) / "torus5000.g2o"
         torus_graph(5000, rng=np.random.default_rng(0)).write_g2o(torus)
         cases.append(("torus5000", torus))
+        for poses in PLANAR_POSES:  # planar (SE(2)) graphs solved as Pose2, like M3500 and city10000
+            planar = Path(tmp) / f"manhattan{poses}.g2o"
+            manhattan_graph(poses, rng=np.random.default_rng(0)).write_g2o(planar)
+            cases.append((f"manhattan{poses}", planar))
         for name, path in cases:
             runs = [split(path) for _ in range(args.runs)]
             best = {k: min(r.get(k, 0.0) for r in runs) for k in (*keys, "whole")}

@@ -13,7 +13,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from fpp_graph.backend.gtsam_bridge import GraphProblem
-from fpp_graph.backend.outliers import lowest_common_ancestors, odometry_forest
+from fpp_graph.backend.outliers import lowest_common_ancestors, odometry_poses
 from fpp_graph.geometry import adjoint, invert
 from fpp_graph.planar import se2_adjoint, se2_log
 
@@ -36,28 +36,14 @@ def log_of(T: Array) -> Array:
 
 def _forest(problem: GraphProblem) -> tuple[dict[int, int], NDArray[np.int64], Array, Array, NDArray[np.int64]]:
     """Node of each key, each node's parent, pose ``P`` and left covariance ``S`` from its tree's
-    root along the odometry spanning forest, and its tree label."""
+    root along the odometry spanning forest (:func:`~fpp_graph.backend.outliers.odometry_poses`),
+    and its tree label."""
     keys = list(problem.given_poses)
     node = {int(k): n for n, k in enumerate(keys)}
     ends = np.array([[node[e.source_id], node[e.target_id]] for e in problem.edges], dtype=np.int64).reshape(-1, 2)
-    odometry = np.flatnonzero(~problem.is_loop)
-    roots = [node[k] for k in [*problem.anchors, *(p.key for p in problem.priors)] if k in node]
-    order, parent, parent_edge, tree = odometry_forest(len(keys), ends[odometry].reshape(-1, 2), roots)
-    size = problem.model_information.shape[-1]
-    dim = 4 if size == 6 else 3
-    child = order[parent[order] != order]
-    edge = odometry[parent_edge[child]]
-    T = np.stack([problem.edges[i].T_target_source for i in edge]) if len(edge) else np.zeros((0, dim, dim))
-    forward = parent[child] == ends[edge, 1]
-    step = np.where(forward[:, None, None], T, invert(T) if len(T) else T)
-    P = np.broadcast_to(np.eye(dim), (len(keys), dim, dim)).copy()
-    for c, p, M in zip(child.tolist(), parent[child].tolist(), step, strict=True):
-        P[c] = P[p] @ M
-    A = adjoint_of(P[ends[edge, 0]])
-    added = A @ np.linalg.inv(problem.model_information[edge]) @ np.swapaxes(A, 1, 2)
-    S = np.zeros((len(keys), size, size))
-    for c, p, Q in zip(child.tolist(), parent[child].tolist(), added, strict=True):
-        S[c] = S[p] + Q
+    roots = np.array([node[k] for k in [*problem.anchors, *(p.key for p in problem.priors)] if k in node], dtype=np.int64)
+    T = np.stack([e.T_target_source for e in problem.edges])
+    P, S, parent, tree = odometry_poses(len(keys), ends, ~problem.is_loop, T, np.linalg.inv(problem.model_information), roots)
     return node, parent, P, S, tree
 
 

@@ -278,7 +278,7 @@ def odometry_cycle_chi2(
     known = {int(k) for k in key_array}
     root_index = sorter[np.searchsorted(key_array, [int(r) for r in roots if int(r) in known], sorter=sorter)]
     covariance = np.linalg.inv(information_rot_trans)
-    P, S, parent, tree = _odometry_poses(n, ends, ~is_loop, T_target_source, covariance, root_index)
+    P, S, parent, tree = odometry_poses(n, ends, ~is_loop, T_target_source, covariance, root_index)
 
     loops = np.flatnonzero(is_loop)
     src, tgt = ends[loops, 0], ends[loops, 1]
@@ -303,7 +303,7 @@ def odometry_cycle_chi2(
     return CycleCheck(loops.astype(np.int64), chi2, dof)
 
 
-def _odometry_poses(
+def odometry_poses(
     n: int, ends: NDArray[np.int64], is_odometry: NDArray[np.bool_], T_target_source: Array, covariance: Array,
     root_index: NDArray[np.int64],
 ) -> tuple[Array, Array, NDArray[np.int64], NDArray[np.int64]]:

@@ -30,9 +30,9 @@ from fpp_graph.testing.revisit_graphs import revisit_graph
 LOOPS_AS_UNCERTAIN_AS_THE_PATH = (3e-3, 3e-2)
 
 
-@pytest.mark.parametrize(("group_size", "seed"), [(3, 0), (5, 1), (4, 2)])
-def test_true_loops_closing_an_overconfident_stretch_are_kept_at_the_certified_optimum(group_size: int, seed: int) -> None:
-    sim = revisit_graph(200, group_size, overconfidence=10, rng=np.random.default_rng(seed))
+@pytest.mark.parametrize(("group_size", "seed", "planar"), [(3, 0, False), (5, 1, False), (4, 2, True)])
+def test_true_loops_closing_an_overconfident_stretch_are_kept_at_the_certified_optimum(group_size: int, seed: int, planar: bool) -> None:
+    sim = revisit_graph(200, group_size, overconfidence=10, planar=planar, rng=np.random.default_rng(seed))
     graph, plain = sim.graph(), sim.graph()
     result = graph.optimize(PoseGraphConfig(certify=True))
     reference = plain.optimize(PoseGraphConfig(robust="none"))
@@ -43,10 +43,10 @@ def test_true_loops_closing_an_overconfident_stretch_are_kept_at_the_certified_o
     assert F == pytest.approx(F_plain, rel=1e-9)
 
 
-@pytest.mark.parametrize(("group_size", "seed"), [(3, 0), (4, 1), (5, 2)])
-def test_a_false_revisit_100_sigma_off_is_dropped_with_an_account(group_size: int, seed: int) -> None:
+@pytest.mark.parametrize(("group_size", "seed", "planar"), [(3, 0, False), (4, 1, True), (5, 2, False)])
+def test_a_false_revisit_100_sigma_off_is_dropped_with_an_account(group_size: int, seed: int, planar: bool) -> None:
     sim = revisit_graph(200, group_size, false_offset_sigma=100, loop_sigmas=LOOPS_AS_UNCERTAIN_AS_THE_PATH,
-                        rng=np.random.default_rng(seed))
+                        planar=planar, rng=np.random.default_rng(seed))
     graph = sim.graph()
     result = graph.optimize(PoseGraphConfig(certify=True))
     assert set(result.rejected_loops) == set(sim.false_loops)
@@ -62,7 +62,7 @@ def test_a_false_revisit_100_sigma_off_is_dropped_with_an_account(group_size: in
 def _problem_without(sim, group: list[tuple[int, int]]):
     """The problem of ``sim`` and its least-squares solution with the loops ``group`` left out."""
     graph = sim.graph()
-    problem = GraphProblem(graph.poses(), graph.edges(), graph.priors(), graph.fixed_poses(), "file")
+    problem = GraphProblem(graph.poses(), graph.edges(), graph.priors(), graph.fixed_poses(), "file", graph.dimension)
     cfg = PoseGraphConfig()
     active = np.array([e.pair not in group for e in problem.edges])
     start = initial_values(problem, "chordal")
@@ -94,13 +94,14 @@ def test_an_isolated_loop_left_out_stays_out() -> None:
     assert not any(readmitted.active[i] for i, e in enumerate(problem.edges) if e.pair == (199, 0))
 
 
-def test_loops_of_one_false_revisit_agree_and_a_loop_of_another_does_not() -> None:
-    sim = revisit_graph(200, 4, false_offset_sigma=100, rng=np.random.default_rng(4))
-    other = revisit_graph(200, 4, false_offset_sigma=100, rng=np.random.default_rng(5))
+@pytest.mark.parametrize("planar", [False, True])
+def test_loops_of_one_false_revisit_agree_and_a_loop_of_another_does_not(planar: bool) -> None:
+    sim = revisit_graph(200, 4, false_offset_sigma=100, planar=planar, rng=np.random.default_rng(4))
+    other = revisit_graph(200, 4, false_offset_sigma=100, planar=planar, rng=np.random.default_rng(5))
     s, t, T, info, kind = next(e for e in other.edges if e[4] == "loop")
     sim.edges.append((s + 1, t + 1, T, info, kind))  # another wrong offset at the same place
     graph = sim.graph()
-    problem = GraphProblem(graph.poses(), graph.edges(), graph.priors(), graph.fixed_poses(), "file")
+    problem = GraphProblem(graph.poses(), graph.edges(), graph.priors(), graph.fixed_poses(), "file", graph.dimension)
     group = [i for i, e in enumerate(problem.edges) if e.pair in set(sim.false_loops)]
     stranger = len(problem.edges) - 1
     loops = np.array([*group, stranger])
