@@ -5,23 +5,20 @@ loops close the same revisit and agree with each other, their disagreement with 
 between their ends has two explanations: the loops are wrong (perceptual aliasing: one wrong
 place recognised several times), or the odometry along that stretch is more confident than it
 is right (a front-end's covariance that ignores correlated errors). This stage decides between
-them for the loops left out by truncated least squares, by a rule stated in three tests:
+them for the loops left out by truncated least squares, by a rule stated in two tests:
 
-1. **Plausible alone**: the kept graph predicts the loop within the loop bound once its
-   covariance is scaled by at most :data:`MAX_VARIANCE_FACTOR` (first order, as
-   :func:`~fpp_graph.backend.robust_stage.predicted_chi2`): the loop is within 10 times the
-   kept graph's stated standard deviation of where the graph puts it.
-2. **Agreement** (pairwise consistency, as in PCM, Mangelson et al. ICRA 2018): two loops agree
+1. **Agreement** (pairwise consistency, as in PCM, Mangelson et al. ICRA 2018): two loops agree
    when the cycle ``loop a, odometry, loop b^-1, odometry`` through the odometry spanning forest
    is within the loop bound at the stated information, and the odometry paths of that cycle are
    no less certain than the two loops (so that the cycle tests the loops: through a long,
    loose stretch of odometry any two loops would pass). For two loops of one revisit the cycle
    runs through the short stretches between their ends, not through the stretch they close, so
    the test does not depend on whether that stretch is overconfident.
-3. **The group's variance factor**: for a clique of agreeing loops left out (at least two, or
-   one that agrees with a kept loop: truncated least squares can drop part of a revisit), the smallest
-   scale ``s2`` of the kept graph's covariance at which the kept graph predicts the whole group
-   jointly within the family-wise chi-square bound of its ``dof * k`` degrees of freedom. The
+2. **The group's variance factor**: for a clique of agreeing loops left out (at least two, or
+   one that agrees with a loop kept that the evidence flagged too: truncated least squares can
+   drop part of a revisit), the smallest scale ``s2`` of the kept graph's covariance at which
+   the kept graph predicts the whole group (first order, as
+   :func:`~fpp_graph.backend.robust_stage.predicted_chi2`) jointly within the family-wise chi-square bound of its ``dof * k`` degrees of freedom. The
    group is re-admitted when ``s2 <= MAX_VARIANCE_FACTOR`` and the least-squares solution with
    it puts no kept loop that was under the bound over ``s2`` times the bound.
 
@@ -144,21 +141,6 @@ class KeptGraphPrediction:
         H_inv_At = np.column_stack([self._lu.solve(np.ascontiguousarray(row)) for row in A]) if len(b) else A.T
         return b, A @ H_inv_At
 
-    def lower_bound(self, loop: int, variance_factor: float) -> float:
-        """``|b|^4 / (|b|^2 + s2 g^T H^-1 g)``, ``g = A^T b``: a lower bound (Cauchy-Schwarz) on
-        the loop's predicted chi-square at scale ``s2``, from one sparse solve."""
-        b, (pairs,) = self._blocks(np.array([loop]))
-        g = np.zeros(self.size)
-        for c, a in pairs:
-            g[c : c + a.shape[1]] += a.T @ b
-        bb = float(b @ b)
-        return bb * bb / (bb + variance_factor * float(g @ self._lu.solve(g))) if bb > 0.0 else 0.0
-
-
-def predicted_chi2_at(b: Array, spread: Array, variance_factor: float) -> float:
-    """``b^T (I + s2 A H^-1 A^T)^-1 b``."""
-    return float(b @ np.linalg.solve(np.eye(len(b)) + variance_factor * spread, b))
-
 
 def smallest_variance_factor(b: Array, spread: Array, bound: float) -> float:
     """The smallest ``s2`` in ``[1, MAX_VARIANCE_FACTOR]`` with ``b^T (I + s2 M)^-1 b <= bound``
@@ -196,12 +178,14 @@ def readmit_groups(
     out = np.flatnonzero(problem.is_loop & ~solution.active)
     if len(out) == 0:
         return solution, []
-    prediction = KeptGraphPrediction(problem, solution.values, solution.active)
-    plausible = _plausible_alone(prediction, out, screen.bound)
-    if len(plausible) == 0:
-        log.info("%d loop(s) out, none plausible at a variance factor up to %g", len(out), MAX_VARIANCE_FACTOR)
+    # partners kept: the loops the evidence flagged at the least-squares solution and truncated
+    # least squares kept (a revisit's loops disagree with overconfident odometry alike)
+    flagged_kept = np.array([i for i in screen.flagged() if solution.active[i]], dtype=np.int64)
+    cliques = agreeing_groups(problem, out, flagged_kept, screen.bound)
+    if not cliques:
+        log.info("%d loop(s) out, none agreeing with another loop: no group to weigh", len(out))
         return solution, []
-    cliques = agreeing_groups(problem, plausible, np.flatnonzero(problem.is_loop & solution.active), screen.bound)
+    prediction = KeptGraphPrediction(problem, solution.values, solution.active)
     decisions: list[LoopGroup] = []
     values, kept = solution.values, solution.active.copy()
     iterations = 0
@@ -232,19 +216,6 @@ def readmit_groups(
     return replace(solution, values=values, active=kept, iterations=solution.iterations + iterations), decisions
 
 
-def _plausible_alone(prediction: KeptGraphPrediction, loops: NDArray[np.int64], bound: float) -> NDArray[np.int64]:
-    """Loops the kept graph predicts within ``bound`` at its covariance scaled by the largest
-    variance factor (the cheap lower bound first: it decides gross outliers in one solve)."""
-    keep = []
-    for i in loops:
-        if prediction.lower_bound(int(i), MAX_VARIANCE_FACTOR) > bound:
-            continue
-        b, spread = prediction.spread(np.array([i]))
-        if predicted_chi2_at(b, spread, MAX_VARIANCE_FACTOR) <= bound:
-            keep.append(int(i))
-    return np.array(keep, dtype=np.int64)
-
-
 def _solve_with(
     problem: GraphProblem, values: gtsam.Values, kept: NDArray[np.bool_], group: NDArray[np.int64], bound: float,
     variance_factor: float, cfg: PoseGraphConfig,
@@ -264,14 +235,14 @@ def _solve_with(
 def agreeing_groups(problem: GraphProblem, out: NDArray[np.int64], kept: NDArray[np.int64], bound: float) -> list[list[int]]:
     """Groups of loops left out that agree with other loops (pairwise consistency at ``bound``):
     maximal cliques of agreeing loops left out, largest first and disjoint (a loop joins the
-    first clique it is in); a clique of one only when the loop agrees with a kept loop (the rest
-    of its revisit was kept)."""
+    first clique it is in); a clique of one only when the loop agrees with one of the loops
+    ``kept`` (the rest of its revisit was kept)."""
     import networkx as nx
 
     from fpp_graph.backend.loop_cycles import pairwise_cycle_chi2
 
-    among = _agree(*pairwise_cycle_chi2(problem, out, out), bound)
-    with_kept = _agree(*pairwise_cycle_chi2(problem, out, kept), bound) if len(kept) else np.zeros((len(out), 0), dtype=bool)
+    among = _agree(*pairwise_cycle_chi2(problem, out, out, bound), bound)
+    with_kept = _agree(*pairwise_cycle_chi2(problem, out, kept, bound), bound) if len(kept) else np.zeros((len(out), 0), dtype=bool)
     supported = {int(i) for i, row in zip(out, with_kept, strict=True) if np.any(row)}
     graph = nx.Graph()
     graph.add_nodes_from(int(i) for i in out)
