@@ -18,13 +18,15 @@ loops left out.
 
 Run from the repository root::
 
-    PYTHONPATH=. .venv/bin/python scripts/loop_groups_boundary.py [--seeds 3]
+    PYTHONPATH=. .venv/bin/python scripts/loop_groups_boundary.py [--seeds 3] [--json PATH]
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import logging
+from pathlib import Path
 
 import numpy as np
 
@@ -41,7 +43,9 @@ LOOP_WEIGHTS = {"loops stiffer than the path": (1e-3, 1e-2), "loops as uncertain
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--seeds", type=int, default=3)
+    parser.add_argument("--json", type=Path, default=None, help="also write the rows to this JSON file")
     args = parser.parse_args()
+    rows = []
     logging.basicConfig(level=logging.WARNING)
     print(f"largest variance factor of a group: {MAX_VARIANCE_FACTOR:g}")
     print(f"{'loops':32s} {'case':>20s} {'k':>2s} {'kept (per seed)':>16s} {'other out':>12s} {'s2 of the revisit groups':>28s} {'certified':>10s} {'F / F_LS - 1 (max)':>18s}")
@@ -62,8 +66,16 @@ def main() -> None:
                     certified.append(bool(result.certificate and result.certificate.certified))
                     F = sesync_objective(graph, result.poses_world_sensor)
                     excess.append(F / sesync_objective(plain, reference.poses_world_sensor) - 1.0)
+                rows.append({"loops": weight, "case": name, "value": value, "group_size": k, "kept": kept, "other_out": others,
+                             "variance_factors": [float(x) for x in s2], "certified": sum(certified), "runs": len(certified),
+                             "max_excess": max(excess)})
                 print(f"{weight:32s} {f'{name} {value:g}':>20s} {k:2d} {' '.join(map(str, kept)):>16s} {' '.join(map(str, others)):>12s} "
                       f"{' '.join(s2) or '-':>28s} {sum(certified)}/{len(certified):<8d} {max(excess):18.3g}", flush=True)
+
+    if args.json is not None:
+        from fpp_graph.atomic import atomic_write_text
+
+        atomic_write_text(args.json, json.dumps({"max_variance_factor": MAX_VARIANCE_FACTOR, "rows": rows}, indent=1))
 
 
 if __name__ == "__main__":

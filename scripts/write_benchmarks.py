@@ -448,6 +448,53 @@ def parse_pose_graph_peer(work: Path, stdouts: list[str]) -> Figures:
     return Figures(rows, headline, peer, notes)
 
 
+def pose_graph_split_commands(quick: bool) -> list[list[str]]:
+    return [["{python}", "scripts/bench_certificate.py", "--runs", "1" if quick else "3", "--json", "{work}/bench_certificate.json"]]
+
+
+def parse_pose_graph_split(work: Path, stdouts: list[str]) -> Figures:
+    f = read_json(work / "bench_certificate.json")
+    stages = ("imports", "read", "init", "LM", "robust", "cert", "write")
+    rows = [["graph", *stages, "whole s", "certificate share", "certified", "ours min s", "plain gtsam min s", "ratio"]]
+    for g in f["graphs"]:
+        rows.append([g["graph"], *(num(g.get(k, 0.0), 3) for k in stages), num(g["whole"], 2), f"{100 * g['cert_share']:.0f} %",
+                     "yes" if g["certified"] else "no", num(g["ours_min_s"], 2), num(g["peer_min_s"], 2), num(g["ratio"], 2)])
+    notes = [f"interpreter start-up alone {num(f['startup_s'], 3)} s; every figure the minimum of the runs; the ratio is of "
+             "whole processes run alternately (`fpp-slam optimize GRAPH --noise-model isotropic --json` against "
+             "`scripts/plain_gtsam_g2o.py`: chordal or LAGO start + Levenberg-Marquardt, no certificate)"]
+    ratios = ", ".join(f"{g['graph']} {num(g['ratio'], 2)}" for g in f["graphs"])
+    return Figures(rows, f"certified optimize / plain gtsam, whole process: {ratios}", notes=notes)
+
+
+def loop_groups_commands(quick: bool) -> list[list[str]]:
+    return [["{python}", "scripts/loop_groups_boundary.py", "--seeds", "1" if quick else "3", "--json", "{work}/loop_groups.json"]]
+
+
+def parse_loop_groups(work: Path, stdouts: list[str]) -> Figures:
+    f = read_json(work / "loop_groups.json")
+    rows = [["loops", "case", "loops in the group", "group loops kept per seed", "short loops out per seed",
+             "variance factors of the groups", "certified", "F / F least squares - 1 (largest)"]]
+    for r in f["rows"]:
+        rows.append([r["loops"], f"{r['case']} {r['value']:g}", str(r["group_size"]), " ".join(map(str, r["kept"])),
+                     " ".join(map(str, r["other_out"])), " ".join(f"{float(x):.3g}" for x in r["variance_factors"]) or "-",
+                     f"{r['certified']}/{r['runs']}", f"{r['max_excess']:.2g}"])
+
+    def every_seed(case: str, value: float, kept_all: bool) -> bool:
+        return all((k == r["group_size"]) if kept_all else (k == 0)
+                   for r in f["rows"] if r["case"] == case and r["value"] == value for k in r["kept"])
+
+    def values(case: str) -> list[float]:
+        return sorted({r["value"] for r in f["rows"] if r["case"] == case})
+
+    kept = [v for v in values("overconfident") if every_seed("overconfident", v, True)]
+    dropped = [v for v in values("false") if every_seed("false", v, False)]
+    headline = (f"true revisits all kept at {', '.join(f'{v:g}' for v in kept) or 'none'} x overconfident information; "
+                f"false revisits all dropped at {', '.join(f'{v:g}' for v in dropped) or 'none'} path deviations")
+    notes = [f"largest variance factor of a group {f['max_variance_factor']:g}; a row per loop weight, case and group size, "
+             "its cells per seed"]
+    return Figures(rows, headline, notes=notes)
+
+
 def fpp_sequence_commands(scene: str, config: str, quick_frames: int) -> Callable[[bool], list[list[str]]]:
     def commands(quick: bool) -> list[list[str]]:
         limit = ["--frames", str(quick_frames), "--resolution", "640x400"] if quick else []
@@ -626,6 +673,26 @@ BENCHMARKS: tuple[Benchmark, ...] = (
              "synthetic 5000-pose tori",
         short_what="pose graph optimise, ours vs plain gtsam", short_data="SE-Sync graphs + synthetic tori", short_command="`scripts/bench_pose_graph_peer.py`",
         commands=pose_graph_peer_commands, parse=parse_pose_graph_peer, timeout_s=2400),
+    Benchmark(
+        "pose_graph_split", "Pose graphs: where the time of optimize goes, 3D and planar",
+        what="`fpp-slam optimize GRAPH --noise-model isotropic --json --out` in a fresh process with its stages timed "
+             "(imports, reading, initialisation, least squares and loop evidence, robust stage, certificate, writing), and "
+             "the whole process against a plain gtsam script run alternately.",
+        data="`../shared/data/posegraphs` (sphere2500, parking-garage), a synthetic 5000-pose torus and planar Manhattan "
+             "graphs of 1000, 3500 and 10000 poses",
+        short_what="pose graph optimise split, 3D and planar", short_data="SE-Sync graphs, torus, planar grids",
+        short_command="`scripts/bench_certificate.py`",
+        commands=pose_graph_split_commands, parse=parse_pose_graph_split, timeout_s=2400),
+    Benchmark(
+        "loop_groups", "Pose graphs: loops weighed against overconfident odometry",
+        what="A revisit closed by 3 or 5 loops: true loops against odometry whose information is 10, 100 or 1000 times "
+             "too confident along half the circuit, or false loops carrying one wrong transform of 10 to 200 standard "
+             "deviations of the odometry path they close. The default back-end: loops kept, the variance factor each "
+             "group implies, certified, SE-Sync's F against plain least squares.",
+        data="synthetic revisit graphs (`fpp_graph.testing.revisit_graphs`), 200 poses, 3 seeds",
+        short_what="loops weighed against overconfident odometry", short_data="synthetic revisits, 3 seeds",
+        short_command="`scripts/loop_groups_boundary.py`",
+        commands=loop_groups_commands, parse=parse_loop_groups, timeout_s=1800),
     Benchmark(
         "fpp_turntable", "FPP end to end: doll turntable at 1920x1200",
         what="`fpp-slam simulate` + `fpp-slam run` + `fpp-slam eval`: the doll on a turntable, 3 turns x 13 views, decoded "

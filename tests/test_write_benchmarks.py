@@ -321,3 +321,21 @@ def test_a_benchmark_out_of_the_default_run_runs_with_all_or_only_and_is_kept(fa
     assert wb.parse_page(text)[1]["delta"] == delta
     assert "Not run this time, kept from earlier runs with their own commit and date: `delta`" in text
     assert "[not in the default run: --all or --only]" in wb.list_benchmarks(False)
+
+
+def test_pose_graph_split_and_loop_groups(tmp_path):
+    graph = {"graph": "torus5000", "imports": 0.48, "read": 0.2, "init": 0.6, "LM": 0.8, "robust": 0.0, "cert": 0.9, "write": 0.1,
+             "whole": 3.5, "cert_share": 0.25, "certified": True, "ours_min_s": 3.5, "peer_min_s": 3.4, "ratio": 1.03}
+    write(tmp_path / "bench_certificate.json", {"startup_s": 0.03, "graphs": [graph, {**graph, "graph": "manhattan1000", "ratio": 1.8}]})
+    figures = wb.parse_pose_graph_split(tmp_path, [""])
+    assert figures.headline == "certified optimize / plain gtsam, whole process: torus5000 1.03, manhattan1000 1.80"
+    assert "25 %" in cells(figures)
+    row = {"loops": "stiff", "group_size": 3, "other_out": [0, 0], "variance_factors": [], "certified": 2, "runs": 2, "max_excess": 0.0}
+    write(tmp_path / "loop_groups.json", {"max_variance_factor": 100.0, "rows": [
+        {**row, "case": "overconfident", "value": 10, "kept": [3, 3]},
+        {**row, "case": "overconfident", "value": 1000, "kept": [3, 0]},
+        {**row, "case": "false", "value": 50, "kept": [3, 3], "variance_factors": [45.5, 49.7]},
+        {**row, "case": "false", "value": 100, "kept": [0, 0]}]})
+    figures = wb.parse_loop_groups(tmp_path, [""])
+    assert figures.headline == "true revisits all kept at 10 x overconfident information; false revisits all dropped at 100 path deviations"
+    assert "45.5 49.7" in cells(figures)
