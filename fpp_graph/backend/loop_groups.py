@@ -9,7 +9,9 @@ them for the loops left out by truncated least squares, by a rule stated in two 
 
 1. **Agreement** (pairwise consistency, as in PCM, Mangelson et al. ICRA 2018): two loops agree
    when the cycle ``loop a, odometry, loop b^-1, odometry`` through the odometry spanning forest
-   is within the loop bound at the stated information, and the odometry paths of that cycle are
+   is within the loop bound at the scale the loops show (their odometry cycles'
+   :meth:`~fpp_graph.backend.outliers.CycleCheck.measured_scale`, below 1 where the stated
+   information is conservative), and the odometry paths of that cycle are
    no less certain than the two loops (so that the cycle tests the loops: through a long,
    loose stretch of odometry any two loops would pass). For two loops of one revisit the cycle
    runs through the short stretches between their ends, not through the stretch they close, so
@@ -181,7 +183,11 @@ def readmit_groups(
     # partners kept: the loops the evidence flagged at the least-squares solution and truncated
     # least squares kept (a revisit's loops disagree with overconfident odometry alike)
     flagged_kept = np.array([i for i in screen.flagged() if solution.active[i]], dtype=np.int64)
-    cliques = agreeing_groups(problem, out, flagged_kept, screen.bound)
+    # the scale the loops show (odometry cycles), as truncated least squares starts from: below 1
+    # where the information is conservative, so that loops far off at the true noise level do
+    # not pass for agreeing at the stated one
+    scale = screen.cycles.measured_scale() if screen.cycles is not None else screen.variance_factor
+    cliques = agreeing_groups(problem, out, flagged_kept, screen.bound / screen.variance_factor * scale)
     if not cliques:
         log.info("%d loop(s) out, none agreeing with another loop: no group to weigh", len(out))
         return solution, []
@@ -192,7 +198,7 @@ def readmit_groups(
     for clique in cliques:
         group = np.array(clique, dtype=np.int64)
         b, spread = prediction.spread(group)
-        bound = screen.variance_factor * chi2_upper_quantile(len(b), cfg.loop_false_alarm / max(len(cliques), 1))
+        bound = scale * chi2_upper_quantile(len(b), cfg.loop_false_alarm / max(len(cliques), 1))
         s2 = smallest_variance_factor(b, spread, bound)
         if not math.isfinite(s2):
             decisions.append(LoopGroup(tuple(clique), s2, False, f"the kept graph would have to be understated by more "
