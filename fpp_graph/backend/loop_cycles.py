@@ -55,7 +55,7 @@ def pairwise_cycle_chi2(
     covariance: the largest generalised eigenvalue of the paths' covariance against the two
     loops' (above 1 the odometry is less certain than the loops in some direction, and the
     cycle tests the odometry more than the loops). Both inf where the ends of a pair are not in
-    one odometry tree or ``a == b``; with a finite ``bound``, also where the pair cannot agree
+    one odometry tree or the two loops share a pose (the same loop included); with a finite ``bound``, also where the pair cannot agree
     (a share over 1 or a chi-square over ``bound``), decided by necessary conditions on the
     rotations alone before the whole cycle is composed."""
     forest = _forest(problem)
@@ -80,7 +80,9 @@ def _candidate_pairs(
     node, parent, P, S, tree = forest
     (s_first, t_first), (s_second, t_second) = _ends(problem, node, first), _ends(problem, node, second)
     a, b = (x.ravel() for x in np.meshgrid(np.arange(len(first)), np.arange(len(second)), indexing="ij"))
-    ok = (tree[t_first[a]] == tree[t_second[b]]) & (tree[s_first[a]] == tree[s_second[b]]) & (first[a] != second[b])
+    ok = (tree[t_first[a]] == tree[t_second[b]]) & (tree[s_first[a]] == tree[s_second[b]])
+    # loops that share a pose share that frame's error: their agreement is no independent evidence
+    ok &= (s_first[a] != s_second[b]) & (t_first[a] != t_second[b]) & (s_first[a] != t_second[b]) & (t_first[a] != s_second[b])
     a, b = a[ok], b[ok]
     if not math.isfinite(bound) or not len(a):
         return a, b

@@ -13,7 +13,8 @@ them for the loops left out by truncated least squares, by a rule stated in two 
    :meth:`~fpp_graph.backend.outliers.CycleCheck.measured_scale`, below 1 where the stated
    information is conservative), and the odometry paths of that cycle are
    no less certain than the two loops (so that the cycle tests the loops: through a long,
-   loose stretch of odometry any two loops would pass). For two loops of one revisit the cycle
+   loose stretch of odometry any two loops would pass), and the two share no pose (loops from
+   one frame carry that frame's error alike: their agreement is no independent evidence). For two loops of one revisit the cycle
    runs through the short stretches between their ends, not through the stretch they close, so
    the test does not depend on whether that stretch is overconfident.
 2. **The group's variance factor**: for a clique of agreeing loops left out (at least two, or

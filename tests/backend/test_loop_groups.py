@@ -23,6 +23,7 @@ from fpp_graph.backend.outliers import family_bound
 from fpp_graph.backend.pose_graph import sesync_objective
 from fpp_graph.cli import main
 from fpp_graph.config import PoseGraphConfig
+from fpp_graph.geometry import invert
 from fpp_graph.testing.revisit_graphs import revisit_graph
 
 #: Loops as uncertain as the odometry path between their ends: least squares then leaves a
@@ -98,20 +99,29 @@ def test_an_isolated_loop_left_out_stays_out() -> None:
 def test_loops_of_one_false_revisit_agree_and_a_loop_of_another_does_not(planar: bool) -> None:
     sim = revisit_graph(200, 4, false_offset_sigma=100, planar=planar, rng=np.random.default_rng(4))
     other = revisit_graph(200, 4, false_offset_sigma=100, planar=planar, rng=np.random.default_rng(5))
-    s, t, T, info, kind = next(e for e in other.edges if e[4] == "loop")
-    sim.edges.append((s + 1, t + 1, T, info, kind))  # another wrong offset at the same place
+    sim.edges[-1] = other.edges[-1]  # the revisit's fourth loop carries another wrong offset
     graph = sim.graph()
     problem = GraphProblem(graph.poses(), graph.edges(), graph.priors(), graph.fixed_poses(), "file", graph.dimension)
-    group = [i for i, e in enumerate(problem.edges) if e.pair in set(sim.false_loops)]
-    stranger = len(problem.edges) - 1
-    loops = np.array([*group, stranger])
+    loops = np.array([i for i, e in enumerate(problem.edges) if e.pair in set(sim.false_loops)])
+    assert len(loops) == 4 and loops[-1] == len(problem.edges) - 1
     chi2, path_share = pairwise_cycle_chi2(problem, loops, loops)
-    bound = family_bound(len(group) + 1, 0.01)
-    same = chi2[:4, :4][np.triu_indices(4, 1)]
-    assert np.all(same < bound)  # the four carry one offset: they agree
-    assert np.all(chi2[4, :4] > 100 * bound)  # the fifth carries another
+    bound = family_bound(len(loops), 0.01)
+    same = chi2[:3, :3][np.triu_indices(3, 1)]
+    assert np.all(same < bound)  # the first three carry one offset: they agree
+    assert np.all(chi2[3, :3] > 100 * bound)  # the fourth carries another
     assert np.all(np.isinf(np.diag(chi2)))
-    assert np.all(path_share[:4, :4][np.triu_indices(4, 1)] < 1.0)  # a few odometry steps between their ends
+    assert np.all(path_share[:3, :3][np.triu_indices(3, 1)] < 1.0)  # a few odometry steps between their ends
+
+
+def test_loops_that_share_a_pose_are_no_independent_agreement() -> None:
+    sim = revisit_graph(200, 3, false_offset_sigma=100, rng=np.random.default_rng(6))
+    s, t, T, info, kind = sim.edges[-1]
+    sim.edges.append((s, t - 1, invert(sim.poses_true[t - 1]) @ sim.poses_true[t] @ T, info, kind))  # same source frame
+    graph = sim.graph()
+    problem = GraphProblem(graph.poses(), graph.edges(), graph.priors(), graph.fixed_poses(), "file", graph.dimension)
+    last_two = np.array([len(problem.edges) - 2, len(problem.edges) - 1])
+    chi2, _ = pairwise_cycle_chi2(problem, last_two, last_two)
+    assert np.all(np.isinf(chi2))
 
 
 def test_the_smallest_variance_factor_solves_the_predicted_chi_square() -> None:
