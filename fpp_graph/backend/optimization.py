@@ -15,8 +15,8 @@ import time
 
 import numpy as np
 
+from fpp_graph.backend import drop_account
 from fpp_graph.backend.certificate_stage import certify_solution
-from fpp_graph.backend.drop_account import account_for_drops
 from fpp_graph.backend.gtsam_bridge import GraphProblem
 from fpp_graph.backend.least_squares import initial_values, least_squares
 from fpp_graph.backend.loop_evidence import flagged, refuted_at_start, screen_loops
@@ -28,9 +28,13 @@ from fpp_graph.config import PoseGraphConfig
 log = logging.getLogger(__name__)
 
 
-def optimize_problem(problem: GraphProblem, cfg: PoseGraphConfig) -> PoseGraphResult:
-    """Least squares -> outlier evidence -> truncated least squares (only on evidence) ->
-    certificate, on one problem; the result's poses hold the anchors exactly."""
+def optimize_problem(problem: GraphProblem, cfg: PoseGraphConfig, *, account_for_drops: bool = False) -> PoseGraphResult:
+    """Least squares -> outlier evidence -> truncated least squares (only on evidence) -> loop
+    groups -> certificate, on one problem; the result's poses hold the anchors exactly.
+
+    ``account_for_drops`` adds the account of the loops left out
+    (:func:`~fpp_graph.backend.drop_account.account_for_drops`: a least-squares solve over every
+    edge, seconds on graphs with hundreds of gross outliers), which the commands report."""
     started = time.perf_counter()
     initial_cost = problem.cost(problem.given_values(), problem.all_edges())
     start = initial_values(problem, cfg.initialization)
@@ -82,5 +86,5 @@ def optimize_problem(problem: GraphProblem, cfg: PoseGraphConfig) -> PoseGraphRe
         certificate=certificate,
         kept_edges=solution.active,
         loop_groups=groups,
-        drop_account=account_for_drops(problem, solution),
+        drop_account=drop_account.account_for_drops(problem, solution) if account_for_drops else None,
     )

@@ -245,19 +245,21 @@ class PoseGraph:
         return f"PoseGraph({self.num_poses} poses, {self.num_edges} edges ({loops} loops), fixed {self._fixed}{planar})"
 
     # -- optimisation ----------------------------------------------------------------------
-    def optimize(self, config: PoseGraphConfig | None = None) -> PoseGraphResult:
+    def optimize(self, config: PoseGraphConfig | None = None, *, account_for_drops: bool = False) -> PoseGraphResult:
         """Optimise the graph (``config`` defaults to ``PoseGraphConfig()``); the stored poses
         become the solution.
 
         A structure check (:class:`GraphError` naming unconstrained parts), then the pipeline of
         :func:`fpp_graph.backend.optimization.optimize_problem`: least squares over every edge,
         the evidence against each loop, truncated least squares only on evidence of an outlier
-        (``robust="gnc"``), and with ``certify`` the global-optimality certificate.
+        (``robust="gnc"``), loops left out weighed again as groups, and with ``certify`` the
+        global-optimality certificate. ``account_for_drops`` adds ``result.drop_account``, what
+        keeping the loops left out would cost (a least-squares solve over every edge).
         """
         cfg = config or PoseGraphConfig()
         started = time.perf_counter()
         problem = self._problem(cfg.noise_model)
-        result = optimize_problem(problem, cfg)
+        result = optimize_problem(problem, cfg, account_for_drops=account_for_drops)
         result = replace(result, seconds=time.perf_counter() - started)
         self._poses.update({k: T.copy() for k, T in result.poses_world_sensor.items()})
         self._pose_quat_xyzw.clear()

@@ -125,8 +125,9 @@ class PoseGraphResult:
         Groups of agreeing loops that truncated least squares left out, weighed against the
         odometry (:mod:`fpp_graph.backend.loop_groups`): re-admitted or not, and why.
     drop_account : DropAccount or None
-        When loops are left out: the objective over the kept and over all edges, and how far
-        least squares over every edge would move the answer (None when every edge is kept).
+        When loops are left out and the account was asked for: the objective over the kept and
+        over all edges, and how far least squares over every edge would move the answer (None
+        when every edge is kept or it was not asked for).
     """
 
     poses_world_sensor: dict[int, Array]

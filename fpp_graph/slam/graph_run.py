@@ -36,7 +36,7 @@ def optimize_g2o_file(path: Path, config: PoseGraphConfig) -> GraphRun:
     started = time.perf_counter()
     graph = read_g2o(path)
     read_seconds = time.perf_counter() - started
-    result = graph.optimize(config)
+    result = graph.optimize(config, account_for_drops=True)
     return GraphRun(Path(path), graph, result, read_seconds, time.perf_counter() - started)
 
 

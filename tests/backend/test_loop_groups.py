@@ -49,7 +49,7 @@ def test_a_false_revisit_100_sigma_off_is_dropped_with_an_account(group_size: in
     sim = revisit_graph(200, group_size, false_offset_sigma=100, loop_sigmas=LOOPS_AS_UNCERTAIN_AS_THE_PATH,
                         planar=planar, rng=np.random.default_rng(seed))
     graph = sim.graph()
-    result = graph.optimize(PoseGraphConfig(certify=True))
+    result = graph.optimize(PoseGraphConfig(certify=True), account_for_drops=True)
     assert set(result.rejected_loops) == set(sim.false_loops)
     account = result.drop_account
     assert account is not None and account.dropped_loops == group_size
