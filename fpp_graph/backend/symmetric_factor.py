@@ -80,8 +80,11 @@ def superlu_inertia(A: sp.spmatrix) -> tuple[SymmetricFactor | None, int]:
     """
     import scipy.sparse.linalg as spla  # on use: see the module docstring
 
+    # relax=1: SuperLU's default relaxed supernodes pad the planar Newton Hessian's factor with
+    # explicit zeros (a 10000-pose planar graph: 2.4 s per factorisation against 0.37 s, the same
+    # fill); on the 3D benchmark graphs it is as fast or faster
     try:
-        lu = spla.splu(sp.csc_matrix(A), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+        lu = spla.splu(sp.csc_matrix(A), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, relax=1,
                        options={"SymmetricMode": True})
     except RuntimeError:
         return None, -1
