@@ -33,15 +33,12 @@ Hessian are reported optimistic by factors of 2 to 10 in standard deviation (Cen
 Landry et al., ICRA 2019; Brossard et al., ICRA 2020); beyond that a covariance is not
 miscalibrated, the measurement failed, and a group of loops that needs it is the likelier
 culprit. Since ``s2`` is the scale at which the group's discrepancy falls within its joint
-bound (about 6 standard deviations for 3 to 5 loops), a group is kept up to a discrepancy of
-about ``sqrt(100 * bound)``, 50 to 60 standard deviations of the odometry path it closes.
-Measured by ``scripts/loop_groups_boundary.py`` (revisits of 3 and 5 loops, loops stiffer than
-or as uncertain as that path, 3 seeds each): true loops closing a stretch whose information is
-10 or 100 times too confident are all kept (``s2`` at most 15), at the certified least-squares
-optimum except where a short loop inside the stretch, agreeing with no other, stays out (1 of 12
-graphs at 100 times); false revisits 30 and 50 path deviations off are kept (``s2`` 16 to 64), 70 and more
-are dropped, except that 5 loops stiffer than the path 70 deviations off bend the odometry
-instead and are never flagged.
+bound (a chi-square of 18 to 30 degrees of freedom for 3 to 5 loops, family-wise), a group is
+kept up to a discrepancy of about ``sqrt(100 * bound)``, 70 to 100 standard deviations of the
+odometry path it closes: true loops closing a stretch whose information is 10 times too confident
+(the drift about 3 path deviations) lie far inside, a false revisit 100 deviations off at the
+edge or outside. ``scripts/loop_groups_boundary.py`` measures it on revisits of 3 and 5 loops
+(the table is on the benchmarks page).
 """
 
 from __future__ import annotations
