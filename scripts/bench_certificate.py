@@ -3,7 +3,7 @@
 Per graph (sphere2500, parking-garage from ``../shared/data/posegraphs``, skipped with a message
 when absent; a 5000-pose torus from :func:`fpp_graph.testing.synthetic_graphs.torus_graph` and
 planar Manhattan-world graphs of 1000, 3500 and 10000 poses from
-:func:`fpp_graph.testing.synthetic_graphs.manhattan_graph`, written to a temporary directory), each run is a fresh process that runs the ``optimize``
+:func:`fpp_graph.testing.manhattan_graphs.manhattan_graph`, written to a temporary directory), each run is a fresh process that runs the ``optimize``
 command as the CLI does, with the pipeline's stage functions wrapped in timers:
 
 - ``startup``: interpreter start-up (a bare ``python -c pass``, measured separately);
@@ -43,7 +43,7 @@ sys.path.insert(0, str(REPO))
 from scripts.bench_pose_graph_peer import SHARED_POSEGRAPHS, peer_command, project_command, run_json  # noqa: E402
 
 GRAPHS = ("sphere2500", "parking-garage")
-#: Sizes of the synthetic planar graphs (:func:`fpp_graph.testing.synthetic_graphs.manhattan_graph`):
+#: Sizes of the synthetic planar graphs (:func:`fpp_graph.testing.manhattan_graphs.manhattan_graph`):
 #: the size of the smaller public planar benchmarks (intel, CSAIL), of M3500 and of city10000.
 PLANAR_POSES = (1000, 3500, 10000)
 
@@ -126,7 +126,8 @@ def main() -> int:
     parser.add_argument("--runs", type=int, default=3, help="runs of each measurement per graph (minimum kept)")
     parser.add_argument("--json", type=Path, default=None, help="also write the figures to this JSON file")
     args = parser.parse_args()
-    from fpp_graph.testing.synthetic_graphs import manhattan_graph, torus_graph
+    from fpp_graph.testing.manhattan_graphs import manhattan_graph
+    from fpp_graph.testing.synthetic_graphs import torus_graph
 
     startup = startup_seconds()
     print(f"interpreter start-up (python -c pass): {startup:.3f} s")

@@ -1,6 +1,6 @@
 """The back-end against its plain-gtsam peer on planar (SE(2)) pose graphs, timed as whole processes.
 
-Graphs (:func:`fpp_graph.testing.synthetic_graphs.manhattan_graph`, random walks on a grid with
+Graphs (:func:`fpp_graph.testing.manhattan_graphs.manhattan_graph`, random walks on a grid with
 loops to revisited places, written as ``VERTEX_SE2``/``EDGE_SE2`` g2o files to a temporary
 directory): 1000 poses with 2x the default noise, 3500 poses like Olson's M3500 (5453 edges) and
 10000 poses with city10000's loop density (20686 edges, city10000 has 20687).
@@ -40,7 +40,7 @@ def project_command(path: Path) -> list[str]:
 
 def graphs(tmp: Path) -> list[tuple[str, Path]]:
     """The planar graphs, written to ``tmp`` as g2o files."""
-    from fpp_graph.testing.synthetic_graphs import CITY10000_LOOPS_PER_POSE, manhattan_graph
+    from fpp_graph.testing.manhattan_graphs import CITY10000_LOOPS_PER_POSE, manhattan_graph
 
     cases = [
         ("manhattan1000 2x noise", dict(num_poses=1000, rotation_sigma_rad=0.04, translation_sigma_m=0.1)),

@@ -18,7 +18,8 @@ from fpp_graph.cli import main
 from fpp_graph.config import PoseGraphConfig
 from fpp_graph.errors import GraphError, InputDataError
 from fpp_graph.planar import se2_adjoint, se2_exp, se2_log, se2_pose
-from fpp_graph.testing.synthetic_graphs import add_false_loops, ate_rmse_m, manhattan_graph
+from fpp_graph.testing.manhattan_graphs import manhattan_graph
+from fpp_graph.testing.synthetic_graphs import add_false_loops, ate_rmse_m
 from fpp_graph.types import ConstraintKind
 
 INFO_6 = "500 1.5 0.25 400 0.125 1000"  # upper triangle of [x, y, theta] information
