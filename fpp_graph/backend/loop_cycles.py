@@ -13,25 +13,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from fpp_graph.backend.gtsam_bridge import GraphProblem
-from fpp_graph.backend.outliers import lowest_common_ancestors, odometry_poses
-from fpp_graph.geometry import adjoint, invert
-from fpp_graph.planar import se2_adjoint, se2_log
+from fpp_graph.backend.outliers import adjoint_of, log_of, lowest_common_ancestors, odometry_poses
+from fpp_graph.geometry import invert
 
 Array = NDArray[np.float64]
-
-
-def adjoint_of(T: Array) -> Array:
-    """The adjoint of a stack of poses: SE(3) (``[rot, trans]``) or SE(2) (``[theta, x, y]``)."""
-    return adjoint(T) if T.shape[-1] == 4 else se2_adjoint(T)
-
-
-def log_of(T: Array) -> Array:
-    """``Log`` of a stack of poses in the tangent order of :func:`adjoint_of`."""
-    if T.shape[-1] == 3:
-        return se2_log(T)
-    from fpp_graph.backend.gtsam_bridge import pose_log
-
-    return np.array([pose_log(M) for M in T.reshape(-1, 4, 4)]).reshape(T.shape[:-2] + (6,))
 
 
 def _forest(problem: GraphProblem) -> tuple[dict[int, int], NDArray[np.int64], Array, Array, NDArray[np.int64]]:

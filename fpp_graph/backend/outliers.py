@@ -289,14 +289,8 @@ def odometry_cycle_chi2(
     lca = lowest_common_ancestors(parent, src, tgt)
 
     disagreement = invert(T_target_source[loops]) @ (invert(P[tgt]) @ P[src])
-    if planar:
-        error = se2_log(disagreement)
-        A = se2_adjoint(invert(P[src]))
-    else:
-        from fpp_graph.backend.gtsam_bridge import pose_log
-
-        error = np.array([pose_log(T) for T in disagreement])
-        A = adjoint(invert(P[src]))
+    error = log_of(disagreement)
+    A = adjoint_of(invert(P[src]))
     D = S[src] + S[tgt] - 2.0 * S[lca]
     C = covariance[loops] + A @ D @ np.swapaxes(A, 1, 2)
     chi2 = np.einsum("ni,ni->n", error, np.linalg.solve(C, error[..., None])[..., 0])
@@ -309,7 +303,6 @@ def odometry_poses(
 ) -> tuple[Array, Array, NDArray[np.int64], NDArray[np.int64]]:
     """The odometry composed along its breadth-first forest (:func:`odometry_forest`): each
     node's pose ``P`` from its tree's root, its left covariance ``S``, its parent and tree label."""
-    planar = T_target_source.shape[-1] == 3
     odometry = np.flatnonzero(is_odometry)
     order, parent, parent_edge, tree = odometry_forest(n, ends[odometry].reshape(-1, 2), root_index)
     # pose of each node from its tree's root: P_child = P_parent @ (T_t_s or its inverse)
@@ -322,12 +315,26 @@ def odometry_poses(
         poses[c] = poses[p] @ M
     P = np.stack(poses)
     # left covariance accumulated from the root: each edge adds Ad(P_source) Sigma Ad(P_source)^T
-    A = se2_adjoint(P[ends[edge, 0]]) if planar else adjoint(P[ends[edge, 0]])
+    A = adjoint_of(P[ends[edge, 0]])
     added = A @ covariance[edge] @ np.swapaxes(A, 1, 2)
     covariances = [np.zeros(covariance.shape[1:])] * n
     for c, p, Q in zip(child.tolist(), parent[child].tolist(), added, strict=True):
         covariances[c] = covariances[p] + Q
     return P, np.stack(covariances), parent, tree
+
+
+def adjoint_of(T: Array) -> Array:
+    """The adjoint of a stack of poses: SE(3) (``[rot, trans]``) or SE(2) (``[theta, x, y]``)."""
+    return adjoint(T) if T.shape[-1] == 4 else se2_adjoint(T)
+
+
+def log_of(T: Array) -> Array:
+    """``Log`` of a stack of poses in the tangent order of :func:`adjoint_of`."""
+    if T.shape[-1] == 3:
+        return se2_log(T)
+    from fpp_graph.backend.gtsam_bridge import pose_log
+
+    return np.array([pose_log(M) for M in T.reshape(-1, 4, 4)]).reshape(T.shape[:-2] + (6,))
 
 
 def describe_scale(s2: float, bound: float, num_cycles: int) -> str:
