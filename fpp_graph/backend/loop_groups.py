@@ -52,7 +52,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from fpp_graph.backend.gtsam_bridge import RELATIVE_COST_TOLERANCE, GraphProblem, run_lm
-from fpp_graph.backend.outliers import LoopScreen
+from fpp_graph.backend.outliers import LoopScreen, chi2_upper_quantile
 from fpp_graph.backend.records import Solution
 
 if TYPE_CHECKING:
@@ -115,8 +115,8 @@ class KeptGraphPrediction:
                     data.append(A[r, d * n + c])
             row += A.shape[0]
         J = sp.csr_matrix((np.concatenate(data), (np.concatenate(rows), np.concatenate(cols))), shape=(row, d * len(free)))
-        # H is symmetric positive definite: a symmetric ordering and no pivoting keep it sparse
-        self._lu = spla.splu((J.T @ J).tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+        # H is symmetric positive definite: a symmetric ordering and no pivoting keep the factor sparse
+        self.lu = spla.splu((J.T @ J).tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
                              options={"SymmetricMode": True})
         self.size = J.shape[1]
 
@@ -138,7 +138,7 @@ class KeptGraphPrediction:
         for m, pairs in enumerate(blocks):
             for c, a in pairs:
                 A[m * dof : (m + 1) * dof, c : c + a.shape[1]] = a
-        H_inv_At = np.column_stack([self._lu.solve(np.ascontiguousarray(row)) for row in A]) if len(b) else A.T
+        H_inv_At = np.column_stack([self.lu.solve(np.ascontiguousarray(row)) for row in A]) if len(b) else A.T
         return b, A @ H_inv_At
 
 
@@ -161,13 +161,6 @@ def smallest_variance_factor(b: Array, spread: Array, bound: float) -> float:
         mid = 0.5 * (low + high)
         low, high = (low, mid) if chi2(math.exp(mid)) <= bound else (mid, high)
     return math.exp(high)
-
-
-def chi2_upper_quantile(dof: int, tail: float) -> float:
-    """The ``x`` with ``P(chi2_dof > x) = tail`` (scipy, imported only when a group is weighed)."""
-    from scipy.special import chdtri
-
-    return float(chdtri(dof, tail))
 
 
 def readmit_groups(
@@ -196,7 +189,7 @@ def readmit_groups(
     for clique in cliques:
         group = np.array(clique, dtype=np.int64)
         b, spread = prediction.spread(group)
-        bound = scale * chi2_upper_quantile(len(b), cfg.loop_false_alarm / max(len(cliques), 1))
+        bound = scale * chi2_upper_quantile(cfg.loop_false_alarm / max(len(cliques), 1), len(b))
         s2 = smallest_variance_factor(b, spread, bound)
         if not math.isfinite(s2):
             decisions.append(LoopGroup(tuple(clique), s2, False, f"the kept graph would have to be understated by more "

@@ -98,12 +98,15 @@ def chi2_3_upper_quantile(tail: float) -> float:
 
 
 def chi2_upper_quantile(tail: float, dof: int = 6) -> float:
-    """The ``x`` with ``P(chi2_dof > x) = tail``, for a pose's ``dof`` (6 in 3D, 3 in 2D)."""
+    """The ``x`` with ``P(chi2_dof > x) = tail``: closed forms for a pose's ``dof`` (6 in 3D, 3 in
+    2D), scipy for others (a group of loops, imported only then)."""
     if dof == 6:
         return chi2_6_upper_quantile(tail)
     if dof == 3:
         return chi2_3_upper_quantile(tail)
-    raise ValueError(f"chi-square quantiles are available for 3 and 6 degrees of freedom, got {dof}")
+    from scipy.special import chdtri
+
+    return float(chdtri(dof, tail))
 
 
 def chi2_6_quantile(probability: float) -> float:

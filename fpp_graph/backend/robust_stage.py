@@ -293,29 +293,14 @@ def predicted_chi2(problem: GraphProblem, values: gtsam.Values, kept: NDArray[np
     bound ``|b|^4 / (|b|^2 + g^T H^-1 g)``, ``g = A^T b`` (Cauchy-Schwarz), which takes one
     sparse solve instead of one per degree of freedom and decides most outliers.
     """
-    import scipy.sparse as sp
-    import scipy.sparse.linalg as spla
+    from fpp_graph.backend.loop_groups import KeptGraphPrediction
 
     dof = problem.dof
-    anchored = set(problem.anchors)
-    column = {k: dof * n for n, k in enumerate(k for k in problem.given_poses if k not in anchored)}
-    rows, cols, data = [], [], []
-    row = 0
-    for keys, A in problem.whitened_jacobians(values, kept):
-        for n, key in enumerate(keys):
-            if key in column:
-                r, c = np.nonzero(A[:, dof * n : dof * n + dof])
-                rows.append(row + r)
-                cols.append(column[key] + c)
-                data.append(A[r, dof * n + c])
-        row += A.shape[0]
-    J = sp.csr_matrix((np.concatenate(data), (np.concatenate(rows), np.concatenate(cols))), shape=(row, dof * len(column)))
-    # H is symmetric positive definite: a symmetric ordering and no pivoting keep the factor
-    # sparse. Right-hand sides go one column at a time: SuperLU's multi-column solve goes
-    # through threaded BLAS and is several times slower per column.
-    lu = spla.splu((J.T @ J).tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
-                   options={"SymmetricMode": True})
-    rhs = np.zeros(J.shape[1])
+    prediction = KeptGraphPrediction(problem, values, kept)
+    column, lu = prediction.column, prediction.lu
+    # Right-hand sides go one column at a time: SuperLU's multi-column solve goes through
+    # threaded BLAS and is several times slower per column.
+    rhs = np.zeros(prediction.size)
     chi2 = np.empty(len(loops))
     for m, i in enumerate(loops):
         keys, A, b = problem.edge_jacobian(values, i)
