@@ -30,7 +30,7 @@ from frontend.fpp.calibration_board import Chessboard
 from frontend.fpp.capture import capture_image_paths, natural_key
 from frontend.fpp.images import load_image_stack
 from frontend.fpp.patterns import PatternSpec, opencv_gray_code_spec
-from frontend.fpp.phase import Decoder
+from frontend.fpp.phase import Decoder, make_decoder
 from frontend.fpp.rig_calibration import (
     PoseObservation,
     RigCalibrationReport,
@@ -80,7 +80,7 @@ def observe_pose_folders(
     """
     if spec.axis != "both":
         raise ConfigError(f"calibration needs both projector coordinates: the pattern set encodes only its {spec.axis}; use a set with axis: both (e.g. datasets/patterns/procam_graycode_1024x768.yaml)")
-    decoder = Decoder(spec, *projector_size, decode_config)
+    decoder = make_decoder(spec, *projector_size, decode_config)
     observations: list[PoseObservation] = []
     camera_size = None
     for k, folder in enumerate(folders):

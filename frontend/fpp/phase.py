@@ -113,6 +113,12 @@ class DecodeResult:
         The encoded projector axis (``u_projector_px`` holds the columns for ``"both"``).
     v_projector_px : float32 or None
         The projector row of an ``axis="both"`` set; NaN where invalid.
+    u_noise_px, v_noise_px : float32 or None
+        Expected noise (1 sigma, projector pixels) of ``u_projector_px`` and ``v_projector_px``
+        per pixel, from the codec and the measured image noise
+        (:mod:`frontend.fpp.phase_noise`); None when the decoder does not state it.
+    image_noise_grey : float or None
+        The camera's image noise measured on this capture, grey levels (1 sigma).
 
     For Gray code alone (``kind="gray_code"``) there is no phase: ``wrapped_phase`` is NaN,
     ``modulation`` is half the white - black (or bit - inverse) contrast, ``texture`` the mean of
@@ -129,6 +135,9 @@ class DecodeResult:
     pitch_px: float
     axis: str = "columns"
     v_projector_px: NDArray[np.float32] | None = None
+    u_noise_px: NDArray[np.float32] | None = None
+    v_noise_px: NDArray[np.float32] | None = None
+    image_noise_grey: float | None = None
 
     @cached_property
     def absolute_phase(self) -> NDArray[np.float32]:
@@ -483,6 +492,15 @@ class Decoder:
             cv2.bitwise_or(sat, tmp, dst=sat)
         return sat
 
+def make_decoder(spec, projector_width: int, projector_height: int, config: DecodeConfig | None = None):
+    """The decoder of any pattern spec: a :class:`Decoder` for a :class:`PatternSpec`, else the
+    spec's own (``spec.make_decoder(projector_width, projector_height, config)``). Every decoder
+    has ``decode(images) -> DecodeResult`` and ``image_count``."""
+    if isinstance(spec, PatternSpec):
+        return Decoder(spec, projector_width, projector_height, config)
+    return spec.make_decoder(projector_width, projector_height, config)
+
+
 def decode(
     images: NDArray | Sequence[NDArray],
     spec: PatternSpec,
@@ -491,7 +509,7 @@ def decode(
     config: DecodeConfig | None = None,
 ) -> DecodeResult:
     """Decode one frame (see :class:`Decoder`; build one Decoder to decode many frames)."""
-    return Decoder(spec, projector_width, projector_height, config).decode(images)
+    return make_decoder(spec, projector_width, projector_height, config).decode(images)
 
 
 def compute_wrapped_phase(images: NDArray | Sequence[NDArray], band_rows: int = 128) -> tuple[NDArray[np.float32], NDArray[np.float32], NDArray[np.float32]]:

@@ -19,7 +19,7 @@ from fpp_graph.geometry import finite_box, in_row_bands, masked_pixels
 from fpp_graph.types import Frame, grey_colors
 from frontend.config import DecodeConfig
 from frontend.fpp.patterns import PatternSpec
-from frontend.fpp.phase import Decoder, DecodeResult
+from frontend.fpp.phase import DecodeResult, make_decoder
 from frontend.fpp.rig import RigCalibration
 from frontend.fpp.triangulation import Triangulator
 
@@ -66,7 +66,7 @@ class FppSensor:
         self.calibration = calibration
         self.spec = spec
         proj = calibration.projector
-        self.decoder = Decoder(spec, proj.width, proj.height, decode_config)
+        self.decoder = make_decoder(spec, proj.width, proj.height, decode_config)
         self.triangulator = Triangulator(calibration, axis=spec.coded_axis, depth_range_m=depth_range_m, camera_rays=camera_rays,
                                         cache_projector_fit=cache_projector_fit)
         self.edge_max_angle_deg = edge_max_angle_deg
