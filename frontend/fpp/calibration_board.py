@@ -1,11 +1,18 @@
-"""The calibration board: a planar chessboard, its corners in the camera, and in the projector.
+"""The calibration board: a planar chessboard or circle grid, its points in the camera, and in the projector.
 
-See :mod:`frontend.fpp.rig_calibration` for the steps these belong to (steps 2 and 3).
+See :mod:`frontend.fpp.rig_calibration` for the steps these belong to (steps 2 and 3). A board
+has ``corners`` (OpenCV's ``patternSize``: points per row, rows), ``square_m`` (the spacing that
+scales its points), ``object_points_m`` (board frame, in OpenCV's detection order),
+``find(image, model_fit)`` (the points in a camera image, or None), ``describe()`` (for
+messages) and ``projector_window_half_px(points_px, image_width)`` (the half size of the window
+of decoded pixels whose local homography maps a point into the projector).
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
+from typing import Protocol
 
 import cv2
 import numpy as np
@@ -40,6 +47,119 @@ class Chessboard:
         nx, ny = self.corners
         gx, gy = np.meshgrid(np.arange(nx), np.arange(ny))
         return np.column_stack([gx.ravel(), gy.ravel(), np.zeros(nx * ny)]) * self.square_m
+
+    def describe(self) -> str:
+        return f"chessboard with {self.corners[0]}x{self.corners[1]} inner corners"
+
+    def find(self, image: ArrayLike, model_fit: bool = True) -> NDArray[np.float64] | None:
+        """:func:`find_chessboard`."""
+        return find_chessboard(image, self, model_fit=model_fit)
+
+    def projector_window_half_px(self, points_px: NDArray[np.float64], image_width: int) -> int:
+        """procam-calibration's ``ceil(camera_width / 180)``: half of a corner's window lies on
+        white squares, whatever the window's size."""
+        return int(math.ceil(image_width / 180))
+
+
+class CalibrationBoard(Protocol):
+    """What the calibration needs of a board (:class:`Chessboard`, :class:`CircleGrid`)."""
+
+    corners: tuple[int, int]
+    square_m: float
+
+    @property
+    def object_points_m(self) -> NDArray[np.float64]: ...
+
+    def describe(self) -> str: ...
+
+    def find(self, image: ArrayLike, model_fit: bool = True) -> NDArray[np.float64] | None: ...
+
+    def projector_window_half_px(self, points_px: NDArray[np.float64], image_width: int) -> int: ...
+
+
+@dataclass(frozen=True)
+class CircleGrid:
+    """A planar grid of dark circles on a light board, found by ``cv2.findCirclesGrid``.
+
+    Attributes
+    ----------
+    corners : (int, int)
+        Circles per row and rows, OpenCV's ``patternSize`` (asymmetric: e.g. (4, 11)).
+    square_m : float
+        Spacing, metres: between neighbouring centres of a symmetric grid; for an asymmetric
+        grid OpenCV's unit, the offset between consecutive rows (centres in a row are
+        ``2 * square_m`` apart, row ``i`` shifted by ``(i % 2) * square_m``).
+    asymmetric : bool
+        OpenCV's asymmetric (staggered) grid.
+    diameter_m : float
+        Circle diameter, metres (0 = the spacing between nearest centres over 2).
+
+    A circle's image centre is the centroid of an ellipse, not the projection of the circle's
+    centre: the perspective bias is about ``r^2 * tilt`` terms, well under 0.01 px for circles a
+    few pixels across at the tilts of a calibration, but it grows with the circles' size.
+    """
+
+    corners: tuple[int, int]
+    square_m: float
+    asymmetric: bool = False
+    diameter_m: float = 0.0
+
+    def __post_init__(self) -> None:
+        if min(self.corners) < 2 or self.square_m <= 0 or self.diameter_m < 0:
+            raise CalibrationError(f"a circle grid needs at least 2x2 circles, a positive spacing and a non-negative diameter, got {self.corners}, {self.square_m} m, {self.diameter_m} m")
+        if self.diameter_m >= self.nearest_spacing_m:
+            raise CalibrationError(f"circles of {self.diameter_m} m overlap at a spacing of {self.nearest_spacing_m} m between nearest centres")
+
+    @property
+    def nearest_spacing_m(self) -> float:
+        """Distance between nearest circle centres, metres."""
+        return self.square_m * (math.sqrt(2.0) if self.asymmetric else 1.0)
+
+    @property
+    def circle_radius_m(self) -> float:
+        return (self.diameter_m or self.nearest_spacing_m / 2) / 2
+
+    @property
+    def object_points_m(self) -> NDArray[np.float64]:
+        """(N, 3) circle centres in the board frame (z = 0), in ``cv2.findCirclesGrid``'s order, metres."""
+        nx, ny = self.corners
+        gx, gy = np.meshgrid(np.arange(nx), np.arange(ny))
+        x = 2 * gx + gy % 2 if self.asymmetric else gx
+        return np.column_stack([x.ravel(), gy.ravel(), np.zeros(nx * ny)]).astype(np.float64) * self.square_m
+
+    def describe(self) -> str:
+        return f"{'asymmetric ' if self.asymmetric else ''}circle grid with {self.corners[0]}x{self.corners[1]} circles"
+
+    def find(self, image: ArrayLike, model_fit: bool = True) -> NDArray[np.float64] | None:
+        """:func:`find_circle_grid` (``model_fit`` does not apply: the blob centroids are kept)."""
+        return find_circle_grid(image, self)
+
+    def projector_window_half_px(self, points_px: NDArray[np.float64], image_width: int) -> int:
+        """The window must reach past the dark circle, where the decoder has light to read: the
+        circle's radius in the image plus two pixels of the light ring around it (and no less
+        than the chessboard's window)."""
+        centres = np.asarray(points_px, dtype=np.float64)
+        nearest = np.sort(np.linalg.norm(centres[:, None] - centres[None], axis=2), axis=1)[:, 1]
+        radius_px = float(np.median(nearest)) * self.circle_radius_m / self.nearest_spacing_m
+        return max(int(math.ceil(image_width / 180)), int(math.ceil(radius_px)) + 2)
+
+
+def find_circle_grid(image: ArrayLike, grid: CircleGrid) -> NDArray[np.float64] | None:
+    """Circle centres of the grid, (N, 2) float64 in OpenCV pixel coordinates, or None.
+
+    ``cv2.findCirclesGrid`` with its default blob detector (dark circles on a light board), the
+    centres being the blobs' centroids.
+    """
+    img = np.asarray(image)
+    if img.ndim == 3:
+        img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+    if img.dtype != np.uint8:
+        img = cv2.normalize(img, None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
+    flags = cv2.CALIB_CB_ASYMMETRIC_GRID if grid.asymmetric else cv2.CALIB_CB_SYMMETRIC_GRID
+    found, centres = cv2.findCirclesGrid(img, grid.corners, flags=flags)
+    if not found:
+        return None
+    return centres.reshape(-1, 2).astype(np.float64)
 
 
 def find_chessboard(image: ArrayLike, board: Chessboard, refine_window: int = 5, model_fit: bool = True) -> NDArray[np.float64] | None:

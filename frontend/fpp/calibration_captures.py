@@ -1,8 +1,11 @@
-"""Synthetic Gray-code calibration captures of a chessboard for a known rig (for validation).
+"""Synthetic calibration captures of a chessboard or circle grid for a known rig (for validation).
 
 Board poses seen whole by camera and projector (:func:`sample_board_poses`), rendered as a rig
-would capture them (:func:`simulate_graycode_captures`); :func:`frontend.fpp.calibration_folders.calibrate_from_captures`
-calibrates from them.
+would capture them: under OpenCV's Gray code (:func:`simulate_graycode_captures`), which
+:func:`frontend.fpp.calibration_folders.calibrate_from_captures` calibrates from, or under any
+pattern spec (:func:`simulate_board_stacks`, every image through
+:func:`frontend.fpp.patterns.pattern_intensity`, which dispatches to the spec's kind), which
+:func:`frontend.fpp.calibration_folders.calibrate_from_stacks` calibrates from.
 """
 
 from __future__ import annotations
@@ -15,7 +18,7 @@ from numpy.typing import NDArray
 
 from fpp_graph.errors import CalibrationError
 from fpp_graph.geometry import make_pose
-from frontend.fpp.calibration_board import Chessboard
+from frontend.fpp.calibration_board import CalibrationBoard, Chessboard, CircleGrid
 from frontend.fpp.lens import project_to_camera, project_to_projector, undistort_pixels
 from frontend.fpp.patterns import (
     PatternSpec,
@@ -26,11 +29,10 @@ from frontend.fpp.patterns import (
 from frontend.fpp.rig import RigCalibration
 
 
-def board_pose_visible(calibration: RigCalibration, board: Chessboard, T_camera_board: NDArray, margin_px: float = 20.0) -> bool:
-    """True when all board corners (and a one-square border) are inside camera and projector."""
-    nx, ny = board.corners
-    s = board.square_m
-    outline = np.array([[-s, -s, 0], [nx * s, -s, 0], [nx * s, ny * s, 0], [-s, ny * s, 0]])
+def board_pose_visible(calibration: RigCalibration, board: CalibrationBoard, T_camera_board: NDArray, margin_px: float = 20.0) -> bool:
+    """True when all board points (and the board's border, :func:`_board_outline_m`) are inside camera and projector."""
+    x0, y0, x1, y1 = _board_outline_m(board)
+    outline = np.array([[x0, y0, 0], [x1, y0, 0], [x1, y1, 0], [x0, y1, 0]])
     pts = np.vstack([board.object_points_m, outline])
     X = pts @ T_camera_board[:3, :3].T + T_camera_board[:3, 3]
     if np.any(X[:, 2] <= 0):
@@ -43,7 +45,7 @@ def board_pose_visible(calibration: RigCalibration, board: Chessboard, T_camera_
 
 def simulate_graycode_captures(
     calibration: RigCalibration,
-    board: Chessboard,
+    board: CalibrationBoard,
     T_camera_board_list: Sequence[NDArray],
     rng: np.random.Generator,
     **kwargs: float,
@@ -55,9 +57,26 @@ def simulate_graycode_captures(
     return list(iter_graycode_captures(calibration, board, T_camera_board_list, rng, **kwargs))
 
 
+def simulate_board_stacks(
+    calibration: RigCalibration,
+    board: CalibrationBoard,
+    T_camera_board_list: Sequence[NDArray],
+    rng: np.random.Generator,
+    spec,
+    **kwargs: float,
+) -> list[NDArray[np.uint8]]:
+    """Render one (M, H, W) uint8 capture per board pose under any pattern spec, in its capture order.
+
+    Every image is the spec's continuous pattern at the projector coordinate each surface point
+    projects to (:func:`~frontend.fpp.patterns.pattern_intensity`; white images are 1, black 0),
+    with the board, blur and noise of :func:`iter_graycode_captures` (same keyword arguments).
+    """
+    return [patterns for patterns, _white, _black in iter_graycode_captures(calibration, board, T_camera_board_list, rng, pattern_specs=[spec], **kwargs)]
+
+
 def iter_graycode_captures(
     calibration: RigCalibration,
-    board: Chessboard,
+    board: CalibrationBoard,
     T_camera_board_list: Sequence[NDArray],
     rng: np.random.Generator,
     *,
@@ -128,7 +147,7 @@ def iter_graycode_captures(
         yield stack[:n_pat], stack[n_pat], stack[n_pat + 1]
 
 
-def _board_hit(rays_xy: NDArray, T_camera_board: NDArray, board: Chessboard, bow_m: float) -> tuple[NDArray, NDArray, NDArray]:
+def _board_hit(rays_xy: NDArray, T_camera_board: NDArray, board: CalibrationBoard, bow_m: float) -> tuple[NDArray, NDArray, NDArray]:
     """Where camera rays (normalised x, y) meet the (possibly bowed) board.
 
     Returns the hit points in the camera frame (H, W, 3), the board-frame coordinates (H, W, 3)
@@ -145,9 +164,9 @@ def _board_hit(rays_xy: NDArray, T_camera_board: NDArray, board: Chessboard, bow
         # height above the board plane (board z axis points away from the camera for a board
         # facing it, so "towards the camera" is -z); a few fixed-point steps converge far below
         # a micrometre for a bow of a fraction of a millimetre
-        nx, ny = board.corners
-        centre = np.array([(nx - 1) / 2, (ny - 1) / 2]) * board.square_m
-        r2_max = float(np.sum(centre**2))
+        points = board.object_points_m[:, :2]
+        centre = points.mean(axis=0)
+        r2_max = float(np.max(np.sum((points - centre) ** 2, axis=1)))
         for _ in range(3):
             r2 = (b[..., 0] - centre[0]) ** 2 + (b[..., 1] - centre[1]) ** 2
             height = -bow_m * (1.0 - r2 / r2_max)
@@ -185,18 +204,11 @@ def _pattern_values(calibration: RigCalibration, pattern_specs: Sequence[Pattern
     return len(index), fringe_value
 
 
-def _accumulate_board_radiance(acc: NDArray, calibration: RigCalibration, board: Chessboard, T_camera_board: NDArray, rays_xy: NDArray, n_pat: int, pattern_value, looks: dict[str, float]) -> None:
+def _accumulate_board_radiance(acc: NDArray, calibration: RigCalibration, board: CalibrationBoard, T_camera_board: NDArray, rays_xy: NDArray, n_pat: int, pattern_value, looks: dict[str, float]) -> None:
     """Add one sub-pixel ray set's radiance of every pattern (then white, black) into ``acc``."""
     proj = calibration.projector
-    nx, ny = board.corners
-    s = board.square_m * looks["square_scale"]
     X, b, lam = _board_hit(rays_xy, T_camera_board, board, looks["bow_m"])
-    bx, by = b[..., 0] / s, b[..., 1] / s
-    black = _area_filtered_checker(bx, by, looks.get("footprint_px", 0.0))
-    albedo = looks["albedo_white"] + (looks["albedo_black"] - looks["albedo_white"]) * black
-    on_paper = (bx >= -2) & (bx <= nx + 1) & (by >= -2) & (by <= ny + 1)
-    in_squares = (bx >= -1) & (bx <= nx) & (by >= -1) & (by <= ny)
-    albedo = np.where(in_squares, albedo, np.where(on_paper, looks["albedo_white"], 0.5))
+    albedo = _board_albedo(board, b[..., 0], b[..., 1], looks)
     albedo = np.where(lam > 0, albedo, 0.0).astype(np.float32)
     u_p, v_p = project_to_projector(calibration, X)
     col = np.floor(u_p + 0.5)
@@ -211,6 +223,68 @@ def _accumulate_board_radiance(acc: NDArray, calibration: RigCalibration, board:
         acc[m] += albedo * (ambient + pattern_value(m, u_safe, v_safe, ci, ri) * lit)
     acc[n_pat] += albedo * (ambient + lit)
     acc[n_pat + 1] += albedo * ambient
+
+
+def _board_outline_m(board: CalibrationBoard) -> tuple[float, float, float, float]:
+    """The board's pattern area with its border (x0, y0, x1, y1), board frame, metres: a
+    chessboard's squares (one square beyond the inner corners), a circle grid's centres with one
+    spacing around them."""
+    if isinstance(board, CircleGrid):
+        points = board.object_points_m
+        margin = board.nearest_spacing_m
+        return points[:, 0].min() - margin, points[:, 1].min() - margin, points[:, 0].max() + margin, points[:, 1].max() + margin
+    nx, ny = board.corners
+    s = board.square_m
+    return -s, -s, nx * s, ny * s
+
+
+def _board_albedo(board: CalibrationBoard, bx_m: NDArray, by_m: NDArray, looks: dict[str, float]) -> NDArray:
+    """Albedo at board-frame points (metres): the pattern, white paper one square or spacing
+    beyond it, a grey (0.5) plane farther out. ``square_scale`` scales the printed pattern."""
+    scale = looks["square_scale"]
+    footprint = looks.get("footprint_px", 0.0)
+    if isinstance(board, CircleGrid):
+        black = _area_filtered_circles(board, bx_m / scale, by_m / scale, footprint)
+    else:
+        black = _area_filtered_checker(bx_m / (board.square_m * scale), by_m / (board.square_m * scale), footprint)
+    albedo = looks["albedo_white"] + (looks["albedo_black"] - looks["albedo_white"]) * black
+    x0, y0, x1, y1 = (scale * v for v in _board_outline_m(board))
+    if isinstance(board, Chessboard):
+        in_pattern = (bx_m >= x0) & (bx_m <= x1) & (by_m >= y0) & (by_m <= y1)
+        albedo = np.where(in_pattern, albedo, looks["albedo_white"])
+    margin = scale * (board.nearest_spacing_m if isinstance(board, CircleGrid) else board.square_m)
+    on_paper = (bx_m >= x0 - margin) & (bx_m <= x1 + margin) & (by_m >= y0 - margin) & (by_m <= y1 + margin)
+    return np.where(on_paper, albedo, 0.5)
+
+
+def _area_filtered_circles(grid: CircleGrid, bx_m: NDArray, by_m: NDArray, footprint_px: float) -> NDArray:
+    """Fraction of black in each sample's footprint of the circle grid (board-frame metres).
+
+    The distance to the nearest circle centre, minus the radius, is the signed distance to the
+    circle's edge; over a footprint ``w`` wide the black fraction ramps linearly across the edge
+    (a box filter of a straight edge: exact while the circle is many footprints wide). Rows are
+    ``square_m`` apart; the nearest centre lies in one of the two rows around the point.
+    """
+    s = grid.square_m
+    nx, ny = grid.corners
+    row_below = np.floor(by_m / s)
+    distance = np.full(np.shape(bx_m), np.inf)
+    for row in (np.clip(row_below, 0, ny - 1), np.clip(row_below + 1, 0, ny - 1)):
+        if grid.asymmetric:
+            shift = (row % 2) * s
+            column = np.clip(np.rint((bx_m - shift) / (2 * s)), 0, nx - 1)
+            cx = 2 * s * column + shift
+        else:
+            cx = s * np.clip(np.rint(bx_m / s), 0, nx - 1)
+        distance = np.minimum(distance, np.hypot(bx_m - cx, by_m - row * s))
+    edge = distance - grid.circle_radius_m
+    if footprint_px <= 0:
+        return (edge < 0).astype(np.float64)
+    gy, gx = np.gradient(edge)
+    width = footprint_px * np.hypot(gx, gy)  # the footprint's extent across the edge, metres
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ramp = np.clip(0.5 - edge / width, 0.0, 1.0)
+    return np.where(np.isfinite(width) & (width > 0), ramp, (edge < 0).astype(np.float64))
 
 
 def _area_filtered_checker(bx: NDArray, by: NDArray, footprint_px: float) -> NDArray:
@@ -246,7 +320,7 @@ def _area_filtered_checker(bx: NDArray, by: NDArray, footprint_px: float) -> NDA
 
 def sample_board_poses(
     calibration: RigCalibration,
-    board: Chessboard,
+    board: CalibrationBoard,
     n: int,
     rng: np.random.Generator,
     depth_range_m: tuple[float, float] = (0.45, 0.8),
@@ -266,8 +340,7 @@ def sample_board_poses(
     """
     from scipy.spatial.transform import Rotation
 
-    nx, ny = board.corners
-    centre_board = np.array([(nx - 1) / 2, (ny - 1) / 2, 0.0]) * board.square_m
+    centre_board = board.object_points_m.mean(axis=0)
     C_p = -calibration.T_projector_camera[:3, :3].T @ calibration.T_projector_camera[:3, 3]
     poses = []
     for _ in range(max_tries):

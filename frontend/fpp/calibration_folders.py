@@ -1,12 +1,16 @@
 """Rig calibration from board-capture folders described by a pattern file (``fpp-slam calibrate``).
 
-A root folder holds one sub-folder per chessboard pose, each with that pose's pattern images in
-the order the pattern file states. The pattern set must give both projector coordinates
-(``axis: both``, e.g. OpenCV's Gray code with inverses as procam-calibration captures it). Each
-pose is decoded with :class:`frontend.fpp.phase.Decoder`, the chessboard is found in its white
-image (the decoded texture when the set has none), and :func:`calibrate_rig` does the rest.
-:func:`calibrate_from_captures` does the same for in-memory Gray-code captures (the simulator's
-board captures): one decoder for real and simulated boards.
+A root folder holds one sub-folder per board pose, each with that pose's pattern images in the
+order the pattern file states. The pattern set must give both projector coordinates: Gray code
+with ``axis: both`` (OpenCV's Gray code with inverses, as procam-calibration captures it), or
+any spec whose decoder returns ``axis == "both"`` (phase fringe sets on both axes, as SLStudio's
+calibration sequence: 3-step phase at 16 periods and at one period along the columns, then the
+same along the rows, 12 images without a white one). A spec that codes one axis is refused: a
+board point's projector position needs its column and its row. Each pose is decoded with
+:func:`frontend.fpp.phase.make_decoder`, the board (chessboard or circle grid) is found in the
+set's white image (the decoded texture when the set has none), and :func:`calibrate_rig` does
+the rest. :func:`calibrate_from_captures` and :func:`calibrate_from_stacks` do the same for
+in-memory captures (the simulator's board captures): one decoder for real and simulated boards.
 
 procam-calibration's validity rules map onto the decoder's thresholds: a pixel is valid when
 ``white - black > 40`` (``decode.min_modulation = 20.25``, half the contrast, as integers) and
@@ -26,11 +30,11 @@ from numpy.typing import NDArray
 
 from fpp_graph.errors import CalibrationError, ConfigError, InputDataError
 from frontend.config import DecodeConfig
-from frontend.fpp.calibration_board import Chessboard
+from frontend.fpp.calibration_board import CalibrationBoard
 from frontend.fpp.capture import capture_image_paths, natural_key
 from frontend.fpp.images import load_image_stack
 from frontend.fpp.patterns import PatternSpec, opencv_gray_code_spec
-from frontend.fpp.phase import Decoder, make_decoder
+from frontend.fpp.phase import Decoder, DecodeResult, make_decoder
 from frontend.fpp.rig_calibration import (
     PoseObservation,
     RigCalibrationReport,
@@ -57,7 +61,7 @@ def pose_folders(root: str | os.PathLike[str], pattern: str = "*") -> list[Path]
 def observe_pose_folders(
     folders: Sequence[str | os.PathLike[str]],
     spec: PatternSpec,
-    board: Chessboard,
+    board: CalibrationBoard,
     projector_size: tuple[int, int],
     decode_config: DecodeConfig = PROCAM_DECODE,
     *,
@@ -66,7 +70,9 @@ def observe_pose_folders(
     progress=None,
     corner_model: bool = True,
 ) -> tuple[list[PoseObservation], tuple[int, int]]:
-    """Decode each pose folder and find the board's corners in the camera and the projector.
+    """Decode each pose folder and find the board's points in the camera and the projector.
+
+    ``spec`` is a :class:`PatternSpec` or any spec :func:`~frontend.fpp.phase.make_decoder` takes.
 
     Raises
     ------
@@ -78,8 +84,7 @@ def observe_pose_folders(
         The board is not found in a pose (unless ``skip_missing_board``: then it is skipped
         with a warning).
     """
-    if spec.axis != "both":
-        raise ConfigError(f"calibration needs both projector coordinates: the pattern set encodes only its {spec.axis}; use a set with axis: both (e.g. datasets/patterns/procam_graycode_1024x768.yaml)")
+    refuse_one_axis(spec)
     decoder = make_decoder(spec, *projector_size, decode_config)
     observations: list[PoseObservation] = []
     camera_size = None
@@ -91,13 +96,13 @@ def observe_pose_folders(
             raise InputDataError(f"{folder}: images are {size[0]}x{size[1]}, earlier poses {camera_size[0]}x{camera_size[1]}; one camera, one size")
         camera_size = size
         try:
-            observations.append(observe_pose_stack(str(folder), stack, decoder, board, corner_model=corner_model))
+            observations.append(observe_pose_stack(str(folder), stack, decoder, board, corner_model=corner_model, spec=spec))
         except CalibrationError:
             white_index = _white_index(spec)
             where = paths[white_index] if white_index is not None else Path(folder)
             message = (
-                f"{where}: no chessboard with {board.corners[0]}x{board.corners[1]} inner corners found; check --board "
-                "(inner corners, not squares) and that the whole board is in view, or remove this pose"
+                f"{where}: no {board.describe()} found; check --board and --grid (a chessboard's inner corners, not squares; "
+                "a circle grid's circles per row and rows) and that the whole board is in view, or remove this pose"
             )
             if not skip_missing_board:
                 raise CalibrationError(message + " (or pass --skip-missing-board)") from None
@@ -112,7 +117,7 @@ def observe_pose_folders(
 def calibrate_pose_folders(
     folders: Sequence[str | os.PathLike[str]],
     spec: PatternSpec,
-    board: Chessboard,
+    board: CalibrationBoard,
     projector_size: tuple[int, int],
     decode_config: DecodeConfig = PROCAM_DECODE,
     *,
@@ -136,27 +141,50 @@ def calibrate_pose_folders(
     return report
 
 
-def _white_index(spec: PatternSpec) -> int | None:
-    return next((i for i, im in enumerate(spec.layout()) if im.role == "white"), None)
+def refuse_one_axis(spec) -> None:
+    """ConfigError for a spec that codes one projector axis (``axis`` "columns" or "rows").
+
+    A spec that states no axis is checked on its first decoded pose (:func:`observe_pose_stack`).
+    """
+    axis = getattr(spec, "axis", None)
+    if axis in ("columns", "rows"):
+        raise ConfigError(_one_axis_message(f"the pattern set ({getattr(spec, 'kind', type(spec).__name__)}) codes only the projector {axis}"))
 
 
-def observe_pose_stack(name: str, stack: NDArray, decoder: Decoder, board: Chessboard, corner_model: bool = True) -> PoseObservation:
+def _one_axis_message(what: str) -> str:
+    return (
+        f"calibration needs both projector coordinates, and {what}: a board point's position in the projector is its column "
+        "and its row. Capture the boards with a set that codes both axes: Gray code with axis: both "
+        "(datasets/patterns/procam_graycode_1024x768.yaml) or phase fringe sets along the columns and the rows"
+    )
+
+
+def _white_index(spec) -> int | None:
+    """The index of the set's white image, None without one (roles as PatternImage or tokens)."""
+    layout = spec.layout() if hasattr(spec, "layout") else ()
+    return next((i for i, im in enumerate(layout) if getattr(im, "role", im) == "white"), None)
+
+
+def observe_pose_stack(name: str, stack: NDArray, decoder: Decoder, board: CalibrationBoard, corner_model: bool = True, spec=None) -> PoseObservation:
     """Decode one pose's image stack (capture order) and find the board in camera and projector.
 
-    The corners are found in the set's white image, or in the decoded texture when it has none.
-    Raises CalibrationError when the board is not found.
+    ``decoder`` is any decoder of :func:`~frontend.fpp.phase.make_decoder`; ``spec`` its pattern
+    spec (default ``decoder.spec``). The board is found in the set's white image, or in the
+    decoded texture when it has none. Raises ConfigError when the decoder gives one projector
+    axis, CalibrationError when the board is not found.
     """
-    result = decoder.decode(stack)
-    if result.v_projector_px is None:
-        raise ConfigError(f"{name}: calibration needs both projector coordinates; the pattern set encodes only its {decoder.spec.axis}")
-    white_index = _white_index(decoder.spec)
+    spec = spec if spec is not None else getattr(decoder, "spec", None)
+    result: DecodeResult = decoder.decode(stack)
+    if result.v_projector_px is None or getattr(result, "axis", "both") != "both":
+        raise ConfigError(_one_axis_message(f"{name} decodes only the projector {result.axis}"))
+    white_index = _white_index(spec) if spec is not None else None
     white = stack[white_index] if white_index is not None else result.texture
     return observe_pose(name, white, result.u_projector_px, result.v_projector_px, board, result.mask, corner_model=corner_model)
 
 
 def calibrate_from_captures(
     captures: Iterable[tuple[NDArray, NDArray, NDArray]],
-    board: Chessboard,
+    board: CalibrationBoard,
     projector_size: tuple[int, int],
     *,
     names: Sequence[str] | None = None,
@@ -186,3 +214,35 @@ def calibrate_from_captures(
         observations, board, camera_size, projector_size, refine_intrinsics=refine_intrinsics, calibration_flags=calibration_flags, release_board=release_board
     )
     return report, observations
+
+
+def calibrate_from_stacks(
+    stacks: Iterable[NDArray],
+    spec,
+    board: CalibrationBoard,
+    projector_size: tuple[int, int],
+    decode_config: DecodeConfig = PROCAM_DECODE,
+    *,
+    names: Sequence[str] | None = None,
+    release_board: bool = False,
+    corner_model: bool = True,
+) -> tuple[RigCalibrationReport, list[PoseObservation]]:
+    """Calibrate from in-memory captures of any pattern spec whose decoder gives both projector
+    coordinates: one (M, H, W) stack per pose, in the spec's capture order.
+
+    A pose whose board is not found is skipped with a warning; the report's ``poses`` are the ones used.
+    """
+    refuse_one_axis(spec)
+    decoder = make_decoder(spec, *projector_size, decode_config)
+    observations = []
+    camera_size = None
+    for i, stack in enumerate(stacks):
+        name = names[i] if names is not None else f"pose {i}"
+        camera_size = (stack.shape[2], stack.shape[1])
+        try:
+            observations.append(observe_pose_stack(name, stack, decoder, board, corner_model=corner_model, spec=spec))
+        except CalibrationError as exc:
+            log.warning("%s; pose skipped", exc)
+    if camera_size is None:
+        raise CalibrationError("no captures given")
+    return calibrate_rig(observations, board, camera_size, projector_size, release_board=release_board), observations

@@ -51,11 +51,23 @@ jakobwilm/slstudio's ``CalibrationData::saveXML`` (and tools derived from it) wr
 the camera first: they map camera-frame points into the projector frame (``T_projector_camera``),
 in the unit of the calibration board, millimetres. Matrices are float32: the rotation is
 re-orthonormalised on reading.
+
+Forty numbers in a text file (commercial FPP cameras)
+-----------------------------------------------------
+Some rigs hand out their calibration as 40 numbers: camera ``K`` (9, row-major), camera
+distortion (5: ``k1 k2 p1 p2 k3``, OpenCV's order), projector ``K`` (9) and distortion (5),
+``R`` (9, row-major) and ``T`` (3), which map camera-frame points into the projector frame
+(``T_projector_camera``), millimetres. Any whitespace, commas or semicolons separate them, ``#``
+starts a comment. :func:`read_text_calibration` reads them (:data:`TEXT_CALIBRATION_LAYOUT` names
+each number); the image sizes are not in the file, so the camera's and the projector's are
+given (``camera_size``, ``projector_size``; ``--camera WxH`` and ``--projector WxH`` on the
+command line, or the camera's from the captures' images).
 """
 
 from __future__ import annotations
 
 import os
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
@@ -257,54 +269,278 @@ def _size_nodes(st: _Storage, w_name: str, h_name: str, device: str, how: str) -
     return size
 
 
+def _text_layout() -> tuple[tuple[str, int], ...]:
+    """(block name, count) of the 40 numbers, in file order."""
+    return (
+        ("camera K", 9), ("camera distortion (k1 k2 p1 p2 k3)", 5),
+        ("projector K", 9), ("projector distortion (k1 k2 p1 p2 k3)", 5),
+        ("R (camera -> projector)", 9), ("T (camera -> projector)", 3),
+    )
+
+
+#: What each of the 40 numbers of a text calibration is: ``(1-based position, meaning)``.
+TEXT_CALIBRATION_LAYOUT: tuple[tuple[int, str], ...] = tuple(
+    (start + i + 1, f"{name} #{i + 1}")
+    for (name, count), start in zip(_text_layout(), np.cumsum([0] + [c for _, c in _text_layout()])[:-1].tolist(), strict=True)
+    for i in range(count)
+)
+TEXT_CALIBRATION_COUNT = len(TEXT_CALIBRATION_LAYOUT)
+_TEXT_SEPARATORS = str.maketrans({",": " ", ";": " "})
+
+
+def _number_meaning(position: int) -> str:
+    return TEXT_CALIBRATION_LAYOUT[position - 1][1] if 1 <= position <= TEXT_CALIBRATION_COUNT else "beyond the 40"
+
+
+def _text_tokens(text: str) -> list[tuple[str, int]]:
+    """The file's tokens with their 1-based line numbers, comments (``#`` to the line's end) removed."""
+    tokens = []
+    for line_number, line in enumerate(text.splitlines(), start=1):
+        tokens += [(token, line_number) for token in line.split("#", 1)[0].translate(_TEXT_SEPARATORS).split()]
+    return tokens
+
+
+def looks_like_text_calibration(text: str) -> bool:
+    """True when every token (comments removed) is a number: a 40-number text calibration, or a
+    malformed one that :func:`parse_text_calibration` will explain."""
+    tokens = _text_tokens(text)
+    if not tokens:
+        return False
+    try:
+        for token, _ in tokens:
+            float(token)
+    except ValueError:
+        return False
+    return True
+
+
+def _count_numbers(text: str) -> int:
+    count = 0
+    for token, _ in _text_tokens(text):
+        try:
+            float(token)
+            count += 1
+        except ValueError:
+            pass
+    return count
+
+
+@dataclass(frozen=True)
+class TextCalibrationNumbers:
+    """The 40 numbers of a text calibration, as written (lengths in the file's unit)."""
+
+    K_camera: NDArray[np.float64]
+    dist_camera: NDArray[np.float64]
+    K_projector: NDArray[np.float64]
+    dist_projector: NDArray[np.float64]
+    R_projector_camera: NDArray[np.float64]
+    t_projector_camera: NDArray[np.float64]
+
+    @property
+    def rotation_error(self) -> float:
+        """Largest entry of ``|R^T R - I|`` (0 for a rotation; the file's rounding gives ~1e-6)."""
+        R = self.R_projector_camera
+        return float(np.abs(R.T @ R - np.eye(3)).max())
+
+
+def parse_text_calibration(path: str | os.PathLike[str]) -> TextCalibrationNumbers:
+    """The 40 numbers of a text calibration file (see the module docstring), checked.
+
+    Raises
+    ------
+    CalibrationError
+        Missing file, a token that is not a number (its line and position named), a count other
+        than 40 (the first missing or extra number named), non-finite numbers, an intrinsic
+        matrix whose last row is not ``0 0 1`` or whose focal lengths are not positive.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise CalibrationError(f"calibration file {path} does not exist (or is not a file)")
+    with translated_os_errors(path, reading=True):
+        text = path.read_text(encoding="utf-8", errors="replace")
+    values = []
+    for position, (token, line) in enumerate(_text_tokens(text), start=1):
+        try:
+            values.append(float(token))
+        except ValueError:
+            raise CalibrationError(
+                f"{path}:{line}: {token!r} is not a number (number {position}, {_number_meaning(position)}); "
+                "a text calibration holds 40 numbers separated by spaces, commas or newlines, comments after #"
+            ) from None
+    n = len(values)
+    if n < TEXT_CALIBRATION_COUNT:
+        raise CalibrationError(
+            f"{path}: {n} numbers, a text calibration has {TEXT_CALIBRATION_COUNT}; number {n + 1} ({_number_meaning(n + 1)}) "
+            f"and after are missing. Order: {_layout_summary()}"
+        )
+    if n > TEXT_CALIBRATION_COUNT:
+        raise CalibrationError(
+            f"{path}: {n} numbers, a text calibration has {TEXT_CALIBRATION_COUNT}; number 41 (value {values[40]:g}) and after are extra. "
+            f"Order: {_layout_summary()}"
+        )
+    v = np.asarray(values)
+    bad = np.flatnonzero(~np.isfinite(v))
+    if bad.size:
+        raise CalibrationError(f"{path}: number {bad[0] + 1} ({_number_meaning(int(bad[0]) + 1)}) is {v[bad[0]]}; every number must be finite")
+    numbers = TextCalibrationNumbers(v[0:9].reshape(3, 3), v[9:14], v[14:23].reshape(3, 3), v[23:28], v[28:37].reshape(3, 3), v[37:40])
+    for K, first in ((numbers.K_camera, 1), (numbers.K_projector, 15)):
+        if not np.allclose(K[2], (0.0, 0.0, 1.0)) or K[1, 0] != 0.0:
+            raise CalibrationError(
+                f"{path}: numbers {first}-{first + 8} ({_number_meaning(first)[:-3]}, row-major) must end in 0 0 1 with a 0 as number {first + 3}, "
+                f"got {K.ravel().tolist()}; is the order camera K, camera distortion, projector K, projector distortion, R, T?"
+            )
+        if K[0, 0] <= 0 or K[1, 1] <= 0:
+            raise CalibrationError(f"{path}: the focal lengths (numbers {first} and {first + 4}) must be positive pixels, got {K[0, 0]:g} and {K[1, 1]:g}")
+    return numbers
+
+
+def _layout_summary() -> str:
+    start, parts = 1, []
+    for name, count in _text_layout():
+        parts.append(f"{start}-{start + count - 1} {name}")
+        start += count
+    return ", ".join(parts)
+
+
+def read_text_calibration(
+    path: str | os.PathLike[str],
+    projector_size: tuple[int, int] | None = None,
+    camera_size: tuple[int, int] | None = None,
+    length_unit: str = "mm",
+    orthonormalise: bool = False,
+) -> RigCalibration:
+    """Read a 40-number text calibration (see the module docstring).
+
+    Parameters
+    ----------
+    path : path-like
+    projector_size, camera_size : (width, height)
+        Image sizes in pixels; the file does not hold them, so both are required.
+    length_unit : {"mm", "cm", "m"}
+        Unit of ``T`` (millimetres for the cameras that write this format).
+    orthonormalise : bool
+        False: a ``R`` that is not a rotation (beyond :data:`_ROTATION_TOL`, far above a printed
+        number's rounding) raises. True: its nearest rotation is used (for inspecting a broken
+        file; :func:`parse_text_calibration` gives the deviation).
+
+    Raises
+    ------
+    CalibrationError
+        As :func:`parse_text_calibration`; a missing size (the message names the option that
+        gives it); ``R`` not a rotation.
+    """
+    if length_unit not in _UNIT_TO_M:
+        raise CalibrationError(f"length_unit must be one of {sorted(_UNIT_TO_M)}, got {length_unit!r}")
+    numbers = parse_text_calibration(path)
+    if camera_size is None:
+        raise CalibrationError(f"{path}: a 40-number text calibration does not store the camera's image size; give it (--camera WxH, or camera_size=(width, height))")
+    if projector_size is None:
+        raise CalibrationError(f"{path}: a 40-number text calibration does not store the projector's size; give it (--projector WxH, or projector_size=(width, height))")
+    R = numbers.R_projector_camera
+    det = float(np.linalg.det(R))
+    if not orthonormalise and (numbers.rotation_error > _ROTATION_TOL or det <= 0):
+        raise CalibrationError(
+            f"{path}: numbers 29-37 (R, row-major) are not a rotation: max |R^T R - I| = {numbers.rotation_error:.2g}, det R = {det:.4f} "
+            "(a rotation has 0 and 1); check their order and that no number was lost or mistyped"
+        )
+    U, _, Vt = np.linalg.svd(R)
+    R = U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
+    try:
+        camera = PinholeModel(*camera_size, numbers.K_camera, numbers.dist_camera)
+        projector = PinholeModel(*projector_size, numbers.K_projector, numbers.dist_projector)
+    except CalibrationError as exc:
+        raise CalibrationError(f"{path}: {exc}") from None
+    return RigCalibration(camera, projector, make_pose(R, numbers.t_projector_camera * _UNIT_TO_M[length_unit]))
+
+
 #: The formats :func:`read_any_calibration` recognises, as (name, nodes that identify it).
 KNOWN_FORMATS = (
     ("fpp-graph rig calibration YAML", "format: fpp-graph rig calibration v1"),
     ("SLMaster caliInfo.yml", "M1, D1, M4, D4, Rlp, Tlp"),
     ("procam-calibration calibration_result.xml", "cam_int, cam_dist, proj_int, proj_dist, roration, translation"),
     ("SLStudio-style XML", "Kc, kc, Kp, kp, Rp, Tp, screenResX, screenResY"),
+    ("40-number text calibration", "camera K, distortion, projector K, distortion, R, T; needs --camera and --projector"),
 )
 
 
-def read_any_calibration(path: str | os.PathLike[str], projector_size: tuple[int, int] | None = None, **kwargs) -> RigCalibration:
-    """Read a calibration in any supported format (:data:`KNOWN_FORMATS`), recognised by content.
-
-    ``projector_size`` (width, height) is for formats that do not store it (SLMaster,
-    procam-calibration) or overrides it (SLStudio); for the project's YAML it must agree with
-    the file. Other keyword arguments go to the matching reader.
+def calibration_format(path: str | os.PathLike[str]) -> str:
+    """The name (in :data:`KNOWN_FORMATS`) of a calibration file's format, recognised by content.
 
     Raises
     ------
     CalibrationError
-        Missing or unreadable file, an unknown format (the message lists the known ones), a
-        malformed node, or a projector size that contradicts the file.
+        Missing or unreadable file, or an unknown format (the message lists the known ones).
     """
     path = Path(path)
     if not path.is_file():
         raise CalibrationError(f"calibration file {path} does not exist (or is not a file)")
     with translated_os_errors(path, reading=True):
-        head = path.read_text(encoding="utf-8", errors="replace")[:4096]
-    size_kw = {"projector_size": tuple(projector_size)} if projector_size is not None else {}
-    if "fpp-graph rig calibration" in head:
-        cal = load_calibration(path)
-        if projector_size is not None and tuple(projector_size) != (cal.projector.width, cal.projector.height):
-            raise CalibrationError(f"{path}: its projector is {cal.projector.width}x{cal.projector.height}, not the {projector_size[0]}x{projector_size[1]} given; drop --projector or fix the file")
-        return cal
+        head = path.read_text(encoding="utf-8", errors="replace")[:65536]
+    if "fpp-graph rig calibration" in head[:4096]:
+        return KNOWN_FORMATS[0][0]
+    if looks_like_text_calibration(head) or path.suffix.lower() == ".txt" and _count_numbers(head) >= TEXT_CALIBRATION_COUNT // 2:
+        # a .txt mostly of numbers is a text calibration with a typo: its reader names the bad token
+        return KNOWN_FORMATS[4][0]
     known = "; ".join(f"{name} ({nodes})" for name, nodes in KNOWN_FORMATS)
     try:
         st = _Storage(path)
     except CalibrationError as exc:
         raise CalibrationError(f"{exc}; known calibration formats: {known}") from None
     try:
-        is_slmaster = st.has("M1") and st.has("M4")
-        is_procam = st.has("cam_int") and st.has("proj_int")
-        is_slstudio = st.has("Kc") and st.has("Kp") and st.has("Rp")
+        if st.has("M1") and st.has("M4"):
+            return KNOWN_FORMATS[1][0]
+        if st.has("cam_int") and st.has("proj_int"):
+            return KNOWN_FORMATS[2][0]
+        if st.has("Kc") and st.has("Kp") and st.has("Rp"):
+            return KNOWN_FORMATS[3][0]
     finally:
         st.release()
-    if is_slmaster:
-        return read_slmaster_calibration(path, **size_kw, **kwargs)
-    if is_procam:
-        return read_procam_calibration(path, **size_kw, **kwargs)
-    if is_slstudio:
-        return read_slstudio_calibration(path, **size_kw, **kwargs)
     raise CalibrationError(f"{path}: unknown calibration format; known formats: {known}")
+
+
+def stores_camera_size(path: str | os.PathLike[str]) -> bool:
+    """Whether the calibration file holds the camera's image size (the 40-number text does not)."""
+    return calibration_format(path) != KNOWN_FORMATS[4][0]
+
+
+def read_any_calibration(
+    path: str | os.PathLike[str],
+    projector_size: tuple[int, int] | None = None,
+    camera_size: tuple[int, int] | None = None,
+    **kwargs,
+) -> RigCalibration:
+    """Read a calibration in any supported format (:data:`KNOWN_FORMATS`), recognised by content.
+
+    ``projector_size`` and ``camera_size`` (width, height) are for formats that do not store them
+    (SLMaster and procam-calibration the projector's, the 40-number text both) or override them
+    (SLMaster's camera size, SLStudio's both); where the project's YAML or procam-calibration's
+    file states one, a given size must agree with it. Other keyword arguments go to the matching
+    reader.
+
+    Raises
+    ------
+    CalibrationError
+        Missing or unreadable file, an unknown format (the message lists the known ones), a
+        malformed node, or a size that contradicts the file.
+    """
+    path = Path(path)
+    kind = calibration_format(path)
+    size_kw = {"projector_size": tuple(projector_size)} if projector_size is not None else {}
+    if kind == KNOWN_FORMATS[0][0]:
+        cal = load_calibration(path)
+        _check_size(path, "projector", cal.projector, projector_size, "--projector")
+    elif kind == KNOWN_FORMATS[1][0]:
+        cal = read_slmaster_calibration(path, **size_kw, camera_size=camera_size, **kwargs)
+    elif kind == KNOWN_FORMATS[2][0]:
+        cal = read_procam_calibration(path, **size_kw, **kwargs)
+    elif kind == KNOWN_FORMATS[3][0]:
+        cal = read_slstudio_calibration(path, **size_kw, camera_size=camera_size, **kwargs)
+    else:
+        return read_text_calibration(path, projector_size=projector_size, camera_size=camera_size, **kwargs)
+    _check_size(path, "camera", cal.camera, camera_size, "--camera")
+    return cal
+
+
+def _check_size(path: Path, device: str, model: PinholeModel, given: tuple[int, int] | None, option: str) -> None:
+    if given is not None and tuple(given) != (model.width, model.height):
+        raise CalibrationError(f"{path}: its {device} is {model.width}x{model.height}, not the {given[0]}x{given[1]} given; drop {option} or fix the file")

@@ -1,6 +1,6 @@
 """Calibration of an FPP rig: the camera, the projector as an inverse camera, and their pose.
 
-Input: a planar chessboard seen at several poses, each pose captured under structured light that
+Input: a planar chessboard (or circle grid) seen at several poses, each pose captured under structured light that
 tells, for every camera pixel, which projector pixel lights it (Gray code, phase shifting, or
 both). Steps, after Moreno & Taubin (3DIMPVT 2012) as kamino410/procam-calibration does them:
 
@@ -11,10 +11,11 @@ both). Steps, after Moreno & Taubin (3DIMPVT 2012) as kamino410/procam-calibrati
    ``cv2.cornerSubPix`` on the fully lit (white) image, then (unlike procam-calibration) a
    blurred X-junction fitted around each corner (:mod:`frontend.fpp.corner_refinement`):
    cornerSubPix's few hundredths of a pixel were the whole of a simulated rig's calibration
-   error.
-3. :func:`~frontend.fpp.calibration_board.projector_corners`: each corner's projector coordinate
-   by a local homography fitted to the decoded pixels in a window around it (robust to a few
-   wrong codes), evaluated at the sub-pixel camera corner.
+   error. A circle grid: ``cv2.findCirclesGrid``'s blob centroids
+   (:func:`~frontend.fpp.calibration_board.find_circle_grid`).
+3. :func:`~frontend.fpp.calibration_board.projector_corners`: each corner's (or circle centre's)
+   projector coordinate by a local homography fitted to the decoded pixels in a window around it
+   (robust to a few wrong codes), evaluated at the sub-pixel camera point.
 4. :func:`calibrate_rig`: ``cv2.calibrateCamera`` for the camera, again for the projector (its
    "image points" are the projector corners), then ``cv2.stereoCalibrate`` for the camera ->
    projector pose (intrinsics fixed by default, or refined jointly). With ``release_board`` the
@@ -31,7 +32,6 @@ or in-memory captures), :mod:`frontend.fpp.calibration_captures` (synthetic capt
 from __future__ import annotations
 
 import logging
-import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
@@ -41,7 +41,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from fpp_graph.errors import CalibrationError
 from fpp_graph.geometry import make_pose
-from frontend.fpp.calibration_board import Chessboard, find_chessboard, projector_corners
+from frontend.fpp.calibration_board import CalibrationBoard, projector_corners
 from frontend.fpp.rig import PinholeModel, RigCalibration
 
 log = logging.getLogger(__name__)
@@ -100,23 +100,26 @@ def observe_pose(
     white: ArrayLike,
     u_projector_px: ArrayLike,
     v_projector_px: ArrayLike,
-    board: Chessboard,
+    board: CalibrationBoard,
     valid: ArrayLike | None = None,
     window_half: int | None = None,
     corner_model: bool = True,
 ) -> PoseObservation:
     """Corners of one pose from its white image and decoded projector coordinate maps.
 
-    ``window_half`` defaults to procam-calibration's ``ceil(camera_width / 180)``. ``corner_model``
-    refines the camera corners by the blurred X-junction fit (:func:`find_chessboard`).
+    ``board`` is a :class:`~frontend.fpp.calibration_board.Chessboard` or
+    :class:`~frontend.fpp.calibration_board.CircleGrid` (its points are the "corners" here).
+    ``window_half`` defaults to the board's (procam-calibration's ``ceil(camera_width / 180)``
+    for a chessboard; past the circle for a circle grid). ``corner_model`` refines chessboard
+    corners by the blurred X-junction fit (:func:`find_chessboard`).
     Raises CalibrationError when the board is not found.
     """
     white = np.asarray(white)
-    corners = find_chessboard(white, board, model_fit=corner_model)
+    corners = board.find(white, model_fit=corner_model)
     if corners is None:
-        raise CalibrationError(f"{name}: chessboard with {board.corners[0]}x{board.corners[1]} inner corners not found in the white image")
+        raise CalibrationError(f"{name}: {board.describe()} not found in the white image")
     if window_half is None:
-        window_half = int(math.ceil(white.shape[1] / 180))
+        window_half = board.projector_window_half_px(corners, white.shape[1])
     proj, ok = projector_corners(corners, u_projector_px, v_projector_px, valid, window_half)
     if not ok.all():
         log.info("%s: %d of %d corners have no projector coordinate (too few decoded pixels around them)", name, int((~ok).sum()), len(ok))
@@ -125,7 +128,7 @@ def observe_pose(
 
 def calibrate_rig(
     observations: Sequence[PoseObservation],
-    board: Chessboard,
+    board: CalibrationBoard,
     camera_size: tuple[int, int],
     projector_size: tuple[int, int],
     *,
@@ -214,7 +217,7 @@ class _BoardCorrespondences:
     skipped: dict[str, str] = field(default_factory=dict)
 
 
-def _board_correspondences(observations: Sequence[PoseObservation], board: Chessboard) -> _BoardCorrespondences:
+def _board_correspondences(observations: Sequence[PoseObservation], board: CalibrationBoard) -> _BoardCorrespondences:
     """Split observations into OpenCV's lists; poses with under 6 projector corners are left out
     of the projector and stereo steps (logged, listed in ``skipped``)."""
     obj_all = board.object_points_m.astype(np.float32)
@@ -242,7 +245,7 @@ def _board_correspondences(observations: Sequence[PoseObservation], board: Chess
 
 
 def _camera_with_released_board(
-    cam_obj: list[NDArray], cam_img: list[NDArray], camera_size: tuple[int, int], board: Chessboard, flags: int
+    cam_obj: list[NDArray], cam_img: list[NDArray], camera_size: tuple[int, int], board: CalibrationBoard, flags: int
 ) -> tuple[float, NDArray, NDArray, NDArray[np.float64]]:
     """Camera calibration that also estimates the board's corners: ``(rms, K, dist, corners (N, 3) m)``."""
     # the first row's last corner is held with the first one (OpenCV also holds the last corner's
@@ -261,7 +264,7 @@ def _orthonormalize(R: NDArray) -> NDArray:
 # ---------------------------------------------------------------------------- validation
 
 
-def transfer_rms_px(calibration: RigCalibration, observations: Sequence[PoseObservation], board: Chessboard) -> tuple[float, list[float]]:
+def transfer_rms_px(calibration: RigCalibration, observations: Sequence[PoseObservation], board: CalibrationBoard) -> tuple[float, list[float]]:
     """Camera -> projector transfer error of a rig calibration on board observations.
 
     For each pose, the board pose is estimated from the *camera* corners alone (PnP with the
