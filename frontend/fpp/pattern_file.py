@@ -1,8 +1,9 @@
 """Pattern sets as data: the YAML file that describes what the projector showed, image by image.
 
 :data:`SCHEMA` below is the file's documentation (``fpp-slam patterns --help`` prints it);
-:func:`load_pattern_spec` reads one into a :class:`frontend.fpp.patterns.PatternSpec`, and also
-accepts a sequence folder's ``sequence.yaml`` (its ``patterns`` section, read as is).
+:func:`load_pattern_spec` reads one into a :class:`frontend.fpp.patterns.PatternSpec` (or, for
+the fringe-set form, a :class:`frontend.fpp.fringe_sets.FringeSetSpec`), and also accepts a
+sequence folder's ``sequence.yaml`` (its ``patterns`` section, read as is).
 """
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ from pathlib import Path
 
 from fpp_graph.errors import ConfigError
 from fpp_graph.yaml_files import read_yaml_file
+from frontend.fpp.fringe_sets import FringeSetSpec
 from frontend.fpp.patterns import ORDER_TOKENS, PatternSpec
 
 FORMAT = "fpp-graph patterns v1"
@@ -53,11 +55,39 @@ Examples: datasets/patterns/*.yaml. Gray-only, references first, 10 bits MSB fir
   kind: gray_code
   gray_bits: 10
   order: [white, black, gray.0, gray.1, gray.2, gray.3, gray.4, gray.5, gray.6, gray.7, gray.8, gray.9]
+
+Fringe-set form (a top-level 'fringe_sets' list instead of 'kind'): any number of fringe sets,
+each with its own axis, pitch, steps and images; both axes in one capture:
+
+  fringe_sets:
+    - name: columns_1        # optional; lists and errors use it
+      axis: columns          # columns | rows
+      periods: 1             # periods across the axis (fractions allowed) ... or
+      # pitch_px: 1280       # ... the pitch in projector pixels (exactly one of the two)
+      steps: 4               # N >= 3
+      shift_direction: forward    # as above: I_n = a + b cos(theta - 2 pi n / N), theta = 2 pi c / pitch + phi0
+      phase_origin_rad: 0.0
+      first_step: 0          # the set's first image (in capture order) holds this step, then wrapping
+      # images: [3, 0, 1, 2] # or: the capture index of each step 0..N-1
+      codec: phase_shift     # phase_shift | two_plus_one (3 images: sin, cos, flat) |
+                             # modulated_phase_shift (steps, carrier_steps, carrier_pitch_px) |
+                             # micro_phase_shift (pitches_px: [...] instead of pitch/periods/steps)
+  gray_codes:                # optional, at most one per axis; unwraps the axis's one phase set
+    - {axis: columns, bits: 7, order: msb_first, inverse: false, complementary: false}
+  references: end            # optional: start | end | {white: INDEX, black: INDEX}
+
+Images: named indices first; then references at the start, the sets in list order (each the
+next N free images), the Gray codes (bits, each with its inverse, the complementary bit), the
+references at the end. Per axis the unwrapping is inferred: hierarchical (the coarsest pitch
+covers the axis), heterodyne (two sets whose beat, or three whose beat of beats, covers it), a
+Gray code, or micro phase shifting alone; anything else is refused naming the sets.
+Example: datasets/patterns/both_axes_hierarchical_4446.yaml.
 """
 
 
-def load_pattern_spec(path: str | os.PathLike[str]) -> PatternSpec:
-    """Read a pattern file (or a sequence's ``sequence.yaml``) into a :class:`PatternSpec`.
+def load_pattern_spec(path: str | os.PathLike[str]) -> PatternSpec | FringeSetSpec:
+    """Read a pattern file (or a sequence's ``sequence.yaml``) into a :class:`PatternSpec`, or a
+    :class:`frontend.fpp.fringe_sets.FringeSetSpec` when it has a top-level ``fringe_sets`` list.
 
     Raises
     ------
@@ -78,4 +108,6 @@ def load_pattern_spec(path: str | os.PathLike[str]) -> PatternSpec:
     if "format" in data and data["format"] != FORMAT:
         raise ConfigError(f"{path}: format is {data['format']!r}, expected {FORMAT!r}")
     spec_data = {k: v for k, v in data.items() if k not in _FREE_KEYS}
+    if "fringe_sets" in spec_data:
+        return FringeSetSpec.from_dict(spec_data, where=str(path))
     return PatternSpec.from_dict(spec_data, where=str(path))

@@ -364,9 +364,16 @@ class PatternSpec:
         ------
         ConfigError
             Unknown or missing keys, or bad values; the message starts with ``where``.
+
+        A mapping with a ``fringe_sets`` key is the fringe-set form and gives a
+        :class:`frontend.fpp.fringe_sets.FringeSetSpec` instead.
         """
         if not isinstance(d, dict):
             raise ConfigError(f"{where}: a pattern spec must be a mapping, got {type(d).__name__}")
+        if "fringe_sets" in d:  # the fringe-set form (e.g. a sequence.yaml's patterns section)
+            from frontend.fpp.fringe_sets import FringeSetSpec
+
+            return FringeSetSpec.from_dict(d, where)
         known = set(cls.__dataclass_fields__)
         unknown = sorted(set(d) - known)
         if unknown:
@@ -451,7 +458,8 @@ def pattern_intensity(
 
     Parameters
     ----------
-    spec : PatternSpec
+    spec : PatternSpec or frontend.fpp.fringe_sets.FringeSetSpec
+        (the latter gives its own ``spec.intensity``)
     index : int
         Image index in capture order, ``0 <= index < spec.image_count()``.
     u_projector_px, v_projector_px : array_like, same shape
@@ -467,6 +475,8 @@ def pattern_intensity(
         (inverses 1 or 0). White 1, black and ``skip`` 0. No gamma; :func:`generate_patterns`
         maps 0/1 to ``offset -+ amplitude``.
     """
+    if not isinstance(spec, PatternSpec):  # a fringe-set spec renders its own images
+        return spec.intensity(index, u_projector_px, v_projector_px, projector_width, projector_height)
     layout = spec.layout()
     if not 0 <= index < len(layout):
         raise ConfigError(f"pattern index {index} out of range: {spec.kind} set has {len(layout)} images")
@@ -517,7 +527,7 @@ def generate_patterns(
 
     Parameters
     ----------
-    spec : PatternSpec
+    spec : PatternSpec or frontend.fpp.fringe_sets.FringeSetSpec
     projector_width, projector_height : int
         Projector size in pixels.
     gamma : float
@@ -544,14 +554,24 @@ def generate_patterns(
     layout = spec.layout()
     out = np.empty((len(layout), height, width), dtype=np.uint8)
     for i, image in enumerate(layout):
-        # The patterns are constant across the other axis: render one profile, then broadcast.
-        rows = _image_axis(spec, image) == "rows"
-        coord = np.arange(_axis_length(spec, width, height, image), dtype=np.float64)
+        # The patterns are constant across the other axis: render one profile, then broadcast
+        # (a fringe-set image that varies along both axes is rendered whole).
+        if not isinstance(spec, PatternSpec) and spec.image_is_2d(i):
+            profile = pattern_intensity(spec, i, np.arange(width, dtype=np.float64)[None, :], np.arange(height, dtype=np.float64)[:, None], width, height)
+            out[i] = np.rint(_levels(profile, amplitude, offset, gamma)).astype(np.uint8)
+            continue
+        rows = (image.axis if not isinstance(spec, PatternSpec) else _image_axis(spec, image)) == "rows"
+        coord = np.arange(height if rows else width, dtype=np.float64)
         u, v = (zero, coord) if rows else (coord, zero)
         profile = pattern_intensity(spec, i, u, v, width, height)
-        level = np.clip(offset + amplitude * (2.0 * profile - 1.0), 0.0, 255.0)
-        if gamma != 1.0:
-            level = 255.0 * (level / 255.0) ** (1.0 / gamma)
-        row = np.rint(level).astype(np.uint8)
+        row = np.rint(_levels(profile, amplitude, offset, gamma)).astype(np.uint8)
         out[i] = row[:, None] if rows else row[None, :]
     return out
+
+
+def _levels(profile: NDArray, amplitude: float, offset: float, gamma: float) -> NDArray:
+    """Pattern values in [0, 1] -> written grey levels (gamma pre-corrected)."""
+    level = np.clip(offset + amplitude * (2.0 * profile - 1.0), 0.0, 255.0)
+    if gamma != 1.0:
+        level = 255.0 * (level / 255.0) ** (1.0 / gamma)
+    return level
