@@ -18,39 +18,75 @@ from fpp_graph.cli.common import examples
 if TYPE_CHECKING:
     from frontend.fpp.rig import RigCalibration
 
-CalibrationOption = Annotated[Path, typer.Option("--calibration", help="Rig calibration: fpp-graph YAML, SLMaster caliInfo.yml, procam-calibration XML or SLStudio-style XML (detected by content).")]
+CalibrationOption = Annotated[Path, typer.Option("--calibration", help="Rig calibration: fpp-graph YAML, SLMaster caliInfo.yml, procam-calibration XML, SLStudio-style XML or a 40-number text file (detected by content).")]
 PatternsOption = Annotated[Path, typer.Option("--patterns", help="Pattern file (YAML; `fpp-slam patterns` prints its schema) or a sequence.yaml.")]
 ProjectorOption = Annotated[Optional[str], typer.Option("--projector", help="Projector WxH in pixels, for calibration files that do not store it (SLMaster: 1920x1080, procam-calibration: 1024x768 by default).")]  # noqa: UP045
+CameraOption = Annotated[Optional[str], typer.Option("--camera", help="Camera WxH in pixels, for calibration files that do not store it (a 40-number text file); default: the size of the captures' images.")]  # noqa: UP045
 ConfigOption = Annotated[Optional[Path], typer.Option("--config", "-c", help="YAML overriding the packaged defaults (the decode section's thresholds).")]  # noqa: UP045
 
 SEQUENCE_FORMAT_LINE = "fpp-graph sequence v1"
 
 
-def read_calibration_option(path: Path, projector_size: tuple[int, int] | None = None, option: str = "--calibration") -> RigCalibration:
+def read_calibration_option(
+    path: Path,
+    projector_size: tuple[int, int] | None = None,
+    option: str = "--calibration",
+    camera_size: tuple[int, int] | None = None,
+    images_from: Path | None = None,
+) -> RigCalibration:
     """The rig of ``--calibration``: a calibration file in any format the project reads, or a
     sequence (its folder or its ``sequence.yaml``), whose ``calibration`` section is the rig.
+
+    ``camera_size`` (``--camera``) is for files that do not store it (a 40-number text); without
+    it such a file takes the size of the first image under ``images_from`` (a capture folder, or
+    a folder of frame folders: :func:`camera_size_of_images`).
 
     Raises
     ------
     CalibrationError
         As :func:`frontend.fpp.calibration_io.read_any_calibration`; for a sequence, a malformed
-        calibration section, or a ``--projector`` size the sequence contradicts.
+        calibration section, or a ``--projector`` or ``--camera`` size the sequence contradicts.
     """
     from fpp_graph.errors import CalibrationError
-    from frontend.fpp.calibration_io import read_any_calibration
+    from frontend.fpp.calibration_io import read_any_calibration, stores_camera_size
 
     sequence_yaml = path / "sequence.yaml" if path.is_dir() else path
     if path.is_dir() and not sequence_yaml.is_file():
         raise CalibrationError(f"{option} {path} is a folder without a sequence.yaml: give a calibration file, or a sequence folder")
     if not (sequence_yaml.is_file() and _is_sequence_file(sequence_yaml)):
-        return read_any_calibration(path, projector_size=projector_size)
+        if camera_size is None and images_from is not None and not stores_camera_size(path):
+            camera_size = camera_size_of_images(images_from)
+        return read_any_calibration(path, projector_size=projector_size, camera_size=camera_size)
     rig = _sequence_calibration(sequence_yaml)
-    if projector_size is not None and tuple(projector_size) != (rig.projector.width, rig.projector.height):
-        raise CalibrationError(
-            f"{option} {path}: its projector is {rig.projector.width}x{rig.projector.height}, not the "
-            f"{projector_size[0]}x{projector_size[1]} given; drop --projector or pass the rig's calibration file"
-        )
+    for device, model, given, size_option in (("projector", rig.projector, projector_size, "--projector"), ("camera", rig.camera, camera_size, "--camera")):
+        if given is not None and tuple(given) != (model.width, model.height):
+            raise CalibrationError(
+                f"{option} {path}: its {device} is {model.width}x{model.height}, not the "
+                f"{given[0]}x{given[1]} given; drop {size_option} or pass the rig's calibration file"
+            )
     return rig
+
+
+def camera_size_of_images(folder: Path) -> tuple[int, int]:
+    """(width, height) of the first image (natural name order) in ``folder``, or in its first
+    sub-folder holding images (a folder of frame or pose folders).
+
+    Raises
+    ------
+    InputDataError
+        No image there, or an unreadable first image.
+    """
+    from fpp_graph.errors import InputDataError
+    from frontend.fpp.capture import IMAGE_SUFFIXES, natural_key
+    from frontend.fpp.images import image_size
+
+    folder = Path(folder)
+    candidates = [folder, *sorted((p for p in folder.iterdir() if p.is_dir()), key=natural_key)] if folder.is_dir() else []
+    for candidate in candidates:
+        images = sorted((p for p in candidate.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES), key=natural_key)
+        if images:
+            return image_size(images[0])
+    raise InputDataError(f"{folder}: no image to take the camera's size from; give it with --camera WxH")
 
 
 def _is_sequence_file(path: Path) -> bool:
@@ -241,12 +277,14 @@ def refuse_empty_cloud(report: dict[str, Any], capture: Path, calibration: Path,
 @examples(
     "fpp-slam calibrate ../shared/data/real_fpp/procam_calibration --poses 'capture_*'"
     " --patterns datasets/patterns/procam_graycode_1024x768.yaml --board 9x7 --square-mm 75 --projector 1024x768 --out procam_calibration.yaml",
+    "fpp-slam calibrate boards --patterns slstudio_calibration.yaml --grid asymmetric-circles --board 4x11 --square-mm 20"
+    " --projector 1280x800 --out rig.yaml",
 )
 def calibrate(
     board_captures: Annotated[Path, typer.Argument(help="Folder with one sub-folder of pattern images per chessboard pose.")],
     patterns: PatternsOption,
-    board: Annotated[str, typer.Option("--board", help="Chessboard inner corners COLSxROWS (e.g. 7x9).")],
-    square_mm: Annotated[float, typer.Option("--square-mm", help="Chessboard square side, millimetres.")],
+    board: Annotated[str, typer.Option("--board", help="Board points COLSxROWS: a chessboard's inner corners (e.g. 9x7), a circle grid's circles per row x rows (e.g. 4x11).")],
+    square_mm: Annotated[float, typer.Option("--square-mm", help="Chessboard square side; circle grid: spacing of neighbouring centres (asymmetric: OpenCV's unit, the row offset, half the spacing within a row), millimetres.")],
     projector: Annotated[str, typer.Option("--projector", help="Projector WxH in pixels.")],
     out: Annotated[Path, typer.Option("--out", "-o", help="Calibration YAML to write (fpp-graph format, millimetres).")],
     images: Annotated[Optional[str], typer.Option("--images", help="Glob picking each pose's images (default: every image file).")] = None,  # noqa: UP045
@@ -256,14 +294,16 @@ def calibrate(
     skip_missing_board: Annotated[bool, typer.Option("--skip-missing-board", help="Skip poses whose board is not found instead of stopping.")] = False,
     release_board: Annotated[bool, typer.Option("--release-board", help="Estimate the board's corner positions too (a board that is not flat); needs many varied poses (15 in the simulator; 5 are too few), see the README.")] = False,
     corners: Annotated[str, typer.Option("--corners", help="Camera corner refinement: 'model' (cornerSubPix, then a blurred X-junction fit: 0.005 px on simulated boards) or 'subpix' (cornerSubPix alone, as procam-calibration).")] = "model",
+    grid: Annotated[str, typer.Option("--grid", help="Board type: checker (chessboard), circles (symmetric circle grid) or asymmetric-circles (OpenCV's staggered grid); dark circles on a light board.")] = "checker",
+    circle_mm: Annotated[float, typer.Option("--circle-mm", help="Circle diameter, millimetres (0: half the spacing of nearest centres); sets the window of decoded pixels around a circle.")] = 0.0,
     overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace an existing --out file.")] = False,
 ) -> None:
-    """Camera + projector calibration from chessboard captures; prints per-view and overall reprojection RMS."""
+    """Camera + projector calibration from board captures under any pattern set coding both projector axes; prints per-view and overall reprojection RMS."""
     from fpp_graph.cli import RichProgress, setup_logging
     from fpp_graph.errors import ConfigError
     from fpp_graph.outputs import refuse_existing_file, refuse_input_overlap
     from frontend.config import DecodeConfig
-    from frontend.fpp.calibration_board import Chessboard
+    from frontend.fpp.calibration_board import Chessboard, CircleGrid
     from frontend.fpp.calibration_folders import calibrate_pose_folders, pose_folders
     from frontend.fpp.pattern_file import load_pattern_spec
     from frontend.fpp.rig import save_calibration
@@ -277,13 +317,19 @@ def calibrate(
         raise ConfigError(f"--corners must be 'model' or 'subpix', got {corners!r}")
     if not square_mm > 0:
         raise ConfigError(f"--square-mm must be positive, got {square_mm}")
+    if grid not in ("checker", "circles", "asymmetric-circles"):
+        raise ConfigError(f"--grid must be checker, circles or asymmetric-circles, got {grid!r}")
+    if grid == "checker":
+        target = Chessboard(inner_corners, square_mm * 1e-3)
+    else:
+        target = CircleGrid(inner_corners, square_mm * 1e-3, asymmetric=grid == "asymmetric-circles", diameter_m=circle_mm * 1e-3)
     spec = load_pattern_spec(patterns)
     # half the white - black contrast; +0.25 makes "above the threshold" strict on integer images
     decode_config = DecodeConfig(min_modulation=black_threshold / 2 + 0.25, min_background=0.0, min_code_contrast=white_threshold)
     folders = pose_folders(board_captures, poses)
     with RichProgress() as progress:
         report = calibrate_pose_folders(
-            folders, spec, Chessboard(inner_corners, square_mm * 1e-3), size, decode_config, images=images, skip_missing_board=skip_missing_board,
+            folders, spec, target, size, decode_config, images=images, skip_missing_board=skip_missing_board,
             progress=progress, release_board=release_board, corner_model=corners == "model",
         )
     save_calibration(out, report.calibration, replace=overwrite)

@@ -342,6 +342,11 @@ class TextCalibrationNumbers:
         R = self.R_projector_camera
         return float(np.abs(R.T @ R - np.eye(3)).max())
 
+    @property
+    def is_rotation(self) -> bool:
+        """R is a rotation within the rounding a file may carry (:data:`_ROTATION_TOL`)."""
+        return self.rotation_error <= _ROTATION_TOL and float(np.linalg.det(self.R_projector_camera)) > 0
+
 
 def parse_text_calibration(path: str | os.PathLike[str]) -> TextCalibrationNumbers:
     """The 40 numbers of a text calibration file (see the module docstring), checked.
@@ -438,7 +443,7 @@ def read_text_calibration(
         raise CalibrationError(f"{path}: a 40-number text calibration does not store the projector's size; give it (--projector WxH, or projector_size=(width, height))")
     R = numbers.R_projector_camera
     det = float(np.linalg.det(R))
-    if not orthonormalise and (numbers.rotation_error > _ROTATION_TOL or det <= 0):
+    if not orthonormalise and not numbers.is_rotation:
         raise CalibrationError(
             f"{path}: numbers 29-37 (R, row-major) are not a rotation: max |R^T R - I| = {numbers.rotation_error:.2g}, det R = {det:.4f} "
             "(a rotation has 0 and 1); check their order and that no number was lost or mistyped"
