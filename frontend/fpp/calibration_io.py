@@ -376,12 +376,12 @@ def parse_text_calibration(path: str | os.PathLike[str]) -> TextCalibrationNumbe
     if n < TEXT_CALIBRATION_COUNT:
         raise CalibrationError(
             f"{path}: {n} numbers, a text calibration has {TEXT_CALIBRATION_COUNT}; number {n + 1} ({_number_meaning(n + 1)}) "
-            f"and after are missing. Order: {_layout_summary()}"
+            f"and after are missing{_shift_hint(values)}. Order: {_layout_summary()}"
         )
     if n > TEXT_CALIBRATION_COUNT:
         raise CalibrationError(
-            f"{path}: {n} numbers, a text calibration has {TEXT_CALIBRATION_COUNT}; number 41 (value {values[40]:g}) and after are extra. "
-            f"Order: {_layout_summary()}"
+            f"{path}: {n} numbers, a text calibration has {TEXT_CALIBRATION_COUNT}; number 41 (value {values[40]:g}) and after are extra"
+            f"{_shift_hint(values)}. Order: {_layout_summary()}"
         )
     v = np.asarray(values)
     bad = np.flatnonzero(~np.isfinite(v))
@@ -397,6 +397,21 @@ def parse_text_calibration(path: str | os.PathLike[str]) -> TextCalibrationNumbe
         if K[0, 0] <= 0 or K[1, 1] <= 0:
             raise CalibrationError(f"{path}: the focal lengths (numbers {first} and {first + 4}) must be positive pixels, got {K[0, 0]:g} and {K[1, 1]:g}")
     return numbers
+
+
+def _shift_hint(values: list[float]) -> str:
+    """Where a lost or extra number is, from the intrinsic matrices' last rows ``0 0 1``, which
+    a shifted file puts out of place (empty when they are where they belong)."""
+    for name, first in (("camera", 1), ("projector", 15)):
+        home = first + 6  # 1-based position of the last row's first number
+        for shift in (0, -1, 1, -2, 2, -3, 3):
+            start = home + shift
+            if 1 <= start and start + 2 <= len(values) and values[start - 1:start + 2] == [0.0, 0.0, 1.0]:
+                if shift:
+                    where = f"a number is missing before number {home}" if shift < 0 else f"a number too many before number {start}"
+                    return f"; the {name} K's last row 0 0 1 is at numbers {start}-{start + 2}, not {home}-{home + 2}: {where}"
+                break
+    return ""
 
 
 def _layout_summary() -> str:
