@@ -214,7 +214,7 @@ def _triangulation_at(calibration: RigCalibration, depth_m: float, projector_cen
     for axis, coordinate in (("columns", u), ("rows", v)):
         rate_px_per_m = abs(coordinate[1] - coordinate[0]) / (2 * dz)
         # a change under 1e-6 px per mm of depth: this axis does not see depth here
-        per_px[axis] = 1.0 / rate_px_per_m if np.isfinite(rate_px_per_m) and rate_px_per_m > 1e-3 else None
+        per_px[axis] = 1.0 / float(rate_px_per_m) if np.isfinite(rate_px_per_m) and rate_px_per_m > 1e-3 else None
         if per_px[axis] is not None:
             per_px[axis] *= 1e3
     return angle, per_px
