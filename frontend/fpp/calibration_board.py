@@ -147,19 +147,43 @@ class CircleGrid:
 def find_circle_grid(image: ArrayLike, grid: CircleGrid) -> NDArray[np.float64] | None:
     """Circle centres of the grid, (N, 2) float64 in OpenCV pixel coordinates, or None.
 
-    ``cv2.findCirclesGrid`` with its default blob detector (dark circles on a light board), the
-    centres being the blobs' centroids.
+    ``cv2.findCirclesGrid`` with a blob detector for dark circles on a light board, the centres
+    being the blobs' centroids. OpenCV's default detector ignores blobs under 25 px (circles under
+    6 px across, common on small or distant boards) and ``findCirclesGrid`` then fills the holes
+    with positions predicted from the others, pixels off: here blobs from 4 px (2.3 px across,
+    the least that has a centre) count, and a grid whose points stray from the plane's homography
+    by over a quarter of the spacing (a point then lies nearer a neighbour's place than its own;
+    lens distortion bends a board's rows far less) is refused.
     """
     img = np.asarray(image)
     if img.ndim == 3:
         img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
     if img.dtype != np.uint8:
         img = cv2.normalize(img, None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
+    params = cv2.SimpleBlobDetector_Params()
+    params.minArea = 4.0
+    params.maxArea = float(img.size) / (grid.corners[0] * grid.corners[1])  # a circle is smaller than its share of the image
+    # blobs of successive thresholds closer than this are one circle: a circle's centre moves by
+    # well under a pixel between thresholds, and the default (10 px) merged neighbouring circles
+    # 8 px apart on a tilted board
+    params.minDistBetweenBlobs = 3.0
     flags = cv2.CALIB_CB_ASYMMETRIC_GRID if grid.asymmetric else cv2.CALIB_CB_SYMMETRIC_GRID
-    found, centres = cv2.findCirclesGrid(img, grid.corners, flags=flags)
+    found, centres = cv2.findCirclesGrid(img, grid.corners, flags=flags, blobDetector=cv2.SimpleBlobDetector_create(params))
     if not found:
         return None
-    return centres.reshape(-1, 2).astype(np.float64)
+    centres = centres.reshape(-1, 2).astype(np.float64)
+    return centres if _fits_a_plane(centres, grid) else None
+
+
+def _fits_a_plane(centres_px: NDArray[np.float64], grid: CircleGrid) -> bool:
+    """Every centre within a quarter of the nearest spacing of the board plane's homography."""
+    board_xy = grid.object_points_m[:, :2]
+    H, _ = cv2.findHomography(board_xy, centres_px, 0)
+    if H is None:
+        return False
+    predicted = _apply_h(H, board_xy)
+    spacing_px = np.median(np.sort(np.linalg.norm(centres_px[:, None] - centres_px[None], axis=2), axis=1)[:, 1])
+    return bool(np.max(np.linalg.norm(predicted - centres_px, axis=1)) < spacing_px / 4)
 
 
 def find_chessboard(image: ArrayLike, board: Chessboard, refine_window: int = 5, model_fit: bool = True) -> NDArray[np.float64] | None:
