@@ -33,16 +33,19 @@ where ``|e| > 1/4`` (beyond a quarter period a wrong order is as likely as the r
 any noise model), and where the coordinate falls outside the projector (``[-0.5, L - 0.5]``).
 A coarsest level whose pitch exceeds the axis puts its unused phase range half before the
 projector and half after it, so noise near either end does not wrap the phase to the other; a
-coarsest level of exactly one period, whose phase noise does wrap near the ends, gives the next
-level's order modulo their (integer) pitch ratio, which the wrap does not change.
+coarsest level of exactly one period, whose phase noise does wrap near the ends, puts the next
+level a whole axis away: its order is moved back by the (integer) pitch ratio where that level
+places the pixel beyond the projector's edge by more than ``z`` of its own noise; nearer the
+edge either end could be right and the pixel is ``bad_order``.
 Gray code: the bits are binarised against their inverses, the references' mean or the phase
 set's background and decoded as in :mod:`frontend.fpp.unwrapping` (plain or complementary);
 an order beyond the stripes of the axis is ``bad_order``.
 
 The image noise ``sigma_I`` is measured on the finest set of the coded axis
 (:func:`frontend.fpp.phase_noise.estimate_image_noise_grey`, over the pixels without
-low modulation, saturation or shadow; codecs other than N-step phase shifting use its
-second-difference estimator on three of their images).
+low modulation, saturation or shadow), or on the axis's finest N >= 4 phase-shift set when the
+finest is of another codec; a set without N equal shifts alone uses the second-difference
+estimator on three of its images.
 """
 
 from __future__ import annotations
@@ -202,6 +205,13 @@ class FringeSetDecoder:
         return self._result(results, phases[finest], noise_grey, stack.dtype)
 
     def _image_noise(self, finest: int, stack: NDArray, usable: NDArray[np.bool_]) -> float:
+        """sigma_I from the finest set of the coded axis; from the finest N >= 4 phase-shift set of
+        that axis when the finest is of another codec (a sinusoid fit's residual is blind to the
+        scene and the pattern, while second differences also see a fine carrier or texture)."""
+        axis = self.spec.fringe_sets[finest].axis
+        fitted = [i for i, s in enumerate(self.spec.fringe_sets) if s.axis == axis and s.codec == "phase_shift" and s.steps >= 4]
+        if self.spec.fringe_sets[finest].codec != "phase_shift" and fitted:
+            finest = min(fitted, key=lambda i: self.spec.fringe_sets[i].pitch(self.lengths[axis]))
         s = self.spec.fringe_sets[finest]
         if s.codec == "phase_shift":
             index, _ = step_order(s, self._indices[finest])
@@ -282,15 +292,29 @@ class FringeSetDecoder:
             x = (absolute * ratio - wrapped) * np.float32(1.0 / TWO_PI)
             order = np.rint(x)
             residual = np.abs(x - order)
-            if periodic and float(ratio).is_integer():
-                order = np.mod(order, ratio)
-            periodic = False
             sigma_residual = np.hypot(ratio * sigma, sigma_level) * np.float32(1.0 / TWO_PI)
+            if periodic and float(ratio).is_integer():
+                self._undo_wrap(order, wrapped, sigma_level, float(ratio), self.lengths[plan.axis])
+            periodic = False
             with np.errstate(invalid="ignore"):
                 bad |= (residual > np.float32(ORDER_RESIDUAL_QUANTILE) * sigma_residual) | ~(residual <= np.float32(MAX_ORDER_RESIDUAL_PERIODS))
             absolute = wrapped + np.float32(TWO_PI) * order
             sigma, periods_prev = sigma_level, periods
         return absolute.astype(np.float32), np.nan_to_num(order, nan=-1).astype(np.int64), bad
+
+    @staticmethod
+    def _undo_wrap(order: NDArray, wrapped: NDArray, sigma_rad: NDArray, periods: float, length: int) -> None:
+        """Orders of the level after a one-period level whose phase noise wrapped it to the other
+        end: the coordinate then lies a whole axis beyond the projector. Moved back where it lies
+        beyond the projector's edge by more than ``z`` of its own noise (a level-noise excursion
+        that far has the order check's probability); nearer the edge the pixel stays outside
+        (``bad_order``): either end could be right."""
+        position = order + wrapped * np.float32(1.0 / TWO_PI)  # periods of this level
+        half_pixel = 0.5 * periods / length
+        margin = np.float32(ORDER_RESIDUAL_QUANTILE / TWO_PI) * sigma_rad
+        with np.errstate(invalid="ignore"):
+            order[position > np.float32(periods - half_pixel) + margin] -= np.float32(periods)
+            order[position < np.float32(-half_pixel) - margin] += np.float32(periods)
 
     def _gray(self, plan: AxisPlan, finest: SetPhase, stack: NDArray) -> tuple[NDArray, NDArray, NDArray]:
         """Gray-code (or complementary Gray-code) fringe order of the axis's phase set."""

@@ -311,7 +311,7 @@ class FringeSetSpec:
     def __post_init__(self) -> None:
         if not self.fringe_sets:
             raise ConfigError("fringe_sets is empty: list at least one fringe set")
-        names = [s.name for s in self.fringe_sets]
+        names = [self.set_name(i) for i in range(len(self.fringe_sets))]
         dup = sorted({n for n in names if names.count(n) > 1})
         if dup:
             raise ConfigError(f"fringe set names {', '.join(dup)} are used twice; give every set its own name")
