@@ -48,6 +48,10 @@ _SCAN_DEPTHS = 1200  # log-spaced: 0.6 % steps, finer than any figure printed
 _GRID = (41, 31)  # camera pixels sampled across the image for the lit fraction (2.5 % steps)
 #: A baseline under 1 mm gives a triangulation angle under 0.12 deg at 0.5 m: no depth resolution.
 MIN_BASELINE_MM = 1.0
+#: Projectors shift their image vertically (throw offset): the principal point sits at or below
+#: the bottom row for a table-top projector, up to ~150 % of the half height from the centre
+#: (procam-calibration's sample: 126 %). Beyond that, or sideways, it is no projector's.
+MAX_PROJECTOR_OFFSET_HALF_HEIGHTS = 1.5
 #: Desktop and handheld FPP rigs have baselines of tens to hundreds of millimetres; beyond 2 m a
 #: file in centimetres or metres was probably read as millimetres (or the other way round).
 MAX_BASELINE_MM = 2000.0
@@ -229,6 +233,8 @@ def _warnings(calibration: RigCalibration, figures: RigFigures, rotation_error: 
     elif figures.baseline_mm > MAX_BASELINE_MM:
         warnings.append(f"baseline {figures.baseline_mm:.0f} mm: far beyond an FPP rig's; is T in another unit than the one read?")
     for name, device in (("camera", figures.camera), ("projector", figures.projector)):
+        if name == "projector" and _within_throw_offset(device):
+            continue
         if not device.principal_point_inside:
             warnings.append(f"the {name}'s principal point is outside its {device.size_px[0]}x{device.size_px[1]} image (offset {device.principal_offset_px[0]:+.1f}, {device.principal_offset_px[1]:+.1f} px from the centre): wrong image size, or K entries swapped?")
     if figures.optical_axes_angle_deg > 90.0:
@@ -240,3 +246,11 @@ def _warnings(calibration: RigCalibration, figures: RigFigures, rotation_error: 
     if figures.near_mm is None:
         warnings.append(f"the projector lights half of the camera's image at no depth between {1e3 * SCAN_NEAR_M:.0f} mm and {SCAN_FAR_M:.0f} m: the frusta do not overlap (T's sign, or R transposed?)")
     return warnings
+
+
+def _within_throw_offset(device: DeviceFigures) -> bool:
+    """A projector's principal point inside its image across, and within the throw offset
+    (:data:`MAX_PROJECTOR_OFFSET_HALF_HEIGHTS`) up or down."""
+    width, height = device.size_px
+    dx, dy = device.principal_offset_px
+    return abs(dx) <= width / 2 and abs(dy) <= MAX_PROJECTOR_OFFSET_HALF_HEIGHTS * height / 2

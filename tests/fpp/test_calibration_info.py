@@ -136,6 +136,13 @@ def test_warnings_for_rigs_that_cannot_work(tmp_path):
     off_image = PinholeModel(640, 480, np.array([[800.0, 0, 900.0], [0, 800.0, 239.5], [0, 0, 1]]))
     shifted = rig_figures(RigCalibration(off_image, projector, good.T_projector_camera))
     assert any("camera's principal point is outside its 640x480 image (offset +580.5, +0.0 px" in w for w in shifted.warnings)
+    # a projector's image is shifted up by its throw offset: 126 % of the half height is a real
+    # one's (procam-calibration's sample), 200 % no projector's
+    for offset, warned in ((1.26, False), (2.0, True)):
+        K = projector.K.copy()
+        K[1, 2] = 399.5 + offset * 400
+        lifted = RigCalibration(camera, PinholeModel(800, 800, K), good.T_projector_camera)
+        assert any("projector's principal point is outside" in w for w in rig_figures(lifted).warnings) == warned
     metres_as_mm = RigCalibration(camera, projector, make_pose(np.eye(3), [-5.0, 0, 0]))  # 5 m
     assert any("baseline 5000 mm" in w for w in rig_figures(metres_as_mm).warnings)
 
