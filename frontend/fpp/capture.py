@@ -17,7 +17,12 @@
     beyond 6.5535 m do not fit and are written as 0, counted in ``decode.json``).
 ``decode.json``
     Valid pixel count, invalid counts per reason, modulation statistics (grey levels), the mask
-    thresholds used, depth range, seconds per step.
+    thresholds used, depth range, seconds per step; ``thresholds.edge_filter`` states the edge
+    filter's noise model (:meth:`frontend.fpp.sensor.EdgeFilterStats.as_dict`: the measured
+    image noise ``image_noise_grey``, the median expected depth noise ``median_depth_sigma_m``,
+    the multiples of it the two tests allow, ``range_sigma_multiple`` and
+    ``gradient_sigma_multiple``, at ``false_drop_probability``, the ``noise_floor_m``, and the
+    ``removed_pixels`` of the ``triangulated_pixels``).
 """
 
 from __future__ import annotations
@@ -33,7 +38,7 @@ import time
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import cv2
 import numpy as np
@@ -53,6 +58,9 @@ from frontend.fpp.images import load_image_stack
 from frontend.fpp.patterns import PatternSpec
 from frontend.fpp.phase import DecodeResult
 from frontend.fpp.rig import RigCalibration
+
+if TYPE_CHECKING:
+    from frontend.fpp.sensor import EdgeFilterStats
 
 log = logging.getLogger(__name__)
 
@@ -153,7 +161,9 @@ def decode_capture(
         Rig, pattern set and decoder thresholds (default: the packaged ones).
     edge_filter : bool
         The mixed-pixel / discontinuity filter of the pipeline (on by default; never applied to
-        Gray code alone, whose stripe staircase it would reject entirely).
+        Gray code alone, whose stripe staircase it would reject entirely). Its noise allowances
+        follow the capture's measured noise; when it removes more than half of the triangulated
+        pixels one warning says so (and how to keep them).
     depth_range_m : (near, far)
         Accepted depths along the camera axis, metres.
     where : str
@@ -184,10 +194,10 @@ def decode_capture(
     seconds["decode"] = time.perf_counter() - t0
     _report(progress, 2)
     t0 = time.perf_counter()
-    xyz, edge_rejected = sensor.points_from_decoding(result)
+    xyz, edge_stats = sensor.filtered_points(result)
     seconds["triangulate"] = time.perf_counter() - t0
     _report(progress, 3)
-    report = _capture_report(result, xyz, edge_rejected, config, spec, depth_range_m, edge_filter)
+    report = _capture_report(result, xyz, edge_stats, config, spec, depth_range_m)
     report["seconds"] = seconds
     return CaptureResult(xyz_map_m=xyz, texture=result.texture, decoding=result, report=report)
 
@@ -197,8 +207,9 @@ def _report(progress: Progress | None, done: int) -> None:
         progress("decode", done, 4)
 
 
-def _capture_report(result: DecodeResult, xyz: NDArray, edge_rejected: int, config: DecodeConfig, spec: PatternSpec, depth_range_m: tuple[float, float], edge_filter: bool) -> dict[str, Any]:
+def _capture_report(result: DecodeResult, xyz: NDArray, edge_stats: EdgeFilterStats, config: DecodeConfig, spec: PatternSpec, depth_range_m: tuple[float, float]) -> dict[str, Any]:
     valid = np.isfinite(xyz[..., 2])
+    edge_rejected = edge_stats.removed
     mod = result.modulation
     decoded = result.mask
     z = xyz[..., 2][valid]
@@ -220,7 +231,7 @@ def _capture_report(result: DecodeResult, xyz: NDArray, edge_rejected: int, conf
             "saturation_level_grey": config.saturation_level,
             "min_code_contrast_grey": config.min_code_contrast,
             "depth_range_m": list(depth_range_m),
-            "edge_filter": {"enabled": edge_filter, "max_angle_deg": 75.0, "noise_floor_m": 0.0005} if edge_filter else {"enabled": False},
+            "edge_filter": edge_stats.as_dict(),
         },
         "depth_m": _stats(z),
         "pitch_px": float(result.pitch_px),
