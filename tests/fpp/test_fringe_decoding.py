@@ -281,3 +281,15 @@ def test_patterns_and_decode_commands(tmp_path):
     assert report["pattern_kind"] == "fringe_sets" and report["pitch_px"] == 19.0
     assert report["valid_pixels"] > 0.5 * 640 * 400 and f"{report['valid_pixels']} valid points" in stdout
     assert abs(report["depth_m"]["median"] - 0.5) < 0.05  # the tilted plane crosses the axis at 0.5 m
+
+    # a sequence folder keeps the spec in sequence.yaml and its frames decode the same
+    from frontend.fpp.sensor import FppSensor
+    from frontend.fpp.sequence import SequenceWriter, read_sequence
+
+    writer = SequenceWriter(tmp_path / "sequence", rig, spec)
+    writer.add_frame(0, 0.0, frame.images)
+    writer.close()
+    sequence = read_sequence(tmp_path / "sequence")
+    assert sequence.spec == spec
+    decoded = FppSensor(sequence.calibration, sequence.spec).decode(sequence.load_frame_images(0))
+    assert int(decoded.mask.sum()) == report["decoded_pixels"]
