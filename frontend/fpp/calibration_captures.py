@@ -93,10 +93,11 @@ def iter_graycode_captures(
     bow_m: float = 0.0,
     shot_noise_gain: float = 0.0,
 ) -> Iterator[tuple[NDArray[np.uint8], NDArray[np.uint8], NDArray[np.uint8]]]:
-    """Render Gray-code calibration captures of a chessboard, one pose at a time.
+    """Render Gray-code calibration captures of a chessboard or circle grid, one pose at a time.
 
-    The board lies on an infinite plane (the paper margin is one square wide, the plane beyond
-    has albedo 0.5). Each camera pixel integrates ``supersample**2`` rays (camera distortion
+    The board lies on an infinite plane (the paper margin is one square, or one circle spacing,
+    wide; the plane beyond has albedo 0.5). Circle edges are area-filtered like the squares
+    (:func:`_area_filtered_circles`). Each camera pixel integrates ``supersample**2`` rays (camera distortion
     included); each ray sees the board's albedo averaged over its share of the pixel (the
     checker squares are area-filtered, :func:`_area_filtered_checker`, so that a square's edge
     moves the pixel value continuously, as on a real sensor) times (ambient + projector pattern), the

@@ -1,7 +1,8 @@
 """Readers of third-party projector-camera calibration files into :class:`RigCalibration`.
 
-:func:`read_any_calibration` recognises the format by content. All third-party formats are OpenCV FileStorage files (YAML or XML) with lengths in millimetres; the readers
-convert to metres. Every problem (unreadable file, missing node, wrong matrix shape, a rotation
+:func:`read_any_calibration` recognises the format by content (:func:`calibration_format`). The
+third-party formats are OpenCV FileStorage files (YAML or XML) or 40 numbers in a text file, with
+lengths in millimetres; the readers convert to metres. Every problem (unreadable file, missing node, wrong matrix shape, a rotation
 that is not one) raises :class:`CalibrationError` naming the file and the node.
 
 SLMaster (``caliInfo.yml``)
