@@ -360,6 +360,7 @@ def import_captures(
     frames: Annotated[str, typer.Option("--frames", help="Glob picking the frame sub-folders.")] = "*",
     frame_period_s: Annotated[float, typer.Option("--frame-period", help="Seconds between frames (timestamps).")] = 1.0,
     projector: ProjectorOption = None,
+    camera: CameraOption = None,
     overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace a sequence an earlier import wrote into --out.")] = False,
 ) -> None:
     """Per-frame capture folders -> a sequence folder that `fpp-slam run` reads."""
@@ -369,7 +370,9 @@ def import_captures(
 
     setup_logging("WARNING")
     spec = load_pattern_spec(patterns)
-    rig = read_calibration_option(calibration, projector_size=parse_size(projector, "--projector"))
+    rig = read_calibration_option(
+        calibration, projector_size=parse_size(projector, "--projector"), camera_size=parse_size(camera, "--camera"), images_from=captures_root,
+    )
     with RichProgress() as progress:
         path = import_folders(
             captures_root, spec, rig, out, images=images, frames=frames, copy=copy, frame_period_s=frame_period_s,

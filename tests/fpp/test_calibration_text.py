@@ -147,3 +147,22 @@ def test_commands_take_the_camera_size_from_the_images(tmp_path):
     save_calibration(tmp_path / "rig.yaml", rig)
     with pytest.raises(CalibrationError, match=r"its camera is 320x240, not the 640x480 given; drop --camera"):
         read_calibration_option(tmp_path / "rig.yaml", camera_size=(640, 480))
+
+
+def test_import_takes_the_camera_size_of_a_text_calibration_from_the_frames(tmp_path):
+    from cli_helpers import run_cli
+
+    from frontend.fpp.sequence import read_sequence
+
+    text = write_numbers(tmp_path / "rig.txt", numbers_of(known_rig()))
+    patterns = Path(__file__).resolve().parents[2] / "datasets" / "patterns" / "single_frequency_8step.yaml"
+    for frame in ("frame_0", "frame_1"):
+        (tmp_path / "frames" / frame).mkdir(parents=True)
+        for i in range(10):  # 8 phase steps, white, black
+            cv2.imwrite(str(tmp_path / "frames" / frame / f"{i}.png"), np.full((48, 64), 100, np.uint8))
+    args = ["import", str(tmp_path / "frames"), "--patterns", str(patterns), "--calibration", str(text), "--projector", "912x1140"]
+    code, _, err = run_cli(*args, "--out", str(tmp_path / "seq"))
+    assert code == 0, err
+    assert (read_sequence(tmp_path / "seq").calibration.camera.width, read_sequence(tmp_path / "seq").calibration.camera.height) == (64, 48)
+    code, _, err = run_cli(*args, "--camera", "640x480", "--out", str(tmp_path / "seq2"))
+    assert code != 0 and "64x48 but the calibration's camera is 640x480" in err
