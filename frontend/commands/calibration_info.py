@@ -31,7 +31,7 @@ def calibration_info(
 ) -> None:
     """Print a calibration's baseline, axes, fields of view, distortion, working range and depth per projector pixel, with warnings."""
     from fpp_graph.outputs import refuse_existing_file, refuse_input_overlap
-    from frontend.commands.capture import parse_size, read_calibration_option
+    from frontend.commands.capture import parse_size
     from frontend.fpp.rig import save_calibration
     from frontend.fpp.rig_geometry import rig_figures
 
@@ -40,7 +40,7 @@ def calibration_info(
         refuse_existing_file(write_yaml, overwrite, option="--write-yaml")
     projector_size, camera_size = parse_size(projector, "--projector"), parse_size(camera, "--camera")
     source, rotation_error = _source(calibration)
-    rig = _read(calibration, projector_size, camera_size, rotation_error, read_calibration_option)
+    rig = _read(calibration, projector_size, camera_size, rotation_error)
     figures = rig_figures(rig, rotation_error=rotation_error)
     if write_yaml is not None:
         save_calibration(write_yaml, rig, unit="mm", replace=overwrite)
@@ -81,12 +81,13 @@ def _source(path: Path) -> tuple[dict[str, Any], float]:
     return {"format": kind, "length_unit": unit}, rotation_error
 
 
-def _read(calibration: Path, projector_size, camera_size, rotation_error: float, read_calibration_option):
+def _read(calibration: Path, projector_size, camera_size, rotation_error: float):
+    from frontend.commands.capture import read_calibration_option
+    from frontend.fpp.calibration_io import read_text_calibration
+
     if rotation_error > 0:
         # a broken R is shown with its nearest rotation and a warning, not refused: this command
         # is where a hand-written file is checked
-        from frontend.fpp.calibration_io import read_text_calibration
-
         return read_text_calibration(calibration, projector_size=projector_size, camera_size=camera_size, orthonormalise=True)
     return read_calibration_option(calibration, projector_size=projector_size, option="CALIBRATION", camera_size=camera_size)
 
