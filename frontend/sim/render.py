@@ -15,7 +15,19 @@ Rendering one frame (:meth:`FppSimulator.render`)
 3. Radiance of pattern image ``m``: ``albedo * (E_p * cos(theta_p) * (d0 / d_p)^2 * P_m + ambient)``
    with ``P_m`` the continuous pattern value (:func:`frontend.fpp.patterns.pattern_intensity`,
    the projector's residual response ``P^(gamma / compensation)`` and finite DMD contrast applied). Surfaces are two-sided Lambertian.
-4. Camera: depth-dependent defocus (thin-lens blur circle, blended between two Gaussian blurs),
+4. Interreflection (``interreflection_fraction`` > 0; off by default): diffuse indirect light.
+   A point receives a fraction of the projector light that the surfaces around it reflect and
+   re-reflects it with its own albedo: ``L_g,m(x) = rho * albedo(x) * (G_sigma * D_m)(x)``, with
+   ``D_m`` the direct projector radiance image of pattern ``m`` (step 3 without the ambient term,
+   which is global light already), ``G_sigma`` a Gaussian of ``interreflection_sigma_px`` camera
+   pixels and ``rho = interreflection_fraction``. The indirect light is an average of the
+   projector light over the surfaces a point sees, so a pattern much finer than ``sigma``
+   arrives as its mean and a coarse one keeps its shape (Nayar et al., "Fast separation of
+   direct and global components of a scene using high frequency illumination", 2006): the
+   error that global light causes in low-frequency phase shifting and that micro and modulated
+   phase shifting avoid. A screen-space model: it knows neither occlusion between the surfaces
+   nor light from outside the view (the image border reflects).
+5. Camera: depth-dependent defocus (thin-lens blur circle, blended between two Gaussian blurs),
    shot noise (variance ``gain * signal``) plus read noise, the camera response (gamma),
    8-bit quantisation and saturation.
 
@@ -72,6 +84,8 @@ class RenderSettings(StrictModel):
     shadow_offset_m: float = Field(1e-4, gt=0, description="shadow-ray start offset along the normal (avoids self-hits)")
     min_lit_cosine: float = Field(0.02, ge=0, lt=1, description="grazing projector light below this cosine is treated as unlit")
     smooth_shading: bool = Field(False, description="projector irradiance from normals interpolated across each triangle (smooth surfaces) instead of the flat triangle normal (faceted shading)")
+    interreflection_fraction: float = Field(0.0, ge=0, lt=1, json_schema_extra={"unit": "-"}, description="diffuse indirect light: the fraction of the surrounding surfaces' direct projector radiance a point receives and re-reflects with its albedo; 0 = off (direct light only)")
+    interreflection_sigma_px: float = Field(60.0, gt=0, description="Gaussian sigma of the surroundings whose light a point receives, camera pixels at full resolution (60: a tenth of a 1920-pixel view, the scale of a nearby wall or a concave part)")
     seed: int = Field(0, description="noise seed; frame k uses (seed, k)")
 
 
@@ -442,6 +456,7 @@ class FppSimulator:
         lit_index = index[lit]
         ambient_img = np.zeros(H * W, dtype=np.float32)
         ambient_img[index] = sh["albedo"] * np.float32(s.ambient_grey)
+        indirect = self._indirect_plan(index, sh["albedo"], H, W)
         gain_lit = sh["albedo"][lit] * sh["irradiance"][lit]
         u_lit, v_lit = sh["u_p"][lit], sh["v_p"][lit]
         blur = self._blur_plan(index, sh["depth"], H, W)
@@ -456,6 +471,10 @@ class FppSimulator:
                 P = P ** np.float32(s.projector_gamma / s.projector_gamma_compensation)
             flat = ambient_img.copy()
             flat[lit_index] += gain_lit * (black + (np.float32(1.0) - black) * P)
+            if indirect is not None:
+                direct = np.zeros(H * W, dtype=np.float32)
+                direct[lit_index] = flat[lit_index] - ambient_img[lit_index]
+                flat += indirect(direct.reshape(H, W)).ravel()
             rng = np.random.default_rng([int(s.seed) & 0xFFFFFFFF, int(frame_index), m])
             out[m] = self._camera_response(blur(flat.reshape(H, W)), rng)
 
@@ -466,6 +485,17 @@ class FppSimulator:
             for m in range(M):
                 one(m)
         return RenderedFrame(images=out, ground_truth=gt)
+
+    def _indirect_plan(self, index: NDArray, albedo: NDArray, H: int, W: int):
+        """A function from a direct radiance image to its indirect light (step 4), or None when off."""
+        s = self.settings
+        if s.interreflection_fraction <= 0.0:
+            return None
+        receiver = np.zeros(H * W, dtype=np.float32)
+        receiver[index] = albedo * np.float32(s.interreflection_fraction)
+        receiver = receiver.reshape(H, W)
+        sigma = s.interreflection_sigma_px * self._pixel_scale
+        return lambda direct: receiver * wide_gaussian_blur(direct, sigma)
 
     def _blur_plan(self, index: NDArray, depth: NDArray, H: int, W: int):
         """A function blurring one radiance image with depth-dependent defocus."""
@@ -507,6 +537,26 @@ class FppSimulator:
         if s.camera_gamma != 1.0:
             noisy = 255.0 * (np.clip(noisy, 0, None) / 255.0) ** (1.0 / s.camera_gamma)
         return np.clip(np.rint(noisy), 0, 255).astype(np.uint8)
+
+
+def wide_gaussian_blur(image: NDArray[np.float32], sigma_px: float) -> NDArray[np.float32]:
+    """Gaussian blur of a float32 image with a wide ``sigma_px``, computed on a reduced image.
+
+    The image is area-averaged by an integer factor ``f <= sigma / 4``, blurred with
+    ``sigma / f`` and bilinearly enlarged back: the averaging box and the interpolation add a
+    variance of about ``f^2 / 4`` pixels^2, under 1.6 % of ``sigma^2``, and the cost falls by
+    ``f^2``: a sigma of 60 pixels on a 1920 x 1200 image took 2.5 ms instead of 1.4 s, and differed
+    from the full-size blur of a 100-grey-level checkerboard of 200 x 150-pixel cells by at most 0.43
+    grey levels away from the border (1.7 at it). Borders reflect.
+    """
+    h, w = image.shape
+    factor = max(1, min(int(sigma_px // 4), h, w))
+    if factor == 1:
+        return cv2.GaussianBlur(image, (0, 0), sigma_px, borderType=cv2.BORDER_REFLECT_101)
+    small = cv2.resize(image, (max(1, round(w / factor)), max(1, round(h / factor))), interpolation=cv2.INTER_AREA)
+    scale_x, scale_y = w / small.shape[1], h / small.shape[0]
+    small = cv2.GaussianBlur(small, (0, 0), sigmaX=sigma_px / scale_x, sigmaY=sigma_px / scale_y, borderType=cv2.BORDER_REFLECT_101)
+    return cv2.resize(small, (w, h), interpolation=cv2.INTER_LINEAR)
 
 
 def parse_render_settings(data: dict[str, Any] | None, where: str) -> RenderSettings:
