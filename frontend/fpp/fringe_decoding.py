@@ -62,7 +62,8 @@ from scipy import stats
 
 from fpp_graph.errors import ConfigError, InputDataError
 from frontend.config import DecodeConfig
-from frontend.fpp.fringe_sets import AxisPlan, FringeSet, FringeSetSpec
+from frontend.fpp.fringe_sets import FringeSet, FringeSetSpec
+from frontend.fpp.fringe_unwrapping import AxisPlan
 from frontend.fpp.phase import INVALID_REASONS, DecodeResult, _as_stack, compute_wrapped_phase
 from frontend.fpp.phase_noise import estimate_image_noise_grey, phase_sigma_rad
 from frontend.fpp.unwrapping import order_from_gray, read_gray_code

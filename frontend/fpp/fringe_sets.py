@@ -31,8 +31,9 @@ Conventions (those of :mod:`frontend.fpp.patterns`, per set)
   set on that axis it unwraps; ``bits`` bits (bit 0 the most significant, ``order`` in capture
   order), optionally each followed by its inverse, optionally the complementary half-period bit.
 
-Unwrapping (per axis, inferred; anything else is a ConfigError naming the sets)
--------------------------------------------------------------------------------
+Unwrapping (per axis, inferred by :mod:`frontend.fpp.fringe_unwrapping`; anything else is a
+ConfigError naming the sets)
+-------------------------------------------------------------------------------------------
 * micro phase shifting: the set's coordinate is absolute; it is the axis's only set.
 * Gray code: one phase set on the axis, ``2 ** bits >= ceil(L / lambda)``.
 * hierarchical: sorted coarse to fine, the coarsest covers the axis (``lambda >= L``); each
@@ -52,6 +53,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from fpp_graph.errors import ConfigError
+from frontend.fpp.fringe_unwrapping import AxisPlan, plan_axis
 from frontend.fpp.patterns import gray_encode
 
 AXES = ("columns", "rows")
@@ -114,7 +116,8 @@ def load_codec(name: str, where: str):
     try:
         module = importlib.import_module(f"frontend.fpp.{name}")
     except ImportError:
-        raise ConfigError(f"{where}: codec {name} needs frontend/fpp/{name}.py, which this installation does not have") from None
+        prefix = f"{where}: " if where else ""
+        raise ConfigError(f"{prefix}codec {name} needs frontend/fpp/{name}.py, which this installation does not have") from None
     return getattr(module, _CODEC_MODULES[name])
 
 
@@ -272,21 +275,6 @@ class GrayCodeSet:
         return out
 
 
-class AxisPlan(NamedTuple):
-    """How one axis is unwrapped: ``scheme`` and the chain of levels coarse to fine.
-
-    ``levels`` is a list of ``(periods across the axis, recipe)``; a recipe is ``("set", i)``
-    (the wrapped phase of fringe set ``i``) or ``("beat", a, b)`` (``wrap(phase_a - phase_b)``).
-    ``finest`` is the set whose phase gives the coordinate; ``gray`` the Gray code's index.
-    """
-
-    axis: str
-    scheme: str
-    levels: list
-    finest: int
-    gray: int = -1
-
-
 @dataclass(frozen=True)
 class FringeSetSpec:
     """A capture as a list of fringe sets (module docstring); duck-types :class:`PatternSpec`.
@@ -424,62 +412,10 @@ class FringeSetSpec:
                     raise ConfigError(f"a Gray code on axis {axis} but no fringe set there to unwrap; Gray code alone is kind gray_code")
                 continue
             length = projector_width if axis == "columns" else projector_height
-            plan = self._plan_axis(axis, members, length)
+            plan = plan_axis(self, axis, members, length)
             if plan is not None:
                 out[axis] = plan
         return out
-
-    def _periods(self, i: int, length: int | None) -> float | None:
-        s = self.fringe_sets[i]
-        if s.periods is not None:
-            return s.periods
-        return None if length is None else length / s.pitch(length)
-
-    def _plan_axis(self, axis: str, members: list[int], length: int | None) -> AxisPlan | None:
-        names = ", ".join(self.set_name(i) for i in members)
-        micro = [i for i in members if self.fringe_sets[i].codec == "micro_phase_shift"]
-        gray = self.gray_code(axis)
-        if micro:
-            if len(members) > 1 or gray is not None:
-                raise ConfigError(f"fringe sets {names} on axis {axis}: a micro_phase_shift set is absolute and must be the axis's only set (no Gray code)")
-            return AxisPlan(axis, "micro", [], micro[0])
-        if gray is not None:
-            if len(members) != 1:
-                raise ConfigError(f"fringe sets {names} on axis {axis}: a Gray code unwraps exactly one phase set on its axis")
-            periods = self._periods(members[0], length)
-            if periods is not None and 2**gray.bits < math.ceil(periods - 1e-9):
-                raise ConfigError(f"fringe set {names} on axis {axis}: {gray.bits} Gray bits distinguish {2**gray.bits} orders but the axis holds {periods:g} periods; use bits >= {math.ceil(math.log2(math.ceil(periods - 1e-9)))}")
-            return AxisPlan(axis, "gray", [(periods, ("set", members[0]))], members[0], self.gray_codes.index(gray))
-        by_periods = [(self._periods(i, length), i) for i in members]
-        if any(p is None for p, _ in by_periods):
-            pitches = [self.fringe_sets[i].pitch_px for i in members if self.fringe_sets[i].pitch_px is not None]
-            if len(set(pitches)) != len(pitches):
-                raise ConfigError(f"fringe sets {names} on axis {axis} repeat a pitch; every level needs its own pitch")
-            return None
-        by_periods.sort()
-        values = [p for p, _ in by_periods]
-        if any(b - a < 1e-9 * b for a, b in zip(values, values[1:], strict=False)):
-            raise ConfigError(f"fringe sets {names} on axis {axis} repeat a pitch; every level needs its own pitch")
-        finest = by_periods[-1][1]
-        tolerance = 1e-9
-        if values[0] <= 1 + tolerance:
-            return AxisPlan(axis, "hierarchical", [(p, ("set", i)) for p, i in by_periods], finest)
-        if len(values) == 2 and values[1] - values[0] <= 1 + tolerance:
-            (p2, i2), (p1, i1) = by_periods
-            return AxisPlan(axis, "heterodyne", [(p1 - p2, ("beat", ("set", i1), ("set", i2))), (p1, ("set", i1))], finest)
-        if len(values) == 3:
-            (p3, i3), (p2, i2), (p1, i1) = by_periods
-            p12, p23 = p1 - p2, p2 - p3
-            if p12 != p23 and abs(p12 - p23) <= 1 + tolerance:
-                b12, b23 = ("beat", ("set", i1), ("set", i2)), ("beat", ("set", i2), ("set", i3))
-                wide, narrow = (b12, b23) if p12 > p23 else (b23, b12)
-                levels = [(abs(p12 - p23), ("beat", wide, narrow)), (max(p12, p23), wide), (p1, ("set", i1))]
-                return AxisPlan(axis, "heterodyne", levels, finest)
-        shown = ", ".join(f"{self.set_name(i)} {p:g}" for p, i in by_periods)
-        raise ConfigError(
-            f"fringe sets on axis {axis} cannot be unwrapped (periods across the axis: {shown}): give a set whose pitch covers "
-            "the axis (hierarchical), two sets whose beat covers it or three whose beat of beats does (heterodyne), or a Gray code"
-        )
 
     def check_projector(self, projector_width: int, projector_height: int) -> dict[str, AxisPlan]:
         """The unwrapping plans for this projector (ConfigError when an axis cannot be unwrapped)."""
