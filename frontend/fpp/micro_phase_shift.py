@@ -27,18 +27,21 @@ Decoding (per pixel, vectorised over bands of rows)
    alone (``O = mean``, ``A e^{i phi_1} = (2/3) sum_n I_n e^{i 2 pi n / 3}``), ``V_f = I_(2+f) - O``.
 2. The search. ``phi_1`` fixes ``u`` up to the period: the candidates are
    ``u_k = lambda_1 (phi_1 / 2 pi + k)`` inside ``[-0.5, L - 0.5)``, one per period, not one per
-   projector pixel. At each, the residual of all ``F + 2`` images (``V_f - A cos(omega_f u_k +
-   o_f)`` for the further images, zero for the shifts) is projected off the model's tangent
-   space (offset, amplitude, coordinate). To first order that is ``sigma_I^2`` times a
+   projector pixel. The fixed-parameter residual ``RSS_k = sum_f (V_f - A cos(omega_f u_k +
+   o_f))^2`` of every candidate comes from one matrix product: ``cos(a + k b)`` splits by the
+   angle-sum rule into per-pixel and per-candidate factors (``O(F K)`` multiply-adds per pixel,
+   no trigonometry per candidate).
+3. The check. The exact statistic of a candidate is the residual of all ``F + 2`` images at
+   ``u_k`` (zero for the shifts) projected off the model's tangent space (offset, amplitude,
+   coordinate), a closed-form 3 x 3 solve. To first order it is ``sigma_I^2`` times a
    chi-square variable with ``F - 1`` degrees of freedom at the true candidate, whatever
-   estimator gave the parameters. ``cos(a + k b)`` splits by the angle-sum rule into per-pixel
-   and per-candidate factors, so every candidate of every pixel costs a few matrix products
-   (``O(F K)`` multiply-adds per pixel, no trigonometry per candidate) and a closed-form 3 x 3
-   solve.
-3. The check. The pixel is decoded, at the candidate of the smallest chi-square, only if that
-   candidate is consistent (chi-square below its ``1 - 1e-6`` quantile) and every other one is
-   not: exactly one period explains the images. Otherwise (too little modulation to tell
-   periods apart, or images the model does not explain) the coordinate is NaN.
+   estimator gave the parameters. It is computed only for the candidates whose ``RSS_k`` does
+   not already prove them inconsistent (:meth:`MicroPhaseShift._screen`: about 24 times the
+   limit for ``F = 10``), 1.04 candidates per pixel on a 960 x 600 capture of a 912-pixel
+   axis. The pixel is decoded, at its consistent candidate, only if exactly one candidate is
+   consistent (chi-square below its ``1 - 1e-6`` quantile): one period explains the images.
+   Otherwise (too little modulation to tell periods apart, or images the model does not
+   explain) the coordinate is NaN.
    ``sigma_I`` is measured on the capture (:func:`frontend.fpp.phase_noise.estimate_image_noise_grey`
    on the three shifts, over the pixels that see the fringes) unless the caller states it.
 
@@ -50,6 +53,9 @@ The coordinate is ``u = lambda_1 (phi_1 / 2 pi + k)``; the 3-step solve gives ``
     sigma_u = lambda_1 / (2 pi) * sqrt(2 / 3) * sigma_I / A = coordinate_sigma_gain_px * sigma_I / A.
 
 The further images only choose the period; they do not enter the coordinate.
+
+Speed: a 1920 x 1200 frame of a 912-pixel axis (59 candidates) decodes in about 12 s on a
+shared 2-core machine, half of it the candidate matrix product; a 320 x 240 frame in 0.3 s.
 
 Pitch choice (:func:`micro_pitches`)
 ------------------------------------

@@ -86,8 +86,8 @@ def test_micro_pitch_choice_is_a_narrow_band_that_separates_the_periods(micro) -
     frequency = 1.0 / np.asarray(pitches)
     assert np.all(np.abs(frequency * 16.0 - 1.0) <= 0.075 + 1e-3)  # the +-7.5 % band
     assert pitches == micro_pitches(AXIS, 16.0, 10)  # seeded: the same set every time
-    # every pair of candidates differs by a fifth of the amplitude or more: 20 grey levels at
-    # A = 100, 20 sigma
+    # any two candidates differ by 0.15 of the amplitude or more (0.197 for this set): 15 grey
+    # levels at A = 100, 15 sigma
     assert candidate_separation(pitches, AXIS) > 0.15
     # 16 and 32: u and u + 32 look the same in every image
     assert candidate_separation((16.0, 32.0), AXIS) < 1e-6
@@ -115,6 +115,21 @@ def test_micro_noise_matches_the_predicted_sigma(scene, micro) -> None:
     assert np.isfinite(z).mean() > 0.999
     assert np.nanmax(np.abs(z)) < 6.0
     assert 0.95 < np.sqrt(np.nanmean(z**2)) < 1.05
+
+
+def test_micro_and_modulated_read_8_bit_16_bit_and_float_alike(scene, micro) -> None:
+    images = _capture([micro.profile(i, scene["u"]) for i in range(12)], scene["white"], 200.0, seed=7)
+    reference = micro.decode(images, AXIS, image_noise_grey=SIGMA_I).coordinate_px
+    np.testing.assert_allclose(micro.decode(images.astype(np.float64), AXIS, image_noise_grey=SIGMA_I).coordinate_px, reference, atol=1e-4)
+    # 16 bits: the same images 256 times brighter, with 256 times the noise
+    wide = micro.decode(images.astype(np.uint16) * 256, AXIS, image_noise_grey=256 * SIGMA_I).coordinate_px
+    np.testing.assert_allclose(wide, reference, atol=1e-4)
+    codec = ModulatedPhaseShift(3, 3, 8.0)
+    images = _capture([codec.profile(i, 2 * np.pi * scene["u"] / AXIS, scene["v"]) for i in range(9)], scene["white"], 200.0, seed=8)
+    phase, modulation, _ = codec.wrapped_phase(images)
+    phase16, modulation16, _ = codec.wrapped_phase(images.astype(np.uint16) * 256)
+    np.testing.assert_allclose(_wrap(phase16 - phase), 0.0, atol=1e-5)
+    np.testing.assert_allclose(modulation16, 256 * modulation, rtol=1e-5)
 
 
 def test_micro_refuses_pixels_no_single_period_explains(scene, micro) -> None:
