@@ -210,6 +210,7 @@ def decode(
     out: Annotated[Path, typer.Option("--out", "-o", help="Output folder: points.ply, xyz_map.npy, texture.png, depth.png, decode.json.")],
     images: Annotated[Optional[str], typer.Option("--images", help="Glob picking the capture's images (default: every image file).")] = None,  # noqa: UP045
     projector: ProjectorOption = None,
+    camera: CameraOption = None,
     edge_filter: Annotated[bool, typer.Option("--edge-filter/--no-edge-filter", help="The pipeline's mixed-pixel / discontinuity filter.")] = True,
     depth_range: Annotated[str, typer.Option("--depth-range", help="Accepted depths NEAR,FAR along the camera axis, metres.")] = "0.05,10",
     config: ConfigOption = None,
@@ -234,7 +235,7 @@ def decode(
     cfg = load_config(config)
     near_far = parse_range(depth_range, "--depth-range")
     spec = load_pattern_spec(patterns)
-    rig = read_calibration_option(calibration, projector_size=parse_size(projector, "--projector"))
+    rig = read_calibration_option(calibration, projector_size=parse_size(projector, "--projector"), camera_size=parse_size(camera, "--camera"), images_from=capture)
     with RichProgress() as progress:
         stack = read_capture(capture, spec, images)
         check_images_match_calibration(stack.shape, rig, f"{capture} (calibration {calibration})")
