@@ -254,3 +254,12 @@ def test_shared_camera_rays_give_the_same_points():
     tri, X, u, v, lit = lit_scene(cal)
     shared = TwoAxisTriangulator(cal, camera_rays=rays)
     assert np.array_equal(tri.triangulate(u, v).xyz_m, shared.triangulate(u, v).xyz_m, equal_nan=True)
+
+
+def test_pickles_for_worker_processes():
+    import pickle
+
+    cal = make_rig()
+    tri, X, u, v, lit = lit_scene(cal)
+    copy = pickle.loads(pickle.dumps(tri))
+    assert np.array_equal(tri.triangulate(u, v).xyz_m, copy.triangulate(u, v).xyz_m, equal_nan=True)
