@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from conftest import run_in_threads
 from scipy.spatial.transform import Rotation
 
 from fpp_graph.errors import CalibrationError, ConfigError, InputDataError
@@ -256,10 +257,13 @@ def test_shared_camera_rays_give_the_same_points():
     assert np.array_equal(tri.triangulate(u, v).xyz_m, shared.triangulate(u, v).xyz_m, equal_nan=True)
 
 
-def test_pickles_for_worker_processes():
+def test_one_instance_serves_threads_and_pickles_for_processes():
     import pickle
 
     cal = make_rig()
     tri, X, u, v, lit = lit_scene(cal)
+    reference = tri.triangulate(u, v).xyz_m
+    for xyz in run_in_threads(lambda: tri.triangulate(u, v).xyz_m):
+        assert np.array_equal(xyz, reference, equal_nan=True)
     copy = pickle.loads(pickle.dumps(tri))
-    assert np.array_equal(tri.triangulate(u, v).xyz_m, copy.triangulate(u, v).xyz_m, equal_nan=True)
+    assert np.array_equal(copy.triangulate(u, v).xyz_m, reference, equal_nan=True)
