@@ -286,10 +286,26 @@ def with_coordinate_noise(result: DecodeResult, images: NDArray, spec: PatternSp
     else:
         image_noise = result.image_noise_grey
         if image_noise is None:
-            image_noise = estimate_image_noise_grey(np.asarray(images)[finest_phase_images(spec)], result.mask)
+            image_noise = _measured_image_noise(np.asarray(images), result.mask, finest_phase_images(spec))
         sigma_u = projector_coordinate_sigma_px(result.modulation, spec.phase_steps, result.pitch_px, image_noise)
     sigma_u[~result.mask] = np.nan
     return dataclasses.replace(result, u_noise_px=sigma_u, image_noise_grey=image_noise)
+
+
+NOISE_SAMPLE_PIXELS = 50_000
+"""Valid pixels (about) whose sinusoid-fit residuals measure the image noise of N >= 4 steps: the
+sample median of 5e4 chi-square variables with 1 degree of freedom (4 steps, the worst case) has
+a standard error of 1 % of the median, 0.5 % in sigma; every k-th row of a 1920x1200 4-step
+frame costs 0.02 s where all its residuals cost 0.12 s."""
+
+
+def _measured_image_noise(images: NDArray, mask: NDArray, steps: list[int]) -> float:
+    """:func:`~frontend.fpp.phase_noise.estimate_image_noise_grey` of the given phase-shift
+    images, on every k-th row for N >= 4 (the residual is per pixel, so any rows will do; 3 steps
+    need whole 3x3 neighbourhoods and their second differences are cheap)."""
+    valid = int(np.count_nonzero(mask))
+    row_step = max(1, -(-valid // NOISE_SAMPLE_PIXELS)) if len(steps) >= 4 else 1
+    return estimate_image_noise_grey(images[steps, ::row_step], mask[::row_step])
 
 
 EDGE_FALSE_DROP_PROBABILITY = 1e-3

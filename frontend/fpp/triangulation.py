@@ -358,30 +358,40 @@ class Triangulator:
         (H, W) float32
             Metres; NaN where the coordinate or its noise is not finite or the ray failed.
         """
-        u_map = self._check_map(u_projector_px, None)
-        sigma_map = np.broadcast_to(np.asarray(u_sigma_px, dtype=np.float64), u_map.shape)
-        out = np.full(u_map.shape, np.nan, np.float32)
-        # only the decoded pixels (often a fifth of the frame): the polynomial's value and
-        # slope cost two multiply-adds per degree each
-        idx = np.flatnonzero(np.isfinite(u_map) & np.isfinite(sigma_map))
-        u = u_map.ravel()[idx].astype(np.float64)
-        d0, d1 = self._d0.ravel()[idx], self._d1.ravel()[idx]
-        slope = 1.0
-        w = u
+        u = self._check_map(u_projector_px, None)
+        dt = self.dtype.type
         if self._fit_coeffs:
-            # value and derivative of the Horner polynomial together (coefficients highest first)
-            x = u - self._fit_center
-            w = self._fit_coeffs[0].ravel()[idx].astype(np.float64)
-            slope = np.zeros_like(u)
+            # value and slope of the Horner polynomial together (coefficients highest first),
+            # in place over the whole frame: ~4 passes per degree (0.05 s at 1920x1200, degree 5)
+            x = np.subtract(u, dt(self._fit_center))
+            w = self._fit_coeffs[0].copy()
+            slope = np.zeros_like(w)
             for c in self._fit_coeffs[1:]:
-                slope = slope * x + w
-                w = w * x + c.ravel()[idx]
+                slope *= x
+                slope += w
+                w *= x
+                w += c
+        else:
+            w, slope = u, None
+        den = np.multiply(w, self._d1_w)
+        den += self._d0_w
+        den *= den
         with np.errstate(divide="ignore", invalid="ignore"):
-            den = d0 + d1 * w
-            sigma_z = np.abs((self._c1 * d0 - self._c0 * d1) / (den * den) * slope) * sigma_map.ravel()[idx]
-        out.ravel()[idx] = sigma_z
-        out[~np.isfinite(out)] = np.nan
-        return out
+            sigma_z = np.divide(self._depth_slope_numerator(), den, out=den)
+            if slope is not None:
+                sigma_z *= slope
+            np.abs(sigma_z, out=sigma_z)
+            sigma_z *= np.asarray(u_sigma_px, dtype=self.dtype)
+        sigma_z[~np.isfinite(sigma_z)] = np.nan
+        return sigma_z.astype(np.float32, copy=False)
+
+    def _depth_slope_numerator(self) -> NDArray:
+        """``c1 d0 - c0 d1`` per pixel (``dz/dw`` times the squared denominator), kept once computed."""
+        num = self.__dict__.get("_dz_numerator")
+        if num is None:
+            num = (self._c1 * self._d0 - self._c0 * self._d1).astype(self.dtype)
+            self._dz_numerator = num
+        return num
 
     # ------------------------------------------------------------------ banded fast path
 
