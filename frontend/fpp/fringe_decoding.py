@@ -53,7 +53,7 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Sequence
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import cv2
 import numpy as np
@@ -62,12 +62,14 @@ from scipy import stats
 
 from fpp_graph.errors import ConfigError, InputDataError
 from frontend.config import DecodeConfig
-from frontend.fpp.fringe_sets import FringeSet, FringeSetSpec
 from frontend.fpp.fringe_unwrapping import AxisPlan
 from frontend.fpp.phase import INVALID_REASONS, DecodeResult, _as_stack, compute_wrapped_phase
 from frontend.fpp.phase_noise import estimate_image_noise_grey, phase_sigma_rad
 from frontend.fpp.unwrapping import order_from_gray, read_gray_code
 from frontend.fpp.wrapped_phase import TWO_PI, Scratch
+
+if TYPE_CHECKING:  # the spec builds its decoder (FringeSetSpec.make_decoder): types only here
+    from frontend.fpp.fringe_sets import FringeSet, FringeSetSpec
 
 log = logging.getLogger(__name__)
 

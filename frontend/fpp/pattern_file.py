@@ -104,10 +104,18 @@ def load_pattern_spec(path: str | os.PathLike[str]) -> PatternSpec | FringeSetSp
     if not isinstance(data, dict):
         raise ConfigError(f"{path}: a pattern file is a mapping of keys (see `fpp-slam patterns --help`), got {type(data).__name__}")
     if "patterns" in data and "frames" in data:  # a sequence.yaml: its pattern section as is
-        return PatternSpec.from_dict(data["patterns"], where=f"{path}: patterns")
+        return pattern_spec_from_dict(data["patterns"], where=f"{path}: patterns")
     if "format" in data and data["format"] != FORMAT:
         raise ConfigError(f"{path}: format is {data['format']!r}, expected {FORMAT!r}")
     spec_data = {k: v for k, v in data.items() if k not in _FREE_KEYS}
     if "fringe_sets" in spec_data:
         return FringeSetSpec.from_dict(spec_data, where=str(path))
-    return PatternSpec.from_dict(spec_data, where=str(path))
+    return pattern_spec_from_dict(spec_data, where=str(path))
+
+
+def pattern_spec_from_dict(data: dict, where: str) -> PatternSpec | FringeSetSpec:
+    """A pattern spec from a mapping of either form: a :class:`FringeSetSpec` when it has a
+    ``fringe_sets`` key, else a :class:`PatternSpec` (ConfigError naming ``where`` when invalid)."""
+    if isinstance(data, dict) and "fringe_sets" in data:
+        return FringeSetSpec.from_dict(data, where)
+    return PatternSpec.from_dict(data, where)

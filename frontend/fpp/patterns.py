@@ -365,15 +365,11 @@ class PatternSpec:
         ConfigError
             Unknown or missing keys, or bad values; the message starts with ``where``.
 
-        A mapping with a ``fringe_sets`` key is the fringe-set form and gives a
-        :class:`frontend.fpp.fringe_sets.FringeSetSpec` instead.
+        A mapping with a ``fringe_sets`` key is the fringe-set form: read it with
+        :func:`frontend.fpp.pattern_file.pattern_spec_from_dict`, which takes either form.
         """
         if not isinstance(d, dict):
             raise ConfigError(f"{where}: a pattern spec must be a mapping, got {type(d).__name__}")
-        if "fringe_sets" in d:  # the fringe-set form (e.g. a sequence.yaml's patterns section)
-            from frontend.fpp.fringe_sets import FringeSetSpec
-
-            return FringeSetSpec.from_dict(d, where)
         known = set(cls.__dataclass_fields__)
         unknown = sorted(set(d) - known)
         if unknown:

@@ -52,6 +52,7 @@ from fpp_graph.outputs import LOCK_NAME
 from fpp_graph.trajectory import Trajectory, read_tum, write_tum
 from fpp_graph.yaml_files import read_yaml_file
 from frontend.fpp.images import check_images_match_calibration, image_size, load_image_stack
+from frontend.fpp.pattern_file import pattern_spec_from_dict
 from frontend.fpp.patterns import PatternSpec
 from frontend.fpp.rig import RigCalibration
 
@@ -173,7 +174,7 @@ def read_sequence(path: str | os.PathLike[str]) -> Sequence:
     meta_path = path / SEQUENCE_FILE
     meta = _read_meta(meta_path)
     calibration = RigCalibration.from_dict(meta["calibration"], where=f"{meta_path}: calibration")
-    spec = PatternSpec.from_dict(meta["patterns"], where=f"{meta_path}: patterns")
+    spec = pattern_spec_from_dict(meta["patterns"], where=f"{meta_path}: patterns")
     m = spec.image_count()
     if "image_count" in meta and meta["image_count"] != m:
         raise InputDataError(f"{meta_path}: image_count {meta['image_count']!r} but the pattern set has {m} images; set it to {m}")

@@ -13,7 +13,7 @@ import yaml
 from fpp_graph.errors import ConfigError
 from fpp_graph.yaml_files import read_yaml_file
 from frontend.fpp.fringe_sets import FringeSetSpec
-from frontend.fpp.pattern_file import FORMAT, SCHEMA, load_pattern_spec
+from frontend.fpp.pattern_file import FORMAT, SCHEMA, load_pattern_spec, pattern_spec_from_dict
 from frontend.fpp.patterns import PatternSpec, generate_patterns, pattern_intensity
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -117,7 +117,7 @@ def test_round_trips_through_dict_file_and_sequence_yaml(tmp_path):
     assert FringeSetSpec.from_dict(yaml.safe_load(yaml.safe_dump(rich.to_dict())), "again") == rich
     (tmp_path / "sequence.yaml").write_text(yaml.safe_dump({"format": "fpp-graph sequence v1", "patterns": spec.to_dict(), "frames": []}))
     assert load_pattern_spec(tmp_path) == spec
-    assert PatternSpec.from_dict(spec.to_dict(), "sequence.yaml: patterns") == spec  # how sequence folders read it
+    assert pattern_spec_from_dict(spec.to_dict(), "sequence.yaml: patterns") == spec  # how sequence folders read it
 
 
 def test_every_older_pattern_file_is_read_and_rendered_as_before():
