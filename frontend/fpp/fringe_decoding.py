@@ -35,8 +35,9 @@ A coarsest level whose pitch exceeds the axis puts its unused phase range half b
 projector and half after it, so noise near either end does not wrap the phase to the other; a
 coarsest level of exactly one period, whose phase noise does wrap near the ends, puts the next
 level a whole axis away: its order is moved back by the (integer) pitch ratio where that level
-places the pixel beyond the projector's edge by more than ``z`` of its own noise; nearer the
-edge either end could be right and the pixel is ``bad_order``.
+places the pixel beyond the projector's edge by more than ``z`` of its own noise; within ``z`` of
+its noise from either edge, on either side, either end could be right and the pixel is ``bad_order``. A one-period set alone (no level
+after it) marks ``bad_order`` the pixels whose phase lies within ``z`` of its noise from the wrap.
 Gray code: the bits are binarised against their inverses, the references' mean or the phase
 set's background and decoded as in :mod:`frontend.fpp.unwrapping` (plain or complementary);
 an order beyond the stripes of the axis is ``bad_order``.
@@ -289,6 +290,11 @@ class FringeSetDecoder:
             absolute = np.where(absolute > np.float32(split), absolute - np.float32(TWO_PI), absolute)
         bad = np.zeros(absolute.shape, bool)
         order = np.zeros(absolute.shape, np.float32)
+        if periodic and len(plan.levels) == 1:
+            # one period alone: within z of its noise from the wrap, a pixel at either end of the
+            # projector reads the same phase; nothing else tells the ends apart
+            with np.errstate(invalid="ignore"):
+                bad |= np.minimum(absolute, np.float32(TWO_PI) - absolute) < np.float32(ORDER_RESIDUAL_QUANTILE) * sigma
         for periods, recipe in plan.levels[1:]:
             wrapped, sigma_level = phase_of(recipe)
             ratio = np.float32(periods / periods_prev)
@@ -297,7 +303,7 @@ class FringeSetDecoder:
             residual = np.abs(x - order)
             sigma_residual = np.hypot(ratio * sigma, sigma_level) * np.float32(1.0 / TWO_PI)
             if periodic and float(ratio).is_integer():
-                self._undo_wrap(order, wrapped, sigma_level, float(ratio), self.lengths[plan.axis])
+                bad |= self._undo_wrap(order, wrapped, sigma_level, float(ratio), self.lengths[plan.axis])
             periodic = False
             with np.errstate(invalid="ignore"):
                 bad |= (residual > np.float32(ORDER_RESIDUAL_QUANTILE) * sigma_residual) | ~(residual <= np.float32(MAX_ORDER_RESIDUAL_PERIODS))
@@ -306,18 +312,22 @@ class FringeSetDecoder:
         return absolute.astype(np.float32), np.nan_to_num(order, nan=-1).astype(np.int64), bad
 
     @staticmethod
-    def _undo_wrap(order: NDArray, wrapped: NDArray, sigma_rad: NDArray, periods: float, length: int) -> None:
+    def _undo_wrap(order: NDArray, wrapped: NDArray, sigma_rad: NDArray, periods: float, length: int) -> NDArray[np.bool_]:
         """Orders of the level after a one-period level whose phase noise wrapped it to the other
         end: the coordinate then lies a whole axis beyond the projector. Moved back where it lies
         beyond the projector's edge by more than ``z`` of its own noise (a level-noise excursion
-        that far has the order check's probability); nearer the edge the pixel stays outside
-        (``bad_order``): either end could be right."""
+        that far has the order check's probability). Returns the pixels within ``z`` of their
+        noise from either edge, on either side of it: there either end could be right (a pixel
+        half a pixel inside the last column, wrapped, lands just inside the first), so they are
+        ``bad_order``."""
         position = order + wrapped * np.float32(1.0 / TWO_PI)  # periods of this level
-        half_pixel = 0.5 * periods / length
+        half_pixel = np.float32(0.5 * periods / length)
         margin = np.float32(ORDER_RESIDUAL_QUANTILE / TWO_PI) * sigma_rad
         with np.errstate(invalid="ignore"):
-            order[position > np.float32(periods - half_pixel) + margin] -= np.float32(periods)
-            order[position < np.float32(-half_pixel) - margin] += np.float32(periods)
+            ambiguous = (np.abs(position + half_pixel) <= margin) | (np.abs(position - (np.float32(periods) - half_pixel)) <= margin)
+            order[position > np.float32(periods) - half_pixel + margin] -= np.float32(periods)
+            order[position < -half_pixel - margin] += np.float32(periods)
+        return ambiguous
 
     def _gray(self, plan: AxisPlan, finest: SetPhase, stack: NDArray) -> tuple[NDArray, NDArray, NDArray]:
         """Gray-code (or complementary Gray-code) fringe order of the axis's phase set."""

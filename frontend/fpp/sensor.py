@@ -42,6 +42,7 @@ from frontend.fpp.phase import DecodeResult, make_decoder
 from frontend.fpp.phase_noise import estimate_image_noise_grey, projector_coordinate_sigma_px
 from frontend.fpp.rig import RigCalibration
 from frontend.fpp.triangulation import Triangulator
+from frontend.fpp.two_axis_triangulation import TwoAxisTriangulator
 
 log = logging.getLogger(__name__)
 
@@ -94,6 +95,11 @@ class FppSensor:
         self.decoder = make_decoder(spec, proj.width, proj.height, decode_config)
         self.triangulator = Triangulator(calibration, axis=spec.coded_axis, depth_range_m=depth_range_m, camera_rays=camera_rays,
                                         cache_projector_fit=cache_projector_fit)
+        # a capture that codes both projector axes is triangulated from both coordinates: the
+        # point nearest (in projector pixels, weighted by each coordinate's noise) to both planes
+        self.two_axis = (
+            TwoAxisTriangulator(calibration, depth_range_m=depth_range_m, camera_rays=self.triangulator.rays) if spec.axis == "both" else None
+        )
         self.edge_max_angle_deg = edge_max_angle_deg
         self.edge_noise_floor_m = float(edge_noise_floor_m)
         K = calibration.camera.K
@@ -112,7 +118,7 @@ class FppSensor:
         self.calibration.check_image_size(stack.shape[2], stack.shape[1], where)
         result = self.decoder.decode(stack)
         if result.u_noise_px is None and isinstance(self.spec, PatternSpec):
-            result = with_coordinate_noise(result, stack, self.spec)
+            result = with_coordinate_noise(result, stack, self.spec, self.calibration.projector.height)
         return result
 
     @property
@@ -125,6 +131,20 @@ class FppSensor:
         if result.u_noise_px is None:
             return None
         return self.triangulator.depth_sigma_m(result.u_projector_px, result.u_noise_px)
+
+    def _triangulate(self, result: DecodeResult) -> tuple[NDArray[np.float64], NDArray[np.float32] | None, NDArray[np.float32] | None]:
+        """The xyz map, each pixel's expected depth noise (None when the decoding states no
+        coordinate noise) and, from both projector coordinates, each pixel's reprojection
+        residual in projector pixels (None from one coordinate)."""
+        if self.two_axis is None or result.v_projector_px is None:
+            xyz = self.triangulator.triangulate(result.u_projector_px, result.mask)
+            return xyz, self.depth_sigma_m(result), None
+        noise_stated = result.u_noise_px is not None and result.v_noise_px is not None
+        points = self.two_axis.triangulate(
+            result.u_projector_px, result.v_projector_px, result.mask,
+            u_sigma_px=result.u_noise_px if noise_stated else None, v_sigma_px=result.v_noise_px if noise_stated else None,
+        )
+        return points.xyz_m, points.depth_sigma_m, points.residual_px
 
     def points_from_decoding(self, result: DecodeResult) -> tuple[NDArray[np.float64], int]:
         """Triangulate a decoded capture and apply the mixed-pixel / discontinuity filter.
@@ -147,12 +167,12 @@ class FppSensor:
         more than half of the triangulated pixels: a capture whose noise the model misjudges, or
         a scene seen at grazing angles throughout.
         """
-        xyz = self.triangulator.triangulate(result.u_projector_px, result.mask)
+        xyz, sigma_z, residual_px = self._triangulate(result)
         triangulated = np.isfinite(xyz[..., 2])
         count = int(np.count_nonzero(triangulated))
+        median_residual_px = float(np.median(residual_px[triangulated])) if residual_px is not None and count else None
         if not self.edge_filter_enabled:
-            return xyz, EdgeFilterStats(enabled=False, triangulated=count, image_noise_grey=result.image_noise_grey)
-        sigma_z = self.depth_sigma_m(result)
+            return xyz, EdgeFilterStats(enabled=False, triangulated=count, image_noise_grey=result.image_noise_grey, median_residual_px=median_residual_px)
         keep = edge_filter_mask(xyz, self._focal_px, self.edge_max_angle_deg, self.edge_noise_floor_m, depth_sigma_m=sigma_z)
         drop = triangulated & ~keep
         removed = int(np.count_nonzero(drop))
@@ -161,6 +181,7 @@ class FppSensor:
             enabled=True, triangulated=count, removed=removed, max_angle_deg=float(self.edge_max_angle_deg),
             noise_floor_m=self.edge_noise_floor_m, image_noise_grey=result.image_noise_grey,
             median_depth_sigma_m=float(np.median(sigma_z[triangulated])) if sigma_z is not None and count else None,
+            median_residual_px=median_residual_px,
         )
         if 2 * removed > count:
             allowed = (
@@ -232,6 +253,9 @@ class EdgeFilterStats:
         The camera's image noise measured on the capture (None: not measured, e.g. Gray code alone).
     median_depth_sigma_m : float or None
         Median expected depth noise of the triangulated pixels (None: the decoding states no noise).
+    median_residual_px : float or None
+        Captures coding both projector axes: the median distance, in projector pixels, between
+        the decoded coordinates and the projection of the triangulated point (None from one axis).
     """
 
     enabled: bool
@@ -241,11 +265,12 @@ class EdgeFilterStats:
     noise_floor_m: float | None = None
     image_noise_grey: float | None = None
     median_depth_sigma_m: float | None = None
+    median_residual_px: float | None = None
 
     def as_dict(self) -> dict:
         """The report's ``edge_filter`` section (``decode.json``)."""
         if not self.enabled:
-            return {"enabled": False}
+            return {"enabled": False, **({"median_residual_px": self.median_residual_px} if self.median_residual_px is not None else {})}
         p = EDGE_FALSE_DROP_PROBABILITY
         return {
             "enabled": True,
@@ -269,7 +294,7 @@ def finest_phase_images(spec: PatternSpec) -> list[int]:
     return [i for i, im in enumerate(spec.layout()) if im.role == "phase" and im.frequency == finest]
 
 
-def with_coordinate_noise(result: DecodeResult, images: NDArray, spec: PatternSpec) -> DecodeResult:
+def with_coordinate_noise(result: DecodeResult, images: NDArray, spec: PatternSpec, projector_height: int | None = None) -> DecodeResult:
     """``result`` with ``u_noise_px`` (and ``image_noise_grey``) stated from the codec and the capture.
 
     Phase shifting: ``sigma_u = lambda / (2 pi) sqrt(2 / N) sigma_I / b`` per pixel
@@ -277,12 +302,19 @@ def with_coordinate_noise(result: DecodeResult, images: NDArray, spec: PatternSp
     pitch and modulation, as the unwrapped coordinate has that frequency's phase noise) with
     ``sigma_I`` measured on the finest frequency's N images over the valid pixels
     (:func:`~frontend.fpp.phase_noise.estimate_image_noise_grey`). Gray code alone: the
-    stripe's quantisation ``W / (S sqrt 12)`` (``pitch_px`` is the stripe width), the same at
+    stripe's quantisation ``W / (S sqrt 12)`` (``pitch_px`` is the stripe width; the rows of an ``axis="both"`` set
+    ``H / S_rows`` with ``projector_height``), the same at
     every pixel. NaN where the pixel is invalid.
     """
     if spec.kind == "gray_code":
         sigma_u = np.full(result.mask.shape, result.pitch_px / math.sqrt(12.0), np.float32)
         image_noise = result.image_noise_grey
+        if result.v_projector_px is not None and projector_height is not None:  # rows: their own stripe width
+            row_stripe_px = projector_height / spec.periods[1]
+            sigma_v = np.full(result.mask.shape, row_stripe_px / math.sqrt(12.0), np.float32)
+            sigma_u[~result.mask] = np.nan
+            sigma_v[~result.mask] = np.nan
+            return dataclasses.replace(result, u_noise_px=sigma_u, v_noise_px=sigma_v, image_noise_grey=image_noise)
     else:
         image_noise = result.image_noise_grey
         if image_noise is None:
@@ -401,6 +433,8 @@ def edge_filter_mask(
     # fills a fraction of the frame, and outside the box nothing is kept anyway
     rows, cols = finite_box(xyz)
     out = np.zeros((h, w), dtype=bool)
+    if out[rows, cols].size == 0:  # no point at all: nothing to keep
+        return out
     # in bands of rows: a band's ~15 float32 planes stay in the core's cache, where the whole
     # box's went out to memory (~45 % faster on 1920x1200 frames)
     if depth_sigma_m is None:

@@ -93,14 +93,16 @@ def test_gray_only_references_first_meets_its_stripe_width(tmp_path, scene_kind,
 
 
 # One period across the 912-px projector has 64 times the pitch of the 64-period sets, hence
-# 64 times their depth noise (about 1 px of u_p, 2 mm at this 640x400 preview's 2 mm/px); the
-# edge filter then drops the noisiest half of its pixels as "grazing". The 16/15 heterodyne set
-# has a 57-px pitch (4x the 64-period sets') and 3 steps: about 4.6x their noise.
+# 64 times their depth noise (about 1 px of u_p, 2 mm at this 640x400 preview's 2 mm/px). The
+# edge filter's allowances scale with each pixel's predicted depth noise, so it keeps these
+# pixels (97-99 % of the lit ones); the sphere's limb, lit at grazing angles with a few times
+# less modulation, lifts its RMS to about 1.8x the plane's (3.7 against 2.2 mm). The 16/15
+# heterodyne set has a 57-px pitch (4x the 64-period sets') and 3 steps: about 4.6x their noise.
 @pytest.mark.parametrize("scene_kind", ["plane", "sphere"])
 @pytest.mark.parametrize(
     ("name", "spec", "rig", "min_valid", "max_median_mm", "max_rms_mm"),
     [
-        ("single frequency, 16 steps, one period", PatternSpec("single_frequency", phase_steps=16, with_reference=True), PREVIEW_RIG, 0.4, 2.0, 3.0),
+        ("single frequency, 16 steps, one period", PatternSpec("single_frequency", phase_steps=16, with_reference=True), PREVIEW_RIG, 0.9, 2.0, 4.5),
         ("3-step, 2 frequencies (heterodyne 16/15)", PatternSpec("multi_frequency", phase_steps=3, periods=(16, 15)), PREVIEW_RIG, 0.8, 0.3, 0.6),
         ("4-step + complementary Gray code with inverses", PatternSpec("complementary_gray", phase_steps=4, periods=(64,), gray_bits=6, gray_inverse=True), PREVIEW_RIG, 0.8, 0.1, 0.2),
         ("rows: 4-step + complementary Gray code", PatternSpec("complementary_gray", phase_steps=4, periods=(64,), gray_bits=6, axis="rows"), VERTICAL_RIG, 0.8, 0.1, 0.2),

@@ -178,11 +178,18 @@ def test_single_period_three_step_set():
     spec = FringeSetSpec.from_dict({"fringe_sets": [{"axis": "rows", "periods": 1, "steps": 3, "first_step": 1}]}, "test")
     u, v, b = smooth_field(300, 400, margin_px=5 * 400 / (2 * np.pi) * math.sqrt(2 / 3) * SIGMA_GREY / 40 + 1.5)
     result = make_decoder(spec, 300, 400).decode(render(spec, u, v, b, 300, 400, seed=1))
-    assert result.axis == "rows" and result.v_projector_px is None and result.mask.all()
-    error = result.u_projector_px - v  # one coded axis "rows": the row in u_projector_px
+    assert result.axis == "rows" and result.v_projector_px is None
     expected = 400.0 / (2 * np.pi) * math.sqrt(2.0 / 3.0) * result.image_noise_grey / result.modulation
-    np.testing.assert_allclose(result.u_noise_px, expected, rtol=1e-5)
-    check_noise_prediction(error, result.u_noise_px, immerkaer_relative_sd(u.size))
+    # one period alone: a pixel within z of its noise from the wrap (row 0 = row 400) could be at
+    # either end and is refused; the field keeps 5 sigma at b = 40 from the ends, so only pixels
+    # whose modulation is lower can be, and only within z sigma + 5 sigma of the noise of them
+    refused = ~result.mask
+    distance_px = np.minimum(v, 400.0 - v)
+    assert np.all(distance_px[refused] < (ORDER_RESIDUAL_QUANTILE + 5.0) * expected[refused])
+    assert result.mask.mean() > 0.98
+    error = result.u_projector_px - v  # one coded axis "rows": the row in u_projector_px
+    np.testing.assert_allclose(result.u_noise_px[result.mask], expected[result.mask], rtol=1e-5)
+    check_noise_prediction(error[result.mask], result.u_noise_px[result.mask], immerkaer_relative_sd(u.size))
 
 
 def test_two_plus_one():
@@ -222,7 +229,7 @@ def test_heterodyne_set_decodes_as_the_older_decoder():
     edges = near_ends(u, 1920, 320.0, math.sqrt(2 / 4) * math.sqrt(2), 60.0)
     assert np.count_nonzero(~ours.mask & ~edges) <= false_alarm_bound(u.size, 3)
     both = ours.mask & theirs.mask
-    assert both.mean() > 0.99
+    assert both[~edges].mean() > 0.99
     np.testing.assert_allclose(ours.u_projector_px[both], theirs.u_projector_px[both], atol=2e-3)
     assert np.abs(ours.u_projector_px - u)[ours.mask].max() < 1920 / 64 / 4
 
