@@ -190,6 +190,7 @@ def measure(name: str, entry: dict[str, Any], calibration: RigCalibration, calib
         predicted["both"] = sigma_both
         result["residual_median_px"] = float(np.nanmedian(np.where(kept, residual_px, np.nan)))
     result["triangulation"] = per_axis
+    result["edge_filter"] = edge_filter_account(calibration, spec, frame, xyz_cli)
     used = "both" if axis == "both" else next(iter(coords))
     if used in predicted and predicted[used] is not None:
         # the decoder's prediction rests on the image noise it measures on the capture (the
@@ -205,6 +206,49 @@ def measure(name: str, entry: dict[str, Any], calibration: RigCalibration, calib
         result["measured_over_predicted_true_noise"] = rms / result["predicted_true_noise_rms_mm"]
         result["true_image_noise_grey_median"] = float(np.median(true_noise[kept]))
     return result
+
+
+# A pixel at a depth edge is mixed when its depth is off the true depth of every pixel of its 5x5
+# neighbourhood by more than this many of its predicted sigma_z: a noisy surface point, even
+# blurred across a steep slope, is within a few sigma of one of them (4 sigma: a 6e-5
+# two-sided normal tail); a point between the two sides of a silhouette is not.
+MIXED_SIGMAS = 4.0
+
+
+# The scene's smooth parts change depth by a few millimetres per pixel at most (the sphere's limb
+# included); its silhouette jumps 60 mm or more onto the plate behind.
+SILHOUETTE_JUMP_M = 0.02
+
+
+def silhouette_pixels(depth_m: np.ndarray) -> np.ndarray:
+    """Pixels whose 3x3 neighbourhood holds a true depth jump: both sides of the silhouette."""
+    filled = np.where(np.isfinite(depth_m), depth_m, 0.0).astype(np.float32)
+    kernel = np.ones((3, 3), np.uint8)
+    return (cv2.dilate(filled, kernel) - cv2.erode(filled, kernel)) > SILHOUETTE_JUMP_M
+
+
+def edge_filter_account(calibration: RigCalibration, spec, frame, xyz_cli: np.ndarray) -> dict[str, Any]:
+    """What the CLI's edge filter kept of the decoded pixels, and the mixed pixels at the
+    silhouette before it (the same images through the sensor with the filter off) and after it."""
+    from frontend.fpp.sensor import FppSensor
+
+    sensor = FppSensor(calibration, spec, depth_range_m=DEPTH_RANGE_M, edge_max_angle_deg=None)
+    result = sensor.decode(frame.images)
+    raw, sigma_z, _ = sensor._triangulate(result)
+    z_raw, z_cli = raw[..., 2], xyz_cli[..., 2]
+    limit = MIXED_SIGMAS * (sigma_z if sigma_z is not None else np.full(z_raw.shape, 5e-4))
+    closest = np.full(z_raw.shape, np.inf)
+    truth = np.pad(frame.ground_truth.depth_m, 2, constant_values=np.nan)
+    h, w = z_raw.shape
+    with np.errstate(invalid="ignore"):
+        for dy in range(5):
+            for dx in range(5):
+                closest = np.fmin(closest, np.abs(z_raw - truth[dy : dy + h, dx : dx + w]))
+        mixed = silhouette_pixels(frame.ground_truth.depth_m) & np.isfinite(z_raw) & (closest > limit)
+    triangulated = int(np.count_nonzero(np.isfinite(z_raw)))
+    kept = int(np.count_nonzero(np.isfinite(z_cli)))
+    return {"triangulated": triangulated, "kept": kept, "kept_fraction": kept / max(triangulated, 1),
+            "mixed_before": int(np.count_nonzero(mixed)), "mixed_after": int(np.count_nonzero(mixed & np.isfinite(z_cli)))}
 
 
 def simulated_image_noise_grey(images: np.ndarray, settings: RenderSettings) -> np.ndarray:
@@ -258,6 +302,8 @@ def print_row(row: dict[str, Any]) -> None:
              f"(ratio {row.get('measured_over_predicted', float('nan')):.2f}; with the true image noise "
              f"{row.get('predicted_true_noise_rms_mm', float('nan')):.3f}, ratio {row.get('measured_over_predicted_true_noise', float('nan')):.2f})"]
     parts.append("triangulation rms " + ", ".join(f"{k} {v.get('rms_mm', float('nan')):.3f}" for k, v in tri.items()) + " mm")
+    ef = row["edge_filter"]
+    parts.append(f"edge filter kept {100 * ef['kept_fraction']:.1f} %, mixed pixels {ef['mixed_before']} -> {ef['mixed_after']}")
     if "residual_median_px" in row:
         parts.append(f"residual median {row['residual_median_px']:.3f} px")
     print("  ".join(parts), flush=True)
