@@ -117,8 +117,9 @@ def edge_pixels(depth_m: np.ndarray) -> np.ndarray:
 
 
 def run_decode(folder: Path, calibration_file: Path, pattern_file: Path, out: Path) -> dict[str, Any]:
-    cmd = [str(REPO / ".venv/bin/fpp-slam"), "decode", str(folder), "--calibration", str(calibration_file), "--patterns", str(pattern_file),
-           "--depth-range", f"{DEPTH_RANGE_M[0]},{DEPTH_RANGE_M[1]}", "--out", str(out)]
+    # the fpp-slam beside this interpreter: the project's own environment
+    cmd = [str(Path(sys.executable).parent / "fpp-slam"), "decode", str(folder), "--calibration", str(calibration_file), "--patterns", str(pattern_file),
+           "--projector", f"{PROJECTOR_SIZE[0]}x{PROJECTOR_SIZE[1]}", "--depth-range", f"{DEPTH_RANGE_M[0]},{DEPTH_RANGE_M[1]}", "--out", str(out)]
     done = subprocess.run(cmd, capture_output=True, text=True, cwd=REPO)
     if done.returncode != 0:
         raise RuntimeError(f"{' '.join(cmd)} failed: {done.stderr.strip()[-400:]}")
