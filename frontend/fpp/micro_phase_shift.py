@@ -39,11 +39,43 @@ Decoding (per pixel, vectorised over bands of rows)
    not already prove them inconsistent (:meth:`MicroPhaseShift._screen`: about 24 times the
    limit for ``F = 10``), 1.04 candidates per pixel on a 960 x 600 capture of a 912-pixel
    axis. The pixel is decoded, at its consistent candidate, only if exactly one candidate is
-   consistent (chi-square below its ``1 - 1e-6`` quantile): one period explains the images.
-   Otherwise (too little modulation to tell periods apart, or images the model does not
-   explain) the coordinate is NaN.
-   ``sigma_I`` is measured on the capture (:func:`frontend.fpp.phase_noise.estimate_image_noise_grey`
-   on the three shifts, over the pixels that see the fringes) unless the caller states it.
+   consistent (chi-square below its ``1 - 1e-6`` quantile times the pixel's own ``sigma_I^2``):
+   one period explains the images. Otherwise (too little modulation to tell periods apart, or
+   images the model does not explain) the coordinate is NaN. ``sigma_I`` is the caller's
+   constant when stated, else the noise model below, fitted to the capture.
+
+Noise model
+-----------
+Image noise is not one number: shot noise grows with the light, and a projector response that
+is not exactly linear (``x^1.1`` leaves a second harmonic of 3 % of the fringe) adds a misfit
+to every image that no sinusoid explains, proportional to the amplitude. A single ``sigma_I``
+measured over the lit pixels is then too small for the brightest: 5 % of the lit pixels of a
+virtual-sensor capture (sphere before a plate, 640 x 400) had their true candidate's chi-square
+above the global limit, a quarter of those with ``A`` of 80-100 grey levels. The limit is
+therefore per pixel, with
+
+    sigma_I^2(O, A) = s0^2 + g O + (kappa A)^2
+
+(read noise and quantisation; shot noise, variance ``g`` per grey level of the mean signal,
+which is the offset ``O`` averaged over the images; the model error as a fraction ``kappa``
+of the amplitude). The three parameters are measured on the capture: at almost every pixel
+with visible fringes the best candidate (smallest ``RSS_k``) is the true one, so its exact
+chi-square over the median of a chi-square with ``F - 1`` degrees of freedom estimates the
+pixel's ``sigma_I^2``. These estimates (on up to 5e4 pixels of amplitude above 8 global noise
+sigmas, where a wrong candidate is the best only near the few worst-separated coordinates)
+are reduced to medians over 6 x 6 quantile bins of ``(O, A)`` and the model is fitted to the
+medians by non-negative least squares in relative terms. ``O`` and ``A`` grow together on
+matte surfaces, so the split between ``g`` and ``kappa`` is loosely determined; the limit
+depends only on their sum at the observed ``(O, A)``, which the bins pin down. On the capture
+above: ``s0^2 = 0.56``, ``g = 0.016``, ``kappa = 0.023`` (the simulator's 0.72 with
+quantisation, 0.012 and the response harmonic's 0.032 / sqrt(2) = 0.023).
+
+The misfit is deterministic, not Gaussian: its chi-square is a non-central one whose tail is
+shorter, relative to its median, than that of the central chi-square the limit assumes, so the
+``1 - 1e-6`` quantile of the scaled central chi-square still refuses the true period with
+probability below 1e-6 and the uniqueness rule keeps bounding the wrong periods at that rate.
+A capture with fewer than 300 such pixels (no fit of 3 parameters) falls back to the global
+``sigma_I`` of :func:`frontend.fpp.phase_noise.estimate_image_noise_grey` on the three shifts.
 
 Noise
 -----
@@ -52,7 +84,11 @@ The coordinate is ``u = lambda_1 (phi_1 / 2 pi + k)``; the 3-step solve gives ``
 
     sigma_u = lambda_1 / (2 pi) * sqrt(2 / 3) * sigma_I / A = coordinate_sigma_gain_px * sigma_I / A.
 
-The further images only choose the period; they do not enter the coordinate.
+The further images only choose the period; they do not enter the coordinate. Its random noise
+follows the random part of the model, ``sigma_I^2 = s0^2 + g O``
+(:meth:`ImageNoiseModel.random_variance_grey2`, from :meth:`MicroPhaseShift.decode_with_noise`);
+the response harmonic biases the 3-step phase by the same amount at every capture of a pixel
+and is not noise.
 
 Speed: a 1920 x 1200 frame of a 912-pixel axis (59 candidates) decoded in 2.4 s on a shared
 2-core machine (load 4), a 320 x 240 frame of a 320-pixel axis in 0.12 s.
@@ -71,15 +107,16 @@ from __future__ import annotations
 
 import logging
 import math
+from dataclasses import dataclass
 from functools import lru_cache
 from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy import stats
+from scipy import optimize, stats
 
 from fpp_graph.errors import ConfigError, InputDataError
-from frontend.fpp.phase_noise import estimate_image_noise_grey
+from frontend.fpp.phase_noise import QUANTISATION_NOISE_GREY, estimate_image_noise_grey
 
 log = logging.getLogger(__name__)
 
@@ -95,6 +132,17 @@ _BAND_BYTES = 4 * 2**20
 # contrast (amplitude 127.5) cannot be decoded even from a noiseless capture.
 _MIN_SEPARATION = 1.0 / 127.5
 _THREE_STEP = np.array([0.0, TWO_PI / 3.0, 2.0 * TWO_PI / 3.0])
+# The noise model is fitted to at most this many pixels (a regular subsample beyond it): 6 x 6
+# bins of ~1400 pixels, whose medians then carry ~1.6 % relative error each (0.59 / sqrt(n) for
+# a chi-square with 9 degrees of freedom).
+_NOISE_SAMPLES = 50_000
+# Pixels enter the fit when their amplitude is at least this many global noise sigmas: below it
+# several candidates fit and the best one's chi-square is the smallest of several, biased low.
+_NOISE_FIT_MIN_SNR = 8.0
+# Quantile bins per variable (offset, amplitude) and the pixels a bin needs to count; 100 pixels
+# give its median a relative error of 6 % (chi-square with 9 degrees of freedom).
+_NOISE_BINS = 6
+_NOISE_BIN_PIXELS = 100
 
 
 class MicroPhaseDecode(NamedTuple):
@@ -109,6 +157,35 @@ class MicroPhaseDecode(NamedTuple):
     """Offset ``O`` (grey levels): ambient light, half the direct light and the global light."""
     coordinate_sigma_gain_px: float
     """``lambda_1 / (2 pi) sqrt(2/3)``: the coordinate's 1-sigma error is this times ``sigma_I / A``."""
+
+
+@dataclass(frozen=True)
+class ImageNoiseModel:
+    """Per-pixel image noise of one capture (module docstring, "Noise model"):
+    ``sigma_I^2 = read_variance_grey2 + shot_gain_grey * O + (model_error_fraction * A)^2``.
+
+    ``read_variance_grey2`` (grey levels^2) holds read noise and quantisation,
+    ``shot_gain_grey`` (grey levels^2 per grey level of offset) the shot noise, and
+    ``model_error_fraction`` (dimensionless, of the amplitude ``A``) the part of the images that
+    no sinusoid explains (projector response harmonics), counted as if it were noise.
+    """
+
+    read_variance_grey2: float
+    shot_gain_grey: float = 0.0
+    model_error_fraction: float = 0.0
+
+    def variance_grey2(self, offset_grey: NDArray, amplitude_grey: NDArray) -> NDArray[np.float32]:
+        """``sigma_I^2`` (grey levels^2) at pixels of offset ``O`` and amplitude ``A`` (same shapes)."""
+        offset = np.maximum(np.asarray(offset_grey, np.float32), np.float32(0.0))
+        amplitude = np.asarray(amplitude_grey, np.float32)
+        return (np.float32(self.read_variance_grey2) + np.float32(self.shot_gain_grey) * offset
+                + np.float32(self.model_error_fraction**2) * amplitude * amplitude)
+
+    def random_variance_grey2(self, offset_grey: NDArray) -> NDArray[np.float32]:
+        """The random part alone, ``read_variance_grey2 + shot_gain_grey * O``: what the coordinate's
+        noise follows (the model error is the same at every capture of the pixel, a bias)."""
+        offset = np.maximum(np.asarray(offset_grey, np.float32), np.float32(0.0))
+        return np.float32(self.read_variance_grey2) + np.float32(self.shot_gain_grey) * offset
 
 
 def _checked_pitches(pitches_px) -> tuple[float, ...]:
@@ -177,7 +254,8 @@ class MicroPhaseShift:
         axis_length_px : int
             Projector pixels along the coded axis (``L``): candidates lie in ``[-0.5, L - 0.5)``.
         image_noise_grey : float, optional
-            The camera's image noise ``sigma_I`` (grey levels); measured on the capture when None.
+            The camera's image noise ``sigma_I`` (grey levels), the same at every pixel; when
+            None, a per-pixel noise model is fitted to the capture (:meth:`decode_with_noise`).
 
         Returns
         -------
@@ -191,6 +269,15 @@ class MicroPhaseShift:
         ConfigError
             A bad axis length, or pitches that cannot tell the periods of this axis apart.
         """
+        return self.decode_with_noise(images, axis_length_px, image_noise_grey)[0]
+
+    def decode_with_noise(self, images: NDArray, axis_length_px: int, image_noise_grey: float | None = None) -> tuple[MicroPhaseDecode, ImageNoiseModel]:
+        """:meth:`decode`, and the image noise model whose per-pixel limit it applied.
+
+        With ``image_noise_grey`` stated the model is that constant; otherwise it is fitted to
+        the capture (module docstring, "Noise model"). The coordinate's 1-sigma noise is
+        ``coordinate_sigma_gain_px * sqrt(model.random_variance_grey2(O)) / A``.
+        """
         stack = _checked_stack(images, self.image_count)
         length = _checked_axis_length(axis_length_px)
         separation = candidate_separation(self.pitches_px, length)
@@ -201,19 +288,23 @@ class MicroPhaseShift:
             )
         _, h, w = stack.shape
         shifts = self._three_step(stack)
-        sigma = self._noise(stack, shifts[1], image_noise_grey)
-        limit = float(stats.chi2.ppf(1.0 - FALSE_REFUSAL_PROBABILITY, self.image_count - 3)) * sigma**2
         k_all = np.arange(-1, math.ceil(length / self.pitches_px[0]) + 1)
         tables = _candidate_tables(self._omega, self._offsets, self.pitches_px[0], k_all)
+        if image_noise_grey is not None:
+            model = ImageNoiseModel(_checked_noise(image_noise_grey) ** 2)
+        else:
+            model = self._fit_noise(stack, shifts, length, k_all, tables)
+        quantile = np.float32(stats.chi2.ppf(1.0 - FALSE_REFUSAL_PROBABILITY, self.image_count - 3))
         coordinate = np.empty((h, w), np.float32)
         rows = max(1, min(h, _BAND_BYTES // max(1, 4 * w * k_all.size)))
         for r0 in range(0, h, rows):
             r1 = min(h, r0 + rows)
             further = stack[3:, r0:r1].reshape(stack.shape[0] - 3, -1).astype(np.float32)
             offset, amplitude, u0 = (m[r0:r1].ravel() for m in shifts)
+            limit = quantile * model.variance_grey2(offset, amplitude)
             coordinate[r0:r1] = self._search_band(further - offset, amplitude, u0, length, k_all, tables, limit).reshape(r1 - r0, w)
-        log.debug("micro phase shifting: sigma_I %.3g grey, %d of %d pixels decoded", sigma, int(np.isfinite(coordinate).sum()), coordinate.size)
-        return MicroPhaseDecode(coordinate, shifts[1], shifts[0], self.coordinate_sigma_gain_px)
+        log.debug("micro phase shifting: %s, %d of %d pixels decoded", model, int(np.isfinite(coordinate).sum()), coordinate.size)
+        return MicroPhaseDecode(coordinate, shifts[1], shifts[0], self.coordinate_sigma_gain_px), model
 
     def _three_step(self, stack: NDArray) -> tuple[NDArray[np.float32], NDArray[np.float32], NDArray[np.float32]]:
         """Step 1 on the 3 shifts: offset ``O``, amplitude ``A`` and ``u`` within the first period."""
@@ -225,22 +316,40 @@ class MicroPhaseShift:
         u0 = np.float32(self.pitches_px[0] / TWO_PI) * (np.arctan2(s1, c1) % np.float32(TWO_PI))
         return offset, amplitude, np.minimum(u0, np.float32(np.nextafter(self.pitches_px[0], 0)))
 
-    def _noise(self, stack: NDArray, modulation: NDArray, given: float | None) -> float:
-        """The stated image noise, or the one measured on the three shifts where fringes are seen."""
-        if given is not None:
-            if not (isinstance(given, (int, float, np.floating)) and math.isfinite(given) and given > 0):
-                raise ConfigError(f"image_noise_grey must be a positive number of grey levels, got {given!r}")
-            return float(given)
-        # The pixels lit at least half as strongly as the brightest tenth: dark background has
-        # less shot noise and would make the estimate too small for the pixels being decoded.
-        lit = modulation >= 0.5 * np.percentile(modulation, 90)
-        return estimate_image_noise_grey(stack[:3], valid=lit)
+    def _fit_noise(self, stack: NDArray, shifts: tuple[NDArray, NDArray, NDArray], length: int, k_all: NDArray, tables: tuple[NDArray, NDArray]) -> ImageNoiseModel:
+        """The noise model fitted to the best candidates' chi-square (module docstring, "Noise model")."""
+        offset, amplitude, u0 = (m.ravel() for m in shifts)
+        # the global noise of the lit pixels: a scale for which pixels see fringes, and the fallback
+        lit = shifts[1] >= 0.5 * np.percentile(shifts[1], 90)
+        sigma = estimate_image_noise_grey(stack[:3], valid=lit)
+        fallback = ImageNoiseModel(sigma**2)
+        pix = np.flatnonzero(amplitude >= np.float32(_NOISE_FIT_MIN_SNR * sigma))
+        pix = pix[:: max(1, pix.size // _NOISE_SAMPLES)]
+        if pix.size < 3 * _NOISE_BIN_PIXELS:
+            log.debug("micro phase shifting: %d pixels with fringes, too few to fit a noise model; sigma_I %.3g grey", pix.size, sigma)
+            return fallback
+        further = stack[3:].reshape(stack.shape[0] - 3, -1)[:, pix].astype(np.float32) - offset[pix]
+        a = (self._omega[1:, None] * u0[pix] + self._offsets[:, None]).astype(np.float32)
+        rss = self._mask_off_axis(_candidate_costs(further, amplitude[pix], a, tables), u0[pix], length, k_all)
+        best = np.argmin(rss, axis=1)
+        chi = _pair_chi2(further, amplitude[pix], a, self._omega, self.pitches_px[0], np.arange(pix.size), k_all[best])
+        fitted = _fit_variance_model(offset[pix], amplitude[pix], chi / np.float32(stats.chi2.median(further.shape[0])))
+        return fallback if fitted is None else fitted
 
-    def _search_band(self, further: NDArray, amplitude: NDArray, u0: NDArray, length: int, k_all: NDArray, tables: tuple[NDArray, NDArray], limit: float) -> NDArray[np.float32]:
+    def _mask_off_axis(self, rss: NDArray, u0: NDArray, length: int, k_all: NDArray) -> NDArray:
+        """``rss`` with the candidates outside ``[-0.5, L - 0.5)`` set to inf (in place)."""
+        # u_k < -0.5 can only happen at k = -1, u_k >= L - 0.5 only in the last columns
+        rss[u0 < self.pitches_px[0] - 0.5, 0] = np.inf
+        first_off = math.floor((length - 0.5) / self.pitches_px[0]) + 1  # index of k = first_off - 1 ... in k_all
+        for col in range(max(0, first_off - 1), k_all.size):
+            rss[u0 + self.pitches_px[0] * k_all[col] >= length - 0.5, col] = np.inf
+        return rss
+
+    def _search_band(self, further: NDArray, amplitude: NDArray, u0: NDArray, length: int, k_all: NDArray, tables: tuple[NDArray, NDArray], limit: NDArray) -> NDArray[np.float32]:
         """Steps 2-3 on n pixels: the coordinate where exactly one candidate is consistent, else NaN.
 
-        ``further`` holds ``V_f`` (F - 1, n). Every candidate's fixed-parameter residual
-        ``RSS_k = sum_f (V_f - A cos t_fk)^2`` comes from two matrix products; the exact
+        ``further`` holds ``V_f`` (F - 1, n), ``limit`` each pixel's chi-square limit (n,). Every
+        candidate's fixed-parameter residual ``RSS_k = sum_f (V_f - A cos t_fk)^2`` comes from two matrix products; the exact
         chi-square (:func:`_pair_chi2`) is computed only where ``RSS_k`` does not already prove
         the candidate inconsistent (:meth:`_screen`): first for the two smallest ``RSS_k`` (two
         consistent candidates refuse the pixel at once, the common case in the dark), then for
@@ -255,11 +364,7 @@ class MicroPhaseShift:
         constant = np.einsum("fn,fn->n", further, further) + (0.5 * further.shape[0]) * amplitude**2
         # float32 sums of 4 (F - 1) products round to ~4 (F - 1) 2^-24 of their size: allow 1e-5
         bound = self._screen() * limit - constant + 1e-5 * (constant + 0.5 * further.shape[0] * amplitude**2)
-        # Off the axis: u_k < -0.5 can only happen at k = -1, u_k >= L - 0.5 only in the last columns.
-        rss[u0 < self.pitches_px[0] - 0.5, 0] = np.inf
-        first_off = math.floor((length - 0.5) / self.pitches_px[0]) + 1  # index of k = first_off - 1 ... in k_all
-        for col in range(max(0, first_off - 1), k_all.size):
-            rss[u0 + self.pitches_px[0] * k_all[col] >= length - 0.5, col] = np.inf
+        self._mask_off_axis(rss, u0, length, k_all)
         best = np.argmin(rss, axis=1)
         saved = rss[rows, best]
         rss[rows, best] = np.inf
@@ -271,7 +376,7 @@ class MicroPhaseShift:
         keep = possible[pix, cand]
         pix, cand = pix[keep], cand[keep]
         chi = _pair_chi2(further, amplitude, a, self._omega, self.pitches_px[0], pix, k_all[cand])
-        consistent = np.bincount(pix[chi <= limit], minlength=n)
+        consistent = np.bincount(pix[chi <= limit[pix]], minlength=n)
         possible[pix, cand] = False  # done
         possible[consistent >= 2] = False  # already ambiguous
         need = np.flatnonzero(possible.any(axis=1))  # few pixels: the screen passes ~1 candidate
@@ -279,7 +384,7 @@ class MicroPhaseShift:
         more_pix = need[sub_pix]
         pix, cand = np.concatenate([pix, more_pix]), np.concatenate([cand, more_cand])
         chi = np.concatenate([chi, _pair_chi2(further, amplitude, a, self._omega, self.pitches_px[0], more_pix, k_all[more_cand])])
-        ok = chi <= limit
+        ok = chi <= limit[pix]
         consistent = np.bincount(pix[ok], minlength=n)
         out = np.full(n, np.nan, np.float32)
         one = consistent[pix[ok]] == 1
@@ -300,6 +405,41 @@ class MicroPhaseShift:
         count = rho2.size
         tau = count / 3.0 + count / 1.5 + float(rho2.sum()) / 1.5
         return (1.0 + math.sqrt(tau)) ** 2
+
+
+def _fit_variance_model(offset: NDArray, amplitude: NDArray, variance: NDArray) -> ImageNoiseModel | None:
+    """``s0^2 + g O + (kappa A)^2`` fitted to per-pixel variance estimates (each ``sigma_I^2`` times
+    a chi-square over its median): medians over quantile bins of (O, A), then non-negative least
+    squares in relative terms (a bin's median has a relative error ~ 1 / sqrt(pixels)). None when
+    fewer than 3 bins are filled (no fit of 3 parameters)."""
+    edges_o = np.quantile(offset, np.linspace(0.0, 1.0, _NOISE_BINS + 1)[1:-1])
+    edges_a = np.quantile(amplitude, np.linspace(0.0, 1.0, _NOISE_BINS + 1)[1:-1])
+    bin_id = np.searchsorted(edges_o, offset) * _NOISE_BINS + np.searchsorted(edges_a, amplitude)
+    order = np.argsort(bin_id, kind="stable")
+    ids, starts, counts = np.unique(bin_id[order], return_index=True, return_counts=True)
+    design, target, weight = [], [], []
+    for start, count in zip(starts, counts, strict=True):  # at most _NOISE_BINS^2 bins
+        if count < _NOISE_BIN_PIXELS:
+            continue
+        members = order[start : start + count]
+        median = float(np.median(variance[members]))
+        if median <= 0.0:
+            continue
+        design.append([1.0, float(np.median(offset[members])), float(np.median(amplitude[members])) ** 2])
+        target.append(median)
+        weight.append(math.sqrt(count) / median)
+    if len(target) < 3:
+        return None
+    x = np.asarray(design) * np.asarray(weight)[:, None]
+    params, _ = optimize.nnls(x, np.asarray(target) * np.asarray(weight))
+    read_variance = max(float(params[0]), QUANTISATION_NOISE_GREY**2)
+    return ImageNoiseModel(read_variance, float(params[1]), math.sqrt(float(params[2])))
+
+
+def _checked_noise(given) -> float:
+    if not (isinstance(given, (int, float, np.floating)) and not isinstance(given, bool) and math.isfinite(given) and given > 0):
+        raise ConfigError(f"image_noise_grey must be a positive number of grey levels, got {given!r}")
+    return float(given)
 
 
 def _candidate_tables(omega: NDArray, offsets: NDArray, pitch_1: float, k_all: NDArray) -> tuple[NDArray, NDArray]:
