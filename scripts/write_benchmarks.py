@@ -495,6 +495,36 @@ def parse_loop_groups(work: Path, stdouts: list[str]) -> Figures:
     return Figures(rows, headline, notes=notes)
 
 
+def codecs_commands(quick: bool) -> list[list[str]]:
+    return [["{python}", "-m", "scripts.codec_accuracy", "--resolution", "320x200" if quick else "640x400", "--json", "{work}/codecs.json"]]
+
+
+def parse_codecs(work: Path, stdouts: list[str]) -> Figures:
+    f = read_json(work / "codecs.json")
+    rows = [["codec", "images", "valid / decoded", "wrong orders (at depth edges)", "depth RMS mm", "predicted from the true noise",
+             "ratio", "predicted from the capture", "columns / rows / both RMS mm", "edge filter kept", "mixed pixels before / after"]]
+    for r in f["rows"]:
+        tri = r["triangulation"]
+        ef = r["edge_filter"]
+        axes = " / ".join(num(tri[a]["rms_mm"], 3) if a in tri else "-" for a in ("columns", "rows", "both"))
+        rows.append([r["codec"], str(r["images"]), f"{r['valid_pixels']} / {r['decoded_pixels']}",
+                     f"{sum(r['order_errors'].values())} ({sum(r['order_errors_at_edges'].values())})", num(r["cli"]["rms_mm"], 3),
+                     num(r["predicted_true_noise_rms_mm"], 3), num(r["measured_over_predicted_true_noise"], 2), num(r["predicted_rms_mm"], 3),
+                     axes, f"{num(100 * ef['kept_fraction'], 1)} %", f"{ef['mixed_before']} / {ef['mixed_after']}"])
+    wrong = sum(sum(r["order_errors"].values()) for r in f["rows"])
+    ratios = [r["measured_over_predicted_true_noise"] for r in f["rows"]]
+    both = next((r for r in f["rows"] if r["axis"] == "both"), None)
+    headline = (f"{len(f['rows'])} codec cases, wrong fringe orders off depth edges: {wrong}; depth RMS / predicted "
+                f"{min(ratios):.2f}-{max(ratios):.2f}")
+    if both is not None:
+        t = both["triangulation"]
+        headline += f"; both axes {num(t['both']['rms_mm'], 3)} mm (columns {num(t['columns']['rms_mm'], 3)}, rows {num(t['rows']['rms_mm'], 3)})"
+    notes = [f"camera {f['resolution'][0]}x{f['resolution'][1]}, projector {f['projector'][0]}x{f['projector'][1]}; 'predicted from the "
+             "true noise' uses the simulator's camera noise at each pixel, 'from the capture' the noise the decoder measures on the "
+             "images (the sinusoid fit's residual, which also holds the projector response's harmonics)"]
+    return Figures(rows, headline, notes=notes)
+
+
 def fpp_sequence_commands(scene: str, config: str, quick_frames: int) -> Callable[[bool], list[list[str]]]:
     def commands(quick: bool) -> list[list[str]]:
         limit = ["--frames", str(quick_frames), "--resolution", "640x400"] if quick else []
@@ -642,6 +672,16 @@ BENCHMARKS: tuple[Benchmark, ...] = (
         short_what="real FPP captures decoded (SLMaster)", short_data="SLMaster heterodyne + monocular", short_command="`scripts/decode_real.py`",
         commands=decode_real_commands, parse=parse_decode_real,
         needs=("real_fpp/slmaster_heterodyne", "real_fpp/slmaster_monocular"), timeout_s=600),
+    Benchmark(
+        "codecs", "FPP codecs simulated and decoded through the CLI",
+        what="Each codec of a fringe-set pattern file (both axes 4/4/4/6 hierarchical at a 10-px finest pitch, 3-step single "
+             "period, 2+1, modulated and micro phase shifting, with and without indirect light) rendered by the virtual sensor "
+             "and decoded by `fpp-slam decode`: wrong fringe orders against the true projector coordinates, depth RMS against "
+             "the truth next to the RMS the phase noise predicts, column, row and both-coordinate triangulation, and the edge "
+             "filter's account.",
+        data="simulated: a sphere in front of a textured plate, 640x400 camera, 1280x720 projector offset right and down",
+        short_what="FPP codecs decoded through the CLI", short_data="simulated, 8 codec cases", short_command="`python -m scripts.codec_accuracy`",
+        commands=codecs_commands, parse=parse_codecs, timeout_s=900),
     Benchmark(
         "rgbd_chess", "Real RGB-D: 7-Scenes chess",
         what="`fpp-slam run` with the RGB-D front-end and `fpp-slam eval`: ATE against the provided poses, loops, frames/s "
