@@ -42,6 +42,32 @@ Gray code: the bits are binarised against their inverses, the references' mean o
 set's background and decoded as in :mod:`frontend.fpp.unwrapping` (plain or complementary);
 an order beyond the stripes of the axis is ``bad_order``.
 
+Spatial unwrapping
+------------------
+An axis whose only set asks for it (``unwrapping: spatial``) is unwrapped across the image:
+the wrapped phase of the valid pixels (not low modulation, saturated or shadow on that axis)
+goes to ``skimage.restoration.unwrap_phase`` (Herraez et al. 2002: edges sorted by the second
+differences of their pixels, most reliable joined first), which unwraps every 4-connected
+region of valid pixels on its own. A region's phase is then right up to one whole number ``k``
+of periods, which the images do not hold. ``k`` is fixed per region by the projector's extent:
+every pixel's coordinate ``c + k lambda`` must lie in ``[-0.5, L - 0.5]`` give or take ``z``
+of its noise (``z`` = 4.89 as above), which leaves the integers
+``k_low = ceil(max (-0.5 - z sigma_c - c) / lambda)`` to ``k_high = floor(min (L - 0.5 + z sigma_c - c) / lambda)``.
+Exactly one: it is taken. None: the region's unwrapped phase spans more than the projector (a
+wrong unwrapping path, e.g. across a depth edge), and the region is ``bad_order``. Several (the
+region sees less than ``L - lambda`` of the axis, the common case): the region is
+``bad_order`` unless it holds the camera's centre pixel ``(W // 2, H // 2)`` and the set gives
+``centre_coordinate_px``, the projector coordinate that pixel sees (from the rig's geometry at
+the working distance): ``k = round((centre_coordinate_px - c_centre) / lambda)``, right when
+the anchor is within half a pitch of the truth; an anchor that puts the region beyond the
+projector is refused as ``bad_order``. A region with no pixel whose whole 3x3 neighbourhood is
+valid is ``bad_order`` whatever its extent: Herraez's reliability is the second difference over
+that neighbourhood, so such a region (a line or speckle, typically mixed pixels at an edge) is
+joined in no reliable order. Limits: a region that crosses a depth edge whose true phase jump
+differs from its wrapped jump by whole periods (a jump of half a period or more) is unwrapped
+with a wrong relative order on one side and nothing in the images shows it, unless its extent
+then exceeds the projector; surfaces must be continuous within each region.
+
 The image noise ``sigma_I`` is measured on the finest set of the coded axis
 (:func:`frontend.fpp.phase_noise.estimate_image_noise_grey`, over the pixels without
 low modulation, saturation or shadow), or on the axis's finest N >= 4 phase-shift set when the
@@ -59,7 +85,7 @@ from typing import TYPE_CHECKING, NamedTuple
 import cv2
 import numpy as np
 from numpy.typing import NDArray
-from scipy import stats
+from scipy import ndimage, stats
 
 from fpp_graph.errors import ConfigError, InputDataError
 from frontend.config import DecodeConfig
@@ -256,6 +282,10 @@ class FringeSetDecoder:
         else:
             if plan.scheme == "gray":
                 absolute, order, bad = self._gray(plan, finest, stack)
+            elif plan.scheme == "spatial":
+                valid = ~(screen["low_modulation"] | screen["saturated"] | screen["shadow"])
+                anchor = self.spec.fringe_sets[plan.finest].centre_coordinate_px
+                absolute, order, bad = unwrap_spatially(finest.phase_rad, self._sigma_rad(finest, noise_grey), valid, pitch, length, anchor)
             else:
                 absolute, order, bad = self._chain(plan, phases, noise_grey)
             coordinate = (absolute * np.float32(pitch / TWO_PI)).astype(np.float32)
@@ -379,3 +409,72 @@ class FringeSetDecoder:
             fringe_order=order, invalid_counts=counts, pitch_px=float(self.pitch_px), axis=self.spec.axis, v_projector_px=v,
             u_noise_px=coded.noise_px, v_noise_px=rows.noise_px if rows is not None else None, image_noise_grey=float(noise_grey),
         )
+
+
+def unwrap_spatially(
+    phase_rad: NDArray[np.float32], sigma_rad: NDArray[np.float32], valid: NDArray[np.bool_], pitch_px: float, length_px: int,
+    centre_coordinate_px: float | None = None,
+) -> tuple[NDArray[np.float32], NDArray[np.int64], NDArray[np.bool_]]:
+    """Spatial unwrapping of one wrapped phase per region of valid pixels (module docstring).
+
+    Parameters
+    ----------
+    phase_rad, sigma_rad : (H, W) float32
+        Wrapped phase in [0, 2 pi) and its noise, radians.
+    valid : (H, W) bool
+        Pixels to unwrap.
+    pitch_px : float
+        Fringe pitch, projector pixels.
+    length_px : int
+        Projector pixels along the axis.
+    centre_coordinate_px : float, optional
+        Projector coordinate seen by the camera's centre pixel, within half a pitch.
+
+    Returns
+    -------
+    absolute_rad : (H, W) float32
+        Absolute phase (the wrapped phase where not valid).
+    order : (H, W) int64
+        Fringe order (-1 where refused, 0 where not valid).
+    bad_order : (H, W) bool
+        Valid pixels of refused regions.
+    """
+    from skimage.restoration import unwrap_phase  # loaded when a file asks for spatial unwrapping
+
+    valid = valid & np.isfinite(phase_rad) & np.isfinite(sigma_rad)
+    count, labels = cv2.connectedComponents(valid.astype(np.uint8), connectivity=4, ltype=cv2.CV_32S)
+    if count <= 1:
+        return phase_rad, np.zeros(phase_rad.shape, np.int64), np.zeros(phase_rad.shape, bool)
+    unwrapped = np.asarray(unwrap_phase(np.ma.masked_array(phase_rad.astype(np.float64), ~valid)).filled(0.0))
+    regions = np.arange(1, count)
+    k_low, k_high = _order_range(unwrapped, sigma_rad, labels, regions, pitch_px, length_px)
+    interior = cv2.erode(valid.astype(np.uint8), np.ones((3, 3), np.uint8), borderType=cv2.BORDER_CONSTANT, borderValue=0) > 0
+    trusted = np.bincount(labels[interior], minlength=count)[1:] > 0
+    offset = np.where(k_low == k_high, k_low, np.nan)
+    h, w = phase_rad.shape
+    centre = labels[h // 2, w // 2]
+    if centre_coordinate_px is not None and centre > 0:
+        k = round((centre_coordinate_px - unwrapped[h // 2, w // 2] * pitch_px / TWO_PI) / pitch_px)
+        offset[centre - 1] = k if k_low[centre - 1] <= k <= k_high[centre - 1] else np.nan
+    offset[~trusted] = np.nan
+    region_offset = np.concatenate([[0.0], offset])[labels]
+    refused = valid & np.isnan(region_offset)
+    absolute = np.where(valid & ~refused, unwrapped + TWO_PI * region_offset, phase_rad).astype(np.float32)
+    order = np.rint((absolute.astype(np.float64) - phase_rad) / TWO_PI).astype(np.int64)
+    order[refused] = -1
+    log.debug(
+        "spatial unwrapping: %d regions, %d fixed by the projector's extent, %d refused (%d pixels)",
+        count - 1, int(np.count_nonzero(k_low == k_high)), int(np.count_nonzero(np.isnan(offset))), int(np.count_nonzero(refused)),
+    )
+    return absolute, order, refused
+
+
+def _order_range(unwrapped_rad: NDArray, sigma_rad: NDArray, labels: NDArray, regions: NDArray, pitch_px: float, length_px: int) -> tuple[NDArray, NDArray]:
+    """Per region, the whole periods ``k`` that keep every pixel's coordinate on the projector
+    (``[-0.5, L - 0.5]`` widened by ``z`` of its noise): ``k_low..k_high`` (empty when k_low > k_high)."""
+    to_px = pitch_px / TWO_PI
+    coordinate = unwrapped_rad * to_px
+    margin = ORDER_RESIDUAL_QUANTILE * sigma_rad.astype(np.float64) * to_px
+    low = ndimage.maximum((-0.5 - margin - coordinate) / pitch_px, labels, regions)
+    high = ndimage.minimum((length_px - 0.5 + margin - coordinate) / pitch_px, labels, regions)
+    return np.ceil(np.asarray(low)), np.floor(np.asarray(high))

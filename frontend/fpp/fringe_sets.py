@@ -40,6 +40,10 @@ ConfigError naming the sets)
   level is unwrapped from the previous one (any pitch ratio > 1).
 * heterodyne: two sets whose beat ``lambda_1 lambda_2 / |lambda_1 - lambda_2|`` covers the
   axis, or three whose beat of beats does.
+* spatial (opt-in, ``unwrapping: spatial`` on the axis's only set, of more than one period):
+  the phase is unwrapped across the image per connected region of valid pixels, and each
+  region's fringe order fixed by the projector's extent or by the anchor
+  ``centre_coordinate_px`` (:mod:`frontend.fpp.fringe_decoding`, "Spatial unwrapping").
 """
 
 from __future__ import annotations
@@ -138,6 +142,8 @@ class FringeSet:
     carrier_steps: int = 0
     carrier_pitch_px: float = 0.0
     pitches_px: tuple[float, ...] = ()
+    unwrapping: str = ""
+    centre_coordinate_px: float | None = None
 
     def __post_init__(self) -> None:
         if self.axis not in AXES:
@@ -147,6 +153,7 @@ class FringeSet:
         if self.shift_direction not in ("forward", "reverse"):
             raise ConfigError(f"shift_direction {self.shift_direction!r} is unknown; use forward or reverse")
         object.__setattr__(self, "phase_origin_rad", _number(self.phase_origin_rad, "phase_origin_rad", positive=False))
+        self._check_unwrapping()
         if self.codec == "micro_phase_shift":
             self._check_micro()
         else:
@@ -182,6 +189,16 @@ class FringeSet:
             object.__setattr__(self, "carrier_pitch_px", _number(self.carrier_pitch_px, "carrier_pitch_px"))
         elif self.carrier_steps or self.carrier_pitch_px:
             raise ConfigError(f"carrier_steps and carrier_pitch_px are for codec modulated_phase_shift, not {self.codec}")
+
+    def _check_unwrapping(self) -> None:
+        if self.unwrapping not in ("", "spatial"):
+            raise ConfigError(f"unwrapping {self.unwrapping!r} is unknown; use spatial (or leave it out: inferred per axis)")
+        if self.unwrapping and self.codec not in PHASE_CODECS:
+            raise ConfigError(f"unwrapping: spatial is for a wrapped phase; codec {self.codec} is absolute")
+        if self.centre_coordinate_px is not None:
+            if not self.unwrapping:
+                raise ConfigError("centre_coordinate_px anchors spatial unwrapping; give it with unwrapping: spatial")
+            object.__setattr__(self, "centre_coordinate_px", _number(self.centre_coordinate_px, "centre_coordinate_px", positive=False))
 
     def _check_micro(self) -> None:
         if self.pitch_px is not None or self.periods is not None or self.steps:

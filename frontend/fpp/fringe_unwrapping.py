@@ -1,7 +1,8 @@
 """Which unwrapping each projector axis of a fringe-set capture uses (the rules are in
 :mod:`frontend.fpp.fringe_sets`, section "Unwrapping"): micro phase shifting alone, a Gray code,
-hierarchical (the coarsest pitch covers the axis) or heterodyne (a beat, or a beat of beats,
-covers it). Anything else is a ConfigError naming the sets."""
+hierarchical (the coarsest pitch covers the axis), heterodyne (a beat, or a beat of beats,
+covers it) or, where the file asks for it, spatial (one set of several periods unwrapped across
+the image). Anything else is a ConfigError naming the sets."""
 
 from __future__ import annotations
 
@@ -50,6 +51,9 @@ def plan_axis(spec: FringeSetSpec, axis: str, members: list[int], length: int | 
         if len(members) > 1 or gray is not None:
             raise ConfigError(f"fringe sets {names} on axis {axis}: a micro_phase_shift set is absolute and must be the axis's only set (no Gray code)")
         return AxisPlan(axis, "micro", [], micro[0])
+    spatial = [i for i in members if spec.fringe_sets[i].unwrapping == "spatial"]
+    if spatial:
+        return _spatial_plan(spec, axis, members, length, names)
     if gray is not None:
         return _gray_plan(spec, axis, members, length, names)
     by_periods = [(set_periods(spec, i, length), i) for i in members]
@@ -84,6 +88,20 @@ def _gray_plan(spec: FringeSetSpec, axis: str, members: list[int], length: int |
             f"{periods:g} periods; use bits >= {math.ceil(math.log2(stripes))}"
         )
     return AxisPlan(axis, "gray", [(periods, ("set", members[0]))], members[0], spec.gray_codes.index(gray))
+
+
+def _spatial_plan(spec: FringeSetSpec, axis: str, members: list[int], length: int | None, names: str) -> AxisPlan | None:
+    if len(members) != 1 or spec.gray_code(axis) is not None:
+        raise ConfigError(
+            f"fringe sets {names} on axis {axis}: unwrapping: spatial is for an axis's only set (no Gray code); "
+            "with several sets or a Gray code the axis is unwrapped per pixel, so drop the key"
+        )
+    periods = set_periods(spec, members[0], length)
+    if periods is None:
+        return None
+    if periods <= 1 + _TOLERANCE:
+        raise ConfigError(f"fringe set {names} on axis {axis} has {periods:g} period(s) across the axis: its phase is already absolute; drop unwrapping: spatial")
+    return AxisPlan(axis, "spatial", [(periods, ("set", members[0]))], members[0])
 
 
 def _chain_plan(axis: str, by_periods: list[tuple[float, int]]) -> AxisPlan | None:

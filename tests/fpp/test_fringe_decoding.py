@@ -17,7 +17,7 @@ import yaml
 from cli_helpers import run_cli
 from scipy import stats
 
-from fpp_graph.errors import InputDataError
+from fpp_graph.errors import ConfigError, InputDataError
 from frontend.fpp.fringe_decoding import (
     MAX_ORDER_RESIDUAL_PERIODS,
     ORDER_FALSE_ALARM_PROBABILITY,
@@ -300,3 +300,82 @@ def test_patterns_and_decode_commands(tmp_path):
     assert sequence.spec == spec
     decoded = FppSensor(sequence.calibration, sequence.spec).decode(sequence.load_frame_images(0))
     assert int(decoded.mask.sum()) == report["decoded_pixels"]
+
+
+# ---------------------------------------------------------------------------- spatial unwrapping
+
+SPATIAL = {"name": "p16", "axis": "columns", "periods": 16, "steps": 3, "unwrapping": "spatial"}
+SPATIAL_PITCH_PX = 1280 / 16
+
+
+def spatial_capture(seed: int, **keys):
+    """A 16-period 3-step set over a 1280-px axis; the field keeps 5 coordinate sigmas (at b = 40)
+    inside the projector, so the extent check's z-sigma allowance cannot refuse a right order."""
+    spec = FringeSetSpec.from_dict({"fringe_sets": [{**SPATIAL, **keys}]}, "test")
+    sigma_px = SPATIAL_PITCH_PX / (2 * np.pi) * math.sqrt(2 / 3) * math.hypot(SIGMA_GREY, QUANTISATION_NOISE_GREY) / 40
+    u, v, b = smooth_field(1280, 720, margin_px=5 * sigma_px + 1.5)
+    return spec, u, render(spec, u, v, b, 1280, 720, seed=seed)
+
+
+def wrong_orders(result, u) -> int:
+    return int(np.count_nonzero(result.mask & (np.abs(result.u_projector_px - u) > 0.5 * SPATIAL_PITCH_PX)))
+
+
+def test_spatial_unwrapping_of_a_smooth_field():
+    """One region seeing nearly all of the axis: one whole-period offset fits the projector."""
+    spec, u, images = spatial_capture(seed=3)
+    result = make_decoder(spec, 1280, 720).decode(images)
+    assert result.mask.all() and result.invalid_counts["bad_order"] == 0
+    assert wrong_orders(result, u) == 0
+    expected = SPATIAL_PITCH_PX / (2 * np.pi) * math.sqrt(2.0 / 3.0) * result.image_noise_grey / result.modulation
+    np.testing.assert_allclose(result.u_noise_px, expected, rtol=1e-5)
+    check_noise_prediction(result.u_projector_px - u, result.u_noise_px, immerkaer_relative_sd(u.size))
+    # the order is the period the coordinate lies in (away from the wrap, where noise decides)
+    away = np.abs(u / SPATIAL_PITCH_PX - np.rint(u / SPATIAL_PITCH_PX)) > 0.1
+    np.testing.assert_array_equal(result.fringe_order[away], np.floor(u / SPATIAL_PITCH_PX)[away])
+
+
+def test_spatial_unwrapping_of_two_regions_and_a_thin_strip():
+    """Two regions apart (a shadow band) each get their own offset; a 2-row strip between them
+    has no pixel with a valid 3x3 neighbourhood and is refused although it spans the axis."""
+    spec, u, images = spatial_capture(seed=4)
+    images[:, 50:70] = 0  # shadow: no fringes, background below min_background
+    images[:, 60:62] = spatial_capture(seed=4)[2][:, 60:62]
+    result = make_decoder(spec, 1280, 720).decode(images)
+    assert result.invalid_counts["bad_order"] == 2 * 160
+    assert not result.mask[60:62].any() and result.mask[:50].all() and result.mask[70:].all()
+    assert wrong_orders(result, u) == 0
+    check_noise_prediction((result.u_projector_px - u)[result.mask], result.u_noise_px[result.mask], immerkaer_relative_sd(u.size))
+
+
+def test_spatial_unwrapping_refuses_an_ambiguous_region_unless_anchored():
+    """A shadow column band leaves a left region (with the centre pixel) seeing 0-62 % of the axis
+    and a right one seeing 69-100 %: several whole-period offsets keep each on the projector, so
+    both are refused; an anchor within half a pitch of the centre pixel's coordinate fixes the
+    left one only."""
+    spec, u, images = spatial_capture(seed=5)
+    images[:, :, 100:110] = 0
+    left, right = np.zeros(u.shape, bool), np.zeros(u.shape, bool)
+    left[:, :100], right[:, 110:] = True, True
+    with pytest.raises(InputDataError, match=rf"no valid pixel .*bad_order {150 * 120} "):
+        make_decoder(spec, 1280, 720).decode(images)
+    centre_u = float(u[60, 80])
+    for anchor in (centre_u - 0.45 * SPATIAL_PITCH_PX, centre_u + 0.45 * SPATIAL_PITCH_PX):
+        spec_anchored, _, _ = spatial_capture(seed=5, centre_coordinate_px=anchor)
+        result = make_decoder(spec_anchored, 1280, 720).decode(images)
+        assert result.mask[left].all() and not result.mask[~left].any()
+        assert result.invalid_counts["bad_order"] == np.count_nonzero(right)
+        assert wrong_orders(result, u) == 0
+    # an anchor a pitch off is taken as given: nothing in the images can show it (a stated limit)
+    spec_off, _, _ = spatial_capture(seed=5, centre_coordinate_px=centre_u + SPATIAL_PITCH_PX)
+    result = make_decoder(spec_off, 1280, 720).decode(images)
+    assert wrong_orders(result, u) == np.count_nonzero(left)
+
+
+def test_spatial_unwrapping_is_opt_in():
+    """Without the key a single set of several periods is refused as before."""
+    plain = {k: v for k, v in SPATIAL.items() if k != "unwrapping"}
+    with pytest.raises(ConfigError, match=r"axis columns cannot be unwrapped \(periods across the axis: p16 16\)"):
+        FringeSetSpec.from_dict({"fringe_sets": [plain]}, "test")
+    spec = FringeSetSpec.from_dict({"fringe_sets": [SPATIAL]}, "test")
+    assert spec.plans(1280, 720)["columns"].scheme == "spatial"
