@@ -77,6 +77,12 @@ CODECS: dict[str, dict[str, Any]] = {
     "3-step single period, interreflection": {"fringe_sets": [{"axis": "columns", "periods": 1, "steps": 3}], "interreflection": True},
     "micro phase shifting, interreflection": {"micro": True, "interreflection": True},
     "modulated 3x3, interreflection": {"fringe_sets": MODULATED, "interreflection": True},
+    # Spatial unwrapping needs neighbouring pixels under half a period apart: at the sphere's
+    # silhouette they are up to 52 projector columns apart at 640x400 (in the rendered truth),
+    # under half of this 213-px pitch (with 16 periods, 80 px, the plate was put a period off
+    # the sphere: 191735 wrong orders at 640x400).
+    # The camera sees columns 126-1280, more than L - pitch, so the extent alone fixes the order.
+    "3-step spatially unwrapped, 6 periods": {"fringe_sets": [{"axis": "columns", "periods": 6, "steps": 3, "unwrapping": "spatial"}]},
 }
 
 
