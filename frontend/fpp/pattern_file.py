@@ -72,6 +72,11 @@ each with its own axis, pitch, steps and images; both axes in one capture:
       codec: phase_shift     # phase_shift | two_plus_one (3 images: sin, cos, flat) |
                              # modulated_phase_shift (steps, carrier_steps, carrier_pitch_px) |
                              # micro_phase_shift (pitches_px: [...] instead of pitch/periods/steps)
+      # unwrapping: spatial  # opt-in for an axis's only set of several periods: unwrapped across
+                             # the image per region of valid pixels; a region's fringe order is
+                             # the one that keeps it on the projector, else it is refused
+      # centre_coordinate_px: 590  # with spatial: the projector coordinate the centre camera
+                             # pixel sees (within half a pitch); fixes the order of its region
   gray_codes:                # optional, at most one per axis; unwraps the axis's one phase set
     - {axis: columns, bits: 7, order: msb_first, inverse: false, complementary: false}
   references: end            # optional: start | end | {white: INDEX, black: INDEX}
@@ -80,8 +85,8 @@ Images: named indices first; then references at the start, the sets in list orde
 next N free images), the Gray codes (bits, each with its inverse, the complementary bit), the
 references at the end. Per axis the unwrapping is inferred: hierarchical (the coarsest pitch
 covers the axis), heterodyne (two sets whose beat, or three whose beat of beats, covers it), a
-Gray code, or micro phase shifting alone; anything else is refused naming the sets.
-Example: datasets/patterns/both_axes_hierarchical_4446.yaml.
+Gray code, micro phase shifting alone, or spatial where a set asks for it; anything else is
+refused naming the sets. Example: datasets/patterns/both_axes_hierarchical_4446.yaml.
 """
 
 

@@ -200,3 +200,27 @@ def test_pitches_are_checked_against_the_projector(tmp_path):
 def test_other_codecs_are_refused_when_their_module_is_absent(tmp_path, monkeypatch):
     monkeypatch.setitem(sys.modules, "frontend.fpp.micro_phase_shift", None)  # import now fails as if absent
     _raises(tmp_path, {"fringe_sets": [{"name": "m", "axis": "columns", "codec": "micro_phase_shift", "pitches_px": [17.0, 19.0, 23.0]}]}, "needs frontend/fpp/micro_phase_shift.py")
+
+
+def test_spatial_unwrapping_keys_are_checked(tmp_path):
+    spatial = {"name": "p16", "axis": "columns", "periods": 16, "steps": 3, "unwrapping": "spatial"}
+    path = _write(tmp_path, {"fringe_sets": [{**spatial, "centre_coordinate_px": 600}]})
+    spec = load_pattern_spec(path)
+    assert spec.plans(1280, 720)["columns"].scheme == "spatial" and spec.fringe_sets[0].centre_coordinate_px == 600.0
+    assert spec.to_dict()["fringe_sets"][0]["unwrapping"] == "spatial"
+    assert load_pattern_spec(_write(tmp_path, spec.to_dict(), "again.yaml")) == spec
+    _raises(tmp_path, {"fringe_sets": [{**spatial, "unwrapping": "temporal"}]}, "(p16)", "unwrapping 'temporal' is unknown")
+    plain = {k: v for k, v in spatial.items() if k != "unwrapping"}
+    _raises(tmp_path, {"fringe_sets": [{**plain, "centre_coordinate_px": 600}]}, "(p16)", "centre_coordinate_px anchors spatial")
+    _raises(tmp_path, {"fringe_sets": [{**spatial, "centre_coordinate_px": "middle"}]}, "(p16)", "centre_coordinate_px must be a finite number")
+    micro = {"name": "m", "axis": "columns", "codec": "micro_phase_shift", "pitches_px": [17.0, 19.0, 23.0], "unwrapping": "spatial"}
+    _raises(tmp_path, {"fringe_sets": [micro]}, "(m)", "codec micro_phase_shift is absolute")
+    coarse = {"name": "p1", "axis": "columns", "periods": 1, "steps": 4}
+    _raises(tmp_path, {"fringe_sets": [coarse, spatial]}, "p1, p16", "an axis's only set")
+    _raises(tmp_path, {"fringe_sets": [spatial], "gray_codes": [{"axis": "columns", "bits": 4}]}, "p16", "an axis's only set")
+    _raises(tmp_path, {"fringe_sets": [{**coarse, "unwrapping": "spatial"}]}, "p1", "1 period(s)", "already absolute")
+    # a pitch is checked against the projector: 1280 px covers a 1280-px axis
+    by_pitch = load_pattern_spec(_write(tmp_path, {"fringe_sets": [{"name": "wide", "axis": "columns", "pitch_px": 1280, "steps": 3, "unwrapping": "spatial"}]}))
+    with pytest.raises(ConfigError, match="wide on axis columns has 1 period"):
+        by_pitch.make_decoder(1280, 720)
+    assert by_pitch.make_decoder(1920, 1080).plans["columns"].scheme == "spatial"
