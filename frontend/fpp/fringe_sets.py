@@ -62,7 +62,7 @@ from frontend.fpp.patterns import gray_encode
 
 AXES = ("columns", "rows")
 CODECS = ("phase_shift", "two_plus_one", "modulated_phase_shift", "micro_phase_shift")
-# Codecs whose wrapped phase joins hierarchical/heterodyne/Gray-code unwrapping.
+# Codecs whose wrapped phase joins hierarchical/heterodyne/Gray-code (or spatial) unwrapping.
 PHASE_CODECS = ("phase_shift", "two_plus_one", "modulated_phase_shift")
 _CODEC_MODULES = {"modulated_phase_shift": "ModulatedPhaseShift", "micro_phase_shift": "MicroPhaseShift"}
 
