@@ -199,8 +199,9 @@ def last_json_line(stdout: str) -> dict:
 
 def demo_commands(quick: bool) -> list[list[str]]:
     frames = ["--frames", "12"] if quick else []
-    return [["{fpp_slam}", "demo", "--out", "{work}", *frames],
-            ["{fpp_slam}", "eval", "{work}/results", "--gt", "{work}/sequence", "--json"]]
+    # the demo writes only into a new or empty folder: not the one holding the commands' output
+    return [["{fpp_slam}", "demo", "--out", "{work}/demo", *frames],
+            ["{fpp_slam}", "eval", "{work}/demo/results", "--gt", "{work}/demo/sequence", "--json"]]
 
 
 def parse_end_to_end(metrics: dict, wall_s: float | None = None) -> tuple[list[list[str]], str]:
@@ -238,7 +239,7 @@ def parse_demo(work: Path, stdouts: list[str]) -> Figures:
         if (m := re.search(pattern, stdouts[0])) is not None:
             rows.append([label, f"{num(float(m.group(1)), 1)} s"])
     notes = [calibration_note(stdouts[0])]
-    add_run_metrics(work / "results" / "metrics.json", rows, notes)
+    add_run_metrics(work / "demo" / "results" / "metrics.json", rows, notes)
     return Figures(rows, headline, notes=notes)
 
 
@@ -675,12 +676,13 @@ BENCHMARKS: tuple[Benchmark, ...] = (
     Benchmark(
         "codecs", "FPP codecs simulated and decoded through the CLI",
         what="Each codec of a fringe-set pattern file (both axes 4/4/4/6 hierarchical at a 10-px finest pitch, 3-step single "
-             "period, 2+1, modulated and micro phase shifting, with and without indirect light) rendered by the virtual sensor "
+             "period, 3-step spatially unwrapped, 2+1, modulated and micro phase shifting, with and without indirect light) "
+             "rendered by the virtual sensor "
              "and decoded by `fpp-slam decode`: wrong fringe orders against the true projector coordinates, depth RMS against "
              "the truth next to the RMS the phase noise predicts, column, row and both-coordinate triangulation, and the edge "
              "filter's account.",
         data="simulated: a sphere in front of a textured plate, 640x400 camera, 1280x720 projector offset right and down",
-        short_what="FPP codecs decoded through the CLI", short_data="simulated, 8 codec cases", short_command="`python -m scripts.codec_accuracy`",
+        short_what="FPP codecs decoded through the CLI", short_data="simulated, one view per codec", short_command="`python -m scripts.codec_accuracy`",
         commands=codecs_commands, parse=parse_codecs, timeout_s=900),
     Benchmark(
         "rgbd_chess", "Real RGB-D: 7-Scenes chess",

@@ -399,11 +399,14 @@ def edge_filter_mask(
        ``max_angle_deg`` with the viewing ray (such points are also the least accurate ones).
        Each central difference spans 2 pixels, ``2 z / f`` across the ray, and its depth part
        carries noise of up to ``sqrt(2) sigma_z``, so the measured ``tan`` of the angle is off
-       by ``|e| f / (2 z)`` with ``|e|`` the length of that 2D noise. The test drops a pixel
-       only when the measured ``tan`` exceeds ``tan(max_angle) + qR sqrt(2) sigma_z f / (2 z)``,
-       ``qR`` the :func:`gradient_noise_quantile` (3.72): a surface at the limit angle passes
-       with probability ``1 - p`` (the triangle inequality), and where the depth noise exceeds
-       the pixel's footprint the test lets nearly every angle pass, as it cannot tell them apart.
+       by ``|e| f / (2 z)`` with ``|e|`` the length of that 2D noise, at most the noise slope
+       ``qR sqrt(2) sigma_z f / (2 z)`` with probability ``1 - p`` (``qR`` the
+       :func:`gradient_noise_quantile`, 3.72). The accepted slope is ``tan(max_angle)`` and that
+       noise slope added in quadrature, as independent tolerances are: where the depth noise
+       exceeds the pixel's footprint nearly every angle passes (the test cannot tell them
+       apart), while a quiet codec keeps the plain limit to within a few per cent (a grazing
+       point is inaccurate beyond its noise: its footprint stretches along the slope and blur
+       mixes the phases across it).
        (The footprint is the axial one; the obliquity of off-axis rays changes it by their
        ``1 + x_n^2``, under 15 % within 20 degrees of the axis.)
 
@@ -515,14 +518,14 @@ def _edge_filter_box(
 
 
 def _grazing_cos2(max_angle_deg: float, focal_px: float, z: NDArray[np.float32], sigma_hood: NDArray[np.float32] | None) -> NDArray[np.float32] | np.float32:
-    """``cos^2`` of the largest accepted angle between normal and ray: ``max_angle_deg``, widened
-    by the gradient's noise (``tan`` grows by ``qR sqrt(2) sigma_z f / (2 z)``, see :func:`edge_filter_mask`)."""
+    """``cos^2`` of the largest accepted angle between normal and ray: the slope of
+    ``max_angle_deg`` and the gradient's noise slope ``qR sqrt(2) sigma_z f / (2 z)`` added in
+    quadrature (see :func:`edge_filter_mask`)."""
     tan_max = math.tan(math.radians(max_angle_deg))
     if sigma_hood is None:
         return np.float32(math.cos(math.radians(max_angle_deg)) ** 2)
     with np.errstate(divide="ignore", invalid="ignore"):
         tan = sigma_hood * np.float32(gradient_noise_quantile() * math.sqrt(2.0) * focal_px / 2.0) / z
-    tan += np.float32(tan_max)
     tan *= tan
-    tan += np.float32(1.0)
+    tan += np.float32(tan_max * tan_max + 1.0)  # 1 + tan^2 = 1 / cos^2
     return np.reciprocal(tan, out=tan)

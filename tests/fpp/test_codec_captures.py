@@ -43,7 +43,7 @@ def text_calibration(calibration) -> str:
 
 @pytest.mark.parametrize("name", [
     "both axes 4/4/4/6 hierarchical, 10 px", "3-step single period", "2+1, hierarchical 1280/128/16 px",
-    "modulated 3x3, hierarchical 1280/160/20 px", "micro phase shifting, interreflection",
+    "modulated 3x3, hierarchical 1280/160/20 px", "micro phase shifting, interreflection", "3-step spatially unwrapped, 6 periods",
 ])
 def test_codec_decodes_at_its_noise_level(rig_files, name):
     work, calibration, yaml_file = rig_files
