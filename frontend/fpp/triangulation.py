@@ -62,7 +62,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from fpp_graph.errors import CalibrationError, InputDataError
 from frontend.fpp.lens import distort_normalized, undistort_pixels
-from frontend.fpp.projector_distortion import FIT_TABLE_LINES, fit_inverse_distortion
+from frontend.fpp.projector_distortion import FIT_TABLE_LINES, check_grid, fit_inverse_distortion
 from frontend.fpp.rig import PinholeModel, RigCalibration
 
 log = logging.getLogger(__name__)
@@ -111,21 +111,6 @@ def _depth_bounds(
 
 
 _FIT_ERROR_WARNING_PX = 0.1
-# Pixel spacing of the grid the fit is checked on. The per-pixel polynomials are interpolated
-# from FIT_TABLE_LINES (4096) epipolar lines, so their error varies over a few pixels at most
-# and a check at every 16th pixel, the image's border rows and columns included (where the
-# projector's corners put the largest error), finds its maximum as well as every 5th pixel did
-# at a tenth of the cost (1.2 s of each decode worker's start at 1920x1200): 2.11e-4 against
-# 2.14e-4 px on the simulated rig, 3.9e-5 against 4.1e-5 px on the real procam sample's,
-# 0.00983 against 0.00984 px on the real SLMaster rig's (strong projector distortion).
-_CHECK_SPACING_PX = 16
-
-
-def _check_grid(height: int, width: int) -> tuple[NDArray, NDArray]:
-    """``np.ix_`` index of the rows and columns :meth:`Triangulator._check_projector_fit` samples:
-    about every :data:`_CHECK_SPACING_PX`-th, the first and the last included."""
-    rows, cols = (np.unique(np.linspace(0, n - 1, max(2, -(-n // _CHECK_SPACING_PX) + 1)).round().astype(np.intp)) for n in (height, width))
-    return np.ix_(rows, cols)
 
 
 class Triangulator:
@@ -346,17 +331,10 @@ class Triangulator:
         slope ``dw/du`` of the fitted inverse projector distortion (1 without distortion), so
         ``sigma_z = |dz/dw| |dw/du| sigma_u``.
 
-        Parameters
-        ----------
-        u_projector_px : (H, W) float array
-            Decoded (distorted) projector coordinate along the triangulated axis; NaN where undecoded.
-        u_sigma_px : (H, W) float array or scalar
-            Its noise, projector pixels (1 sigma).
-
-        Returns
-        -------
-        (H, W) float32
-            Metres; NaN where the coordinate or its noise is not finite or the ray failed.
+        ``u_projector_px`` is the decoded (distorted) coordinate along the triangulated axis (NaN
+        where undecoded), ``u_sigma_px`` its noise (projector pixels, 1 sigma; a map or a scalar).
+        Returns an (H, W) float32 map in metres, NaN where the coordinate or its noise is not
+        finite or the ray failed.
         """
         u = self._check_map(u_projector_px, None)
         dt = self.dtype.type
@@ -538,7 +516,7 @@ class Triangulator:
             )
         self._fit_coeffs = fit.coeffs
         self.projector_fit_degree = fit.degree
-        self.projector_fit_max_error_px, unfitted = self._check_projector_fit(_check_grid(self.height, self.width), fit.nodes)
+        self.projector_fit_max_error_px, unfitted = self._check_projector_fit(check_grid(self.height, self.width), fit.nodes)
         above = self.projector_fit_max_error_px > tolerance_px
         # One DEBUG line per Triangulator. Sampled ray points without a fit lie where the
         # polynomial table does not reach (the projector's extreme corners, at the depth bounds):

@@ -298,13 +298,16 @@ def test_projector_fit_check_grid_reaches_the_border_and_finds_the_dense_maximum
     """The fit is checked on a sparse grid (a tenth of the start-up cost of every 5th pixel): it
     must include the border rows and columns, where the projector's corners put the largest
     error, and find the maximum a check of every pixel row / column finds."""
-    from frontend.fpp.projector_distortion import fit_inverse_distortion
-    from frontend.fpp.triangulation import _CHECK_SPACING_PX, _check_grid
+    from frontend.fpp.projector_distortion import (
+        CHECK_SPACING_PX,
+        check_grid,
+        fit_inverse_distortion,
+    )
 
-    rows, cols = _check_grid(400, 640)
+    rows, cols = check_grid(400, 640)
     for index, n in ((rows.ravel(), 400), (cols.ravel(), 640)):
         assert index[0] == 0 and index[-1] == n - 1
-        assert np.max(np.diff(index)) <= _CHECK_SPACING_PX
+        assert np.max(np.diff(index)) <= CHECK_SPACING_PX
     tri = Triangulator(make_rig())
     nodes = fit_inverse_distortion(tri.calibration, 0, tri.rays, 1e-3, tri.dtype).nodes
     dense_max, _ = tri._check_projector_fit(np.ix_(np.arange(400), np.arange(640)), np.asarray(nodes))
