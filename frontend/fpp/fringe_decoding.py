@@ -87,10 +87,16 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import ndimage, stats
 
-from fpp_graph.errors import ConfigError, InputDataError
+from fpp_graph.errors import ConfigError
 from frontend.config import DecodeConfig
 from frontend.fpp.fringe_unwrapping import AxisPlan
-from frontend.fpp.phase import INVALID_REASONS, DecodeResult, _as_stack, compute_wrapped_phase
+from frontend.fpp.phase import (
+    INVALID_REASONS,
+    DecodeResult,
+    _as_stack,
+    compute_wrapped_phase,
+    no_valid_pixel_error,
+)
 from frontend.fpp.phase_noise import estimate_image_noise_grey, phase_sigma_rad
 from frontend.fpp.unwrapping import order_from_gray, read_gray_code
 from frontend.fpp.wrapped_phase import TWO_PI, Scratch
@@ -387,13 +393,7 @@ class FringeSetDecoder:
         h, w = invalid.shape
         counts = {r: int(np.count_nonzero(m)) for r, m in reasons.items()}
         if invalid.all():
-            cfg = self.config
-            detail = ", ".join(f"{k} {v}" for k, v in counts.items())
-            raise InputDataError(
-                f"no valid pixel in the {w}x{h} frame ({detail} of {h * w} pixels): the images are all dark, saturated or show no "
-                f"fringes, or the pattern file does not describe them; check exposure and projector, or the decode thresholds "
-                f"(min_modulation={cfg.min_modulation}, min_background={cfg.min_background}, saturation_level={cfg.saturation_level})"
-            )
+            raise no_valid_pixel_error(w, h, counts, self.config, ", or the pattern file does not describe them")
         coded = results[self.spec.coded_axis]
         rows = results.get("rows") if self.spec.axis == "both" else None
         u = np.where(invalid, np.float32(np.nan), coded.coordinate_px).astype(np.float32)

@@ -150,6 +150,16 @@ class DecodeResult:
         return float(np.count_nonzero(self.mask)) / max(self.mask.size, 1)
 
 
+def no_valid_pixel_error(width: int, height: int, invalid_counts: dict[str, int], config: DecodeConfig, cause: str = "") -> InputDataError:
+    """The error of a frame where no pixel decodes: the counts per reason and what to check."""
+    detail = ", ".join(f"{k} {v}" for k, v in invalid_counts.items())
+    return InputDataError(
+        f"no valid pixel in the {width}x{height} frame ({detail} of {width * height} pixels): the images are all dark, saturated or "
+        f"show no fringes{cause}; check exposure and projector, or the decode thresholds (min_modulation={config.min_modulation}, "
+        f"min_background={config.min_background}, saturation_level={config.saturation_level})"
+    )
+
+
 def _as_stack(images: NDArray | Sequence[NDArray], expected: int, what: str) -> NDArray:
     """Validate a frame's images and return them as one C-contiguous (M, H, W) stack."""
     if isinstance(images, np.ndarray):
@@ -313,13 +323,7 @@ class Decoder:
                 counts += self._decode_band(stack[:, r0:r1], band, scratch)
         invalid_counts = dict(zip(INVALID_REASONS, (int(c) for c in counts[:4]), strict=True))
         if counts[4] == h * w:
-            cfg = self.config
-            detail = ", ".join(f"{k} {v}" for k, v in invalid_counts.items())
-            raise InputDataError(
-                f"no valid pixel in the {w}x{h} frame ({detail} of {h * w} pixels): the images are all dark, saturated or "
-                f"show no fringes; check exposure and projector, or the decode thresholds (min_modulation="
-                f"{cfg.min_modulation}, min_background={cfg.min_background}, saturation_level={cfg.saturation_level})"
-            )
+            raise no_valid_pixel_error(w, h, invalid_counts, self.config)
         return DecodeResult(
             wrapped_phase=out["phi"],
             u_projector_px=out["u"],
